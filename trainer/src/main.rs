@@ -33,7 +33,8 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::BodyModel { wheel, out } => {
-            let bar = indicatif::ProgressBar::new_spinner().with_message("converting MakeHuman assets (fitting the joint regressor)");
+            let bar = indicatif::ProgressBar::new_spinner()
+                .with_message("converting MakeHuman assets (fitting the joint regressor)");
             bar.enable_steady_tick(std::time::Duration::from_millis(120));
             let r = body_convert::convert(&wheel, &out)?;
             bar.finish_and_clear();

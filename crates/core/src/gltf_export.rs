@@ -47,7 +47,11 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
     if mesh.indices.is_empty() || n == 0 {
         return Err(ExportError::Empty);
     }
-    for (name, len) in [("normals", mesh.normals.len()), ("colors", mesh.colors.len()), ("uvs", mesh.uvs.len())] {
+    for (name, len) in [
+        ("normals", mesh.normals.len()),
+        ("colors", mesh.colors.len()),
+        ("uvs", mesh.uvs.len()),
+    ] {
         if len != 0 && len != n {
             return Err(ExportError::AttributeLength(name, len, n));
         }
@@ -74,14 +78,14 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
 
     // Append one tightly packed attribute view + accessor.
     let push_attr = |root: &mut json::Root,
-                         bytes: &[u8],
-                         count: usize,
-                         ty: json::accessor::Type,
-                         ct: json::accessor::ComponentType,
-                         target: json::buffer::Target,
-                         min: Option<json::Value>,
-                         max: Option<json::Value>,
-                         bin: &mut Vec<u8>| {
+                     bytes: &[u8],
+                     count: usize,
+                     ty: json::accessor::Type,
+                     ct: json::accessor::ComponentType,
+                     target: json::buffer::Target,
+                     min: Option<json::Value>,
+                     max: Option<json::Value>,
+                     bin: &mut Vec<u8>| {
         pad4(bin);
         let offset = bin.len();
         bin.extend_from_slice(bytes);
@@ -111,7 +115,8 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         })
     };
 
-    let f32_bytes = |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(f32::to_le_bytes).collect() };
+    let f32_bytes =
+        |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(f32::to_le_bytes).collect() };
     use json::accessor::{ComponentType as CT, Type as Ty};
     use json::buffer::Target::{ArrayBuffer, ElementArrayBuffer};
 
@@ -140,23 +145,77 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
             .iter()
             .flat_map(|v| {
                 let u = v.normalize_or_zero();
-                if u == Vec3::ZERO { [0.0, 1.0, 0.0] } else { u.to_array() }
+                if u == Vec3::ZERO {
+                    [0.0, 1.0, 0.0]
+                } else {
+                    u.to_array()
+                }
             })
             .collect();
-        let a = push_attr(&mut root, &f32_bytes(&mut unit.into_iter()), n, Ty::Vec3, CT::F32, ArrayBuffer, None, None, &mut bin);
+        let a = push_attr(
+            &mut root,
+            &f32_bytes(&mut unit.into_iter()),
+            n,
+            Ty::Vec3,
+            CT::F32,
+            ArrayBuffer,
+            None,
+            None,
+            &mut bin,
+        );
         attributes.insert(Valid(json::mesh::Semantic::Normals), a);
     }
     if !mesh.colors.is_empty() {
-        let c = f32_bytes(&mut mesh.colors.iter().flat_map(|c| c.clamp(Vec3::ZERO, Vec3::ONE).to_array()));
-        let a = push_attr(&mut root, &c, n, Ty::Vec3, CT::F32, ArrayBuffer, None, None, &mut bin);
+        let c = f32_bytes(
+            &mut mesh
+                .colors
+                .iter()
+                .flat_map(|c| c.clamp(Vec3::ZERO, Vec3::ONE).to_array()),
+        );
+        let a = push_attr(
+            &mut root,
+            &c,
+            n,
+            Ty::Vec3,
+            CT::F32,
+            ArrayBuffer,
+            None,
+            None,
+            &mut bin,
+        );
         attributes.insert(Valid(json::mesh::Semantic::Colors(0)), a);
     }
     if !mesh.uvs.is_empty() {
-        let a = push_attr(&mut root, &f32_bytes(&mut mesh.uvs.iter().flat_map(|c| c.to_array())), n, Ty::Vec2, CT::F32, ArrayBuffer, None, None, &mut bin);
+        let a = push_attr(
+            &mut root,
+            &f32_bytes(&mut mesh.uvs.iter().flat_map(|c| c.to_array())),
+            n,
+            Ty::Vec2,
+            CT::F32,
+            ArrayBuffer,
+            None,
+            None,
+            &mut bin,
+        );
         attributes.insert(Valid(json::mesh::Semantic::TexCoords(0)), a);
     }
-    let idx_bytes: Vec<u8> = mesh.indices.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
-    let indices = push_attr(&mut root, &idx_bytes, mesh.indices.len() * 3, Ty::Scalar, CT::U32, ElementArrayBuffer, None, None, &mut bin);
+    let idx_bytes: Vec<u8> = mesh
+        .indices
+        .iter()
+        .flatten()
+        .flat_map(|i| i.to_le_bytes())
+        .collect();
+    let indices = push_attr(
+        &mut root,
+        &idx_bytes,
+        mesh.indices.len() * 3,
+        Ty::Scalar,
+        CT::U32,
+        ElementArrayBuffer,
+        None,
+        None,
+        &mut bin,
+    );
     pad4(&mut bin);
     root.buffers[0].byte_length = USize64::from(bin.len());
 
@@ -171,7 +230,11 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         name: Some("avatar".into()),
         ..Default::default()
     });
-    let name = if mesh.name.is_empty() { "getavatar".to_string() } else { mesh.name.clone() };
+    let name = if mesh.name.is_empty() {
+        "getavatar".to_string()
+    } else {
+        mesh.name.clone()
+    };
     let gl_mesh = root.push(json::Mesh {
         extensions: None,
         extras: Default::default(),
@@ -187,20 +250,35 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         }],
         weights: None,
     });
-    let node = root.push(json::Node { mesh: Some(gl_mesh), name: Some(name), ..Default::default() });
-    let scene = root.push(json::Scene { extensions: None, extras: Default::default(), name: None, nodes: vec![node] });
+    let node = root.push(json::Node {
+        mesh: Some(gl_mesh),
+        name: Some(name),
+        ..Default::default()
+    });
+    let scene = root.push(json::Scene {
+        extensions: None,
+        extras: Default::default(),
+        name: None,
+        nodes: vec![node],
+    });
     root.scene = Some(scene);
     root.asset.generator = Some(format!("getavatar {}", env!("CARGO_PKG_VERSION")));
 
-    let json_string = json::serialize::to_string(&root).map_err(|e| ExportError::Serialize(e.to_string()))?;
+    let json_string =
+        json::serialize::to_string(&root).map_err(|e| ExportError::Serialize(e.to_string()))?;
     let mut json_offset = json_string.len();
     while json_offset % 4 != 0 {
         json_offset += 1;
     }
     let glb = gltf::binary::Glb {
-        header: gltf::binary::Header { magic: *b"glTF", version: 2, length: (12 + 8 + json_offset + 8 + bin.len()) as u32 },
+        header: gltf::binary::Header {
+            magic: *b"glTF",
+            version: 2,
+            length: (12 + 8 + json_offset + 8 + bin.len()) as u32,
+        },
         bin: Some(Cow::Owned(bin)),
         json: Cow::Owned(json_string.into_bytes()),
     };
-    glb.to_vec().map_err(|e| ExportError::Serialize(e.to_string()))
+    glb.to_vec()
+        .map_err(|e| ExportError::Serialize(e.to_string()))
 }

@@ -1,1 +1,19 @@
-pub fn x(){}
+//! # getavatar-web
+//!
+//! The browser app: eframe/egui on wgpu with the WebGPU backend. It shows the posed body
+//! (later: generated avatars), with pose, shape, camera and view controls and a .glb
+//! download. Everything model-related comes from `getavatar-core`.
+//!
+//! - [`automation`]: URL parameters and the JS hook's commands/status (pure, tested natively)
+//! - `app` (wasm32): the egui application state and panels
+//! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
+//! - `web` (wasm32): entry point, JS hook, file download
+
+pub mod automation;
+
+#[cfg(target_arch = "wasm32")]
+mod app;
+#[cfg(target_arch = "wasm32")]
+mod viewer;
+#[cfg(target_arch = "wasm32")]
+mod web;

@@ -1,0 +1,457 @@
+//! The egui application: state, panels and the per-frame flow
+//! (commands → pose the body → upload → render → show → publish status).
+
+use eframe::egui;
+use eframe::egui_wgpu;
+use glam::Vec3;
+
+use getavatar_core::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
+use getavatar_core::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
+use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
+use getavatar_core::OrbitCamera;
+
+use crate::automation::{Action, Status, ViewMode, RESOLUTIONS};
+use crate::viewer::{Vertex, Viewer};
+use crate::web;
+
+/// Linear RGB albedo of the untextured body.
+const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
+
+pub struct GetAvatarApp {
+    body: Option<BodyModel>,
+    poses: PoseLibrary,
+    params: BodyParams,
+    pose_name: String,
+    camera: OrbitCamera,
+    view: ViewMode,
+    res: u32,
+    continuous: bool,
+    edit_joint: usize,
+    viewer: Option<Viewer>,
+    /// Mesh must be re-posed and uploaded.
+    mesh_dirty: bool,
+    /// Viewport must be re-rendered.
+    render_dirty: bool,
+    status: Status,
+    frame_times: std::collections::VecDeque<f64>,
+    messages: Vec<String>,
+}
+
+impl GetAvatarApp {
+    pub fn new(
+        cc: &eframe::CreationContext<'_>,
+        startup: Vec<Action>,
+        startup_errors: Vec<String>,
+    ) -> Self {
+        let mut status = Status::default();
+        let mut messages = startup_errors;
+        let viewer = match &cc.wgpu_render_state {
+            Some(rs) => {
+                let info = rs.adapter.get_info();
+                // Browsers may hide the adapter's name; fall back to what they do report.
+                status.adapter = [
+                    info.name.as_str(),
+                    info.driver.as_str(),
+                    info.driver_info.as_str(),
+                ]
+                .into_iter()
+                .find(|s| !s.is_empty())
+                .map(str::to_string)
+                .unwrap_or_else(|| {
+                    format!(
+                        "{:?} adapter (vendor {:#x}, device {:#x})",
+                        info.device_type, info.vendor, info.device
+                    )
+                });
+                status.backend = format!("{:?}", info.backend);
+                Some(Viewer::new(&rs.device))
+            }
+            None => {
+                messages.push("no wgpu render state: WebGPU is unavailable in this browser".into());
+                None
+            }
+        };
+        let body = match BodyModel::default_body() {
+            Ok(b) => Some(b),
+            Err(e) => {
+                messages.push(format!("cannot load the embedded body model: {e}"));
+                None
+            }
+        };
+        let poses = PoseLibrary::builtin();
+        let mut app = Self {
+            body,
+            params: poses.params("standing", &[]).unwrap_or_default(),
+            poses,
+            pose_name: "standing".into(),
+            camera: OrbitCamera::default(),
+            view: ViewMode::Rgb,
+            res: 512,
+            continuous: false,
+            edit_joint: 16,
+            viewer,
+            mesh_dirty: true,
+            render_dirty: true,
+            status,
+            frame_times: Default::default(),
+            messages,
+        };
+        for a in startup {
+            app.apply(a);
+        }
+        app
+    }
+
+    fn apply(&mut self, action: Action) {
+        match action {
+            Action::Pose(name) => match self.poses.pose(&name) {
+                Ok(p) => {
+                    self.params.pose = p;
+                    self.pose_name = name;
+                    self.mesh_dirty = true;
+                }
+                Err(e) => self.messages.push(e.to_string()),
+            },
+            Action::Joint(j, v) => {
+                self.params.pose[j] = Vec3::from_array(v);
+                self.pose_name = "custom".into();
+                self.mesh_dirty = true;
+            }
+            Action::Camera { yaw, pitch, radius } => {
+                if let Some(y) = yaw {
+                    self.camera.yaw = y;
+                }
+                if let Some(p) = pitch {
+                    self.camera.pitch = p;
+                }
+                if let Some(r) = radius {
+                    self.camera.radius = r;
+                }
+                self.camera = self.camera.clamped();
+                self.render_dirty = true;
+            }
+            Action::View(v) => {
+                self.view = v;
+                self.render_dirty = true;
+            }
+            Action::Res(r) => {
+                self.res = r;
+                self.render_dirty = true;
+            }
+            Action::Betas(b) => {
+                self.params.betas = b;
+                self.mesh_dirty = true;
+            }
+            Action::ResetCamera => {
+                self.camera = OrbitCamera::default();
+                self.render_dirty = true;
+            }
+            Action::Download => self.download_glb(),
+            Action::Continuous(c) => self.continuous = c,
+        }
+    }
+
+    fn posed_mesh(&self) -> Option<ExportMesh> {
+        let body = self.body.as_ref()?;
+        let posed = pose_body(body, &self.params);
+        let normals = vertex_normals(&posed.vertices, &body.faces);
+        Some(ExportMesh {
+            colors: vec![SKIN; posed.vertices.len()],
+            positions: posed.vertices,
+            normals,
+            uvs: Vec::new(),
+            indices: body.faces.clone(),
+            name: format!("getavatar_body_{}", self.pose_name),
+        })
+    }
+
+    fn download_glb(&mut self) {
+        let Some(mesh) = self.posed_mesh() else {
+            self.messages.push("no body to export".into());
+            return;
+        };
+        match write_glb(&mesh) {
+            Ok(bytes) => {
+                let name = format!("getavatar_{}.glb", self.pose_name);
+                match web::download_bytes(&name, &bytes, "model/gltf-binary") {
+                    Ok(()) => {
+                        self.status.downloads += 1;
+                        self.status.last_glb_bytes = bytes.len();
+                    }
+                    Err(e) => self.messages.push(format!("download failed: {e}")),
+                }
+            }
+            Err(e) => self.messages.push(format!("glTF export failed: {e}")),
+        }
+    }
+
+    fn update_gpu(&mut self, frame: &eframe::Frame) {
+        let Some(rs) = frame.wgpu_render_state() else {
+            return;
+        };
+        let Some(viewer) = self.viewer.as_mut() else {
+            return;
+        };
+        if !(self.mesh_dirty || self.render_dirty || self.continuous) {
+            return;
+        }
+        let t0 = web::now_ms();
+        if self.mesh_dirty {
+            if let Some(body) = &self.body {
+                let posed = pose_body(body, &self.params);
+                let normals = vertex_normals(&posed.vertices, &body.faces);
+                let verts: Vec<Vertex> = posed
+                    .vertices
+                    .iter()
+                    .zip(&normals)
+                    .map(|(p, n)| Vertex {
+                        position: p.to_array(),
+                        normal: n.to_array(),
+                        color: SKIN.to_array(),
+                    })
+                    .collect();
+                viewer.set_mesh(&rs.device, &rs.queue, &verts, &body.faces);
+                self.status.vertices = verts.len();
+                self.status.triangles = body.faces.len();
+            }
+            self.mesh_dirty = false;
+        }
+        let view_proj = self.camera.projection_wgpu(1.0) * self.camera.world_to_camera();
+        let mut renderer = rs.renderer.write();
+        viewer.render(
+            &rs.device,
+            &rs.queue,
+            &mut renderer,
+            self.res,
+            view_proj,
+            self.camera.eye(),
+            self.view,
+        );
+        self.render_dirty = false;
+        self.status.renders += 1;
+        self.status.last_render_ms = (web::now_ms() - t0) as f32;
+    }
+
+    fn side_panel(&mut self, ui: &mut egui::Ui) {
+        ui.heading("GETAvatar");
+        ui.label(
+            egui::RichText::new(format!("{} · {}", self.status.adapter, self.status.backend))
+                .small(),
+        );
+        ui.separator();
+
+        ui.strong("Pose");
+        let mut chosen = None;
+        ui.horizontal_wrapped(|ui| {
+            for name in BUILTIN_POSE_NAMES {
+                if ui
+                    .selectable_label(self.pose_name == name, name)
+                    .on_hover_text(self.poses.description(name).unwrap_or(""))
+                    .clicked()
+                {
+                    chosen = Some(name.to_string());
+                }
+            }
+        });
+        if let Some(n) = chosen {
+            self.apply(Action::Pose(n));
+        }
+        egui::CollapsingHeader::new("Joint rotations (axis-angle, rad)")
+            .default_open(false)
+            .show(ui, |ui| {
+                egui::ComboBox::from_id_salt("joint")
+                    .selected_text(JOINT_NAMES[self.edit_joint])
+                    .show_ui(ui, |ui| {
+                        for (j, n) in JOINT_NAMES.iter().enumerate() {
+                            ui.selectable_value(&mut self.edit_joint, j, *n);
+                        }
+                    });
+                let j = self.edit_joint.min(NUM_JOINTS - 1);
+                let mut v = self.params.pose[j].to_array();
+                let mut changed = false;
+                for (axis, x) in ["x", "y", "z"].iter().zip(v.iter_mut()) {
+                    changed |= ui
+                        .add(
+                            egui::Slider::new(x, -std::f32::consts::PI..=std::f32::consts::PI)
+                                .text(*axis),
+                        )
+                        .changed();
+                }
+                if changed {
+                    self.apply(Action::Joint(j, v));
+                }
+                if ui.button("Zero this joint").clicked() {
+                    self.apply(Action::Joint(j, [0.0; 3]));
+                }
+            });
+
+        ui.separator();
+        ui.strong("Shape β");
+        if let Some(body) = &self.body {
+            let names = body.shape_names.clone();
+            let nb = body.num_betas;
+            let mut betas = self.params.betas.clone();
+            betas.resize(nb, 0.0);
+            let mut changed = false;
+            for (k, b) in betas.iter_mut().enumerate() {
+                let label = names.get(k).cloned().unwrap_or_else(|| format!("β{k}"));
+                changed |= ui
+                    .add(egui::Slider::new(b, -2.0..=2.0).text(label))
+                    .changed();
+            }
+            if ui.button("Reset shape").clicked() {
+                betas = vec![0.0; nb];
+                changed = true;
+            }
+            if changed {
+                self.apply(Action::Betas(betas));
+            }
+        }
+
+        ui.separator();
+        ui.strong("View");
+        ui.horizontal(|ui| {
+            for m in [ViewMode::Rgb, ViewMode::Normal, ViewMode::Mask] {
+                if ui.selectable_label(self.view == m, m.as_str()).clicked() {
+                    self.apply(Action::View(m));
+                }
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("Resolution");
+            for r in RESOLUTIONS {
+                if ui
+                    .selectable_label(self.res == r, format!("{r}²"))
+                    .clicked()
+                {
+                    self.apply(Action::Res(r));
+                }
+            }
+        });
+        ui.horizontal(|ui| {
+            if ui.button("Reset camera").clicked() {
+                self.apply(Action::ResetCamera);
+            }
+            ui.checkbox(&mut self.continuous, "continuous")
+                .on_hover_text("re-render every frame (measures FPS under load)");
+        });
+        ui.label(format!(
+            "{:.1} FPS · render {:.1} ms · {} verts · {} tris",
+            self.status.fps,
+            self.status.last_render_ms,
+            self.status.vertices,
+            self.status.triangles
+        ));
+        ui.label(egui::RichText::new("drag: orbit · wheel: zoom · double-click: reset").small());
+
+        ui.separator();
+        if ui
+            .button("⬇ Download .glb")
+            .on_hover_text("posed mesh with normals, glTF 2.0 binary")
+            .clicked()
+        {
+            self.apply(Action::Download);
+        }
+        if !self.messages.is_empty() {
+            ui.separator();
+            for m in self.messages.iter().rev().take(5) {
+                ui.colored_label(egui::Color32::from_rgb(230, 120, 100), m);
+            }
+        }
+    }
+
+    fn viewport(&mut self, ui: &mut egui::Ui) {
+        let Some(id) = self.viewer.as_ref().and_then(|v| v.texture_id) else {
+            ui.centered_and_justified(|ui| ui.label("WebGPU is not available"));
+            return;
+        };
+        let avail = ui.available_rect_before_wrap();
+        let side = avail.width().min(avail.height()).max(64.0);
+        let rect = egui::Rect::from_center_size(avail.center(), egui::vec2(side, side));
+        let img = egui::Image::new(egui::load::SizedTexture::new(id, egui::vec2(side, side)))
+            .sense(egui::Sense::click_and_drag());
+        let resp = ui.put(rect, img);
+        let r = resp.rect;
+        self.status.viewport = [r.min.x, r.min.y, r.width(), r.height()];
+        if resp.dragged() {
+            let d = resp.drag_delta();
+            self.camera.yaw -= d.x * 0.01;
+            self.camera.pitch += d.y * 0.01;
+            self.camera = self.camera.clamped();
+            self.render_dirty = true;
+        }
+        if resp.double_clicked() {
+            self.apply(Action::ResetCamera);
+        }
+        if resp.hovered() {
+            let scroll = ui.input(|i| i.smooth_scroll_delta.y);
+            if scroll != 0.0 {
+                self.camera.radius *= (-scroll * 0.002).exp();
+                self.camera = self.camera.clamped();
+                self.render_dirty = true;
+            }
+        }
+    }
+
+    fn publish_status(&mut self, now: f64) {
+        self.frame_times.push_back(now);
+        while self.frame_times.front().is_some_and(|t| now - t > 1000.0) {
+            self.frame_times.pop_front();
+        }
+        self.status.fps = self.frame_times.len() as f32;
+        self.status.pose = self.pose_name.clone();
+        self.status.view = self.view.as_str().into();
+        self.status.res = self.res;
+        self.status.yaw_deg = self.camera.yaw.to_degrees();
+        self.status.pitch_deg = self.camera.pitch.to_degrees();
+        self.status.radius = self.camera.radius;
+        self.status.errors = self.messages.clone();
+        self.status.ready = self.status.renders > 0;
+        web::publish_status(&self.status);
+    }
+}
+
+impl eframe::App for GetAvatarApp {
+    fn ui(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
+        web::set_context(ui.ctx());
+        for cmd in web::take_commands() {
+            match cmd {
+                Ok(a) => self.apply(a),
+                Err(e) => self.messages.push(e),
+            }
+        }
+        self.update_gpu(frame);
+        egui::Panel::left("controls")
+            .resizable(true)
+            .default_size(300.0)
+            .show(ui, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+            });
+        egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
+        // Render changes made by this frame's widgets on the next frame.
+        if self.mesh_dirty || self.render_dirty || self.continuous {
+            ui.ctx().request_repaint();
+        }
+        self.publish_status(web::now_ms());
+    }
+}
+
+/// The egui wgpu configuration: WebGPU, and a device with the adapter's own limits
+/// (burn kernels need more storage buffers per stage than wgpu's defaults).
+pub fn wgpu_options() -> egui_wgpu::WgpuConfiguration {
+    use egui_wgpu::{wgpu, WgpuSetup, WgpuSetupCreateNew};
+    let mut create = WgpuSetupCreateNew::without_display_handle();
+    create.instance_descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
+    create.device_descriptor =
+        std::sync::Arc::new(|adapter: &wgpu::Adapter| wgpu::DeviceDescriptor {
+            label: Some("getavatar device"),
+            required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        });
+    egui_wgpu::WgpuConfiguration {
+        wgpu_setup: WgpuSetup::CreateNew(create),
+        ..Default::default()
+    }
+}

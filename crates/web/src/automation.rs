@@ -1,0 +1,359 @@
+//! The app's automation surface, shared by URL query parameters and the JS hook
+//! (`window.getavatar.command({...})` / `window.getavatar.status()`), so browser tests can
+//! drive the app and read its state without hunting for pixels.
+//!
+//! Pure Rust (no browser APIs): compiled and unit-tested natively.
+//!
+//! URL parameters (all optional):
+//! `pose=<name>` · `yaw=<deg>` · `pitch=<deg>` · `radius=<m>` · `view=rgb|normal|mask` ·
+//! `res=512|1024` · `betas=<b0,b1,...>` · `<joint>=<x,y,z>` (SMPL joint name, axis-angle rad)
+//! · `continuous=1` (render every frame).
+
+use serde::{Deserialize, Serialize};
+
+use getavatar_core::body_model::joint_index;
+
+/// What the viewport shows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum ViewMode {
+    /// Shaded colour.
+    #[default]
+    Rgb,
+    /// World-space normals encoded (n+1)/2; background = zero vector (mid grey).
+    Normal,
+    /// Foreground mask: white body on black.
+    Mask,
+}
+
+impl ViewMode {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "rgb" | "shaded" => Some(Self::Rgb),
+            "normal" | "normals" => Some(Self::Normal),
+            "mask" => Some(Self::Mask),
+            _ => None,
+        }
+    }
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Rgb => "rgb",
+            Self::Normal => "normal",
+            Self::Mask => "mask",
+        }
+    }
+}
+
+/// Render resolutions offered by the app (square).
+pub const RESOLUTIONS: [u32; 2] = [512, 1024];
+
+/// One instruction to the app. JSON form: `{"pose":"walking"}`, `{"joint":"left_elbow",
+/// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
+/// `{"reset_camera":true}`, `{"download":true}`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged, deny_unknown_fields)]
+pub enum Command {
+    Pose {
+        pose: String,
+    },
+    Joint {
+        joint: String,
+        value: [f32; 3],
+    },
+    View {
+        view: String,
+    },
+    Res {
+        res: u32,
+    },
+    Betas {
+        betas: Vec<f32>,
+    },
+    ResetCamera {
+        reset_camera: bool,
+    },
+    Download {
+        download: bool,
+    },
+    Continuous {
+        continuous: bool,
+    },
+    /// Last: every field is optional, so it must not swallow the other shapes.
+    Camera {
+        yaw: Option<f32>,
+        pitch: Option<f32>,
+        radius: Option<f32>,
+    },
+}
+
+/// A command validated against the app's vocabulary.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Action {
+    Pose(String),
+    Joint(usize, [f32; 3]),
+    /// yaw, pitch in radians; radius in metres.
+    Camera {
+        yaw: Option<f32>,
+        pitch: Option<f32>,
+        radius: Option<f32>,
+    },
+    View(ViewMode),
+    Res(u32),
+    Betas(Vec<f32>),
+    ResetCamera,
+    Download,
+    Continuous(bool),
+}
+
+fn finite(v: f32, what: &str) -> Result<f32, String> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(format!("{what}: not a finite number"))
+    }
+}
+
+impl Command {
+    /// Validate; angles given in degrees become radians.
+    pub fn into_action(self) -> Result<Action, String> {
+        Ok(match self {
+            Command::Pose { pose } => Action::Pose(pose),
+            Command::Joint { joint, value } => {
+                let j = joint_index(&joint)
+                    .ok_or_else(|| format!("unknown joint `{joint}` (use SMPL joint names)"))?;
+                for v in value {
+                    finite(v, &joint)?;
+                }
+                Action::Joint(j, value)
+            }
+            Command::Camera { yaw, pitch, radius } => Action::Camera {
+                yaw: yaw
+                    .map(|d| finite(d, "yaw").map(f32::to_radians))
+                    .transpose()?,
+                pitch: pitch
+                    .map(|d| finite(d, "pitch").map(f32::to_radians))
+                    .transpose()?,
+                radius: radius.map(|r| finite(r, "radius")).transpose()?,
+            },
+            Command::View { view } => Action::View(
+                ViewMode::parse(&view)
+                    .ok_or_else(|| format!("unknown view `{view}` (rgb, normal, mask)"))?,
+            ),
+            Command::Res { res } => {
+                if !RESOLUTIONS.contains(&res) {
+                    return Err(format!("unsupported resolution {res} (512 or 1024)"));
+                }
+                Action::Res(res)
+            }
+            Command::Betas { betas } => {
+                for b in &betas {
+                    finite(*b, "betas")?;
+                }
+                Action::Betas(betas)
+            }
+            Command::ResetCamera { .. } => Action::ResetCamera,
+            Command::Download { .. } => Action::Download,
+            Command::Continuous { continuous } => Action::Continuous(continuous),
+        })
+    }
+}
+
+/// Parse a JSON command (from the JS hook).
+pub fn parse_command(json: &str) -> Result<Action, String> {
+    let cmd: Command =
+        serde_json::from_str(json).map_err(|e| format!("bad command {json}: {e}"))?;
+    cmd.into_action()
+}
+
+fn parse_floats(v: &str, what: &str) -> Result<Vec<f32>, String> {
+    v.split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(|s| {
+            s.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("{what}: `{s}` is not a number"))
+                .and_then(|x| finite(x, what))
+        })
+        .collect()
+}
+
+/// Parse a URL query string (`?pose=walking&yaw=30`) into actions, in order.
+/// Bad parameters are reported (one message each) and skipped.
+pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
+    let mut actions = Vec::new();
+    let mut errors = Vec::new();
+    for pair in query
+        .trim_start_matches('?')
+        .split('&')
+        .filter(|p| !p.is_empty())
+    {
+        let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
+        let v = percent_decode(v);
+        let num = |what: &str| {
+            v.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("{what}: `{v}` is not a number"))
+                .and_then(|x| finite(x, what))
+        };
+        let r: Result<Action, String> = match k {
+            "pose" => Ok(Action::Pose(v.clone())),
+            "yaw" => num("yaw").map(|d| Action::Camera {
+                yaw: Some(d.to_radians()),
+                pitch: None,
+                radius: None,
+            }),
+            "pitch" => num("pitch").map(|d| Action::Camera {
+                yaw: None,
+                pitch: Some(d.to_radians()),
+                radius: None,
+            }),
+            "radius" => num("radius").map(|r| Action::Camera {
+                yaw: None,
+                pitch: None,
+                radius: Some(r),
+            }),
+            "view" => ViewMode::parse(&v)
+                .map(Action::View)
+                .ok_or_else(|| format!("unknown view `{v}` (rgb, normal, mask)")),
+            "res" => v
+                .parse::<u32>()
+                .map_err(|_| format!("res: `{v}` is not an integer"))
+                .and_then(|r| Command::Res { res: r }.into_action()),
+            "betas" => parse_floats(&v, "betas").map(Action::Betas),
+            "continuous" => Ok(Action::Continuous(v == "1" || v == "true")),
+            joint => match joint_index(joint) {
+                Some(j) => parse_floats(&v, joint).and_then(|f| {
+                    if f.len() == 3 {
+                        Ok(Action::Joint(j, [f[0], f[1], f[2]]))
+                    } else {
+                        Err(format!(
+                            "{joint}: expected 3 numbers (axis-angle), got {}",
+                            f.len()
+                        ))
+                    }
+                }),
+                None => Err(format!("unknown URL parameter `{joint}`")),
+            },
+        };
+        match r {
+            Ok(a) => actions.push(a),
+            Err(e) => errors.push(e),
+        }
+    }
+    (actions, errors)
+}
+
+fn percent_decode(s: &str) -> String {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'+' => out.push(b' '),
+            b'%' if i + 2 < bytes.len() => {
+                let hex = std::str::from_utf8(&bytes[i + 1..i + 3])
+                    .ok()
+                    .and_then(|h| u8::from_str_radix(h, 16).ok());
+                match hex {
+                    Some(b) => {
+                        out.push(b);
+                        i += 2;
+                    }
+                    None => out.push(b'%'),
+                }
+            }
+            b => out.push(b),
+        }
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// What the app publishes every frame for tests and tools (`window.getavatar.status()`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Status {
+    /// The app has drawn at least one frame of the body.
+    pub ready: bool,
+    /// Graphics adapter name and backend (e.g. "BrowserWebGpu").
+    pub adapter: String,
+    pub backend: String,
+    /// Number of 3D renders so far.
+    pub renders: u64,
+    /// Frames per second of the UI over the last second.
+    pub fps: f32,
+    /// Milliseconds of CPU time of the last pose + upload + render.
+    pub last_render_ms: f32,
+    pub pose: String,
+    pub view: String,
+    pub res: u32,
+    pub yaw_deg: f32,
+    pub pitch_deg: f32,
+    pub radius: f32,
+    pub vertices: usize,
+    pub triangles: usize,
+    /// Viewport image rectangle in CSS pixels: [x, y, width, height].
+    pub viewport: [f32; 4],
+    /// Number of .glb downloads triggered.
+    pub downloads: u64,
+    /// Size in bytes of the last .glb.
+    pub last_glb_bytes: usize,
+    /// Messages about rejected commands / parameters (most recent last).
+    pub errors: Vec<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn query_parameters_become_actions() {
+        let (a, e) =
+            parse_query("?pose=walking&yaw=90&view=mask&res=1024&betas=1,-0.5&left_elbow=0,-1.2,0");
+        assert!(e.is_empty(), "{e:?}");
+        assert_eq!(a[0], Action::Pose("walking".into()));
+        match &a[1] {
+            Action::Camera { yaw: Some(y), .. } => {
+                assert!((y - std::f32::consts::FRAC_PI_2).abs() < 1e-6)
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(a[2], Action::View(ViewMode::Mask));
+        assert_eq!(a[3], Action::Res(1024));
+        assert_eq!(a[4], Action::Betas(vec![1.0, -0.5]));
+        assert_eq!(a[5], Action::Joint(18, [0.0, -1.2, 0.0]));
+    }
+
+    #[test]
+    fn bad_parameters_are_reported_not_fatal() {
+        let (a, e) = parse_query("res=300&view=xray&yaw=abc&left_knee=1,2&bogus=1&pose=T&yaw=NaN");
+        assert_eq!(a, vec![Action::Pose("T".into())]);
+        assert_eq!(e.len(), 6, "{e:?}");
+        assert!(e.iter().any(|m| m.contains("xray")));
+    }
+
+    #[test]
+    fn json_commands() {
+        assert_eq!(
+            parse_command(r#"{"pose":"sitting"}"#),
+            Ok(Action::Pose("sitting".into()))
+        );
+        assert_eq!(
+            parse_command(r#"{"joint":"right_knee","value":[1.5,0,0]}"#),
+            Ok(Action::Joint(5, [1.5, 0.0, 0.0]))
+        );
+        assert_eq!(
+            parse_command(r#"{"view":"normal"}"#),
+            Ok(Action::View(ViewMode::Normal))
+        );
+        assert_eq!(parse_command(r#"{"download":true}"#), Ok(Action::Download));
+        assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
+        assert!(parse_command(r#"{"res":77}"#).is_err());
+        assert!(parse_command("nonsense").is_err());
+    }
+
+    #[test]
+    fn percent_decoding() {
+        assert_eq!(percent_decode("one%5Fleg"), "one_leg");
+        assert_eq!(percent_decode("a+b%"), "a b%");
+    }
+}

@@ -1,0 +1,374 @@
+//! Offscreen wgpu renderer of a triangle mesh into a square texture that egui displays.
+//! Three outputs, matching the paper's renders: shaded RGB, world-space normal map encoded
+//! (n+1)/2 (background = zero vector, i.e. mid grey) and the foreground mask.
+//!
+//! The colour target is `Rgba8Unorm` holding display (sRGB-encoded) values, which is what
+//! egui expects of user textures: shading is computed in linear light and encoded in the
+//! shader, while a normal-map pixel is stored as exactly round((n+1)/2·255) and egui shows
+//! the bytes unchanged.
+
+use bytemuck::{Pod, Zeroable};
+use eframe::egui;
+use eframe::egui_wgpu::{self, wgpu};
+use glam::{Mat4, Vec3};
+
+use crate::automation::ViewMode;
+
+const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// Vertex layout: position, normal (world space, metres), linear RGB colour.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct Vertex {
+    pub position: [f32; 3],
+    pub normal: [f32; 3],
+    pub color: [f32; 3],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Uniforms {
+    view_proj: [[f32; 4]; 4],
+    eye: [f32; 4],
+    /// x = mode (0 rgb, 1 normal, 2 mask)
+    mode: [u32; 4],
+}
+
+const SHADER: &str = r#"
+struct Uniforms { view_proj: mat4x4<f32>, eye: vec4<f32>, mode: vec4<u32> };
+@group(0) @binding(0) var<uniform> u: Uniforms;
+
+struct VsOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) color: vec3<f32>,
+};
+
+@vertex
+fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) color: vec3<f32>) -> VsOut {
+    var o: VsOut;
+    o.clip = u.view_proj * vec4<f32>(position, 1.0);
+    o.world = position;
+    o.normal = normal;
+    o.color = color;
+    return o;
+}
+
+fn linear_to_srgb(c: vec3<f32>) -> vec3<f32> {
+    let x = clamp(c, vec3<f32>(0.0), vec3<f32>(1.0));
+    let lo = x * 12.92;
+    let hi = 1.055 * pow(x, vec3<f32>(1.0 / 2.4)) - 0.055;
+    return select(hi, lo, x <= vec3<f32>(0.0031308));
+}
+
+@fragment
+fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+    var n = normalize(in.normal);
+    if (!front) { n = -n; }
+    if (u.mode.x == 1u) {
+        return vec4<f32>(n * 0.5 + vec3<f32>(0.5), 1.0);
+    }
+    if (u.mode.x == 2u) {
+        return vec4<f32>(1.0, 1.0, 1.0, 1.0);
+    }
+    let view = normalize(u.eye.xyz - in.world);
+    let key = normalize(vec3<f32>(0.4, 0.8, 0.6));
+    let fill = normalize(vec3<f32>(-0.6, 0.2, 0.4));
+    let diffuse = max(dot(n, key), 0.0) * 0.75 + max(dot(n, fill), 0.0) * 0.25;
+    let sky = 0.5 + 0.5 * n.y;
+    let ambient = mix(0.12, 0.28, sky);
+    let h = normalize(key + view);
+    let spec = pow(max(dot(n, h), 0.0), 32.0) * 0.12;
+    let rim = pow(1.0 - max(dot(n, view), 0.0), 3.0) * 0.15;
+    let c = in.color * (ambient + diffuse) + vec3<f32>(spec + rim);
+    return vec4<f32>(linear_to_srgb(c), 1.0);
+}
+"#;
+
+/// Background colour per view mode, in encoded (display) bytes.
+pub fn background(mode: ViewMode) -> [u8; 3] {
+    match mode {
+        ViewMode::Rgb => [38, 40, 46],
+        ViewMode::Normal => [128, 128, 128],
+        ViewMode::Mask => [0, 0, 0],
+    }
+}
+
+/// GPU resources of the viewport. Create once; call [`Viewer::set_mesh`] when the mesh
+/// changes and [`Viewer::render`] when anything changes.
+pub struct Viewer {
+    pipeline: wgpu::RenderPipeline,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    vertex_buffer: Option<wgpu::Buffer>,
+    index_buffer: Option<wgpu::Buffer>,
+    index_count: u32,
+    vertex_capacity: u64,
+    index_capacity: u64,
+    target: Option<(u32, wgpu::Texture, wgpu::TextureView, wgpu::TextureView)>,
+    /// egui's handle of the colour texture.
+    pub texture_id: Option<egui::TextureId>,
+}
+
+impl Viewer {
+    pub fn new(device: &wgpu::Device) -> Self {
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("getavatar viewer"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let bgl = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("viewer uniforms"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("viewer"),
+            bind_group_layouts: &[Some(&bgl)],
+            immediate_size: 0,
+        });
+        let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3];
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("viewer"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[Some(wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<Vertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &attrs,
+                })],
+            },
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: COLOR_FORMAT,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            primitive: wgpu::PrimitiveState {
+                cull_mode: None,
+                front_face: wgpu::FrontFace::Ccw,
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            multiview_mask: None,
+            cache: None,
+        });
+        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("viewer uniforms"),
+            size: std::mem::size_of::<Uniforms>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("viewer uniforms"),
+            layout: &bgl,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: uniforms.as_entire_binding(),
+            }],
+        });
+        Self {
+            pipeline,
+            uniforms,
+            bind_group,
+            vertex_buffer: None,
+            index_buffer: None,
+            index_count: 0,
+            vertex_capacity: 0,
+            index_capacity: 0,
+            target: None,
+            texture_id: None,
+        }
+    }
+
+    /// Upload a mesh (re-allocating buffers only when it grows).
+    pub fn set_mesh(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        vertices: &[Vertex],
+        indices: &[[u32; 3]],
+    ) {
+        let vbytes: &[u8] = bytemuck::cast_slice(vertices);
+        let ibytes: &[u8] = bytemuck::cast_slice(indices);
+        if self.vertex_buffer.is_none() || (vbytes.len() as u64) > self.vertex_capacity {
+            self.vertex_capacity = vbytes.len() as u64;
+            self.vertex_buffer = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("viewer vertices"),
+                size: self.vertex_capacity.max(16),
+                usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+        }
+        if self.index_buffer.is_none() || (ibytes.len() as u64) > self.index_capacity {
+            self.index_capacity = ibytes.len() as u64;
+            self.index_buffer = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("viewer indices"),
+                size: self.index_capacity.max(16),
+                usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+        }
+        if let (Some(vb), Some(ib)) = (&self.vertex_buffer, &self.index_buffer) {
+            queue.write_buffer(vb, 0, vbytes);
+            queue.write_buffer(ib, 0, ibytes);
+        }
+        self.index_count = (indices.len() * 3) as u32;
+    }
+
+    fn ensure_target(
+        &mut self,
+        device: &wgpu::Device,
+        renderer: &mut egui_wgpu::Renderer,
+        res: u32,
+    ) {
+        if matches!(&self.target, Some((r, ..)) if *r == res) {
+            return;
+        }
+        let size = wgpu::Extent3d {
+            width: res,
+            height: res,
+            depth_or_array_layers: 1,
+        };
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("viewer colour"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: COLOR_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let depth = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("viewer depth"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
+        let color_view = color.create_view(&Default::default());
+        let depth_view = depth.create_view(&Default::default());
+        match self.texture_id {
+            Some(id) => renderer.update_egui_texture_from_wgpu_texture(
+                device,
+                &color_view,
+                wgpu::FilterMode::Linear,
+                id,
+            ),
+            None => {
+                self.texture_id = Some(renderer.register_native_texture(
+                    device,
+                    &color_view,
+                    wgpu::FilterMode::Linear,
+                ))
+            }
+        }
+        self.target = Some((res, color, color_view, depth_view));
+    }
+
+    /// Draw the current mesh with `view_proj` (world → wgpu clip space) into the
+    /// `res`×`res` target.
+    pub fn render(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        renderer: &mut egui_wgpu::Renderer,
+        res: u32,
+        view_proj: Mat4,
+        eye: Vec3,
+        mode: ViewMode,
+    ) {
+        self.ensure_target(device, renderer, res);
+        let Some((_, _, color_view, depth_view)) = &self.target else {
+            return;
+        };
+        let u = Uniforms {
+            view_proj: view_proj.to_cols_array_2d(),
+            eye: eye.extend(1.0).to_array(),
+            mode: [
+                match mode {
+                    ViewMode::Rgb => 0,
+                    ViewMode::Normal => 1,
+                    ViewMode::Mask => 2,
+                },
+                0,
+                0,
+                0,
+            ],
+        };
+        queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let bg = background(mode).map(|c| c as f64 / 255.0);
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("viewer"),
+        });
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("viewer"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: color_view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color {
+                            r: bg[0],
+                            g: bg[1],
+                            b: bg[2],
+                            a: 1.0,
+                        }),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth_view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(1.0),
+                        store: wgpu::StoreOp::Store,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            if let (Some(vb), Some(ib)) = (&self.vertex_buffer, &self.index_buffer) {
+                if self.index_count > 0 {
+                    pass.set_pipeline(&self.pipeline);
+                    pass.set_bind_group(0, &self.bind_group, &[]);
+                    pass.set_vertex_buffer(0, vb.slice(..));
+                    pass.set_index_buffer(ib.slice(..), wgpu::IndexFormat::Uint32);
+                    pass.draw_indexed(0..self.index_count, 0, 0..1);
+                }
+            }
+        }
+        queue.submit(Some(encoder.finish()));
+    }
+}

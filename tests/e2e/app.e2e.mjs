@@ -1,0 +1,214 @@
+// Browser end-to-end test of the GETAvatar web app in headless Chromium (WebGPU on
+// SwiftShader). Run by `cargo xtask test`, which builds and serves the app and sets
+// GETAVATAR_URL. Screenshots go to GETAVATAR_OUT for a person to look at.
+//
+// What it checks (each assertion can fail):
+//  - the page loads with zero console errors and the app reports a WebGPU adapter;
+//  - a frame shows the body: the mask view's foreground bounding box equals the projection
+//    of the exported mesh's vertices through the reference camera (fov 49.13°, r = 2.3 m);
+//  - the normal view encodes world normals as (n+1)/2 (background = zero vector);
+//  - changing the pose changes the silhouette;
+//  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors.
+
+import { chromium } from 'playwright-core';
+import { PNG } from 'pngjs';
+import validator from 'gltf-validator';
+import fs from 'node:fs';
+import path from 'node:path';
+
+const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
+const out = process.env.GETAVATAR_OUT ?? 'out';
+const executablePath = process.env.GETAVATAR_CHROMIUM ?? '/usr/bin/chromium';
+fs.mkdirSync(out, { recursive: true });
+
+let failures = 0;
+function check(cond, msg) {
+  console.log(`${cond ? 'ok  ' : 'FAIL'} ${msg}`);
+  if (!cond) failures++;
+}
+
+const browser = await chromium.launch({
+  executablePath,
+  headless: true,
+  args: [
+    '--no-sandbox', '--enable-unsafe-webgpu', '--use-angle=swiftshader',
+    '--enable-features=Vulkan', '--use-vulkan=swiftshader',
+    '--disable-background-networking', '--disable-component-update', '--disable-sync',
+    '--no-first-run', '--disable-quic',
+  ],
+});
+const context = await browser.newContext({ viewport: { width: 1280, height: 800 }, deviceScaleFactor: 1, acceptDownloads: true });
+const page = await context.newPage();
+const consoleErrors = [];
+page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+page.on('pageerror', (e) => consoleErrors.push(`pageerror: ${e.message}`));
+
+const status = () => page.evaluate(() => window.getavatar.status());
+async function waitFor(pred, what, timeout = 120000) {
+  const t0 = Date.now();
+  for (;;) {
+    const s = await page.evaluate(() => (window.getavatar ? window.getavatar.status() : { ready: false })).catch(() => ({ ready: false }));
+    if (pred(s)) return s;
+    if (Date.now() - t0 > timeout) throw new Error(`timed out waiting for ${what}; last status ${JSON.stringify(s)}; console errors ${JSON.stringify(consoleErrors)}`);
+    await page.waitForTimeout(250);
+  }
+}
+/** Apply a command and wait until the app has rendered it (two renders later: settled). */
+async function command(cmd, pred = () => true) {
+  const before = (await status()).renders;
+  const err = await page.evaluate((c) => window.getavatar.command(c), cmd);
+  if (err) throw new Error(`command ${JSON.stringify(cmd)} rejected: ${err}`);
+  const s = await waitFor((s) => s.renders > before && pred(s), `render after ${JSON.stringify(cmd)}`);
+  await page.waitForTimeout(300);
+  return s;
+}
+
+/** Screenshot of the viewport image as {w, h, data} (RGBA). */
+async function grab(name) {
+  const s = await status();
+  const [x, y, w, h] = s.viewport.map(Math.round);
+  const buf = await page.screenshot({ clip: { x, y, width: w, height: h } });
+  fs.writeFileSync(path.join(out, `${name}.png`), buf);
+  const png = PNG.sync.read(buf);
+  return { w: png.width, h: png.height, data: png.data };
+}
+const px = (img, x, y) => { const i = (y * img.w + x) * 4; return [img.data[i], img.data[i + 1], img.data[i + 2]]; };
+function maskOf(img, fg) {
+  const m = new Uint8Array(img.w * img.h);
+  for (let y = 0; y < img.h; y++) for (let x = 0; x < img.w; x++) m[y * img.w + x] = fg(px(img, x, y)) ? 1 : 0;
+  return m;
+}
+function bbox(m, w, h) {
+  let [x0, y0, x1, y1] = [w, h, -1, -1];
+  for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) if (m[y * w + x]) { x0 = Math.min(x0, x); y0 = Math.min(y0, y); x1 = Math.max(x1, x); y1 = Math.max(y1, y); }
+  return [x0, y0, x1, y1];
+}
+const coverage = (m) => m.reduce((a, b) => a + b, 0) / m.length;
+function iou(a, b) { let i = 0, u = 0; for (let k = 0; k < a.length; k++) { i += a[k] & b[k]; u += a[k] | b[k]; } return i / u; }
+
+/** Positions of the first mesh primitive of a .glb (float32 VEC3 accessor). */
+function glbPositions(bytes) {
+  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const jsonLen = dv.getUint32(12, true);
+  const json = JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + jsonLen)));
+  const binStart = 20 + jsonLen + 8;
+  const acc = json.accessors[json.meshes[0].primitives[0].attributes.POSITION];
+  const view = json.bufferViews[acc.bufferView];
+  const off = binStart + (view.byteOffset ?? 0) + (acc.byteOffset ?? 0);
+  const f = new Float32Array(bytes.buffer.slice(bytes.byteOffset + off, bytes.byteOffset + off + acc.count * 12));
+  return { f, count: acc.count, json };
+}
+
+async function download(name) {
+  const [dl] = await Promise.all([page.waitForEvent('download'), page.evaluate(() => window.getavatar.command({ download: true }))]);
+  const file = path.join(out, name);
+  await dl.saveAs(file);
+  return { file, suggested: dl.suggestedFilename(), bytes: new Uint8Array(fs.readFileSync(file)) };
+}
+
+try {
+  const t0 = Date.now();
+  await page.goto(`${url}?view=mask&pose=T`);
+  let s = await waitFor((s) => s.ready, 'first frame');
+  await page.waitForTimeout(500);
+  console.log(`first frame after ${((Date.now() - t0) / 1000).toFixed(1)} s; adapter "${s.adapter}" backend ${s.backend}`);
+  check(/webgpu/i.test(s.backend), `app reports a WebGPU adapter (backend ${s.backend}, adapter "${s.adapter}")`);
+  check(s.pose === 'T' && s.view === 'mask', `URL parameters applied (pose ${s.pose}, view ${s.view})`);
+  check(s.vertices > 10000 && s.triangles > 20000, `body mesh uploaded (${s.vertices} vertices, ${s.triangles} triangles)`);
+
+  // --- a frame shows the body where the camera model says it must be ---------------
+  const tMask = await grab('mask_T');
+  const mT = maskOf(tMask, (c) => c[0] > 127);
+  const covT = coverage(mT);
+  check(covT > 0.08 && covT < 0.45, `T-pose mask covers ${(100 * covT).toFixed(1)} % of the viewport`);
+  const dlT = await download('body_T.glb');
+  const { f, count } = glbPositions(dlT.bytes);
+  check(count === s.vertices, `.glb has the app's ${s.vertices} vertices (${count})`);
+  const tanHalf = Math.tan(Math.atan(16 / 35));
+  const eye = [0, -0.185, 2.3];
+  let [u0, v0, u1, v1] = [Infinity, Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < count; i++) {
+    const [x, y, z] = [f[3 * i] - eye[0], f[3 * i + 1] - eye[1], f[3 * i + 2] - eye[2]];
+    const u = (x / (-z * tanHalf) + 1) / 2 * tMask.w;
+    const v = (1 - y / (-z * tanHalf)) / 2 * tMask.h;
+    u0 = Math.min(u0, u); u1 = Math.max(u1, u); v0 = Math.min(v0, v); v1 = Math.max(v1, v);
+  }
+  const got = bbox(mT, tMask.w, tMask.h);
+  const want = [u0, v0, u1, v1];
+  const tol = 0.012 * tMask.w + 1.5;
+  const worst = Math.max(...got.map((g, k) => Math.abs(g + (k >= 2 ? 1 : 0) - want[k])));
+  check(worst <= tol, `mask bbox ${JSON.stringify(got)} matches projected mesh bbox ${JSON.stringify(want.map((x) => +x.toFixed(1)))} (worst ${worst.toFixed(2)} px, tol ${tol.toFixed(1)})`);
+
+  // --- normal map: (n+1)/2 in world space, background = zero vector ----------------
+  s = await command({ view: 'normal' }, (s) => s.view === 'normal');
+  const nImg = await grab('normal_T');
+  const bg = px(nImg, 3, 3);
+  check(bg.every((c) => Math.abs(c - 128) <= 1), `normal-map background encodes the zero vector (${bg})`);
+  // Chest: centre column, 40 % down the mask bbox; faces the camera (+z) → blue ≈ 255.
+  const cx = Math.round((got[0] + got[2]) / 2);
+  const cy = Math.round(got[1] + 0.3 * (got[3] - got[1]));
+  const chest = px(nImg, cx, cy);
+  const n = chest.map((c) => c / 127.5 - 1);
+  const len = Math.hypot(...n);
+  check(n[2] > 0.8 && Math.abs(len - 1) < 0.08, `chest normal ${n.map((x) => x.toFixed(2))} faces +z with unit length (${len.toFixed(3)})`);
+  // Left arm (image right, +x side) top surface: normal points up (+y) → green high.
+  const armY = Math.round(want[1] + (want[3] - want[1]) * 0.0);
+  let armPix = null;
+  for (let y = got[1]; y < got[3]; y++) { if (mT[y * tMask.w + Math.round(got[2] - 0.12 * (got[2] - got[0]))]) { armPix = px(nImg, Math.round(got[2] - 0.12 * (got[2] - got[0])), y + 1); break; } }
+  check(armPix && armPix[1] > 200, `top of the left arm faces up (+y): ${armPix} (y ${armY})`);
+
+  // --- RGB view differs from the background where the body is ----------------------
+  s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
+  const rgb = await grab('rgb_T');
+  const body = px(rgb, cx, cy), back = px(rgb, 3, 3);
+  check(Math.abs(body[0] - back[0]) + Math.abs(body[1] - back[1]) + Math.abs(body[2] - back[2]) > 60, `shaded body ${body} stands out from the background ${back}`);
+
+  // --- changing the pose changes the silhouette -------------------------------------
+  s = await command({ view: 'mask' }, (s) => s.view === 'mask');
+  s = await command({ pose: 'arms_up' }, (s) => s.pose === 'arms_up');
+  const upImg = await grab('mask_arms_up');
+  const mUp = maskOf(upImg, (c) => c[0] > 127);
+  const bUp = bbox(mUp, upImg.w, upImg.h);
+  const j = iou(mT, mUp);
+  check(j < 0.85, `arms_up silhouette differs from T (IoU ${j.toFixed(3)})`);
+  check(bUp[1] < got[1] - 10 && bUp[2] - bUp[0] < 0.7 * (got[2] - got[0]), `arms_up is taller and narrower: bbox ${JSON.stringify(bUp)} vs T ${JSON.stringify(got)}`);
+  s = await command({ joint: 'right_knee', value: [1.5, 0, 0] }, (s) => s.pose === 'custom');
+  const knee = maskOf(await grab('mask_knee'), (c) => c[0] > 127);
+  check(iou(knee, mUp) < 0.98 && iou(knee, mUp) > 0.6, `bending one knee changes part of the silhouette (IoU ${iou(knee, mUp).toFixed(3)})`);
+
+  // --- camera: orbiting 90° shows the side view (narrower silhouette) ----------------
+  s = await command({ pose: 'T' }, (s) => s.pose === 'T');
+  s = await command({ yaw: 90 }, (s) => Math.abs(s.yaw_deg - 90) < 0.01);
+  const side = maskOf(await grab('mask_T_side'), (c) => c[0] > 127);
+  const bSide = bbox(side, tMask.w, tMask.h);
+  check(bSide[2] - bSide[0] < 0.4 * (got[2] - got[0]), `side view is narrow (${bSide[2] - bSide[0]} px vs ${got[2] - got[0]} px front)`);
+  s = await command({ reset_camera: true }, (s) => Math.abs(s.yaw_deg) < 0.01);
+
+  // --- 1024² resolution ---------------------------------------------------------------
+  s = await command({ res: 1024 }, (s) => s.res === 1024);
+  check(s.res === 1024, 'render resolution switches to 1024²');
+
+  // --- .glb download passes the Khronos validator ------------------------------------
+  s = await command({ pose: 'walking' }, (s) => s.pose === 'walking');
+  s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
+  await grab('rgb_walking');
+  const dl = await download('body_walking.glb');
+  check(dl.suggested.endsWith('.glb'), `download is named ${dl.suggested}`);
+  const report = await validator.validateBytes(dl.bytes);
+  const iss = report.issues;
+  check(iss.numErrors === 0, `glTF-Validator: ${iss.numErrors} errors, ${iss.numWarnings} warnings, ${iss.numInfos} infos`);
+  if (iss.numErrors) console.log(JSON.stringify(iss.messages.slice(0, 5), null, 1));
+  const st = await status();
+  check(st.downloads === 2, `app counted ${st.downloads} downloads`);
+  fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(st, null, 1));
+
+  check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
+} catch (e) {
+  console.log(`FAIL ${e.stack ?? e}`);
+  failures++;
+} finally {
+  await page.screenshot({ path: path.join(out, 'app.png') }).catch(() => {});
+  await browser.close();
+}
+console.log(failures ? `browser e2e: ${failures} check(s) failed` : 'browser e2e: all checks passed');
+process.exit(failures ? 1 : 0);
