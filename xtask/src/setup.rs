@@ -20,9 +20,7 @@ const DEBIAN_WASM_PACKAGES: [&str; 4] = ["rustc-web", "cargo-web", "rust-web-src
 
 fn quiet(cmd: &mut Command) -> Option<String> {
     let out = cmd.stderr(Stdio::null()).output().ok()?;
-    out.status
-        .success()
-        .then(|| String::from_utf8_lossy(&out.stdout).into_owned())
+    out.status.success().then(|| String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
 fn rustup_has_wasm() -> bool {
@@ -44,11 +42,7 @@ fn dpkg_installed(pkg: &str) -> bool {
 
 /// Install Debian packages that are missing (apt-get; via sudo when not root).
 pub fn apt_install(pkgs: &[&str]) -> Result<()> {
-    let missing: Vec<&str> = pkgs
-        .iter()
-        .copied()
-        .filter(|p| !dpkg_installed(p))
-        .collect();
+    let missing: Vec<&str> = pkgs.iter().copied().filter(|p| !dpkg_installed(p)).collect();
     if missing.is_empty() {
         return Ok(());
     }
@@ -57,11 +51,7 @@ pub fn apt_install(pkgs: &[&str]) -> Result<()> {
     }
     let root = quiet(Command::new("id").arg("-u")).is_some_and(|s| s.trim() == "0");
     let sudo = |args: &[&str]| {
-        let mut c = if root {
-            Command::new(args[0])
-        } else {
-            Command::new("sudo")
-        };
+        let mut c = if root { Command::new(args[0]) } else { Command::new("sudo") };
         if root {
             c.args(&args[1..]);
         } else {
@@ -93,20 +83,13 @@ pub fn wasm_toolchain() -> Result<WasmToolchain> {
     if debian_wasm_ready() {
         return Ok(WasmToolchain::Debian);
     }
-    eprintln!(
-        "xtask: wasm32 target not installed; trying `rustup target add wasm32-unknown-unknown`"
-    );
-    if Command::new("rustup")
-        .args(["target", "add", "wasm32-unknown-unknown"])
-        .status()
-        .is_ok_and(|s| s.success())
+    eprintln!("xtask: wasm32 target not installed; trying `rustup target add wasm32-unknown-unknown`");
+    if Command::new("rustup").args(["target", "add", "wasm32-unknown-unknown"]).status().is_ok_and(|s| s.success())
         && rustup_has_wasm()
     {
         return Ok(WasmToolchain::Rustup);
     }
-    eprintln!(
-        "xtask: rustup cannot provide the wasm32 std; using Debian's rustc-web with -Zbuild-std"
-    );
+    eprintln!("xtask: rustup cannot provide the wasm32 std; using Debian's rustc-web with -Zbuild-std");
     apt_install(&DEBIAN_WASM_PACKAGES).context("installing the Debian wasm toolchain")?;
     Ok(WasmToolchain::Debian)
 }
@@ -139,9 +122,7 @@ pub fn browser_test_deps() -> Result<()> {
         _ => false,
     };
     if !fresh {
-        run(Command::new("npm")
-            .current_dir(&e2e)
-            .args(["ci", "--no-audit", "--no-fund"]))?;
+        run(Command::new("npm").current_dir(&e2e).args(["ci", "--no-audit", "--no-fund"]))?;
     }
     Ok(())
 }
@@ -151,10 +132,7 @@ pub fn setup(verbose: bool) -> Result<()> {
     let tc = wasm_toolchain()?;
     browser_test_deps()?;
     if verbose {
-        println!(
-            "wasm toolchain: {tc:?}; chromium: {}; node packages: tests/e2e/node_modules",
-            chromium()?
-        );
+        println!("wasm toolchain: {tc:?}; chromium: {}; node packages: tests/e2e/node_modules", chromium()?);
     }
     Ok(())
 }

@@ -50,9 +50,8 @@ pub const JOINT_NAMES: [&str; NUM_JOINTS] = [
 ];
 
 /// SMPL parents (`-1` for the root).
-pub const SMPL_PARENTS: [i32; NUM_JOINTS] = [
-    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
-];
+pub const SMPL_PARENTS: [i32; NUM_JOINTS] =
+    [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21];
 
 /// Index of a joint by its SMPL name.
 pub fn joint_index(name: &str) -> Option<usize> {
@@ -69,10 +68,7 @@ pub enum BodyModelError {
 }
 
 fn invalid(key: &'static str, msg: impl Into<String>) -> BodyModelError {
-    BodyModelError::Invalid {
-        key,
-        msg: msg.into(),
-    }
+    BodyModelError::Invalid { key, msg: msg.into() }
 }
 
 /// A body model in the SMPL layout. All arrays are flattened row-major.
@@ -126,31 +122,16 @@ impl BodyModel {
 
     /// Build from parsed arrays, validating every key and shape.
     pub fn from_arrays(a: &BTreeMap<String, NpyArray>) -> Result<Self, BodyModelError> {
-        let get = |key: &'static str| {
-            a.get(key)
-                .ok_or_else(|| BodyModelError::from(NpzError::Missing(key.to_string())))
-        };
-        let shape_is = |key: &'static str,
-                        arr: &NpyArray,
-                        want: &[Option<usize>]|
-         -> Result<(), BodyModelError> {
-            let ok = arr.shape.len() == want.len()
-                && arr
-                    .shape
-                    .iter()
-                    .zip(want)
-                    .all(|(s, w)| w.is_none_or(|w| *s == w));
+        let get =
+            |key: &'static str| a.get(key).ok_or_else(|| BodyModelError::from(NpzError::Missing(key.to_string())));
+        let shape_is = |key: &'static str, arr: &NpyArray, want: &[Option<usize>]| -> Result<(), BodyModelError> {
+            let ok =
+                arr.shape.len() == want.len() && arr.shape.iter().zip(want).all(|(s, w)| w.is_none_or(|w| *s == w));
             if ok {
                 Ok(())
             } else {
-                let want_s: Vec<String> = want
-                    .iter()
-                    .map(|w| w.map_or("_".to_string(), |w| w.to_string()))
-                    .collect();
-                Err(invalid(
-                    key,
-                    format!("shape {:?}, expected ({})", arr.shape, want_s.join(", ")),
-                ))
+                let want_s: Vec<String> = want.iter().map(|w| w.map_or("_".to_string(), |w| w.to_string())).collect();
+                Err(invalid(key, format!("shape {:?}, expected ({})", arr.shape, want_s.join(", "))))
             }
         };
 
@@ -242,15 +223,8 @@ impl BodyModel {
 
         let shape_names = match a.get("shape_names") {
             Some(n) => {
-                let bytes: Vec<u8> = n
-                    .to_i64("shape_names")?
-                    .into_iter()
-                    .map(|b| b as u8)
-                    .collect();
-                String::from_utf8_lossy(&bytes)
-                    .lines()
-                    .map(str::to_string)
-                    .collect()
+                let bytes: Vec<u8> = n.to_i64("shape_names")?.into_iter().map(|b| b as u8).collect();
+                String::from_utf8_lossy(&bytes).lines().map(str::to_string).collect()
             }
             None => Vec::new(),
         };
@@ -276,72 +250,32 @@ impl BodyModel {
         let mut m = BTreeMap::new();
         m.insert(
             "v_template".into(),
-            NpyArray::f32(
-                vec![nv, 3],
-                self.v_template.iter().flat_map(|v| v.to_array()).collect(),
-            ),
+            NpyArray::f32(vec![nv, 3], self.v_template.iter().flat_map(|v| v.to_array()).collect()),
         );
-        m.insert(
-            "f".into(),
-            NpyArray::u32(
-                vec![self.faces.len(), 3],
-                self.faces.iter().flatten().copied().collect(),
-            ),
-        );
+        m.insert("f".into(), NpyArray::u32(vec![self.faces.len(), 3], self.faces.iter().flatten().copied().collect()));
         m.insert(
             "weights".into(),
-            NpyArray::f32(
-                vec![nv, NUM_JOINTS],
-                self.weights.iter().flatten().copied().collect(),
-            ),
+            NpyArray::f32(vec![nv, NUM_JOINTS], self.weights.iter().flatten().copied().collect()),
         );
-        m.insert(
-            "J_regressor".into(),
-            NpyArray::f32(vec![NUM_JOINTS, nv], self.j_regressor.clone()),
-        );
+        m.insert("J_regressor".into(), NpyArray::f32(vec![NUM_JOINTS, nv], self.j_regressor.clone()));
         // SMPL stores the root's parent as uint32::MAX.
-        let mut k: Vec<i64> = self
-            .parents
-            .iter()
-            .map(|&p| if p < 0 { 4294967295 } else { p as i64 })
-            .collect();
+        let mut k: Vec<i64> = self.parents.iter().map(|&p| if p < 0 { 4294967295 } else { p as i64 }).collect();
         k.extend(0..NUM_JOINTS as i64);
-        m.insert(
-            "kintree_table".into(),
-            NpyArray::i64(vec![2, NUM_JOINTS], k),
-        );
-        m.insert(
-            "shapedirs".into(),
-            NpyArray::f32(vec![nv, 3, self.num_betas], self.shapedirs.clone()),
-        );
-        m.insert(
-            "posedirs".into(),
-            NpyArray::f32(vec![nv, 3, NUM_POSE_FEATURES], self.posedirs.clone()),
-        );
+        m.insert("kintree_table".into(), NpyArray::i64(vec![2, NUM_JOINTS], k));
+        m.insert("shapedirs".into(), NpyArray::f32(vec![nv, 3, self.num_betas], self.shapedirs.clone()));
+        m.insert("posedirs".into(), NpyArray::f32(vec![nv, 3, NUM_POSE_FEATURES], self.posedirs.clone()));
         if !self.vt.is_empty() {
             m.insert(
                 "vt".into(),
-                NpyArray::f32(
-                    vec![self.vt.len(), 2],
-                    self.vt.iter().flat_map(|v| v.to_array()).collect(),
-                ),
+                NpyArray::f32(vec![self.vt.len(), 2], self.vt.iter().flat_map(|v| v.to_array()).collect()),
             );
-            m.insert(
-                "ft".into(),
-                NpyArray::u32(
-                    vec![self.ft.len(), 3],
-                    self.ft.iter().flatten().copied().collect(),
-                ),
-            );
+            m.insert("ft".into(), NpyArray::u32(vec![self.ft.len(), 3], self.ft.iter().flatten().copied().collect()));
         }
         if !self.shape_names.is_empty() {
             let bytes: Vec<i64> = self.shape_names.join("\n").bytes().map(i64::from).collect();
             m.insert(
                 "shape_names".into(),
-                NpyArray {
-                    shape: vec![bytes.len()],
-                    data: npz::NpyData::Int(bytes, npz::DType::U8),
-                },
+                NpyArray { shape: vec![bytes.len()], data: npz::NpyData::Int(bytes, npz::DType::U8) },
             );
         }
         m
@@ -377,11 +311,7 @@ impl BodyModel {
         let mut j = [Vec3::ZERO; NUM_JOINTS];
         for (k, jk) in j.iter_mut().enumerate() {
             let row = &self.j_regressor[k * nv..(k + 1) * nv];
-            *jk = row
-                .iter()
-                .zip(vertices)
-                .filter(|(w, _)| **w != 0.0)
-                .fold(Vec3::ZERO, |acc, (w, v)| acc + *w * *v);
+            *jk = row.iter().zip(vertices).filter(|(w, _)| **w != 0.0).fold(Vec3::ZERO, |acc, (w, v)| acc + *w * *v);
         }
         j
     }
@@ -392,17 +322,10 @@ impl BodyModel {
     }
 }
 
-fn to_triangles(
-    key: &'static str,
-    arr: &NpyArray,
-    n: usize,
-) -> Result<Vec<[u32; 3]>, BodyModelError> {
+fn to_triangles(key: &'static str, arr: &NpyArray, n: usize) -> Result<Vec<[u32; 3]>, BodyModelError> {
     let idx = arr.to_i64(key)?;
     if let Some(bad) = idx.iter().find(|&&i| i < 0 || i as usize >= n) {
         return Err(invalid(key, format!("index {bad} out of range 0..{n}")));
     }
-    Ok(idx
-        .chunks_exact(3)
-        .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
-        .collect())
+    Ok(idx.chunks_exact(3).map(|c| [c[0] as u32, c[1] as u32, c[2] as u32]).collect())
 }

@@ -47,11 +47,7 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
     if mesh.indices.is_empty() || n == 0 {
         return Err(ExportError::Empty);
     }
-    for (name, len) in [
-        ("normals", mesh.normals.len()),
-        ("colors", mesh.colors.len()),
-        ("uvs", mesh.uvs.len()),
-    ] {
+    for (name, len) in [("normals", mesh.normals.len()), ("colors", mesh.colors.len()), ("uvs", mesh.uvs.len())] {
         if len != 0 && len != n {
             return Err(ExportError::AttributeLength(name, len, n));
         }
@@ -115,8 +111,7 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         })
     };
 
-    let f32_bytes =
-        |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(f32::to_le_bytes).collect() };
+    let f32_bytes = |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(f32::to_le_bytes).collect() };
     use json::accessor::{ComponentType as CT, Type as Ty};
     use json::buffer::Target::{ArrayBuffer, ElementArrayBuffer};
 
@@ -166,23 +161,8 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         attributes.insert(Valid(json::mesh::Semantic::Normals), a);
     }
     if !mesh.colors.is_empty() {
-        let c = f32_bytes(
-            &mut mesh
-                .colors
-                .iter()
-                .flat_map(|c| c.clamp(Vec3::ZERO, Vec3::ONE).to_array()),
-        );
-        let a = push_attr(
-            &mut root,
-            &c,
-            n,
-            Ty::Vec3,
-            CT::F32,
-            ArrayBuffer,
-            None,
-            None,
-            &mut bin,
-        );
+        let c = f32_bytes(&mut mesh.colors.iter().flat_map(|c| c.clamp(Vec3::ZERO, Vec3::ONE).to_array()));
+        let a = push_attr(&mut root, &c, n, Ty::Vec3, CT::F32, ArrayBuffer, None, None, &mut bin);
         attributes.insert(Valid(json::mesh::Semantic::Colors(0)), a);
     }
     if !mesh.uvs.is_empty() {
@@ -199,12 +179,7 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         );
         attributes.insert(Valid(json::mesh::Semantic::TexCoords(0)), a);
     }
-    let idx_bytes: Vec<u8> = mesh
-        .indices
-        .iter()
-        .flatten()
-        .flat_map(|i| i.to_le_bytes())
-        .collect();
+    let idx_bytes: Vec<u8> = mesh.indices.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
     let indices = push_attr(
         &mut root,
         &idx_bytes,
@@ -230,11 +205,7 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         name: Some("avatar".into()),
         ..Default::default()
     });
-    let name = if mesh.name.is_empty() {
-        "getavatar".to_string()
-    } else {
-        mesh.name.clone()
-    };
+    let name = if mesh.name.is_empty() { "getavatar".to_string() } else { mesh.name.clone() };
     let gl_mesh = root.push(json::Mesh {
         extensions: None,
         extras: Default::default(),
@@ -250,22 +221,12 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         }],
         weights: None,
     });
-    let node = root.push(json::Node {
-        mesh: Some(gl_mesh),
-        name: Some(name),
-        ..Default::default()
-    });
-    let scene = root.push(json::Scene {
-        extensions: None,
-        extras: Default::default(),
-        name: None,
-        nodes: vec![node],
-    });
+    let node = root.push(json::Node { mesh: Some(gl_mesh), name: Some(name), ..Default::default() });
+    let scene = root.push(json::Scene { extensions: None, extras: Default::default(), name: None, nodes: vec![node] });
     root.scene = Some(scene);
     root.asset.generator = Some(format!("getavatar {}", env!("CARGO_PKG_VERSION")));
 
-    let json_string =
-        json::serialize::to_string(&root).map_err(|e| ExportError::Serialize(e.to_string()))?;
+    let json_string = json::serialize::to_string(&root).map_err(|e| ExportError::Serialize(e.to_string()))?;
     let mut json_offset = json_string.len();
     while json_offset % 4 != 0 {
         json_offset += 1;
@@ -279,6 +240,5 @@ pub fn write_glb(mesh: &ExportMesh) -> Result<Vec<u8>, ExportError> {
         bin: Some(Cow::Owned(bin)),
         json: Cow::Owned(json_string.into_bytes()),
     };
-    glb.to_vec()
-        .map_err(|e| ExportError::Serialize(e.to_string()))
+    glb.to_vec().map_err(|e| ExportError::Serialize(e.to_string()))
 }

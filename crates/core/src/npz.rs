@@ -19,10 +19,7 @@ pub enum NpzError {
 }
 
 fn arr_err(key: &str, msg: impl Into<String>) -> NpzError {
-    NpzError::Array {
-        key: key.to_string(),
-        msg: msg.into(),
-    }
+    NpzError::Array { key: key.to_string(), msg: msg.into() }
 }
 
 /// Element type of an array as stored.
@@ -83,28 +80,16 @@ pub enum NpyData {
 
 impl NpyArray {
     pub fn f32(shape: Vec<usize>, data: Vec<f32>) -> Self {
-        Self {
-            shape,
-            data: NpyData::Float(data.into_iter().map(f64::from).collect(), DType::F32),
-        }
+        Self { shape, data: NpyData::Float(data.into_iter().map(f64::from).collect(), DType::F32) }
     }
     pub fn f64(shape: Vec<usize>, data: Vec<f64>) -> Self {
-        Self {
-            shape,
-            data: NpyData::Float(data, DType::F64),
-        }
+        Self { shape, data: NpyData::Float(data, DType::F64) }
     }
     pub fn i64(shape: Vec<usize>, data: Vec<i64>) -> Self {
-        Self {
-            shape,
-            data: NpyData::Int(data, DType::I64),
-        }
+        Self { shape, data: NpyData::Int(data, DType::I64) }
     }
     pub fn u32(shape: Vec<usize>, data: Vec<u32>) -> Self {
-        Self {
-            shape,
-            data: NpyData::Int(data.into_iter().map(i64::from).collect(), DType::U32),
-        }
+        Self { shape, data: NpyData::Int(data.into_iter().map(i64::from).collect(), DType::U32) }
     }
     pub fn len(&self) -> usize {
         self.shape.iter().product()
@@ -161,33 +146,20 @@ pub fn read_npy(key: &str, bytes: &[u8]) -> Result<NpyArray, NpzError> {
             if bytes.len() < 12 {
                 return Err(arr_err(key, "truncated header"));
             }
-            (
-                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-                12,
-            )
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
         }
         v => return Err(arr_err(key, format!("unsupported .npy version {v}"))),
     };
-    let header = bytes
-        .get(hstart..hstart + hlen)
-        .ok_or_else(|| arr_err(key, "truncated header"))?;
+    let header = bytes.get(hstart..hstart + hlen).ok_or_else(|| arr_err(key, "truncated header"))?;
     let header = std::str::from_utf8(header).map_err(|_| arr_err(key, "header is not text"))?;
-    let descr =
-        header_value(header, "descr").ok_or_else(|| arr_err(key, "header lacks 'descr'"))?;
+    let descr = header_value(header, "descr").ok_or_else(|| arr_err(key, "header lacks 'descr'"))?;
     let descr = descr.trim_matches(|c| c == '\'' || c == '"');
     if descr.starts_with('>') {
-        return Err(arr_err(
-            key,
-            format!("big-endian dtype {descr} is not supported"),
-        ));
+        return Err(arr_err(key, format!("big-endian dtype {descr} is not supported")));
     }
-    let (dtype, size) =
-        DType::parse(descr).ok_or_else(|| arr_err(key, format!("unsupported dtype {descr}")))?;
-    let fortran = header_value(header, "fortran_order")
-        .map(|v| v.trim() == "True")
-        .unwrap_or(false);
-    let shape_txt =
-        header_value(header, "shape").ok_or_else(|| arr_err(key, "header lacks 'shape'"))?;
+    let (dtype, size) = DType::parse(descr).ok_or_else(|| arr_err(key, format!("unsupported dtype {descr}")))?;
+    let fortran = header_value(header, "fortran_order").map(|v| v.trim() == "True").unwrap_or(false);
+    let shape_txt = header_value(header, "shape").ok_or_else(|| arr_err(key, "header lacks 'shape'"))?;
     let shape: Vec<usize> = shape_txt
         .trim_matches(|c| c == '(' || c == ')')
         .split(',')
@@ -201,54 +173,34 @@ pub fn read_npy(key: &str, bytes: &[u8]) -> Result<NpyArray, NpzError> {
     if body.len() < n * size {
         return Err(arr_err(
             key,
-            format!(
-                "data truncated: shape {shape:?} needs {} bytes, file has {}",
-                n * size,
-                body.len()
-            ),
+            format!("data truncated: shape {shape:?} needs {} bytes, file has {}", n * size, body.len()),
         ));
     }
     let chunk = |i: usize| &body[i * size..(i + 1) * size];
     let mut data = match dtype {
         DType::F32 => NpyData::Float(
-            (0..n)
-                .map(|i| f32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as f64)
-                .collect(),
+            (0..n).map(|i| f32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as f64).collect(),
             dtype,
         ),
-        DType::F64 => NpyData::Float(
-            (0..n)
-                .map(|i| f64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8])))
-                .collect(),
-            dtype,
-        ),
+        DType::F64 => {
+            NpyData::Float((0..n).map(|i| f64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8]))).collect(), dtype)
+        }
         DType::I32 => NpyData::Int(
-            (0..n)
-                .map(|i| i32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64)
-                .collect(),
+            (0..n).map(|i| i32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64).collect(),
             dtype,
         ),
-        DType::I64 => NpyData::Int(
-            (0..n)
-                .map(|i| i64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8])))
-                .collect(),
-            dtype,
-        ),
+        DType::I64 => {
+            NpyData::Int((0..n).map(|i| i64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8]))).collect(), dtype)
+        }
         DType::U32 => NpyData::Int(
-            (0..n)
-                .map(|i| u32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64)
-                .collect(),
+            (0..n).map(|i| u32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64).collect(),
             dtype,
         ),
         DType::U64 => NpyData::Int(
-            (0..n)
-                .map(|i| u64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8])) as i64)
-                .collect(),
+            (0..n).map(|i| u64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8])) as i64).collect(),
             dtype,
         ),
-        DType::U8 | DType::Bool => {
-            NpyData::Int(body[..n].iter().map(|&b| b as i64).collect(), dtype)
-        }
+        DType::U8 | DType::Bool => NpyData::Int(body[..n].iter().map(|&b| b as i64).collect(), dtype),
     };
     if fortran && shape.len() > 1 {
         data = match data {
@@ -288,10 +240,8 @@ fn fortran_to_c<T: Copy>(v: &[T], shape: &[usize]) -> Vec<T> {
 fn header_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
     let pat_a = format!("'{key}'");
     let pat_b = format!("\"{key}\"");
-    let start = header
-        .find(&pat_a)
-        .map(|p| p + pat_a.len())
-        .or_else(|| header.find(&pat_b).map(|p| p + pat_b.len()))?;
+    let start =
+        header.find(&pat_a).map(|p| p + pat_a.len()).or_else(|| header.find(&pat_b).map(|p| p + pat_b.len()))?;
     let rest = header[start..].trim_start().strip_prefix(':')?.trim_start();
     if rest.starts_with('(') {
         let end = rest.find(')')?;
@@ -307,20 +257,9 @@ pub fn write_npy(arr: &NpyArray) -> Vec<u8> {
     let dtype = arr.dtype();
     let shape = match arr.shape.len() {
         1 => format!("({},)", arr.shape[0]),
-        _ => format!(
-            "({})",
-            arr.shape
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
+        _ => format!("({})", arr.shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")),
     };
-    let mut header = format!(
-        "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
-        dtype.descr(),
-        shape
-    );
+    let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}", dtype.descr(), shape);
     let total = 10 + header.len() + 1;
     let pad = (64 - total % 64) % 64;
     header.push_str(&" ".repeat(pad));
@@ -330,41 +269,27 @@ pub fn write_npy(arr: &NpyArray) -> Vec<u8> {
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
     match &arr.data {
-        NpyData::Float(v, DType::F32) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&(x as f32).to_le_bytes())),
-        NpyData::Float(v, _) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&x.to_le_bytes())),
-        NpyData::Int(v, DType::I32) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&(x as i32).to_le_bytes())),
-        NpyData::Int(v, DType::U32) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&(x as u32).to_le_bytes())),
-        NpyData::Int(v, DType::U64) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&(x as u64).to_le_bytes())),
+        NpyData::Float(v, DType::F32) => v.iter().for_each(|&x| out.extend_from_slice(&(x as f32).to_le_bytes())),
+        NpyData::Float(v, _) => v.iter().for_each(|&x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::Int(v, DType::I32) => v.iter().for_each(|&x| out.extend_from_slice(&(x as i32).to_le_bytes())),
+        NpyData::Int(v, DType::U32) => v.iter().for_each(|&x| out.extend_from_slice(&(x as u32).to_le_bytes())),
+        NpyData::Int(v, DType::U64) => v.iter().for_each(|&x| out.extend_from_slice(&(x as u64).to_le_bytes())),
         NpyData::Int(v, DType::U8 | DType::Bool) => v.iter().for_each(|&x| out.push(x as u8)),
-        NpyData::Int(v, _) => v
-            .iter()
-            .for_each(|&x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::Int(v, _) => v.iter().for_each(|&x| out.extend_from_slice(&x.to_le_bytes())),
     }
     out
 }
 
 /// All arrays of an `.npz` archive, by key (file name without `.npy`).
 pub fn read_npz(bytes: &[u8]) -> Result<BTreeMap<String, NpyArray>, NpzError> {
-    let mut zip =
-        zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| NpzError::Zip(e.to_string()))?;
+    let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| NpzError::Zip(e.to_string()))?;
     let mut out = BTreeMap::new();
     for i in 0..zip.len() {
         let mut file = zip.by_index(i).map_err(|e| NpzError::Zip(e.to_string()))?;
         let name = file.name().to_string();
         let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
         let mut buf = Vec::with_capacity(file.size() as usize);
-        file.read_to_end(&mut buf)
-            .map_err(|e| arr_err(&key, format!("cannot decompress: {e}")))?;
+        file.read_to_end(&mut buf).map_err(|e| arr_err(&key, format!("cannot decompress: {e}")))?;
         out.insert(key.clone(), read_npy(&key, &buf)?);
     }
     Ok(out)
@@ -377,10 +302,8 @@ pub fn write_npz(arrays: &BTreeMap<String, NpyArray>) -> Result<Vec<u8>, NpzErro
         .compression_method(zip::CompressionMethod::Deflated)
         .last_modified_time(zip::DateTime::default());
     for (key, arr) in arrays {
-        zip.start_file(format!("{key}.npy"), opts)
-            .map_err(|e| NpzError::Zip(e.to_string()))?;
-        zip.write_all(&write_npy(arr))
-            .map_err(|e| NpzError::Zip(e.to_string()))?;
+        zip.start_file(format!("{key}.npy"), opts).map_err(|e| NpzError::Zip(e.to_string()))?;
+        zip.write_all(&write_npy(arr)).map_err(|e| NpzError::Zip(e.to_string()))?;
     }
     let cursor = zip.finish().map_err(|e| NpzError::Zip(e.to_string()))?;
     Ok(cursor.into_inner())
@@ -409,10 +332,7 @@ mod tests {
         // 2x3 matrix [[0,1,2],[3,4,5]] stored column-major: 0,3,1,4,2,5
         let mut bytes = write_npy(&NpyArray::i64(vec![2, 3], vec![0, 3, 1, 4, 2, 5]));
         let (from, to) = (b"'fortran_order': False", b"'fortran_order': True ");
-        let pos = bytes
-            .windows(from.len())
-            .position(|w| w == from)
-            .expect("header field");
+        let pos = bytes.windows(from.len()).position(|w| w == from).expect("header field");
         bytes[pos..pos + to.len()].copy_from_slice(to);
         let a = read_npy("m", &bytes).expect("parse");
         assert_eq!(a.to_i64("m").expect("ints"), vec![0, 1, 2, 3, 4, 5]);

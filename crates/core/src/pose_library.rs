@@ -19,9 +19,7 @@ use crate::skinning::BodyParams;
 pub const BUILTIN_POSES_JSON: &str = include_str!("../../../assets/poses/poses.json");
 
 /// Names of the built-in poses, in display order.
-pub const BUILTIN_POSE_NAMES: [&str; 8] = [
-    "T", "A", "Da", "standing", "walking", "sitting", "one_leg", "arms_up",
-];
+pub const BUILTIN_POSE_NAMES: [&str; 8] = ["T", "A", "Da", "standing", "walking", "sitting", "one_leg", "arms_up"];
 
 /// Canonical pose of the generator (paper code's "Da-pose"): hips abducted ±0.5 rad.
 pub fn da_pose() -> [Vec3; NUM_JOINTS] {
@@ -72,9 +70,7 @@ pub struct PoseLibrary {
 impl PoseLibrary {
     pub fn builtin() -> Self {
         // The built-in file is tested; fall back to an empty library rather than panic.
-        Self::from_json(BUILTIN_POSES_JSON).unwrap_or(Self {
-            poses: BTreeMap::new(),
-        })
+        Self::from_json(BUILTIN_POSES_JSON).unwrap_or(Self { poses: BTreeMap::new() })
     }
 
     pub fn from_json(text: &str) -> Result<Self, PoseError> {
@@ -87,23 +83,15 @@ impl PoseLibrary {
             let mut p = [Vec3::ZERO; NUM_JOINTS];
             p[0] = Vec3::from_array(entry.global_orient);
             for (joint, v) in &entry.joints {
-                let j = joint_index(joint).ok_or_else(|| PoseError::UnknownJoint {
-                    pose: name.clone(),
-                    joint: joint.clone(),
-                })?;
+                let j = joint_index(joint)
+                    .ok_or_else(|| PoseError::UnknownJoint { pose: name.clone(), joint: joint.clone() })?;
                 if v.iter().any(|x| !x.is_finite()) {
-                    return Err(PoseError::NonFinite {
-                        pose: name.clone(),
-                        joint: joint.clone(),
-                    });
+                    return Err(PoseError::NonFinite { pose: name.clone(), joint: joint.clone() });
                 }
                 p[j] = Vec3::from_array(*v);
             }
             if !p[0].is_finite() {
-                return Err(PoseError::NonFinite {
-                    pose: name.clone(),
-                    joint: "global_orient".into(),
-                });
+                return Err(PoseError::NonFinite { pose: name.clone(), joint: "global_orient".into() });
             }
             poses.insert(name, (p, entry.description));
         }
@@ -120,19 +108,12 @@ impl PoseLibrary {
 
     /// θ of a named pose (24 axis-angle vectors).
     pub fn pose(&self, name: &str) -> Result<[Vec3; NUM_JOINTS], PoseError> {
-        self.poses
-            .get(name)
-            .map(|(p, _)| *p)
-            .ok_or_else(|| PoseError::NotFound(name.to_string()))
+        self.poses.get(name).map(|(p, _)| *p).ok_or_else(|| PoseError::NotFound(name.to_string()))
     }
 
     /// Body parameters for a named pose with the given shape.
     pub fn params(&self, name: &str, betas: &[f32]) -> Result<BodyParams, PoseError> {
-        Ok(BodyParams {
-            pose: self.pose(name)?,
-            betas: betas.to_vec(),
-            transl: Vec3::ZERO,
-        })
+        Ok(BodyParams { pose: self.pose(name)?, betas: betas.to_vec(), transl: Vec3::ZERO })
     }
 }
 
@@ -152,10 +133,8 @@ mod tests {
 
     #[test]
     fn bad_pose_files_are_errors() {
-        let e = PoseLibrary::from_json(
-            r#"{"format":"getavatar-poses/1","poses":{"x":{"joints":{"elbow":[0,0,1]}}}}"#,
-        )
-        .unwrap_err();
+        let e = PoseLibrary::from_json(r#"{"format":"getavatar-poses/1","poses":{"x":{"joints":{"elbow":[0,0,1]}}}}"#)
+            .unwrap_err();
         assert!(e.to_string().contains("elbow"), "{e}");
         assert!(PoseLibrary::from_json(r#"{"format":"other","poses":{}}"#).is_err());
         assert!(PoseLibrary::from_json("[").is_err());

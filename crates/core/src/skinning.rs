@@ -22,11 +22,7 @@ pub struct BodyParams {
 
 impl Default for BodyParams {
     fn default() -> Self {
-        Self {
-            pose: [Vec3::ZERO; NUM_JOINTS],
-            betas: Vec::new(),
-            transl: Vec3::ZERO,
-        }
+        Self { pose: [Vec3::ZERO; NUM_JOINTS], betas: Vec::new(), transl: Vec3::ZERO }
     }
 }
 
@@ -82,22 +78,9 @@ pub fn forward_kinematics(
         let r = axis_angle_to_matrix(params.pose[j]);
         local_rotations[j] = r;
         let p = parents[j];
-        let rel = if p < 0 {
-            rest_joints[j]
-        } else {
-            rest_joints[j] - rest_joints[p as usize]
-        };
-        let local = Mat4::from_cols(
-            r.x_axis.extend(0.0),
-            r.y_axis.extend(0.0),
-            r.z_axis.extend(0.0),
-            rel.extend(1.0),
-        );
-        world[j] = if p < 0 {
-            Mat4::from_translation(params.transl) * local
-        } else {
-            world[p as usize] * local
-        };
+        let rel = if p < 0 { rest_joints[j] } else { rest_joints[j] - rest_joints[p as usize] };
+        let local = Mat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), rel.extend(1.0));
+        world[j] = if p < 0 { Mat4::from_translation(params.transl) * local } else { world[p as usize] * local };
     }
     let mut skinning = [Mat4::IDENTITY; NUM_JOINTS];
     let mut posed_joints = [Vec3::ZERO; NUM_JOINTS];
@@ -105,12 +88,7 @@ pub fn forward_kinematics(
         posed_joints[j] = world[j].w_axis.truncate();
         skinning[j] = world[j] * Mat4::from_translation(-rest_joints[j]);
     }
-    Kinematics {
-        rest_joints: *rest_joints,
-        posed_joints,
-        skinning,
-        local_rotations,
-    }
+    Kinematics { rest_joints: *rest_joints, posed_joints, skinning, local_rotations }
 }
 
 /// Blend joint transforms with one vertex's skin weights: `T_v = Σ_k w_vk A_k`.
@@ -168,12 +146,7 @@ pub fn pose_body(model: &BodyModel, params: &BodyParams) -> PosedBody {
         vertices.push(t.transform_point3(*v));
         vertex_transforms.push(t);
     }
-    PosedBody {
-        shaped,
-        vertices,
-        vertex_transforms,
-        kinematics: kin,
-    }
+    PosedBody { shaped, vertices, vertex_transforms, kinematics: kin }
 }
 
 /// Per-vertex area-weighted normals of a triangle mesh (unit length; zero for isolated vertices).

@@ -39,31 +39,20 @@ pub struct GetAvatarApp {
 }
 
 impl GetAvatarApp {
-    pub fn new(
-        cc: &eframe::CreationContext<'_>,
-        startup: Vec<Action>,
-        startup_errors: Vec<String>,
-    ) -> Self {
+    pub fn new(cc: &eframe::CreationContext<'_>, startup: Vec<Action>, startup_errors: Vec<String>) -> Self {
         let mut status = Status::default();
         let mut messages = startup_errors;
         let viewer = match &cc.wgpu_render_state {
             Some(rs) => {
                 let info = rs.adapter.get_info();
                 // Browsers may hide the adapter's name; fall back to what they do report.
-                status.adapter = [
-                    info.name.as_str(),
-                    info.driver.as_str(),
-                    info.driver_info.as_str(),
-                ]
-                .into_iter()
-                .find(|s| !s.is_empty())
-                .map(str::to_string)
-                .unwrap_or_else(|| {
-                    format!(
-                        "{:?} adapter (vendor {:#x}, device {:#x})",
-                        info.device_type, info.vendor, info.device
-                    )
-                });
+                status.adapter = [info.name.as_str(), info.driver.as_str(), info.driver_info.as_str()]
+                    .into_iter()
+                    .find(|s| !s.is_empty())
+                    .map(str::to_string)
+                    .unwrap_or_else(|| {
+                        format!("{:?} adapter (vendor {:#x}, device {:#x})", info.device_type, info.vendor, info.device)
+                    });
                 status.backend = format!("{:?}", info.backend);
                 Some(Viewer::new(&rs.device))
             }
@@ -205,11 +194,7 @@ impl GetAvatarApp {
                     .vertices
                     .iter()
                     .zip(&normals)
-                    .map(|(p, n)| Vertex {
-                        position: p.to_array(),
-                        normal: n.to_array(),
-                        color: SKIN.to_array(),
-                    })
+                    .map(|(p, n)| Vertex { position: p.to_array(), normal: n.to_array(), color: SKIN.to_array() })
                     .collect();
                 viewer.set_mesh(&rs.device, &rs.queue, &verts, &body.faces);
                 self.status.vertices = verts.len();
@@ -219,15 +204,7 @@ impl GetAvatarApp {
         }
         let view_proj = self.camera.projection_wgpu(1.0) * self.camera.world_to_camera();
         let mut renderer = rs.renderer.write();
-        viewer.render(
-            &rs.device,
-            &rs.queue,
-            &mut renderer,
-            self.res,
-            view_proj,
-            self.camera.eye(),
-            self.view,
-        );
+        viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, view_proj, self.camera.eye(), self.view);
         self.render_dirty = false;
         self.status.renders += 1;
         self.status.last_render_ms = (web::now_ms() - t0) as f32;
@@ -235,10 +212,7 @@ impl GetAvatarApp {
 
     fn side_panel(&mut self, ui: &mut egui::Ui) {
         ui.heading("GETAvatar");
-        ui.label(
-            egui::RichText::new(format!("{} · {}", self.status.adapter, self.status.backend))
-                .small(),
-        );
+        ui.label(egui::RichText::new(format!("{} · {}", self.status.adapter, self.status.backend)).small());
         ui.separator();
 
         ui.strong("Pose");
@@ -257,34 +231,26 @@ impl GetAvatarApp {
         if let Some(n) = chosen {
             self.apply(Action::Pose(n));
         }
-        egui::CollapsingHeader::new("Joint rotations (axis-angle, rad)")
-            .default_open(false)
-            .show(ui, |ui| {
-                egui::ComboBox::from_id_salt("joint")
-                    .selected_text(JOINT_NAMES[self.edit_joint])
-                    .show_ui(ui, |ui| {
-                        for (j, n) in JOINT_NAMES.iter().enumerate() {
-                            ui.selectable_value(&mut self.edit_joint, j, *n);
-                        }
-                    });
-                let j = self.edit_joint.min(NUM_JOINTS - 1);
-                let mut v = self.params.pose[j].to_array();
-                let mut changed = false;
-                for (axis, x) in ["x", "y", "z"].iter().zip(v.iter_mut()) {
-                    changed |= ui
-                        .add(
-                            egui::Slider::new(x, -std::f32::consts::PI..=std::f32::consts::PI)
-                                .text(*axis),
-                        )
-                        .changed();
-                }
-                if changed {
-                    self.apply(Action::Joint(j, v));
-                }
-                if ui.button("Zero this joint").clicked() {
-                    self.apply(Action::Joint(j, [0.0; 3]));
+        egui::CollapsingHeader::new("Joint rotations (axis-angle, rad)").default_open(false).show(ui, |ui| {
+            egui::ComboBox::from_id_salt("joint").selected_text(JOINT_NAMES[self.edit_joint]).show_ui(ui, |ui| {
+                for (j, n) in JOINT_NAMES.iter().enumerate() {
+                    ui.selectable_value(&mut self.edit_joint, j, *n);
                 }
             });
+            let j = self.edit_joint.min(NUM_JOINTS - 1);
+            let mut v = self.params.pose[j].to_array();
+            let mut changed = false;
+            for (axis, x) in ["x", "y", "z"].iter().zip(v.iter_mut()) {
+                changed |=
+                    ui.add(egui::Slider::new(x, -std::f32::consts::PI..=std::f32::consts::PI).text(*axis)).changed();
+            }
+            if changed {
+                self.apply(Action::Joint(j, v));
+            }
+            if ui.button("Zero this joint").clicked() {
+                self.apply(Action::Joint(j, [0.0; 3]));
+            }
+        });
 
         ui.separator();
         ui.strong("Shape β");
@@ -296,9 +262,7 @@ impl GetAvatarApp {
             let mut changed = false;
             for (k, b) in betas.iter_mut().enumerate() {
                 let label = names.get(k).cloned().unwrap_or_else(|| format!("β{k}"));
-                changed |= ui
-                    .add(egui::Slider::new(b, -2.0..=2.0).text(label))
-                    .changed();
+                changed |= ui.add(egui::Slider::new(b, -2.0..=2.0).text(label)).changed();
             }
             if ui.button("Reset shape").clicked() {
                 betas = vec![0.0; nb];
@@ -321,10 +285,7 @@ impl GetAvatarApp {
         ui.horizontal(|ui| {
             ui.label("Resolution");
             for r in RESOLUTIONS {
-                if ui
-                    .selectable_label(self.res == r, format!("{r}²"))
-                    .clicked()
-                {
+                if ui.selectable_label(self.res == r, format!("{r}²")).clicked() {
                     self.apply(Action::Res(r));
                 }
             }
@@ -338,19 +299,12 @@ impl GetAvatarApp {
         });
         ui.label(format!(
             "{:.1} FPS · render {:.1} ms · {} verts · {} tris",
-            self.status.fps,
-            self.status.last_render_ms,
-            self.status.vertices,
-            self.status.triangles
+            self.status.fps, self.status.last_render_ms, self.status.vertices, self.status.triangles
         ));
         ui.label(egui::RichText::new("drag: orbit · wheel: zoom · double-click: reset").small());
 
         ui.separator();
-        if ui
-            .button("⬇ Download .glb")
-            .on_hover_text("posed mesh with normals, glTF 2.0 binary")
-            .clicked()
-        {
+        if ui.button("⬇ Download .glb").on_hover_text("posed mesh with normals, glTF 2.0 binary").clicked() {
             self.apply(Action::Download);
         }
         if !self.messages.is_empty() {
@@ -422,12 +376,9 @@ impl eframe::App for GetAvatarApp {
             }
         }
         self.update_gpu(frame);
-        egui::Panel::left("controls")
-            .resizable(true)
-            .default_size(300.0)
-            .show(ui, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
-            });
+        egui::Panel::left("controls").resizable(true).default_size(300.0).show(ui, |ui| {
+            egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+        });
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         // Render changes made by this frame's widgets on the next frame.
         if self.mesh_dirty || self.render_dirty || self.continuous {
@@ -443,15 +394,11 @@ pub fn wgpu_options() -> egui_wgpu::WgpuConfiguration {
     use egui_wgpu::{wgpu, WgpuSetup, WgpuSetupCreateNew};
     let mut create = WgpuSetupCreateNew::without_display_handle();
     create.instance_descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
-    create.device_descriptor =
-        std::sync::Arc::new(|adapter: &wgpu::Adapter| wgpu::DeviceDescriptor {
-            label: Some("getavatar device"),
-            required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
-            required_limits: adapter.limits(),
-            ..Default::default()
-        });
-    egui_wgpu::WgpuConfiguration {
-        wgpu_setup: WgpuSetup::CreateNew(create),
+    create.device_descriptor = std::sync::Arc::new(|adapter: &wgpu::Adapter| wgpu::DeviceDescriptor {
+        label: Some("getavatar device"),
+        required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
+        required_limits: adapter.limits(),
         ..Default::default()
-    }
+    });
+    egui_wgpu::WgpuConfiguration { wgpu_setup: WgpuSetup::CreateNew(create), ..Default::default() }
 }

@@ -119,25 +119,19 @@ impl Command {
         Ok(match self {
             Command::Pose { pose } => Action::Pose(pose),
             Command::Joint { joint, value } => {
-                let j = joint_index(&joint)
-                    .ok_or_else(|| format!("unknown joint `{joint}` (use SMPL joint names)"))?;
+                let j = joint_index(&joint).ok_or_else(|| format!("unknown joint `{joint}` (use SMPL joint names)"))?;
                 for v in value {
                     finite(v, &joint)?;
                 }
                 Action::Joint(j, value)
             }
             Command::Camera { yaw, pitch, radius } => Action::Camera {
-                yaw: yaw
-                    .map(|d| finite(d, "yaw").map(f32::to_radians))
-                    .transpose()?,
-                pitch: pitch
-                    .map(|d| finite(d, "pitch").map(f32::to_radians))
-                    .transpose()?,
+                yaw: yaw.map(|d| finite(d, "yaw").map(f32::to_radians)).transpose()?,
+                pitch: pitch.map(|d| finite(d, "pitch").map(f32::to_radians)).transpose()?,
                 radius: radius.map(|r| finite(r, "radius")).transpose()?,
             },
             Command::View { view } => Action::View(
-                ViewMode::parse(&view)
-                    .ok_or_else(|| format!("unknown view `{view}` (rgb, normal, mask)"))?,
+                ViewMode::parse(&view).ok_or_else(|| format!("unknown view `{view}` (rgb, normal, mask)"))?,
             ),
             Command::Res { res } => {
                 if !RESOLUTIONS.contains(&res) {
@@ -160,8 +154,7 @@ impl Command {
 
 /// Parse a JSON command (from the JS hook).
 pub fn parse_command(json: &str) -> Result<Action, String> {
-    let cmd: Command =
-        serde_json::from_str(json).map_err(|e| format!("bad command {json}: {e}"))?;
+    let cmd: Command = serde_json::from_str(json).map_err(|e| format!("bad command {json}: {e}"))?;
     cmd.into_action()
 }
 
@@ -169,10 +162,7 @@ fn parse_floats(v: &str, what: &str) -> Result<Vec<f32>, String> {
     v.split(',')
         .filter(|s| !s.trim().is_empty())
         .map(|s| {
-            s.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("{what}: `{s}` is not a number"))
-                .and_then(|x| finite(x, what))
+            s.trim().parse::<f32>().map_err(|_| format!("{what}: `{s}` is not a number")).and_then(|x| finite(x, what))
         })
         .collect()
 }
@@ -182,39 +172,20 @@ fn parse_floats(v: &str, what: &str) -> Result<Vec<f32>, String> {
 pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
     let mut actions = Vec::new();
     let mut errors = Vec::new();
-    for pair in query
-        .trim_start_matches('?')
-        .split('&')
-        .filter(|p| !p.is_empty())
-    {
+    for pair in query.trim_start_matches('?').split('&').filter(|p| !p.is_empty()) {
         let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
         let v = percent_decode(v);
         let num = |what: &str| {
-            v.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("{what}: `{v}` is not a number"))
-                .and_then(|x| finite(x, what))
+            v.trim().parse::<f32>().map_err(|_| format!("{what}: `{v}` is not a number")).and_then(|x| finite(x, what))
         };
         let r: Result<Action, String> = match k {
             "pose" => Ok(Action::Pose(v.clone())),
-            "yaw" => num("yaw").map(|d| Action::Camera {
-                yaw: Some(d.to_radians()),
-                pitch: None,
-                radius: None,
-            }),
-            "pitch" => num("pitch").map(|d| Action::Camera {
-                yaw: None,
-                pitch: Some(d.to_radians()),
-                radius: None,
-            }),
-            "radius" => num("radius").map(|r| Action::Camera {
-                yaw: None,
-                pitch: None,
-                radius: Some(r),
-            }),
-            "view" => ViewMode::parse(&v)
-                .map(Action::View)
-                .ok_or_else(|| format!("unknown view `{v}` (rgb, normal, mask)")),
+            "yaw" => num("yaw").map(|d| Action::Camera { yaw: Some(d.to_radians()), pitch: None, radius: None }),
+            "pitch" => num("pitch").map(|d| Action::Camera { yaw: None, pitch: Some(d.to_radians()), radius: None }),
+            "radius" => num("radius").map(|r| Action::Camera { yaw: None, pitch: None, radius: Some(r) }),
+            "view" => {
+                ViewMode::parse(&v).map(Action::View).ok_or_else(|| format!("unknown view `{v}` (rgb, normal, mask)"))
+            }
             "res" => v
                 .parse::<u32>()
                 .map_err(|_| format!("res: `{v}` is not an integer"))
@@ -226,10 +197,7 @@ pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
                     if f.len() == 3 {
                         Ok(Action::Joint(j, [f[0], f[1], f[2]]))
                     } else {
-                        Err(format!(
-                            "{joint}: expected 3 numbers (axis-angle), got {}",
-                            f.len()
-                        ))
+                        Err(format!("{joint}: expected 3 numbers (axis-angle), got {}", f.len()))
                     }
                 }),
                 None => Err(format!("unknown URL parameter `{joint}`")),
@@ -251,9 +219,7 @@ fn percent_decode(s: &str) -> String {
         match bytes[i] {
             b'+' => out.push(b' '),
             b'%' if i + 2 < bytes.len() => {
-                let hex = std::str::from_utf8(&bytes[i + 1..i + 3])
-                    .ok()
-                    .and_then(|h| u8::from_str_radix(h, 16).ok());
+                let hex = std::str::from_utf8(&bytes[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok());
                 match hex {
                     Some(b) => {
                         out.push(b);
@@ -307,8 +273,7 @@ mod tests {
 
     #[test]
     fn query_parameters_become_actions() {
-        let (a, e) =
-            parse_query("?pose=walking&yaw=90&view=mask&res=1024&betas=1,-0.5&left_elbow=0,-1.2,0");
+        let (a, e) = parse_query("?pose=walking&yaw=90&view=mask&res=1024&betas=1,-0.5&left_elbow=0,-1.2,0");
         assert!(e.is_empty(), "{e:?}");
         assert_eq!(a[0], Action::Pose("walking".into()));
         match &a[1] {
@@ -333,18 +298,9 @@ mod tests {
 
     #[test]
     fn json_commands() {
-        assert_eq!(
-            parse_command(r#"{"pose":"sitting"}"#),
-            Ok(Action::Pose("sitting".into()))
-        );
-        assert_eq!(
-            parse_command(r#"{"joint":"right_knee","value":[1.5,0,0]}"#),
-            Ok(Action::Joint(5, [1.5, 0.0, 0.0]))
-        );
-        assert_eq!(
-            parse_command(r#"{"view":"normal"}"#),
-            Ok(Action::View(ViewMode::Normal))
-        );
+        assert_eq!(parse_command(r#"{"pose":"sitting"}"#), Ok(Action::Pose("sitting".into())));
+        assert_eq!(parse_command(r#"{"joint":"right_knee","value":[1.5,0,0]}"#), Ok(Action::Joint(5, [1.5, 0.0, 0.0])));
+        assert_eq!(parse_command(r#"{"view":"normal"}"#), Ok(Action::View(ViewMode::Normal)));
         assert_eq!(parse_command(r#"{"download":true}"#), Ok(Action::Download));
         assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
         assert!(parse_command(r#"{"res":77}"#).is_err());

@@ -160,11 +160,7 @@ impl Viewer {
                     write_mask: wgpu::ColorWrites::ALL,
                 })],
             }),
-            primitive: wgpu::PrimitiveState {
-                cull_mode: None,
-                front_face: wgpu::FrontFace::Ccw,
-                ..Default::default()
-            },
+            primitive: wgpu::PrimitiveState { cull_mode: None, front_face: wgpu::FrontFace::Ccw, ..Default::default() },
             depth_stencil: Some(wgpu::DepthStencilState {
                 format: DEPTH_FORMAT,
                 depth_write_enabled: Some(true),
@@ -185,10 +181,7 @@ impl Viewer {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("viewer uniforms"),
             layout: &bgl,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: uniforms.as_entire_binding(),
-            }],
+            entries: &[wgpu::BindGroupEntry { binding: 0, resource: uniforms.as_entire_binding() }],
         });
         Self {
             pipeline,
@@ -205,13 +198,7 @@ impl Viewer {
     }
 
     /// Upload a mesh (re-allocating buffers only when it grows).
-    pub fn set_mesh(
-        &mut self,
-        device: &wgpu::Device,
-        queue: &wgpu::Queue,
-        vertices: &[Vertex],
-        indices: &[[u32; 3]],
-    ) {
+    pub fn set_mesh(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, vertices: &[Vertex], indices: &[[u32; 3]]) {
         let vbytes: &[u8] = bytemuck::cast_slice(vertices);
         let ibytes: &[u8] = bytemuck::cast_slice(indices);
         if self.vertex_buffer.is_none() || (vbytes.len() as u64) > self.vertex_capacity {
@@ -239,20 +226,11 @@ impl Viewer {
         self.index_count = (indices.len() * 3) as u32;
     }
 
-    fn ensure_target(
-        &mut self,
-        device: &wgpu::Device,
-        renderer: &mut egui_wgpu::Renderer,
-        res: u32,
-    ) {
+    fn ensure_target(&mut self, device: &wgpu::Device, renderer: &mut egui_wgpu::Renderer, res: u32) {
         if matches!(&self.target, Some((r, ..)) if *r == res) {
             return;
         }
-        let size = wgpu::Extent3d {
-            width: res,
-            height: res,
-            depth_or_array_layers: 1,
-        };
+        let size = wgpu::Extent3d { width: res, height: res, depth_or_array_layers: 1 };
         let color = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("viewer colour"),
             size,
@@ -278,18 +256,11 @@ impl Viewer {
         let color_view = color.create_view(&Default::default());
         let depth_view = depth.create_view(&Default::default());
         match self.texture_id {
-            Some(id) => renderer.update_egui_texture_from_wgpu_texture(
-                device,
-                &color_view,
-                wgpu::FilterMode::Linear,
-                id,
-            ),
+            Some(id) => {
+                renderer.update_egui_texture_from_wgpu_texture(device, &color_view, wgpu::FilterMode::Linear, id)
+            }
             None => {
-                self.texture_id = Some(renderer.register_native_texture(
-                    device,
-                    &color_view,
-                    wgpu::FilterMode::Linear,
-                ))
+                self.texture_id = Some(renderer.register_native_texture(device, &color_view, wgpu::FilterMode::Linear))
             }
         }
         self.target = Some((res, color, color_view, depth_view));
@@ -327,9 +298,7 @@ impl Viewer {
         };
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
         let bg = background(mode).map(|c| c as f64 / 255.0);
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("viewer"),
-        });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("viewer") });
         {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("viewer"),
@@ -338,21 +307,13 @@ impl Viewer {
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color {
-                            r: bg[0],
-                            g: bg[1],
-                            b: bg[2],
-                            a: 1.0,
-                        }),
+                        load: wgpu::LoadOp::Clear(wgpu::Color { r: bg[0], g: bg[1], b: bg[2], a: 1.0 }),
                         store: wgpu::StoreOp::Store,
                     },
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: depth_view,
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(1.0),
-                        store: wgpu::StoreOp::Store,
-                    }),
+                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
                     stencil_ops: None,
                 }),
                 timestamp_writes: None,

@@ -57,10 +57,7 @@ pub fn getavatar_status() -> String {
 }
 
 pub(crate) fn now_ms() -> f64 {
-    web_sys::window()
-        .and_then(|w| w.performance())
-        .map(|p| p.now())
-        .unwrap_or(0.0)
+    web_sys::window().and_then(|w| w.performance()).map(|p| p.now()).unwrap_or(0.0)
 }
 
 /// Offer `bytes` to the user as a file download.
@@ -72,14 +69,9 @@ pub(crate) fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(),
     opts.set_type(mime);
     let blob = web_sys::Blob::new_with_u8_array_sequence_and_options(&parts, &opts).map_err(err)?;
     let url = web_sys::Url::create_object_url_with_blob(&blob).map_err(err)?;
-    let document = web_sys::window()
-        .and_then(|w| w.document())
-        .ok_or("no document")?;
-    let a: web_sys::HtmlAnchorElement = document
-        .create_element("a")
-        .map_err(err)?
-        .dyn_into()
-        .map_err(|_| "not an anchor".to_string())?;
+    let document = web_sys::window().and_then(|w| w.document()).ok_or("no document")?;
+    let a: web_sys::HtmlAnchorElement =
+        document.create_element("a").map_err(err)?.dyn_into().map_err(|_| "not an anchor".to_string())?;
     a.set_href(&url);
     a.set_download(name);
     a.click();
@@ -88,8 +80,7 @@ pub(crate) fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(),
         let _ = web_sys::Url::revoke_object_url(&url);
     });
     if let Some(w) = web_sys::window() {
-        let _ =
-            w.set_timeout_with_callback_and_timeout_and_arguments_0(revoke.unchecked_ref(), 60_000);
+        let _ = w.set_timeout_with_callback_and_timeout_and_arguments_0(revoke.unchecked_ref(), 60_000);
     }
     Ok(())
 }
@@ -102,9 +93,7 @@ pub fn start() {
         if let Err(e) = run().await {
             let msg = format!("getavatar failed to start: {e:?}");
             console_log(&msg);
-            if let Some(el) = web_sys::window()
-                .and_then(|w| w.document())
-                .and_then(|d| d.get_element_by_id("loading"))
+            if let Some(el) = web_sys::window().and_then(|w| w.document()).and_then(|d| d.get_element_by_id("loading"))
             {
                 el.set_text_content(Some(&msg));
             }
@@ -119,22 +108,13 @@ fn console_log(msg: &str) {
 async fn run() -> Result<(), JsValue> {
     let window = web_sys::window().ok_or("no window")?;
     let document = window.document().ok_or("no document")?;
-    let canvas: web_sys::HtmlCanvasElement = document
-        .get_element_by_id("getavatar_canvas")
-        .ok_or("no #getavatar_canvas")?
-        .dyn_into()?;
+    let canvas: web_sys::HtmlCanvasElement =
+        document.get_element_by_id("getavatar_canvas").ok_or("no #getavatar_canvas")?.dyn_into()?;
     let query = window.location().search().unwrap_or_default();
     let (actions, errors) = parse_query(&query);
-    let options = eframe::WebOptions {
-        wgpu_options: crate::app::wgpu_options(),
-        ..Default::default()
-    };
+    let options = eframe::WebOptions { wgpu_options: crate::app::wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
-        .start(
-            canvas,
-            options,
-            Box::new(move |cc| Ok(Box::new(crate::app::GetAvatarApp::new(cc, actions, errors)))),
-        )
+        .start(canvas, options, Box::new(move |cc| Ok(Box::new(crate::app::GetAvatarApp::new(cc, actions, errors)))))
         .await?;
     if let Some(el) = document.get_element_by_id("loading") {
         el.remove();
