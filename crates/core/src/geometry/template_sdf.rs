@@ -1,0 +1,207 @@
+//! The body template SDF (paper Sec. 4.2: SDF(x_c) = template(x_c) + residual(x_c)): the
+//! signed distance to the canonical body surface, precomputed once on a regular grid and
+//! sampled trilinearly. Negative inside; points outside the grid's box are empty (+10, as in
+//! the reference code).
+//!
+//! - Distance: exact point–triangle distance within a narrow band of `band` cells around the
+//!   surface, clamped to ±`band`·cell beyond it (DMTet only needs signs away from the surface).
+//! - Sign: inside/outside from ray-crossing parity along x, y and z (for a closed manifold
+//!   surface this equals the winding number), majority of the three votes, so a ray grazing
+//!   an edge or vertex cannot flip a sign.
+
+use glam::Vec3;
+
+/// Value of points outside the grid box (empty space).
+pub const OUTSIDE_VALUE: f32 = 10.0;
+
+#[derive(Clone, Debug)]
+pub struct TemplateSdf {
+    /// Samples per side (grid points, not cells).
+    pub res: usize,
+    pub min: Vec3,
+    /// Grid spacing, metres.
+    pub cell: f32,
+    /// `res³` values, x fastest.
+    pub values: Vec<f32>,
+}
+
+/// Closest point on triangle (a, b, c) to p (Ericson, Real-Time Collision Detection 5.1.5).
+pub fn closest_point_on_triangle(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> Vec3 {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return a;
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return a + ab * (d1 / (d1 - d3));
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return a + ac * (d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    }
+    let denom = 1.0 / (va + vb + vc);
+    a + ab * (vb * denom) + ac * (vc * denom)
+}
+
+impl TemplateSdf {
+    /// Build from a closed, outward-oriented triangle mesh on a `res³` grid spanning the cube
+    /// with minimum corner `min` and edge `size`.
+    pub fn from_mesh(vertices: &[Vec3], faces: &[[u32; 3]], res: usize, min: Vec3, size: f32, band: usize) -> Self {
+        let res = res.max(2);
+        let cell = size / (res - 1) as f32;
+        let n = res;
+        let idx = |i: usize, j: usize, k: usize| i + n * (j + n * k);
+        let limit = band.max(1) as f32 * cell;
+        let mut dist = vec![limit; n * n * n];
+        let to_grid = |p: Vec3| (p - min) / cell;
+        for f in faces {
+            let [a, b, c] = f.map(|i| vertices[i as usize]);
+            let lo = (to_grid(a.min(b).min(c)) - Vec3::splat(band as f32)).floor().max(Vec3::ZERO);
+            let hi = (to_grid(a.max(b).max(c)) + Vec3::splat(band as f32)).ceil().min(Vec3::splat((n - 1) as f32));
+            if lo.x > hi.x || lo.y > hi.y || lo.z > hi.z {
+                continue;
+            }
+            for k in lo.z as usize..=hi.z as usize {
+                for j in lo.y as usize..=hi.y as usize {
+                    for i in lo.x as usize..=hi.x as usize {
+                        let p = min + Vec3::new(i as f32, j as f32, k as f32) * cell;
+                        let d = closest_point_on_triangle(p, a, b, c).distance(p);
+                        let slot = &mut dist[idx(i, j, k)];
+                        if d < *slot {
+                            *slot = d;
+                        }
+                    }
+                }
+            }
+        }
+        let votes = [0usize, 1, 2].map(|axis| parity_inside(vertices, faces, n, min, cell, axis));
+        let values = (0..n * n * n)
+            .map(|q| {
+                let inside = votes.iter().filter(|v| v[q]).count() >= 2;
+                if inside {
+                    -dist[q]
+                } else {
+                    dist[q]
+                }
+            })
+            .collect();
+        Self { res: n, min, cell, values }
+    }
+
+    /// Trilinear sample; `OUTSIDE_VALUE` outside the box.
+    pub fn sample(&self, p: Vec3) -> f32 {
+        let g = (p - self.min) / self.cell;
+        let m = (self.res - 1) as f32;
+        if !(g.x >= 0.0 && g.y >= 0.0 && g.z >= 0.0 && g.x <= m && g.y <= m && g.z <= m) {
+            return OUTSIDE_VALUE;
+        }
+        let i0 = g.floor().min(Vec3::splat(m - 1.0));
+        let t = g - i0;
+        let (i, j, k) = (i0.x as usize, i0.y as usize, i0.z as usize);
+        let n = self.res;
+        let v = |di: usize, dj: usize, dk: usize| self.values[(i + di) + n * ((j + dj) + n * (k + dk))];
+        let x00 = v(0, 0, 0) + (v(1, 0, 0) - v(0, 0, 0)) * t.x;
+        let x10 = v(0, 1, 0) + (v(1, 1, 0) - v(0, 1, 0)) * t.x;
+        let x01 = v(0, 0, 1) + (v(1, 0, 1) - v(0, 0, 1)) * t.x;
+        let x11 = v(0, 1, 1) + (v(1, 1, 1) - v(0, 1, 1)) * t.x;
+        let y0 = x00 + (x10 - x00) * t.y;
+        let y1 = x01 + (x11 - x01) * t.y;
+        y0 + (y1 - y0) * t.z
+    }
+
+    /// ∇SDF by central differences with step `h` (first-order quantities only, as the
+    /// normal field of paper eq. 4 needs), normalised; zero where the gradient vanishes.
+    pub fn normal(&self, p: Vec3, h: f32) -> Vec3 {
+        central_difference_normal(|q| self.sample(q), p, h)
+    }
+}
+
+/// Normalised central-difference gradient of a scalar field.
+pub fn central_difference_normal(f: impl Fn(Vec3) -> f32, p: Vec3, h: f32) -> Vec3 {
+    let g = Vec3::new(
+        f(p + Vec3::X * h) - f(p - Vec3::X * h),
+        f(p + Vec3::Y * h) - f(p - Vec3::Y * h),
+        f(p + Vec3::Z * h) - f(p - Vec3::Z * h),
+    );
+    g.normalize_or_zero()
+}
+
+/// Inside flags of all grid points from the parity of surface crossings along rays parallel
+/// to `axis`, cast from below each grid line.
+fn parity_inside(vertices: &[Vec3], faces: &[[u32; 3]], n: usize, min: Vec3, cell: f32, axis: usize) -> Vec<bool> {
+    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+    // Crossing coordinates (along `axis`) per grid line (iu, iv).
+    let mut hits: Vec<Vec<f32>> = vec![Vec::new(); n * n];
+    for f in faces {
+        let p = f.map(|i| vertices[i as usize]);
+        let pu = p.map(|q| (q[u] - min[u]) / cell);
+        let pv = p.map(|q| (q[v] - min[v]) / cell);
+        let (u0, u1) =
+            (pu.iter().cloned().fold(f32::INFINITY, f32::min), pu.iter().cloned().fold(f32::NEG_INFINITY, f32::max));
+        let (v0, v1) =
+            (pv.iter().cloned().fold(f32::INFINITY, f32::min), pv.iter().cloned().fold(f32::NEG_INFINITY, f32::max));
+        let (iu0, iu1) = (u0.ceil().max(0.0) as i64, u1.floor().min((n - 1) as f32) as i64);
+        let (iv0, iv1) = (v0.ceil().max(0.0) as i64, v1.floor().min((n - 1) as f32) as i64);
+        for iu in iu0..=iu1 {
+            for iv in iv0..=iv1 {
+                let (x, y) = (iu as f32, iv as f32);
+                // Barycentrics of (x, y) in the projected triangle, with a tie-breaking rule
+                // (top-left) so a line through a shared edge counts once.
+                let e = |a: usize, b: usize| (pu[b] - pu[a]) * (y - pv[a]) - (pv[b] - pv[a]) * (x - pu[a]);
+                let (w0, w1, w2) = (e(1, 2), e(2, 0), e(0, 1));
+                let area = w0 + w1 + w2;
+                if area == 0.0 {
+                    continue;
+                }
+                let s = area.signum();
+                let owns = |w: f32, a: usize, b: usize| {
+                    let w = w * s;
+                    if w != 0.0 {
+                        return w > 0.0;
+                    }
+                    // On the edge a→b: accept for one orientation of the edge only.
+                    let (du, dv) = ((pu[b] - pu[a]) * s, (pv[b] - pv[a]) * s);
+                    dv < 0.0 || (dv == 0.0 && du > 0.0)
+                };
+                if owns(w0, 1, 2) && owns(w1, 2, 0) && owns(w2, 0, 1) {
+                    let t = (w0 * p[0][axis] + w1 * p[1][axis] + w2 * p[2][axis]) / area;
+                    hits[iu as usize + n * iv as usize].push((t - min[axis]) / cell);
+                }
+            }
+        }
+    }
+    let mut inside = vec![false; n * n * n];
+    for iu in 0..n {
+        for iv in 0..n {
+            let h = &mut hits[iu + n * iv];
+            h.sort_by(f32::total_cmp);
+            let mut crossed = 0;
+            for ia in 0..n {
+                while crossed < h.len() && h[crossed] < ia as f32 {
+                    crossed += 1;
+                }
+                let mut c = [0usize; 3];
+                c[axis] = ia;
+                c[u] = iu;
+                c[v] = iv;
+                inside[c[0] + n * (c[1] + n * c[2])] = crossed % 2 == 1;
+            }
+        }
+    }
+    inside
+}

@@ -1,0 +1,131 @@
+//! Spatial acceleration: a static 3-D k-d tree for nearest-neighbour queries (used by
+//! SMPL-guided inverse skinning to find the nearest posed body vertex, paper Sec. 4.2).
+
+use glam::Vec3;
+
+const LEAF: usize = 8;
+
+/// A balanced k-d tree over a fixed point set. Queries return indices into the input.
+#[derive(Clone, Debug)]
+pub struct KdTree {
+    points: Vec<Vec3>,
+    /// Permutation of point indices, partitioned recursively.
+    order: Vec<u32>,
+    nodes: Vec<Node>,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Node {
+    Leaf { start: u32, end: u32 },
+    Split { axis: u8, value: f32, left: u32, right: u32 },
+}
+
+impl KdTree {
+    /// Build over `points` (any count, including zero).
+    pub fn new(points: &[Vec3]) -> Self {
+        let mut t = Self { points: points.to_vec(), order: (0..points.len() as u32).collect(), nodes: Vec::new() };
+        if !points.is_empty() {
+            t.build(0, points.len());
+        }
+        t
+    }
+
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    fn build(&mut self, start: usize, end: usize) -> u32 {
+        let id = self.nodes.len() as u32;
+        if end - start <= LEAF {
+            self.nodes.push(Node::Leaf { start: start as u32, end: end as u32 });
+            return id;
+        }
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for &i in &self.order[start..end] {
+            lo = lo.min(self.points[i as usize]);
+            hi = hi.max(self.points[i as usize]);
+        }
+        let ext = hi - lo;
+        let axis = if ext.x >= ext.y && ext.x >= ext.z {
+            0
+        } else if ext.y >= ext.z {
+            1
+        } else {
+            2
+        };
+        let mid = (start + end) / 2;
+        let pts = &self.points;
+        self.order[start..end]
+            .select_nth_unstable_by(mid - start, |&a, &b| pts[a as usize][axis].total_cmp(&pts[b as usize][axis]));
+        let value = self.points[self.order[mid] as usize][axis];
+        self.nodes.push(Node::Leaf { start: 0, end: 0 }); // placeholder
+        let left = self.build(start, mid);
+        let right = self.build(mid, end);
+        self.nodes[id as usize] = Node::Split { axis: axis as u8, value, left, right };
+        id
+    }
+
+    /// Index and squared distance of the point nearest to `q`; `None` for an empty tree.
+    pub fn nearest(&self, q: Vec3) -> Option<(usize, f32)> {
+        if self.nodes.is_empty() {
+            return None;
+        }
+        let mut best = (usize::MAX, f32::INFINITY);
+        self.search(0, q, &mut best);
+        Some(best)
+    }
+
+    fn search(&self, node: u32, q: Vec3, best: &mut (usize, f32)) {
+        match self.nodes[node as usize] {
+            Node::Leaf { start, end } => {
+                for &i in &self.order[start as usize..end as usize] {
+                    let d = self.points[i as usize].distance_squared(q);
+                    if d < best.1 || (d == best.1 && (i as usize) < best.0) {
+                        *best = (i as usize, d);
+                    }
+                }
+            }
+            Node::Split { axis, value, left, right } => {
+                let diff = q[axis as usize] - value;
+                let (near, far) = if diff < 0.0 { (left, right) } else { (right, left) };
+                self.search(near, q, best);
+                if diff * diff <= best.1 {
+                    self.search(far, q, best);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nearest_matches_brute_force() {
+        let mut s = 7u32;
+        let mut r = || {
+            s = s.wrapping_mul(1664525).wrapping_add(1013904223);
+            (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        let pts: Vec<Vec3> = (0..2000).map(|_| Vec3::new(r(), r() * 3.0, r() * 0.1)).collect();
+        let tree = KdTree::new(&pts);
+        for _ in 0..500 {
+            let q = Vec3::new(r(), r(), r()) * 2.0;
+            let (i, d) = tree.nearest(q).expect("non-empty");
+            let (bi, bd) = pts
+                .iter()
+                .enumerate()
+                .map(|(k, p)| (k, p.distance_squared(q)))
+                .min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)))
+                .expect("points");
+            assert_eq!(d, bd);
+            assert_eq!(pts[i].distance_squared(q), pts[bi].distance_squared(q));
+        }
+        assert!(KdTree::new(&[]).nearest(Vec3::ZERO).is_none());
+    }
+}

@@ -1,0 +1,227 @@
+//! Generator geometry: DMTet on analytic shapes, template SDF, normal field, inverse skinning,
+//! and "zero residual ⇒ the avatar is the posed body".
+
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::geometry::inverse_skinning::canonical_body;
+use getavatar_core::geometry::template_sdf::central_difference_normal;
+use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+use getavatar_core::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::skinning::{pose_body, vertex_normals};
+use getavatar_core::spatial::KdTree;
+use glam::Vec3;
+
+fn extract(grid: &TetGrid, f: impl Fn(Vec3) -> f32) -> TriMesh {
+    let sdf: Vec<f32> = grid.vertices.iter().map(|p| f(*p)).collect();
+    marching_tets(&grid.vertices, &grid.tets, &sdf, &grid.vertices)
+}
+
+fn face_normal(m: &TriMesh, f: &[u32; 3]) -> (Vec3, Vec3) {
+    let [a, b, c] = f.map(|i| m.vertices[i as usize]);
+    ((b - a).cross(c - a).normalize(), (a + b + c) / 3.0)
+}
+
+#[test]
+fn dmtet_sphere_is_closed_outward_and_has_the_right_area() {
+    let r = 0.7013;
+    let grid = TetGrid::cube(40, Vec3::ZERO, 2.0);
+    let m = extract(&grid, |p| p.length() - r);
+    assert_eq!(m.topology_defects(), (0, 0), "sphere mesh must be a closed oriented manifold");
+    let area = m.area();
+    let want = 4.0 * std::f32::consts::PI * r * r;
+    assert!((area / want - 1.0).abs() < 0.02, "area {area} vs {want}");
+    assert!(m.volume() > 0.0);
+    for f in &m.faces {
+        let (n, c) = face_normal(&m, f);
+        assert!(n.dot(c.normalize()) > 0.9, "inward face at {c}");
+    }
+    // A sphere through grid vertices (SDF exactly 0 there) still gives a closed, oriented mesh.
+    let m = extract(&grid, |p| p.length() - 0.7);
+    assert_eq!(m.topology_defects(), (0, 0));
+    assert!((m.area() / (4.0 * std::f32::consts::PI * 0.49) - 1.0).abs() < 0.02);
+    for v in &m.vertices {
+        assert!((v.length() - r).abs() < 0.01, "vertex off the sphere: {}", v.length());
+    }
+    // Attributes are interpolated with the same weights as positions.
+    for (v, a) in m.vertices.iter().zip(&m.attributes) {
+        assert!((*v - *a).length() < 1e-5);
+    }
+}
+
+#[test]
+fn dmtet_box_has_flat_faces() {
+    let half = Vec3::new(0.5, 0.3, 0.4);
+    let box_sdf = |p: Vec3| {
+        let q = p.abs() - half;
+        q.max(Vec3::ZERO).length() + q.max_element().min(0.0)
+    };
+    let grid = TetGrid::cube(31, Vec3::new(0.013, -0.007, 0.004), 1.6);
+    let h = grid.cell();
+    let m = extract(&grid, box_sdf);
+    assert_eq!(m.topology_defects(), (0, 0));
+    let mut checked = 0;
+    for f in &m.faces {
+        let (n, c) = face_normal(&m, f);
+        for axis in 0..3 {
+            let others = [(axis + 1) % 3, (axis + 2) % 3];
+            let away_from_edges = others.iter().all(|&o| c[o].abs() < half[o] - 2.0 * h);
+            if (c[axis].abs() - half[axis]).abs() < h && away_from_edges {
+                for &vi in f {
+                    let v = m.vertices[vi as usize];
+                    assert!((v[axis].abs() - half[axis]).abs() < 1e-5, "vertex {v} off the face plane");
+                }
+                assert!(n[axis] * c[axis].signum() > 0.9999, "face normal {n} not along axis {axis}");
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 500, "only {checked} face triangles checked");
+}
+
+#[test]
+fn normal_field_matches_analytic_normals() {
+    let sphere = |p: Vec3| p.length() - 0.5;
+    for p in [Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.1, 0.3, -0.38), Vec3::new(-0.2, -0.2, 0.41)] {
+        let n = central_difference_normal(sphere, p, 1e-3);
+        assert!(n.dot(p.normalize()) > 0.99999, "{n} vs {}", p.normalize());
+    }
+    // The template SDF of a sphere mesh gives sphere normals too.
+    let grid = TetGrid::cube(40, Vec3::ZERO, 2.0);
+    let m = extract(&grid, sphere);
+    let t = TemplateSdf::from_mesh(&m.vertices, &m.faces, 64, Vec3::splat(-1.0), 2.0, 3);
+    for p in [Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.0, -0.5, 0.0), Vec3::new(0.3, 0.3, 0.3).normalize() * 0.5] {
+        let n = t.normal(p, t.cell);
+        assert!(n.dot(p.normalize()) > 0.995, "template normal {n} at {p}");
+        assert!((t.sample(p)).abs() < t.cell, "sdf {} on the surface", t.sample(p));
+    }
+    // Beyond the narrow band (3 cells) values are clamped, with the right sign.
+    assert!((t.sample(Vec3::ZERO) + 3.0 * t.cell).abs() < 1e-5, "centre is inside: {}", t.sample(Vec3::ZERO));
+    assert!(t.sample(Vec3::splat(0.9)) > 0.0);
+    assert_eq!(t.sample(Vec3::splat(5.0)), 10.0, "outside the box is empty");
+}
+
+fn body() -> BodyModel {
+    BodyModel::default_body().expect("body")
+}
+
+fn template(model: &BodyModel) -> TemplateSdf {
+    let cano = canonical_body(model);
+    let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
+    TemplateSdf::from_mesh(&cano.vertices, &model.faces, 128, min, REFERENCE_BOX_SIZE, 3)
+}
+
+#[test]
+fn body_template_sdf_has_correct_signs() {
+    let model = body();
+    let t = template(&model);
+    let cano = canonical_body(&model);
+    let j = cano.kinematics.posed_joints;
+    for (k, name) in [(0, "pelvis"), (3, "spine1"), (15, "head"), (4, "left_knee"), (18, "left_elbow")] {
+        assert!(t.sample(j[k]) < 0.0, "{name} joint should be inside: {}", t.sample(j[k]));
+    }
+    assert!(t.sample(Vec3::new(0.0, 0.6, 0.5)) > 0.0);
+    // On the surface the SDF is ~0 and its gradient agrees with the mesh normal.
+    let normals = vertex_normals(&cano.vertices, &model.faces);
+    let mut agree = 0;
+    for i in (0..cano.vertices.len()).step_by(97) {
+        let p = cano.vertices[i];
+        assert!(t.sample(p).abs() < 0.75 * t.cell, "vertex {i}: sdf {}", t.sample(p));
+        if t.normal(p + normals[i] * 0.004, t.cell).dot(normals[i]) > 0.5 {
+            agree += 1;
+        }
+    }
+    assert!(agree as f32 > 0.85 * (cano.vertices.len() / 97) as f32, "only {agree} normals agree");
+}
+
+#[test]
+fn inverse_skinning_round_trip() {
+    let model = body();
+    let lib = PoseLibrary::builtin();
+    let cano = canonical_body(&model);
+    let normals = vertex_normals(&cano.vertices, &model.faces);
+    let mut betas = vec![0.0; model.num_betas];
+    betas[1] = 0.8;
+    betas[3] = -0.5;
+    for pose in ["walking", "sitting", "arms_up"] {
+        let params = lib.params(pose, &betas).expect("pose");
+        let posed = pose_body(&model, &params);
+        let inv = InverseSkinning::new(&model, &posed, &cano);
+        // Un-warping inverts skinning exactly whenever the nearest posed vertex is the vertex
+        // that skinned the point (K = 1); near joints a neighbour may be nearer, which moves
+        // the point slightly. Check both: exactness, and how rare and small the exceptions are.
+        let (mut worst_same, mut errors, mut same) = (0.0f32, Vec::new(), 0usize);
+        for i in (0..cano.vertices.len()).step_by(13) {
+            // A canonical point 2 mm outside vertex i, skinned forward with vertex i's transforms.
+            let x_c = cano.vertices[i] + normals[i] * 0.002;
+            let rest =
+                cano.vertex_transforms[i].inverse().transform_point3(x_c) + (posed.shaped[i] - model.v_template[i]);
+            let x_d = posed.vertex_transforms[i].transform_point3(rest);
+            let (back, used) = inv.to_canonical(x_d);
+            let err = (back - x_c).length();
+            if used == i {
+                same += 1;
+                worst_same = worst_same.max(err);
+            }
+            errors.push(err);
+            let n = inv.rotation(i) * normals[i];
+            assert!((n.length() - 1.0).abs() < 1e-4, "rotated normal length {}", n.length());
+        }
+        errors.sort_by(f32::total_cmp);
+        let (median, p99) = (errors[errors.len() / 2], errors[errors.len() * 99 / 100]);
+        println!(
+            "{pose}: same nearest vertex {same}/{}, worst exact {worst_same:.2e}, median {median:.2e}, p99 {p99:.2e}",
+            errors.len()
+        );
+        assert!(worst_same < 1e-4, "{pose}: round trip through the same vertex is off by {worst_same} m");
+        assert!(
+            same as f32 > 0.95 * errors.len() as f32,
+            "{pose}: nearest vertex changed for {} points",
+            errors.len() - same
+        );
+        assert!(median < 1e-4 && p99 < 0.01, "{pose}: median {median}, p99 {p99}");
+    }
+}
+
+#[test]
+fn zero_residual_avatar_is_the_posed_body() {
+    let model = body();
+    let t = template(&model);
+    let cano = canonical_body(&model);
+    let lib = PoseLibrary::builtin();
+    let grid = TetGrid::reference(48);
+    let cell = grid.cell();
+    for pose in ["Da", "standing", "walking", "one_leg"] {
+        let posed = pose_body(&model, &lib.params(pose, &[]).expect("pose"));
+        let inv = InverseSkinning::new(&model, &posed, &cano);
+        let canon: Vec<Vec3> = grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
+        let sdf: Vec<f32> = canon.iter().map(|p| t.sample(*p)).collect();
+        let m = marching_tets(&grid.vertices, &grid.tets, &sdf, &canon);
+        assert_eq!(m.topology_defects(), (0, 0), "{pose}: extracted avatar is not watertight");
+        // Symmetric Hausdorff distance (vertex sets; the body is densely sampled).
+        let body_tree = KdTree::new(&posed.vertices);
+        let avatar_tree = KdTree::new(&m.vertices);
+        let d_ab =
+            m.vertices.iter().map(|v| body_tree.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
+        // Fingers (thinner than a grid cell) cannot be resolved by any grid of this size:
+        // the bound applies to the body without the hands; the hands get a looser bound.
+        let fingers = |i: usize| model.weights[i][22] + model.weights[i][23] > 0.5;
+        let d_ba = |keep: &dyn Fn(usize) -> bool| {
+            posed
+                .vertices
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| keep(*i))
+                .map(|(_, v)| avatar_tree.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt()))
+                .fold(0.0, f32::max)
+        };
+        let hd = d_ab.max(d_ba(&|i| !fingers(i)));
+        let hd_all = d_ab.max(d_ba(&|_| true));
+        println!(
+            "{pose}: {} vertices, Hausdorff {hd:.4} m ({:.2} cells) without fingers, {hd_all:.4} m with",
+            m.vertices.len(),
+            hd / cell
+        );
+        assert!(hd_all < 3.0 * cell, "{pose}: Hausdorff with fingers {hd_all} m ≥ 3 cells");
+        assert!(hd < 1.5 * cell, "{pose}: Hausdorff {hd} m ≥ 1.5 cells ({cell} m)");
+    }
+}
