@@ -2,6 +2,7 @@
 //! preparation, training, sampling, evaluation and export as their issues land).
 
 mod body_convert;
+mod sample;
 
 use std::path::PathBuf;
 
@@ -27,6 +28,36 @@ enum Command {
         #[arg(long, default_value = "assets/body/getavatar_body.npz")]
         out: PathBuf,
     },
+    /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
+    Sample {
+        /// Generator size: paper, demo or tiny.
+        #[arg(long, default_value = "demo")]
+        config: String,
+        /// Trained checkpoint (default: deterministic random weights).
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+        #[arg(long, default_value_t = 0)]
+        seed_geo: u64,
+        #[arg(long, default_value_t = 0)]
+        seed_tex: u64,
+        /// Truncation ψ (1 = none).
+        #[arg(long, default_value_t = 0.7)]
+        psi: f32,
+        /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
+        #[arg(long, default_value = "standing")]
+        pose: String,
+        /// Camera azimuth, degrees (0 = front).
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        yaw: f32,
+        /// Image size in pixels (square).
+        #[arg(long, default_value_t = 512)]
+        res: usize,
+        /// Body model .npz in the SMPL layout (default: the embedded open body).
+        #[arg(long)]
+        body: Option<PathBuf>,
+        #[arg(long, default_value = "samples")]
+        out: PathBuf,
+    },
 }
 
 fn main() -> Result<()> {
@@ -47,6 +78,20 @@ fn main() -> Result<()> {
                 r.height_m,
                 r.regressor_fit_mm
             );
+        }
+        Command::Sample { config, checkpoint, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
+            sample::sample(&sample::SampleArgs {
+                config,
+                checkpoint,
+                seed_geo,
+                seed_tex,
+                psi,
+                pose,
+                yaw_deg: yaw,
+                res,
+                out,
+                body,
+            })?;
         }
     }
     Ok(())

@@ -11,6 +11,9 @@
 //! | Sec. 4.4 camera                         | [`camera`] |
 //! | Sec. 4.2 template SDF, inverse skinning (eq. 2); 4.3 DMTet; eq. 4 normals | [`geometry`] |
 //! | nearest-vertex search for inverse skinning | [`spatial`] |
+//! | Sec. 4.1 mapping, triplane synthesis, decoders (burn; feature `generator`/`wgpu`) | `network` |
+//! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
+//! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | mesh download (.glb)                    | [`gltf_export`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
@@ -19,13 +22,21 @@
 
 pub mod body_model;
 pub mod camera;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod network;
 pub mod npz;
 pub mod pose_library;
+pub mod rasterize;
 pub mod skinning;
 pub mod spatial;
 
 pub use body_model::{BodyModel, BodyModelError, JOINT_NAMES, NUM_JOINTS};
+/// The burn version the networks are written against, re-exported for callers.
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub use burn;
 pub use camera::OrbitCamera;
 pub use skinning::{pose_body, BodyParams, PosedBody};

@@ -4,7 +4,8 @@
 //! the reference code).
 //!
 //! - Distance: exact point–triangle distance within a narrow band of `band` cells around the
-//!   surface, clamped to ±`band`·cell beyond it (DMTet only needs signs away from the surface).
+//!   surface; beyond it, a chamfer distance transform (26-neighbourhood, two passes) seeded by
+//!   the band, which over-estimates the true distance by at most ~8 %.
 //! - Sign: inside/outside from ray-crossing parity along x, y and z (for a closed manifold
 //!   surface this equals the winding number), majority of the three votes, so a ray grazing
 //!   an edge or vertex cannot flip a sign.
@@ -89,6 +90,7 @@ impl TemplateSdf {
                 }
             }
         }
+        chamfer_fill(&mut dist, n, cell, limit);
         let votes = [0usize, 1, 2].map(|axis| parity_inside(vertices, faces, n, min, cell, axis));
         let values = (0..n * n * n)
             .map(|q| {
@@ -128,6 +130,54 @@ impl TemplateSdf {
     /// normal field of paper eq. 4 needs), normalised; zero where the gradient vanishes.
     pub fn normal(&self, p: Vec3, h: f32) -> Vec3 {
         central_difference_normal(|q| self.sample(q), p, h)
+    }
+}
+
+/// Extend distances beyond the narrow band (values ≥ `limit`) with a two-pass 3-D chamfer
+/// transform: forward and backward raster sweeps over half of the 26-neighbourhood each.
+fn chamfer_fill(dist: &mut [f32], n: usize, cell: f32, limit: f32) {
+    for d in dist.iter_mut() {
+        if *d >= limit {
+            *d = f32::INFINITY;
+        }
+    }
+    let mut fwd = Vec::new();
+    for dk in -1i64..=0 {
+        for dj in -1i64..=1 {
+            for di in -1i64..=1 {
+                let before = dk < 0 || (dk == 0 && (dj < 0 || (dj == 0 && di < 0)));
+                if before {
+                    fwd.push((di, dj, dk, cell * ((di * di + dj * dj + dk * dk) as f32).sqrt()));
+                }
+            }
+        }
+    }
+    let bwd: Vec<_> = fwd.iter().map(|&(a, b, c, w)| (-a, -b, -c, w)).collect();
+    let n_i = n as i64;
+    let sweep = |dist: &mut [f32], offs: &[(i64, i64, i64, f32)], order: &mut dyn Iterator<Item = i64>| {
+        for q in order {
+            let (i, j, k) = (q % n_i, (q / n_i) % n_i, q / (n_i * n_i));
+            let mut best = dist[q as usize];
+            for &(di, dj, dk, w) in offs {
+                let (a, b, c) = (i + di, j + dj, k + dk);
+                if a < 0 || b < 0 || c < 0 || a >= n_i || b >= n_i || c >= n_i {
+                    continue;
+                }
+                let v = dist[(a + n_i * (b + n_i * c)) as usize] + w;
+                if v < best {
+                    best = v;
+                }
+            }
+            dist[q as usize] = best;
+        }
+    };
+    let total = (n * n * n) as i64;
+    sweep(dist, &fwd, &mut (0..total));
+    sweep(dist, &bwd, &mut (0..total).rev());
+    for d in dist.iter_mut() {
+        if !d.is_finite() {
+            *d = limit;
+        }
     }
 }
 

@@ -66,6 +66,17 @@ impl TetGrid {
         Self::cube(res, REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE)
     }
 
+    /// `true` for vertices on the faces of the box.
+    pub fn boundary_flags(&self) -> Vec<bool> {
+        let n = self.res + 1;
+        (0..n * n * n)
+            .map(|q| {
+                let (i, j, k) = (q % n, (q / n) % n, q / (n * n));
+                [i, j, k].iter().any(|&c| c == 0 || c == self.res)
+            })
+            .collect()
+    }
+
     /// Cell edge length, metres.
     pub fn cell(&self) -> f32 {
         self.size / self.res as f32

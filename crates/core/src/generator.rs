@@ -1,0 +1,218 @@
+//! The generator G (paper Sec. 4): latents → triplanes → SDF (template + residual) in canonical
+//! space, evaluated at posed-space tet grid vertices carried to canonical space by inverse
+//! skinning → DMTet in posed space → textured mesh with the normal field (eq. 4).
+//!
+//! Tensor work (networks) runs on the caller's burn `Device`; grid bookkeeping, inverse
+//! skinning and marching tetrahedra run on the CPU (`geometry`).
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::Vec3;
+
+use crate::body_model::BodyModel;
+use crate::geometry::inverse_skinning::canonical_body;
+use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
+use crate::network::decoders::Decoders;
+use crate::network::init::{latent, Rng};
+use crate::network::mapping::MappingNetwork;
+use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
+use crate::network::triplane::sample_triplanes;
+use crate::network::GeneratorConfig;
+use crate::skinning::{pose_body, BodyParams, PosedBody};
+
+#[derive(Module, Debug)]
+pub struct Generator {
+    pub mapping_geo: MappingNetwork,
+    pub mapping_tex: MappingNetwork,
+    pub synthesis: TriplaneSynthesis,
+    pub decoders: Decoders,
+}
+
+/// Per-layer styles (W+): `[B, n, w_dim]` each.
+#[derive(Clone, Debug)]
+pub struct Styles {
+    pub geo: Tensor<3>,
+    pub tex: Tensor<3>,
+}
+
+impl Generator {
+    /// A generator with deterministic random weights from `seed`.
+    pub fn new(cfg: &GeneratorConfig, seed: u64, device: &Device) -> Self {
+        let mut rng = Rng::new(seed, 1);
+        Self {
+            mapping_geo: MappingNetwork::new(
+                &mut rng,
+                cfg.z_dim,
+                cfg.w_dim,
+                cfg.mapping_layers,
+                cfg.mapping_lr_mul,
+                device,
+            ),
+            mapping_tex: MappingNetwork::new(
+                &mut rng,
+                cfg.z_dim,
+                cfg.w_dim,
+                cfg.mapping_layers,
+                cfg.mapping_lr_mul,
+                device,
+            ),
+            synthesis: TriplaneSynthesis::new(&mut rng, cfg, device),
+            decoders: Decoders::new(&mut rng, cfg, device),
+        }
+    }
+
+    /// Number of per-layer styles: (geometry: backbone + 2 decoder layers, texture: to-texture
+    /// layers + 2 decoder layers + to-RGB).
+    pub fn num_ws(&self) -> (usize, usize) {
+        (self.synthesis.num_ws_geo() + 2, self.synthesis.num_ws_tex() + 3)
+    }
+
+    /// Map latents to W+ styles with truncation ψ. `z_geo`, `z_tex`: `[B, z_dim]`.
+    pub fn styles(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32) -> Styles {
+        let (ng, nt) = self.num_ws();
+        let wg = self.mapping_geo.truncate(self.mapping_geo.forward(z_geo), psi);
+        let wt = self.mapping_tex.truncate(self.mapping_tex.forward(z_tex), psi);
+        Styles { geo: wg.unsqueeze_dim::<3>(1).repeat_dim(1, ng), tex: wt.unsqueeze_dim::<3>(1).repeat_dim(1, nt) }
+    }
+
+    pub fn triplanes(&self, s: &Styles) -> Triplanes {
+        let (ng, nt) = self.num_ws();
+        self.synthesis.forward(s.geo.clone().narrow(1, 0, ng - 2), s.tex.clone().narrow(1, 0, nt - 3))
+    }
+
+    fn w(ws: &Tensor<3>, i: usize) -> Tensor<2> {
+        let [b, _, d] = ws.dims();
+        ws.clone().narrow(1, i, 1).reshape([b, d])
+    }
+
+    /// SDF residual and DMTet offsets at canonical points `[B, N, 3]` → (`[B, N]`, `[B, N, 3]`).
+    pub fn geometry_fields(&self, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> (Tensor<2>, Tensor<3>) {
+        let (ng, _) = self.num_ws();
+        let feat = sample_triplanes(planes.geometry.clone(), points);
+        let residual = self.decoders.sdf_residual(feat.clone(), Self::w(&s.geo, ng - 2));
+        let [b, n, _] = residual.dims();
+        let offset = self.decoders.vertex_offset(feat, Self::w(&s.geo, ng - 1));
+        (residual.reshape([b, n]), offset)
+    }
+
+    /// SDF residual only, `[B, N]`.
+    pub fn sdf_residual(&self, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> Tensor<2> {
+        let (ng, _) = self.num_ws();
+        let feat = sample_triplanes(planes.geometry.clone(), points);
+        let r = self.decoders.sdf_residual(feat, Self::w(&s.geo, ng - 2));
+        let [b, n, _] = r.dims();
+        r.reshape([b, n])
+    }
+
+    /// Colours `[B, N, 3]` in [0, 1] at canonical points.
+    pub fn texture_field(&self, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> Tensor<3> {
+        let (_, nt) = self.num_ws();
+        let feat = sample_triplanes(planes.texture.clone(), points);
+        self.decoders.rgb(feat, Self::w(&s.tex, nt - 1))
+    }
+}
+
+/// What generation needs about the body, prepared once per body model and config.
+pub struct BodyContext {
+    pub model: BodyModel,
+    /// Canonical body: Da-pose, β = 0.
+    pub canonical: PosedBody,
+    pub template: TemplateSdf,
+    pub grid: TetGrid,
+    /// Whether each grid vertex lies on the box boundary.
+    pub boundary: Vec<bool>,
+}
+
+impl BodyContext {
+    pub fn new(model: BodyModel, cfg: &GeneratorConfig) -> Self {
+        let canonical = canonical_body(&model);
+        let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
+        let template =
+            TemplateSdf::from_mesh(&canonical.vertices, &model.faces, cfg.template_res, min, REFERENCE_BOX_SIZE, 3);
+        let grid = TetGrid::reference(cfg.tet_res);
+        let boundary = grid.boundary_flags();
+        Self { model, canonical, template, grid, boundary }
+    }
+}
+
+/// A generated, posed, coloured avatar mesh.
+#[derive(Clone, Debug)]
+pub struct Avatar {
+    /// Posed mesh; `mesh.attributes` holds each vertex's canonical coordinates.
+    pub mesh: TriMesh,
+    /// Posed-space unit normals from the normal field (∇SDF rotated by skinning, eq. 4).
+    pub normals: Vec<Vec3>,
+    /// Linear RGB in [0, 1] from the texture field at the canonical coordinates.
+    pub colors: Vec<Vec3>,
+}
+
+fn to_tensor3(points: &[Vec3], device: &Device) -> Tensor<3> {
+    let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+    Tensor::from_data(TensorData::new(flat, [1, points.len(), 3]), device)
+}
+
+fn to_vec(t: Tensor<3>) -> Vec<f32> {
+    t.into_data().try_into_vec::<f32>().unwrap_or_default()
+}
+
+/// Latent vectors of the seeds, as `[1, z_dim]` tensors.
+pub fn seed_latents(cfg: &GeneratorConfig, seed_geo: u64, seed_tex: u64, device: &Device) -> (Tensor<2>, Tensor<2>) {
+    let z = |s: u64| Tensor::from_data(TensorData::new(latent(s, cfg.z_dim), [1, cfg.z_dim]), device);
+    (z(seed_geo), z(seed_tex))
+}
+
+/// Generate the avatar of styles `s` in the pose/shape `params` (paper's exact mode: DMTet
+/// is run in posed space on the inverse-skinned grid).
+pub fn generate_avatar(g: &Generator, ctx: &BodyContext, s: &Styles, params: &BodyParams, device: &Device) -> Avatar {
+    let planes = g.triplanes(s);
+    let posed = pose_body(&ctx.model, params);
+    let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
+    let canon: Vec<Vec3> = ctx.grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
+
+    let (residual, offset) = g.geometry_fields(&planes, s, to_tensor3(&canon, device));
+    let residual = residual.into_data().try_into_vec::<f32>().unwrap_or_default();
+    let offset = to_vec(offset);
+    // Grid vertices on the box boundary are empty, so every surface is closed.
+    let sdf: Vec<f32> = canon
+        .iter()
+        .zip(&residual)
+        .zip(&ctx.boundary)
+        .map(|((p, r), &b)| if b { OUTSIDE_VALUE } else { ctx.template.sample(*p) + r })
+        .collect();
+    let positions: Vec<Vec3> =
+        ctx.grid.vertices.iter().enumerate().map(|(i, p)| *p + Vec3::from_slice(&offset[3 * i..3 * i + 3])).collect();
+    let mesh = marching_tets(&positions, &ctx.grid.tets, &sdf, &canon);
+    if mesh.vertices.is_empty() {
+        return Avatar { mesh, normals: Vec::new(), colors: Vec::new() };
+    }
+
+    // Normal field: central differences of the full SDF around each canonical coordinate.
+    let h = 0.5 * ctx.template.cell;
+    let mut probes = Vec::with_capacity(mesh.attributes.len() * 6);
+    for c in &mesh.attributes {
+        for d in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+            probes.push(*c + d * h);
+        }
+    }
+    let r =
+        g.sdf_residual(&planes, s, to_tensor3(&probes, device)).into_data().try_into_vec::<f32>().unwrap_or_default();
+    let f: Vec<f32> = probes.iter().zip(&r).map(|(p, r)| ctx.template.sample(*p) + r).collect();
+    let normals = mesh
+        .vertices
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let k = 6 * i;
+            let grad = Vec3::new(f[k] - f[k + 1], f[k + 2] - f[k + 3], f[k + 4] - f[k + 5]).normalize_or_zero();
+            let (_, body_vertex) = inv.to_canonical(*v);
+            (inv.rotation(body_vertex) * grad).normalize_or_zero()
+        })
+        .collect();
+    let colors = to_vec(g.texture_field(&planes, s, to_tensor3(&mesh.attributes, device)))
+        .chunks_exact(3)
+        .map(Vec3::from_slice)
+        .collect();
+    Avatar { mesh, normals, colors }
+}

@@ -1,0 +1,146 @@
+//! Generator sizes. `paper` follows the reference code (see `../shared/reference/paper-code-facts.md`);
+//! `demo` is sized for interactive use (well under a second on a laptop GPU, a few seconds on
+//! 2 CPU cores); `tiny` is for tests.
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GeneratorConfig {
+    /// Name of the preset this config came from ("paper", "demo", "tiny" or "custom").
+    pub name: String,
+    /// Latent size of z_geo and z_tex.
+    pub z_dim: usize,
+    /// Intermediate latent size of w_geo and w_tex.
+    pub w_dim: usize,
+    /// Fully connected layers per mapping network.
+    pub mapping_layers: usize,
+    /// Learning-rate multiplier of the mapping networks (equalised lr).
+    pub mapping_lr_mul: f32,
+    /// w_avg tracking decay β (w_avg ← β·w_avg + (1−β)·mean(w)).
+    pub w_avg_beta: f32,
+    /// Triplane resolution (the backbone grows from 4² to this, a power of two).
+    pub plane_res: usize,
+    /// Channels per plane (geometry and texture planes alike).
+    pub plane_channels: usize,
+    /// Backbone channels at resolution r: min(channel_base / r, channel_max).
+    pub channel_base: usize,
+    pub channel_max: usize,
+    /// Hidden width of the decoders.
+    pub decoder_hidden: usize,
+    /// Texture feature size before to-RGB.
+    pub texture_features: usize,
+    /// Tet grid cells per side (Kuhn grid, `(n+1)³` vertices).
+    pub tet_res: usize,
+    /// Template SDF samples per side.
+    pub template_res: usize,
+}
+
+impl GeneratorConfig {
+    /// The reference code's sizes.
+    pub fn paper() -> Self {
+        Self {
+            name: "paper".into(),
+            z_dim: 512,
+            w_dim: 512,
+            mapping_layers: 8,
+            mapping_lr_mul: 0.01,
+            w_avg_beta: 0.998,
+            plane_res: 256,
+            plane_channels: 32,
+            channel_base: 32768,
+            channel_max: 512,
+            decoder_hidden: 32,
+            texture_features: 32,
+            tet_res: 45,
+            template_res: 128,
+        }
+    }
+
+    /// Interactive size for the browser app and CPU sampling.
+    pub fn demo() -> Self {
+        Self {
+            name: "demo".into(),
+            z_dim: 128,
+            w_dim: 128,
+            mapping_layers: 4,
+            plane_res: 64,
+            plane_channels: 16,
+            channel_base: 4096,
+            channel_max: 128,
+            decoder_hidden: 32,
+            texture_features: 16,
+            tet_res: 40,
+            template_res: 96,
+            ..Self::paper()
+        }
+    }
+
+    /// Minimal size for tests.
+    pub fn tiny() -> Self {
+        Self {
+            name: "tiny".into(),
+            z_dim: 16,
+            w_dim: 16,
+            mapping_layers: 2,
+            plane_res: 16,
+            plane_channels: 8,
+            channel_base: 256,
+            channel_max: 16,
+            decoder_hidden: 16,
+            texture_features: 8,
+            tet_res: 24,
+            template_res: 64,
+            ..Self::paper()
+        }
+    }
+
+    /// Preset by name.
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Self::paper()),
+            "demo" => Some(Self::demo()),
+            "tiny" => Some(Self::tiny()),
+            _ => None,
+        }
+    }
+
+    /// Backbone channels at resolution `res`.
+    pub fn channels(&self, res: usize) -> usize {
+        (self.channel_base / res).clamp(1, self.channel_max)
+    }
+
+    /// Resolutions of the synthesis blocks: 4, 8, …, plane_res.
+    pub fn block_resolutions(&self) -> Vec<usize> {
+        let mut r = vec![4];
+        while *r.last().unwrap_or(&4) < self.plane_res {
+            let next = r.last().copied().unwrap_or(4) * 2;
+            r.push(next);
+        }
+        r
+    }
+
+    /// Check that the sizes are usable; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let pos = [
+            ("z_dim", self.z_dim),
+            ("w_dim", self.w_dim),
+            ("mapping_layers", self.mapping_layers),
+            ("plane_channels", self.plane_channels),
+            ("decoder_hidden", self.decoder_hidden),
+            ("texture_features", self.texture_features),
+            ("tet_res", self.tet_res),
+        ];
+        for (name, v) in pos {
+            if v == 0 {
+                return Err(format!("config field `{name}` must be positive"));
+            }
+        }
+        if !self.plane_res.is_power_of_two() || self.plane_res < 4 {
+            return Err(format!("config field `plane_res` must be a power of two ≥ 4 (got {})", self.plane_res));
+        }
+        if self.template_res < 8 {
+            return Err(format!("config field `template_res` must be ≥ 8 (got {})", self.template_res));
+        }
+        Ok(())
+    }
+}

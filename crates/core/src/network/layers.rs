@@ -1,0 +1,183 @@
+//! Building blocks with StyleGAN2's equalised learning rate: weights are stored at N(0, 1/lr_mul)
+//! and scaled at run time by `lr_mul / sqrt(fan_in)`.
+
+use burn::module::{Module, Param};
+use burn::tensor::activation::leaky_relu;
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor};
+
+use super::init::{full, randn, Rng};
+
+const SQRT2: f32 = std::f32::consts::SQRT_2;
+
+/// Leaky ReLU (slope 0.2) with StyleGAN's gain √2.
+pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    leaky_relu(x, 0.2) * SQRT2
+}
+
+/// Fully connected layer `y = x·(W·g)ᵀ + b·lr_mul`, g = lr_mul/√in.
+#[derive(Module, Debug)]
+pub struct FullyConnected {
+    /// `[out, in]`
+    pub weight: Param<Tensor<2>>,
+    /// `[out]`
+    pub bias: Param<Tensor<1>>,
+    pub weight_gain: f32,
+    pub lr_mul: f32,
+    /// Apply leaky ReLU (with gain) after the affine map.
+    pub activation: bool,
+}
+
+impl FullyConnected {
+    pub fn new(
+        rng: &mut Rng,
+        d_in: usize,
+        d_out: usize,
+        lr_mul: f32,
+        bias_init: f32,
+        activation: bool,
+        device: &Device,
+    ) -> Self {
+        Self {
+            weight: Param::from_tensor(randn(rng, [d_out, d_in], 1.0 / lr_mul, device)),
+            bias: Param::from_tensor(full([d_out], bias_init / lr_mul, device)),
+            weight_gain: lr_mul / (d_in as f32).sqrt(),
+            lr_mul,
+            activation,
+        }
+    }
+
+    /// `x`: `[B, in]` → `[B, out]`.
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let w = self.weight.val() * self.weight_gain;
+        let y = x.matmul(w.transpose()) + (self.bias.val() * self.lr_mul).unsqueeze_dim::<2>(0);
+        if self.activation {
+            lrelu_gain(y)
+        } else {
+            y
+        }
+    }
+}
+
+/// StyleGAN2 modulated convolution with a style affine from w:
+/// `W'_bo,i = W_o,i · s_b,i`, demodulated `W'' = W' / ‖W'_bo‖` when `demodulate`.
+/// Batched through a grouped convolution (groups = batch).
+#[derive(Module, Debug)]
+pub struct ModulatedConv2d {
+    pub affine: FullyConnected,
+    /// `[out, in, k, k]`
+    pub weight: Param<Tensor<4>>,
+    /// `[out]`
+    pub bias: Param<Tensor<1>>,
+    pub kernel: usize,
+    pub demodulate: bool,
+    /// Leaky ReLU after the bias.
+    pub activation: bool,
+}
+
+impl ModulatedConv2d {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        rng: &mut Rng,
+        w_dim: usize,
+        c_in: usize,
+        c_out: usize,
+        kernel: usize,
+        demodulate: bool,
+        activation: bool,
+        device: &Device,
+    ) -> Self {
+        Self {
+            affine: FullyConnected::new(rng, w_dim, c_in, 1.0, 1.0, false, device),
+            weight: Param::from_tensor(randn(rng, [c_out, c_in, kernel, kernel], 1.0, device)),
+            bias: Param::from_tensor(full([c_out], 0.0, device)),
+            kernel,
+            demodulate,
+            activation,
+        }
+    }
+
+    /// `x`: `[B, in, H, W]`, `w`: `[B, w_dim]` → `[B, out, H, W]`.
+    pub fn forward(&self, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
+        let [b, c_in, h, wd] = x.dims();
+        let [c_out, _, k, _] = self.weight.dims();
+        let mut styles = self.affine.forward(w); // [B, in]
+        if !self.demodulate {
+            // to-RGB style layers: fold the fan-in gain into the styles.
+            styles = styles * (1.0 / ((c_in * k * k) as f32).sqrt());
+        }
+        let weight = self.weight.val().unsqueeze_dim::<5>(0) * styles.reshape([b, 1, c_in, 1, 1]); // [B, out, in, k, k]
+        let weight = if self.demodulate {
+            let d = (weight.clone().powf_scalar(2.0).sum_dims(&[2, 3, 4]) + 1e-8).sqrt().recip(); // [B, out, 1, 1, 1]
+            weight * d
+        } else {
+            weight
+        };
+        let weight = weight.reshape([b * c_out, c_in, k, k]);
+        let pad = k / 2;
+        let y = conv2d(x.reshape([1, b * c_in, h, wd]), weight, None, ConvOptions::new([1, 1], [pad, pad], [1, 1], b));
+        let y = y.reshape([b, c_out, h, wd]) + self.bias.val().reshape([1, c_out, 1, 1]);
+        if self.activation {
+            lrelu_gain(y)
+        } else {
+            y
+        }
+    }
+}
+
+/// Modulated fully connected layer of the decoders (a 1×1 modulated conv on point sets):
+/// `y_bn = x_bn · W'_bᵀ + bias`, `W'_b = W ⊙ s_b`, demodulated.
+#[derive(Module, Debug)]
+pub struct ModulatedLinear {
+    pub affine: FullyConnected,
+    /// `[out, in]`
+    pub weight: Param<Tensor<2>>,
+    /// `[out]`
+    pub bias: Param<Tensor<1>>,
+    pub demodulate: bool,
+    pub activation: bool,
+}
+
+impl ModulatedLinear {
+    pub fn new(
+        rng: &mut Rng,
+        w_dim: usize,
+        d_in: usize,
+        d_out: usize,
+        demodulate: bool,
+        activation: bool,
+        device: &Device,
+    ) -> Self {
+        Self {
+            affine: FullyConnected::new(rng, w_dim, d_in, 1.0, 1.0, false, device),
+            weight: Param::from_tensor(randn(rng, [d_out, d_in], 1.0, device)),
+            bias: Param::from_tensor(full([d_out], 0.0, device)),
+            demodulate,
+            activation,
+        }
+    }
+
+    /// `x`: `[B, N, in]`, `w`: `[B, w_dim]` → `[B, N, out]`.
+    pub fn forward(&self, x: Tensor<3>, w: Tensor<2>) -> Tensor<3> {
+        let [b, _, d_in] = x.dims();
+        let [d_out, _] = self.weight.dims();
+        let mut styles = self.affine.forward(w); // [B, in]
+        if !self.demodulate {
+            styles = styles * (1.0 / (d_in as f32).sqrt());
+        }
+        let weight = self.weight.val().unsqueeze_dim::<3>(0) * styles.reshape([b, 1, d_in]); // [B, out, in]
+        let weight = if self.demodulate {
+            let d = (weight.clone().powf_scalar(2.0).sum_dim(2) + 1e-8).sqrt().recip(); // [B, out, 1]
+            weight * d
+        } else {
+            weight
+        };
+        let y = x.matmul(weight.swap_dims(1, 2)) + self.bias.val().reshape([1, 1, d_out]);
+        if self.activation {
+            lrelu_gain(y)
+        } else {
+            y
+        }
+    }
+}

@@ -1,0 +1,43 @@
+//! Mapping network z → w (8 FC layers in the paper, leaky ReLU, lr multiplier 0.01) with the
+//! tracked average w_avg used by the truncation trick: w' = w_avg + ψ·(w − w_avg).
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
+
+use super::init::{full, Rng};
+use super::layers::FullyConnected;
+
+#[derive(Module, Debug)]
+pub struct MappingNetwork {
+    pub layers: Vec<FullyConnected>,
+    /// Running mean of w (`[w_dim]`); not trained by gradients.
+    pub w_avg: Param<Tensor<1>>,
+}
+
+impl MappingNetwork {
+    pub fn new(rng: &mut Rng, z_dim: usize, w_dim: usize, num_layers: usize, lr_mul: f32, device: &Device) -> Self {
+        let layers = (0..num_layers.max(1))
+            .map(|i| FullyConnected::new(rng, if i == 0 { z_dim } else { w_dim }, w_dim, lr_mul, 0.0, true, device))
+            .collect();
+        Self { layers, w_avg: Param::from_tensor(full([w_dim], 0.0, device)).set_require_grad(false) }
+    }
+
+    /// `z`: `[B, z_dim]` → w `[B, w_dim]` (z normalised to unit second moment first).
+    pub fn forward(&self, z: Tensor<2>) -> Tensor<2> {
+        let norm = (z.clone().powf_scalar(2.0).mean_dim(1) + 1e-8).sqrt().recip();
+        let mut x = z * norm;
+        for l in &self.layers {
+            x = l.forward(x);
+        }
+        x
+    }
+
+    /// Truncation trick towards `w_avg` with strength ψ (1 = none, 0 = the average).
+    pub fn truncate(&self, w: Tensor<2>, psi: f32) -> Tensor<2> {
+        if psi == 1.0 {
+            return w;
+        }
+        let avg = self.w_avg.val().unsqueeze_dim::<2>(0);
+        avg.clone() + (w - avg) * psi
+    }
+}

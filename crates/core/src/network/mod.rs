@@ -1,0 +1,23 @@
+//! The generator networks (paper Sec. 4.1, StyleGAN2-style), written once on burn's
+//! device-dispatched `Tensor<D>`: the `Device` chosen at run time (NdArray on CPU, Wgpu
+//! natively and in the browser) decides where they run.
+//!
+//! - [`config`]: sizes (`paper`, `demo`, `tiny` presets), all config values
+//! - [`layers`]: equalised-lr fully connected layers, modulated convs and modulated FCs
+//! - [`mapping`]: z → w mapping networks with tracked w_avg and truncation ψ
+//! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
+//! - [`triplane`]: plane sampling at canonical points (xy, yz, xz; bilinear; summed)
+//! - [`decoders`]: SDF residual, DMTet offset and texture decoders, to-RGB
+//!
+//! Weights are initialised from a seed by our own RNG on the CPU, so every backend starts from
+//! bit-identical parameters.
+
+pub mod config;
+pub mod decoders;
+pub mod init;
+pub mod layers;
+pub mod mapping;
+pub mod synthesis;
+pub mod triplane;
+
+pub use config::GeneratorConfig;

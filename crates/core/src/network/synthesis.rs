@@ -1,0 +1,133 @@
+//! Triplane synthesis (paper Sec. 4.1): a StyleGAN2 "skip" backbone from 4² to `plane_res`²
+//! whose 3×3 modulated convolutions are driven by w_geo only; every block has two 1×1
+//! modulated output layers without demodulation: "to-geometry" (styled by w_geo) and
+//! "to-texture" (styled by w_tex). Their outputs are upsampled and summed across blocks,
+//! giving 3 geometry planes and 3 texture planes of `plane_channels` channels.
+//!
+//! Upsampling is bilinear (StyleGAN2 uses a transposed convolution with an FIR filter).
+
+use burn::module::{Module, Param};
+use burn::tensor::module::interpolate;
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+use burn::tensor::{Device, Tensor};
+
+use super::config::GeneratorConfig;
+use super::init::{randn, Rng};
+use super::layers::ModulatedConv2d;
+
+fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    let [_, _, h, w] = x.dims();
+    let mut o = InterpolateOptions::new(InterpolateMode::Bilinear);
+    o.output_size = Some([2 * h, 2 * w]);
+    interpolate(x, o)
+}
+
+#[derive(Module, Debug)]
+pub struct SynthesisBlock {
+    /// Learned constant input (first block only): `[C, 4, 4]`.
+    pub constant: Option<Param<Tensor<3>>>,
+    /// 3×3 convs (one in the first block, two after upsampling in the others).
+    pub convs: Vec<ModulatedConv2d>,
+    pub to_geometry: ModulatedConv2d,
+    pub to_texture: ModulatedConv2d,
+    pub res: usize,
+}
+
+/// Output of the backbone: geometry and texture triplanes, each `[B, 3·C, R, R]`.
+#[derive(Clone, Debug)]
+pub struct Triplanes {
+    pub geometry: Tensor<4>,
+    pub texture: Tensor<4>,
+}
+
+#[derive(Module, Debug)]
+pub struct TriplaneSynthesis {
+    pub blocks: Vec<SynthesisBlock>,
+}
+
+impl TriplaneSynthesis {
+    pub fn new(rng: &mut Rng, cfg: &GeneratorConfig, device: &Device) -> Self {
+        let out = 3 * cfg.plane_channels;
+        let mut blocks = Vec::new();
+        let mut c_prev = 0;
+        for res in cfg.block_resolutions() {
+            let c = cfg.channels(res);
+            let (constant, convs) = if res == 4 {
+                (
+                    Some(Param::from_tensor(randn(rng, [c, 4, 4], 1.0, device))),
+                    vec![ModulatedConv2d::new(rng, cfg.w_dim, c, c, 3, true, true, device)],
+                )
+            } else {
+                (
+                    None,
+                    vec![
+                        ModulatedConv2d::new(rng, cfg.w_dim, c_prev, c, 3, true, true, device),
+                        ModulatedConv2d::new(rng, cfg.w_dim, c, c, 3, true, true, device),
+                    ],
+                )
+            };
+            let to_geometry = ModulatedConv2d::new(rng, cfg.w_dim, c, out, 1, false, false, device);
+            let to_texture = ModulatedConv2d::new(rng, cfg.w_dim, c, out, 1, false, false, device);
+            blocks.push(SynthesisBlock { constant, convs, to_geometry, to_texture, res });
+            c_prev = c;
+        }
+        Self { blocks }
+    }
+
+    /// Number of w_geo vectors consumed (one per 3×3 conv and per to-geometry layer).
+    pub fn num_ws_geo(&self) -> usize {
+        self.blocks.iter().map(|b| b.convs.len() + 1).sum()
+    }
+
+    /// Number of w_tex vectors consumed (one per to-texture layer).
+    pub fn num_ws_tex(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// `ws_geo`: `[B, num_ws_geo, w_dim]`, `ws_tex`: `[B, num_ws_tex, w_dim]` (W+; repeat one w
+    /// for the usual W space).
+    pub fn forward(&self, ws_geo: Tensor<3>, ws_tex: Tensor<3>) -> Triplanes {
+        let [b, _, w_dim] = ws_geo.dims();
+        let pick = |ws: &Tensor<3>, i: usize| ws.clone().narrow(1, i, 1).reshape([b, w_dim]);
+        let (mut gi, mut ti) = (0, 0);
+        let mut x: Option<Tensor<4>> = None;
+        let mut geo: Option<Tensor<4>> = None;
+        let mut tex: Option<Tensor<4>> = None;
+        for block in &self.blocks {
+            let mut h = match (&block.constant, x.take()) {
+                (Some(c), _) => {
+                    let [ch, r, _] = c.dims();
+                    c.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r])
+                }
+                (None, Some(prev)) => upsample2(prev),
+                (None, None) => unreachable_input(),
+            };
+            for conv in &block.convs {
+                h = conv.forward(h, pick(&ws_geo, gi));
+                gi += 1;
+            }
+            let g = block.to_geometry.forward(h.clone(), pick(&ws_geo, gi));
+            gi += 1;
+            let t = block.to_texture.forward(h.clone(), pick(&ws_tex, ti));
+            ti += 1;
+            geo = Some(match geo.take() {
+                Some(prev) => upsample2(prev) + g,
+                None => g,
+            });
+            tex = Some(match tex.take() {
+                Some(prev) => upsample2(prev) + t,
+                None => t,
+            });
+            x = Some(h);
+        }
+        match (geo, tex) {
+            (Some(geometry), Some(texture)) => Triplanes { geometry, texture },
+            _ => unreachable_input(),
+        }
+    }
+}
+
+/// The backbone always has at least the 4² block; reaching this is a construction bug.
+fn unreachable_input() -> ! {
+    unreachable!("triplane synthesis has no blocks")
+}

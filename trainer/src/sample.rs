@@ -1,0 +1,100 @@
+//! `trainer sample`: generate one avatar and write RGB / normal / mask PNGs and a .glb of the
+//! posed, vertex-coloured mesh.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::camera::OrbitCamera;
+use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::rasterize::render_views;
+
+pub struct SampleArgs {
+    pub config: String,
+    pub checkpoint: Option<PathBuf>,
+    pub seed_geo: u64,
+    pub seed_tex: u64,
+    pub psi: f32,
+    pub pose: String,
+    pub yaw_deg: f32,
+    pub res: usize,
+    pub out: PathBuf,
+    pub body: Option<PathBuf>,
+}
+
+pub fn write_png(path: &Path, data: &[u8], size: usize, color: png::ColorType) -> Result<()> {
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), size as u32, size as u32);
+    enc.set_color(color);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header()?;
+    w.write_image_data(data)?;
+    Ok(())
+}
+
+pub fn sample(a: &SampleArgs) -> Result<()> {
+    let cfg = GeneratorConfig::preset(&a.config)
+        .with_context(|| format!("unknown config `{}` (paper, demo, tiny)", a.config))?;
+    if !(16..=4096).contains(&a.res) {
+        bail!("--res must be between 16 and 4096 (got {})", a.res);
+    }
+    if !a.psi.is_finite() {
+        bail!("--psi must be a number");
+    }
+    let lib = PoseLibrary::builtin();
+    let params = lib.params(&a.pose, &[]).with_context(|| {
+        format!("unknown pose `{}`; available: {}", a.pose, lib.names().collect::<Vec<_>>().join(", "))
+    })?;
+    let model = match &a.body {
+        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("loading body model {}", p.display()))?,
+        None => BodyModel::default_body()?,
+    };
+    #[allow(deprecated)]
+    let device = Device::ndarray();
+    if a.checkpoint.is_some() {
+        bail!("loading checkpoints is not implemented yet (see issue: training); run without --checkpoint");
+    }
+    eprintln!("no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config", cfg.name);
+    let t0 = std::time::Instant::now();
+    let ctx = BodyContext::new(model, &cfg);
+    let g = Generator::new(&cfg, 0, &device);
+    let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
+    let styles = g.styles(zg, zt, a.psi);
+    let t1 = std::time::Instant::now();
+    let avatar = generate_avatar(&g, &ctx, &styles, &params, &device);
+    let t2 = std::time::Instant::now();
+    if avatar.mesh.faces.is_empty() {
+        bail!("the generator produced an empty surface");
+    }
+    let cam = OrbitCamera { yaw: a.yaw_deg.to_radians(), ..OrbitCamera::default() };
+    let vp = cam.projection_gl(1.0) * cam.world_to_camera();
+    let views = render_views(&avatar.mesh.vertices, &avatar.mesh.faces, &avatar.normals, &avatar.colors, vp, a.res, 2);
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    write_png(&a.out.join("rgb.png"), &views.rgb, a.res, png::ColorType::Rgb)?;
+    write_png(&a.out.join("normal.png"), &views.normal, a.res, png::ColorType::Rgb)?;
+    write_png(&a.out.join("mask.png"), &views.mask, a.res, png::ColorType::Grayscale)?;
+    let glb = write_glb(&ExportMesh {
+        positions: avatar.mesh.vertices.clone(),
+        normals: avatar.normals.clone(),
+        colors: avatar.colors.clone(),
+        uvs: Vec::new(),
+        indices: avatar.mesh.faces.clone(),
+        name: format!("getavatar_{}_{}_{}", a.seed_geo, a.seed_tex, a.pose),
+    })?;
+    std::fs::write(a.out.join("avatar.glb"), glb)?;
+    println!(
+        "wrote {}/{{rgb,normal,mask}}.png and avatar.glb: {} vertices, {} triangles; setup {:.2} s, generation {:.2} s, render {:.2} s",
+        a.out.display(),
+        avatar.mesh.vertices.len(),
+        avatar.mesh.faces.len(),
+        (t1 - t0).as_secs_f32(),
+        (t2 - t1).as_secs_f32(),
+        t2.elapsed().as_secs_f32()
+    );
+    Ok(())
+}
