@@ -4,7 +4,9 @@
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Param;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::generator::{generate_avatar, seed_latents, Avatar, BodyContext, Generator};
+use getavatar_core::generator::{
+    block_on_ready, generate_avatar, generate_rigged_async, seed_latents, Avatar, BodyContext, Generator,
+};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::skinning::{pose_body, vertex_normals};
@@ -123,4 +125,34 @@ fn config_presets_are_valid() {
     let bad = GeneratorConfig { plane_res: 48, ..GeneratorConfig::tiny() };
     assert!(bad.validate().unwrap_err().contains("plane_res"));
     assert!(GeneratorConfig::preset("huge").is_none());
+}
+
+#[test]
+fn fast_repose_path_matches_the_exact_path() {
+    let cfg = GeneratorConfig { tet_res: 40, template_res: 96, ..GeneratorConfig::tiny() };
+    let model = BodyModel::default_body().expect("body");
+    let ctx = BodyContext::new(model.clone(), &cfg);
+    let dev = device();
+    let g = Generator::new(&cfg, 0, &dev);
+    let (zg, zt) = seed_latents(&cfg, 11, 12, &dev);
+    let s = g.styles(zg, zt, 0.7);
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev));
+    // Re-posing to the canonical pose is the identity.
+    let cano = pose_body(&model, &PoseLibrary::builtin().params("Da", &[]).expect("pose"));
+    let (v, n) = rigged.repose(&ctx, &cano);
+    for (a, b) in v.iter().zip(&rigged.canonical.mesh.vertices) {
+        assert!((*a - *b).length() < 1e-4);
+    }
+    assert!(n.iter().all(|x| (x.length() - 1.0).abs() < 1e-3));
+    // In another pose, the LBS-reposed avatar is close to the exact posed-space extraction.
+    let params = PoseLibrary::builtin().params("standing", &[]).expect("pose");
+    let posed = pose_body(&model, &params);
+    let (v, _) = rigged.repose(&ctx, &posed);
+    let exact = generate_avatar(&g, &ctx, &s, &params, &dev);
+    let (ta, tb) = (KdTree::new(&v), KdTree::new(&exact.mesh.vertices));
+    let d1 = v.iter().map(|p| tb.nearest(*p).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
+    let d2 = exact.mesh.vertices.iter().map(|p| ta.nearest(*p).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
+    let cell = ctx.grid.cell();
+    println!("fast vs exact: Hausdorff {:.4} m = {:.2} cells", d1.max(d2), d1.max(d2) / cell);
+    assert!(d1.max(d2) < 2.0 * cell, "fast and exact paths differ by {} m", d1.max(d2));
 }

@@ -153,8 +153,26 @@ fn to_tensor3(points: &[Vec3], device: &Device) -> Tensor<3> {
     Tensor::from_data(TensorData::new(flat, [1, points.len(), 3]), device)
 }
 
-fn to_vec(t: Tensor<3>) -> Vec<f32> {
-    t.into_data().try_into_vec::<f32>().unwrap_or_default()
+/// Read a tensor back to the CPU. Browsers cannot block, so on wasm32 this awaits the GPU;
+/// natively it reads synchronously (so [`block_on_ready`] can drive the whole pipeline).
+async fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    #[cfg(target_arch = "wasm32")]
+    let data = t.into_data_async().await.ok();
+    #[cfg(not(target_arch = "wasm32"))]
+    let data = t.try_into_data().ok();
+    data.and_then(|d| d.try_into_vec::<f32>().ok()).unwrap_or_default()
+}
+
+/// Run a future whose awaits all complete immediately (native readbacks are synchronous).
+#[cfg(not(target_arch = "wasm32"))]
+pub fn block_on_ready<F: std::future::Future>(fut: F) -> F::Output {
+    let mut fut = std::pin::pin!(fut);
+    let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+    loop {
+        if let std::task::Poll::Ready(v) = fut.as_mut().poll(&mut cx) {
+            return v;
+        }
+    }
 }
 
 /// Latent vectors of the seeds, as `[1, z_dim]` tensors.
@@ -164,16 +182,28 @@ pub fn seed_latents(cfg: &GeneratorConfig, seed_geo: u64, seed_tex: u64, device:
 }
 
 /// Generate the avatar of styles `s` in the pose/shape `params` (paper's exact mode: DMTet
-/// is run in posed space on the inverse-skinned grid).
+/// is run in posed space on the inverse-skinned grid). Native, blocking.
+#[cfg(not(target_arch = "wasm32"))]
 pub fn generate_avatar(g: &Generator, ctx: &BodyContext, s: &Styles, params: &BodyParams, device: &Device) -> Avatar {
+    block_on_ready(generate_avatar_async(g, ctx, s, params, device))
+}
+
+/// [`generate_avatar`] for any platform (awaits GPU readbacks in the browser).
+pub async fn generate_avatar_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    s: &Styles,
+    params: &BodyParams,
+    device: &Device,
+) -> Avatar {
     let planes = g.triplanes(s);
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
     let canon: Vec<Vec3> = ctx.grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
 
     let (residual, offset) = g.geometry_fields(&planes, s, to_tensor3(&canon, device));
-    let residual = residual.into_data().try_into_vec::<f32>().unwrap_or_default();
-    let offset = to_vec(offset);
+    let residual = read(residual).await;
+    let offset = read(offset).await;
     // Grid vertices on the box boundary are empty, so every surface is closed.
     let sdf: Vec<f32> = canon
         .iter()
@@ -196,8 +226,7 @@ pub fn generate_avatar(g: &Generator, ctx: &BodyContext, s: &Styles, params: &Bo
             probes.push(*c + d * h);
         }
     }
-    let r =
-        g.sdf_residual(&planes, s, to_tensor3(&probes, device)).into_data().try_into_vec::<f32>().unwrap_or_default();
+    let r = read(g.sdf_residual(&planes, s, to_tensor3(&probes, device))).await;
     let f: Vec<f32> = probes.iter().zip(&r).map(|(p, r)| ctx.template.sample(*p) + r).collect();
     let normals = mesh
         .vertices
@@ -210,9 +239,76 @@ pub fn generate_avatar(g: &Generator, ctx: &BodyContext, s: &Styles, params: &Bo
             (inv.rotation(body_vertex) * grad).normalize_or_zero()
         })
         .collect();
-    let colors = to_vec(g.texture_field(&planes, s, to_tensor3(&mesh.attributes, device)))
+    let colors = recolor_async(g, &planes, s, &mesh.attributes, device).await;
+    Avatar { mesh, normals, colors }
+}
+
+/// Colours of the texture field at canonical points (re-texturing keeps the geometry).
+pub async fn recolor_async(
+    g: &Generator,
+    planes: &Triplanes,
+    s: &Styles,
+    canonical: &[Vec3],
+    device: &Device,
+) -> Vec<Vec3> {
+    if canonical.is_empty() {
+        return Vec::new();
+    }
+    read(g.texture_field(planes, s, to_tensor3(canonical, device)))
+        .await
         .chunks_exact(3)
         .map(Vec3::from_slice)
-        .collect();
-    Avatar { mesh, normals, colors }
+        .collect()
+}
+
+/// An avatar extracted once in the canonical pose and rigged to the body: the interactive
+/// fast path. Each vertex follows its nearest canonical body vertex's skinning transform,
+/// so re-posing is LBS (no network, no extraction).
+#[derive(Clone, Debug)]
+pub struct RiggedAvatar {
+    /// Canonical (Da-pose) mesh; `attributes` = canonical coordinates.
+    pub canonical: Avatar,
+    /// Nearest canonical body vertex of each avatar vertex.
+    pub body_vertex: Vec<u32>,
+}
+
+impl RiggedAvatar {
+    /// Rig an avatar generated in the canonical pose (`params` = Da-pose, β = 0).
+    pub fn new(canonical: Avatar, ctx: &BodyContext) -> Self {
+        let tree = crate::spatial::KdTree::new(&ctx.canonical.vertices);
+        let body_vertex =
+            canonical.mesh.vertices.iter().map(|v| tree.nearest(*v).map_or(0, |(i, _)| i as u32)).collect();
+        Self { canonical, body_vertex }
+    }
+
+    /// Vertices and normals in the pose/shape of `posed` (from `pose_body`).
+    pub fn repose(&self, ctx: &BodyContext, posed: &PosedBody) -> (Vec<Vec3>, Vec<Vec3>) {
+        let mut cache: std::collections::HashMap<u32, (glam::Mat4, glam::Mat3)> = std::collections::HashMap::new();
+        let mut verts = Vec::with_capacity(self.body_vertex.len());
+        let mut normals = Vec::with_capacity(self.body_vertex.len());
+        for ((v, n), &b) in self.canonical.mesh.vertices.iter().zip(&self.canonical.normals).zip(&self.body_vertex) {
+            let (m, r) = *cache.entry(b).or_insert_with(|| {
+                let i = b as usize;
+                let shape = posed.shaped[i] - ctx.model.v_template[i];
+                let m = posed.vertex_transforms[i]
+                    * glam::Mat4::from_translation(shape)
+                    * ctx.canonical.vertex_transforms[i].inverse();
+                let r = crate::geometry::inverse_skinning::nearest_rotation(
+                    glam::Mat3::from_mat4(posed.vertex_transforms[i])
+                        * glam::Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
+                );
+                (m, r)
+            });
+            verts.push(m.transform_point3(*v));
+            normals.push((r * *n).normalize_or_zero());
+        }
+        (verts, normals)
+    }
+}
+
+/// Generate in the canonical pose and rig (the fast path's one-off cost).
+pub async fn generate_rigged_async(g: &Generator, ctx: &BodyContext, s: &Styles, device: &Device) -> RiggedAvatar {
+    let params = BodyParams { pose: crate::pose_library::da_pose(), ..Default::default() };
+    let a = generate_avatar_async(g, ctx, s, &params, device).await;
+    RiggedAvatar::new(a, ctx)
 }
