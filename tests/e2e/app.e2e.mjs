@@ -8,7 +8,9 @@
 //    of the exported mesh's vertices through the reference camera (fov 49.13°, r = 2.3 m);
 //  - the normal view encodes world normals as (n+1)/2 (background = zero vector);
 //  - changing the pose changes the silhouette;
-//  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors.
+//  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors;
+//  - Generate runs the generator on WebGPU and shows an avatar; a new texture seed changes
+//    RGB pixels but not the mask.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -200,9 +202,42 @@ try {
   if (iss.numErrors) console.log(JSON.stringify(iss.messages.slice(0, 5), null, 1));
   const st = await status();
   check(st.downloads === 2, `app counted ${st.downloads} downloads`);
-  fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(st, null, 1));
+
+  // --- the generator on WebGPU (burn's wgpu backend on egui's device) --------------
+  s = await command({ view: 'mask' }, (s) => s.view === 'mask');
+  s = await command({ pose: 'standing' }, (s) => s.pose === 'standing');
+  const bodyStanding = maskOf(await grab('mask_body_standing'), (c) => c[0] > 127);
+  const g0 = (await status()).generations;
+  const tGen = Date.now();
+  await page.evaluate(() => window.getavatar.command({ generate: { seed_geo: 1, seed_tex: 2 } }));
+  s = await waitFor((s) => s.generations > g0 && !s.generating, 'generation on WebGPU', 300000);
+  await page.waitForTimeout(800);
+  console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
+  check(s.showing === 'avatar' && s.avatar_vertices > 500, `Generate shows an avatar (${s.avatar_vertices} vertices)`);
+  const avMask = maskOf(await grab('mask_avatar'), (c) => c[0] > 127);
+  const jb = iou(avMask, bodyStanding);
+  check(jb > 0.6, `untrained avatar follows the posed body (mask IoU ${jb.toFixed(3)})`);
+  s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
+  const rgb1 = await grab('rgb_avatar_tex2');
+  const g1 = (await status()).generations;
+  await page.evaluate(() => window.getavatar.command({ retexture: { seed_tex: 3 } }));
+  s = await waitFor((s) => s.generations > g1 && !s.generating, 're-texturing', 300000);
+  await page.waitForTimeout(800);
+  const rgb2 = await grab('rgb_avatar_tex3');
+  let diff = 0, n = 0;
+  for (let k = 0; k < avMask.length; k++) if (avMask[k]) { for (let c = 0; c < 3; c++) diff += Math.abs(rgb1.data[4 * k + c] - rgb2.data[4 * k + c]); n++; }
+  diff /= Math.max(1, 3 * n);
+  check(diff > 3, `a new texture seed changes RGB pixels (mean |Δ| ${diff.toFixed(1)} on the body)`);
+  s = await command({ view: 'mask' }, (s) => s.view === 'mask');
+  const avMask2 = maskOf(await grab('mask_avatar_tex3'), (c) => c[0] > 127);
+  check(iou(avMask, avMask2) > 0.999, `…but not the mask (IoU ${iou(avMask, avMask2).toFixed(4)})`);
+  s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
+  const dlA = await download('avatar.glb');
+  const repA = await validator.validateBytes(dlA.bytes);
+  check(repA.issues.numErrors === 0 && glbPositions(dlA.bytes).count === s.vertices, `avatar .glb: ${repA.issues.numErrors} validator errors, ${glbPositions(dlA.bytes).count} vertices`);
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
+  fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));
 } catch (e) {
   console.log(`FAIL ${e.stack ?? e}`);
   failures++;

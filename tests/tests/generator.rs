@@ -156,3 +156,34 @@ fn fast_repose_path_matches_the_exact_path() {
     println!("fast vs exact: Hausdorff {:.4} m = {:.2} cells", d1.max(d2), d1.max(d2) / cell);
     assert!(d1.max(d2) < 2.0 * cell, "fast and exact paths differ by {} m", d1.max(d2));
 }
+
+#[test]
+fn checkpoints_round_trip_and_reject_other_configs() {
+    use getavatar_core::checkpoint::{load_generator, parse_safetensors, save_generator};
+    let cfg = GeneratorConfig::tiny();
+    let dev = device();
+    let g = Generator::new(&cfg, 42, &dev);
+    let mut extra = std::collections::BTreeMap::new();
+    extra.insert("kimg".to_string(), "1.5".to_string());
+    let bytes = save_generator(&g, &cfg, &extra);
+    let st = parse_safetensors(&bytes).expect("parses");
+    assert_eq!(st.metadata.get("kimg").map(String::as_str), Some("1.5"));
+    assert!(
+        st.tensors.keys().any(|k| k.contains("synthesis")),
+        "names: {:?}",
+        st.tensors.keys().take(5).collect::<Vec<_>>()
+    );
+    let back = load_generator(&bytes, &cfg, &dev).expect("loads");
+    // Same weights ⇒ same triplanes.
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let (a, b) = (g.triplanes(&g.styles(zg.clone(), zt.clone(), 0.7)), back.triplanes(&back.styles(zg, zt, 0.7)));
+    let (va, vb) =
+        (a.geometry.into_data().try_to_vec::<f32>().expect("f32"), b.geometry.into_data().try_to_vec::<f32>().expect("f32"));
+    assert_eq!(va, vb);
+    // Another config is refused with a message naming the differing fields.
+    let e = load_generator(&bytes, &GeneratorConfig::demo(), &dev).err().expect("mismatch").to_string();
+    assert!(e.contains("tiny") && e.contains("demo") && e.contains("z_dim"), "{e}");
+    // Corrupt files are errors.
+    assert!(load_generator(&bytes[..bytes.len() / 2], &cfg, &dev).is_err());
+    assert!(load_generator(b"junk", &cfg, &dev).is_err());
+}

@@ -1,6 +1,7 @@
 //! `trainer`: the native GETAvatar command line (body-model conversion now; dataset
 //! preparation, training, sampling, evaluation and export as their issues land).
 
+mod bench;
 mod body_convert;
 mod sample;
 
@@ -27,6 +28,15 @@ enum Command {
         /// Output .npz (SMPL keys).
         #[arg(long, default_value = "assets/body/getavatar_body.npz")]
         out: PathBuf,
+    },
+    /// Time the generator stages (printed table with ratios, measured in one run).
+    Bench {
+        /// Comma-separated configs (demo, paper, tiny); `paper` takes minutes on a CPU.
+        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
+        configs: Vec<String>,
+        /// Repetitions of the 4 benchmark poses.
+        #[arg(long, default_value_t = 1)]
+        repeats: usize,
     },
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample {
@@ -79,6 +89,7 @@ fn main() -> Result<()> {
                 r.regressor_fit_mm
             );
         }
+        Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,
         Command::Sample { config, checkpoint, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
             sample::sample(&sample::SampleArgs {
                 config,

@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
+use getavatar_core::checkpoint::load_generator;
 use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
@@ -56,13 +57,21 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     };
     #[allow(deprecated)]
     let device = Device::ndarray();
-    if a.checkpoint.is_some() {
-        bail!("loading checkpoints is not implemented yet (see issue: training); run without --checkpoint");
-    }
-    eprintln!("no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config", cfg.name);
+    let g = match &a.checkpoint {
+        Some(p) => {
+            let bytes = std::fs::read(p).with_context(|| format!("reading checkpoint {}", p.display()))?;
+            load_generator(&bytes, &cfg, &device).with_context(|| format!("loading checkpoint {}", p.display()))?
+        }
+        None => {
+            eprintln!(
+                "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
+                cfg.name
+            );
+            Generator::new(&cfg, 0, &device)
+        }
+    };
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
-    let g = Generator::new(&cfg, 0, &device);
     let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
     let styles = g.styles(zg, zt, a.psi);
     let t1 = std::time::Instant::now();

@@ -23,6 +23,8 @@
 pub mod body_model;
 pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod checkpoint;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;
 pub mod geometry;
 pub mod gltf_export;

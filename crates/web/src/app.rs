@@ -11,7 +11,10 @@ use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 use getavatar_core::OrbitCamera;
 
-use crate::automation::{Action, Status, ViewMode, RESOLUTIONS};
+use getavatar_core::generator::RiggedAvatar;
+
+use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
+use crate::generate::GenEngine;
 use crate::viewer::{Vertex, Viewer};
 use crate::web;
 
@@ -36,14 +39,28 @@ pub struct GetAvatarApp {
     status: Status,
     frame_times: std::collections::VecDeque<f64>,
     messages: Vec<String>,
+    /// The generator on the shared WebGPU device (None if it could not start).
+    engine: Option<GenEngine>,
+    rigged: Option<RiggedAvatar>,
+    show_avatar: bool,
+    seed_geo: u64,
+    seed_tex: u64,
+    psi: f32,
+    /// Generation requested by a command before egui's context was available.
+    queued: Option<(bool, GenerateArgs)>,
 }
 
 impl GetAvatarApp {
     pub fn new(cc: &eframe::CreationContext<'_>, startup: Vec<Action>, startup_errors: Vec<String>) -> Self {
         let mut status = Status::default();
         let mut messages = startup_errors;
+        let mut engine = None;
         let viewer = match &cc.wgpu_render_state {
             Some(rs) => {
+                match GenEngine::new(rs) {
+                    Ok(e) => engine = Some(e),
+                    Err(e) => messages.push(e),
+                }
                 let info = rs.adapter.get_info();
                 // Browsers may hide the adapter's name; fall back to what they do report.
                 status.adapter = [info.name.as_str(), info.driver.as_str(), info.driver_info.as_str()]
@@ -85,6 +102,13 @@ impl GetAvatarApp {
             status,
             frame_times: Default::default(),
             messages,
+            engine,
+            rigged: None,
+            show_avatar: false,
+            seed_geo: 0,
+            seed_tex: 0,
+            psi: 0.7,
+            queued: None,
         };
         for a in startup {
             app.apply(a);
@@ -138,20 +162,89 @@ impl GetAvatarApp {
             }
             Action::Download => self.download_glb(),
             Action::Continuous(c) => self.continuous = c,
+            Action::Generate(a) => self.queued = Some((false, a)),
+            Action::Retexture(a) => self.queued = Some((true, a)),
+            Action::ShowAvatar(b) => {
+                self.show_avatar = b && self.rigged.is_some();
+                self.mesh_dirty = true;
+            }
         }
     }
 
-    fn posed_mesh(&self) -> Option<ExportMesh> {
+    /// Start a queued generation (needs egui's context for the repaint callback).
+    fn start_queued(&mut self, ctx: &egui::Context) {
+        let Some((texture_only, a)) = self.queued.take() else { return };
+        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else {
+            self.messages.push("the generator is not available (no WebGPU device for burn)".into());
+            return;
+        };
+        if engine.busy {
+            self.queued = Some((texture_only, a));
+            return;
+        }
+        if let Some(g) = a.seed_geo {
+            self.seed_geo = g;
+        }
+        if let Some(t) = a.seed_tex {
+            self.seed_tex = t;
+        }
+        if let Some(p) = a.psi {
+            self.psi = p;
+        }
+        let keep = if texture_only { self.rigged.clone() } else { None };
+        if texture_only && keep.is_none() {
+            self.messages.push("generate an avatar before re-texturing it".into());
+            return;
+        }
+        engine.start(body, (self.seed_geo, self.seed_tex), self.psi, keep, ctx.clone());
+    }
+
+    fn poll_generation(&mut self) {
+        let Some(engine) = self.engine.as_mut() else { return };
+        self.status.generating = engine.busy;
+        match engine.poll() {
+            Some(Ok(done)) => {
+                self.status.generations += 1;
+                self.status.last_generation_ms = done.millis as f32;
+                self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
+                self.rigged = Some(done.rigged);
+                self.show_avatar = true;
+                self.mesh_dirty = true;
+                self.status.generating = false;
+            }
+            Some(Err(e)) => {
+                self.messages.push(e);
+                self.status.generating = false;
+            }
+            None => {}
+        }
+    }
+
+    /// Current mesh to show/export: the re-posed avatar, or the posed body.
+    fn current_mesh(&self) -> Option<(Vec<Vec3>, Vec<Vec3>, Vec<Vec3>, Vec<[u32; 3]>)> {
         let body = self.body.as_ref()?;
         let posed = pose_body(body, &self.params);
+        if self.show_avatar {
+            if let (Some(r), Some(ctx)) = (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
+                let (v, n) = r.repose(ctx, &posed);
+                return Some((v, n, r.canonical.colors.clone(), r.canonical.mesh.faces.clone()));
+            }
+        }
         let normals = vertex_normals(&posed.vertices, &body.faces);
+        let n = posed.vertices.len();
+        Some((posed.vertices, normals, vec![SKIN; n], body.faces.clone()))
+    }
+
+    fn posed_mesh(&self) -> Option<ExportMesh> {
+        let (positions, normals, colors, indices) = self.current_mesh()?;
+        let what = if self.show_avatar { format!("avatar_{}_{}", self.seed_geo, self.seed_tex) } else { "body".into() };
         Some(ExportMesh {
-            colors: vec![SKIN; posed.vertices.len()],
-            positions: posed.vertices,
+            positions,
             normals,
+            colors,
             uvs: Vec::new(),
-            indices: body.faces.clone(),
-            name: format!("getavatar_body_{}", self.pose_name),
+            indices,
+            name: format!("getavatar_{what}_{}", self.pose_name),
         })
     }
 
@@ -179,29 +272,29 @@ impl GetAvatarApp {
         let Some(rs) = frame.wgpu_render_state() else {
             return;
         };
-        let Some(viewer) = self.viewer.as_mut() else {
+        if self.viewer.is_none() {
             return;
-        };
+        }
         if !(self.mesh_dirty || self.render_dirty || self.continuous) {
             return;
         }
         let t0 = web::now_ms();
         if self.mesh_dirty {
-            if let Some(body) = &self.body {
-                let posed = pose_body(body, &self.params);
-                let normals = vertex_normals(&posed.vertices, &body.faces);
-                let verts: Vec<Vertex> = posed
-                    .vertices
+            if let Some((pos, normals, colors, faces)) = self.current_mesh() {
+                let verts: Vec<Vertex> = pos
                     .iter()
                     .zip(&normals)
-                    .map(|(p, n)| Vertex { position: p.to_array(), normal: n.to_array(), color: SKIN.to_array() })
+                    .zip(&colors)
+                    .map(|((p, n), c)| Vertex { position: p.to_array(), normal: n.to_array(), color: c.to_array() })
                     .collect();
-                viewer.set_mesh(&rs.device, &rs.queue, &verts, &body.faces);
+                let Some(viewer) = self.viewer.as_mut() else { return };
+                viewer.set_mesh(&rs.device, &rs.queue, &verts, &faces);
                 self.status.vertices = verts.len();
-                self.status.triangles = body.faces.len();
+                self.status.triangles = faces.len();
             }
             self.mesh_dirty = false;
         }
+        let Some(viewer) = self.viewer.as_mut() else { return };
         let view_proj = self.camera.projection_wgpu(1.0) * self.camera.world_to_camera();
         let mut renderer = rs.renderer.write();
         viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, view_proj, self.camera.eye(), self.view);
@@ -213,6 +306,37 @@ impl GetAvatarApp {
     fn side_panel(&mut self, ui: &mut egui::Ui) {
         ui.heading("GETAvatar");
         ui.label(egui::RichText::new(format!("{} · {}", self.status.adapter, self.status.backend)).small());
+        ui.separator();
+
+        ui.strong("Generate");
+        ui.label(egui::RichText::new("demo generator, untrained (random weights) until a checkpoint ships").small());
+        ui.horizontal(|ui| {
+            ui.label("geometry seed");
+            ui.add(egui::DragValue::new(&mut self.seed_geo));
+            ui.label("texture seed");
+            ui.add(egui::DragValue::new(&mut self.seed_tex));
+        });
+        ui.add(egui::Slider::new(&mut self.psi, 0.0..=1.0).text("truncation ψ"));
+        let busy = self.engine.as_ref().is_some_and(|e| e.busy);
+        ui.horizontal(|ui| {
+            if ui.add_enabled(!busy, egui::Button::new("Generate")).clicked() {
+                self.apply(Action::Generate(GenerateArgs::default()));
+            }
+            if ui.add_enabled(!busy && self.rigged.is_some(), egui::Button::new("New texture only")).clicked() {
+                self.seed_tex += 1;
+                self.apply(Action::Retexture(GenerateArgs::default()));
+            }
+            if busy {
+                ui.spinner();
+            }
+        });
+        if self.rigged.is_some() {
+            let mut show = self.show_avatar;
+            if ui.checkbox(&mut show, "show avatar (off: bare body)").changed() {
+                self.apply(Action::ShowAvatar(show));
+            }
+            ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
+        }
         ui.separator();
 
         ui.strong("Pose");
@@ -362,6 +486,10 @@ impl GetAvatarApp {
         self.status.radius = self.camera.radius;
         self.status.errors = self.messages.clone();
         self.status.ready = self.status.renders > 0;
+        self.status.seed_geo = self.seed_geo;
+        self.status.seed_tex = self.seed_tex;
+        self.status.psi = self.psi;
+        self.status.showing = if self.show_avatar { "avatar" } else { "body" }.into();
         web::publish_status(&self.status);
     }
 }
@@ -369,19 +497,21 @@ impl GetAvatarApp {
 impl eframe::App for GetAvatarApp {
     fn ui(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
         web::set_context(ui.ctx());
+        self.poll_generation();
         for cmd in web::take_commands() {
             match cmd {
                 Ok(a) => self.apply(a),
                 Err(e) => self.messages.push(e),
             }
         }
+        self.start_queued(&ui.ctx().clone());
         self.update_gpu(frame);
         egui::Panel::left("controls").resizable(true).default_size(300.0).show(ui, |ui| {
             egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
         });
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         // Render changes made by this frame's widgets on the next frame.
-        if self.mesh_dirty || self.render_dirty || self.continuous {
+        if self.mesh_dirty || self.render_dirty || self.continuous || self.queued.is_some() {
             ui.ctx().request_repaint();
         }
         self.publish_status(web::now_ms());

@@ -49,7 +49,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 
 /// One instruction to the app. JSON form: `{"pose":"walking"}`, `{"joint":"left_elbow",
 /// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
-/// `{"reset_camera":true}`, `{"download":true}`.
+/// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}`,
+/// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged, deny_unknown_fields)]
 pub enum Command {
@@ -78,12 +79,30 @@ pub enum Command {
     Continuous {
         continuous: bool,
     },
+    Generate {
+        generate: GenerateArgs,
+    },
+    Retexture {
+        retexture: GenerateArgs,
+    },
+    Show {
+        show: String,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
         pitch: Option<f32>,
         radius: Option<f32>,
     },
+}
+
+/// Seeds and truncation of a generation request (unset = keep the current value).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GenerateArgs {
+    pub seed_geo: Option<u64>,
+    pub seed_tex: Option<u64>,
+    pub psi: Option<f32>,
 }
 
 /// A command validated against the app's vocabulary.
@@ -103,6 +122,12 @@ pub enum Action {
     ResetCamera,
     Download,
     Continuous(bool),
+    /// Generate a new avatar (geometry and texture).
+    Generate(GenerateArgs),
+    /// Keep the geometry, draw a new texture.
+    Retexture(GenerateArgs),
+    /// Show the avatar (`true`) or the bare body (`false`).
+    ShowAvatar(bool),
 }
 
 fn finite(v: f32, what: &str) -> Result<f32, String> {
@@ -148,8 +173,24 @@ impl Command {
             Command::ResetCamera { .. } => Action::ResetCamera,
             Command::Download { .. } => Action::Download,
             Command::Continuous { continuous } => Action::Continuous(continuous),
+            Command::Generate { generate } => Action::Generate(check_psi(generate)?),
+            Command::Retexture { retexture } => Action::Retexture(check_psi(retexture)?),
+            Command::Show { show } => match show.as_str() {
+                "avatar" => Action::ShowAvatar(true),
+                "body" => Action::ShowAvatar(false),
+                other => return Err(format!("show: `{other}` (avatar, body)")),
+            },
         })
     }
+}
+
+fn check_psi(a: GenerateArgs) -> Result<GenerateArgs, String> {
+    if let Some(p) = a.psi {
+        if !(0.0..=2.0).contains(&p) {
+            return Err(format!("psi {p} outside 0..2"));
+        }
+    }
+    Ok(a)
 }
 
 /// Parse a JSON command (from the JS hook).
@@ -192,6 +233,23 @@ pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
                 .and_then(|r| Command::Res { res: r }.into_action()),
             "betas" => parse_floats(&v, "betas").map(Action::Betas),
             "continuous" => Ok(Action::Continuous(v == "1" || v == "true")),
+            "seed_geo" | "seed_tex" | "generate" => {
+                let seed = if k == "generate" {
+                    Ok(None)
+                } else {
+                    v.parse::<u64>().map(Some).map_err(|_| format!("{k}: `{v}` is not a seed"))
+                };
+                seed.map(|s| {
+                    Action::Generate(GenerateArgs {
+                        seed_geo: if k == "seed_geo" { s } else { None },
+                        seed_tex: if k == "seed_tex" { s } else { None },
+                        psi: None,
+                    })
+                })
+            }
+            "psi" => num("psi")
+                .and_then(|p| check_psi(GenerateArgs { psi: Some(p), ..Default::default() }))
+                .map(Action::Generate),
             joint => match joint_index(joint) {
                 Some(j) => parse_floats(&v, joint).and_then(|f| {
                     if f.len() == 3 {
@@ -263,6 +321,18 @@ pub struct Status {
     pub downloads: u64,
     /// Size in bytes of the last .glb.
     pub last_glb_bytes: usize,
+    /// Whether a generation is running.
+    pub generating: bool,
+    /// Completed generations (full or texture-only).
+    pub generations: u64,
+    /// Milliseconds of the last generation (network + extraction + readbacks).
+    pub last_generation_ms: f32,
+    pub seed_geo: u64,
+    pub seed_tex: u64,
+    pub psi: f32,
+    /// "body" or "avatar": what the viewport shows.
+    pub showing: String,
+    pub avatar_vertices: usize,
     /// Messages about rejected commands / parameters (most recent last).
     pub errors: Vec<String>,
 }
@@ -302,6 +372,17 @@ mod tests {
         assert_eq!(parse_command(r#"{"joint":"right_knee","value":[1.5,0,0]}"#), Ok(Action::Joint(5, [1.5, 0.0, 0.0])));
         assert_eq!(parse_command(r#"{"view":"normal"}"#), Ok(Action::View(ViewMode::Normal)));
         assert_eq!(parse_command(r#"{"download":true}"#), Ok(Action::Download));
+        assert_eq!(
+            parse_command(r#"{"generate":{"seed_geo":3}}"#),
+            Ok(Action::Generate(GenerateArgs { seed_geo: Some(3), ..Default::default() }))
+        );
+        assert_eq!(
+            parse_command(r#"{"retexture":{"seed_tex":9}}"#),
+            Ok(Action::Retexture(GenerateArgs { seed_tex: Some(9), ..Default::default() }))
+        );
+        assert_eq!(parse_command(r#"{"show":"body"}"#), Ok(Action::ShowAvatar(false)));
+        assert!(parse_command(r#"{"generate":{"seed":3}}"#).is_err());
+        assert!(parse_command(r#"{"generate":{"psi":7}}"#).is_err());
         assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
         assert!(parse_command(r#"{"res":77}"#).is_err());
         assert!(parse_command("nonsense").is_err());

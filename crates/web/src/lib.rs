@@ -6,6 +6,7 @@
 //!
 //! - [`automation`]: URL parameters and the JS hook's commands/status (pure, tested natively)
 //! - `app` (wasm32): the egui application state and panels
+//! - `generate` (wasm32): the generator on burn's wgpu backend sharing egui's WebGPU device
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
 //! - `web` (wasm32): entry point, JS hook, file download
 
@@ -13,6 +14,8 @@ pub mod automation;
 
 #[cfg(target_arch = "wasm32")]
 mod app;
+#[cfg(target_arch = "wasm32")]
+mod generate;
 #[cfg(target_arch = "wasm32")]
 mod viewer;
 #[cfg(target_arch = "wasm32")]

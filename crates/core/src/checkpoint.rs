@@ -1,0 +1,249 @@
+//! Generator checkpoints as safetensors files with the config embedded.
+//!
+//! Layout: the standard safetensors container (8-byte little-endian header length, JSON header,
+//! raw little-endian data). Each float parameter of the [`Generator`] is stored under its module
+//! path (e.g. `synthesis.blocks.2.convs.0.weight`) as F32. `__metadata__` holds
+//! `format = "getavatar-generator/1"`, `config` (the `GeneratorConfig` as JSON) and any extra
+//! entries (kimg, …). Loading checks the config against the one requested and names the
+//! first differing field; every parameter's name and shape is checked.
+
+use std::collections::BTreeMap;
+
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::generator::Generator;
+use crate::network::GeneratorConfig;
+
+pub const FORMAT: &str = "getavatar-generator/1";
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("not a safetensors checkpoint: {0}")]
+    Format(String),
+    #[error("checkpoint was saved for config `{saved}` but `{requested}` was requested: {detail}")]
+    ConfigMismatch { saved: String, requested: String, detail: String },
+    #[error("checkpoint parameter `{0}`: {1}")]
+    Param(String, String),
+}
+
+fn fmt_err(m: impl Into<String>) -> CheckpointError {
+    CheckpointError::Format(m.into())
+}
+
+/// Parameter name from the module path; a repeated path gets a `#k` suffix (traversal order
+/// is the same when saving and loading, so names match).
+fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
+    let base = path.join(".");
+    let k = seen.entry(base.clone()).or_insert(0);
+    *k += 1;
+    if *k == 1 {
+        base
+    } else {
+        format!("{base}#{}", *k - 1)
+    }
+}
+
+struct Collect {
+    path: Vec<String>,
+    seen: BTreeMap<String, usize>,
+    out: Vec<(String, Vec<usize>, Vec<f32>)>,
+}
+
+impl ModuleVisitor for Collect {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let tensor = param.val();
+        let name = unique_name(&self.path, &mut self.seen);
+        let shape = tensor.dims().to_vec();
+        let data = tensor.to_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        self.out.push((name, shape, data));
+    }
+}
+
+/// Serialise generator `g` (built with `cfg`) to safetensors bytes. Native only: it reads
+/// parameters back synchronously.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn save_generator(g: &Generator, cfg: &GeneratorConfig, extra: &BTreeMap<String, String>) -> Vec<u8> {
+    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
+    g.visit(&mut c);
+    let mut header = serde_json::Map::new();
+    let mut meta = serde_json::Map::new();
+    meta.insert("format".into(), FORMAT.into());
+    meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default().into());
+    for (k, v) in extra {
+        meta.insert(k.clone(), v.clone().into());
+    }
+    header.insert("__metadata__".into(), meta.into());
+    let mut offset = 0usize;
+    for (name, shape, data) in &c.out {
+        let end = offset + data.len() * 4;
+        header
+            .insert(name.clone(), serde_json::json!({ "dtype": "F32", "shape": shape, "data_offsets": [offset, end] }));
+        offset = end;
+    }
+    let mut h = serde_json::Value::Object(header).to_string().into_bytes();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + h.len() + offset);
+    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    out.extend_from_slice(&h);
+    for (_, _, data) in &c.out {
+        for x in data {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// The parsed container: metadata and named (shape, values).
+pub struct SafeTensors {
+    pub metadata: BTreeMap<String, String>,
+    pub tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+}
+
+pub fn parse_safetensors(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
+    if bytes.len() < 8 {
+        return Err(fmt_err("file shorter than the 8-byte header length"));
+    }
+    let n = u64::from_le_bytes(bytes[..8].try_into().map_err(|_| fmt_err("header length"))?) as usize;
+    let header =
+        bytes.get(8..8usize.saturating_add(n)).ok_or_else(|| fmt_err(format!("header of {n} bytes is truncated")))?;
+    let data = &bytes[8 + n..];
+    let json: serde_json::Value = serde_json::from_slice(header).map_err(|e| fmt_err(format!("header JSON: {e}")))?;
+    let obj = json.as_object().ok_or_else(|| fmt_err("header is not a JSON object"))?;
+    let mut out = SafeTensors { metadata: BTreeMap::new(), tensors: BTreeMap::new() };
+    for (k, v) in obj {
+        if k == "__metadata__" {
+            for (mk, mv) in v.as_object().into_iter().flatten() {
+                out.metadata.insert(mk.clone(), mv.as_str().unwrap_or_default().to_string());
+            }
+            continue;
+        }
+        let dtype = v["dtype"].as_str().unwrap_or("");
+        if dtype != "F32" {
+            return Err(CheckpointError::Param(k.clone(), format!("dtype {dtype} (only F32 is supported)")));
+        }
+        let shape: Vec<usize> =
+            v["shape"].as_array().into_iter().flatten().filter_map(|x| x.as_u64().map(|x| x as usize)).collect();
+        let offs: Vec<usize> =
+            v["data_offsets"].as_array().into_iter().flatten().filter_map(|x| x.as_u64().map(|x| x as usize)).collect();
+        let (a, b) = match offs.as_slice() {
+            [a, b] if a <= b && *b <= data.len() => (*a, *b),
+            _ => return Err(CheckpointError::Param(k.clone(), "data offsets out of range".into())),
+        };
+        if (b - a) != shape.iter().product::<usize>() * 4 {
+            return Err(CheckpointError::Param(
+                k.clone(),
+                format!("shape {shape:?} does not match {} data bytes", b - a),
+            ));
+        }
+        let vals = data[a..b].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        out.tensors.insert(k.clone(), (shape, vals));
+    }
+    Ok(out)
+}
+
+/// Read the config embedded in a checkpoint.
+pub fn checkpoint_config(st: &SafeTensors) -> Result<GeneratorConfig, CheckpointError> {
+    if st.metadata.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(fmt_err(format!("metadata `format` is {:?}, expected {FORMAT}", st.metadata.get("format"))));
+    }
+    let c = st.metadata.get("config").ok_or_else(|| fmt_err("metadata lacks `config`"))?;
+    serde_json::from_str(c).map_err(|e| fmt_err(format!("embedded config: {e}")))
+}
+
+fn config_difference(a: &GeneratorConfig, b: &GeneratorConfig) -> String {
+    let (ja, jb) = (serde_json::to_value(a).unwrap_or_default(), serde_json::to_value(b).unwrap_or_default());
+    let mut diffs = Vec::new();
+    if let (Some(oa), Some(ob)) = (ja.as_object(), jb.as_object()) {
+        for (k, va) in oa {
+            if k != "name" && ob.get(k) != Some(va) {
+                diffs.push(format!("{k} {} vs {}", va, ob.get(k).cloned().unwrap_or_default()));
+            }
+        }
+    }
+    if diffs.is_empty() {
+        "same sizes, different name".into()
+    } else {
+        diffs.join(", ")
+    }
+}
+
+struct Load<'a> {
+    path: Vec<String>,
+    seen: BTreeMap<String, usize>,
+    tensors: &'a BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    device: Device,
+    error: Option<CheckpointError>,
+    used: usize,
+}
+
+impl ModuleMapper for Load<'_> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let name = unique_name(&self.path, &mut self.seen);
+        let want = param.val().dims().to_vec();
+        match self.tensors.get(&name) {
+            Some((shape, vals)) if *shape == want => {
+                self.used += 1;
+                let t = Tensor::<D>::from_data(TensorData::new(vals.clone(), shape.clone()), &self.device);
+                param.map(|_| t)
+            }
+            Some((shape, _)) => {
+                self.error
+                    .get_or_insert(CheckpointError::Param(name, format!("shape {shape:?}, model expects {want:?}")));
+                param
+            }
+            None => {
+                self.error.get_or_insert(CheckpointError::Param(name, "missing from the checkpoint".into()));
+                param
+            }
+        }
+    }
+}
+
+/// Load a generator of config `requested` from checkpoint bytes.
+pub fn load_generator(
+    bytes: &[u8],
+    requested: &GeneratorConfig,
+    device: &Device,
+) -> Result<Generator, CheckpointError> {
+    let st = parse_safetensors(bytes)?;
+    let saved = checkpoint_config(&st)?;
+    if saved != *requested {
+        return Err(CheckpointError::ConfigMismatch {
+            saved: saved.name.clone(),
+            requested: requested.name.clone(),
+            detail: config_difference(&saved, requested),
+        });
+    }
+    let g = Generator::new(requested, 0, device);
+    let mut l = Load {
+        path: Vec::new(),
+        seen: BTreeMap::new(),
+        tensors: &st.tensors,
+        device: device.clone(),
+        error: None,
+        used: 0,
+    };
+    let g = g.map(&mut l);
+    if let Some(e) = l.error {
+        return Err(e);
+    }
+    if l.used != st.tensors.len() {
+        return Err(fmt_err(format!("{} tensors in the file, {} used by the model", st.tensors.len(), l.used)));
+    }
+    Ok(g)
+}
