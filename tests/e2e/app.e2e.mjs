@@ -224,9 +224,9 @@ try {
   s = await waitFor((s) => s.generations > g1 && !s.generating, 're-texturing', 300000);
   await page.waitForTimeout(800);
   const rgb2 = await grab('rgb_avatar_tex3');
-  let diff = 0, n = 0;
-  for (let k = 0; k < avMask.length; k++) if (avMask[k]) { for (let c = 0; c < 3; c++) diff += Math.abs(rgb1.data[4 * k + c] - rgb2.data[4 * k + c]); n++; }
-  diff /= Math.max(1, 3 * n);
+  let diff = 0, nBody = 0;
+  for (let k = 0; k < avMask.length; k++) if (avMask[k]) { for (let c = 0; c < 3; c++) diff += Math.abs(rgb1.data[4 * k + c] - rgb2.data[4 * k + c]); nBody++; }
+  diff /= Math.max(1, 3 * nBody);
   check(diff > 3, `a new texture seed changes RGB pixels (mean |Δ| ${diff.toFixed(1)} on the body)`);
   s = await command({ view: 'mask' }, (s) => s.view === 'mask');
   const avMask2 = maskOf(await grab('mask_avatar_tex3'), (c) => c[0] > 127);

@@ -177,8 +177,10 @@ fn checkpoints_round_trip_and_reject_other_configs() {
     // Same weights ⇒ same triplanes.
     let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
     let (a, b) = (g.triplanes(&g.styles(zg.clone(), zt.clone(), 0.7)), back.triplanes(&back.styles(zg, zt, 0.7)));
-    let (va, vb) =
-        (a.geometry.into_data().try_to_vec::<f32>().expect("f32"), b.geometry.into_data().try_to_vec::<f32>().expect("f32"));
+    let (va, vb) = (
+        a.geometry.into_data().try_to_vec::<f32>().expect("f32"),
+        b.geometry.into_data().try_to_vec::<f32>().expect("f32"),
+    );
     assert_eq!(va, vb);
     // Another config is refused with a message naming the differing fields.
     let e = load_generator(&bytes, &GeneratorConfig::demo(), &dev).err().expect("mismatch").to_string();

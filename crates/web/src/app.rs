@@ -207,6 +207,7 @@ impl GetAvatarApp {
                 self.status.generations += 1;
                 self.status.last_generation_ms = done.millis as f32;
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
+                (self.seed_geo, self.seed_tex) = done.seeds;
                 self.rigged = Some(done.rigged);
                 self.show_avatar = true;
                 self.mesh_dirty = true;

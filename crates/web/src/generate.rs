@@ -18,6 +18,7 @@ use getavatar_core::network::GeneratorConfig;
 pub struct Finished {
     pub rigged: RiggedAvatar,
     pub millis: f64,
+    /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
 }
 

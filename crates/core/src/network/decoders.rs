@@ -15,8 +15,9 @@ use super::init::Rng;
 use super::layers::ModulatedLinear;
 use crate::geometry::tet_grid::REFERENCE_BOX_SIZE;
 
-/// Initial scale of the SDF residual's output weights: the untrained residual is a few
-/// centimetres, so training (and untrained demo weights) start from the body template.
+/// Initial scale of the output weights of the SDF-residual and DMTet-offset decoders: the
+/// untrained residual and offsets are millimetres, so training (and the untrained demo
+/// weights) start from the body template on the regular grid.
 pub const SDF_INIT_SCALE: f32 = 0.001;
 
 #[derive(Module, Debug)]
@@ -70,7 +71,7 @@ impl Decoders {
         let (c, h) = (cfg.plane_channels, cfg.decoder_hidden);
         Self {
             sdf: Decoder::new_small_output(rng, cfg.w_dim, c, h, 1, SDF_INIT_SCALE, device),
-            offset: Decoder::new(rng, cfg.w_dim, c, h, 3, device),
+            offset: Decoder::new_small_output(rng, cfg.w_dim, c, h, 3, SDF_INIT_SCALE, device),
             texture: Decoder::new(rng, cfg.w_dim, c, h, cfg.texture_features, device),
             to_rgb: ModulatedLinear::new(rng, cfg.w_dim, cfg.texture_features, 3, false, false, device),
             tet_res: cfg.tet_res,
