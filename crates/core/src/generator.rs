@@ -41,23 +41,12 @@ impl Generator {
     /// A generator with deterministic random weights from `seed`.
     pub fn new(cfg: &GeneratorConfig, seed: u64, device: &Device) -> Self {
         let mut rng = Rng::new(seed, 1);
+        let mapping = |rng: &mut Rng| {
+            MappingNetwork::new(rng, cfg.z_dim, cfg.w_dim, cfg.mapping_layers, cfg.mapping_lr_mul, device)
+        };
         Self {
-            mapping_geo: MappingNetwork::new(
-                &mut rng,
-                cfg.z_dim,
-                cfg.w_dim,
-                cfg.mapping_layers,
-                cfg.mapping_lr_mul,
-                device,
-            ),
-            mapping_tex: MappingNetwork::new(
-                &mut rng,
-                cfg.z_dim,
-                cfg.w_dim,
-                cfg.mapping_layers,
-                cfg.mapping_lr_mul,
-                device,
-            ),
+            mapping_geo: mapping(&mut rng),
+            mapping_tex: mapping(&mut rng),
             synthesis: TriplaneSynthesis::new(&mut rng, cfg, device),
             decoders: Decoders::new(&mut rng, cfg, device),
         }
