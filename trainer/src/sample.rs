@@ -8,11 +8,12 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::load_generator;
+use getavatar_core::generator::{block_on_ready, recolor_async};
 use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::render_views;
+use getavatar_core::rasterize::render_views_textured;
 
 pub struct SampleArgs {
     pub config: String,
@@ -82,7 +83,12 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     }
     let cam = OrbitCamera { yaw: a.yaw_deg.to_radians(), ..OrbitCamera::default() };
     let vp = cam.projection_gl(1.0) * cam.world_to_camera();
-    let views = render_views(&avatar.mesh.vertices, &avatar.mesh.faces, &avatar.normals, &avatar.colors, vp, a.res, 2);
+    // RGB: the texture field queried at every pixel's canonical coordinate (paper Sec. 4.4).
+    let planes = g.triplanes(&styles);
+    let m = &avatar.mesh;
+    let views = render_views_textured(&m.vertices, &m.faces, &avatar.normals, &m.attributes, vp, a.res, 2, |pts| {
+        block_on_ready(recolor_async(&g, &planes, &styles, pts, &device))
+    });
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     write_png(&a.out.join("rgb.png"), &views.rgb, a.res, png::ColorType::Rgb)?;
     write_png(&a.out.join("normal.png"), &views.normal, a.res, png::ColorType::Rgb)?;

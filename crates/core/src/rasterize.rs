@@ -97,8 +97,8 @@ pub struct RenderedViews {
     pub mask: Vec<u8>,
 }
 
-/// Render RGB, normal and mask views at `size`² with `ss`×`ss` supersampling.
-/// `view_proj` maps world to OpenGL clip space.
+/// Render RGB, normal and mask views at `size`² with `ss`×`ss` supersampling, colours
+/// interpolated from the vertices. `view_proj` maps world to OpenGL clip space.
 pub fn render_views(
     vertices: &[Vec3],
     tris: &[[u32; 3]],
@@ -108,12 +108,44 @@ pub fn render_views(
     size: usize,
     ss: usize,
 ) -> RenderedViews {
-    let ss = ss.max(1);
-    let hi = size * ss;
+    let hi = size * ss.max(1);
     let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
     let r = rasterize(&clip, tris, hi, hi);
-    let n = interpolate(normals, &r, tris);
     let c = interpolate(colors, &r, tris);
+    composite(&r, &interpolate(normals, &r, tris), &c, size, ss.max(1))
+}
+
+/// Like [`render_views`], but each pixel's colour comes from `texture`, called once with the
+/// interpolated `canonical` coordinates of all covered (super)samples — the paper's Sec. 4.4:
+/// the texture field is queried at the canonical coordinate of every pixel.
+#[allow(clippy::too_many_arguments)]
+pub fn render_views_textured(
+    vertices: &[Vec3],
+    tris: &[[u32; 3]],
+    normals: &[Vec3],
+    canonical: &[Vec3],
+    view_proj: glam::Mat4,
+    size: usize,
+    ss: usize,
+    texture: impl FnOnce(&[Vec3]) -> Vec<Vec3>,
+) -> RenderedViews {
+    let hi = size * ss.max(1);
+    let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+    let r = rasterize(&clip, tris, hi, hi);
+    let canon = interpolate(canonical, &r, tris);
+    let covered: Vec<usize> = (0..canon.len()).filter(|&k| canon[k].is_some()).collect();
+    let points: Vec<Vec3> = covered.iter().filter_map(|&k| canon[k]).collect();
+    let colors = texture(&points);
+    let mut c = vec![None; canon.len()];
+    for (&k, col) in covered.iter().zip(colors) {
+        c[k] = Some(col);
+    }
+    composite(&r, &interpolate(normals, &r, tris), &c, size, ss.max(1))
+}
+
+/// Average `ss`×`ss` samples into the three 8-bit images.
+fn composite(r: &Raster, n: &[Option<Vec3>], c: &[Option<Vec3>], size: usize, ss: usize) -> RenderedViews {
+    let hi = r.width;
     let mut out = RenderedViews {
         size,
         rgb: vec![0; size * size * 3],
@@ -198,5 +230,22 @@ mod tests {
         let px = 0.5 / half * 0.5; // world metres per pixel · half a pixel
         assert!((p.x - t.x - px).abs() < 1e-3 && (p.y - t.y + px).abs() < 1e-3, "{p}");
         assert!(pos[0].is_none());
+
+        // Per-pixel texturing: the texture callback sees exactly the covered pixels, at their
+        // interpolated canonical coordinates; a field equal to the vertex colours' linear
+        // interpolant reproduces per-vertex colouring bit for bit.
+        let colors = v.map(|p| (p - t + Vec3::splat(0.5)).clamp(Vec3::ZERO, Vec3::ONE));
+        let normals = [Vec3::Z; 4];
+        let a = render_views(&v, &tris, &normals, &colors, vp, size, 1);
+        let mut seen = 0;
+        let b = render_views_textured(&v, &tris, &normals, &v, vp, size, 1, |pts| {
+            seen = pts.len();
+            pts.iter().map(|p| (*p - t + Vec3::splat(0.5)).clamp(Vec3::ZERO, Vec3::ONE)).collect()
+        });
+        assert_eq!(seen as f32, covered);
+        let max_diff = a.rgb.iter().zip(&b.rgb).map(|(x, y)| (*x as i32 - *y as i32).abs()).max().unwrap_or(0);
+        assert!(max_diff <= 1, "per-pixel vs per-vertex colours differ by {max_diff}");
+        assert_eq!(&a.rgb[..3], &[255, 255, 255], "white background");
+        assert_eq!(a.mask, b.mask);
     }
 }
