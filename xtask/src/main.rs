@@ -134,6 +134,7 @@ fn build_web() -> Result<()> {
 
 fn test(native: bool, browser: bool) -> Result<()> {
     if native {
+        setup::native_test_deps()?;
         let mut c = Command::new(cargo());
         c.current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]);
         run(&mut c)?;

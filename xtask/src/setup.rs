@@ -105,6 +105,14 @@ pub fn chromium() -> Result<String> {
     Ok("/usr/bin/chromium".into())
 }
 
+/// A Vulkan driver for the native wgpu tests: Mesa's lavapipe (software) where none exists.
+pub fn native_test_deps() -> Result<()> {
+    if Path::new("/usr/bin/apt-get").exists() {
+        apt_install(&["mesa-vulkan-drivers"])?;
+    }
+    Ok(())
+}
+
 /// Chromium plus the Node packages of `tests/e2e` (npm ci from the committed lock file).
 pub fn browser_test_deps() -> Result<()> {
     chromium()?;

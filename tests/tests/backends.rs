@@ -1,0 +1,61 @@
+//! One model code on two backends: the generator gives the same fields and meshes on NdArray
+//! (CPU) and on Wgpu (natively: Vulkan, on CI Mesa's lavapipe software rasteriser).
+
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::spatial::KdTree;
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_to_vec::<f32>().expect("f32 data")
+}
+
+#[test]
+fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
+    #[allow(deprecated)]
+    let cpu = Device::ndarray();
+    let gpu = Device::wgpu_options()
+        .init()
+        .expect("no wgpu adapter: install a Vulkan driver (CI uses Debian's mesa-vulkan-drivers, i.e. lavapipe)");
+    let cfg = GeneratorConfig::tiny();
+    let model = BodyModel::default_body().expect("body");
+    let (gc, gg) = (Generator::new(&cfg, 0, &cpu), Generator::new(&cfg, 0, &gpu));
+
+    // Fields at body points near the surface.
+    let pts: Vec<f32> = model.v_template.iter().step_by(7).flat_map(|v| v.to_array()).collect();
+    let n = pts.len() / 3;
+    let field = |g: &Generator, dev: &Device| {
+        let (zg, zt) = seed_latents(&cfg, 3, 4, dev);
+        let s = g.styles(zg, zt, 0.7);
+        let planes = g.triplanes(&s);
+        let p = Tensor::<3>::from_data(TensorData::new(pts.clone(), [1, n, 3]), dev);
+        let (r, o) = g.geometry_fields(&planes, &s, p.clone());
+        let c = g.texture_field(&planes, &s, p);
+        (values(planes.geometry), values(r), values(o), values(c))
+    };
+    let (a, b) = (field(&gc, &cpu), field(&gg, &gpu));
+    for (name, x, y) in
+        [("triplanes", &a.0, &b.0), ("sdf residual", &a.1, &b.1), ("offsets", &a.2, &b.2), ("colours", &a.3, &b.3)]
+    {
+        let scale = x.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        let diff = x.iter().zip(y).fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
+        println!("{name}: max |Δ| {diff:.3e} (scale {scale:.3e})");
+        assert!(diff <= 1e-4 * scale + 1e-7, "{name}: NdArray and Wgpu differ by {diff} (scale {scale})");
+    }
+
+    // Whole avatars: same mesh within float noise.
+    let ctx = BodyContext::new(model, &cfg);
+    let params = PoseLibrary::builtin().params("walking", &[]).expect("pose");
+    let avatar = |g: &Generator, dev: &Device| {
+        let (zg, zt) = seed_latents(&cfg, 3, 4, dev);
+        generate_avatar(g, &ctx, &g.styles(zg, zt, 0.7), &params, dev)
+    };
+    let (ma, mb) = (avatar(&gc, &cpu), avatar(&gg, &gpu));
+    assert_eq!(ma.mesh.faces.len(), mb.mesh.faces.len(), "different triangle counts");
+    let tb = KdTree::new(&mb.mesh.vertices);
+    let d = ma.mesh.vertices.iter().map(|v| tb.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
+    println!("mesh: {} vertices, max vertex distance {d:.2e} m", ma.mesh.vertices.len());
+    assert!(d < 1e-4, "meshes differ by {d} m");
+}
