@@ -79,6 +79,43 @@ impl OrbitCamera {
     }
 }
 
+/// The data-rendering camera protocol of the paper code (`trainer prepare`): radius 2.3,
+/// fov 49.13°, azimuth uniform in [0, 2π), elevation ~ N(0, σ = 0.1 rad) clamped to
+/// ±[`DATA_ELEVATION_CLAMP`], looking at the subject's vertical centre on the y axis.
+pub const DATA_ELEVATION_STD: f32 = 0.1;
+/// Elevations are clamped to ±3σ.
+pub const DATA_ELEVATION_CLAMP: f32 = 0.3;
+
+/// Draw one camera of the data protocol looking at `(0, centre_y, 0)`.
+pub fn sample_data_camera(rng: &mut crate::rng::Rng, centre_y: f32) -> OrbitCamera {
+    let yaw = rng.uniform() * std::f32::consts::TAU;
+    let pitch = (rng.normal() * DATA_ELEVATION_STD).clamp(-DATA_ELEVATION_CLAMP, DATA_ELEVATION_CLAMP);
+    OrbitCamera { yaw, pitch, target: Vec3::new(0.0, centre_y, 0.0), ..OrbitCamera::default() }
+}
+
+/// A 4×4 matrix as 16 numbers, row-major (the dataset label layout).
+pub fn to_row_major(m: Mat4) -> [f32; 16] {
+    m.transpose().to_cols_array()
+}
+
+/// Inverse of [`to_row_major`].
+pub fn from_row_major(v: &[f32; 16]) -> Mat4 {
+    Mat4::from_cols_array(v).transpose()
+}
+
+/// Pixel coordinates (x right, y down, pixel centres at +0.5) of a world point seen through a
+/// world-to-camera matrix with the reference intrinsics in a `size`² image; `None` behind
+/// the camera.
+pub fn project_to_pixel(world_to_camera: Mat4, point: Vec3, size: usize) -> Option<glam::Vec2> {
+    let p = world_to_camera.transform_point3(point);
+    if p.z >= 0.0 {
+        return None;
+    }
+    let f = 1.0 / (reference_fov_y() / 2.0).tan();
+    let (nx, ny) = (f * p.x / -p.z, f * p.y / -p.z);
+    Some(glam::Vec2::new((nx + 1.0) * 0.5 * size as f32, (1.0 - ny) * 0.5 * size as f32))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -95,5 +132,23 @@ mod tests {
         let top = c.target + Vec3::Y * (c.fov_y / 2.0).tan() * c.radius;
         let clip = c.projection_wgpu(1.0) * c.world_to_camera() * top.extend(1.0);
         assert!((clip.y / clip.w - 1.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn row_major_round_trip_and_pixel_projection() {
+        let c = OrbitCamera { yaw: 0.7, pitch: -0.1, ..OrbitCamera::default() };
+        let m = c.world_to_camera();
+        let r = to_row_major(m);
+        // Row-major: the translation is the last entry of the first three rows.
+        assert_eq!(r[3], m.w_axis.x);
+        assert_eq!(from_row_major(&r), m);
+        // The target projects to the image centre.
+        let p = project_to_pixel(m, c.target, 128).unwrap();
+        assert!((p - glam::Vec2::splat(64.0)).length() < 1e-3, "{p}");
+        // Same as the OpenGL projection.
+        let q = c.target + Vec3::new(0.2, 0.3, -0.1);
+        let clip = c.projection_gl(1.0) * m * q.extend(1.0);
+        let want = glam::Vec2::new((clip.x / clip.w + 1.0) * 64.0, (1.0 - clip.y / clip.w) * 64.0);
+        assert!((project_to_pixel(m, q, 128).unwrap() - want).length() < 1e-3);
     }
 }

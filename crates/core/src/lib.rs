@@ -15,6 +15,8 @@
 //! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | mesh download (.glb)                    | [`gltf_export`] |
+//! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
+//! | seeded randomness, identical on every platform | [`rng`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
 //! `docs/conventions.md`. Shared code never blocks, touches files or spawns threads: it takes
@@ -24,6 +26,8 @@ pub mod body_model;
 pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod checkpoint;
+#[cfg(feature = "dataset")]
+pub mod dataset;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;
 pub mod geometry;
@@ -33,6 +37,8 @@ pub mod network;
 pub mod npz;
 pub mod pose_library;
 pub mod rasterize;
+pub mod rng;
+pub mod scan;
 pub mod skinning;
 pub mod spatial;
 

@@ -1,13 +1,14 @@
 //! Rasterisation, modelled on nvdiffrast's primitives (Laine et al. 2020):
-//! [`rasterize`] (per-pixel triangle id and perspective-correct barycentrics) and
-//! [`interpolate`] (attributes at pixels). This is the CPU reference implementation used by
+//! [`rasterize`] (per-pixel triangle id and perspective-correct barycentrics),
+//! [`interpolate`] (attributes at pixels) and [`texture`] (bilinear image lookups at
+//! interpolated UVs). This is the CPU reference implementation used by
 //! the CLI and tests; the app draws with wgpu.
 //!
 //! Conventions: clip-space positions (x, y, z, w) as produced by an OpenGL projection;
 //! pixel (0, 0) is the top-left, pixel centres at +0.5; depth test on z/w, nearest wins;
 //! triangles with a vertex at w ≤ 0 are dropped (no near-plane clipping).
 
-use glam::{Vec3, Vec4};
+use glam::{Vec2, Vec3, Vec4};
 
 /// Output of [`rasterize`]: per pixel, row-major from the top-left.
 #[derive(Clone, Debug)]
@@ -83,6 +84,51 @@ pub fn interpolate(attr: &[Vec3], raster: &Raster, tris: &[[u32; 3]]) -> Vec<Opt
             })
         })
         .collect()
+}
+
+/// An RGB image for [`texture`] lookups, linear-light texels, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Texture {
+    pub width: usize,
+    pub height: usize,
+    /// Linear RGB, row-major from the top row.
+    pub texels: Vec<Vec3>,
+}
+
+impl Texture {
+    /// From 8-bit sRGB-encoded RGB or RGBA pixels (`channels` 3 or 4; alpha ignored).
+    pub fn from_srgb8(width: usize, height: usize, channels: usize, pixels: &[u8]) -> Option<Self> {
+        if width == 0 || height == 0 || !(3..=4).contains(&channels) || pixels.len() != width * height * channels {
+            return None;
+        }
+        let lut: Vec<f32> = (0..256).map(|i| srgb_to_linear(i as f32 / 255.0)).collect();
+        let texels = pixels
+            .chunks_exact(channels)
+            .map(|p| Vec3::new(lut[p[0] as usize], lut[p[1] as usize], lut[p[2] as usize]));
+        Some(Self { width, height, texels: texels.collect() })
+    }
+
+    /// Bilinear lookup at `uv` with OBJ's convention (u right, v up, (0, 0) = bottom-left
+    /// corner of the image), wrapping (repeat) outside [0, 1].
+    pub fn sample(&self, uv: Vec2) -> Vec3 {
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = (1.0 - uv.y) * self.height as f32 - 0.5;
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let at = |ix: f32, iy: f32| {
+            let i = (ix as i64).rem_euclid(self.width as i64) as usize;
+            let j = (iy as i64).rem_euclid(self.height as i64) as usize;
+            self.texels[j * self.width + i]
+        };
+        let top = at(x0, y0).lerp(at(x0 + 1.0, y0), fx);
+        let bottom = at(x0, y0 + 1.0).lerp(at(x0 + 1.0, y0 + 1.0), fx);
+        top.lerp(bottom, fy)
+    }
+}
+
+/// nvdiffrast's `texture`: bilinear lookups of `tex` at per-pixel `uv` (`None` stays `None`).
+pub fn texture(tex: &Texture, uv: &[Option<Vec2>]) -> Vec<Option<Vec3>> {
+    uv.iter().map(|p| p.map(|p| tex.sample(p))).collect()
 }
 
 /// RGB / normal / mask images of a mesh, 8-bit, row-major RGB (mask: one channel).
@@ -183,6 +229,15 @@ fn composite(r: &Raster, n: &[Option<Vec3>], c: &[Option<Vec3>], size: usize, ss
     out
 }
 
+/// Inverse sRGB transfer function of one channel in [0, 1].
+pub fn srgb_to_linear(x: f32) -> f32 {
+    if x <= 0.04045 {
+        x / 12.92
+    } else {
+        ((x + 0.055) / 1.055).powf(2.4)
+    }
+}
+
 /// sRGB transfer function of a linear colour.
 pub fn linear_to_srgb(c: Vec3) -> Vec3 {
     let f = |x: f32| {
@@ -247,5 +302,24 @@ mod tests {
         assert!(max_diff <= 1, "per-pixel vs per-vertex colours differ by {max_diff}");
         assert_eq!(&a.rgb[..3], &[255, 255, 255], "white background");
         assert_eq!(a.mask, b.mask);
+    }
+
+    #[test]
+    fn texture_lookup_is_bilinear_with_obj_orientation() {
+        // 2×2 sRGB image: top row black, white; bottom row red, green.
+        let px = [0, 0, 0, 255, 255, 255, 255, 0, 0, 0, 255, 0];
+        let t = Texture::from_srgb8(2, 2, 3, &px).unwrap();
+        // Texel centres: (0.25, 0.75) = top-left (black), (0.25, 0.25) = bottom-left (red).
+        assert!((t.sample(Vec2::new(0.25, 0.75)) - Vec3::ZERO).length() < 1e-6);
+        assert!((t.sample(Vec2::new(0.25, 0.25)) - Vec3::X).length() < 1e-6);
+        assert!((t.sample(Vec2::new(0.75, 0.25)) - Vec3::Y).length() < 1e-6);
+        // Halfway between the bottom texels: linear average of red and green.
+        assert!((t.sample(Vec2::new(0.5, 0.25)) - Vec3::new(0.5, 0.5, 0.0)).length() < 1e-6);
+        // Repeat wrapping.
+        assert_eq!(t.sample(Vec2::new(1.25, 0.75)), t.sample(Vec2::new(0.25, 0.75)));
+        assert!(Texture::from_srgb8(2, 2, 3, &px[..6]).is_none());
+        let r = texture(&t, &[None, Some(Vec2::new(0.75, 0.75))]);
+        assert!(r[0].is_none() && (r[1].unwrap() - Vec3::ONE).length() < 1e-6);
+        assert!((srgb_to_linear(linear_to_srgb(Vec3::splat(0.3)).x) - 0.3).abs() < 1e-5);
     }
 }

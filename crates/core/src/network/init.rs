@@ -3,45 +3,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-/// PCG32 (O'Neill), small and reproducible everywhere (including wasm32).
-#[derive(Clone, Debug)]
-pub struct Rng {
-    state: u64,
-    inc: u64,
-}
-
-impl Rng {
-    pub fn new(seed: u64, stream: u64) -> Self {
-        let mut r = Self { state: 0, inc: (stream << 1) | 1 };
-        r.next_u32();
-        r.state = r.state.wrapping_add(seed);
-        r.next_u32();
-        r
-    }
-
-    pub fn next_u32(&mut self) -> u32 {
-        let old = self.state;
-        self.state = old.wrapping_mul(6364136223846793005).wrapping_add(self.inc);
-        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
-        let rot = (old >> 59) as u32;
-        xorshifted.rotate_right(rot)
-    }
-
-    /// Uniform in (0, 1).
-    pub fn uniform(&mut self) -> f32 {
-        ((self.next_u32() >> 8) as f32 + 0.5) / (1u32 << 24) as f32
-    }
-
-    /// Standard normal.
-    pub fn normal(&mut self) -> f32 {
-        let (u1, u2) = (self.uniform(), self.uniform());
-        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
-    }
-
-    pub fn normals(&mut self, n: usize) -> Vec<f32> {
-        (0..n).map(|_| self.normal()).collect()
-    }
-}
+pub use crate::rng::Rng;
 
 /// A tensor of `shape` filled with N(0, 1)·`scale` from `rng`.
 pub fn randn<const D: usize>(rng: &mut Rng, shape: [usize; D], scale: f32, device: &Device) -> Tensor<D> {

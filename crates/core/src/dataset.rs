@@ -1,0 +1,370 @@
+//! The training dataset in the reference code's layout (native only: feature `dataset`).
+//!
+//! ```text
+//! DIR/dataset.json                 {"labels": {"<subject>/<view>.png": [98 floats], ...}}
+//! DIR/<subject>/<view>.png         RGBA, sRGB colours on white, alpha = mask
+//! DIR/<subject>/<view>_normal.png  RGB world-space normals (n+1)·127.5, background (128,128,128)
+//! ```
+//! A label is 16 world-to-camera numbers (row-major 4×4, OpenGL camera, fov 49.13°), then
+//! 3 global orientation + 69 body pose (SMPL axis-angle) + 10 betas. The format is described
+//! in `docs/dataset.md`. Normal maps are optional for a whole dataset (transfer learning on
+//! RGB-only data), never for part of one.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::Mat4;
+
+use crate::camera::{from_row_major, to_row_major};
+use crate::rasterize::RenderedViews;
+use crate::skinning::BodyParams;
+
+/// Name of the labels file in a dataset directory.
+pub const LABELS_FILE: &str = "dataset.json";
+/// Numbers per label: 16 camera + 3 global orient + 69 body pose + 10 betas.
+pub const LABEL_LEN: usize = 98;
+/// Betas stored per label.
+pub const LABEL_BETAS: usize = 10;
+
+/// Dataset errors; each names the file or labels entry at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {msg}")]
+    Labels { path: PathBuf, msg: String },
+    #[error("label `{entry}`: {msg}")]
+    Label { entry: String, msg: String },
+    #[error("{path}: {msg}")]
+    Image { path: PathBuf, msg: String },
+}
+
+/// One image's label.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Label {
+    pub world_to_camera: Mat4,
+    pub global_orient: [f32; 3],
+    pub body_pose: [f32; 69],
+    pub betas: [f32; LABEL_BETAS],
+}
+
+impl Label {
+    pub fn new(world_to_camera: Mat4, body: &BodyParams) -> Self {
+        let theta = body.theta();
+        let mut betas = [0.0; LABEL_BETAS];
+        for (b, v) in betas.iter_mut().zip(&body.betas) {
+            *b = *v;
+        }
+        Self {
+            world_to_camera,
+            global_orient: theta[..3].try_into().expect("3"),
+            body_pose: theta[3..].try_into().expect("69"),
+            betas,
+        }
+    }
+
+    /// The 98 numbers in file order.
+    pub fn to_floats(&self) -> Vec<f32> {
+        let mut v = Vec::with_capacity(LABEL_LEN);
+        v.extend_from_slice(&to_row_major(self.world_to_camera));
+        v.extend_from_slice(&self.global_orient);
+        v.extend_from_slice(&self.body_pose);
+        v.extend_from_slice(&self.betas);
+        v
+    }
+
+    /// Parse the 98 numbers of `entry`; wrong counts and non-finite values are errors naming it.
+    pub fn from_floats(entry: &str, v: &[f32]) -> Result<Self, DatasetError> {
+        let err = |msg: String| DatasetError::Label { entry: entry.to_string(), msg };
+        if v.len() != LABEL_LEN {
+            return Err(err(format!(
+                "{} numbers, expected {LABEL_LEN} (16 world-to-camera + 3 global orient + 69 body pose + 10 betas)",
+                v.len()
+            )));
+        }
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(err(format!("number {i} is not finite")));
+        }
+        let m = from_row_major(v[..16].try_into().expect("16"));
+        if (m.row(3) - glam::Vec4::W).abs().max_element() > 1e-4 {
+            return Err(err(format!("the camera matrix's last row is {:?}, expected [0, 0, 0, 1]", m.row(3))));
+        }
+        Ok(Self {
+            world_to_camera: m,
+            global_orient: v[16..19].try_into().expect("3"),
+            body_pose: v[19..88].try_into().expect("69"),
+            betas: v[88..98].try_into().expect("10"),
+        })
+    }
+
+    /// The body parameters of the label (no translation: labels are in the body frame).
+    pub fn body_params(&self) -> BodyParams {
+        let mut theta = [0.0f32; 72];
+        theta[..3].copy_from_slice(&self.global_orient);
+        theta[3..].copy_from_slice(&self.body_pose);
+        let mut p = BodyParams { betas: self.betas.to_vec(), ..BodyParams::default() };
+        p.set_theta(&theta);
+        p
+    }
+}
+
+/// `{"labels": {...}}` with entries sorted by name.
+pub fn labels_to_json(entries: &[(String, Label)]) -> String {
+    let map: BTreeMap<&str, Vec<f32>> = entries.iter().map(|(k, l)| (k.as_str(), l.to_floats())).collect();
+    serde_json::to_string(&serde_json::json!({ "labels": map })).expect("plain data serialises")
+}
+
+/// Parse a labels file's text (`path` only names it in errors). Entries come back sorted.
+pub fn parse_labels(path: &Path, text: &str) -> Result<Vec<(String, Label)>, DatasetError> {
+    let lerr = |msg: String| DatasetError::Labels { path: path.to_path_buf(), msg };
+    let v: serde_json::Value = serde_json::from_str(text).map_err(|e| lerr(format!("not JSON: {e}")))?;
+    let labels = v.get("labels").ok_or_else(|| lerr("no `labels` key".into()))?;
+    let obj = labels.as_object().ok_or_else(|| lerr("`labels` is not an object".into()))?;
+    let mut out = Vec::with_capacity(obj.len());
+    for (name, val) in obj {
+        let arr = val
+            .as_array()
+            .ok_or_else(|| DatasetError::Label { entry: name.clone(), msg: "not an array of numbers".into() })?;
+        let floats: Vec<f32> = arr
+            .iter()
+            .map(|x| x.as_f64().map(|f| f as f32))
+            .collect::<Option<_>>()
+            .ok_or_else(|| DatasetError::Label { entry: name.clone(), msg: "contains a non-number".into() })?;
+        out.push((name.clone(), Label::from_floats(name, &floats)?));
+    }
+    out.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(out)
+}
+
+/// The `<view>_normal.png` name that goes with `<view>.png`.
+pub fn normal_name(image: &str) -> String {
+    match image.strip_suffix(".png") {
+        Some(stem) => format!("{stem}_normal.png"),
+        None => format!("{image}_normal.png"),
+    }
+}
+
+/// Encode rendered views as the dataset's RGBA image (alpha = mask) and RGB normal map.
+pub fn encode_views(v: &RenderedViews) -> (Vec<u8>, Vec<u8>) {
+    let rgba: Vec<u8> = v.rgb.chunks_exact(3).zip(&v.mask).flat_map(|(c, m)| [c[0], c[1], c[2], *m]).collect();
+    (encode_png(v.size, v.size, 4, &rgba), encode_png(v.size, v.size, 3, &v.normal))
+}
+
+/// Encode 8-bit pixels (1, 3 or 4 channels) as PNG.
+pub fn encode_png(width: usize, height: usize, channels: usize, pixels: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
+    enc.set_color(match channels {
+        1 => png::ColorType::Grayscale,
+        2 => png::ColorType::GrayscaleAlpha,
+        3 => png::ColorType::Rgb,
+        _ => png::ColorType::Rgba,
+    });
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().expect("in-memory PNG header");
+    w.write_image_data(pixels).expect("pixel count matches the header");
+    drop(w);
+    out
+}
+
+/// A decoded 8-bit image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image8 {
+    pub width: usize,
+    pub height: usize,
+    /// 1 (grey), 2 (grey + alpha), 3 (RGB) or 4 (RGBA).
+    pub channels: usize,
+    pub pixels: Vec<u8>,
+}
+
+/// Decode a PNG (any bit depth, palettes expanded, 16-bit reduced to 8).
+pub fn decode_png(bytes: &[u8]) -> Result<Image8, String> {
+    let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
+    dec.set_transformations(png::Transformations::normalize_to_color8());
+    let mut reader = dec.read_info().map_err(|e| format!("not a PNG: {e}"))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| format!("corrupt PNG: {e}"))?;
+    buf.truncate(info.buffer_size());
+    let channels = match info.color_type {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::GrayscaleAlpha => 2,
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        png::ColorType::Indexed => return Err("unexpanded palette".into()),
+    };
+    Ok(Image8 { width: info.width as usize, height: info.height as usize, channels, pixels: buf })
+}
+
+/// One training example.
+#[derive(Clone, Debug)]
+pub struct Sample {
+    pub name: String,
+    pub size: usize,
+    /// sRGB colours in [0, 1], `size²·3`, row-major from the top.
+    pub rgb: Vec<f32>,
+    /// Mask in [0, 1], `size²`.
+    pub mask: Vec<f32>,
+    /// World-space normals in [−1, 1], `size²·3` (zero vector on background), if the dataset has them.
+    pub normal: Option<Vec<f32>>,
+    pub label: Label,
+}
+
+/// A dataset directory opened for reading.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    pub root: PathBuf,
+    pub entries: Vec<(String, Label)>,
+    /// Image side in pixels (all images are square and this size).
+    pub resolution: usize,
+    /// Whether every image has a `_normal.png` (false: none has).
+    pub has_normals: bool,
+}
+
+fn read(path: &Path) -> Result<Vec<u8>, DatasetError> {
+    std::fs::read(path).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })
+}
+
+impl Dataset {
+    /// Open `root`: parse and validate `dataset.json`, check that every image (and either
+    /// every normal map or none) exists, and read the resolution from the first image.
+    pub fn open(root: &Path) -> Result<Self, DatasetError> {
+        let lpath = root.join(LABELS_FILE);
+        let text = String::from_utf8(read(&lpath)?)
+            .map_err(|_| DatasetError::Labels { path: lpath.clone(), msg: "not UTF-8".into() })?;
+        let entries = parse_labels(&lpath, &text)?;
+        if entries.is_empty() {
+            return Err(DatasetError::Labels { path: lpath, msg: "no labels".into() });
+        }
+        let mut with_normals = 0;
+        for (name, _) in &entries {
+            let p = root.join(name);
+            if !p.is_file() {
+                return Err(DatasetError::Image { path: p, msg: "listed in dataset.json but missing".into() });
+            }
+            if root.join(normal_name(name)).is_file() {
+                with_normals += 1;
+            }
+        }
+        if with_normals != 0 && with_normals != entries.len() {
+            let missing = entries.iter().find(|(n, _)| !root.join(normal_name(n)).is_file()).expect("some missing");
+            return Err(DatasetError::Image {
+                path: root.join(normal_name(&missing.0)),
+                msg: format!("missing, but {with_normals} of {} images have normal maps", entries.len()),
+            });
+        }
+        let first = root.join(&entries[0].0);
+        let img = decode_png(&read(&first)?).map_err(|msg| DatasetError::Image { path: first.clone(), msg })?;
+        if img.width != img.height {
+            return Err(DatasetError::Image {
+                path: first,
+                msg: format!("{}×{} is not square", img.width, img.height),
+            });
+        }
+        Ok(Self { root: root.to_path_buf(), entries, resolution: img.width, has_normals: with_normals > 0 })
+    }
+
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Load example `i`: decode and validate its images (size, channels).
+    pub fn load(&self, i: usize) -> Result<Sample, DatasetError> {
+        let (name, label) = &self.entries[i];
+        let size = self.resolution;
+        let path = self.root.join(name);
+        let bad = |path: &Path, msg: String| DatasetError::Image { path: path.to_path_buf(), msg };
+        let img = decode_png(&read(&path)?).map_err(|m| bad(&path, m))?;
+        if img.width != size || img.height != size {
+            return Err(bad(&path, format!("{}×{}, expected {size}×{size}", img.width, img.height)));
+        }
+        if img.channels != 4 && img.channels != 2 {
+            return Err(bad(&path, "no alpha channel (the alpha channel is the mask)".into()));
+        }
+        let c = img.channels;
+        let mut rgb = Vec::with_capacity(size * size * 3);
+        let mut mask = Vec::with_capacity(size * size);
+        for p in img.pixels.chunks_exact(c) {
+            if c == 4 {
+                rgb.extend(p[..3].iter().map(|&x| x as f32 / 255.0));
+            } else {
+                rgb.extend([p[0] as f32 / 255.0; 3]);
+            }
+            mask.push(p[c - 1] as f32 / 255.0);
+        }
+        let normal = if self.has_normals {
+            let npath = self.root.join(normal_name(name));
+            let n = decode_png(&read(&npath)?).map_err(|m| bad(&npath, m))?;
+            if n.width != size || n.height != size || n.channels < 3 {
+                return Err(bad(
+                    &npath,
+                    format!("{}×{}×{}, expected {size}×{size} RGB", n.width, n.height, n.channels),
+                ));
+            }
+            Some(
+                n.pixels
+                    .chunks_exact(n.channels)
+                    .flat_map(|p| [p[0], p[1], p[2]].map(|x| x as f32 / 127.5 - 1.0))
+                    .collect(),
+            )
+        } else {
+            None
+        };
+        Ok(Sample { name: name.clone(), size, rgb, mask, normal, label: label.clone() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn label() -> Label {
+        let cam = crate::camera::OrbitCamera { yaw: 1.0, pitch: 0.05, ..Default::default() };
+        let mut body = BodyParams { betas: vec![0.5; 12], ..BodyParams::default() };
+        body.pose[4] = glam::Vec3::new(0.3, 0.0, 0.0);
+        Label::new(cam.world_to_camera(), &body)
+    }
+
+    #[test]
+    fn label_round_trip_through_json() {
+        let l = label();
+        assert_eq!(l.to_floats().len(), LABEL_LEN);
+        let json = labels_to_json(&[("s/000.png".into(), l.clone())]);
+        let back = parse_labels(Path::new("x.json"), &json).unwrap();
+        assert_eq!(back.len(), 1);
+        assert_eq!(back[0].0, "s/000.png");
+        let m = back[0].1.world_to_camera;
+        assert!((m - l.world_to_camera).abs_diff_eq(Mat4::ZERO, 1e-6));
+        assert_eq!(back[0].1.body_pose[9], 0.3, "left knee x is θ[12] = body_pose[9]");
+        assert_eq!(back[0].1.betas, [0.5; 10]);
+        assert_eq!(back[0].1.body_params().pose[4].x, 0.3);
+    }
+
+    #[test]
+    fn labels_with_a_wrong_count_are_rejected_naming_the_entry() {
+        let mut v = label().to_floats();
+        v.pop();
+        let json = serde_json::json!({"labels": {"good/000.png": label().to_floats(), "subj/007.png": v}}).to_string();
+        let e = parse_labels(Path::new("d/dataset.json"), &json).unwrap_err().to_string();
+        assert!(e.contains("subj/007.png") && e.contains("97 numbers, expected 98"), "{e}");
+        let json = serde_json::json!({"label": {}}).to_string();
+        assert!(parse_labels(Path::new("d/dataset.json"), &json).unwrap_err().to_string().contains("no `labels` key"));
+        let mut v = label().to_floats();
+        v[15] = 2.0;
+        let e = Label::from_floats("a.png", &v).unwrap_err().to_string();
+        assert!(e.contains("last row"), "{e}");
+    }
+
+    #[test]
+    fn png_round_trip() {
+        let px: Vec<u8> = (0..4 * 3 * 2).map(|i| i as u8 * 7).collect();
+        let img = decode_png(&encode_png(3, 2, 4, &px)).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (3, 2, 4));
+        assert_eq!(img.pixels, px);
+        assert!(decode_png(b"not a png").unwrap_err().contains("not a PNG"));
+        assert_eq!(normal_name("a/001.png"), "a/001_normal.png");
+    }
+}

@@ -1,0 +1,535 @@
+//! 3D scans as dataset users have them (paper Sec. 5: THUman2.0 / RenderPeople): a Wavefront
+//! OBJ with UVs, its MTL material(s) and texture image(s), plus the fitted body parameters
+//! (`smpl.json`). Parsing works on text and decoded pixels (no file access here); the CLI
+//! reads the files. [`render_scan`] renders a scan with the data protocol's camera into the
+//! dataset's RGB / normal / mask images.
+//!
+//! Scan frame: a scan's vertices are `scale · (body(θ, β) + transl)` (`smpl.json`); rendering
+//! maps them back to the body frame `x / scale − transl`, where the generator lives.
+
+use glam::{Vec2, Vec3};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::OrbitCamera;
+use crate::rasterize::{render_views_textured, RenderedViews, Texture};
+use crate::skinning::BodyParams;
+
+/// Errors of the scan readers; messages carry the line number or field.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    #[error("OBJ line {line}: {msg}")]
+    Obj { line: usize, msg: String },
+    #[error("OBJ: {0}")]
+    ObjMesh(String),
+    #[error("MTL line {line}: {msg}")]
+    Mtl { line: usize, msg: String },
+    #[error("smpl.json: {0}")]
+    Smpl(String),
+}
+
+/// One triangle corner: indices into positions, UVs and normals.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Corner {
+    pub v: u32,
+    pub vt: Option<u32>,
+    pub vn: Option<u32>,
+}
+
+/// A triangle with its material (index into [`ObjMesh::materials`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ObjFace {
+    pub corners: [Corner; 3],
+    pub material: u32,
+}
+
+/// A triangulated OBJ mesh.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ObjMesh {
+    pub positions: Vec<Vec3>,
+    pub uvs: Vec<Vec2>,
+    pub normals: Vec<Vec3>,
+    pub faces: Vec<ObjFace>,
+    /// Material names in order of first `usemtl` (index 0 = "" when faces precede any `usemtl`).
+    pub materials: Vec<String>,
+    /// `mtllib` file names, as written.
+    pub mtllibs: Vec<String>,
+}
+
+fn parse_floats<const N: usize>(it: &mut std::str::SplitWhitespace, line: usize) -> Result<[f32; N], ScanError> {
+    let mut out = [0.0f32; N];
+    for (k, o) in out.iter_mut().enumerate() {
+        let tok = it.next().ok_or_else(|| ScanError::Obj { line, msg: format!("expected {N} numbers, got {k}") })?;
+        *o = tok.parse().map_err(|_| ScanError::Obj { line, msg: format!("`{tok}` is not a number") })?;
+        if !o.is_finite() {
+            return Err(ScanError::Obj { line, msg: format!("`{tok}` is not finite") });
+        }
+    }
+    Ok(out)
+}
+
+/// Parse OBJ text: `v` (extra vertex-colour numbers ignored), `vt`, `vn`, `f` (polygons are
+/// fan-triangulated; negative indices count from the end), `usemtl`, `mtllib`. Indices are
+/// validated.
+pub fn parse_obj(text: &str) -> Result<ObjMesh, ScanError> {
+    let mut m = ObjMesh::default();
+    let mut current: Option<u32> = None;
+    for (ln, raw) in text.lines().enumerate() {
+        let line = ln + 1;
+        let l = raw.split('#').next().unwrap_or("").trim();
+        let mut it = l.split_whitespace();
+        match it.next() {
+            Some("v") => m.positions.push(Vec3::from_array(parse_floats::<3>(&mut it, line)?)),
+            Some("vt") => m.uvs.push(Vec2::from_array(parse_floats::<2>(&mut it, line)?)),
+            Some("vn") => m.normals.push(Vec3::from_array(parse_floats::<3>(&mut it, line)?)),
+            Some("usemtl") => {
+                let name = it.collect::<Vec<_>>().join(" ");
+                let idx = match m.materials.iter().position(|n| *n == name) {
+                    Some(i) => i,
+                    None => {
+                        m.materials.push(name);
+                        m.materials.len() - 1
+                    }
+                };
+                current = Some(idx as u32);
+            }
+            Some("mtllib") => m.mtllibs.push(it.collect::<Vec<_>>().join(" ")),
+            Some("f") => {
+                let material = match current {
+                    Some(c) => c,
+                    None => {
+                        if m.materials.is_empty() {
+                            m.materials.push(String::new());
+                        }
+                        let c = m.materials.iter().position(|n| n.is_empty()).unwrap_or_else(|| {
+                            m.materials.push(String::new());
+                            m.materials.len() - 1
+                        }) as u32;
+                        current = Some(c);
+                        c
+                    }
+                };
+                let corners: Vec<Corner> = it.map(|tok| parse_corner(tok, &m, line)).collect::<Result<_, _>>()?;
+                if corners.len() < 3 {
+                    return Err(ScanError::Obj { line, msg: format!("face with {} corners", corners.len()) });
+                }
+                for k in 1..corners.len() - 1 {
+                    m.faces.push(ObjFace { corners: [corners[0], corners[k], corners[k + 1]], material });
+                }
+            }
+            _ => {} // o, g, s, l, p and unknown statements carry nothing we render
+        }
+    }
+    if m.faces.is_empty() {
+        return Err(ScanError::ObjMesh("no faces".into()));
+    }
+    Ok(m)
+}
+
+fn parse_corner(tok: &str, m: &ObjMesh, line: usize) -> Result<Corner, ScanError> {
+    let mut parts = tok.split('/');
+    let idx = |s: Option<&str>, n: usize, what: &str| -> Result<Option<u32>, ScanError> {
+        match s {
+            None | Some("") => Ok(None),
+            Some(s) => {
+                let i: i64 = s
+                    .parse()
+                    .map_err(|_| ScanError::Obj { line, msg: format!("bad {what} index `{s}` in `{tok}`") })?;
+                let r = if i > 0 { i - 1 } else { n as i64 + i };
+                if i == 0 || r < 0 || r >= n as i64 {
+                    return Err(ScanError::Obj { line, msg: format!("{what} index {i} out of range (1..={n})") });
+                }
+                Ok(Some(r as u32))
+            }
+        }
+    };
+    let v = idx(parts.next(), m.positions.len(), "vertex")?
+        .ok_or_else(|| ScanError::Obj { line, msg: format!("corner `{tok}` has no vertex index") })?;
+    let vt = idx(parts.next(), m.uvs.len(), "texture")?;
+    let vn = idx(parts.next(), m.normals.len(), "normal")?;
+    Ok(Corner { v, vt, vn })
+}
+
+/// Write an OBJ (one `usemtl` per material run, `v/vt/vn` corners when present).
+pub fn write_obj(m: &ObjMesh) -> String {
+    use std::fmt::Write;
+    let mut s = String::from("# GETAvatar scan\n");
+    for lib in &m.mtllibs {
+        let _ = writeln!(s, "mtllib {lib}");
+    }
+    for p in &m.positions {
+        let _ = writeln!(s, "v {:.6} {:.6} {:.6}", p.x, p.y, p.z);
+    }
+    for t in &m.uvs {
+        let _ = writeln!(s, "vt {:.6} {:.6}", t.x, t.y);
+    }
+    for n in &m.normals {
+        let _ = writeln!(s, "vn {:.5} {:.5} {:.5}", n.x, n.y, n.z);
+    }
+    let mut current = u32::MAX;
+    for f in &m.faces {
+        if f.material != current {
+            current = f.material;
+            if let Some(name) = m.materials.get(current as usize).filter(|n| !n.is_empty()) {
+                let _ = writeln!(s, "usemtl {name}");
+            }
+        }
+        s.push('f');
+        for c in f.corners {
+            let _ = match (c.vt, c.vn) {
+                (None, None) => write!(s, " {}", c.v + 1),
+                (Some(t), None) => write!(s, " {}/{}", c.v + 1, t + 1),
+                (None, Some(n)) => write!(s, " {}//{}", c.v + 1, n + 1),
+                (Some(t), Some(n)) => write!(s, " {}/{}/{}", c.v + 1, t + 1, n + 1),
+            };
+        }
+        s.push('\n');
+    }
+    s
+}
+
+/// A material of an MTL file: diffuse colour and diffuse texture.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Material {
+    pub name: String,
+    /// `Kd`, linear RGB (default 0.8 grey).
+    pub kd: Vec3,
+    /// `map_Kd` file name as written (options before the name are skipped).
+    pub map_kd: Option<String>,
+}
+
+/// Parse MTL text (`newmtl`, `Kd`, `map_Kd`).
+pub fn parse_mtl(text: &str) -> Result<Vec<Material>, ScanError> {
+    let mut out: Vec<Material> = Vec::new();
+    for (ln, raw) in text.lines().enumerate() {
+        let line = ln + 1;
+        let l = raw.split('#').next().unwrap_or("").trim();
+        let mut it = l.split_whitespace();
+        let Some(key) = it.next() else { continue };
+        let rest: Vec<&str> = it.collect();
+        match key {
+            "newmtl" => {
+                out.push(Material { name: rest.join(" "), kd: Vec3::splat(0.8), map_kd: None });
+            }
+            "Kd" | "map_Kd" => {
+                let m =
+                    out.last_mut().ok_or_else(|| ScanError::Mtl { line, msg: format!("`{key}` before `newmtl`") })?;
+                if key == "Kd" {
+                    let v: Vec<f32> = rest.iter().take(3).filter_map(|t| t.parse().ok()).collect();
+                    if v.len() != 3 {
+                        return Err(ScanError::Mtl { line, msg: "Kd needs three numbers".into() });
+                    }
+                    m.kd = Vec3::new(v[0], v[1], v[2]);
+                } else {
+                    // The file name is the last token(s) after any `-option value` pairs.
+                    let name =
+                        rest.last().ok_or_else(|| ScanError::Mtl { line, msg: "map_Kd without a file".into() })?;
+                    m.map_kd = Some(name.to_string());
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(out)
+}
+
+/// Write an MTL file with one textured material.
+pub fn write_mtl(name: &str, texture_file: &str) -> String {
+    format!("newmtl {name}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {texture_file}\n")
+}
+
+/// Fitted body parameters of a scan (`<id>/smpl.json`): SMPL's 72-number pose split as
+/// `global_orient` (3) + `body_pose` (69), `betas` (≤ the model's count, usually 10),
+/// `transl` (metres) and `scale`; scan vertices = `scale · (body + transl)`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SmplParams {
+    pub global_orient: Vec<f32>,
+    pub body_pose: Vec<f32>,
+    pub betas: Vec<f32>,
+    #[serde(default)]
+    pub transl: Vec<f32>,
+    #[serde(default = "one")]
+    pub scale: f32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+impl SmplParams {
+    /// Parse and validate (`global_orient` 3, `body_pose` 69, `transl` 3 or absent, finite
+    /// numbers, positive scale).
+    pub fn from_json(text: &str) -> Result<Self, ScanError> {
+        let p: SmplParams = serde_json::from_str(text).map_err(|e| ScanError::Smpl(e.to_string()))?;
+        let check = |name: &str, v: &[f32], want: &[usize]| {
+            if !want.contains(&v.len()) {
+                return Err(ScanError::Smpl(format!("`{name}` has {} numbers, expected {want:?}", v.len())));
+            }
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(ScanError::Smpl(format!("`{name}` has a non-finite number")));
+            }
+            Ok(())
+        };
+        check("global_orient", &p.global_orient, &[3])?;
+        check("body_pose", &p.body_pose, &[69])?;
+        check("transl", &p.transl, &[0, 3])?;
+        if p.betas.len() > 300 || p.betas.iter().any(|x| !x.is_finite()) {
+            return Err(ScanError::Smpl("`betas` must be at most 300 finite numbers".into()));
+        }
+        if !(p.scale.is_finite() && p.scale > 0.0) {
+            return Err(ScanError::Smpl(format!("`scale` must be positive, got {}", p.scale)));
+        }
+        Ok(p)
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("plain data serialises")
+    }
+
+    pub fn from_body(params: &BodyParams, scale: f32) -> Self {
+        let theta = params.theta();
+        Self {
+            global_orient: theta[..3].to_vec(),
+            body_pose: theta[3..].to_vec(),
+            betas: params.betas.clone(),
+            transl: params.transl.to_array().to_vec(),
+            scale,
+        }
+    }
+
+    /// The body parameters (translation included).
+    pub fn body_params(&self) -> BodyParams {
+        let mut theta = [0.0f32; 72];
+        theta[..3].copy_from_slice(&self.global_orient);
+        theta[3..].copy_from_slice(&self.body_pose);
+        let mut p = BodyParams { betas: self.betas.clone(), ..BodyParams::default() };
+        p.set_theta(&theta);
+        p.transl = self.translation();
+        p
+    }
+
+    pub fn translation(&self) -> Vec3 {
+        if self.transl.len() == 3 {
+            Vec3::new(self.transl[0], self.transl[1], self.transl[2])
+        } else {
+            Vec3::ZERO
+        }
+    }
+
+    /// Map a scan-frame point to the body frame: `x / scale − transl`.
+    pub fn scan_to_body(&self, x: Vec3) -> Vec3 {
+        x / self.scale - self.translation()
+    }
+}
+
+/// A loaded scan: mesh, decoded textures and colours per material.
+#[derive(Clone, Debug)]
+pub struct Scan {
+    pub mesh: ObjMesh,
+    /// Per material of `mesh.materials`: its texture, if any.
+    pub textures: Vec<Option<Texture>>,
+    /// Per material: its diffuse colour, linear RGB, used where there is no texture (a texture
+    /// replaces `Kd`, as Blender's OBJ importer does).
+    pub colors: Vec<Vec3>,
+}
+
+/// Per-corner normals: the OBJ's `vn` where given, otherwise area-weighted smooth normals that
+/// keep creases sharper than 60° (faces meeting at a larger angle do not share normals, so a
+/// box stays flat-shaded while a sphere is smooth).
+pub fn corner_normals(mesh: &ObjMesh) -> Vec<[Vec3; 3]> {
+    let face_n: Vec<Vec3> = mesh
+        .faces
+        .iter()
+        .map(|f| {
+            let [a, b, c] = f.corners.map(|c| mesh.positions[c.v as usize]);
+            (b - a).cross(c - a)
+        })
+        .collect();
+    // Faces incident to each position (CSR).
+    let nv = mesh.positions.len();
+    let mut start = vec![0usize; nv + 1];
+    for f in &mesh.faces {
+        for c in f.corners {
+            start[c.v as usize + 1] += 1;
+        }
+    }
+    for i in 0..nv {
+        start[i + 1] += start[i];
+    }
+    let mut fill = start.clone();
+    let mut inc = vec![0u32; start[nv]];
+    for (fi, f) in mesh.faces.iter().enumerate() {
+        for c in f.corners {
+            inc[fill[c.v as usize]] = fi as u32;
+            fill[c.v as usize] += 1;
+        }
+    }
+    let cos_crease = 60f32.to_radians().cos();
+    mesh.faces
+        .iter()
+        .enumerate()
+        .map(|(fi, f)| {
+            let own = face_n[fi].normalize_or_zero();
+            f.corners.map(|c| {
+                if let Some(n) = c.vn.and_then(|i| mesh.normals.get(i as usize)) {
+                    return n.normalize_or_zero();
+                }
+                let mut sum = Vec3::ZERO;
+                for &g in &inc[start[c.v as usize]..start[c.v as usize + 1]] {
+                    let n = face_n[g as usize];
+                    if n.normalize_or_zero().dot(own) >= cos_crease {
+                        sum += n;
+                    }
+                }
+                let s = sum.normalize_or_zero();
+                if s == Vec3::ZERO {
+                    own
+                } else {
+                    s
+                }
+            })
+        })
+        .collect()
+}
+
+/// Vertical extent `(min_y, max_y)` of the scan in the body frame.
+pub fn body_frame_y_range(mesh: &ObjMesh, smpl: &SmplParams) -> (f32, f32) {
+    let used = mesh.faces.iter().flat_map(|f| f.corners.map(|c| c.v));
+    used.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| {
+        let y = smpl.scan_to_body(mesh.positions[v as usize]).y;
+        (lo.min(y), hi.max(y))
+    })
+}
+
+/// A scan prepared for rendering: unwelded triangles (three vertices per face) in the body
+/// frame with per-corner normals and `(u, v, material)` attributes.
+#[derive(Clone, Debug)]
+pub struct RenderableScan {
+    pub vertices: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub attributes: Vec<Vec3>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+impl RenderableScan {
+    pub fn new(scan: &Scan, smpl: &SmplParams) -> Self {
+        let m = &scan.mesh;
+        let normals = corner_normals(m);
+        let n = m.faces.len() * 3;
+        let mut out = Self {
+            vertices: Vec::with_capacity(n),
+            normals: Vec::with_capacity(n),
+            attributes: Vec::with_capacity(n),
+            triangles: Vec::with_capacity(m.faces.len()),
+        };
+        for (f, fnorm) in m.faces.iter().zip(&normals) {
+            let base = out.vertices.len() as u32;
+            for (c, nrm) in f.corners.iter().zip(fnorm) {
+                out.vertices.push(smpl.scan_to_body(m.positions[c.v as usize]));
+                out.normals.push(*nrm);
+                let uv = c.vt.map(|t| m.uvs[t as usize]).unwrap_or(Vec2::ZERO);
+                out.attributes.push(Vec3::new(uv.x, uv.y, f.material as f32));
+            }
+            out.triangles.push([base, base + 1, base + 2]);
+        }
+        out
+    }
+
+    /// Vertical extent of the rendered geometry.
+    pub fn y_range(&self) -> (f32, f32) {
+        self.vertices.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(v.y), hi.max(v.y)))
+    }
+}
+
+/// Render a scan through `camera` at `size`² with `ss`×`ss` supersampling: unlit albedo from
+/// the textures (bilinear, in linear light) on white, world-space normals, coverage mask.
+pub fn render_scan(
+    scan: &Scan,
+    prepared: &RenderableScan,
+    camera: &OrbitCamera,
+    size: usize,
+    ss: usize,
+) -> RenderedViews {
+    let vp = camera.projection_gl(1.0) * camera.world_to_camera();
+    render_views_textured(
+        &prepared.vertices,
+        &prepared.triangles,
+        &prepared.normals,
+        &prepared.attributes,
+        vp,
+        size,
+        ss,
+        |attrs| {
+            attrs
+                .iter()
+                .map(|a| {
+                    let mat = (a.z.round().max(0.0) as usize).min(scan.colors.len().saturating_sub(1));
+                    match scan.textures.get(mat).and_then(|t| t.as_ref()) {
+                        Some(t) => t.sample(Vec2::new(a.x, a.y)),
+                        None => scan.colors.get(mat).copied().unwrap_or(Vec3::splat(0.8)),
+                    }
+                })
+                .collect()
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn obj_round_trip_with_polygons_negative_indices_and_materials() {
+        let text = "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n\
+                    usemtl skin\nf 1/1 2/2 3/3 4/4\nusemtl cloth\nf -4/-4 -2/-2 -1/-1\n";
+        let m = parse_obj(text).unwrap();
+        assert_eq!(m.faces.len(), 3);
+        assert_eq!(m.materials, vec!["skin", "cloth"]);
+        assert_eq!(m.faces[2].material, 1);
+        assert_eq!(m.faces[2].corners.map(|c| c.v), [0, 2, 3]);
+        assert_eq!(m.faces[1].corners[2].vt, Some(3));
+        let again = parse_obj(&write_obj(&m)).unwrap();
+        assert_eq!(again.faces, m.faces);
+        assert_eq!(again.mtllibs, vec!["a.mtl"]);
+    }
+
+    #[test]
+    fn malformed_obj_and_mtl_errors_name_the_line() {
+        let e = parse_obj("v 0 0 0\nv 1 0\n").unwrap_err().to_string();
+        assert!(e.contains("line 2") && e.contains("expected 3"), "{e}");
+        let e = parse_obj("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 7\n").unwrap_err().to_string();
+        assert!(e.contains("line 4") && e.contains("out of range"), "{e}");
+        let e = parse_obj("v 0 0 nan\n").unwrap_err().to_string();
+        assert!(e.contains("not finite"), "{e}");
+        assert!(parse_obj("v 0 0 0\n").unwrap_err().to_string().contains("no faces"));
+        let e = parse_mtl("Kd 1 1 1\n").unwrap_err().to_string();
+        assert!(e.contains("line 1") && e.contains("before `newmtl`"), "{e}");
+        let m = parse_mtl("newmtl a\nKd 0.5 0.25 1\nmap_Kd -bm 1 tex.png\n").unwrap();
+        assert_eq!(m[0].map_kd.as_deref(), Some("tex.png"));
+        assert_eq!(m[0].kd, Vec3::new(0.5, 0.25, 1.0));
+    }
+
+    #[test]
+    fn smpl_json_validation_and_frames() {
+        let mut p = SmplParams::from_body(&BodyParams::default(), 2.0);
+        p.transl = vec![0.0, 1.0, 0.0];
+        let q = SmplParams::from_json(&p.to_json()).unwrap();
+        assert_eq!(q, p);
+        assert_eq!(q.scan_to_body(Vec3::new(2.0, 4.0, 0.0)), Vec3::new(1.0, 1.0, 0.0));
+        p.body_pose.pop();
+        let e = SmplParams::from_json(&p.to_json()).unwrap_err().to_string();
+        assert!(e.contains("`body_pose` has 68 numbers"), "{e}");
+    }
+
+    #[test]
+    fn crease_normals_split_a_cube_and_smooth_a_fan() {
+        // Two faces at 90° share an edge: normals stay per face.
+        let text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 1 0 -1\nf 1 2 3\nf 2 4 3\n";
+        let m = parse_obj(text).unwrap();
+        let n = corner_normals(&m);
+        assert!((n[0][1] - Vec3::Z).length() < 1e-6 && (n[1][0] - Vec3::X).length() < 1e-6, "{n:?}");
+        // Nearly coplanar faces (10°) share a smooth normal.
+        let text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 2 0 -0.176\nf 1 2 3\nf 2 4 3\n";
+        let n = corner_normals(&parse_obj(text).unwrap());
+        assert!((n[0][1] - n[1][0]).length() < 1e-6);
+    }
+}
