@@ -1,9 +1,13 @@
-//! `trainer`: the native GETAvatar command line (body-model conversion now; dataset
-//! preparation, training, sampling, evaluation and export as their issues land).
+//! `trainer`: the native GETAvatar command line: body-model conversion, synthetic scans,
+//! dataset preparation, sampling and benchmarks (training, evaluation and inversion as their
+//! issues land).
 
 mod bench;
 mod body_convert;
+mod prepare;
+mod progress;
 mod sample;
+mod synth_scans;
 
 use std::path::PathBuf;
 
@@ -37,6 +41,52 @@ enum Command {
         /// Repetitions of the 4 benchmark poses.
         #[arg(long, default_value_t = 1)]
         repeats: usize,
+    },
+    /// Generate procedural textured, clothed human scans (OBJ + MTL + texture PNG + smpl.json
+    /// per subject) on the open body model.
+    SynthScans {
+        #[arg(long, default_value = "data/scans")]
+        out: PathBuf,
+        #[arg(long, default_value_t = 64)]
+        count: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Texture atlas size in pixels (power of two).
+        #[arg(long, default_value_t = 1024)]
+        texture_size: usize,
+    },
+    /// Render scans into a training dataset (reference layout: <subject>/<view>.png RGBA,
+    /// <view>_normal.png, dataset.json labels) with the paper's camera protocol.
+    Prepare {
+        /// Folder of subject folders, each with an .obj (+ .mtl, texture) and smpl.json.
+        #[arg(long)]
+        scans: PathBuf,
+        #[arg(long, default_value = "data/dataset")]
+        out: PathBuf,
+        /// Views per subject.
+        #[arg(long, default_value_t = 100)]
+        views: usize,
+        /// Image size in pixels (square).
+        #[arg(long, default_value_t = 512)]
+        res: usize,
+        /// Supersampling per axis for antialiasing.
+        #[arg(long, default_value_t = 2)]
+        ss: usize,
+        /// Seed of the camera draws (per subject: seed + subject name).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Folder with <subject>.json body fits (default: smpl.json inside each subject folder).
+        #[arg(long)]
+        smpl_dir: Option<PathBuf>,
+        /// Only the first N subjects (by name).
+        #[arg(long)]
+        limit: Option<usize>,
     },
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample {
@@ -89,6 +139,28 @@ fn main() -> Result<()> {
                 r.regressor_fit_mm
             );
         }
+        Command::SynthScans { out, count, seed, threads, texture_size } => {
+            synth_scans::synth_scans(&synth_scans::SynthArgs {
+                out,
+                count,
+                seed,
+                threads: threads.unwrap_or_else(default_threads),
+                texture_size,
+            })?
+        }
+        Command::Prepare { scans, out, views, res, ss, seed, threads, smpl_dir, limit } => {
+            prepare::prepare(&prepare::PrepareArgs {
+                scans,
+                out,
+                views,
+                res,
+                ss,
+                seed,
+                threads: threads.unwrap_or_else(default_threads),
+                smpl_dir,
+                limit,
+            })?
+        }
         Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,
         Command::Sample { config, checkpoint, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
             sample::sample(&sample::SampleArgs {
@@ -106,4 +178,8 @@ fn main() -> Result<()> {
         }
     }
     Ok(())
+}
+
+fn default_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }
