@@ -116,8 +116,6 @@ pub struct SynthScan {
     pub texture: Vec<u8>,
     pub texture_size: usize,
     pub smpl: SmplParams,
-    /// Short description (outfit and pose), for logs.
-    pub description: String,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -400,7 +398,7 @@ fn skirt(lm: &Landmarks, y_top: f32, y_bottom: f32, flare: f32, rng: &mut Rng, t
     let (na, nh) = (96usize, 28usize);
     let mut l = Layer { tile, ..Layer::default() };
     let folds_n = 7 + rng.below(6);
-    let phase = rng.range(0.0, 6.28);
+    let phase = rng.range(0.0, std::f32::consts::TAU);
     let c = Vec3::new(0.0, 0.0, lm.joints[0].z + 0.01);
     let r0 = lm.hip_radii + Vec2::splat(0.02);
     for i in 0..=nh {
@@ -632,13 +630,7 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
     }
     params.transl = transl;
     let smpl = SmplParams::from_body(&params, scale);
-    SynthScan {
-        mesh,
-        texture: tex,
-        texture_size,
-        smpl,
-        description: format!("{pose_name}, {upper:?} + {lower:?}, hair {hair:?}"),
-    }
+    SynthScan { mesh, texture: tex, texture_size, smpl }
 }
 
 /// Atlas UV of a tile-local UV: 2×2 tiles with a 1 % gutter.
