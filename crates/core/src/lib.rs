@@ -14,6 +14,7 @@
 //! | Sec. 4.1 mapping, triplane synthesis, decoders (burn; feature `generator`/`wgpu`) | `network` |
 //! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
+//! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
 //! | mesh download (.glb)                    | [`gltf_export`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
@@ -28,6 +29,8 @@ pub mod camera;
 pub mod checkpoint;
 #[cfg(feature = "dataset")]
 pub mod dataset;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod diff;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;
 pub mod geometry;

@@ -1,0 +1,272 @@
+//! nvdiffrast's primitives on tensors: [`Coverage`] (from the CPU [`rasterize`] pass: which
+//! triangle covers each pixel), [`interpolate`] (attributes at pixels through perspective-
+//! correct barycentrics recomputed from clip-space positions, differentiable in both),
+//! [`compose`] (pixels into an image over a background) and [`antialias`] (blends colours
+//! across silhouette edges by the edge's sub-pixel position: the source of gradients of
+//! masks and silhouettes with respect to vertex positions; Laine et al. 2020, Sec. 4).
+//!
+//! Images are `[H·W, C]` tensors, row-major from the top-left pixel.
+//!
+//! [`rasterize`]: crate::rasterize::rasterize
+
+use std::collections::HashMap;
+
+use burn::tensor::{Device, IndexingUpdateOp, Tensor};
+use glam::{Vec2, Vec4};
+
+use super::{index_tensor, matrix};
+use crate::rasterize::Raster;
+
+/// Covered pixels of a raster and their triangles' corners.
+#[derive(Clone, Debug)]
+pub struct Coverage {
+    pub width: usize,
+    pub height: usize,
+    /// Pixel index (`y·W + x`) of each covered pixel.
+    pub pixels: Vec<u32>,
+    /// The three vertex ids of the covering triangle, per covered pixel.
+    pub corners: [Vec<u32>; 3],
+    /// Pixel-centre NDC coordinates `(x, y)` per covered pixel, row-major `[P, 2]`.
+    pub ndc: Vec<f32>,
+}
+
+impl Coverage {
+    pub fn new(r: &Raster, tris: &[[u32; 3]]) -> Self {
+        let mut c = Coverage {
+            width: r.width,
+            height: r.height,
+            pixels: Vec::new(),
+            corners: [Vec::new(), Vec::new(), Vec::new()],
+            ndc: Vec::new(),
+        };
+        for (k, &t) in r.triangle.iter().enumerate() {
+            if t < 0 {
+                continue;
+            }
+            let (x, y) = (k % r.width, k / r.width);
+            c.pixels.push(k as u32);
+            for (j, v) in tris[t as usize].iter().enumerate() {
+                c.corners[j].push(*v);
+            }
+            c.ndc.push((x as f32 + 0.5) / r.width as f32 * 2.0 - 1.0);
+            c.ndc.push(1.0 - (y as f32 + 0.5) / r.height as f32 * 2.0);
+        }
+        c
+    }
+
+    pub fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.pixels.is_empty()
+    }
+}
+
+/// Perspective-correct barycentrics `[P, 3]` of the covered pixels from clip positions
+/// `clip` `[V, 4]`. With `u_k = X_k − x·W_k`, `v_k = Y_k − y·W_k` for pixel (x, y), the clip-space
+/// point `Σ λ_k C_k` projects onto the pixel iff `λ ⟂ u` and `λ ⟂ v`, so `λ ∝ u × v`.
+pub fn barycentrics(cov: &Coverage, clip: Tensor<2>, device: &Device) -> Tensor<2> {
+    let p = cov.len();
+    let ndc = matrix(cov.ndc.clone(), p, 2, device);
+    let (x, y) = (ndc.clone().narrow(1, 0, 1), ndc.narrow(1, 1, 1));
+    let uv = |k: usize| {
+        let c = clip.clone().select(0, index_tensor(&cov.corners[k], device));
+        let w = c.clone().narrow(1, 3, 1);
+        (c.clone().narrow(1, 0, 1) - x.clone() * w.clone(), c.narrow(1, 1, 1) - y.clone() * w)
+    };
+    let ((u0, v0), (u1, v1), (u2, v2)) = (uv(0), uv(1), uv(2));
+    let l0 = u1.clone() * v2.clone() - u2.clone() * v1.clone();
+    let l1 = u2 * v0.clone() - u0.clone() * v2;
+    let l2 = u0 * v1 - u1 * v0;
+    let s = l0.clone() + l1.clone() + l2.clone();
+    Tensor::cat(vec![l0, l1, l2], 1) / s
+}
+
+/// nvdiffrast's `interpolate`: per-vertex attributes `attr` `[V, C]` at the covered pixels,
+/// `[P, C]`; differentiable in `attr` and in `clip` `[V, 4]`.
+pub fn interpolate(cov: &Coverage, clip: Tensor<2>, attr: Tensor<2>, device: &Device) -> Tensor<2> {
+    let b = barycentrics(cov, clip, device);
+    let mut out = None;
+    for k in 0..3 {
+        let a = attr.clone().select(0, index_tensor(&cov.corners[k], device));
+        let term = a * b.clone().narrow(1, k, 1);
+        out = Some(match out {
+            None => term,
+            Some(o) => o + term,
+        });
+    }
+    out.expect("three corners")
+}
+
+/// An image `[H·W, C]`: `values` `[P, C]` at the covered pixels over a constant `background`.
+pub fn compose(cov: &Coverage, values: Tensor<2>, background: &[f32], device: &Device) -> Tensor<2> {
+    let c = background.len();
+    let n = cov.width * cov.height;
+    let bg: Vec<f32> = (0..n).flat_map(|_| background.iter().copied()).collect();
+    let base = matrix(bg, n, c, device);
+    if cov.is_empty() {
+        return base;
+    }
+    let row = matrix(background.to_vec(), 1, c, device);
+    base.select_assign(0, index_tensor(&cov.pixels, device), values - row, IndexingUpdateOp::Add)
+}
+
+/// Pixel pairs straddling silhouette edges, found on the CPU (see [`antialias`]).
+#[derive(Clone, Debug, Default)]
+pub struct SilhouettePairs {
+    /// Pixel receiving the blend.
+    pub target: Vec<u32>,
+    /// The other pixel of the pair (whose colour is blended in).
+    pub source: Vec<u32>,
+    /// Edge end points (vertex ids) of the foreground triangle.
+    pub edge: [Vec<u32>; 2],
+    /// Pixel centres (pixel units) of the foreground-side and the other pixel, `[K, 4]`.
+    pub centres: Vec<f32>,
+    /// +1 when the target is the background-side pixel, −1 when it is the foreground pixel.
+    pub sign: Vec<f32>,
+}
+
+fn screen(c: Vec4, w: usize, h: usize) -> Vec2 {
+    Vec2::new((c.x / c.w + 1.0) * 0.5 * w as f32, (1.0 - c.y / c.w) * 0.5 * h as f32)
+}
+
+/// For each horizontally or vertically adjacent pixel pair covered by different triangles
+/// (or one by none), find the nearer triangle's silhouette edge crossed by the segment between
+/// the pixel centres; pairs whose segment crosses no silhouette edge (e.g. an interior edge
+/// between two front-facing triangles) are skipped.
+pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> SilhouettePairs {
+    let (w, h) = (r.width, r.height);
+    let mut out = SilhouettePairs::default();
+    // Silhouette edges (nvdiffrast's topology test): used by one triangle, by more than two,
+    // or by two that face opposite ways on screen. Each is kept with its owning triangle(s),
+    // which say on which side "inside" is, and indexed by its end vertices.
+    let scr: Vec<Vec2> = clip.iter().map(|c| screen(*c, w, h)).collect();
+    let facing = |t: &[u32; 3]| {
+        let s = t.map(|v| scr[v as usize]);
+        (s[1] - s[0]).perp_dot(s[2] - s[0])
+    };
+    let mut edge_use: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+    for (ti, t) in tris.iter().enumerate() {
+        for (i, j) in [(0, 1), (1, 2), (2, 0)] {
+            edge_use.entry((t[i].min(t[j]), t[i].max(t[j]))).or_default().push(ti as u32);
+        }
+    }
+    // (a, b, owner) per silhouette edge, indexed by vertex.
+    let mut by_vertex: HashMap<u32, Vec<(u32, u32, u32)>> = HashMap::new();
+    for (&(a, b), owners) in &edge_use {
+        let silhouette = owners.len() != 2 || {
+            let (f0, f1) = (facing(&tris[owners[0] as usize]), facing(&tris[owners[1] as usize]));
+            (f0 > 0.0) != (f1 > 0.0)
+        };
+        if silhouette {
+            for &o in owners {
+                by_vertex.entry(a).or_default().push((a, b, o));
+                by_vertex.entry(b).or_default().push((a, b, o));
+            }
+        }
+    }
+    let centre = |k: usize| Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+    // `horizontal`: a and b are left/right neighbours. As in nvdiffrast, an edge is handled by
+    // horizontal pairs when it is closer to vertical and by vertical pairs otherwise, so each
+    // edge blends once per crossing. Candidate edges: the silhouette edges touching the
+    // foreground triangle's corners (near a corner the crossed edge can belong to a neighbour).
+    let mut visit = |a: usize, b: usize, horizontal: bool| {
+        let (ta, tb) = (r.triangle[a], r.triangle[b]);
+        if ta == tb {
+            return;
+        }
+        let (f, o) = if ta < 0 {
+            (b, a)
+        } else if tb < 0 || r.depth[a] <= r.depth[b] {
+            (a, b)
+        } else {
+            (b, a)
+        };
+        let tf = tris[r.triangle[f] as usize];
+        let to = r.triangle[o];
+        let (pf, po) = (centre(f), centre(o));
+        let mut best: Option<(f32, u32, u32)> = None;
+        for v in tf {
+            for &(i, j, owner) in by_vertex.get(&v).map(Vec::as_slice).unwrap_or(&[]) {
+                let (si, sj) = (scr[i as usize], scr[j as usize]);
+                let d = sj - si;
+                if (d.y.abs() >= d.x.abs()) != horizontal {
+                    continue;
+                }
+                if to >= 0 && tris[to as usize].contains(&i) && tris[to as usize].contains(&j) {
+                    continue; // the other pixel's triangle owns this edge too: not its silhouette
+                }
+                // Inside of the owner is where its third corner lies.
+                let third = tris[owner as usize].into_iter().find(|&k| k != i && k != j).unwrap_or(i);
+                let orient = d.perp_dot(scr[third as usize] - si).signum();
+                let e = |p: Vec2| orient * d.perp_dot(p - si);
+                let (ef, eo) = (e(pf), e(po));
+                if ef >= 0.0 && eo < 0.0 {
+                    let t = ef / (ef - eo);
+                    if best.is_none_or(|(bt, _, _)| t < bt) {
+                        best = Some((t, i, j));
+                    }
+                }
+            }
+        }
+        let Some((t, vi, vj)) = best else { return };
+        let (target, source, sign) = if t > 0.5 { (o, f, 1.0) } else { (f, o, -1.0) };
+        out.target.push(target as u32);
+        out.source.push(source as u32);
+        out.edge[0].push(vi);
+        out.edge[1].push(vj);
+        out.centres.extend([pf.x, pf.y, po.x, po.y]);
+        out.sign.push(sign);
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let k = y * w + x;
+            if x + 1 < w {
+                visit(k, k + 1, true);
+            }
+            if y + 1 < h {
+                visit(k, k + w, false);
+            }
+        }
+    }
+    out
+}
+
+/// nvdiffrast's `antialias`: for each silhouette pair, the edge crosses the segment between
+/// the pixel centres at `t` (0 at the foreground pixel); the pixel on the far side of the
+/// segment's midpoint receives `|t − ½|` of the other pixel's colour. `t` is recomputed from
+/// `clip` `[V, 4]` with tensor ops, so the blend is differentiable in vertex positions.
+pub fn antialias(
+    image: Tensor<2>,
+    pairs: &SilhouettePairs,
+    clip: Tensor<2>,
+    w: usize,
+    h: usize,
+    device: &Device,
+) -> Tensor<2> {
+    let k = pairs.target.len();
+    if k == 0 {
+        return image;
+    }
+    let to_screen = |c: Tensor<2>| {
+        let ww = c.clone().narrow(1, 3, 1);
+        let sx = (c.clone().narrow(1, 0, 1) / ww.clone() + 1.0) * (0.5 * w as f32);
+        let sy = (c.narrow(1, 1, 1) / ww * -1.0 + 1.0) * (0.5 * h as f32);
+        (sx, sy)
+    };
+    let (ax, ay) = to_screen(clip.clone().select(0, index_tensor(&pairs.edge[0], device)));
+    let (bx, by) = to_screen(clip.select(0, index_tensor(&pairs.edge[1], device)));
+    let centres = matrix(pairs.centres.clone(), k, 4, device);
+    let col = |i: usize| centres.clone().narrow(1, i, 1);
+    let edge = |px: Tensor<2>, py: Tensor<2>| {
+        (bx.clone() - ax.clone()) * (py - ay.clone()) - (by.clone() - ay.clone()) * (px - ax.clone())
+    };
+    let (ef, eo) = (edge(col(0), col(1)), edge(col(2), col(3)));
+    let t = ef.clone() / (ef - eo);
+    let sign = matrix(pairs.sign.clone(), k, 1, device);
+    let alpha = (t - 0.5) * sign;
+    let (ti, si) = (index_tensor(&pairs.target, device), index_tensor(&pairs.source, device));
+    let delta = (image.clone().select(0, si) - image.clone().select(0, ti.clone())) * alpha;
+    image.select_assign(0, ti, delta, IndexingUpdateOp::Add)
+}
