@@ -15,6 +15,7 @@
 //! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
+//! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
 //! | mesh download (.glb)                    | [`gltf_export`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
@@ -36,8 +37,12 @@ pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod losses;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod network;
 pub mod npz;
+#[cfg(feature = "train")]
+pub mod optim;
 pub mod pose_library;
 pub mod rasterize;
 pub mod rng;

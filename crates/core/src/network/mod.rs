@@ -8,12 +8,14 @@
 //! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
 //! - [`triplane`]: plane sampling at canonical points (xy, yz, xz; bilinear; summed)
 //! - [`decoders`]: SDF residual, DMTet offset and texture decoders, to-RGB
+//! - [`discriminator`]: the camera-conditioned StyleGAN2 residual discriminator (RGB, normal, mask)
 //!
 //! Weights are initialised from a seed by our own RNG on the CPU, so every backend starts from
 //! bit-identical parameters.
 
 pub mod config;
 pub mod decoders;
+pub mod discriminator;
 pub mod init;
 pub mod layers;
 pub mod mapping;

@@ -1,0 +1,89 @@
+//! Adam (Kingma & Ba) over a burn module's float parameters, with its state kept by parameter
+//! path so it can be checkpointed and restored exactly (resume continues bit-identically).
+//! The paper's settings: β = (0, 0.99), ε = 1e-8, learning rates scaled for lazy
+//! regularisation by the caller.
+
+use std::collections::BTreeMap;
+
+use burn::module::{Module, ModuleMapper, Param};
+use burn::tensor::{Gradients, Tensor};
+
+/// Adam hyper-parameters and per-parameter moments (flattened, on the parameters' device).
+#[derive(Clone, Debug)]
+pub struct Adam {
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    /// Steps taken.
+    pub step: u64,
+    /// First and second moments by parameter path.
+    pub moments: BTreeMap<String, (Tensor<1>, Tensor<1>)>,
+}
+
+impl Adam {
+    pub fn new(beta1: f32, beta2: f32, eps: f32) -> Self {
+        Self { beta1, beta2, eps, step: 0, moments: BTreeMap::new() }
+    }
+
+    /// One update of `module` (an autodiff module whose loss produced `grads`) with learning
+    /// rate `lr`. Parameters without a gradient are left unchanged.
+    pub fn step<M: Module>(&mut self, lr: f32, module: M, grads: &Gradients) -> M {
+        self.step += 1;
+        let mut m = AdamMapper { adam: self, lr, grads, path: Vec::new(), seen: BTreeMap::new() };
+        module.map(&mut m)
+    }
+}
+
+/// Parameter name from the module path (`a.b.weight`), `#k` for repeats (same as checkpoints).
+pub fn param_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
+    let base = path.join(".");
+    let k = seen.entry(base.clone()).or_insert(0);
+    *k += 1;
+    if *k == 1 {
+        base
+    } else {
+        format!("{base}#{}", *k - 1)
+    }
+}
+
+struct AdamMapper<'a> {
+    adam: &'a mut Adam,
+    lr: f32,
+    grads: &'a Gradients,
+    path: Vec<String>,
+    seen: BTreeMap<String, usize>,
+}
+
+impl ModuleMapper for AdamMapper<'_> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let name = param_name(&self.path, &mut self.seen);
+        let (id, tensor, mapper) = param.consume();
+        let Some(g) = tensor.grad(self.grads) else {
+            return Param::from_mapped_value(id, tensor, mapper);
+        };
+        let dims = tensor.dims();
+        let n: usize = dims.iter().product();
+        let g: Tensor<1> = g.reshape([n]);
+        let a = &mut *self.adam;
+        let (m, v) = match a.moments.remove(&name) {
+            Some(mv) => mv,
+            None => (g.zeros_like(), g.zeros_like()),
+        };
+        let m = m * a.beta1 + g.clone() * (1.0 - a.beta1);
+        let v = v * a.beta2 + g.powf_scalar(2.0) * (1.0 - a.beta2);
+        let t = a.step as i32;
+        let c1 = 1.0 - a.beta1.powi(t);
+        let c2 = 1.0 - a.beta2.powi(t);
+        let update = (m.clone() / c1) / ((v.clone() / c2).sqrt() + a.eps) * self.lr;
+        a.moments.insert(name, (m, v));
+        let inner = tensor.inner();
+        let new = inner - update.reshape(dims);
+        Param::from_mapped_value(id, Tensor::from_inner(new).require_grad(), mapper)
+    }
+}
