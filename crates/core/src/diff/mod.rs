@@ -10,9 +10,14 @@
 //!   ([`dmtet::surface_points`]), perspective-correct barycentrics from clip-space positions
 //!   ([`rasterize::interpolate`]), and silhouette-edge blending ([`rasterize::antialias`]).
 //!
+//! [`avatar`] (feature `train`) puts them together: generated avatars rendered to RGB, normal
+//! and mask images under dataset labels, with the geometry regularisers.
+//!
 //! The functions are backend-agnostic (`Tensor<D>` on any `Device`); gradients need a device
 //! with autodiff (`Device::autodiff()`, feature `train`).
 
+#[cfg(feature = "train")]
+pub mod avatar;
 pub mod dmtet;
 pub mod rasterize;
 

@@ -6,7 +6,7 @@
 //!   reference's tanh(·)/90 in its normalised box is about a quarter of its cell).
 //! - Texture feature (`texture_features`) styled by w_tex, then to-RGB (linear, no demod).
 
-use burn::module::{Module, Param};
+use burn::module::Module;
 use burn::tensor::activation::tanh;
 use burn::tensor::{Device, Tensor};
 
@@ -46,8 +46,16 @@ impl Decoder {
         device: &Device,
     ) -> Self {
         let hidden = ModulatedLinear::new(rng, w_dim, d_in, hidden, true, true, device);
-        let mut out = ModulatedLinear::new(rng, w_dim, hidden.weight.dims()[0], d_out, false, false, device);
-        out.weight = Param::from_tensor(out.weight.val() * init_scale);
+        let out = ModulatedLinear::with_weight_scale(
+            rng,
+            w_dim,
+            hidden.weight.dims()[0],
+            d_out,
+            false,
+            false,
+            init_scale,
+            device,
+        );
         Self { hidden, out }
     }
 

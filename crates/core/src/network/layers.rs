@@ -149,9 +149,24 @@ impl ModulatedLinear {
         activation: bool,
         device: &Device,
     ) -> Self {
+        Self::with_weight_scale(rng, w_dim, d_in, d_out, demodulate, activation, 1.0, device)
+    }
+
+    /// Like [`ModulatedLinear::new`] with the initial weights scaled by `weight_scale`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_weight_scale(
+        rng: &mut Rng,
+        w_dim: usize,
+        d_in: usize,
+        d_out: usize,
+        demodulate: bool,
+        activation: bool,
+        weight_scale: f32,
+        device: &Device,
+    ) -> Self {
         Self {
             affine: FullyConnected::new(rng, w_dim, d_in, 1.0, 1.0, false, device),
-            weight: Param::from_tensor(randn(rng, [d_out, d_in], 1.0, device)),
+            weight: Param::from_tensor(randn(rng, [d_out, d_in], weight_scale, device)),
             bias: Param::from_tensor(full([d_out], 0.0, device)),
             demodulate,
             activation,

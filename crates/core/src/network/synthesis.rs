@@ -4,22 +4,39 @@
 //! "to-texture" (styled by w_tex). Their outputs are upsampled and summed across blocks,
 //! giving 3 geometry planes and 3 texture planes of `plane_channels` channels.
 //!
-//! Upsampling is bilinear (StyleGAN2 uses a transposed convolution with an FIR filter).
+//! Upsampling is 2× bilinear with half-pixel centres, written with basic tensor ops so it is
+//! differentiable on every backend (StyleGAN2 uses a transposed convolution with an FIR filter).
 
 use burn::module::{Module, Param};
-use burn::tensor::module::interpolate;
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor};
 
 use super::config::GeneratorConfig;
 use super::init::{randn, Rng};
 use super::layers::ModulatedConv2d;
 
+/// 2× bilinear upsampling along dimension `D` (2 = rows, 3 = columns), half-pixel centres,
+/// edges clamped: `out[2i] = ¾x[i] + ¼x[i−1]`, `out[2i+1] = ¾x[i] + ¼x[i+1]`.
+fn upsample_dim(x: Tensor<4>, dim: usize) -> Tensor<4> {
+    let dims = x.dims();
+    let n = dims[dim];
+    let (prev, next) = if n > 1 {
+        (
+            Tensor::cat(vec![x.clone().narrow(dim, 0, 1), x.clone().narrow(dim, 0, n - 1)], dim),
+            Tensor::cat(vec![x.clone().narrow(dim, 1, n - 1), x.clone().narrow(dim, n - 1, 1)], dim),
+        )
+    } else {
+        (x.clone(), x.clone())
+    };
+    let even = x.clone() * 0.75 + prev * 0.25;
+    let odd = x * 0.75 + next * 0.25;
+    let both: Tensor<5> = Tensor::cat(vec![even.unsqueeze_dim(dim + 1), odd.unsqueeze_dim(dim + 1)], dim + 1);
+    let mut out = dims;
+    out[dim] = 2 * n;
+    both.reshape(out)
+}
+
 fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    let [_, _, h, w] = x.dims();
-    let mut o = InterpolateOptions::new(InterpolateMode::Bilinear);
-    o.output_size = Some([2 * h, 2 * w]);
-    interpolate(x, o)
+    upsample_dim(upsample_dim(x, 2), 3)
 }
 
 #[derive(Module, Debug)]
@@ -130,4 +147,23 @@ impl TriplaneSynthesis {
 /// The backbone always has at least the 4² block; reaching this is a construction bug.
 fn unreachable_input() -> ! {
     unreachable!("triplane synthesis has no blocks")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::TensorData;
+
+    #[test]
+    fn upsampling_is_half_pixel_bilinear() {
+        #[allow(deprecated)]
+        let dev = Device::ndarray();
+        let x = Tensor::<4>::from_data(TensorData::new(vec![0.0f32, 4.0, 8.0, 12.0], [1, 1, 2, 2]), &dev);
+        let y = upsample2(x).into_data().try_to_vec::<f32>().unwrap();
+        // Row 0 of the input is [0, 4] → [0, 1, 3, 4]; the first output row blends ¾ row 0 + ¼ row 0.
+        assert_eq!(&y[..4], &[0.0, 1.0, 3.0, 4.0]);
+        // Output row 1 = ¾·row 0 + ¼·row 1 = [2, 6] → [2, 3, 5, 6].
+        assert_eq!(&y[4..8], &[2.0, 3.0, 5.0, 6.0]);
+        assert_eq!(y.len(), 16);
+    }
 }

@@ -1,0 +1,189 @@
+//! Differentiable rendering of generated avatars for training (paper Sec. 4.2–4.5): for each
+//! sample's body pose and camera label, the generator's SDF on the inverse-skinned posed-space
+//! tet grid → DMTet surface (differentiable in SDF and offsets) → rasterised → per pixel: the
+//! texture field at the pixel's canonical coordinate (RGB), the normal field (∇SDF by central
+//! differences, rotated by the skinning rotation, eq. 4) and the antialiased mask; plus the
+//! geometry regularisers (eikonal on the visible surface points, SDF cross-entropy over the
+//! sign-changing tet edges).
+//!
+//! Image conventions for the discriminators (all `[B, C, R, R]` in [−1, 1]): RGB sRGB-encoded
+//! (texture field output through γ = 1/2.2) on white; normals in world space with the zero
+//! vector on background; mask 2·coverage − 1.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::{Mat3, Vec3, Vec4};
+
+use super::dmtet::{surface_points, EdgeIndex};
+use super::rasterize::{antialias, compose, interpolate, silhouette_pairs, Coverage};
+use super::{index_tensor, matrix};
+use crate::camera::OrbitCamera;
+use crate::dataset::Label;
+use crate::generator::{BodyContext, Generator, Styles};
+use crate::geometry::inverse_skinning::InverseSkinning;
+use crate::geometry::marching_tets;
+use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::losses::{eikonal_loss, sdf_cross_entropy};
+use crate::rasterize::rasterize;
+use crate::skinning::pose_body;
+
+/// Rendered fakes and regularisers of a batch.
+pub struct FakeViews {
+    pub rgb: Tensor<4>,
+    pub normal: Tensor<4>,
+    pub mask: Tensor<4>,
+    /// Mean eikonal loss over the batch's visible surface points.
+    pub eikonal: Tensor<1>,
+    /// Mean SDF cross-entropy over the batch's sign-changing edges.
+    pub cross_entropy: Tensor<1>,
+    /// Triangles extracted per sample (0 = empty surface: its images are background).
+    pub triangles: Vec<usize>,
+}
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
+}
+
+fn vec3_tensor(v: &[Vec3], device: &Device) -> Tensor<2> {
+    matrix(v.iter().flat_map(|p| p.to_array()).collect(), v.len(), 3, device)
+}
+
+fn styles_of(s: &Styles, b: usize) -> Styles {
+    Styles { geo: s.geo.clone().narrow(0, b, 1), tex: s.tex.clone().narrow(0, b, 1) }
+}
+
+/// `[H·W, C]` image → `[1, C, H, W]`.
+fn to_nchw(img: Tensor<2>, res: usize) -> Tensor<4> {
+    let c = img.dims()[1];
+    img.reshape([res, res, c]).permute([2, 0, 1]).unsqueeze_dim::<4>(0)
+}
+
+/// Render the generated avatars of `styles` (batch B) under `labels` (B entries: camera and body
+/// pose) at `res`². Native: reads intermediate values back synchronously.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn render_avatars(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    labels: &[Label],
+    res: usize,
+    device: &Device,
+) -> FakeViews {
+    let proj = OrbitCamera::default().projection_gl(1.0);
+    let h = 0.5 * ctx.template.cell;
+    let n = ctx.grid.vertices.len();
+    let boundary: Vec<f32> = ctx.boundary.iter().map(|&b| b as u8 as f32).collect();
+    let bmask = Tensor::<1>::from_data(TensorData::new(boundary, [n]), device);
+    let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
+    let mut triangles = Vec::new();
+    for (b, label) in labels.iter().enumerate() {
+        let s = styles_of(styles, b);
+        let planes = g.triplanes(&s);
+        // Inverse skinning of the posed-space grid (eq. 2).
+        let posed = pose_body(&ctx.model, &label.body_params());
+        let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
+        let canon: Vec<Vec3> = ctx.grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
+        let template: Vec<f32> = canon.iter().map(|p| ctx.template.sample(*p)).collect();
+        let canon_t = vec3_tensor(&canon, device);
+        let (residual, offset) = g.geometry_fields(&planes, &s, canon_t.clone().unsqueeze_dim::<3>(0));
+        let sdf = (Tensor::<1>::from_data(TensorData::new(template, [n]), device) + residual.reshape([n]))
+            * (bmask.clone() * -1.0 + 1.0)
+            + bmask.clone() * OUTSIDE_VALUE;
+        let positions = vec3_tensor(&ctx.grid.vertices, device) + offset.reshape([n, 3]);
+
+        // Topology on the CPU from detached values.
+        let sdf_v = values(sdf.clone());
+        let pos_v: Vec<Vec3> = values(positions.clone()).chunks_exact(3).map(Vec3::from_slice).collect();
+        let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, &canon);
+        triangles.push(mesh.faces.len());
+        if mesh.faces.is_empty() {
+            let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
+            rgbs.push(bg(1.0, 3));
+            normals.push(bg(0.0, 3));
+            masks.push(bg(-1.0, 1));
+            continue;
+        }
+        let edges = EdgeIndex::new(&mesh);
+        let (ia, ib) = (index_tensor(&edges.a, device), index_tensor(&edges.b, device));
+        ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
+        let verts = surface_points(&edges, positions, sdf.clone(), device);
+        let vcanon = surface_points(&edges, canon_t, sdf, device);
+
+        // Camera and rasterisation.
+        let vp = proj * label.world_to_camera;
+        let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
+        let nv = mesh.vertices.len();
+        let clip = Tensor::cat(vec![verts, Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
+        let clip_v: Vec<Vec4> = values(clip.clone()).chunks_exact(4).map(Vec4::from_slice).collect();
+        let r = rasterize(&clip_v, &mesh.faces, res, res);
+        let cov = Coverage::new(&r, &mesh.faces);
+        let ones = Tensor::<2>::ones([nv, 1], device);
+        if cov.is_empty() {
+            let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
+            rgbs.push(bg(1.0, 3));
+            normals.push(bg(0.0, 3));
+            // Keep the silhouette path alive (zero contribution) for a consistent graph.
+            masks.push(bg(-1.0, 1) + ones.sum().reshape([1, 1, 1, 1]) * 0.0);
+            continue;
+        }
+        let p = cov.len();
+        let pix_canon = interpolate(&cov, clip.clone(), vcanon, device); // [P, 3]
+
+        // RGB: texture field at each pixel's canonical coordinate.
+        let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
+        let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+        let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
+
+        // Normals: ∇(template + residual) by central differences, rotated to posed space.
+        let dirs = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
+        let offs: Vec<f32> = (0..p).flat_map(|_| dirs.iter().flat_map(|d| (*d * h).to_array())).collect();
+        let probes = pix_canon.clone().unsqueeze_dim::<3>(1).repeat_dim(1, 6)
+            + Tensor::from_data(TensorData::new(offs, [p, 6, 3]), device);
+        let rp = g.sdf_residual(&planes, &s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
+        let grad_res = (rp.clone().narrow(2, 0, 1) - rp.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h));
+        let pc = values(pix_canon);
+        let grad_tmpl: Vec<f32> = pc
+            .chunks_exact(3)
+            .flat_map(|c| {
+                let c = Vec3::from_slice(c);
+                let f = |d: Vec3| ctx.template.sample(c + d * h) - ctx.template.sample(c - d * h);
+                (Vec3::new(f(Vec3::X), f(Vec3::Y), f(Vec3::Z)) / (2.0 * h)).to_array()
+            })
+            .collect();
+        let grad = grad_res + matrix(grad_tmpl, p, 3, device);
+        eik.push(eikonal_loss(grad.clone()));
+        let unit = grad.clone() / (grad.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
+        // Per-vertex skinning rotation (nearest body vertex), interpolated per pixel.
+        let rot: Vec<f32> = mesh
+            .vertices
+            .iter()
+            .flat_map(|v| {
+                let r: Mat3 = inv.rotation(inv.to_canonical(*v).1);
+                r.transpose().to_cols_array() // row-major
+            })
+            .collect();
+        let rpix = interpolate(&cov, clip.clone().detach(), matrix(rot, nv, 9, device), device).reshape([p, 3, 3]);
+        let nworld = rpix.matmul(unit.unsqueeze_dim::<3>(2)).reshape([p, 3]);
+        let nworld = nworld.clone() / (nworld.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
+        let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
+
+        // Mask with silhouette gradients.
+        let cover = compose(&cov, interpolate(&cov, clip.clone(), ones, device), &[0.0], device);
+        let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
+        rgbs.push(to_nchw(rgb, res));
+        normals.push(to_nchw(normal, res));
+        masks.push(to_nchw(mask * 2.0 - 1.0, res));
+    }
+    let mean = |v: Vec<Tensor<1>>| {
+        let k = v.len().max(1) as f32;
+        v.into_iter().reduce(|a, b| a + b).map(|t| t / k).unwrap_or_else(|| Tensor::zeros([1], device))
+    };
+    FakeViews {
+        rgb: Tensor::cat(rgbs, 0),
+        normal: Tensor::cat(normals, 0),
+        mask: Tensor::cat(masks, 0),
+        eikonal: mean(eik),
+        cross_entropy: mean(ce),
+        triangles,
+    }
+}
