@@ -8,6 +8,7 @@ mod prepare;
 mod progress;
 mod sample;
 mod synth_scans;
+mod train;
 
 use std::path::PathBuf;
 
@@ -88,6 +89,39 @@ enum Command {
         #[arg(long)]
         limit: Option<usize>,
     },
+    /// Train GETAvatar (the paper's adversarial objective with RGB, normal and mask
+    /// discriminators) on a prepared dataset; checkpoints, sample grids and metrics go to --out.
+    Train {
+        /// Dataset directory (dataset.json + images, see docs/dataset.md).
+        #[arg(long)]
+        data: PathBuf,
+        /// Generator size: tiny, demo or paper.
+        #[arg(long, default_value = "tiny")]
+        config: String,
+        /// Run directory.
+        #[arg(long, default_value = "runs/train")]
+        out: PathBuf,
+        /// Continue the run in --out; with a file: start the generator from that checkpoint
+        /// (transfer learning, e.g. onto a dataset without normal maps).
+        #[arg(long, num_args = 0..=1)]
+        resume: Option<Option<PathBuf>>,
+        /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
+        #[arg(long, default_value = "ndarray")]
+        backend: String,
+        #[arg(long, default_value_t = 4)]
+        batch: usize,
+        /// Train until this many steps in total.
+        #[arg(long, default_value_t = 1000)]
+        steps: u64,
+        /// Checkpoint and sample grid every N steps.
+        #[arg(long, default_value_t = 100)]
+        snapshot_every: u64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople).
+        #[arg(long, default_value_t = 10.0)]
+        r1_gamma: f32,
+    },
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample {
         /// Generator size: paper, demo or tiny.
@@ -159,6 +193,23 @@ fn main() -> Result<()> {
                 threads: threads.unwrap_or_else(default_threads),
                 smpl_dir,
                 limit,
+            })?
+        }
+        Command::Train { data, config, out, resume, backend, batch, steps, snapshot_every, seed, r1_gamma } => {
+            if batch == 0 || snapshot_every == 0 {
+                anyhow::bail!("--batch and --snapshot-every must be at least 1");
+            }
+            train::train(&train::TrainArgs {
+                data,
+                config,
+                out,
+                resume,
+                backend,
+                batch,
+                steps,
+                snapshot_every,
+                seed,
+                r1_gamma,
             })?
         }
         Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,

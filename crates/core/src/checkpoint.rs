@@ -199,7 +199,9 @@ impl ModuleMapper for Load<'_> {
             Some((shape, vals)) if *shape == want => {
                 self.used += 1;
                 let t = Tensor::<D>::from_data(TensorData::new(vals.clone(), shape.clone()), &self.device);
-                param.map(|_| t)
+                // Keep the parameter trainable (a leaf that requires gradients) on autodiff devices.
+                let rg = param.val().is_require_grad();
+                param.map(|_| if rg { t.require_grad() } else { t })
             }
             Some((shape, _)) => {
                 self.error
@@ -246,4 +248,59 @@ pub fn load_generator(
         return Err(fmt_err(format!("{} tensors in the file, {} used by the model", st.tensors.len(), l.used)));
     }
     Ok(g)
+}
+
+/// Every float parameter of `module` as (name by module path, shape, values). Native only.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn collect_params<M: Module>(module: &M) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
+    module.visit(&mut c);
+    c.out
+}
+
+/// Replace `module`'s parameters with the tensors named `prefix + name` (all must be present
+/// with matching shapes).
+pub fn load_params<M: Module>(
+    module: M,
+    tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    prefix: &str,
+    device: &Device,
+) -> Result<M, CheckpointError> {
+    let sub: BTreeMap<String, (Vec<usize>, Vec<f32>)> =
+        tensors.iter().filter_map(|(k, v)| k.strip_prefix(prefix).map(|rest| (rest.to_string(), v.clone()))).collect();
+    let mut l =
+        Load { path: Vec::new(), seen: BTreeMap::new(), tensors: &sub, device: device.clone(), error: None, used: 0 };
+    let m = module.map(&mut l);
+    match l.error {
+        Some(e) => Err(e),
+        None => Ok(m),
+    }
+}
+
+/// Serialise named F32 tensors and string metadata as safetensors bytes.
+pub fn write_safetensors(metadata: &BTreeMap<String, String>, tensors: &[(String, Vec<usize>, Vec<f32>)]) -> Vec<u8> {
+    let mut header = serde_json::Map::new();
+    let meta: serde_json::Map<String, serde_json::Value> =
+        metadata.iter().map(|(k, v)| (k.clone(), serde_json::Value::from(v.clone()))).collect();
+    header.insert("__metadata__".into(), meta.into());
+    let mut offset = 0usize;
+    for (name, shape, data) in tensors {
+        let end = offset + data.len() * 4;
+        header
+            .insert(name.clone(), serde_json::json!({ "dtype": "F32", "shape": shape, "data_offsets": [offset, end] }));
+        offset = end;
+    }
+    let mut h = serde_json::Value::Object(header).to_string().into_bytes();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + h.len() + offset);
+    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    out.extend_from_slice(&h);
+    for (_, _, data) in tensors {
+        for x in data {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    out
 }

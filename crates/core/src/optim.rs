@@ -87,3 +87,55 @@ impl ModuleMapper for AdamMapper<'_> {
         Param::from_mapped_value(id, Tensor::from_inner(new).require_grad(), mapper)
     }
 }
+
+/// Exponential moving average of a model's parameters (the paper's "EMA of the generator"):
+/// `ema ← β·ema + (1 − β)·model`, matched by parameter path. `ema` may live on the model's
+/// device without autodiff.
+pub fn ema_update<M: Module>(ema: M, model: &M, beta: f32) -> M {
+    struct Get {
+        path: Vec<String>,
+        seen: BTreeMap<String, usize>,
+        out: BTreeMap<String, Tensor<1>>,
+    }
+    impl burn::module::ModuleVisitor for Get {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            let name = param_name(&self.path, &mut self.seen);
+            let t = p.val().inner();
+            let n: usize = t.dims().iter().product();
+            self.out.insert(name, t.reshape([n]));
+        }
+    }
+    struct Set {
+        path: Vec<String>,
+        seen: BTreeMap<String, usize>,
+        src: BTreeMap<String, Tensor<1>>,
+        beta: f32,
+    }
+    impl ModuleMapper for Set {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let name = param_name(&self.path, &mut self.seen);
+            let Some(src) = self.src.remove(&name) else { return p };
+            let beta = self.beta;
+            p.map(|t| {
+                let dims = t.dims();
+                t.clone() * beta + src.reshape(dims) * (1.0 - beta)
+            })
+        }
+    }
+    let mut get = Get { path: Vec::new(), seen: BTreeMap::new(), out: BTreeMap::new() };
+    model.visit(&mut get);
+    let mut set = Set { path: Vec::new(), seen: BTreeMap::new(), src: get.out, beta };
+    ema.map(&mut set)
+}

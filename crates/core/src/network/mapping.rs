@@ -32,6 +32,14 @@ impl MappingNetwork {
         x
     }
 
+    /// Track the running mean: `w_avg ← β·w_avg + (1 − β)·mean_batch(w)` (no gradients).
+    pub fn track_w_avg(mut self, w: Tensor<2>, beta: f32) -> Self {
+        let mean = w.detach().mean_dim(0).reshape([self.w_avg.dims()[0]]);
+        let avg = self.w_avg.val().detach() * beta + mean * (1.0 - beta);
+        self.w_avg = Param::from_tensor(avg).set_require_grad(false);
+        self
+    }
+
     /// Truncation trick towards `w_avg` with strength ψ (1 = none, 0 = the average).
     pub fn truncate(&self, w: Tensor<2>, psi: f32) -> Tensor<2> {
         if psi == 1.0 {

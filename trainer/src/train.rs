@@ -1,0 +1,499 @@
+//! `trainer train`: the paper's adversarial training (Sec. 4.5) on a prepared dataset.
+//!
+//! Per step: a D phase (non-saturating loss of the three discriminators — RGB, normal map,
+//! mask — on real images and detached fakes; every `r1_every` steps the finite-difference R1
+//! penalty on reals, scaled for lazy regularisation) and a G phase (non-saturating G loss
+//! through the differentiable renderer + λ_eik·eikonal + λ_ce·SDF cross-entropy), Adam
+//! β = (0, 0.99), w_avg tracking and an EMA of G. Fakes use body poses and cameras drawn from
+//! the dataset's labels.
+//!
+//! `RUN/` holds `run.json` (the run's settings), `state.safetensors` (G, G_ema, the three Ds,
+//! Adam moments, step and RNG state: resume continues bit-identically on the same backend),
+//! `generator.safetensors` (G_ema alone, what `trainer sample` and the app load),
+//! `metrics.jsonl` and `samples_<step>.png` grids (RGB | normal | mask at fixed seeds and
+//! poses). Every file is written to a temporary name and renamed, so a kill at any moment
+//! leaves the previous checkpoint intact.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::camera::to_row_major;
+use getavatar_core::checkpoint::{
+    collect_params, load_generator, load_params, parse_safetensors, save_generator, write_safetensors,
+};
+use getavatar_core::dataset::{encode_png, Dataset, Label};
+use getavatar_core::diff::avatar::render_avatars;
+use getavatar_core::generator::{BodyContext, Generator, Styles};
+use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
+use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::optim::{ema_update, Adam};
+use getavatar_core::rng::Rng;
+use serde::{Deserialize, Serialize};
+
+const STATE_FORMAT: &str = "getavatar-train-state/1";
+
+pub struct TrainArgs {
+    pub data: PathBuf,
+    pub config: String,
+    pub out: PathBuf,
+    /// `None`: fresh run; `Some(None)`: continue RUN; `Some(Some(f))`: start from generator `f`.
+    pub resume: Option<Option<PathBuf>>,
+    pub backend: String,
+    pub batch: usize,
+    pub steps: u64,
+    pub snapshot_every: u64,
+    pub seed: u64,
+    pub r1_gamma: f32,
+}
+
+/// Settings of a run (written once to `run.json`, read back on resume).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct RunConfig {
+    pub generator: GeneratorConfig,
+    pub discriminator: DiscriminatorConfig,
+    pub data: String,
+    pub resolution: usize,
+    pub use_normals: bool,
+    pub batch: usize,
+    pub lr_g: f32,
+    pub lr_d: f32,
+    pub r1_gamma: f32,
+    pub r1_every: u64,
+    pub r1_directions: usize,
+    pub lambda_eikonal: f32,
+    pub lambda_cross_entropy: f32,
+    pub ema_kimg: f32,
+    pub seed: u64,
+}
+
+/// Everything that changes during training.
+pub struct State {
+    pub g: Generator,
+    pub g_ema: Generator,
+    /// RGB, normal, mask.
+    pub d: Vec<Discriminator>,
+    pub adam_g: Adam,
+    pub adam_d: Vec<Adam>,
+    pub step: u64,
+    pub rng: Rng,
+}
+
+/// Losses of one step.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Metrics {
+    pub step: u64,
+    pub kimg: f64,
+    pub loss_g: f32,
+    pub loss_d: f32,
+    pub r1: Option<f32>,
+    pub eikonal: f32,
+    pub cross_entropy: f32,
+    pub triangles: f32,
+    pub seconds: f64,
+}
+
+fn scalar(t: Tensor<1>) -> f32 {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN)
+}
+
+fn device_for(backend: &str) -> Result<Device> {
+    Ok(match backend {
+        #[allow(deprecated)]
+        "ndarray" => Device::ndarray(),
+        "wgpu" => Device::wgpu_options().init().map_err(|e| anyhow!("no wgpu adapter: {e:?}"))?,
+        other => bail!("unknown --backend `{other}` (ndarray, wgpu)"),
+    })
+}
+
+fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig {
+    match g.name.as_str() {
+        "paper" => DiscriminatorConfig::new(res, 32768, 512),
+        "demo" => DiscriminatorConfig::new(res, 4096, 128),
+        _ => DiscriminatorConfig::new(res, 512, 32),
+    }
+}
+
+impl State {
+    fn new(rc: &RunConfig, ad: &Device, plain: &Device) -> Self {
+        let seed = rc.seed;
+        Self {
+            g: Generator::new(&rc.generator, seed, ad),
+            g_ema: Generator::new(&rc.generator, seed, plain),
+            d: [3usize, 3, 1]
+                .iter()
+                .enumerate()
+                .map(|(k, &c)| Discriminator::new(&rc.discriminator, c, seed + 100 + k as u64, ad))
+                .collect(),
+            adam_g: Adam::new(0.0, 0.99, 1e-8),
+            adam_d: (0..3).map(|_| Adam::new(0.0, 0.99, 1e-8)).collect(),
+            step: 0,
+            rng: Rng::new(seed, 0x7a1e),
+        }
+    }
+
+    fn save(&self, rc: &RunConfig) -> Vec<u8> {
+        let mut tensors = Vec::new();
+        let mut put = |prefix: &str, v: Vec<(String, Vec<usize>, Vec<f32>)>| {
+            tensors.extend(v.into_iter().map(|(n, s, d)| (format!("{prefix}{n}"), s, d)));
+        };
+        put("g/", collect_params(&self.g));
+        put("g_ema/", collect_params(&self.g_ema));
+        for (k, d) in self.d.iter().enumerate() {
+            put(&format!("d{k}/"), collect_params(d));
+        }
+        let adams: Vec<(String, &Adam)> = std::iter::once(("adam_g/".to_string(), &self.adam_g))
+            .chain(self.adam_d.iter().enumerate().map(|(k, a)| (format!("adam_d{k}/"), a)))
+            .collect();
+        let mut meta = BTreeMap::new();
+        for (prefix, a) in &adams {
+            for (name, (m, v)) in &a.moments {
+                let vals =
+                    |t: &Tensor<1>| t.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+                let (mv, vv) = (vals(m), vals(v));
+                tensors.push((format!("{prefix}{name}/m"), vec![mv.len()], mv));
+                tensors.push((format!("{prefix}{name}/v"), vec![vv.len()], vv));
+            }
+            meta.insert(format!("{prefix}step"), a.step.to_string());
+        }
+        let (s, inc) = self.rng.state();
+        meta.insert("format".into(), STATE_FORMAT.into());
+        meta.insert("step".into(), self.step.to_string());
+        meta.insert("rng_state".into(), s.to_string());
+        meta.insert("rng_inc".into(), inc.to_string());
+        meta.insert("run".into(), serde_json::to_string(rc).unwrap_or_default());
+        write_safetensors(&meta, &tensors)
+    }
+
+    fn load(bytes: &[u8], rc: &RunConfig, ad: &Device, plain: &Device) -> Result<Self> {
+        let st = parse_safetensors(bytes)?;
+        if st.metadata.get("format").map(String::as_str) != Some(STATE_FORMAT) {
+            bail!("not a training state (format {:?})", st.metadata.get("format"));
+        }
+        let num = |k: &str| -> Result<u64> {
+            st.metadata.get(k).and_then(|v| v.parse().ok()).ok_or_else(|| anyhow!("state metadata lacks `{k}`"))
+        };
+        let mut s = State::new(rc, ad, plain);
+        s.g = load_params(s.g, &st.tensors, "g/", ad)?;
+        s.g_ema = load_params(s.g_ema, &st.tensors, "g_ema/", plain)?;
+        s.d =
+            s.d.into_iter()
+                .enumerate()
+                .map(|(k, d)| load_params(d, &st.tensors, &format!("d{k}/"), ad))
+                .collect::<Result<_, _>>()?;
+        let inner = ad.clone().without_autodiff();
+        let load_adam = |prefix: &str| -> Result<Adam> {
+            let mut a = Adam::new(0.0, 0.99, 1e-8);
+            a.step = num(&format!("{prefix}step"))?;
+            for (k, (shape, vals)) in &st.tensors {
+                if let Some(rest) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {
+                    let v = st
+                        .tensors
+                        .get(&format!("{prefix}{rest}/v"))
+                        .ok_or_else(|| anyhow!("state lacks {prefix}{rest}/v"))?;
+                    let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [shape[0]]), &inner);
+                    a.moments.insert(rest.to_string(), (t(vals), t(&v.1)));
+                }
+            }
+            Ok(a)
+        };
+        s.adam_g = load_adam("adam_g/")?;
+        s.adam_d = (0..3).map(|k| load_adam(&format!("adam_d{k}/"))).collect::<Result<_>>()?;
+        s.step = num("step")?;
+        s.rng = Rng::from_state(num("rng_state")?, num("rng_inc")?);
+        Ok(s)
+    }
+}
+
+/// Real images as discriminator inputs: `[B, C, R, R]` in [−1, 1] (RGB, normal, mask) and cameras.
+fn load_reals(ds: &Dataset, idx: &[usize], dev: &Device) -> Result<(Tensor<4>, Tensor<4>, Tensor<4>, Tensor<2>)> {
+    let r = ds.resolution;
+    let (mut rgb, mut nrm, mut msk, mut cam) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for &i in idx {
+        let s = ds.load(i)?;
+        // HWC → CHW.
+        for c in 0..3 {
+            rgb.extend((0..r * r).map(|k| s.rgb[3 * k + c] * 2.0 - 1.0));
+        }
+        let n = s.normal.unwrap_or_else(|| vec![0.0; r * r * 3]);
+        for c in 0..3 {
+            nrm.extend((0..r * r).map(|k| n[3 * k + c]));
+        }
+        msk.extend(s.mask.iter().map(|m| m * 2.0 - 1.0));
+        cam.extend_from_slice(&to_row_major(s.label.world_to_camera));
+    }
+    let b = idx.len();
+    let t4 = |v: Vec<f32>, c: usize| Tensor::<4>::from_data(TensorData::new(v, [b, c, r, r]), dev);
+    Ok((t4(rgb, 3), t4(nrm, 3), t4(msk, 1), Tensor::from_data(TensorData::new(cam, [b, 16]), dev)))
+}
+
+fn cameras(labels: &[Label], dev: &Device) -> Tensor<2> {
+    let v: Vec<f32> = labels.iter().flat_map(|l| to_row_major(l.world_to_camera)).collect();
+    Tensor::from_data(TensorData::new(v, [labels.len(), 16]), dev)
+}
+
+fn latents(rng: &mut Rng, b: usize, dim: usize, dev: &Device) -> Tensor<2> {
+    Tensor::from_data(TensorData::new(rng.normals(b * dim), [b, dim]), dev)
+}
+
+/// One training step (D phase, lazy R1, G phase, w_avg, EMA).
+pub fn train_step(
+    mut st: State,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<(State, Metrics)> {
+    let t0 = std::time::Instant::now();
+    let b = rc.batch;
+    let real_idx: Vec<usize> = (0..b).map(|_| st.rng.below(ds.len())).collect();
+    let fake_labels: Vec<Label> = (0..b).map(|_| ds.entries[st.rng.below(ds.len())].1.clone()).collect();
+    let zg = latents(&mut st.rng, b, rc.generator.z_dim, ad);
+    let zt = latents(&mut st.rng, b, rc.generator.z_dim, ad);
+    let (real_rgb, real_nrm, real_msk, c_real) = load_reals(ds, &real_idx, ad)?;
+    let c_fake = cameras(&fake_labels, ad);
+    let res = rc.resolution;
+    let active: Vec<usize> = if rc.use_normals { vec![0, 1, 2] } else { vec![0, 2] };
+
+    // D phase on detached fakes.
+    let styles = st.g.styles(zg.clone(), zt.clone(), 1.0);
+    let prof = std::env::var_os("GETAVATAR_PROFILE").is_some();
+    let lap = |what: &str| {
+        if prof {
+            eprintln!("{:>8.3} s  {what}", t0.elapsed().as_secs_f64());
+        }
+    };
+    lap("reals loaded");
+    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, ad);
+    lap("fakes rendered (D phase)");
+    let fake_imgs = [fakes.rgb.detach(), fakes.normal.detach(), fakes.mask.detach()];
+    let reals = [real_rgb, real_nrm, real_msk];
+    let mut loss_d: Option<Tensor<1>> = None;
+    let add = |acc: &mut Option<Tensor<1>>, t: Tensor<1>| {
+        *acc = Some(match acc.take() {
+            None => t,
+            Some(a) => a + t,
+        })
+    };
+    for &k in &active {
+        let lf = st.d[k].forward(fake_imgs[k].clone(), c_fake.clone());
+        let lr = st.d[k].forward(reals[k].clone(), c_real.clone());
+        add(&mut loss_d, discriminator_loss(lf, lr));
+    }
+    let loss_d = loss_d.expect("active discriminators");
+    let mut metrics = Metrics { loss_d: scalar(loss_d.clone()), ..Metrics::default() };
+    let mut total_d = loss_d;
+    if st.step % rc.r1_every == 0 {
+        let mut r1_sum: Option<Tensor<1>> = None;
+        for &k in &active {
+            let d = &st.d[k];
+            let c = c_real.clone();
+            let r1 = r1_penalty(|x| d.forward(x, c.clone()), reals[k].clone(), rc.r1_directions, 1e-2, &mut st.rng, ad);
+            add(&mut r1_sum, r1.mean());
+        }
+        let r1 = r1_sum.expect("active");
+        metrics.r1 = Some(scalar(r1.clone()));
+        total_d = total_d + r1 * (rc.r1_gamma / 2.0 * rc.r1_every as f32);
+    }
+    lap("D losses");
+    let grads = total_d.backward();
+    lap("D backward");
+    let ratio = rc.r1_every as f32 / (rc.r1_every as f32 + 1.0);
+    st.d =
+        st.d.into_iter()
+            .enumerate()
+            .map(|(k, d)| if active.contains(&k) { st.adam_d[k].step(rc.lr_d * ratio, d, &grads) } else { d })
+            .collect();
+
+    // G phase: a fresh forward against the updated discriminators.
+    let styles: Styles = st.g.styles(zg.clone(), zt.clone(), 1.0);
+    lap("D step");
+    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, ad);
+    lap("fakes rendered (G phase)");
+    let imgs = [fakes.rgb, fakes.normal, fakes.mask];
+    let mut loss_g: Option<Tensor<1>> = None;
+    for &k in &active {
+        add(&mut loss_g, generator_loss(st.d[k].forward(imgs[k].clone(), c_fake.clone())));
+    }
+    let loss_g = loss_g.expect("active");
+    metrics.loss_g = scalar(loss_g.clone());
+    metrics.eikonal = scalar(fakes.eikonal.clone());
+    metrics.cross_entropy = scalar(fakes.cross_entropy.clone());
+    metrics.triangles = fakes.triangles.iter().sum::<usize>() as f32 / b as f32;
+    let total_g = loss_g + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
+    lap("G losses");
+    let grads = total_g.backward();
+    lap("G backward");
+    let mut g = st.adam_g.step(rc.lr_g, st.g, &grads);
+    // w_avg tracking and the EMA of G.
+    let beta_w = rc.generator.w_avg_beta;
+    let wg = g.mapping_geo.forward(zg.detach());
+    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta_w);
+    let wt = g.mapping_tex.forward(zt.detach());
+    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta_w);
+    let beta = 0.5f32.powf(b as f32 / (rc.ema_kimg * 1000.0).max(1e-8));
+    st.g_ema = ema_update(st.g_ema, &g, beta);
+    st.g = g;
+    lap("G step, w_avg, EMA");
+    st.step += 1;
+    metrics.step = st.step;
+    metrics.kimg = st.step as f64 * b as f64 / 1000.0;
+    metrics.seconds = t0.elapsed().as_secs_f64();
+    Ok((st, metrics))
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    {
+        let mut f = std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
+}
+
+/// RGB | normal | mask rows of G_ema at fixed seeds and the first labels of the dataset.
+fn sample_grid(st: &State, ds: &Dataset, ctx: &BodyContext, rc: &RunConfig, plain: &Device) -> Vec<u8> {
+    let n = 4.min(ds.len());
+    let labels: Vec<Label> = (0..n).map(|i| ds.entries[i * ds.len() / n].1.clone()).collect();
+    let mut rng = Rng::new(12345, 1);
+    let zg = latents(&mut rng, n, rc.generator.z_dim, plain);
+    let zt = latents(&mut rng, n, rc.generator.z_dim, plain);
+    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, plain);
+    let r = rc.resolution;
+    let imgs = [f.rgb, f.normal, f.mask.repeat_dim(1, 3)];
+    let vals: Vec<Vec<f32>> = imgs.into_iter().map(|t| t.into_data().try_to_vec::<f32>().unwrap_or_default()).collect();
+    let (w, h) = (n * r, 3 * r);
+    let mut px = vec![0u8; w * h * 3];
+    for (row, v) in vals.iter().enumerate() {
+        for s in 0..n {
+            for y in 0..r {
+                for x in 0..r {
+                    for c in 0..3 {
+                        let val = v[((s * 3 + c) * r + y) * r + x];
+                        px[((row * r + y) * w + s * r + x) * 3 + c] = ((val + 1.0) * 127.5).clamp(0.0, 255.0) as u8;
+                    }
+                }
+            }
+        }
+    }
+    encode_png(w, h, 3, &px)
+}
+
+pub fn train(a: &TrainArgs) -> Result<()> {
+    let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
+    let gcfg = GeneratorConfig::preset(&a.config).with_context(|| format!("unknown --config `{}`", a.config))?;
+    if !ds.resolution.is_power_of_two() || ds.resolution < 16 {
+        bail!("dataset resolution {} must be a power of two ≥ 16", ds.resolution);
+    }
+    let base = device_for(&a.backend)?;
+    let (ad, plain) = (base.clone().autodiff(), base);
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let run_path = a.out.join("run.json");
+    let state_path = a.out.join("state.safetensors");
+    let continuing = matches!(a.resume, Some(None));
+    let rc = if continuing {
+        let text = std::fs::read_to_string(&run_path)
+            .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
+        serde_json::from_str::<RunConfig>(&text).context("run.json")?
+    } else {
+        if state_path.exists() {
+            bail!(
+                "{} already holds a training run: pass --resume to continue it, or choose another --out",
+                a.out.display()
+            );
+        }
+        let rc = RunConfig {
+            discriminator: discriminator_config(ds.resolution, &gcfg),
+            generator: gcfg,
+            data: a.data.display().to_string(),
+            resolution: ds.resolution,
+            use_normals: ds.has_normals,
+            batch: a.batch,
+            lr_g: 0.002,
+            lr_d: 0.002,
+            r1_gamma: a.r1_gamma,
+            r1_every: 16,
+            r1_directions: 4,
+            lambda_eikonal: 0.001,
+            lambda_cross_entropy: 0.01,
+            ema_kimg: 10.0f32.min(a.batch as f32 * 10.0 / 32.0),
+            seed: a.seed,
+        };
+        write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
+        rc
+    };
+    if rc.resolution != ds.resolution {
+        bail!("the run was trained at {}², the dataset has {}² images", rc.resolution, ds.resolution);
+    }
+    let rc = RunConfig { use_normals: rc.use_normals && ds.has_normals, ..rc };
+    let mut st = if continuing && state_path.exists() {
+        let bytes = std::fs::read(&state_path)?;
+        State::load(&bytes, &rc, &ad, &plain).with_context(|| format!("loading {}", state_path.display()))?
+    } else {
+        let mut st = State::new(&rc, &ad, &plain);
+        if let Some(Some(init)) = &a.resume {
+            // Transfer learning (paper Sec. 5.3): start G from a trained generator.
+            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+            st.g = load_generator(&bytes, &rc.generator, &ad)?;
+            st.g_ema = load_generator(&bytes, &rc.generator, &plain)?;
+            println!("initialised the generator from {}", init.display());
+        }
+        st
+    };
+    if !rc.use_normals {
+        println!("the dataset has no normal maps: the normal discriminator is off");
+    }
+    let model = BodyModel::default_body()?;
+    let ctx = BodyContext::new(model, &rc.generator);
+    let bar = crate::progress::bar(a.steps, "steps");
+    bar.set_position(st.step.min(a.steps));
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
+    let t0 = std::time::Instant::now();
+    let start = st.step;
+    let mut last = Metrics::default();
+    let snapshot = |st: &State, step: u64| -> Result<()> {
+        let mut extra = BTreeMap::new();
+        extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
+        extra.insert("step".to_string(), step.to_string());
+        write_atomic(&a.out.join("generator.safetensors"), &save_generator(&st.g_ema, &rc.generator, &extra))?;
+        write_atomic(&state_path, &st.save(&rc))?;
+        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &rc, &plain))
+    };
+    while st.step < a.steps {
+        let (next, m) = train_step(st, &ds, &ctx, &rc, &ad)?;
+        st = next;
+        writeln!(log, "{}", serde_json::to_string(&m)?)?;
+        bar.set_position(st.step);
+        bar.set_message(format!(
+            "kimg {:.3} G {:.3} D {:.3} eik {:.3} ce {:.3}",
+            m.kimg, m.loss_g, m.loss_d, m.eikonal, m.cross_entropy
+        ));
+        if !(m.loss_g.is_finite() && m.loss_d.is_finite()) {
+            bail!("step {}: non-finite loss (G {}, D {}); the last checkpoint is intact", m.step, m.loss_g, m.loss_d);
+        }
+        if st.step % a.snapshot_every == 0 || st.step == a.steps {
+            snapshot(&st, st.step)?;
+        }
+        last = m;
+    }
+    bar.finish_and_clear();
+    let dt = t0.elapsed().as_secs_f64();
+    let done = st.step - start;
+    println!(
+        "trained {done} steps ({:.3} kimg total) in {:.1} s ({:.2} s/step, {:.1} s/kimg) on {}; last losses G {:.4} D {:.4}; checkpoint {}",
+        st.step as f64 * rc.batch as f64 / 1000.0,
+        dt,
+        dt / done.max(1) as f64,
+        dt / (done.max(1) as f64 * rc.batch as f64 / 1000.0),
+        a.backend,
+        last.loss_g,
+        last.loss_d,
+        state_path.display()
+    );
+    Ok(())
+}
