@@ -70,36 +70,10 @@ impl ModuleVisitor for Collect {
 /// parameters back synchronously.
 #[cfg(not(target_arch = "wasm32"))]
 pub fn save_generator(g: &Generator, cfg: &GeneratorConfig, extra: &BTreeMap<String, String>) -> Vec<u8> {
-    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
-    g.visit(&mut c);
-    let mut header = serde_json::Map::new();
-    let mut meta = serde_json::Map::new();
+    let mut meta = extra.clone();
     meta.insert("format".into(), FORMAT.into());
-    meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default().into());
-    for (k, v) in extra {
-        meta.insert(k.clone(), v.clone().into());
-    }
-    header.insert("__metadata__".into(), meta.into());
-    let mut offset = 0usize;
-    for (name, shape, data) in &c.out {
-        let end = offset + data.len() * 4;
-        header
-            .insert(name.clone(), serde_json::json!({ "dtype": "F32", "shape": shape, "data_offsets": [offset, end] }));
-        offset = end;
-    }
-    let mut h = serde_json::Value::Object(header).to_string().into_bytes();
-    while h.len() % 8 != 0 {
-        h.push(b' ');
-    }
-    let mut out = Vec::with_capacity(8 + h.len() + offset);
-    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
-    out.extend_from_slice(&h);
-    for (_, _, data) in &c.out {
-        for x in data {
-            out.extend_from_slice(&x.to_le_bytes());
-        }
-    }
-    out
+    meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default());
+    write_safetensors(&meta, &collect_params(g))
 }
 
 /// The parsed container: metadata and named (shape, values).
