@@ -18,8 +18,13 @@ use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 
+/// The workspace root. `cargo run` sets CARGO_MANIFEST_DIR for the running binary, which is
+/// preferred over the compile-time value: with a build cache shared between clones, cargo may
+/// run an xtask binary last linked from another checkout.
 fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."))
+    let manifest = std::env::var_os("CARGO_MANIFEST_DIR").map(PathBuf::from);
+    let manifest = manifest.unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    manifest.parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."))
 }
 
 fn target_dir() -> PathBuf {
