@@ -33,7 +33,7 @@ fn fmt_err(m: impl Into<String>) -> CheckpointError {
 
 /// Parameter name from the module path; a repeated path gets a `#k` suffix (traversal order
 /// is the same when saving and loading, so names match).
-fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
+pub fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
     let base = path.join(".");
     let k = seen.entry(base.clone()).or_insert(0);
     *k += 1;

@@ -99,12 +99,7 @@ impl Label {
 
     /// The body parameters of the label (no translation: labels are in the body frame).
     pub fn body_params(&self) -> BodyParams {
-        let mut theta = [0.0f32; 72];
-        theta[..3].copy_from_slice(&self.global_orient);
-        theta[3..].copy_from_slice(&self.body_pose);
-        let mut p = BodyParams { betas: self.betas.to_vec(), ..BodyParams::default() };
-        p.set_theta(&theta);
-        p
+        BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas)
     }
 }
 

@@ -8,6 +8,8 @@ use std::collections::BTreeMap;
 use burn::module::{Module, ModuleMapper, Param};
 use burn::tensor::{Gradients, Tensor};
 
+use crate::checkpoint::unique_name as param_name;
+
 /// Adam hyper-parameters and per-parameter moments (flattened, on the parameters' device).
 #[derive(Clone, Debug)]
 pub struct Adam {
@@ -31,18 +33,6 @@ impl Adam {
         self.step += 1;
         let mut m = AdamMapper { adam: self, lr, grads, path: Vec::new(), seen: BTreeMap::new() };
         module.map(&mut m)
-    }
-}
-
-/// Parameter name from the module path (`a.b.weight`), `#k` for repeats (same as checkpoints).
-pub fn param_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
-    let base = path.join(".");
-    let k = seen.entry(base.clone()).or_insert(0);
-    *k += 1;
-    if *k == 1 {
-        base
-    } else {
-        format!("{base}#{}", *k - 1)
     }
 }
 

@@ -298,11 +298,7 @@ impl SmplParams {
 
     /// The body parameters (translation included).
     pub fn body_params(&self) -> BodyParams {
-        let mut theta = [0.0f32; 72];
-        theta[..3].copy_from_slice(&self.global_orient);
-        theta[3..].copy_from_slice(&self.body_pose);
-        let mut p = BodyParams { betas: self.betas.clone(), ..BodyParams::default() };
-        p.set_theta(&theta);
+        let mut p = BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas);
         p.transl = self.translation();
         p
     }

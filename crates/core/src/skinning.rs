@@ -35,6 +35,16 @@ impl BodyParams {
         }
         t
     }
+    /// From SMPL's split layout: global orientation (3), body pose (69), betas; no translation.
+    pub fn from_split(global_orient: &[f32], body_pose: &[f32], betas: &[f32]) -> Self {
+        let mut theta = [0.0f32; NUM_JOINTS * 3];
+        theta[..3].copy_from_slice(&global_orient[..3]);
+        theta[3..].copy_from_slice(&body_pose[..(NUM_JOINTS - 1) * 3]);
+        let mut p = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
+        p.set_theta(&theta);
+        p
+    }
+
     /// Set θ from SMPL's flat 72-vector.
     pub fn set_theta(&mut self, theta: &[f32; NUM_JOINTS * 3]) {
         for j in 0..NUM_JOINTS {
