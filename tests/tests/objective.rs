@@ -141,3 +141,46 @@ fn eikonal_and_cross_entropy_values() {
     let want = 2.0 * (1.0f32 + 1f32.exp()).ln();
     assert!((values(sdf_cross_entropy(sa, sb))[0] - want).abs() < 1e-5);
 }
+
+/// The networks' one convolution (im2col + matmul on NdArray) equals burn's `conv2d` (grouped
+/// for per-sample weights), values and gradients.
+#[test]
+fn conv2d_same_matches_burn_conv2d() {
+    use getavatar_core::burn::tensor::module::conv2d;
+    use getavatar_core::burn::tensor::ops::ConvOptions;
+    use getavatar_core::network::layers::conv2d_same;
+    let dev = cpu().autodiff();
+    let mut rng = Rng::new(5, 5);
+    for &(b, c, o, k, r, shared) in
+        &[(3usize, 5usize, 4usize, 3usize, 8usize, true), (3, 5, 4, 3, 7, false), (2, 3, 6, 1, 5, true)]
+    {
+        let x = randn4(&mut rng, [b, c, r, r], &dev).require_grad();
+        let wb = if shared { 1 } else { b };
+        let w: Tensor<5> =
+            Tensor::from_data(TensorData::new(rng.normals(wb * o * c * k * k), [wb, o, c, k, k]), &dev).require_grad();
+        let opts = |g| ConvOptions::new([1, 1], [k / 2, k / 2], [1, 1], g);
+        let reference = if shared {
+            conv2d(x.clone(), w.clone().reshape([o, c, k, k]), None, opts(1))
+        } else {
+            conv2d(x.clone().reshape([1, b * c, r, r]), w.clone().reshape([b * o, c, k, k]), None, opts(b))
+                .reshape([b, o, r, r])
+        };
+        let ours = conv2d_same(x.clone(), w.clone());
+        assert_eq!(ours.dims(), [b, o, r, r]);
+        let weights = randn4(&mut rng, [b, o, r, r], &dev);
+        let grads = |y: Tensor<4>| {
+            let g = (y * weights.clone()).sum().backward();
+            (values(x.grad(&g).expect("x grad")), values(w.grad(&g).expect("w grad")))
+        };
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            let scale = b.iter().map(|v| v.abs()).fold(1.0f32, f32::max);
+            let err = a.iter().zip(b).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(err < 1e-5 * scale, "{what}: max error {err} (scale {scale})");
+        };
+        close(&values(ours.clone()), &values(reference.clone()), "values");
+        let (gx0, gw0) = grads(reference);
+        let (gx1, gw1) = grads(ours);
+        close(&gx1, &gx0, "∂x");
+        close(&gw1, &gw0, "∂w");
+    }
+}

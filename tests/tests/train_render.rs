@@ -6,7 +6,7 @@ use getavatar_core::burn::module::{Module, ModuleVisitor, Param};
 use getavatar_core::burn::tensor::{Device, Gradients, Tensor};
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::dataset::Label;
-use getavatar_core::diff::avatar::render_avatars;
+use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{seed_latents, BodyContext, Generator};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
@@ -64,7 +64,17 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     let cam = OrbitCamera { yaw: 0.5, pitch: 0.05, ..OrbitCamera::default() };
     let label = Label::new(cam.world_to_camera(), &params);
     let res = 64;
-    let render = || render_avatars(&g, &ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &[label.clone()], res, &dev);
+    let render = || {
+        render_avatars(
+            &g,
+            &ctx,
+            &g.styles(zg.clone(), zt.clone(), 1.0),
+            &[label.clone()],
+            res,
+            &PosedGridCache::default(),
+            &dev,
+        )
+    };
     let fakes = render();
     assert_eq!(fakes.rgb.dims(), [1, 3, res, res]);
     assert_eq!(fakes.mask.dims(), [1, 1, res, res]);

@@ -26,8 +26,8 @@ use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::render_avatars;
-use getavatar_core::generator::{BodyContext, Generator, Styles};
+use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::generator::{BodyContext, Generator};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
@@ -245,6 +245,7 @@ pub fn train_step(
     mut st: State,
     ds: &Dataset,
     ctx: &BodyContext,
+    grids: &PosedGridCache,
     rc: &RunConfig,
     ad: &Device,
 ) -> Result<(State, Metrics)> {
@@ -259,7 +260,8 @@ pub fn train_step(
     let res = rc.resolution;
     let active: Vec<usize> = if rc.use_normals { vec![0, 1, 2] } else { vec![0, 2] };
 
-    // D phase on detached fakes.
+    // One render per step: the D phase sees it detached, the G phase through the renderer
+    // (D's update does not change G, so re-rendering would give the same images).
     let styles = st.g.styles(zg.clone(), zt.clone(), 1.0);
     let prof = std::env::var_os("GETAVATAR_PROFILE").is_some();
     let lap = |what: &str| {
@@ -268,9 +270,9 @@ pub fn train_step(
         }
     };
     lap("reals loaded");
-    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, ad);
-    lap("fakes rendered (D phase)");
-    let fake_imgs = [fakes.rgb.detach(), fakes.normal.detach(), fakes.mask.detach()];
+    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, grids, ad);
+    lap("fakes rendered");
+    let fake_imgs = [fakes.rgb.clone().detach(), fakes.normal.clone().detach(), fakes.mask.clone().detach()];
     let reals = [real_rgb, real_nrm, real_msk];
     let mut loss_d: Option<Tensor<1>> = None;
     let add = |acc: &mut Option<Tensor<1>>, t: Tensor<1>| {
@@ -308,12 +310,9 @@ pub fn train_step(
             .enumerate()
             .map(|(k, d)| if active.contains(&k) { st.adam_d[k].step(rc.lr_d * ratio, d, &grads) } else { d })
             .collect();
-
-    // G phase: a fresh forward against the updated discriminators.
-    let styles: Styles = st.g.styles(zg.clone(), zt.clone(), 1.0);
     lap("D step");
-    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, ad);
-    lap("fakes rendered (G phase)");
+
+    // G phase: the same fakes against the updated discriminators.
     let imgs = [fakes.rgb, fakes.normal, fakes.mask];
     let mut loss_g: Option<Tensor<1>> = None;
     for &k in &active {
@@ -357,13 +356,20 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// RGB | normal | mask rows of G_ema at fixed seeds and the first labels of the dataset.
-fn sample_grid(st: &State, ds: &Dataset, ctx: &BodyContext, rc: &RunConfig, plain: &Device) -> Vec<u8> {
+fn sample_grid(
+    st: &State,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    rc: &RunConfig,
+    plain: &Device,
+) -> Vec<u8> {
     let n = 4.min(ds.len());
     let labels: Vec<Label> = (0..n).map(|i| ds.entries[i * ds.len() / n].1.clone()).collect();
     let mut rng = Rng::new(12345, 1);
     let zg = latents(&mut rng, n, rc.generator.z_dim, plain);
     let zt = latents(&mut rng, n, rc.generator.z_dim, plain);
-    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, plain);
+    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, grids, plain);
     let r = rc.resolution;
     let imgs = [f.rgb, f.normal, f.mask.repeat_dim(1, 3)];
     let vals: Vec<Vec<f32>> = imgs.into_iter().map(|t| t.into_data().try_to_vec::<f32>().unwrap_or_default()).collect();
@@ -450,6 +456,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     }
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model, &rc.generator);
+    let grids = PosedGridCache::default();
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(st.step.min(a.steps));
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
@@ -462,10 +469,10 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         extra.insert("step".to_string(), step.to_string());
         write_atomic(&a.out.join("generator.safetensors"), &save_generator(&st.g_ema, &rc.generator, &extra))?;
         write_atomic(&state_path, &st.save(&rc))?;
-        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &rc, &plain))
+        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &grids, &rc, &plain))
     };
     while st.step < a.steps {
-        let (next, m) = train_step(st, &ds, &ctx, &rc, &ad)?;
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
         st = next;
         writeln!(log, "{}", serde_json::to_string(&m)?)?;
         bar.set_position(st.step);

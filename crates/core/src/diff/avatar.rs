@@ -10,6 +10,9 @@
 //! (texture field output through γ = 1/2.2) on white; normals in world space with the zero
 //! vector on background; mask 2·coverage − 1.
 
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{Mat3, Vec3, Vec4};
 
@@ -51,6 +54,79 @@ fn styles_of(s: &Styles, b: usize) -> Styles {
     Styles { geo: s.geo.clone().narrow(0, b, 1), tex: s.tex.clone().narrow(0, b, 1) }
 }
 
+/// The tet grid under one body pose (paper eq. 2): each posed-space grid vertex carried to
+/// canonical space by SMPL-guided inverse skinning, and the template SDF there.
+pub struct PosedGrid {
+    pub canonical: Vec<Vec3>,
+    pub template: Vec<f32>,
+}
+
+impl PosedGrid {
+    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
+    pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
+        let verts = &ctx.grid.vertices;
+        let map = |chunk: &[Vec3]| -> Vec<Vec3> { chunk.iter().map(|p| inv.to_canonical(*p).0).collect() };
+        #[cfg(not(target_arch = "wasm32"))]
+        let canonical: Vec<Vec3> = {
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
+            let chunk = verts.len().div_ceil(threads).max(1);
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = verts.chunks(chunk).map(|c| sc.spawn(move || map(c))).collect();
+                handles.into_iter().flat_map(|h| h.join().unwrap_or_default()).collect()
+            })
+        };
+        #[cfg(target_arch = "wasm32")]
+        let canonical = map(verts);
+        let template = canonical.iter().map(|p| ctx.template.sample(*p)).collect();
+        Self { canonical, template }
+    }
+}
+
+/// Posed grids memoised per body pose: a dataset has one pose per subject and many views, and
+/// the nearest-vertex search of inverse skinning is the renderer's largest CPU cost.
+pub struct PosedGridCache {
+    map: Mutex<HashMap<Vec<u32>, Arc<PosedGrid>>>,
+    capacity: usize,
+}
+
+impl Default for PosedGridCache {
+    fn default() -> Self {
+        Self::new(1024)
+    }
+}
+
+impl PosedGridCache {
+    /// A cache holding at most `capacity` poses (it starts over when full).
+    pub fn new(capacity: usize) -> Self {
+        Self { map: Mutex::new(HashMap::new()), capacity: capacity.max(1) }
+    }
+
+    /// The posed grid of `label`'s body (pose and shape), computed on first use.
+    pub fn get(&self, ctx: &BodyContext, label: &Label, inv: &InverseSkinning) -> Arc<PosedGrid> {
+        let key: Vec<u32> =
+            label.global_orient.iter().chain(&label.body_pose).chain(&label.betas).map(|v| v.to_bits()).collect();
+        if let Some(g) = self.map.lock().ok().and_then(|m| m.get(&key).cloned()) {
+            return g;
+        }
+        let g = Arc::new(PosedGrid::new(ctx, inv));
+        if let Ok(mut m) = self.map.lock() {
+            if m.len() >= self.capacity {
+                m.clear();
+            }
+            m.insert(key, g.clone());
+        }
+        g
+    }
+
+    pub fn len(&self) -> usize {
+        self.map.lock().map(|m| m.len()).unwrap_or(0)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
 /// `[H·W, C]` image → `[1, C, H, W]`.
 fn to_nchw(img: Tensor<2>, res: usize) -> Tensor<4> {
     let c = img.dims()[1];
@@ -58,7 +134,8 @@ fn to_nchw(img: Tensor<2>, res: usize) -> Tensor<4> {
 }
 
 /// Render the generated avatars of `styles` (batch B) under `labels` (B entries: camera and body
-/// pose) at `res`². Native: reads intermediate values back synchronously.
+/// pose) at `res`², with posed grids from `grids`. Native: reads intermediate values back
+/// synchronously.
 #[cfg(not(target_arch = "wasm32"))]
 pub fn render_avatars(
     g: &Generator,
@@ -66,6 +143,7 @@ pub fn render_avatars(
     styles: &Styles,
     labels: &[Label],
     res: usize,
+    grids: &PosedGridCache,
     device: &Device,
 ) -> FakeViews {
     let proj = OrbitCamera::default().projection_gl(1.0);
@@ -82,11 +160,11 @@ pub fn render_avatars(
         // Inverse skinning of the posed-space grid (eq. 2).
         let posed = pose_body(&ctx.model, &label.body_params());
         let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-        let canon: Vec<Vec3> = ctx.grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
-        let template: Vec<f32> = canon.iter().map(|p| ctx.template.sample(*p)).collect();
-        let canon_t = vec3_tensor(&canon, device);
+        let grid = grids.get(ctx, label, &inv);
+        let canon = &grid.canonical;
+        let canon_t = vec3_tensor(canon, device);
         let (residual, offset) = g.geometry_fields(&planes, &s, canon_t.clone().unsqueeze_dim::<3>(0));
-        let sdf = (Tensor::<1>::from_data(TensorData::new(template, [n]), device) + residual.reshape([n]))
+        let sdf = (Tensor::<1>::from_data(TensorData::new(grid.template.clone(), [n]), device) + residual.reshape([n]))
             * (bmask.clone() * -1.0 + 1.0)
             + bmask.clone() * OUTSIDE_VALUE;
         let positions = vec3_tensor(&ctx.grid.vertices, device) + offset.reshape([n, 3]);
@@ -94,7 +172,7 @@ pub fn render_avatars(
         // Topology on the CPU from detached values.
         let sdf_v = values(sdf.clone());
         let pos_v: Vec<Vec3> = values(positions.clone()).chunks_exact(3).map(Vec3::from_slice).collect();
-        let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, &canon);
+        let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
         triangles.push(mesh.faces.len());
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;

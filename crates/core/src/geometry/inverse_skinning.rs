@@ -22,8 +22,9 @@ pub struct InverseSkinning {
     offsets: Vec<Vec3>,
     /// Per body vertex: T_cano.
     cano: Vec<Mat4>,
-    /// Per body vertex: rotation canonical → posed (for normals).
-    rot: Vec<Mat3>,
+    /// Per body vertex: T_obs (rotations for normals are computed on demand: only the
+    /// vertices nearest to surface points need them).
+    obs: Vec<Mat4>,
 }
 
 /// The canonical body: Da-pose, β = 0.
@@ -38,13 +39,7 @@ impl InverseSkinning {
         let tree = KdTree::new(&posed.vertices);
         let inv_obs: Vec<Mat4> = posed.vertex_transforms.iter().map(|t| t.inverse()).collect();
         let offsets: Vec<Vec3> = posed.shaped.iter().zip(&model.v_template).map(|(s, t)| *s - *t).collect();
-        let rot = posed
-            .vertex_transforms
-            .iter()
-            .zip(&canonical.vertex_transforms)
-            .map(|(o, c)| nearest_rotation(Mat3::from_mat4(*o) * Mat3::from_mat4(*c).inverse()))
-            .collect();
-        Self { tree, inv_obs, offsets, cano: canonical.vertex_transforms.clone(), rot }
+        Self { tree, inv_obs, offsets, cano: canonical.vertex_transforms.clone(), obs: posed.vertex_transforms.clone() }
     }
 
     /// Canonical position of posed point `x_d`, and the index of the body vertex used.
@@ -56,7 +51,10 @@ impl InverseSkinning {
 
     /// Rotation taking canonical-space directions at body vertex `i` into posed space.
     pub fn rotation(&self, i: usize) -> Mat3 {
-        self.rot.get(i).copied().unwrap_or(Mat3::IDENTITY)
+        match (self.obs.get(i), self.cano.get(i)) {
+            (Some(o), Some(c)) => nearest_rotation(Mat3::from_mat4(*o) * Mat3::from_mat4(*c).inverse()),
+            _ => Mat3::IDENTITY,
+        }
     }
 }
 

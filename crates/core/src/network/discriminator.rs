@@ -8,13 +8,13 @@
 //! mapping has `mapping_layers` layers (the reference uses its default of 8 on 512-d).
 
 use burn::module::{Module, Param};
-use burn::tensor::module::{avg_pool2d, conv2d};
-use burn::tensor::ops::{AvgPoolOptions, ConvOptions};
+use burn::tensor::module::avg_pool2d;
+use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::init::{full, randn, Rng};
-use super::layers::{lrelu_gain, FullyConnected};
+use super::layers::{conv2d_same, lrelu_gain, FullyConnected};
 
 /// Discriminator sizes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -81,9 +81,8 @@ impl Conv2dLayer {
     }
 
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let [c_out, _, k, _] = self.weight.dims();
-        let pad = k / 2;
-        let mut y = conv2d(x, self.weight.val() * self.gain, None, ConvOptions::new([1, 1], [pad, pad], [1, 1], 1));
+        let c_out = self.weight.dims()[0];
+        let mut y = conv2d_same(x, (self.weight.val() * self.gain).unsqueeze_dim(0));
         if let Some(b) = &self.bias {
             y = y + b.val().reshape([1, c_out, 1, 1]);
         }

@@ -4,7 +4,7 @@
 use burn::module::{Module, Param};
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::conv2d;
-use burn::tensor::ops::ConvOptions;
+use burn::tensor::ops::{ConvOptions, PadMode};
 use burn::tensor::{Device, Tensor};
 
 use super::init::{full, randn, Rng};
@@ -14,6 +14,58 @@ const SQRT2: f32 = std::f32::consts::SQRT_2;
 /// Leaky ReLU (slope 0.2) with StyleGAN's gain √2.
 pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     leaky_relu(x, 0.2) * SQRT2
+}
+
+/// Whether `device` (or the device an autodiff device wraps) is the NdArray CPU backend.
+pub fn is_ndarray(device: &Device) -> bool {
+    #[cfg(feature = "generator")]
+    {
+        #[allow(deprecated)]
+        let cpu = Device::ndarray();
+        device.clone().inner() == cpu
+    }
+    #[cfg(not(feature = "generator"))]
+    {
+        let _ = device;
+        false
+    }
+}
+
+/// Stride-1 "same" convolution with an odd `k`×`k` kernel per sample: `x` `[B, in, H, W]`,
+/// `weight` `[B, out, in, k, k]` (or `[1, out, in, k, k]`, shared) → `[B, out, H, W]`.
+///
+/// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
+/// the discriminators a shared one). On NdArray it is im2col + batched matmul written with
+/// tensor ops: burn-ndarray's `conv2d` backward is 25–35× slower than this at the sizes we
+/// train (see `trainer bench`); on GPU backends it is burn's grouped `conv2d`.
+pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+    let [b, c_in, h, w] = x.dims();
+    let [wb, c_out, _, k, _] = weight.dims();
+    let pad = k / 2;
+    if is_ndarray(&x.device()) {
+        let xp = if pad > 0 { x.pad((pad, pad, pad, pad), PadMode::Constant(0.0)) } else { x };
+        let mut taps = Vec::with_capacity(k * k);
+        for dy in 0..k {
+            for dx in 0..k {
+                taps.push(xp.clone().slice([0..b, 0..c_in, dy..dy + h, dx..dx + w]));
+            }
+        }
+        // [B, in, k·k, H, W] → columns [B, in·k·k, H·W] (matching the weight's (in, ky, kx) order).
+        let cols = Tensor::<4>::stack::<5>(taps, 2).reshape([b, c_in * k * k, h * w]);
+        let wm = weight.reshape([wb, c_out, c_in * k * k]);
+        let wm = if wb == b { wm } else { wm.expand([b, c_out, c_in * k * k]) };
+        wm.matmul(cols).reshape([b, c_out, h, w])
+    } else if wb == 1 {
+        conv2d(x, weight.reshape([c_out, c_in, k, k]), None, ConvOptions::new([1, 1], [pad, pad], [1, 1], 1))
+    } else {
+        let y = conv2d(
+            x.reshape([1, b * c_in, h, w]),
+            weight.reshape([b * c_out, c_in, k, k]),
+            None,
+            ConvOptions::new([1, 1], [pad, pad], [1, 1], b),
+        );
+        y.reshape([b, c_out, h, w])
+    }
 }
 
 /// Fully connected layer `y = x·(W·g)ᵀ + b·lr_mul`, g = lr_mul/√in.
@@ -100,7 +152,7 @@ impl ModulatedConv2d {
 
     /// `x`: `[B, in, H, W]`, `w`: `[B, w_dim]` → `[B, out, H, W]`.
     pub fn forward(&self, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
-        let [b, c_in, h, wd] = x.dims();
+        let [b, c_in, _, _] = x.dims();
         let [c_out, _, k, _] = self.weight.dims();
         let mut styles = self.affine.forward(w); // [B, in]
         if !self.demodulate {
@@ -114,10 +166,7 @@ impl ModulatedConv2d {
         } else {
             weight
         };
-        let weight = weight.reshape([b * c_out, c_in, k, k]);
-        let pad = k / 2;
-        let y = conv2d(x.reshape([1, b * c_in, h, wd]), weight, None, ConvOptions::new([1, 1], [pad, pad], [1, 1], b));
-        let y = y.reshape([b, c_out, h, wd]) + self.bias.val().reshape([1, c_out, 1, 1]);
+        let y = conv2d_same(x, weight) + self.bias.val().reshape([1, c_out, 1, 1]);
         if self.activation {
             lrelu_gain(y)
         } else {
