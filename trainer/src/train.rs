@@ -113,7 +113,7 @@ fn device_for(backend: &str) -> Result<Device> {
 fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig {
     match g.name.as_str() {
         "paper" => DiscriminatorConfig::new(res, 32768, 512),
-        "demo" => DiscriminatorConfig::new(res, 4096, 128),
+        "demo" => DiscriminatorConfig::new(res, 2048, 64),
         _ => DiscriminatorConfig::new(res, 512, 32),
     }
 }

@@ -1,7 +1,10 @@
 //! Decoders on triplane features (paper Sec. 4.1–4.2): two modulated FCs each (hidden width
 //! `decoder_hidden`, leaky ReLU, then linear), one w per layer.
 //! - SDF residual (1), styled by w_geo; added to the body template SDF. Its output layer is
-//!   not demodulated and starts small (`SDF_INIT_SCALE`), so G starts from the body.
+//!   not demodulated and starts small (`SDF_INIT_SCALE`), so G starts from the body; it is
+//!   softly bounded to ±`SDF_RESIDUAL_MAX` (R·tanh(x/R), the identity for small x), so clothing
+//!   and hair live within that distance of the body and the SDF's sign is the template's
+//!   farther away (training evaluates the decoders only in that band, `diff::avatar`).
 //! - DMTet vertex offset (3), its own MLP on w_geo, squashed to tanh(·) · ¼ grid cell (the
 //!   reference's tanh(·)/90 in its normalised box is about a quarter of its cell).
 //! - Texture feature (`texture_features`) styled by w_tex, then to-RGB (linear, no demod).
@@ -19,6 +22,10 @@ use crate::geometry::tet_grid::REFERENCE_BOX_SIZE;
 /// untrained residual and offsets are millimetres, so training (and the untrained demo
 /// weights) start from the body template on the regular grid.
 pub const SDF_INIT_SCALE: f32 = 0.001;
+
+/// Bound of the SDF residual, metres: loose dresses, coats and hair reach about this far from
+/// the body.
+pub const SDF_RESIDUAL_MAX: f32 = 0.2;
 
 #[derive(Module, Debug)]
 pub struct Decoder {
@@ -86,9 +93,9 @@ impl Decoders {
         }
     }
 
-    /// SDF residual `[B, N, 1]` from geometry features.
+    /// SDF residual `[B, N, 1]` (metres, within ±`SDF_RESIDUAL_MAX`) from geometry features.
     pub fn sdf_residual(&self, feat: Tensor<3>, w: Tensor<2>) -> Tensor<3> {
-        self.sdf.forward(feat, w.clone(), w)
+        tanh(self.sdf.forward(feat, w.clone(), w) * (1.0 / SDF_RESIDUAL_MAX)) * SDF_RESIDUAL_MAX
     }
 
     /// DMTet vertex offsets `[B, N, 3]` (metres), each component below a quarter grid cell so
