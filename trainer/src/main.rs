@@ -4,6 +4,7 @@
 
 mod bench;
 mod body_convert;
+mod eval;
 mod prepare;
 mod progress;
 mod sample;
@@ -122,6 +123,33 @@ enum Command {
         #[arg(long, default_value_t = 10.0)]
         r1_gamma: f32,
     },
+    /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
+    /// silhouette, normal-map angular error vs the data (FID/KID: not in this build).
+    Eval {
+        /// Dataset directory whose labels (camera, θ, β) and images are used.
+        #[arg(long)]
+        data: PathBuf,
+        /// Generator size: paper, demo or tiny.
+        #[arg(long, default_value = "demo")]
+        config: String,
+        /// Trained generator (`generator.safetensors`; default: random weights).
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+        /// Labels to evaluate (spread evenly over the dataset).
+        #[arg(long, default_value_t = 32)]
+        count: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Truncation ψ (1 = none).
+        #[arg(long, default_value_t = 1.0)]
+        psi: f32,
+        /// Inception weights (pt_inception-2015-12-05 as safetensors) for FID/KID.
+        #[arg(long)]
+        inception: Option<PathBuf>,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample {
         /// Generator size: paper, demo or tiny.
@@ -194,6 +222,9 @@ fn main() -> Result<()> {
                 smpl_dir,
                 limit,
             })?
+        }
+        Command::Eval { data, config, checkpoint, count, seed, psi, inception, out } => {
+            eval::eval(&eval::EvalArgs { data, config, checkpoint, count, seed, psi, inception, out })?
         }
         Command::Train { data, config, out, resume, backend, batch, steps, snapshot_every, seed, r1_gamma } => {
             if batch == 0 || snapshot_every == 0 {

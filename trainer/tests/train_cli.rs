@@ -123,6 +123,32 @@ fn tiny_trains_twenty_steps() {
     }
     assert_eq!(rows.iter().filter(|r| r["r1"].as_f64().is_some()).count(), 2, "lazy R1 every 16 steps");
     assert!(run.join("samples_000010.png").is_file() && run.join("samples_000020.png").is_file());
+    // `trainer eval` on the trained generator: figures in range; the data's own masks line up
+    // with the posed bodies of their labels (the silhouette check itself is sound).
+    let report = root.join("eval.json");
+    let gen = run.join("generator.safetensors");
+    let text = ok(trainer(&[
+        "eval",
+        "--data",
+        data.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--checkpoint",
+        gen.to_str().unwrap(),
+        "--count",
+        "4",
+        "--out",
+        report.to_str().unwrap(),
+    ]));
+    assert!(text.contains("FID/KID: not computed"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let iou = r["mask_iou_mean"].as_f64().unwrap();
+    assert!(iou > 0.0 && iou <= 1.0, "{r}");
+    assert!(r["data_mask_iou_mean"].as_f64().unwrap() > 0.6, "{r}");
+    let err = r["normal_error_deg"].as_f64().unwrap();
+    assert!(err > 0.0 && err < 90.0, "{r}");
+    let o = trainer(&["eval", "--data", data.to_str().unwrap(), "--config", "tiny", "--count", "0"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--count"));
     let _ = std::fs::remove_dir_all(&root);
 }
 

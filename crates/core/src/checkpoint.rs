@@ -44,12 +44,14 @@ pub fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> Strin
     }
 }
 
+#[cfg(not(target_arch = "wasm32"))]
 struct Collect {
     path: Vec<String>,
     seen: BTreeMap<String, usize>,
     out: Vec<(String, Vec<usize>, Vec<f32>)>,
 }
 
+#[cfg(not(target_arch = "wasm32"))]
 impl ModuleVisitor for Collect {
     fn enter_module(&mut self, name: &str, _container_type: &str) {
         self.path.push(name.to_string());
