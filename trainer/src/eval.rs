@@ -34,6 +34,8 @@ pub struct EvalArgs {
     pub count: usize,
     pub seed: u64,
     pub psi: f32,
+    /// Render resolution of the comparison (None: the dataset's).
+    pub res: Option<usize>,
     pub inception: Option<PathBuf>,
     pub out: Option<PathBuf>,
 }
@@ -45,7 +47,8 @@ pub struct EvalReport {
     /// Generated mask vs posed body silhouette.
     pub mask_iou_mean: f32,
     pub mask_iou_min: f32,
-    /// The data's masks vs the posed body silhouette (reference level).
+    /// The data's masks (nearest-upsampled to `resolution`) vs the posed body silhouette
+    /// (reference level).
     pub data_mask_iou_mean: f32,
     /// Mean angle between generated and data normals where both cover the pixel (degrees).
     pub normal_error_deg: Option<f32>,
@@ -97,7 +100,13 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
     let grids = PosedGridCache::default();
-    let res = ds.resolution;
+    let res = a.res.unwrap_or(ds.resolution);
+    if !(16..=1024).contains(&res) {
+        bail!("--res must be between 16 and 1024 (got {res})");
+    }
+    let dres = ds.resolution;
+    // Nearest sampling of a dataset image at comparison pixel p.
+    let src = |p: usize| ((p / res) * dres / res) * dres + (p % res) * dres / res;
     let count = a.count.min(ds.len());
     let bar = crate::progress::bar(count as u64, "labels");
     let (mut ious, mut data_ious) = (Vec::new(), Vec::new());
@@ -112,14 +121,15 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
         let body = body_silhouette(&model, &label, res);
         ious.push(iou(&fake, &body));
-        let real: Vec<bool> = sample.mask.iter().map(|m| *m > 0.5).collect();
+        let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
         data_ious.push(iou(&real, &body));
         if let Some(rn) = &sample.normal {
             let fnrm: Vec<f32> = f.normal.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
             for p in 0..res * res {
                 if fake[p] && real[p] {
                     let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
-                    let b3 = [rn[3 * p], rn[3 * p + 1], rn[3 * p + 2]];
+                    let q = src(p);
+                    let b3 = [rn[3 * q], rn[3 * q + 1], rn[3 * q + 2]];
                     let dot: f32 = a3.iter().zip(&b3).map(|(x, y)| x * y).sum();
                     let la = a3.iter().map(|x| x * x).sum::<f32>().sqrt();
                     let lb = b3.iter().map(|x| x * x).sum::<f32>().sqrt();

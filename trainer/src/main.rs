@@ -143,6 +143,10 @@ enum Command {
         /// Truncation ψ (1 = none).
         #[arg(long, default_value_t = 1.0)]
         psi: f32,
+        /// Comparison resolution (labels are resolution-free; default: the dataset's). At
+        /// 64² a limb is two pixels wide and IoU mostly measures boundary rounding.
+        #[arg(long)]
+        res: Option<usize>,
         /// Inception weights (pt_inception-2015-12-05 as safetensors) for FID/KID.
         #[arg(long)]
         inception: Option<PathBuf>,
@@ -223,8 +227,8 @@ fn main() -> Result<()> {
                 limit,
             })?
         }
-        Command::Eval { data, config, checkpoint, count, seed, psi, inception, out } => {
-            eval::eval(&eval::EvalArgs { data, config, checkpoint, count, seed, psi, inception, out })?
+        Command::Eval { data, config, checkpoint, count, seed, psi, res, inception, out } => {
+            eval::eval(&eval::EvalArgs { data, config, checkpoint, count, seed, psi, res, inception, out })?
         }
         Command::Train { data, config, out, resume, backend, batch, steps, snapshot_every, seed, r1_gamma } => {
             if batch == 0 || snapshot_every == 0 {
