@@ -14,7 +14,7 @@ use crate::geometry::inverse_skinning::canonical_body;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
-use crate::network::decoders::Decoders;
+use crate::network::decoders::{Decoders, SDF_RESIDUAL_MAX};
 use crate::network::init::{latent, Rng};
 use crate::network::mapping::MappingNetwork;
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
@@ -137,6 +137,19 @@ pub struct Avatar {
     pub colors: Vec<Vec3>,
 }
 
+/// Grid vertices where the generator's geometry fields are evaluated: |template SDF| below
+/// the residual bound (`SDF_RESIDUAL_MAX`) plus two tet edges, off the box boundary. Farther
+/// out the SDF has the template's sign whatever the residual and no sign-changing edge reaches
+/// (the template is ~1-Lipschitz), so residual and offsets are 0 there: same surface, a
+/// fraction of the decoder work.
+pub fn field_band(ctx: &BodyContext, template: &[f32]) -> Vec<u32> {
+    let edge = REFERENCE_BOX_SIZE / ctx.grid.res.max(1) as f32 * 3f32.sqrt();
+    let reach = SDF_RESIDUAL_MAX + 2.0 * edge;
+    (0..template.len() as u32)
+        .filter(|&i| template[i as usize].abs() < reach && !ctx.boundary.get(i as usize).copied().unwrap_or(true))
+        .collect()
+}
+
 fn to_tensor3(points: &[Vec3], device: &Device) -> Tensor<3> {
     let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
     Tensor::from_data(TensorData::new(flat, [1, points.len(), 3]), device)
@@ -190,15 +203,26 @@ pub async fn generate_avatar_async(
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
     let canon: Vec<Vec3> = ctx.grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
 
-    let (residual, offset) = g.geometry_fields(&planes, s, to_tensor3(&canon, device));
-    let residual = read(residual).await;
-    let offset = read(offset).await;
+    let template: Vec<f32> = canon.iter().map(|p| ctx.template.sample(*p)).collect();
+    let band = field_band(ctx, &template);
+    let n = canon.len();
+    let (mut residual, mut offset) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);
+    if !band.is_empty() {
+        let pts: Vec<Vec3> = band.iter().map(|&i| canon[i as usize]).collect();
+        let (r, o) = g.geometry_fields(&planes, s, to_tensor3(&pts, device));
+        let (r, o) = (read(r).await, read(o).await);
+        for (k, &i) in band.iter().enumerate() {
+            let i = i as usize;
+            residual[i] = r[k];
+            offset[3 * i..3 * i + 3].copy_from_slice(&o[3 * k..3 * k + 3]);
+        }
+    }
     // Grid vertices on the box boundary are empty, so every surface is closed.
-    let sdf: Vec<f32> = canon
+    let sdf: Vec<f32> = template
         .iter()
         .zip(&residual)
         .zip(&ctx.boundary)
-        .map(|((p, r), &b)| if b { OUTSIDE_VALUE } else { ctx.template.sample(*p) + r })
+        .map(|((t, r), &b)| if b { OUTSIDE_VALUE } else { t + r })
         .collect();
     let positions: Vec<Vec3> =
         ctx.grid.vertices.iter().enumerate().map(|(i, p)| *p + Vec3::from_slice(&offset[3 * i..3 * i + 3])).collect();

@@ -21,13 +21,11 @@ use super::rasterize::{antialias, compose, interpolate, silhouette_pairs, Covera
 use super::{index_tensor, matrix};
 use crate::camera::OrbitCamera;
 use crate::dataset::Label;
-use crate::generator::{BodyContext, Generator, Styles};
+use crate::generator::{field_band, BodyContext, Generator, Styles};
 use crate::geometry::inverse_skinning::InverseSkinning;
 use crate::geometry::marching_tets;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
-use crate::geometry::tet_grid::REFERENCE_BOX_SIZE;
 use crate::losses::{eikonal_loss, sdf_cross_entropy};
-use crate::network::decoders::SDF_RESIDUAL_MAX;
 use crate::rasterize::rasterize;
 use crate::skinning::pose_body;
 
@@ -61,11 +59,7 @@ fn styles_of(s: &Styles, b: usize) -> Styles {
 pub struct PosedGrid {
     pub canonical: Vec<Vec3>,
     pub template: Vec<f32>,
-    /// Grid vertices where the generator's fields are evaluated: |template| below the residual
-    /// bound plus two tet edges. Farther out the SDF has the template's sign whatever the
-    /// residual, and no sign-changing edge reaches there (the template is ~1-Lipschitz), so
-    /// the residual and offsets are taken as 0 — the surface is unchanged, at a third of the
-    /// cost (see `band_fraction` in `trainer bench`).
+    /// Grid vertices where the generator's fields are evaluated (`generator::field_band`).
     pub band: Vec<u32>,
 }
 
@@ -86,11 +80,7 @@ impl PosedGrid {
         #[cfg(target_arch = "wasm32")]
         let canonical = map(verts);
         let template: Vec<f32> = canonical.iter().map(|p| ctx.template.sample(*p)).collect();
-        let edge = REFERENCE_BOX_SIZE / ctx.grid.res.max(1) as f32 * 3f32.sqrt();
-        let reach = SDF_RESIDUAL_MAX + 2.0 * edge;
-        let band = (0..template.len() as u32)
-            .filter(|&i| template[i as usize].abs() < reach && !ctx.boundary[i as usize])
-            .collect();
+        let band = field_band(ctx, &template);
         Self { canonical, template, band }
     }
 }
