@@ -18,10 +18,9 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::load_generator;
 use getavatar_core::dataset::{Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{seed_latents, BodyContext, Generator};
+use getavatar_core::generator::{seed_latents, BodyContext};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::rasterize::render_views;
 use getavatar_core::skinning::{pose_body, vertex_normals};
@@ -87,16 +86,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     }
     #[allow(deprecated)]
     let dev = Device::ndarray();
-    let g = match &a.checkpoint {
-        Some(p) => {
-            let bytes = std::fs::read(p).with_context(|| format!("reading checkpoint {}", p.display()))?;
-            load_generator(&bytes, &cfg, &dev).with_context(|| format!("loading checkpoint {}", p.display()))?
-        }
-        None => {
-            eprintln!("no --checkpoint: evaluating deterministic random weights (seed 0) of `{}`", cfg.name);
-            Generator::new(&cfg, 0, &dev)
-        }
-    };
+    let g = crate::sample::generator_or_random(a.checkpoint.as_deref(), &cfg, &dev)?;
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
     let grids = PosedGridCache::default();

@@ -38,6 +38,24 @@ pub fn write_png(path: &Path, data: &[u8], size: usize, color: png::ColorType) -
     Ok(())
 }
 
+/// The generator in `checkpoint`, or (saying so) the deterministic random weights (seed 0)
+/// of `cfg` when there is none.
+pub fn generator_or_random(checkpoint: Option<&Path>, cfg: &GeneratorConfig, device: &Device) -> Result<Generator> {
+    Ok(match checkpoint {
+        Some(p) => {
+            let bytes = std::fs::read(p).with_context(|| format!("reading checkpoint {}", p.display()))?;
+            load_generator(&bytes, cfg, device).with_context(|| format!("loading checkpoint {}", p.display()))?
+        }
+        None => {
+            eprintln!(
+                "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
+                cfg.name
+            );
+            Generator::new(cfg, 0, device)
+        }
+    })
+}
+
 pub fn sample(a: &SampleArgs) -> Result<()> {
     let cfg = GeneratorConfig::preset(&a.config)
         .with_context(|| format!("unknown config `{}` (paper, demo, tiny)", a.config))?;
@@ -58,19 +76,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     };
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let g = match &a.checkpoint {
-        Some(p) => {
-            let bytes = std::fs::read(p).with_context(|| format!("reading checkpoint {}", p.display()))?;
-            load_generator(&bytes, &cfg, &device).with_context(|| format!("loading checkpoint {}", p.display()))?
-        }
-        None => {
-            eprintln!(
-                "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
-                cfg.name
-            );
-            Generator::new(&cfg, 0, &device)
-        }
-    };
+    let g = generator_or_random(a.checkpoint.as_deref(), &cfg, &device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
     let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
