@@ -90,3 +90,130 @@ pub fn bench(configs: &[String], repeats: usize) -> Result<()> {
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
     Ok(())
 }
+
+/// What `trainer bench-train` measures.
+pub struct TrainBenchArgs {
+    pub configs: Vec<String>,
+    pub backends: Vec<String>,
+    pub resolutions: Vec<usize>,
+    pub batch: usize,
+    pub steps: usize,
+    /// Where the benchmark's small synthetic dataset is made (kept for re-runs).
+    pub work: std::path::PathBuf,
+}
+
+/// One measured case, as the child process reports it.
+#[derive(serde::Serialize, serde::Deserialize)]
+pub struct CaseReport {
+    pub timings: crate::train::StepTimings,
+    /// Peak resident memory of the process (VmHWM), MiB; lavapipe's "GPU" memory is host
+    /// memory, so this covers both backends.
+    pub peak_mib: Option<f64>,
+}
+
+const CASE_TAG: &str = "GETAVATAR_BENCH_CASE ";
+
+/// Peak resident set size of this process, MiB (Linux).
+fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+/// The child side: time one case and print its report (one process per case, so the peak
+/// memory is that case's).
+pub fn train_case(data: &std::path::Path, config: &str, backend: &str, batch: usize, steps: usize) -> Result<()> {
+    let timings = crate::train::time_steps(data, config, backend, batch, steps)?;
+    let r = CaseReport { timings, peak_mib: peak_rss_mib() };
+    println!("{CASE_TAG}{}", serde_json::to_string(&r)?);
+    Ok(())
+}
+
+/// Training speed per config, backend and render resolution: seconds per step and per kimg
+/// (lazy R1 amortised over its interval), peak memory, and ratios (wgpu / NdArray, each
+/// resolution / the smallest), measured in one run.
+pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
+    anyhow::ensure!(a.batch >= 1 && a.steps >= 1, "--batch and --steps must be at least 1");
+    anyhow::ensure!(!a.resolutions.is_empty(), "--res needs at least one resolution");
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let scans = a.work.join("scans");
+    crate::synth_scans::synth_scans(&crate::synth_scans::SynthArgs {
+        out: scans.clone(),
+        count: 4,
+        seed: 7,
+        threads,
+        texture_size: 256,
+    })?;
+    for &res in &a.resolutions {
+        crate::prepare::prepare(&crate::prepare::PrepareArgs {
+            scans: scans.clone(),
+            out: a.work.join(format!("ds{res}")),
+            views: 4,
+            res,
+            ss: 2,
+            seed: 7,
+            threads,
+            smpl_dir: None,
+            limit: None,
+        })?;
+    }
+    let exe = std::env::current_exe().context("locating the trainer executable")?;
+    let r1_every = 16.0;
+    let mut rows: Vec<(String, String, usize, CaseReport)> = Vec::new();
+    for config in &a.configs {
+        GeneratorConfig::preset(config).with_context(|| format!("unknown config `{config}`"))?;
+        for backend in &a.backends {
+            for &res in &a.resolutions {
+                eprintln!("bench-train: {config} on {backend} at {res}² …");
+                let out = std::process::Command::new(&exe)
+                    .args(["bench-train-case", "--data"])
+                    .arg(a.work.join(format!("ds{res}")))
+                    .args(["--config", config, "--backend", backend])
+                    .args(["--batch", &a.batch.to_string(), "--steps", &a.steps.to_string()])
+                    .stderr(std::process::Stdio::inherit())
+                    .output()
+                    .context("running a benchmark case")?;
+                let text = String::from_utf8_lossy(&out.stdout);
+                match text.lines().find_map(|l| l.strip_prefix(CASE_TAG)) {
+                    Some(json) if out.status.success() => {
+                        rows.push((config.clone(), backend.clone(), res, serde_json::from_str(json)?))
+                    }
+                    _ => eprintln!("bench-train: {config} on {backend} at {res}² failed ({}); skipped", out.status),
+                }
+            }
+        }
+    }
+    println!("training benchmark: batch {}, {} timed steps per case, {threads} CPU threads", a.batch, a.steps);
+    println!(
+        "{:<6} {:<7} {:>5} {:>9} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9}",
+        "config", "backend", "res", "first s", "step s", "R1 step s", "s/kimg", "peak MiB", "vs ndarr", "vs res0"
+    );
+    let per_kimg = |r: &CaseReport| {
+        let t = &r.timings;
+        (t.step_s + (t.r1_step_s - t.step_s).max(0.0) / r1_every) * 1000.0 / a.batch as f64
+    };
+    for (config, backend, res, r) in &rows {
+        let find = |b: &str, rr: usize| rows.iter().find(|x| &x.0 == config && x.1 == b && x.2 == rr).map(|x| &x.3);
+        let vs_nd =
+            find("ndarray", *res).map_or("-".to_string(), |n| format!("{:.2}×", r.timings.step_s / n.timings.step_s));
+        let vs_res = find(backend, a.resolutions[0])
+            .map_or("-".to_string(), |n| format!("{:.2}×", r.timings.step_s / n.timings.step_s));
+        println!(
+            "{:<6} {:<7} {:>5} {:>9.2} {:>9.2} {:>10.2} {:>9.0} {:>10} {:>9} {:>9}",
+            config,
+            backend,
+            res,
+            r.timings.first_step_s,
+            r.timings.step_s,
+            r.timings.r1_step_s,
+            per_kimg(r),
+            r.peak_mib.map_or("-".into(), |m| format!("{m:.0}")),
+            vs_nd,
+            vs_res
+        );
+    }
+    println!("first = warm-up step (R1, tet-grid inverse skinning, kernel compilation); step = mean plain step; s/kimg = (step + (R1 step − step)/16) · 1000/batch;");
+    println!("peak = the case process's peak resident memory; vs ndarr = step time / NdArray's at the same config and resolution; vs res0 = / the first resolution's.");
+    Ok(())
+}

@@ -30,6 +30,8 @@ pub struct EvalArgs {
     pub data: PathBuf,
     pub config: String,
     pub checkpoint: Option<PathBuf>,
+    /// Random weights even where a trained model ships.
+    pub random: bool,
     pub count: usize,
     pub seed: u64,
     pub psi: f32,
@@ -86,7 +88,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     }
     #[allow(deprecated)]
     let dev = Device::ndarray();
-    let g = crate::sample::generator_or_random(a.checkpoint.as_deref(), &cfg, &dev)?;
+    let g = crate::sample::generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &dev)?;
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
     let grids = PosedGridCache::default();

@@ -44,6 +44,40 @@ enum Command {
         #[arg(long, default_value_t = 1)]
         repeats: usize,
     },
+    /// Time training per config, backend and render resolution: s/step, s/kimg, peak memory
+    /// and ratios, measured in one run on a small synthetic dataset it makes itself.
+    BenchTrain {
+        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
+        configs: Vec<String>,
+        /// Backends: ndarray (CPU), wgpu (native GPU API; lavapipe without a GPU).
+        #[arg(long, default_value = "ndarray,wgpu", value_delimiter = ',')]
+        backends: Vec<String>,
+        /// Render (and dataset) resolutions.
+        #[arg(long = "res", default_value = "128,256,512", value_delimiter = ',')]
+        resolutions: Vec<usize>,
+        #[arg(long, default_value_t = 2)]
+        batch: usize,
+        /// Timed plain steps per case (after one warm-up step; one R1 step is timed too).
+        #[arg(long, default_value_t = 2)]
+        steps: usize,
+        /// Working folder for the benchmark dataset (reused by later runs).
+        #[arg(long, default_value_os_t = std::env::temp_dir().join("getavatar-bench-train"))]
+        work: PathBuf,
+    },
+    /// One case of `bench-train` (run by it in a child process).
+    #[command(hide = true)]
+    BenchTrainCase {
+        #[arg(long)]
+        data: PathBuf,
+        #[arg(long)]
+        config: String,
+        #[arg(long)]
+        backend: String,
+        #[arg(long)]
+        batch: usize,
+        #[arg(long)]
+        steps: usize,
+    },
     /// Generate procedural textured, clothed human scans (OBJ + MTL + texture PNG + smpl.json
     /// per subject) on the open body model.
     SynthScans {
@@ -132,9 +166,13 @@ enum Command {
         /// Generator size: paper, demo or tiny.
         #[arg(long, default_value = "demo")]
         config: String,
-        /// Trained generator (`generator.safetensors`; default: random weights).
+        /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+        /// `--config demo`, random weights otherwise).
         #[arg(long)]
         checkpoint: Option<PathBuf>,
+        /// Use deterministic random weights even where a trained model ships.
+        #[arg(long, conflicts_with = "checkpoint")]
+        random_weights: bool,
         /// Labels to evaluate (spread evenly over the dataset).
         #[arg(long, default_value_t = 32)]
         count: usize,
@@ -159,9 +197,13 @@ enum Command {
         /// Generator size: paper, demo or tiny.
         #[arg(long, default_value = "demo")]
         config: String,
-        /// Trained checkpoint (default: deterministic random weights).
+        /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+        /// `--config demo`, random weights otherwise).
         #[arg(long)]
         checkpoint: Option<PathBuf>,
+        /// Use deterministic random weights even where a trained model ships.
+        #[arg(long, conflicts_with = "checkpoint")]
+        random_weights: bool,
         #[arg(long, default_value_t = 0)]
         seed_geo: u64,
         #[arg(long, default_value_t = 0)]
@@ -227,8 +269,19 @@ fn main() -> Result<()> {
                 limit,
             })?
         }
-        Command::Eval { data, config, checkpoint, count, seed, psi, res, inception, out } => {
-            eval::eval(&eval::EvalArgs { data, config, checkpoint, count, seed, psi, res, inception, out })?
+        Command::Eval { data, config, checkpoint, random_weights, count, seed, psi, res, inception, out } => {
+            eval::eval(&eval::EvalArgs {
+                data,
+                config,
+                checkpoint,
+                random: random_weights,
+                count,
+                seed,
+                psi,
+                res,
+                inception,
+                out,
+            })?
         }
         Command::Train { data, config, out, resume, backend, batch, steps, snapshot_every, seed, r1_gamma } => {
             if batch == 0 || snapshot_every == 0 {
@@ -248,10 +301,17 @@ fn main() -> Result<()> {
             })?
         }
         Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,
-        Command::Sample { config, checkpoint, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
+        Command::BenchTrain { configs, backends, resolutions, batch, steps, work } => {
+            bench::bench_train(&bench::TrainBenchArgs { configs, backends, resolutions, batch, steps, work })?
+        }
+        Command::BenchTrainCase { data, config, backend, batch, steps } => {
+            bench::train_case(&data, &config, &backend, batch, steps)?
+        }
+        Command::Sample { config, checkpoint, random_weights, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
             sample::sample(&sample::SampleArgs {
                 config,
                 checkpoint,
+                random: random_weights,
                 seed_geo,
                 seed_tex,
                 psi,

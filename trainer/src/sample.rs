@@ -18,6 +18,8 @@ use getavatar_core::rasterize::render_views_textured;
 pub struct SampleArgs {
     pub config: String,
     pub checkpoint: Option<PathBuf>,
+    /// Random weights even where a trained model ships.
+    pub random: bool,
     pub seed_geo: u64,
     pub seed_tex: u64,
     pub psi: f32,
@@ -38,12 +40,36 @@ pub fn write_png(path: &Path, data: &[u8], size: usize, color: png::ColorType) -
     Ok(())
 }
 
-/// The generator in `checkpoint`, or (saying so) the deterministic random weights (seed 0)
-/// of `cfg` when there is none.
-pub fn generator_or_random(checkpoint: Option<&Path>, cfg: &GeneratorConfig, device: &Device) -> Result<Generator> {
-    Ok(match checkpoint {
+/// Where the shipped demo model lives (see `assets/models/MODEL_CARD.md`).
+pub const SHIPPED_DEMO_MODEL: &str = "assets/models/demo.safetensors";
+
+/// The shipped demo model, if this is the `demo` config and the file is there (looked up in
+/// the working directory, then in the source tree this binary was built from).
+pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    if cfg.name != "demo" {
+        return None;
+    }
+    [PathBuf::from(SHIPPED_DEMO_MODEL), Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(SHIPPED_DEMO_MODEL)]
+        .into_iter()
+        .find(|p| p.is_file())
+}
+
+/// The generator in `checkpoint`; without one, the shipped model of `cfg` (the trained demo
+/// model) unless `random` is set; otherwise (saying so) the deterministic random weights
+/// (seed 0) of `cfg`.
+pub fn generator_or_random(
+    checkpoint: Option<&Path>,
+    random: bool,
+    cfg: &GeneratorConfig,
+    device: &Device,
+) -> Result<Generator> {
+    let shipped = if random { None } else { shipped_model(cfg) };
+    Ok(match checkpoint.map(Path::to_path_buf).or(shipped) {
         Some(p) => {
-            let bytes = std::fs::read(p).with_context(|| format!("reading checkpoint {}", p.display()))?;
+            if checkpoint.is_none() {
+                eprintln!("using the shipped demo model {}", p.display());
+            }
+            let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             load_generator(&bytes, cfg, device).with_context(|| format!("loading checkpoint {}", p.display()))?
         }
         None => {
@@ -76,7 +102,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     };
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let g = generator_or_random(a.checkpoint.as_deref(), &cfg, &device)?;
+    let g = generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
     let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);

@@ -71,6 +71,30 @@ pub struct RunConfig {
     pub seed: u64,
 }
 
+impl RunConfig {
+    /// The settings of a fresh run on `ds` (the reference code's values, see
+    /// `../shared/reference/paper-code-facts.md`; EMA half-life scaled to the batch).
+    pub fn new(ds: &Dataset, data: &Path, generator: GeneratorConfig, batch: usize, r1_gamma: f32, seed: u64) -> Self {
+        Self {
+            discriminator: discriminator_config(ds.resolution, &generator),
+            generator,
+            data: data.display().to_string(),
+            resolution: ds.resolution,
+            use_normals: ds.has_normals,
+            batch,
+            lr_g: 0.002,
+            lr_d: 0.002,
+            r1_gamma,
+            r1_every: 16,
+            r1_directions: 4,
+            lambda_eikonal: 0.001,
+            lambda_cross_entropy: 0.01,
+            ema_kimg: 10.0f32.min(batch as f32 * 10.0 / 32.0),
+            seed,
+        }
+    }
+}
+
 /// Everything that changes during training.
 pub struct State {
     pub g: Generator,
@@ -101,7 +125,7 @@ fn scalar(t: Tensor<1>) -> f32 {
     t.into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN)
 }
 
-fn device_for(backend: &str) -> Result<Device> {
+pub fn device_for(backend: &str) -> Result<Device> {
     Ok(match backend {
         #[allow(deprecated)]
         "ndarray" => Device::ndarray(),
@@ -119,7 +143,7 @@ fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig 
 }
 
 impl State {
-    fn new(rc: &RunConfig, ad: &Device, plain: &Device) -> Self {
+    pub fn new(rc: &RunConfig, ad: &Device, plain: &Device) -> Self {
         let seed = rc.seed;
         Self {
             g: Generator::new(&rc.generator, seed, ad),
@@ -413,23 +437,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 a.out.display()
             );
         }
-        let rc = RunConfig {
-            discriminator: discriminator_config(ds.resolution, &gcfg),
-            generator: gcfg,
-            data: a.data.display().to_string(),
-            resolution: ds.resolution,
-            use_normals: ds.has_normals,
-            batch: a.batch,
-            lr_g: 0.002,
-            lr_d: 0.002,
-            r1_gamma: a.r1_gamma,
-            r1_every: 16,
-            r1_directions: 4,
-            lambda_eikonal: 0.001,
-            lambda_cross_entropy: 0.01,
-            ema_kimg: 10.0f32.min(a.batch as f32 * 10.0 / 32.0),
-            seed: a.seed,
-        };
+        let rc = RunConfig::new(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed);
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
         rc
     };
@@ -503,4 +511,43 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         state_path.display()
     );
     Ok(())
+}
+
+/// Timings of a few training steps of a fresh run (the training benchmark's measurement).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct StepTimings {
+    /// First step: R1, inverse-skinning cache fill, kernel compilation.
+    pub first_step_s: f64,
+    /// Mean of the following plain steps (no R1).
+    pub step_s: f64,
+    /// One step with the lazy R1 penalty, after warm-up.
+    pub r1_step_s: f64,
+}
+
+/// Run `steps` plain steps (after one warm-up step) and one R1 step of a fresh run of `config`
+/// on `ds` with `backend`.
+pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps: usize) -> Result<StepTimings> {
+    let ds = Dataset::open(data).with_context(|| format!("opening dataset {}", data.display()))?;
+    let gcfg = GeneratorConfig::preset(config).with_context(|| format!("unknown config `{config}`"))?;
+    let rc = RunConfig::new(&ds, data, gcfg, batch, 10.0, 0);
+    let base = device_for(backend)?;
+    let (ad, plain) = (base.clone().autodiff(), base);
+    let ctx = BodyContext::new(BodyModel::default_body()?, &rc.generator);
+    let grids = PosedGridCache::default();
+    let mut st = State::new(&rc, &ad, &plain);
+    let (next, first) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+    st = next;
+    let mut plain_s = Vec::new();
+    for _ in 0..steps.max(1) {
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+        st = next;
+        plain_s.push(m.seconds);
+    }
+    st.step = rc.r1_every * (st.step / rc.r1_every + 1);
+    let (_, r1) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+    Ok(StepTimings {
+        first_step_s: first.seconds,
+        step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,
+        r1_step_s: r1.seconds,
+    })
 }

@@ -57,7 +57,7 @@ impl GetAvatarApp {
         let mut engine = None;
         let viewer = match &cc.wgpu_render_state {
             Some(rs) => {
-                match GenEngine::new(rs) {
+                match GenEngine::new(rs, cc.egui_ctx.clone()) {
                     Ok(e) => engine = Some(e),
                     Err(e) => messages.push(e),
                 }
@@ -200,9 +200,11 @@ impl GetAvatarApp {
     }
 
     fn poll_generation(&mut self) {
-        let Some(engine) = self.engine.as_mut() else { return };
+        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else { return };
+        let polled = engine.poll(body);
         self.status.generating = engine.busy;
-        match engine.poll() {
+        self.status.model = engine.weights.describe();
+        match polled {
             Some(Ok(done)) => {
                 self.status.generations += 1;
                 self.status.last_generation_ms = done.millis as f32;
@@ -310,7 +312,9 @@ impl GetAvatarApp {
         ui.separator();
 
         ui.strong("Generate");
-        ui.label(egui::RichText::new("demo generator, untrained (random weights) until a checkpoint ships").small());
+        if let Some(e) = &self.engine {
+            ui.label(egui::RichText::new(e.weights.describe()).small());
+        }
         ui.horizontal(|ui| {
             ui.label("geometry seed");
             ui.add(egui::DragValue::new(&mut self.seed_geo));

@@ -321,6 +321,9 @@ pub struct Status {
     pub downloads: u64,
     /// Size in bytes of the last .glb.
     pub last_glb_bytes: usize,
+    /// Which generator weights are in use ("trained demo model …", "loading …" or
+    /// "untrained demo generator (random weights): why").
+    pub model: String,
     /// Whether a generation is running.
     pub generating: bool,
     /// Completed generations (full or texture-only).

@@ -1,6 +1,11 @@
 //! The Generate panel's engine: the generator running on burn's wgpu backend on the SAME
 //! WebGPU device as egui. Generation runs as an async task (GPU readbacks are awaited); the
 //! result is rigged to the body once, then re-posed by LBS every time the pose changes.
+//!
+//! The trained demo model (`models/demo.safetensors` next to the page, copied there from
+//! `assets/models/` by `cargo xtask build-web`) is fetched at start-up; generations asked for
+//! before it arrives wait for it. Without it the generator keeps deterministic random
+//! weights and the panel says so.
 
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -9,10 +14,52 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::checkpoint::load_generator;
 use getavatar_core::generator::{
     generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, RiggedAvatar,
 };
 use getavatar_core::network::GeneratorConfig;
+use wasm_bindgen::JsCast;
+use wasm_bindgen_futures::JsFuture;
+
+/// Where the page finds the trained demo model (relative to the page).
+pub const MODEL_URL: &str = "models/demo.safetensors";
+
+/// Which weights the generator has.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Weights {
+    Loading,
+    /// Trained checkpoint (its size in bytes).
+    Trained(usize),
+    /// Deterministic random weights, and why.
+    Random(String),
+}
+
+impl Weights {
+    /// One line for the panel and the automation status.
+    pub fn describe(&self) -> String {
+        match self {
+            Weights::Loading => format!("loading the trained demo model ({MODEL_URL})…"),
+            Weights::Trained(n) => format!("trained demo model ({:.1} MB)", *n as f64 / 1e6),
+            Weights::Random(why) => format!("untrained demo generator (random weights): {why}"),
+        }
+    }
+}
+
+type Job = ((u64, u64), f32, Option<RiggedAvatar>, eframe::egui::Context);
+
+async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
+    let window = web_sys::window().ok_or("no window")?;
+    let resp = JsFuture::from(window.fetch_with_str(url)).await.map_err(|e| format!("fetch failed: {e:?}"))?;
+    let resp: web_sys::Response = resp.dyn_into().map_err(|_| "fetch did not return a Response".to_string())?;
+    if !resp.ok() {
+        return Err(format!("no model at {url} (HTTP {})", resp.status()));
+    }
+    let buf = JsFuture::from(resp.array_buffer().map_err(|e| format!("{e:?}"))?)
+        .await
+        .map_err(|e| format!("reading {url}: {e:?}"))?;
+    Ok(js_sys::Uint8Array::new(&buf).to_vec())
+}
 
 /// Outcome of a background generation.
 pub struct Finished {
@@ -28,13 +75,18 @@ pub struct GenEngine {
     generator: Rc<Generator>,
     ctx: Option<Rc<BodyContext>>,
     slot: Rc<RefCell<Option<Result<Finished, String>>>>,
+    /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
+    weights_slot: Rc<RefCell<Option<Result<(Generator, usize), String>>>>,
+    pub weights: Weights,
+    /// A generation asked for while the weights were loading.
+    pending: Option<Job>,
     pub busy: bool,
 }
 
 impl GenEngine {
-    /// Register egui's wgpu device with burn and build the generator (deterministic random
-    /// weights of the `demo` config until a trained checkpoint ships).
-    pub fn new(rs: &egui_wgpu::RenderState) -> Result<Self, String> {
+    /// Register egui's wgpu device with burn, build the `demo` generator and start fetching
+    /// its trained weights.
+    pub fn new(rs: &egui_wgpu::RenderState, repaint: eframe::egui::Context) -> Result<Self, String> {
         let setup = WgpuSetup {
             instance: rs.instance.clone(),
             adapter: rs.adapter.clone(),
@@ -48,7 +100,31 @@ impl GenEngine {
             .map_err(|e| format!("burn cannot use the WebGPU device: {e:?}"))?;
         let cfg = GeneratorConfig::demo();
         let generator = Rc::new(Generator::new(&cfg, 0, &device));
-        Ok(Self { device, cfg, generator, ctx: None, slot: Rc::new(RefCell::new(None)), busy: false })
+        let weights_slot = Rc::new(RefCell::new(None));
+        {
+            let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
+            wasm_bindgen_futures::spawn_local(async move {
+                let loaded = match fetch_bytes(MODEL_URL).await {
+                    Ok(bytes) => load_generator(&bytes, &cfg, &device)
+                        .map(|g| (g, bytes.len()))
+                        .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}")),
+                    Err(e) => Err(e),
+                };
+                *slot.borrow_mut() = Some(loaded);
+                repaint.request_repaint();
+            });
+        }
+        Ok(Self {
+            device,
+            cfg,
+            generator,
+            ctx: None,
+            slot: Rc::new(RefCell::new(None)),
+            weights_slot,
+            weights: Weights::Loading,
+            pending: None,
+            busy: false,
+        })
     }
 
     /// Start generating (full, or texture only on `keep`'s geometry). The result arrives via
@@ -62,6 +138,11 @@ impl GenEngine {
         repaint: eframe::egui::Context,
     ) {
         if self.busy {
+            return;
+        }
+        if self.weights == Weights::Loading {
+            self.pending = Some((seeds, psi, keep, repaint));
+            self.busy = true;
             return;
         }
         let ctx = match &self.ctx {
@@ -96,8 +177,23 @@ impl GenEngine {
         });
     }
 
-    /// The finished generation, if any (once).
-    pub fn poll(&mut self) -> Option<Result<Finished, String>> {
+    /// The finished generation, if any (once). Also installs fetched weights and starts a
+    /// generation that waited for them.
+    pub fn poll(&mut self, body: &BodyModel) -> Option<Result<Finished, String>> {
+        let fetched = self.weights_slot.borrow_mut().take();
+        if let Some(w) = fetched {
+            self.weights = match w {
+                Ok((g, n)) => {
+                    self.generator = Rc::new(g);
+                    Weights::Trained(n)
+                }
+                Err(e) => Weights::Random(e),
+            };
+            if let Some((seeds, psi, keep, repaint)) = self.pending.take() {
+                self.busy = false;
+                self.start(body, seeds, psi, keep, repaint);
+            }
+        }
         let r = self.slot.borrow_mut().take();
         if r.is_some() {
             self.busy = false;

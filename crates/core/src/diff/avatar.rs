@@ -26,6 +26,7 @@ use crate::geometry::inverse_skinning::InverseSkinning;
 use crate::geometry::marching_tets;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 use crate::losses::{eikonal_loss, sdf_cross_entropy};
+use crate::network::synthesis::Triplanes;
 use crate::rasterize::rasterize;
 use crate::skinning::pose_body;
 
@@ -152,42 +153,61 @@ pub fn render_avatars(
     let proj = OrbitCamera::default().projection_gl(1.0);
     let h = 0.5 * ctx.template.cell;
     let n = ctx.grid.vertices.len();
-    let boundary: Vec<f32> = ctx.boundary.iter().map(|&b| b as u8 as f32).collect();
-    let bmask = Tensor::<1>::from_data(TensorData::new(boundary, [n]), device);
     let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
     let mut triangles = Vec::new();
+    let prof = std::env::var_os("GETAVATAR_PROFILE").is_some();
+    let t0 = std::time::Instant::now();
+    let lap = |what: &str| {
+        if prof {
+            eprintln!("    {:>8.3} s  render: {what}", t0.elapsed().as_secs_f64());
+        }
+    };
     for (b, label) in labels.iter().enumerate() {
         let s = styles_of(styles, b);
         let planes = g.triplanes(&s);
+        lap("triplanes");
         // Inverse skinning of the posed-space grid (eq. 2).
         let posed = pose_body(&ctx.model, &label.body_params());
         let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
         let grid = grids.get(ctx, label, &inv);
         let canon = &grid.canonical;
         let canon_t = vec3_tensor(canon, device);
-        let (residual, offset) = if grid.band.is_empty() {
-            (Tensor::<1>::zeros([n], device), Tensor::<2>::zeros([n, 3], device))
-        } else {
-            let nb = grid.band.len();
+        lap("posed grid");
+        // Pass 1, values only: the fields on the whole band decide the topology.
+        let (mut res_v, mut off_v) = (vec![0f32; n], vec![0f32; 3 * n]);
+        if !grid.band.is_empty() {
             let band = index_tensor(&grid.band, device);
-            let pts = canon_t.clone().select(0, band.clone()).unsqueeze_dim::<3>(0);
-            let (r, o) = g.geometry_fields(&planes, &s, pts);
-            (
-                Tensor::<1>::zeros([n], device).select_assign(0, band.clone(), r.reshape([nb]), IndexingUpdateOp::Add),
-                Tensor::<2>::zeros([n, 3], device).select_assign(0, band, o.reshape([nb, 3]), IndexingUpdateOp::Add),
-            )
-        };
-        let sdf = (Tensor::<1>::from_data(TensorData::new(grid.template.clone(), [n]), device) + residual)
-            * (bmask.clone() * -1.0 + 1.0)
-            + bmask.clone() * OUTSIDE_VALUE;
-        let positions = vec3_tensor(&ctx.grid.vertices, device) + offset;
-
-        // Topology on the CPU from detached values.
-        let sdf_v = values(sdf.clone());
-        let pos_v: Vec<Vec3> = values(positions.clone()).chunks_exact(3).map(Vec3::from_slice).collect();
+            let pts = canon_t.clone().select(0, band).unsqueeze_dim::<3>(0);
+            let planes_c =
+                Triplanes { geometry: planes.geometry.clone().detach(), texture: planes.texture.clone().detach() };
+            let s_c = Styles { geo: s.geo.clone().detach(), tex: s.tex.clone().detach() };
+            let (r, o) = g.geometry_fields(&planes_c, &s_c, pts);
+            let (r, o) = (values(r.detach()), values(o.detach()));
+            for (k, &i) in grid.band.iter().enumerate() {
+                let i = i as usize;
+                res_v[i] = r[k];
+                off_v[3 * i..3 * i + 3].copy_from_slice(&o[3 * k..3 * k + 3]);
+            }
+        }
+        let sdf_v: Vec<f32> = grid
+            .template
+            .iter()
+            .zip(&res_v)
+            .zip(&ctx.boundary)
+            .map(|((t, r), &b)| if b { OUTSIDE_VALUE } else { t + r })
+            .collect();
+        let pos_v: Vec<Vec3> = ctx
+            .grid
+            .vertices
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p + Vec3::from_slice(&off_v[3 * i..3 * i + 3]))
+            .collect();
+        lap("band fields (values)");
         let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
         triangles.push(mesh.faces.len());
+        lap("marching tets");
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
             rgbs.push(bg(1.0, 3));
@@ -196,6 +216,38 @@ pub fn render_avatars(
             continue;
         }
         let edges = EdgeIndex::new(&mesh);
+
+        // Pass 2, with gradients: only the endpoints of sign-changing edges reach the losses
+        // (surface points, cross-entropy), so the fields are re-evaluated there alone; the
+        // values equal pass 1's, the rest of the grid is constant.
+        let mut in_band = vec![false; n];
+        for &i in &grid.band {
+            in_band[i as usize] = true;
+        }
+        let mut seen = vec![false; n];
+        let mut ends: Vec<u32> = Vec::new();
+        for &i in edges.a.iter().chain(&edges.b) {
+            if in_band[i as usize] && !seen[i as usize] {
+                seen[i as usize] = true;
+                ends.push(i);
+            }
+        }
+        let mut sdf = Tensor::<1>::from_data(TensorData::new(sdf_v.clone(), [n]), device);
+        let pos_flat: Vec<f32> = pos_v.iter().flat_map(|p| p.to_array()).collect();
+        let mut positions = Tensor::<2>::from_data(TensorData::new(pos_flat, [n, 3]), device);
+        if !ends.is_empty() {
+            let m = ends.len();
+            let idx = index_tensor(&ends, device);
+            let pts = canon_t.clone().select(0, idx.clone()).unsqueeze_dim::<3>(0);
+            let (r, o) = g.geometry_fields(&planes, &s, pts);
+            let r0: Vec<f32> = ends.iter().map(|&i| res_v[i as usize]).collect();
+            let o0: Vec<f32> = ends.iter().flat_map(|&i| off_v[3 * i as usize..3 * i as usize + 3].to_vec()).collect();
+            let dr = r.reshape([m]) - Tensor::<1>::from_data(TensorData::new(r0, [m]), device);
+            let d_o = o.reshape([m, 3]) - Tensor::<2>::from_data(TensorData::new(o0, [m, 3]), device);
+            sdf = sdf.select_assign(0, idx.clone(), dr, IndexingUpdateOp::Add);
+            positions = positions.select_assign(0, idx, d_o, IndexingUpdateOp::Add);
+        }
+        lap("surface fields (gradients)");
         let (ia, ib) = (index_tensor(&edges.a, device), index_tensor(&edges.b, device));
         ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
         let verts = surface_points(&edges, positions, sdf.clone(), device);
@@ -218,6 +270,7 @@ pub fn render_avatars(
             masks.push(bg(-1.0, 1) + ones.sum().reshape([1, 1, 1, 1]) * 0.0);
             continue;
         }
+        lap("rasterize");
         let p = cov.len();
         let pix_canon = interpolate(&cov, clip.clone(), vcanon, device); // [P, 3]
 
@@ -226,6 +279,7 @@ pub fn render_avatars(
         let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
         let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
 
+        lap("texture field");
         // Normals: ∇(template + residual) by central differences, rotated to posed space.
         let dirs = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
         let offs: Vec<f32> = (0..p).flat_map(|_| dirs.iter().flat_map(|d| (*d * h).to_array())).collect();
@@ -259,9 +313,11 @@ pub fn render_avatars(
         let nworld = nworld.clone() / (nworld.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
         let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
 
+        lap("normal field");
         // Mask with silhouette gradients.
         let cover = compose(&cov, interpolate(&cov, clip.clone(), ones, device), &[0.0], device);
         let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
+        lap("antialiased mask");
         rgbs.push(to_nchw(rgb, res));
         normals.push(to_nchw(normal, res));
         masks.push(to_nchw(mask * 2.0 - 1.0, res));
