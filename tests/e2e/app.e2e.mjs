@@ -207,6 +207,11 @@ try {
   s = await command({ view: 'mask' }, (s) => s.view === 'mask');
   s = await command({ pose: 'standing' }, (s) => s.pose === 'standing');
   const bodyStanding = maskOf(await grab('mask_body_standing'), (c) => c[0] > 127);
+  // The shipped demo model (listed in models/manifest.json by the build) is fetched at start-up.
+  const manifest = await (await fetch(`${url}models/manifest.json`)).json();
+  s = await waitFor((s) => s.model && !s.model.startsWith('loading'), 'generator weights', 120000);
+  check(manifest.demo ? s.model.startsWith('trained demo model') : s.model.startsWith('untrained'),
+    `generator weights: ${s.model} (manifest ${JSON.stringify(manifest)})`);
   const g0 = (await status()).generations;
   const tGen = Date.now();
   await page.evaluate(() => window.getavatar.command({ generate: { seed_geo: 1, seed_tex: 2 } }));
@@ -216,7 +221,7 @@ try {
   check(s.showing === 'avatar' && s.avatar_vertices > 500, `Generate shows an avatar (${s.avatar_vertices} vertices)`);
   const avMask = maskOf(await grab('mask_avatar'), (c) => c[0] > 127);
   const jb = iou(avMask, bodyStanding);
-  check(jb > 0.6, `untrained avatar follows the posed body (mask IoU ${jb.toFixed(3)})`);
+  check(jb > 0.6, `the avatar follows the posed body (mask IoU ${jb.toFixed(3)})`);
   s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
   const rgb1 = await grab('rgb_avatar_tex2');
   const g1 = (await status()).generations;

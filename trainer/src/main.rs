@@ -5,6 +5,7 @@
 mod bench;
 mod body_convert;
 mod eval;
+mod plot;
 mod prepare;
 mod progress;
 mod sample;
@@ -63,6 +64,13 @@ enum Command {
         /// Working folder for the benchmark dataset (reused by later runs).
         #[arg(long, default_value_os_t = std::env::temp_dir().join("getavatar-bench-train"))]
         work: PathBuf,
+    },
+    /// Redraw a run's loss curves (`RUN/losses.png`, also written with every snapshot) from
+    /// its `metrics.jsonl`.
+    PlotLosses {
+        /// The training run's folder (`--out` of `trainer train`).
+        #[arg(long)]
+        run: PathBuf,
     },
     /// One case of `bench-train` (run by it in a child process).
     #[command(hide = true)]
@@ -303,6 +311,12 @@ fn main() -> Result<()> {
         Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,
         Command::BenchTrain { configs, backends, resolutions, batch, steps, work } => {
             bench::bench_train(&bench::TrainBenchArgs { configs, backends, resolutions, batch, steps, work })?
+        }
+        Command::PlotLosses { run } => {
+            let metrics = run.join("metrics.jsonl");
+            anyhow::ensure!(metrics.is_file(), "{} has no metrics.jsonl", run.display());
+            std::fs::write(run.join("losses.png"), train::loss_plot(&metrics))?;
+            println!("wrote {}", run.join("losses.png").display());
         }
         Command::BenchTrainCase { data, config, backend, batch, steps } => {
             bench::train_case(&data, &config, &backend, batch, steps)?

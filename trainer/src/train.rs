@@ -477,7 +477,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         extra.insert("step".to_string(), step.to_string());
         write_atomic(&a.out.join("generator.safetensors"), &save_generator(&st.g_ema, &rc.generator, &extra))?;
         write_atomic(&state_path, &st.save(&rc))?;
-        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &grids, &rc, &plain))
+        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &grids, &rc, &plain))?;
+        write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl")))
     };
     while st.step < a.steps {
         let (next, m) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
@@ -550,4 +551,23 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
         step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,
         r1_step_s: r1.seconds,
     })
+}
+
+/// `losses.png` from a run's `metrics.jsonl`: G loss, D loss, eikonal, SDF cross-entropy
+/// (top to bottom; raw faint, 20-step moving average bold).
+pub fn loss_plot(metrics: &Path) -> Vec<u8> {
+    // A step logged twice (a run killed after logging, before its checkpoint) keeps the
+    // later row: the one the resumed run continued from.
+    let mut by_step = BTreeMap::new();
+    for v in std::fs::read_to_string(metrics)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+    {
+        let row = crate::plot::SERIES.map(|(k, _)| v.get(k).and_then(|x| x.as_f64()).map_or(f32::NAN, |x| x as f32));
+        by_step.insert(v.get("step").and_then(|s| s.as_u64()).unwrap_or(0), row);
+    }
+    let rows: Vec<[f32; 4]> = by_step.into_values().collect();
+    let (w, panel) = (640, 120);
+    encode_png(w, panel * crate::plot::SERIES.len(), 3, &crate::plot::loss_curves(&rows, w, panel, 20))
 }

@@ -132,19 +132,19 @@ fn build_web() -> Result<()> {
             }
         }
     }
-    // The trained demo model, fetched by the app at start-up (kept out of the wasm bundle).
+    // The trained demo model, fetched by the app at start-up (kept out of the wasm bundle),
+    // and `models/manifest.json` saying which models are there (so the app never asks for a
+    // missing file).
     let models = root().join("assets/models");
-    if models.is_dir() {
-        std::fs::create_dir_all(dist.join("models"))?;
-        for entry in std::fs::read_dir(&models)? {
-            let path = entry?.path();
-            if path.extension().is_some_and(|e| e == "safetensors") {
-                if let Some(name) = path.file_name() {
-                    std::fs::copy(&path, dist.join("models").join(name))?;
-                }
-            }
-        }
+    std::fs::create_dir_all(dist.join("models"))?;
+    let mut manifest = Vec::new();
+    if models.join("demo.safetensors").is_file() {
+        std::fs::copy(models.join("demo.safetensors"), dist.join("models/demo.safetensors"))?;
+        manifest.push("\"demo\": \"demo.safetensors\"");
+    } else {
+        let _ = std::fs::remove_file(dist.join("models/demo.safetensors"));
     }
+    std::fs::write(dist.join("models/manifest.json"), format!("{{{}}}\n", manifest.join(", ")))?;
     let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm")).map(|m| m.len()).unwrap_or(0);
     eprintln!("xtask: dist ready ({:.1} MB wasm)", size as f64 / 1e6);
     Ok(())

@@ -24,6 +24,8 @@ use wasm_bindgen_futures::JsFuture;
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
+/// Which models the build ships (`{"demo": "demo.safetensors"}` or `{}`), written by xtask.
+pub const MANIFEST_URL: &str = "models/manifest.json";
 
 /// Which weights the generator has.
 #[derive(Clone, Debug, PartialEq)]
@@ -44,6 +46,18 @@ impl Weights {
             Weights::Random(why) => format!("untrained demo generator (random weights): {why}"),
         }
     }
+}
+
+/// The shipped demo model, if the build lists one, loaded onto `device`.
+async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<(Generator, usize), String> {
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&fetch_bytes(MANIFEST_URL).await?).map_err(|e| format!("{MANIFEST_URL}: {e}"))?;
+    if manifest.get("demo").is_none() {
+        return Err("no trained model ships with this build".into());
+    }
+    let bytes = fetch_bytes(MODEL_URL).await?;
+    let g = load_generator(&bytes, cfg, device).map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
+    Ok((g, bytes.len()))
 }
 
 type Job = ((u64, u64), f32, Option<RiggedAvatar>, eframe::egui::Context);
@@ -104,12 +118,7 @@ impl GenEngine {
         {
             let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
             wasm_bindgen_futures::spawn_local(async move {
-                let loaded = match fetch_bytes(MODEL_URL).await {
-                    Ok(bytes) => load_generator(&bytes, &cfg, &device)
-                        .map(|g| (g, bytes.len()))
-                        .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}")),
-                    Err(e) => Err(e),
-                };
+                let loaded = load_shipped(&cfg, &device).await;
                 *slot.borrow_mut() = Some(loaded);
                 repaint.request_repaint();
             });
