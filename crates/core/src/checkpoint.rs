@@ -9,7 +9,7 @@
 
 use std::collections::BTreeMap;
 
-use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::module::{Module, ModuleMapper, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::generator::Generator;
@@ -52,7 +52,7 @@ struct Collect {
 }
 
 #[cfg(not(target_arch = "wasm32"))]
-impl ModuleVisitor for Collect {
+impl burn::module::ModuleVisitor for Collect {
     fn enter_module(&mut self, name: &str, _container_type: &str) {
         self.path.push(name.to_string());
     }
