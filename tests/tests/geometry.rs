@@ -2,7 +2,7 @@
 //! and "zero residual ⇒ the avatar is the posed body".
 
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::geometry::inverse_skinning::canonical_body;
+use getavatar_core::geometry::inverse_skinning::{canonical_body, guarded_template};
 use getavatar_core::geometry::template_sdf::central_difference_normal;
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use getavatar_core::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
@@ -253,12 +253,24 @@ fn demo_grid_resolves_the_posed_body() {
         r.mask.iter().map(|m| *m > 127).collect()
     };
     let lib = PoseLibrary::builtin();
-    for pose in ["Da", "walking", "sitting"] {
+    for pose in ["Da", "walking", "sitting", "arms_up"] {
         let posed = pose_body(&model, &lib.params(pose, &[]).expect("pose"));
         let inv = InverseSkinning::new(&model, &posed, &cano);
-        let canon: Vec<Vec3> = grid.vertices.iter().map(|p| inv.to_canonical(*p).0).collect();
-        let sdf: Vec<f32> = canon.iter().map(|p| t.sample(*p)).collect();
+        let (canon, sdf): (Vec<Vec3>, Vec<f32>) = grid
+            .vertices
+            .iter()
+            .map(|p| {
+                let (c, _, d) = inv.to_canonical_with_distance(*p);
+                (c, guarded_template(t.sample(c), d))
+            })
+            .unzip();
         let m = marching_tets(&grid.vertices, &grid.tets, &sdf, &canon);
+        // No floating fragments (K = 1 un-warping of space the pose vacated): every extracted
+        // vertex lies near the posed body.
+        let body_tree = KdTree::new(&posed.vertices);
+        let far = m.vertices.iter().map(|v| body_tree.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
+        println!("{pose}: farthest extracted vertex {far:.3} m from the posed body");
+        assert!(far < 0.1, "{pose}: extracted surface reaches {far} m away from the body");
         for yaw in [0.0f32, std::f32::consts::FRAC_PI_2] {
             let (a, b) = (mask(&m.vertices, &m.faces, yaw), mask(&posed.vertices, &model.faces, yaw));
             let inter = a.iter().zip(&b).filter(|(x, y)| **x && **y).count();

@@ -22,7 +22,7 @@ use super::{index_tensor, matrix};
 use crate::camera::OrbitCamera;
 use crate::dataset::Label;
 use crate::generator::{field_band, BodyContext, Generator, Styles};
-use crate::geometry::inverse_skinning::InverseSkinning;
+use crate::geometry::inverse_skinning::{guarded_template, InverseSkinning};
 use crate::geometry::marching_tets;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 use crate::losses::{eikonal_loss, sdf_cross_entropy};
@@ -68,9 +68,17 @@ impl PosedGrid {
     /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
     pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
         let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<Vec3> { chunk.iter().map(|p| inv.to_canonical(*p).0).collect() };
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32)> {
+            chunk
+                .iter()
+                .map(|p| {
+                    let (c, _, d) = inv.to_canonical_with_distance(*p);
+                    (c, guarded_template(ctx.template.sample(c), d))
+                })
+                .collect()
+        };
         #[cfg(not(target_arch = "wasm32"))]
-        let canonical: Vec<Vec3> = {
+        let mapped: Vec<(Vec3, f32)> = {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
             let chunk = verts.len().div_ceil(threads).max(1);
             std::thread::scope(|sc| {
@@ -79,8 +87,8 @@ impl PosedGrid {
             })
         };
         #[cfg(target_arch = "wasm32")]
-        let canonical = map(verts);
-        let template: Vec<f32> = canonical.iter().map(|p| ctx.template.sample(*p)).collect();
+        let mapped = map(verts);
+        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().unzip();
         let band = field_band(ctx, &template);
         Self { canonical, template, band }
     }

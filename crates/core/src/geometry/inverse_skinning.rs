@@ -44,9 +44,16 @@ impl InverseSkinning {
 
     /// Canonical position of posed point `x_d`, and the index of the body vertex used.
     pub fn to_canonical(&self, x_d: Vec3) -> (Vec3, usize) {
-        let Some((i, _)) = self.tree.nearest(x_d) else { return (x_d, 0) };
+        let (x_c, i, _) = self.to_canonical_with_distance(x_d);
+        (x_c, i)
+    }
+
+    /// [`InverseSkinning::to_canonical`] plus the posed-space distance from `x_d` to the body
+    /// vertex used (its nearest).
+    pub fn to_canonical_with_distance(&self, x_d: Vec3) -> (Vec3, usize, f32) {
+        let Some((i, d2)) = self.tree.nearest(x_d) else { return (x_d, 0, f32::INFINITY) };
         let rest = self.inv_obs[i].transform_point3(x_d) - self.offsets[i];
-        (self.cano[i].transform_point3(rest), i)
+        (self.cano[i].transform_point3(rest), i, d2.max(0.0).sqrt())
     }
 
     /// Rotation taking canonical-space directions at body vertex `i` into posed space.
@@ -75,4 +82,23 @@ pub fn nearest_rotation(m: Mat3) -> Mat3 {
         }
     }
     r
+}
+
+/// Slack of [`guarded_template`], metres: body-mesh vertex spacing plus template sampling error.
+pub const UNWARP_SLACK: f32 = 0.05;
+
+/// The template SDF `t` at an un-warped point, checked against the posed-space distance `d`
+/// to the body vertex that un-warped it. That vertex's blended transform is nearly rigid, so
+/// the canonical point keeps distance ≈ d to the canonical vertex and the canonical surface
+/// cannot be much farther than d: |t| ≲ d. A point far from the posed body that lands deep
+/// inside the canonical body (t < 0, d > |t| + slack) was carried into another body part: it
+/// lies in space the pose vacated (where the canonical arms were, in an arms-up pose) and is
+/// outside the posed body, so it gets +d. Without this, K = 1 inverse skinning leaves floating
+/// fragments there.
+pub fn guarded_template(t: f32, d: f32) -> f32 {
+    if t < 0.0 && d > -t + UNWARP_SLACK {
+        d
+    } else {
+        t
+    }
 }
