@@ -177,7 +177,15 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
                 let text = String::from_utf8_lossy(&out.stdout);
                 match text.lines().find_map(|l| l.strip_prefix(CASE_TAG)) {
                     Some(json) if out.status.success() => {
-                        rows.push((config.clone(), backend.clone(), res, serde_json::from_str(json)?))
+                        let r: CaseReport = serde_json::from_str(json)?;
+                        // Each case as it finishes, so a run cut short still reports.
+                        eprintln!(
+                            "bench-train: {config} on {backend} at {res}²: {:.2} s/step, R1 step {:.2} s, peak {} MiB",
+                            r.timings.step_s,
+                            r.timings.r1_step_s,
+                            r.peak_mib.map_or("-".into(), |m| format!("{m:.0}"))
+                        );
+                        rows.push((config.clone(), backend.clone(), res, r))
                     }
                     _ => eprintln!("bench-train: {config} on {backend} at {res}² failed ({}); skipped", out.status),
                 }
