@@ -2,7 +2,7 @@
 //! and "zero residual ⇒ the avatar is the posed body".
 
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::geometry::inverse_skinning::{canonical_body, guarded_template};
+use getavatar_core::geometry::inverse_skinning::canonical_body;
 use getavatar_core::geometry::template_sdf::central_difference_normal;
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use getavatar_core::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
@@ -256,14 +256,7 @@ fn demo_grid_resolves_the_posed_body() {
     for pose in ["Da", "walking", "sitting", "arms_up"] {
         let posed = pose_body(&model, &lib.params(pose, &[]).expect("pose"));
         let inv = InverseSkinning::new(&model, &posed, &cano);
-        let (canon, sdf): (Vec<Vec3>, Vec<f32>) = grid
-            .vertices
-            .iter()
-            .map(|p| {
-                let (c, _, d) = inv.to_canonical_with_distance(*p);
-                (c, guarded_template(t.sample(c), d))
-            })
-            .unzip();
+        let (canon, sdf): (Vec<Vec3>, Vec<f32>) = grid.vertices.iter().map(|p| inv.canonical_template(&t, *p)).unzip();
         let m = marching_tets(&grid.vertices, &grid.tets, &sdf, &canon);
         // No floating fragments (K = 1 un-warping of space the pose vacated): every extracted
         // vertex lies near the posed body.

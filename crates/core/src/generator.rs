@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
 use crate::body_model::BodyModel;
-use crate::geometry::inverse_skinning::{canonical_body, guarded_template};
+use crate::geometry::inverse_skinning::canonical_body;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
@@ -201,15 +201,8 @@ pub async fn generate_avatar_async(
     let planes = g.triplanes(s);
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-    let (canon, template): (Vec<Vec3>, Vec<f32>) = ctx
-        .grid
-        .vertices
-        .iter()
-        .map(|p| {
-            let (c, _, d) = inv.to_canonical_with_distance(*p);
-            (c, guarded_template(ctx.template.sample(c), d))
-        })
-        .unzip();
+    let (canon, template): (Vec<Vec3>, Vec<f32>) =
+        ctx.grid.vertices.iter().map(|p| inv.canonical_template(&ctx.template, *p)).unzip();
     let band = field_band(ctx, &template);
     let n = canon.len();
     let (mut residual, mut offset) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);

@@ -22,7 +22,7 @@ use super::{index_tensor, matrix};
 use crate::camera::OrbitCamera;
 use crate::dataset::Label;
 use crate::generator::{field_band, BodyContext, Generator, Styles};
-use crate::geometry::inverse_skinning::{guarded_template, InverseSkinning};
+use crate::geometry::inverse_skinning::InverseSkinning;
 use crate::geometry::marching_tets;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 use crate::losses::{eikonal_loss, sdf_cross_entropy};
@@ -69,13 +69,7 @@ impl PosedGrid {
     pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
         let verts = &ctx.grid.vertices;
         let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32)> {
-            chunk
-                .iter()
-                .map(|p| {
-                    let (c, _, d) = inv.to_canonical_with_distance(*p);
-                    (c, guarded_template(ctx.template.sample(c), d))
-                })
-                .collect()
+            chunk.iter().map(|p| inv.canonical_template(&ctx.template, *p)).collect()
         };
         #[cfg(not(target_arch = "wasm32"))]
         let mapped: Vec<(Vec3, f32)> = {

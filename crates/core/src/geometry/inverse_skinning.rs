@@ -56,6 +56,13 @@ impl InverseSkinning {
         (self.cano[i].transform_point3(rest), i, d2.max(0.0).sqrt())
     }
 
+    /// Canonical position of posed grid point `x_d` and the body template's SDF there,
+    /// guarded against un-warps into another body part ([`guarded_template`]).
+    pub fn canonical_template(&self, template: &crate::geometry::TemplateSdf, x_d: Vec3) -> (Vec3, f32) {
+        let (c, _, d) = self.to_canonical_with_distance(x_d);
+        (c, guarded_template(template.sample(c), d))
+    }
+
     /// Rotation taking canonical-space directions at body vertex `i` into posed space.
     pub fn rotation(&self, i: usize) -> Mat3 {
         match (self.obs.get(i), self.cano.get(i)) {
