@@ -10,7 +10,11 @@
 //!   and hair make even real scans differ from the naked body);
 //! - the data's normal map at the label: mean angular error (degrees) over pixels covered in
 //!   both (world-space normals, so this measures body-level orientation, not identity);
-//! - FID / KID need the Inception network: not computed by this build (it says so).
+//! - with `--inception` (pt_inception-2015-12-05 as safetensors, see `crate::inception`):
+//!   FID and KID between the generated RGB images and the data's RGB images of the same
+//!   labels (both in [0, 1], resized to 299² as pytorch-fid does). With the few dozen
+//!   images a CPU eval affords, FID is strongly biased upwards; compare runs at equal
+//!   `--count` only. Without the weights file it says so and reports null.
 
 use std::path::PathBuf;
 
@@ -25,6 +29,8 @@ use getavatar_core::network::GeneratorConfig;
 use getavatar_core::rasterize::render_views;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use serde::Serialize;
+
+use crate::inception::ImageChw;
 
 pub struct EvalArgs {
     pub data: PathBuf,
@@ -88,6 +94,11 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     }
     #[allow(deprecated)]
     let dev = Device::ndarray();
+    // Load the Inception weights first: a bad file fails before minutes of rendering.
+    let inception = match &a.inception {
+        Some(p) => Some(crate::inception::Inception::load(p, &dev)?),
+        None => None,
+    };
     let g = crate::sample::generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &dev)?;
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
@@ -103,6 +114,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let bar = crate::progress::bar(count as u64, "labels");
     let (mut ious, mut data_ious) = (Vec::new(), Vec::new());
     let (mut angle_sum, mut angle_n) = (0f64, 0usize);
+    let (mut fake_rgb, mut real_rgb) = (Vec::new(), Vec::new());
     for k in 0..count {
         let idx = k * ds.len() / count;
         let sample = ds.load(idx)?;
@@ -111,6 +123,15 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let f = render_avatars(&g, &ctx, &g.styles(zg, zt, a.psi), std::slice::from_ref(&label), res, &grids, &dev);
         let mask: Vec<f32> = f.mask.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
+        if inception.is_some() {
+            let rgb: Vec<f32> = f.rgb.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            fake_rgb.push(ImageChw {
+                data: rgb.iter().map(|v| ((v + 1.0) * 0.5).clamp(0.0, 1.0)).collect(),
+                height: res,
+                width: res,
+            });
+            real_rgb.push(ImageChw::from_interleaved(&sample.rgb, dres, dres));
+        }
         let body = body_silhouette(&model, &label, res);
         ious.push(iou(&fake, &body));
         let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
@@ -136,15 +157,22 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     }
     bar.finish_and_clear();
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
-    match &a.inception {
-        Some(p) => println!(
-            "FID/KID: not computed — this build does not implement the Inception network yet ({} was not read)",
-            p.display()
-        ),
-        None => println!(
-            "FID/KID: not computed (needs --inception with the pt_inception-2015-12-05 weights as safetensors, not implemented in this build)"
-        ),
-    }
+    let (fid, kid) = match &inception {
+        Some(net) => {
+            println!("FID/KID: Inception features of {} generated and {} data images…", fake_rgb.len(), real_rgb.len());
+            let ff = net.features(&fake_rgb, 4)?;
+            let fr = net.features(&real_rgb, 4)?;
+            let fid = crate::fid::fid(&fr, &ff)?;
+            let kid = crate::fid::kid(&fr, &ff, 100, 1000, a.seed)?;
+            (Some(fid as f32), Some(kid as f32))
+        }
+        None => {
+            println!(
+                "FID/KID: not computed (pass --inception with the pt_inception-2015-12-05 weights as safetensors; tools/inception_weights.py converts the .pth)"
+            );
+            (None, None)
+        }
+    };
     Ok(EvalReport {
         labels: count,
         resolution: res,
@@ -152,8 +180,8 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         mask_iou_min: ious.iter().copied().fold(f32::INFINITY, f32::min),
         data_mask_iou_mean: mean(&data_ious),
         normal_error_deg: (angle_n > 0).then(|| (angle_sum / angle_n as f64) as f32),
-        fid: None,
-        kid: None,
+        fid,
+        kid,
     })
 }
 
@@ -168,6 +196,9 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
         r.data_mask_iou_mean,
         r.normal_error_deg.map(|d| format!("{d:.1}°")).unwrap_or_else(|| "n/a (no normal maps)".into())
     );
+    if let (Some(fid), Some(kid)) = (r.fid, r.kid) {
+        println!("FID {fid:.2}, KID {kid:.4} ({} images per set)", r.labels);
+    }
     if let Some(out) = &a.out {
         std::fs::write(out, serde_json::to_string_pretty(&r)?).with_context(|| format!("writing {}", out.display()))?;
         println!("wrote {}", out.display());

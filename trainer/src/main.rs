@@ -5,6 +5,8 @@
 mod bench;
 mod body_convert;
 mod eval;
+mod fid;
+mod inception;
 mod plot;
 mod prepare;
 mod progress;
@@ -86,6 +88,13 @@ enum Command {
         #[arg(long)]
         steps: usize,
     },
+    /// Write deterministic stand-in Inception weights (hash-generated, not trained) for
+    /// testing `eval --inception` without the real weights file.
+    #[command(hide = true)]
+    InceptionTestWeights {
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Generate procedural textured, clothed human scans (OBJ + MTL + texture PNG + smpl.json
     /// per subject) on the open body model.
     SynthScans {
@@ -166,7 +175,7 @@ enum Command {
         r1_gamma: f32,
     },
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
-    /// silhouette, normal-map angular error vs the data (FID/KID: not in this build).
+    /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
     Eval {
         /// Dataset directory whose labels (camera, θ, β) and images are used.
         #[arg(long)]
@@ -193,7 +202,8 @@ enum Command {
         /// 64² a limb is two pixels wide and IoU mostly measures boundary rounding.
         #[arg(long)]
         res: Option<usize>,
-        /// Inception weights (pt_inception-2015-12-05 as safetensors) for FID/KID.
+        /// Inception weights (pt_inception-2015-12-05 converted to safetensors by
+        /// tools/inception_weights.py) for FID/KID; without it they are not computed.
         #[arg(long)]
         inception: Option<PathBuf>,
         /// Write the figures as JSON here.
@@ -317,6 +327,12 @@ fn main() -> Result<()> {
             anyhow::ensure!(metrics.is_file(), "{} has no metrics.jsonl", run.display());
             std::fs::write(run.join("losses.png"), train::loss_plot(&metrics))?;
             println!("wrote {}", run.join("losses.png").display());
+        }
+        Command::InceptionTestWeights { out } => {
+            let bytes =
+                getavatar_core::checkpoint::write_safetensors(&Default::default(), &inception::hashed_weights());
+            anyhow::Context::with_context(std::fs::write(&out, bytes), || format!("writing {}", out.display()))?;
+            println!("wrote {} (hash-generated stand-in weights, not a trained network)", out.display());
         }
         Command::BenchTrainCase { data, config, backend, batch, steps } => {
             bench::train_case(&data, &config, &backend, batch, steps)?

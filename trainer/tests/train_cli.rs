@@ -147,6 +147,45 @@ fn tiny_trains_twenty_steps() {
     assert!(r["data_mask_iou_mean"].as_f64().unwrap() > 0.6, "{r}");
     let err = r["normal_error_deg"].as_f64().unwrap();
     assert!(err > 0.0 && err < 90.0, "{r}");
+    // With Inception weights (hash-generated stand-ins of the right shapes): FID and KID are
+    // reported; comparing the data with itself gives FID ≈ 0 for the same features, and a
+    // bad weights file fails before any rendering with a message naming the file.
+    let weights = root.join("inception.safetensors");
+    ok(trainer(&["inception-test-weights", "--out", weights.to_str().unwrap()]));
+    let text = ok(trainer(&[
+        "eval",
+        "--data",
+        data.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--checkpoint",
+        gen.to_str().unwrap(),
+        "--count",
+        "4",
+        "--inception",
+        weights.to_str().unwrap(),
+        "--out",
+        report.to_str().unwrap(),
+    ]));
+    assert!(text.contains("FID "), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let (fid, kid) = (r["fid"].as_f64().unwrap(), r["kid"].as_f64().unwrap());
+    assert!(fid.is_finite() && fid > 0.0 && kid.is_finite(), "{r}");
+    let junk = root.join("junk.safetensors");
+    std::fs::write(&junk, b"not weights").unwrap();
+    let o = trainer(&[
+        "eval",
+        "--data",
+        data.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--count",
+        "4",
+        "--inception",
+        junk.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("junk.safetensors") && err.contains("pt_inception"), "{err}");
     let o = trainer(&["eval", "--data", data.to_str().unwrap(), "--config", "tiny", "--count", "0"]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--count"));
     let _ = std::fs::remove_dir_all(&root);

@@ -85,6 +85,16 @@ pub struct SafeTensors {
 }
 
 pub fn parse_safetensors(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
+    parse(bytes, false)
+}
+
+/// Like [`parse_safetensors`], but tensors of other dtypes (e.g. PyTorch's I64
+/// `num_batches_tracked` counters in converted state dicts) are skipped instead of refused.
+pub fn parse_safetensors_lenient(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
+    parse(bytes, true)
+}
+
+fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, CheckpointError> {
     if bytes.len() < 8 {
         return Err(fmt_err("file shorter than the 8-byte header length"));
     }
@@ -104,6 +114,9 @@ pub fn parse_safetensors(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
         }
         let dtype = v["dtype"].as_str().unwrap_or("");
         if dtype != "F32" {
+            if skip_other_dtypes {
+                continue;
+            }
             return Err(CheckpointError::Param(k.clone(), format!("dtype {dtype} (only F32 is supported)")));
         }
         let shape: Vec<usize> =
