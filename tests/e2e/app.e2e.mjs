@@ -207,6 +207,9 @@ try {
   s = await command({ view: 'mask' }, (s) => s.view === 'mask');
   s = await command({ pose: 'standing' }, (s) => s.pose === 'standing');
   const bodyStanding = maskOf(await grab('mask_body_standing'), (c) => c[0] > 127);
+  s = await command({ pose: 'arms_up' }, (s) => s.pose === 'arms_up');
+  const bodyUp = maskOf(await grab('mask_body_arms_up'), (c) => c[0] > 127);
+  s = await command({ pose: 'standing' }, (s) => s.pose === 'standing');
   // The shipped demo model (listed in models/manifest.json by the build) is fetched at start-up.
   const manifest = await (await fetch(`${url}models/manifest.json`)).json();
   s = await waitFor((s) => s.model && !s.model.startsWith('loading'), 'generator weights', 120000);
@@ -240,6 +243,15 @@ try {
   const dlA = await download('avatar.glb');
   const repA = await validator.validateBytes(dlA.bytes);
   check(repA.issues.numErrors === 0 && glbPositions(dlA.bytes).count === s.vertices, `avatar .glb: ${repA.issues.numErrors} validator errors, ${glbPositions(dlA.bytes).count} vertices`);
+
+  // --- re-posing the avatar runs on the GPU (bone transforms only, no new generation) --
+  s = await command({ view: 'mask' }, (s) => s.view === 'mask');
+  const gPose = (await status()).generations;
+  s = await command({ pose: 'arms_up' }, (s) => s.pose === 'arms_up');
+  const avUp = maskOf(await grab('mask_avatar_arms_up'), (c) => c[0] > 127);
+  const jUp = iou(avUp, bodyUp), jStill = iou(avMask, bodyUp);
+  check(s.generations === gPose && s.showing === 'avatar' && jUp > 0.6 && jUp > jStill + 0.1,
+    `the avatar re-posed to arms_up on the GPU follows the body (IoU ${jUp.toFixed(3)}; unposed ${jStill.toFixed(3)}; frame ${s.last_render_ms.toFixed(1)} ms)`);
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));

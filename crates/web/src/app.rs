@@ -15,7 +15,7 @@ use getavatar_core::generator::RiggedAvatar;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
 use crate::generate::GenEngine;
-use crate::viewer::{Vertex, Viewer};
+use crate::viewer::{bone_transforms, Vertex, Viewer};
 use crate::web;
 
 /// Linear RGB albedo of the untextured body.
@@ -32,8 +32,10 @@ pub struct GetAvatarApp {
     continuous: bool,
     edit_joint: usize,
     viewer: Option<Viewer>,
-    /// Mesh must be re-posed and uploaded.
+    /// Mesh must be re-posed (bones for a rigged avatar, vertices for the body) and uploaded.
     mesh_dirty: bool,
+    /// The avatar's canonical mesh on the GPU is stale (new avatar, new texture, toggled).
+    avatar_dirty: bool,
     /// Viewport must be re-rendered.
     render_dirty: bool,
     status: Status,
@@ -98,6 +100,7 @@ impl GetAvatarApp {
             edit_joint: 16,
             viewer,
             mesh_dirty: true,
+            avatar_dirty: true,
             render_dirty: true,
             status,
             frame_times: Default::default(),
@@ -167,6 +170,7 @@ impl GetAvatarApp {
             Action::ShowAvatar(b) => {
                 self.show_avatar = b && self.rigged.is_some();
                 self.mesh_dirty = true;
+                self.avatar_dirty = true;
             }
         }
     }
@@ -213,6 +217,7 @@ impl GetAvatarApp {
                 self.rigged = Some(done.rigged);
                 self.show_avatar = true;
                 self.mesh_dirty = true;
+                self.avatar_dirty = true;
                 self.status.generating = false;
             }
             Some(Err(e)) => {
@@ -271,6 +276,58 @@ impl GetAvatarApp {
         }
     }
 
+    /// Upload what the current pose needs: for a rigged avatar only the bone transforms
+    /// (its canonical mesh goes up once per avatar; the GPU re-poses it), for the bare body
+    /// the posed vertices.
+    fn upload_mesh(&mut self, rs: &eframe::egui_wgpu::RenderState) {
+        let Some(body) = self.body.as_ref() else { return };
+        let posed = pose_body(body, &self.params);
+        let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
+            (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
+            _ => None,
+        };
+        let Some(viewer) = self.viewer.as_mut() else { return };
+        match rig {
+            Some((r, ctx)) => {
+                if self.avatar_dirty {
+                    let c = &r.canonical;
+                    let verts: Vec<Vertex> = (0..c.mesh.vertices.len())
+                        .map(|i| Vertex {
+                            position: c.mesh.vertices[i].to_array(),
+                            normal: c.normals[i].to_array(),
+                            color: c.colors[i].to_array(),
+                            bone: r.body_vertex[i],
+                        })
+                        .collect();
+                    viewer.set_mesh(&rs.device, &rs.queue, &verts, &c.mesh.faces, true);
+                    self.status.vertices = verts.len();
+                    self.status.triangles = c.mesh.faces.len();
+                    self.avatar_dirty = false;
+                }
+                viewer.set_bones(&rs.device, &rs.queue, &bone_transforms(ctx, &posed));
+            }
+            None => {
+                let normals = vertex_normals(&posed.vertices, &body.faces);
+                let verts: Vec<Vertex> = posed
+                    .vertices
+                    .iter()
+                    .zip(&normals)
+                    .map(|(p, n)| Vertex {
+                        position: p.to_array(),
+                        normal: n.to_array(),
+                        color: SKIN.to_array(),
+                        bone: 0,
+                    })
+                    .collect();
+                viewer.set_mesh(&rs.device, &rs.queue, &verts, &body.faces, false);
+                self.status.vertices = verts.len();
+                self.status.triangles = body.faces.len();
+                // The next avatar shown must be uploaded again.
+                self.avatar_dirty = true;
+            }
+        }
+    }
+
     fn update_gpu(&mut self, frame: &eframe::Frame) {
         let Some(rs) = frame.wgpu_render_state() else {
             return;
@@ -283,18 +340,7 @@ impl GetAvatarApp {
         }
         let t0 = web::now_ms();
         if self.mesh_dirty {
-            if let Some((pos, normals, colors, faces)) = self.current_mesh() {
-                let verts: Vec<Vertex> = pos
-                    .iter()
-                    .zip(&normals)
-                    .zip(&colors)
-                    .map(|((p, n), c)| Vertex { position: p.to_array(), normal: n.to_array(), color: c.to_array() })
-                    .collect();
-                let Some(viewer) = self.viewer.as_mut() else { return };
-                viewer.set_mesh(&rs.device, &rs.queue, &verts, &faces);
-                self.status.vertices = verts.len();
-                self.status.triangles = faces.len();
-            }
+            self.upload_mesh(rs);
             self.mesh_dirty = false;
         }
         let Some(viewer) = self.viewer.as_mut() else { return };

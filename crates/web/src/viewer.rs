@@ -2,6 +2,12 @@
 //! Three outputs, matching the paper's renders: shaded RGB, world-space normal map encoded
 //! (n+1)/2 (background = zero vector, i.e. mid grey) and the foreground mask.
 //!
+//! Re-posing a rigged avatar runs on the GPU (the interactive fast path of the paper's
+//! canonical extraction + LBS): the avatar's canonical vertices are uploaded once with the
+//! index of their nearest body vertex ("bone"), and each pose change uploads only the body's
+//! per-vertex transforms ([`bone_transforms`], 6,890 pairs of matrices), which the vertex
+//! shader applies. This is the GPU twin of `RiggedAvatar::repose` (used for the .glb export).
+//!
 //! The colour target is `Rgba8Unorm` holding display (sRGB-encoded) values, which is what
 //! egui expects of user textures: shading is computed in linear light and encoded in the
 //! shader, while a normal-map pixel is stored as exactly round((n+1)/2·255) and egui shows
@@ -17,13 +23,47 @@ use crate::automation::ViewMode;
 const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
-/// Vertex layout: position, normal (world space, metres), linear RGB colour.
+/// Vertex layout: position, normal (world space, metres; canonical space when skinned),
+/// linear RGB colour, and the bone (nearest body vertex) whose transform a skinned draw
+/// applies.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 pub struct Vertex {
     pub position: [f32; 3],
     pub normal: [f32; 3],
     pub color: [f32; 3],
+    pub bone: u32,
+}
+
+/// One bone's transforms: `position` maps a canonical avatar point to the posed one,
+/// `normal` (a rotation, stored in a 4×4) maps its normal.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct Bone {
+    pub position: [[f32; 4]; 4],
+    pub normal: [[f32; 4]; 4],
+}
+
+/// The per-body-vertex transforms that re-pose a rigged avatar to `posed` (same maths as
+/// `RiggedAvatar::repose`: the posed blended transform, the shape offset, and the inverse
+/// of the canonical transform; normals by the nearest rotation).
+pub fn bone_transforms(
+    ctx: &getavatar_core::generator::BodyContext,
+    posed: &getavatar_core::skinning::PosedBody,
+) -> Vec<Bone> {
+    (0..posed.vertex_transforms.len())
+        .map(|i| {
+            let shape = posed.shaped[i] - ctx.model.v_template[i];
+            let m = posed.vertex_transforms[i]
+                * Mat4::from_translation(shape)
+                * ctx.canonical.vertex_transforms[i].inverse();
+            let r = getavatar_core::geometry::inverse_skinning::nearest_rotation(
+                glam::Mat3::from_mat4(posed.vertex_transforms[i])
+                    * glam::Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
+            );
+            Bone { position: m.to_cols_array_2d(), normal: Mat4::from_mat3(r).to_cols_array_2d() }
+        })
+        .collect()
 }
 
 #[repr(C)]
@@ -31,13 +71,15 @@ pub struct Vertex {
 struct Uniforms {
     view_proj: [[f32; 4]; 4],
     eye: [f32; 4],
-    /// x = mode (0 rgb, 1 normal, 2 mask)
+    /// x = mode (0 rgb, 1 normal, 2 mask), y = skinned (1: apply the bone transforms)
     mode: [u32; 4],
 }
 
 const SHADER: &str = r#"
 struct Uniforms { view_proj: mat4x4<f32>, eye: vec4<f32>, mode: vec4<u32> };
 @group(0) @binding(0) var<uniform> u: Uniforms;
+struct Bone { position: mat4x4<f32>, normal: mat4x4<f32> };
+@group(0) @binding(1) var<storage, read> bones: array<Bone>;
 
 struct VsOut {
     @builtin(position) clip: vec4<f32>,
@@ -47,11 +89,18 @@ struct VsOut {
 };
 
 @vertex
-fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) color: vec3<f32>) -> VsOut {
+fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) color: vec3<f32>, @location(3) bone: u32) -> VsOut {
     var o: VsOut;
-    o.clip = u.view_proj * vec4<f32>(position, 1.0);
-    o.world = position;
-    o.normal = normal;
+    var p = position;
+    var n = normal;
+    if (u.mode.y == 1u) {
+        let b = bones[bone];
+        p = (b.position * vec4<f32>(position, 1.0)).xyz;
+        n = (b.normal * vec4<f32>(normal, 0.0)).xyz;
+    }
+    o.clip = u.view_proj * vec4<f32>(p, 1.0);
+    o.world = p;
+    o.normal = n;
     o.color = color;
     return o;
 }
@@ -101,7 +150,12 @@ pub fn background(mode: ViewMode) -> [u8; 3] {
 pub struct Viewer {
     pipeline: wgpu::RenderPipeline,
     uniforms: wgpu::Buffer,
+    bind_group_layout: wgpu::BindGroupLayout,
     bind_group: wgpu::BindGroup,
+    bones: wgpu::Buffer,
+    bone_capacity: u64,
+    /// Whether the current mesh is a rigged avatar re-posed by the bones.
+    skinned: bool,
     vertex_buffer: Option<wgpu::Buffer>,
     index_buffer: Option<wgpu::Buffer>,
     index_count: u32,
@@ -120,23 +174,35 @@ impl Viewer {
         });
         let bgl = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("viewer uniforms"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
                 },
-                count: None,
-            }],
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::VERTEX,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+            ],
         });
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("viewer"),
             bind_group_layouts: &[Some(&bgl)],
             immediate_size: 0,
         });
-        let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3];
+        let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3, 3 => Uint32];
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("viewer"),
             layout: Some(&layout),
@@ -178,15 +244,17 @@ impl Viewer {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("viewer uniforms"),
-            layout: &bgl,
-            entries: &[wgpu::BindGroupEntry { binding: 0, resource: uniforms.as_entire_binding() }],
-        });
+        let bone_capacity = std::mem::size_of::<Bone>() as u64;
+        let bones = Self::bone_buffer(device, bone_capacity);
+        let bind_group = Self::make_bind_group(device, &bgl, &uniforms, &bones);
         Self {
             pipeline,
             uniforms,
+            bind_group_layout: bgl,
             bind_group,
+            bones,
+            bone_capacity,
+            skinned: false,
             vertex_buffer: None,
             index_buffer: None,
             index_count: 0,
@@ -197,8 +265,54 @@ impl Viewer {
         }
     }
 
-    /// Upload a mesh (re-allocating buffers only when it grows).
-    pub fn set_mesh(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, vertices: &[Vertex], indices: &[[u32; 3]]) {
+    fn bone_buffer(device: &wgpu::Device, size: u64) -> wgpu::Buffer {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("viewer bones"),
+            size,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn make_bind_group(
+        device: &wgpu::Device,
+        layout: &wgpu::BindGroupLayout,
+        uniforms: &wgpu::Buffer,
+        bones: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("viewer uniforms"),
+            layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: uniforms.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: bones.as_entire_binding() },
+            ],
+        })
+    }
+
+    /// Upload the bone transforms that re-pose the current (skinned) mesh.
+    pub fn set_bones(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, bones: &[Bone]) {
+        let bytes: &[u8] = bytemuck::cast_slice(bones);
+        if bytes.len() as u64 > self.bone_capacity {
+            self.bone_capacity = bytes.len() as u64;
+            self.bones = Self::bone_buffer(device, self.bone_capacity);
+            self.bind_group = Self::make_bind_group(device, &self.bind_group_layout, &self.uniforms, &self.bones);
+        }
+        queue.write_buffer(&self.bones, 0, bytes);
+    }
+
+    /// Upload a mesh (re-allocating buffers only when it grows). `skinned`: the vertices are
+    /// canonical and each is moved by its bone (see [`Viewer::set_bones`]); otherwise they are
+    /// drawn as given.
+    pub fn set_mesh(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        vertices: &[Vertex],
+        indices: &[[u32; 3]],
+        skinned: bool,
+    ) {
+        self.skinned = skinned;
         let vbytes: &[u8] = bytemuck::cast_slice(vertices);
         let ibytes: &[u8] = bytemuck::cast_slice(indices);
         if self.vertex_buffer.is_none() || (vbytes.len() as u64) > self.vertex_capacity {
@@ -291,7 +405,7 @@ impl Viewer {
                     ViewMode::Normal => 1,
                     ViewMode::Mask => 2,
                 },
-                0,
+                u32::from(self.skinned),
                 0,
                 0,
             ],
