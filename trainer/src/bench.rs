@@ -5,7 +5,6 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::generator::{
     block_on_ready, generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator,
@@ -21,14 +20,15 @@ fn secs<T>(f: impl FnOnce() -> T) -> (T, f64) {
     (v, t.elapsed().as_secs_f64())
 }
 
-pub fn bench(configs: &[String], repeats: usize) -> Result<()> {
-    #[allow(deprecated)]
-    let device = Device::ndarray();
+pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
+    let device = crate::train::device_for(backend)?;
     let model = BodyModel::default_body()?;
     let lib = PoseLibrary::builtin();
     let poses = ["standing", "walking", "sitting", "arms_up"];
     println!(
-        "backend: NdArray (CPU), {} threads available",
+        "backend: {} for the networks ({}), {} CPU threads available",
+        backend,
+        if backend == "wgpu" { "GPU via Vulkan/Metal/DX12; lavapipe emulates one on the CPU" } else { "CPU" },
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!(
@@ -87,6 +87,7 @@ pub fn bench(configs: &[String], repeats: usize) -> Result<()> {
         );
     }
     println!("gen = mapping + triplane synthesis; extract = exact per-pose path minus gen (inverse skinning, decoders, DMTet, normal field, colours);");
+    println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU);");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
     Ok(())
 }

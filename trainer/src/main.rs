@@ -46,6 +46,9 @@ enum Command {
         /// Repetitions of the 4 benchmark poses.
         #[arg(long, default_value_t = 1)]
         repeats: usize,
+        /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
+        #[arg(long, default_value = "ndarray")]
+        backend: String,
     },
     /// Time training per config, backend and render resolution: s/step, s/kimg, peak memory
     /// and ratios, measured in one run on a small synthetic dataset it makes itself.
@@ -318,7 +321,7 @@ fn main() -> Result<()> {
                 r1_gamma,
             })?
         }
-        Command::Bench { configs, repeats } => bench::bench(&configs, repeats.max(1))?,
+        Command::Bench { configs, repeats, backend } => bench::bench(&configs, repeats.max(1), &backend)?,
         Command::BenchTrain { configs, backends, resolutions, batch, steps, work } => {
             bench::bench_train(&bench::TrainBenchArgs { configs, backends, resolutions, batch, steps, work })?
         }
