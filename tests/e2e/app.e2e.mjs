@@ -225,6 +225,23 @@ try {
   const avMask = maskOf(await grab('mask_avatar'), (c) => c[0] > 127);
   const jb = iou(avMask, bodyStanding);
   check(jb > 0.6, `the avatar follows the posed body (mask IoU ${jb.toFixed(3)})`);
+  // The paper's per-pixel RGB: canonical coordinates rasterised on the GPU, the texture
+  // field queried at every covered pixel. It covers exactly the mask, and is not flat.
+  const t0Tex = (await status()).texture_images;
+  s = await command({ view: 'texture' }, (s) => s.view === 'texture');
+  s = await waitFor((s) => s.texture_images > t0Tex, 'per-pixel texture image', 180000);
+  await page.waitForTimeout(500);
+  const texImg = await grab('texture_avatar');
+  const texCover = maskOf(texImg, (c) => Math.abs(c[0] - 38) + Math.abs(c[1] - 40) + Math.abs(c[2] - 46) > 6);
+  const jt = iou(texCover, avMask);
+  let mean = [0, 0, 0], nTex = 0;
+  for (let k = 0; k < avMask.length; k++) if (avMask[k]) { for (let c = 0; c < 3; c++) mean[c] += texImg.data[4 * k + c]; nTex++; }
+  mean = mean.map((v) => v / Math.max(1, nTex));
+  let spread = 0;
+  for (let k = 0; k < avMask.length; k++) if (avMask[k]) for (let c = 0; c < 3; c++) spread += Math.abs(texImg.data[4 * k + c] - mean[c]);
+  spread /= Math.max(1, 3 * nTex);
+  check(jt > 0.95 && s.texture_pixels > 1000 && spread > 2,
+    `per-pixel texture view covers the mask (IoU ${jt.toFixed(3)}, ${s.texture_pixels} queried pixels, colour spread ${spread.toFixed(1)}, ${s.last_texture_ms.toFixed(0)} ms)`);
   s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
   const rgb1 = await grab('rgb_avatar_tex2');
   const g1 = (await status()).generations;

@@ -11,7 +11,10 @@ use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 use getavatar_core::OrbitCamera;
 
-use getavatar_core::generator::RiggedAvatar;
+use std::rc::Rc;
+
+use getavatar_core::generator::{RiggedAvatar, Styles};
+use getavatar_core::network::synthesis::Triplanes;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
 use crate::generate::GenEngine;
@@ -44,6 +47,14 @@ pub struct GetAvatarApp {
     /// The generator on the shared WebGPU device (None if it could not start).
     engine: Option<GenEngine>,
     rigged: Option<RiggedAvatar>,
+    /// The shown avatar's texture field (styles, triplanes) for per-pixel queries.
+    field: Option<Rc<(Styles, Triplanes)>>,
+    /// Per-pixel texture view: the finished image, whether it shows the current frame, the
+    /// frame counter it belongs to, and the job in flight.
+    texture_image: Option<egui::TextureHandle>,
+    texture_valid: bool,
+    texture_epoch: u64,
+    texture_job: Option<TextureJob>,
     show_avatar: bool,
     seed_geo: u64,
     seed_tex: u64,
@@ -107,6 +118,11 @@ impl GetAvatarApp {
             messages,
             engine,
             rigged: None,
+            field: None,
+            texture_image: None,
+            texture_valid: false,
+            texture_epoch: 0,
+            texture_job: None,
             show_avatar: false,
             seed_geo: 0,
             seed_tex: 0,
@@ -215,6 +231,7 @@ impl GetAvatarApp {
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
                 (self.seed_geo, self.seed_tex) = done.seeds;
                 self.rigged = Some(done.rigged);
+                self.field = Some(done.field);
                 self.show_avatar = true;
                 self.mesh_dirty = true;
                 self.avatar_dirty = true;
@@ -339,6 +356,9 @@ impl GetAvatarApp {
             return;
         }
         let t0 = web::now_ms();
+        // The per-pixel texture image no longer shows this frame.
+        self.texture_valid = false;
+        self.texture_epoch += 1;
         if self.mesh_dirty {
             self.upload_mesh(rs);
             self.mesh_dirty = false;
@@ -451,7 +471,7 @@ impl GetAvatarApp {
         ui.separator();
         ui.strong("View");
         ui.horizontal(|ui| {
-            for m in [ViewMode::Rgb, ViewMode::Normal, ViewMode::Mask] {
+            for m in [ViewMode::Rgb, ViewMode::Texture, ViewMode::Normal, ViewMode::Mask] {
                 if ui.selectable_label(self.view == m, m.as_str()).clicked() {
                     self.apply(Action::View(m));
                 }
@@ -490,8 +510,79 @@ impl GetAvatarApp {
         }
     }
 
+    /// The paper's per-pixel RGB (Sec. 4.4) for the `texture` view: rasterise canonical
+    /// coordinates on the GPU, read them back, query the texture field at every covered
+    /// pixel (burn on the same device), and show the result. One job at a time; a job whose
+    /// frame changed meanwhile is dropped and restarted.
+    fn update_texture(&mut self, rs: &eframe::egui_wgpu::RenderState, ctx: &egui::Context) {
+        let wanted = self.view == ViewMode::Texture && self.show_avatar && self.field.is_some();
+        let (Some(viewer), Some(engine)) = (self.viewer.as_mut(), self.engine.as_mut()) else { return };
+        match self.texture_job.take() {
+            None => {
+                if wanted && !self.texture_valid && viewer.request_canonical(&rs.device, &rs.queue, self.res) {
+                    self.texture_job =
+                        Some(TextureJob { epoch: self.texture_epoch, res: self.res, t0: web::now_ms(), pixels: None });
+                }
+            }
+            Some(mut job) if job.pixels.is_none() => match viewer.take_canonical() {
+                None => self.texture_job = Some(job),
+                Some(Err(e)) => self.messages.push(e),
+                Some(Ok(data)) => {
+                    if job.epoch != self.texture_epoch || !wanted {
+                        return;
+                    }
+                    let mut pixels = Vec::new();
+                    let mut points = Vec::new();
+                    for (i, p) in data.chunks_exact(4).enumerate() {
+                        if p[3] > 0.5 {
+                            pixels.push(i as u32);
+                            points.push(Vec3::new(p[0], p[1], p[2]));
+                        }
+                    }
+                    if let Some(field) = &self.field {
+                        engine.query_texture(field.clone(), points, ctx.clone());
+                        job.pixels = Some(pixels);
+                        self.texture_job = Some(job);
+                    }
+                }
+            },
+            Some(job) => match engine.poll_texture() {
+                None => self.texture_job = Some(job),
+                Some(colors) => {
+                    if job.epoch != self.texture_epoch || !wanted {
+                        return;
+                    }
+                    let n = job.res as usize;
+                    let bg = crate::viewer::background(ViewMode::Texture);
+                    let mut img =
+                        egui::ColorImage::new([n, n], vec![egui::Color32::from_rgb(bg[0], bg[1], bg[2]); n * n]);
+                    let pixels = job.pixels.unwrap_or_default();
+                    for (&i, c) in pixels.iter().zip(&colors) {
+                        let e = |x: f32| (linear_to_srgb(x) * 255.0).round().clamp(0.0, 255.0) as u8;
+                        img.pixels[i as usize] = egui::Color32::from_rgb(e(c.x), e(c.y), e(c.z));
+                    }
+                    match &mut self.texture_image {
+                        Some(h) => h.set(img, egui::TextureOptions::LINEAR),
+                        None => {
+                            self.texture_image =
+                                Some(ctx.load_texture("per-pixel texture", img, egui::TextureOptions::LINEAR))
+                        }
+                    }
+                    self.texture_valid = true;
+                    self.status.texture_images += 1;
+                    self.status.texture_pixels = pixels.len();
+                    self.status.last_texture_ms = (web::now_ms() - job.t0) as f32;
+                }
+            },
+        }
+    }
+
     fn viewport(&mut self, ui: &mut egui::Ui) {
-        let Some(id) = self.viewer.as_ref().and_then(|v| v.texture_id) else {
+        let texture = match &self.texture_image {
+            Some(h) if self.view == ViewMode::Texture && self.texture_valid && self.show_avatar => Some(h.id()),
+            _ => None,
+        };
+        let Some(id) = texture.or_else(|| self.viewer.as_ref().and_then(|v| v.texture_id)) else {
             ui.centered_and_justified(|ui| ui.label("WebGPU is not available"));
             return;
         };
@@ -557,12 +648,22 @@ impl eframe::App for GetAvatarApp {
         }
         self.start_queued(&ui.ctx().clone());
         self.update_gpu(frame);
+        if let Some(rs) = frame.wgpu_render_state() {
+            let rs = rs.clone();
+            self.update_texture(&rs, &ui.ctx().clone());
+        }
         egui::Panel::left("controls").resizable(true).default_size(300.0).show(ui, |ui| {
             egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
         });
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         // Render changes made by this frame's widgets on the next frame.
-        if self.mesh_dirty || self.render_dirty || self.continuous || self.queued.is_some() {
+        if self.mesh_dirty
+            || self.render_dirty
+            || self.continuous
+            || self.queued.is_some()
+            || self.texture_job.is_some()
+            || (self.view == ViewMode::Texture && !self.texture_valid && self.field.is_some())
+        {
             ui.ctx().request_repaint();
         }
         self.publish_status(web::now_ms());
@@ -582,4 +683,24 @@ pub fn wgpu_options() -> egui_wgpu::WgpuConfiguration {
         ..Default::default()
     });
     egui_wgpu::WgpuConfiguration { wgpu_setup: WgpuSetup::CreateNew(create), ..Default::default() }
+}
+
+/// A per-pixel texture image in the making (see `GetAvatarApp::update_texture`).
+struct TextureJob {
+    /// The frame it belongs to.
+    epoch: u64,
+    res: u32,
+    t0: f64,
+    /// Covered pixels (row-major indices) once the canonical coordinates are read back.
+    pixels: Option<Vec<u32>>,
+}
+
+/// sRGB encoding of a linear value in [0, 1].
+fn linear_to_srgb(x: f32) -> f32 {
+    let x = x.clamp(0.0, 1.0);
+    if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    }
 }

@@ -20,6 +20,10 @@ pub enum ViewMode {
     /// Shaded colour.
     #[default]
     Rgb,
+    /// The paper's RGB render (Sec. 4.4): the texture field queried at every covered pixel's
+    /// canonical coordinate (rasterised on the GPU), unshaded. Shaded per-vertex colour is
+    /// shown until the per-pixel image is ready, and for the bare body.
+    Texture,
     /// World-space normals encoded (n+1)/2; background = zero vector (mid grey).
     Normal,
     /// Foreground mask: white body on black.
@@ -30,6 +34,7 @@ impl ViewMode {
     pub fn parse(s: &str) -> Option<Self> {
         match s.to_ascii_lowercase().as_str() {
             "rgb" | "shaded" => Some(Self::Rgb),
+            "texture" | "albedo" => Some(Self::Texture),
             "normal" | "normals" => Some(Self::Normal),
             "mask" => Some(Self::Mask),
             _ => None,
@@ -38,6 +43,7 @@ impl ViewMode {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Rgb => "rgb",
+            Self::Texture => "texture",
             Self::Normal => "normal",
             Self::Mask => "mask",
         }
@@ -156,7 +162,7 @@ impl Command {
                 radius: radius.map(|r| finite(r, "radius")).transpose()?,
             },
             Command::View { view } => Action::View(
-                ViewMode::parse(&view).ok_or_else(|| format!("unknown view `{view}` (rgb, normal, mask)"))?,
+                ViewMode::parse(&view).ok_or_else(|| format!("unknown view `{view}` (rgb, texture, normal, mask)"))?,
             ),
             Command::Res { res } => {
                 if !RESOLUTIONS.contains(&res) {
@@ -224,9 +230,9 @@ pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
             "yaw" => num("yaw").map(|d| Action::Camera { yaw: Some(d.to_radians()), pitch: None, radius: None }),
             "pitch" => num("pitch").map(|d| Action::Camera { yaw: None, pitch: Some(d.to_radians()), radius: None }),
             "radius" => num("radius").map(|r| Action::Camera { yaw: None, pitch: None, radius: Some(r) }),
-            "view" => {
-                ViewMode::parse(&v).map(Action::View).ok_or_else(|| format!("unknown view `{v}` (rgb, normal, mask)"))
-            }
+            "view" => ViewMode::parse(&v)
+                .map(Action::View)
+                .ok_or_else(|| format!("unknown view `{v}` (rgb, texture, normal, mask)")),
             "res" => v
                 .parse::<u32>()
                 .map_err(|_| format!("res: `{v}` is not an integer"))
@@ -336,6 +342,11 @@ pub struct Status {
     /// "body" or "avatar": what the viewport shows.
     pub showing: String,
     pub avatar_vertices: usize,
+    /// Per-pixel texture images finished (view `texture`), and the pixels of the last one
+    /// and its time (rasterise canonical coordinates, read back, query the texture field).
+    pub texture_images: u64,
+    pub texture_pixels: usize,
+    pub last_texture_ms: f32,
     /// Messages about rejected commands / parameters (most recent last).
     pub errors: Vec<String>,
 }

@@ -16,8 +16,9 @@ use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::load_generator;
 use getavatar_core::generator::{
-    generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, RiggedAvatar,
+    generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, RiggedAvatar, Styles,
 };
+use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
@@ -78,6 +79,8 @@ async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
 /// Outcome of a background generation.
 pub struct Finished {
     pub rigged: RiggedAvatar,
+    /// Styles and triplanes of this avatar: its texture field, for per-pixel queries.
+    pub field: Rc<(Styles, Triplanes)>,
     pub millis: f64,
     /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
@@ -92,6 +95,7 @@ pub struct GenEngine {
     /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
     weights_slot: Rc<RefCell<Option<Result<(Generator, usize), String>>>>,
     pub weights: Weights,
+    texture_slot: Rc<RefCell<Option<Vec<glam::Vec3>>>>,
     /// A generation asked for while the weights were loading.
     pending: Option<Job>,
     pub busy: bool,
@@ -131,6 +135,7 @@ impl GenEngine {
             slot: Rc::new(RefCell::new(None)),
             weights_slot,
             weights: Weights::Loading,
+            texture_slot: Rc::new(RefCell::new(None)),
             pending: None,
             busy: false,
         })
@@ -168,18 +173,19 @@ impl GenEngine {
             let t0 = crate::web::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles(zg, zt, psi);
+            let planes = g.triplanes(&styles);
             let rigged = match keep {
                 Some(mut r) => {
-                    let planes = g.triplanes(&styles);
                     r.canonical.colors = recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await;
                     r
                 }
                 None => generate_rigged_async(&g, &ctx, &styles, &dev).await,
             };
+            let field = Rc::new((styles, planes));
             let result = if rigged.canonical.mesh.faces.is_empty() {
                 Err("the generator produced an empty surface".to_string())
             } else {
-                Ok(Finished { rigged, millis: crate::web::now_ms() - t0, seeds })
+                Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds })
             };
             *slot.borrow_mut() = Some(result);
             repaint.request_repaint();
@@ -208,6 +214,27 @@ impl GenEngine {
             self.busy = false;
         }
         r
+    }
+
+    /// Query the texture field of `field` at canonical points (the per-pixel RGB of the
+    /// paper's renderer); the colours arrive via [`GenEngine::poll_texture`].
+    pub fn query_texture(
+        &mut self,
+        field: Rc<(Styles, Triplanes)>,
+        points: Vec<glam::Vec3>,
+        repaint: eframe::egui::Context,
+    ) {
+        let (g, dev, slot) = (self.generator.clone(), self.device.clone(), self.texture_slot.clone());
+        wasm_bindgen_futures::spawn_local(async move {
+            let colors = recolor_async(&g, &field.1, &field.0, &points, &dev).await;
+            *slot.borrow_mut() = Some(colors);
+            repaint.request_repaint();
+        });
+    }
+
+    /// Colours of the last [`GenEngine::query_texture`], once.
+    pub fn poll_texture(&mut self) -> Option<Vec<glam::Vec3>> {
+        self.texture_slot.borrow_mut().take()
     }
 
     pub fn context(&self) -> Option<&BodyContext> {

@@ -13,6 +13,8 @@
 //! shader, while a normal-map pixel is stored as exactly round((n+1)/2·255) and egui shows
 //! the bytes unchanged.
 
+use std::sync::atomic::Ordering;
+
 use bytemuck::{Pod, Zeroable};
 use eframe::egui;
 use eframe::egui_wgpu::{self, wgpu};
@@ -22,6 +24,8 @@ use crate::automation::ViewMode;
 
 const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// G-buffer of per-pixel canonical coordinates (xyz) and coverage (w).
+const CANON_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 
 /// Vertex layout: position, normal (world space, metres; canonical space when skinned),
 /// linear RGB colour, and the bone (nearest body vertex) whose transform a skinned draw
@@ -86,6 +90,7 @@ struct VsOut {
     @location(0) world: vec3<f32>,
     @location(1) normal: vec3<f32>,
     @location(2) color: vec3<f32>,
+    @location(3) canonical: vec4<f32>,
 };
 
 @vertex
@@ -99,10 +104,18 @@ fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @lo
         n = (b.normal * vec4<f32>(normal, 0.0)).xyz;
     }
     o.clip = u.view_proj * vec4<f32>(p, 1.0);
+    // A skinned avatar's input vertices are canonical (Da-pose) coordinates.
+    o.canonical = vec4<f32>(position, f32(u.mode.y));
     o.world = p;
     o.normal = n;
     o.color = color;
     return o;
+}
+
+// nvdiffrast's rasterize + interpolate on the GPU: the canonical coordinate of each pixel.
+@fragment
+fn fs_canonical(in: VsOut) -> @location(0) vec4<f32> {
+    return in.canonical;
 }
 
 fn linear_to_srgb(c: vec3<f32>) -> vec3<f32> {
@@ -139,7 +152,7 @@ fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f
 /// Background colour per view mode, in encoded (display) bytes.
 pub fn background(mode: ViewMode) -> [u8; 3] {
     match mode {
-        ViewMode::Rgb => [38, 40, 46],
+        ViewMode::Rgb | ViewMode::Texture => [38, 40, 46],
         ViewMode::Normal => [128, 128, 128],
         ViewMode::Mask => [0, 0, 0],
     }
@@ -162,6 +175,12 @@ pub struct Viewer {
     vertex_capacity: u64,
     index_capacity: u64,
     target: Option<(u32, wgpu::Texture, wgpu::TextureView, wgpu::TextureView)>,
+    canon_pipeline: wgpu::RenderPipeline,
+    /// Canonical-coordinate target of the current resolution and its readback buffer.
+    canon: Option<(u32, wgpu::Texture, wgpu::TextureView, wgpu::Buffer)>,
+    /// Set by the readback's map callback: 0 pending, 1 mapped, 2 failed.
+    canon_mapped: std::sync::Arc<std::sync::atomic::AtomicU8>,
+    canon_in_flight: bool,
     /// egui's handle of the colour texture.
     pub texture_id: Option<egui::TextureId>,
 }
@@ -238,6 +257,41 @@ impl Viewer {
             multiview_mask: None,
             cache: None,
         });
+        let canon_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("viewer canonical"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[Some(wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<Vertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &attrs,
+                })],
+            },
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_canonical"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: CANON_FORMAT,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            primitive: wgpu::PrimitiveState { cull_mode: None, front_face: wgpu::FrontFace::Ccw, ..Default::default() },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            multiview_mask: None,
+            cache: None,
+        });
         let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("viewer uniforms"),
             size: std::mem::size_of::<Uniforms>() as u64,
@@ -261,6 +315,10 @@ impl Viewer {
             vertex_capacity: 0,
             index_capacity: 0,
             target: None,
+            canon_pipeline,
+            canon: None,
+            canon_mapped: Default::default(),
+            canon_in_flight: false,
             texture_id: None,
         }
     }
@@ -380,6 +438,116 @@ impl Viewer {
         self.target = Some((res, color, color_view, depth_view));
     }
 
+    /// Rasterise the current mesh's canonical coordinates at `res`² with the camera of the
+    /// last [`Viewer::render`] and start reading them back; [`Viewer::take_canonical`] returns them once mapped.
+    /// Returns false while a previous readback is still in flight.
+    pub fn request_canonical(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, res: u32) -> bool {
+        if self.canon_in_flight {
+            return false;
+        }
+        if !matches!(&self.canon, Some((r, ..)) if *r == res) {
+            let tex = device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("viewer canonical"),
+                size: wgpu::Extent3d { width: res, height: res, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: CANON_FORMAT,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            });
+            let view = tex.create_view(&Default::default());
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("viewer canonical readback"),
+                size: (res * res * 16) as u64,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            self.canon = Some((res, tex, view, buffer));
+        }
+        let (Some((_, tex, view, buffer)), Some((tres, _, _, depth_view))) = (&self.canon, &self.target) else {
+            return false;
+        };
+        if *tres != res {
+            return false;
+        }
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("canonical") });
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("canonical"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth_view,
+                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            if let (Some(vb), Some(ib)) = (&self.vertex_buffer, &self.index_buffer) {
+                if self.index_count > 0 {
+                    pass.set_pipeline(&self.canon_pipeline);
+                    pass.set_bind_group(0, &self.bind_group, &[]);
+                    pass.set_vertex_buffer(0, vb.slice(..));
+                    pass.set_index_buffer(ib.slice(..), wgpu::IndexFormat::Uint32);
+                    pass.draw_indexed(0..self.index_count, 0, 0..1);
+                }
+            }
+        }
+        encoder.copy_texture_to_buffer(
+            tex.as_image_copy(),
+            wgpu::TexelCopyBufferInfo {
+                buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(res * 16),
+                    rows_per_image: Some(res),
+                },
+            },
+            wgpu::Extent3d { width: res, height: res, depth_or_array_layers: 1 },
+        );
+        queue.submit(Some(encoder.finish()));
+        let flag = self.canon_mapped.clone();
+        flag.store(0, Ordering::SeqCst);
+        buffer
+            .slice(..)
+            .map_async(wgpu::MapMode::Read, move |r| flag.store(if r.is_ok() { 1 } else { 2 }, Ordering::SeqCst));
+        self.canon_in_flight = true;
+        true
+    }
+
+    /// The canonical-coordinate image (`res²·4` floats: xyz, coverage) once its readback
+    /// has completed.
+    pub fn take_canonical(&mut self) -> Option<Result<Vec<f32>, String>> {
+        if !self.canon_in_flight {
+            return None;
+        }
+        let state = self.canon_mapped.load(Ordering::SeqCst);
+        if state == 0 {
+            return None;
+        }
+        self.canon_in_flight = false;
+        let (_, _, _, buffer) = self.canon.as_ref()?;
+        if state != 1 {
+            return Some(Err("reading the canonical-coordinate image back failed".into()));
+        }
+        let data = match buffer.slice(..).get_mapped_range() {
+            Ok(view) => bytemuck::cast_slice::<u8, f32>(&view).to_vec(),
+            Err(e) => return Some(Err(format!("canonical-coordinate readback: {e:?}"))),
+        };
+        buffer.unmap();
+        Some(Ok(data))
+    }
+
     /// Draw the current mesh with `view_proj` (world → wgpu clip space) into the
     /// `res`×`res` target.
     pub fn render(
@@ -401,7 +569,7 @@ impl Viewer {
             eye: eye.extend(1.0).to_array(),
             mode: [
                 match mode {
-                    ViewMode::Rgb => 0,
+                    ViewMode::Rgb | ViewMode::Texture => 0,
                     ViewMode::Normal => 1,
                     ViewMode::Mask => 2,
                 },
