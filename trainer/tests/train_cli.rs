@@ -36,6 +36,13 @@ fn dataset(root: &Path) -> PathBuf {
     data
 }
 
+/// `trainer eval` of the tiny config on 4 labels of `data`, with `extra` arguments.
+fn eval(data: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["eval", "--data", data.to_str().unwrap(), "--config", "tiny", "--count", "4"];
+    args.extend_from_slice(extra);
+    trainer(&args)
+}
+
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("getavatar-train-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
@@ -127,19 +134,8 @@ fn tiny_trains_twenty_steps() {
     // with the posed bodies of their labels (the silhouette check itself is sound).
     let report = root.join("eval.json");
     let gen = run.join("generator.safetensors");
-    let text = ok(trainer(&[
-        "eval",
-        "--data",
-        data.to_str().unwrap(),
-        "--config",
-        "tiny",
-        "--checkpoint",
-        gen.to_str().unwrap(),
-        "--count",
-        "4",
-        "--out",
-        report.to_str().unwrap(),
-    ]));
+    let (gen_s, report_s) = (gen.to_str().unwrap(), report.to_str().unwrap());
+    let text = ok(eval(&data, &["--checkpoint", gen_s, "--out", report_s]));
     assert!(text.contains("FID/KID: not computed"), "{text}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let iou = r["mask_iou_mean"].as_f64().unwrap();
@@ -148,42 +144,17 @@ fn tiny_trains_twenty_steps() {
     let err = r["normal_error_deg"].as_f64().unwrap();
     assert!(err > 0.0 && err < 90.0, "{r}");
     // With Inception weights (hash-generated stand-ins of the right shapes): FID and KID are
-    // reported; comparing the data with itself gives FID ≈ 0 for the same features, and a
-    // bad weights file fails before any rendering with a message naming the file.
+    // reported, and a bad weights file fails before any rendering with a message naming it.
     let weights = root.join("inception.safetensors");
     ok(trainer(&["inception-test-weights", "--out", weights.to_str().unwrap()]));
-    let text = ok(trainer(&[
-        "eval",
-        "--data",
-        data.to_str().unwrap(),
-        "--config",
-        "tiny",
-        "--checkpoint",
-        gen.to_str().unwrap(),
-        "--count",
-        "4",
-        "--inception",
-        weights.to_str().unwrap(),
-        "--out",
-        report.to_str().unwrap(),
-    ]));
+    let text = ok(eval(&data, &["--checkpoint", gen_s, "--inception", weights.to_str().unwrap(), "--out", report_s]));
     assert!(text.contains("FID "), "{text}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let (fid, kid) = (r["fid"].as_f64().unwrap(), r["kid"].as_f64().unwrap());
     assert!(fid.is_finite() && fid > 0.0 && kid.is_finite(), "{r}");
     let junk = root.join("junk.safetensors");
     std::fs::write(&junk, b"not weights").unwrap();
-    let o = trainer(&[
-        "eval",
-        "--data",
-        data.to_str().unwrap(),
-        "--config",
-        "tiny",
-        "--count",
-        "4",
-        "--inception",
-        junk.to_str().unwrap(),
-    ]);
+    let o = eval(&data, &["--inception", junk.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("junk.safetensors") && err.contains("pt_inception"), "{err}");
     let o = trainer(&["eval", "--data", data.to_str().unwrap(), "--config", "tiny", "--count", "0"]);
