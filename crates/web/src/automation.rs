@@ -5,7 +5,7 @@
 //! Pure Rust (no browser APIs): compiled and unit-tested natively.
 //!
 //! URL parameters (all optional):
-//! `pose=<name>` · `yaw=<deg>` · `pitch=<deg>` · `radius=<m>` · `view=rgb|normal|mask` ·
+//! `pose=<name>` · `yaw=<deg>` · `pitch=<deg>` · `radius=<m>` · `view=rgb|texture|normal|mask` ·
 //! `res=512|1024` · `betas=<b0,b1,...>` · `<joint>=<x,y,z>` (SMPL joint name, axis-angle rad)
 //! · `continuous=1` (render every frame).
 
@@ -385,6 +385,7 @@ mod tests {
         assert_eq!(parse_command(r#"{"pose":"sitting"}"#), Ok(Action::Pose("sitting".into())));
         assert_eq!(parse_command(r#"{"joint":"right_knee","value":[1.5,0,0]}"#), Ok(Action::Joint(5, [1.5, 0.0, 0.0])));
         assert_eq!(parse_command(r#"{"view":"normal"}"#), Ok(Action::View(ViewMode::Normal)));
+        assert_eq!(parse_command(r#"{"view":"texture"}"#), Ok(Action::View(ViewMode::Texture)));
         assert_eq!(parse_command(r#"{"download":true}"#), Ok(Action::Download));
         assert_eq!(
             parse_command(r#"{"generate":{"seed_geo":3}}"#),
