@@ -8,16 +8,16 @@ use glam::Vec3;
 use getavatar_core::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
+use getavatar_core::rasterize::linear_to_srgb;
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 use getavatar_core::OrbitCamera;
 
 use std::rc::Rc;
 
-use getavatar_core::generator::{RiggedAvatar, Styles};
-use getavatar_core::network::synthesis::Triplanes;
+use getavatar_core::generator::RiggedAvatar;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
-use crate::generate::GenEngine;
+use crate::generate::{GenEngine, TextureField};
 use crate::viewer::{bone_transforms, Vertex, Viewer};
 use crate::web;
 
@@ -48,7 +48,7 @@ pub struct GetAvatarApp {
     engine: Option<GenEngine>,
     rigged: Option<RiggedAvatar>,
     /// The shown avatar's texture field (styles, triplanes) for per-pixel queries.
-    field: Option<Rc<(Styles, Triplanes)>>,
+    field: Option<Rc<TextureField>>,
     /// Per-pixel texture view: the finished image, whether it shows the current frame, the
     /// frame counter it belongs to, and the job in flight.
     texture_image: Option<egui::TextureHandle>,
@@ -558,8 +558,8 @@ impl GetAvatarApp {
                         egui::ColorImage::new([n, n], vec![egui::Color32::from_rgb(bg[0], bg[1], bg[2]); n * n]);
                     let pixels = job.pixels.unwrap_or_default();
                     for (&i, c) in pixels.iter().zip(&colors) {
-                        let e = |x: f32| (linear_to_srgb(x) * 255.0).round().clamp(0.0, 255.0) as u8;
-                        img.pixels[i as usize] = egui::Color32::from_rgb(e(c.x), e(c.y), e(c.z));
+                        let e = (linear_to_srgb(*c) * 255.0).round().clamp(Vec3::ZERO, Vec3::splat(255.0));
+                        img.pixels[i as usize] = egui::Color32::from_rgb(e.x as u8, e.y as u8, e.z as u8);
                     }
                     match &mut self.texture_image {
                         Some(h) => h.set(img, egui::TextureOptions::LINEAR),
@@ -693,14 +693,4 @@ struct TextureJob {
     t0: f64,
     /// Covered pixels (row-major indices) once the canonical coordinates are read back.
     pixels: Option<Vec<u32>>,
-}
-
-/// sRGB encoding of a linear value in [0, 1].
-fn linear_to_srgb(x: f32) -> f32 {
-    let x = x.clamp(0.0, 1.0);
-    if x <= 0.003_130_8 {
-        12.92 * x
-    } else {
-        1.055 * x.powf(1.0 / 2.4) - 0.055
-    }
 }

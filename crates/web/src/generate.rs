@@ -76,11 +76,19 @@ async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
     Ok(js_sys::Uint8Array::new(&buf).to_vec())
 }
 
+/// An avatar's texture field: its styles, and its triplanes once computed (a new
+/// generation computes them inside the extraction; they are made again only if the
+/// per-pixel texture view asks).
+pub struct TextureField {
+    styles: Styles,
+    planes: RefCell<Option<Triplanes>>,
+}
+
 /// Outcome of a background generation.
 pub struct Finished {
     pub rigged: RiggedAvatar,
-    /// Styles and triplanes of this avatar: its texture field, for per-pixel queries.
-    pub field: Rc<(Styles, Triplanes)>,
+    /// This avatar's texture field, for per-pixel queries.
+    pub field: Rc<TextureField>,
     pub millis: f64,
     /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
@@ -173,15 +181,15 @@ impl GenEngine {
             let t0 = crate::web::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles(zg, zt, psi);
-            let planes = g.triplanes(&styles);
-            let rigged = match keep {
+            let (rigged, planes) = match keep {
                 Some(mut r) => {
+                    let planes = g.triplanes(&styles);
                     r.canonical.colors = recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await;
-                    r
+                    (r, Some(planes))
                 }
-                None => generate_rigged_async(&g, &ctx, &styles, &dev).await,
+                None => (generate_rigged_async(&g, &ctx, &styles, &dev).await, None),
             };
-            let field = Rc::new((styles, planes));
+            let field = Rc::new(TextureField { styles, planes: RefCell::new(planes) });
             let result = if rigged.canonical.mesh.faces.is_empty() {
                 Err("the generator produced an empty surface".to_string())
             } else {
@@ -218,15 +226,16 @@ impl GenEngine {
 
     /// Query the texture field of `field` at canonical points (the per-pixel RGB of the
     /// paper's renderer); the colours arrive via [`GenEngine::poll_texture`].
-    pub fn query_texture(
-        &mut self,
-        field: Rc<(Styles, Triplanes)>,
-        points: Vec<glam::Vec3>,
-        repaint: eframe::egui::Context,
-    ) {
+    pub fn query_texture(&mut self, field: Rc<TextureField>, points: Vec<glam::Vec3>, repaint: eframe::egui::Context) {
         let (g, dev, slot) = (self.generator.clone(), self.device.clone(), self.texture_slot.clone());
         wasm_bindgen_futures::spawn_local(async move {
-            let colors = recolor_async(&g, &field.1, &field.0, &points, &dev).await;
+            let cached = field.planes.borrow().clone();
+            let planes = cached.unwrap_or_else(|| {
+                let p = g.triplanes(&field.styles);
+                *field.planes.borrow_mut() = Some(p.clone());
+                p
+            });
+            let colors = recolor_async(&g, &planes, &field.styles, &points, &dev).await;
             *slot.borrow_mut() = Some(colors);
             repaint.request_repaint();
         });
