@@ -176,6 +176,11 @@ enum Command {
         /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople).
         #[arg(long, default_value_t = 10.0)]
         r1_gamma: f32,
+        /// `adversarial`: the paper's objective. `reconstruction`: a warm-up that is not in the
+        /// paper (fixed latents per training subject, L1 to its views); start an adversarial
+        /// run from its generator with `--resume RUN/generator.safetensors`.
+        #[arg(long, value_enum, default_value = "adversarial")]
+        objective: train::Objective,
     },
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
     /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
@@ -304,7 +309,19 @@ fn main() -> Result<()> {
                 out,
             })?
         }
-        Command::Train { data, config, out, resume, backend, batch, steps, snapshot_every, seed, r1_gamma } => {
+        Command::Train {
+            data,
+            config,
+            out,
+            resume,
+            backend,
+            batch,
+            steps,
+            snapshot_every,
+            seed,
+            r1_gamma,
+            objective,
+        } => {
             if batch == 0 || snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");
             }
@@ -319,6 +336,7 @@ fn main() -> Result<()> {
                 snapshot_every,
                 seed,
                 r1_gamma,
+                objective,
             })?
         }
         Command::Bench { configs, repeats, backend } => bench::bench(&configs, repeats.max(1), &backend)?,

@@ -49,6 +49,22 @@ pub struct TrainArgs {
     pub snapshot_every: u64,
     pub seed: u64,
     pub r1_gamma: f32,
+    pub objective: Objective,
+}
+
+/// What a run optimises.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Objective {
+    /// The paper's objective (Sec. 4.5): three discriminators, R1, eikonal, SDF cross-entropy.
+    #[default]
+    Adversarial,
+    /// A warm-up that is not in the paper: every training subject gets a fixed latent pair
+    /// (z_geo, z_tex) and G learns to reproduce that subject's views (L1 on RGB, normal map and
+    /// mask, plus the eikonal and cross-entropy terms). Dense per-pixel gradients teach garment
+    /// colours and shapes in far fewer steps than the adversarial game; an adversarial run
+    /// started from it (`--resume GENERATOR`) then spreads the latent space.
+    Reconstruction,
 }
 
 /// Settings of a run (written once to `run.json`, read back on resume).
@@ -69,12 +85,27 @@ pub struct RunConfig {
     pub lambda_cross_entropy: f32,
     pub ema_kimg: f32,
     pub seed: u64,
+    /// Absent in runs written before it existed: adversarial.
+    #[serde(default)]
+    pub objective: Objective,
 }
 
 impl RunConfig {
     /// The settings of a fresh run on `ds` (the reference code's values, see
     /// `../shared/reference/paper-code-facts.md`; EMA half-life scaled to the batch).
     pub fn new(ds: &Dataset, data: &Path, generator: GeneratorConfig, batch: usize, r1_gamma: f32, seed: u64) -> Self {
+        Self::with_objective(ds, data, generator, batch, r1_gamma, seed, Objective::Adversarial)
+    }
+
+    pub fn with_objective(
+        ds: &Dataset,
+        data: &Path,
+        generator: GeneratorConfig,
+        batch: usize,
+        r1_gamma: f32,
+        seed: u64,
+        objective: Objective,
+    ) -> Self {
         Self {
             discriminator: discriminator_config(ds.resolution, &generator),
             generator,
@@ -91,6 +122,7 @@ impl RunConfig {
             lambda_cross_entropy: 0.01,
             ema_kimg: 10.0f32.min(batch as f32 * 10.0 / 32.0),
             seed,
+            objective,
         }
     }
 }
@@ -273,6 +305,9 @@ pub fn train_step(
     rc: &RunConfig,
     ad: &Device,
 ) -> Result<(State, Metrics)> {
+    if rc.objective == Objective::Reconstruction {
+        return reconstruction_step(st, ds, ctx, grids, rc, ad);
+    }
     let t0 = std::time::Instant::now();
     let b = rc.batch;
     let real_idx: Vec<usize> = (0..b).map(|_| st.rng.below(ds.len())).collect();
@@ -369,6 +404,77 @@ pub fn train_step(
     Ok((st, metrics))
 }
 
+/// Subject of every dataset entry (the folder part of its image path) as an index into the
+/// sorted subject names.
+fn subject_of_entries(ds: &Dataset) -> Vec<usize> {
+    let name = |p: &str| p.rsplit_once('/').map_or(String::new(), |(d, _)| d.to_string());
+    let names: std::collections::BTreeSet<String> = ds.entries.iter().map(|(p, _)| name(p)).collect();
+    let names: Vec<String> = names.into_iter().collect();
+    ds.entries.iter().map(|(p, _)| names.binary_search(&name(p)).unwrap_or(0)).collect()
+}
+
+/// The fixed latent pair (z_geo, z_tex) `[B, z_dim]` of each subject for the reconstruction
+/// objective (a function of the run seed and the subject index only).
+fn subject_latents(rc: &RunConfig, subjects: &[usize], dev: &Device) -> (Tensor<2>, Tensor<2>) {
+    let z = rc.generator.z_dim;
+    let draw = |stream: u64| -> Vec<f32> {
+        subjects.iter().flat_map(|&s| Rng::new(rc.seed.wrapping_add(stream), s as u64).normals(z)).collect()
+    };
+    let t = |v: Vec<f32>| Tensor::from_data(TensorData::new(v, [subjects.len(), z]), dev);
+    (t(draw(0x9e0)), t(draw(0x7e8)))
+}
+
+/// One step of the reconstruction warm-up (`Objective::Reconstruction`): G renders each sampled
+/// view's subject (its fixed latents) under the view's camera and body pose and is pulled
+/// towards the real images by L1 (RGB, normal map, mask) plus the eikonal and SDF
+/// cross-entropy terms; then w_avg tracking and an EMA with StyleGAN2-ADA's ramp-up (half-life
+/// at most 5 % of the images seen so far).
+fn reconstruction_step(
+    mut st: State,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<(State, Metrics)> {
+    let t0 = std::time::Instant::now();
+    let b = rc.batch;
+    let idx: Vec<usize> = (0..b).map(|_| st.rng.below(ds.len())).collect();
+    let labels: Vec<Label> = idx.iter().map(|&i| ds.entries[i].1.clone()).collect();
+    let subjects = subject_of_entries(ds);
+    let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
+    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &idx, ad)?;
+    let fakes =
+        render_avatars(&st.g, ctx, &st.g.styles(zg.clone(), zt.clone(), 1.0), &labels, rc.resolution, grids, ad);
+    let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
+    let mut loss = l1(fakes.rgb, real_rgb) + l1(fakes.mask, real_msk);
+    if rc.use_normals {
+        loss = loss + l1(fakes.normal, real_nrm);
+    }
+    let metrics = Metrics {
+        loss_g: scalar(loss.clone()),
+        eikonal: scalar(fakes.eikonal.clone()),
+        cross_entropy: scalar(fakes.cross_entropy.clone()),
+        triangles: fakes.triangles.iter().sum::<usize>() as f32 / b as f32,
+        ..Metrics::default()
+    };
+    let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
+    let grads = total.backward();
+    let mut g = st.adam_g.step(rc.lr_g, st.g, &grads);
+    let beta_w = rc.generator.w_avg_beta;
+    let wg = g.mapping_geo.forward(zg.detach());
+    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta_w);
+    let wt = g.mapping_tex.forward(zt.detach());
+    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta_w);
+    let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
+    let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
+    st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));
+    st.g = g;
+    st.step += 1;
+    let (step, seconds) = (st.step, t0.elapsed().as_secs_f64());
+    Ok((st, Metrics { step, kimg: step as f64 * b as f64 / 1000.0, seconds, ..metrics }))
+}
+
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     {
@@ -390,9 +496,14 @@ fn sample_grid(
 ) -> Vec<u8> {
     let n = 4.min(ds.len());
     let labels: Vec<Label> = (0..n).map(|i| ds.entries[i * ds.len() / n].1.clone()).collect();
-    let mut rng = Rng::new(12345, 1);
-    let zg = latents(&mut rng, n, rc.generator.z_dim, plain);
-    let zt = latents(&mut rng, n, rc.generator.z_dim, plain);
+    let (zg, zt) = if rc.objective == Objective::Reconstruction {
+        // The subjects of the shown views, to compare with the data.
+        let subjects = subject_of_entries(ds);
+        subject_latents(rc, &(0..n).map(|i| subjects[i * ds.len() / n]).collect::<Vec<_>>(), plain)
+    } else {
+        let mut rng = Rng::new(12345, 1);
+        (latents(&mut rng, n, rc.generator.z_dim, plain), latents(&mut rng, n, rc.generator.z_dim, plain))
+    };
     let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, grids, plain);
     let r = rc.resolution;
     let imgs = [f.rgb, f.normal, f.mask.repeat_dim(1, 3)];
@@ -437,7 +548,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 a.out.display()
             );
         }
-        let rc = RunConfig::new(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed);
+        let rc = RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective);
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
         rc
     };

@@ -212,6 +212,33 @@ fn transfer_learning_onto_rgb_only_data_turns_the_normal_discriminator_off() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// The reconstruction warm-up (not in the paper) pulls G towards each subject's views: its L1
+/// falls, no discriminator is trained, and an adversarial run starts from its generator.
+#[test]
+fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training() {
+    let root = tmp("recon");
+    let data = dataset(&root);
+    let run = root.join("recon");
+    let text = train(&data, &run, 80, &["--objective", "reconstruction", "--snapshot-every", "40"]);
+    assert!(text.contains("trained 80 steps"), "{text}");
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = metrics.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(rows.len(), 80);
+    assert!(rows.iter().all(|r| r["loss_d"].as_f64() == Some(0.0) && r["r1"].is_null()), "no D: {metrics}");
+    let l1: Vec<f64> = rows.iter().map(|r| r["loss_g"].as_f64().unwrap()).collect();
+    let (first, last) = (l1[..10].iter().sum::<f64>() / 10.0, l1[70..].iter().sum::<f64>() / 10.0);
+    assert!(last < 0.8 * first, "L1 of steps 1–10 {first:.4}, of steps 71–80 {last:.4}");
+    let run_json = std::fs::read_to_string(run.join("run.json")).unwrap();
+    assert!(run_json.contains("\"objective\": \"reconstruction\""), "{run_json}");
+    let g = run.join("generator.safetensors");
+    let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
+    assert!(text.contains("initialised the generator from"), "{text}");
+    let adv = std::fs::read_to_string(root.join("adv").join("metrics.jsonl")).unwrap();
+    let row: serde_json::Value = serde_json::from_str(adv.lines().next().unwrap()).unwrap();
+    assert!(row["loss_d"].as_f64().unwrap() > 0.0, "{row}");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 fn walk(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
     for e in std::fs::read_dir(dir).unwrap().flatten() {
