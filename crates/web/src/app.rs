@@ -55,6 +55,9 @@ pub struct GetAvatarApp {
     texture_valid: bool,
     texture_epoch: u64,
     texture_job: Option<TextureJob>,
+    /// The frame whose canonical-coordinate readback failed: not retried until the frame
+    /// changes (one message per failed frame, not one per repaint).
+    texture_failed_epoch: Option<u64>,
     show_avatar: bool,
     seed_geo: u64,
     seed_tex: u64,
@@ -122,6 +125,7 @@ impl GetAvatarApp {
             texture_image: None,
             texture_valid: false,
             texture_epoch: 0,
+            texture_failed_epoch: None,
             texture_job: None,
             show_avatar: false,
             seed_geo: 0,
@@ -519,14 +523,20 @@ impl GetAvatarApp {
         let (Some(viewer), Some(engine)) = (self.viewer.as_mut(), self.engine.as_mut()) else { return };
         match self.texture_job.take() {
             None => {
-                if wanted && !self.texture_valid && viewer.request_canonical(&rs.device, &rs.queue, self.res) {
+                let failed = self.texture_failed_epoch == Some(self.texture_epoch);
+                if wanted && !self.texture_valid && !failed && viewer.request_canonical(&rs.device, &rs.queue, self.res)
+                {
                     self.texture_job =
                         Some(TextureJob { epoch: self.texture_epoch, res: self.res, t0: web::now_ms(), pixels: None });
                 }
             }
             Some(mut job) if job.pixels.is_none() => match viewer.take_canonical() {
                 None => self.texture_job = Some(job),
-                Some(Err(e)) => self.messages.push(e),
+                Some(Err(e)) => {
+                    self.texture_failed_epoch = Some(job.epoch);
+                    self.messages
+                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
+                }
                 Some(Ok(data)) => {
                     if job.epoch != self.texture_epoch || !wanted {
                         return;
@@ -662,7 +672,10 @@ impl eframe::App for GetAvatarApp {
             || self.continuous
             || self.queued.is_some()
             || self.texture_job.is_some()
-            || (self.view == ViewMode::Texture && !self.texture_valid && self.field.is_some())
+            || (self.view == ViewMode::Texture
+                && !self.texture_valid
+                && self.field.is_some()
+                && self.texture_failed_epoch != Some(self.texture_epoch))
         {
             ui.ctx().request_repaint();
         }
