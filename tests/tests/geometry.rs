@@ -256,7 +256,8 @@ fn demo_grid_resolves_the_posed_body() {
     for pose in ["Da", "walking", "sitting", "arms_up"] {
         let posed = pose_body(&model, &lib.params(pose, &[]).expect("pose"));
         let inv = InverseSkinning::new(&model, &posed, &cano);
-        let (canon, sdf): (Vec<Vec3>, Vec<f32>) = grid.vertices.iter().map(|p| inv.canonical_template(&t, *p)).unzip();
+        let (canon, sdf): (Vec<Vec3>, Vec<f32>) =
+            grid.vertices.iter().map(|p| inv.canonical_template(&t, *p)).map(|(c, s, _)| (c, s)).unzip();
         let m = marching_tets(&grid.vertices, &grid.tets, &sdf, &canon);
         // No floating fragments (K = 1 un-warping of space the pose vacated): every extracted
         // vertex lies near the posed body.
@@ -272,5 +273,42 @@ fn demo_grid_resolves_the_posed_body() {
             println!("{pose}, yaw {yaw:.2}: silhouette IoU {iou:.3}");
             assert!(iou > 0.88, "{pose}, yaw {yaw}: silhouette IoU {iou} of the zero-residual demo avatar");
         }
+    }
+}
+
+/// Space a pose vacates (where the canonical arms were, in arms_up) un-warps into another body
+/// part; the guard gives it the posed-space distance, and the generator's residual is not
+/// evaluated there (`field_band` leaves it out), so a learned negative residual (clothing)
+/// cannot turn it inside and leave floating fragments. The Da-pose vacates nothing.
+#[test]
+fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
+    use getavatar_core::generator::{field_band, BodyContext};
+    use getavatar_core::network::GeneratorConfig;
+    // The demo grid (3.6 cm cells); vacated space near the body needs cells this fine.
+    let ctx = BodyContext::new(body(), &GeneratorConfig { tet_res: 64, template_res: 128, ..GeneratorConfig::tiny() });
+    let lib = PoseLibrary::builtin();
+    for (pose, expect_vacated) in [("Da", false), ("arms_up", true), ("walking", true), ("sitting", true)] {
+        let posed = pose_body(&ctx.model, &lib.params(pose, &[]).expect("pose"));
+        let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
+        let mapped: Vec<(Vec3, f32, bool)> =
+            ctx.grid.vertices.iter().map(|p| inv.canonical_template(&ctx.template, *p)).collect();
+        let template: Vec<f32> = mapped.iter().map(|m| m.1).collect();
+        let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
+        let vacated: Vec<usize> = (0..guarded.len()).filter(|&i| guarded[i]).collect();
+        println!("{pose}: {} guarded grid vertices", vacated.len());
+        assert_eq!(!vacated.is_empty(), expect_vacated, "{pose}: {} guarded vertices", vacated.len());
+        // Guarded vertices are outside the posed body, by their distance to it.
+        let body_tree = KdTree::new(&posed.vertices);
+        for &i in &vacated {
+            let d = body_tree.nearest(ctx.grid.vertices[i]).map_or(f32::MAX, |x| x.1.sqrt());
+            assert!(template[i] > 0.0 && (template[i] - d).abs() < 1e-4, "{pose}: vertex {i}");
+        }
+        let band = field_band(&ctx, &template, &guarded);
+        assert!(band.iter().all(|&i| !guarded[i as usize]), "{pose}: a guarded vertex is in the band");
+        // Without the guard flags the band would include vacated vertices near the body.
+        let unguarded = field_band(&ctx, &template, &[]);
+        let near = unguarded.iter().filter(|&&i| guarded[i as usize]).count();
+        println!("{pose}: {near} of {} band vertices guarded", unguarded.len());
+        assert_eq!(unguarded.iter().any(|&i| guarded[i as usize]), expect_vacated, "{pose}");
     }
 }

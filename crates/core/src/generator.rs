@@ -138,15 +138,22 @@ pub struct Avatar {
 }
 
 /// Grid vertices where the generator's geometry fields are evaluated: |template SDF| below
-/// the residual bound (`SDF_RESIDUAL_MAX`) plus two tet edges, off the box boundary. Farther
-/// out the SDF has the template's sign whatever the residual and no sign-changing edge reaches
-/// (the template is ~1-Lipschitz), so residual and offsets are 0 there: same surface, a
-/// fraction of the decoder work.
-pub fn field_band(ctx: &BodyContext, template: &[f32]) -> Vec<u32> {
+/// the residual bound (`SDF_RESIDUAL_MAX`) plus two tet edges, off the box boundary, and not
+/// `guarded` (space the pose vacated, see `inverse_skinning::guarded_template`: there the
+/// canonical point lies inside another body part, whose learned residual would turn the
+/// vacated space inside and leave floating fragments). Farther out the SDF has the template's
+/// sign whatever the residual and no sign-changing edge reaches (the template is ~1-Lipschitz),
+/// so residual and offsets are 0 there: same surface, a fraction of the decoder work.
+pub fn field_band(ctx: &BodyContext, template: &[f32], guarded: &[bool]) -> Vec<u32> {
     let edge = REFERENCE_BOX_SIZE / ctx.grid.res.max(1) as f32 * 3f32.sqrt();
     let reach = SDF_RESIDUAL_MAX + 2.0 * edge;
-    (0..template.len() as u32)
-        .filter(|&i| template[i as usize].abs() < reach && !ctx.boundary.get(i as usize).copied().unwrap_or(true))
+    (0..template.len())
+        .filter(|&i| {
+            template[i].abs() < reach
+                && !ctx.boundary.get(i).copied().unwrap_or(true)
+                && !guarded.get(i).copied().unwrap_or(false)
+        })
+        .map(|i| i as u32)
         .collect()
 }
 
@@ -201,9 +208,14 @@ pub async fn generate_avatar_async(
     let planes = g.triplanes(s);
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-    let (canon, template): (Vec<Vec3>, Vec<f32>) =
-        ctx.grid.vertices.iter().map(|p| inv.canonical_template(&ctx.template, *p)).unzip();
-    let band = field_band(ctx, &template);
+    let (mut canon, mut template, mut guarded) = (Vec::new(), Vec::new(), Vec::new());
+    for p in &ctx.grid.vertices {
+        let (c, t, g) = inv.canonical_template(&ctx.template, *p);
+        canon.push(c);
+        template.push(t);
+        guarded.push(g);
+    }
+    let band = field_band(ctx, &template, &guarded);
     let n = canon.len();
     let (mut residual, mut offset) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);
     if !band.is_empty() {
@@ -299,23 +311,27 @@ impl RiggedAvatar {
         let mut verts = Vec::with_capacity(self.body_vertex.len());
         let mut normals = Vec::with_capacity(self.body_vertex.len());
         for ((v, n), &b) in self.canonical.mesh.vertices.iter().zip(&self.canonical.normals).zip(&self.body_vertex) {
-            let (m, r) = *cache.entry(b).or_insert_with(|| {
-                let i = b as usize;
-                let shape = posed.shaped[i] - ctx.model.v_template[i];
-                let m = posed.vertex_transforms[i]
-                    * glam::Mat4::from_translation(shape)
-                    * ctx.canonical.vertex_transforms[i].inverse();
-                let r = crate::geometry::inverse_skinning::nearest_rotation(
-                    glam::Mat3::from_mat4(posed.vertex_transforms[i])
-                        * glam::Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
-                );
-                (m, r)
-            });
+            let (m, r) = *cache.entry(b).or_insert_with(|| repose_transform(ctx, posed, b as usize));
             verts.push(m.transform_point3(*v));
             normals.push((r * *n).normalize_or_zero());
         }
         (verts, normals)
     }
+}
+
+/// The transform that re-poses canonical points rigged to body vertex `i` into the pose/shape
+/// of `posed` — the posed blended transform, the shape offset, and the inverse canonical
+/// transform — and the rotation for normals (nearest to the linear part, paper eq. 4). Used
+/// by [`RiggedAvatar::repose`] on the CPU and by the web viewer's GPU skinning.
+pub fn repose_transform(ctx: &BodyContext, posed: &PosedBody, i: usize) -> (glam::Mat4, glam::Mat3) {
+    let shape = posed.shaped[i] - ctx.model.v_template[i];
+    let m =
+        posed.vertex_transforms[i] * glam::Mat4::from_translation(shape) * ctx.canonical.vertex_transforms[i].inverse();
+    let r = crate::geometry::inverse_skinning::nearest_rotation(
+        glam::Mat3::from_mat4(posed.vertex_transforms[i])
+            * glam::Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
+    );
+    (m, r)
 }
 
 /// Generate in the canonical pose and rig (the fast path's one-off cost).

@@ -48,23 +48,15 @@ pub struct Bone {
     pub normal: [[f32; 4]; 4],
 }
 
-/// The per-body-vertex transforms that re-pose a rigged avatar to `posed` (same maths as
-/// `RiggedAvatar::repose`: the posed blended transform, the shape offset, and the inverse
-/// of the canonical transform; normals by the nearest rotation).
+/// The per-body-vertex transforms that re-pose a rigged avatar to `posed`
+/// (`generator::repose_transform`, the maths of `RiggedAvatar::repose`).
 pub fn bone_transforms(
     ctx: &getavatar_core::generator::BodyContext,
     posed: &getavatar_core::skinning::PosedBody,
 ) -> Vec<Bone> {
     (0..posed.vertex_transforms.len())
         .map(|i| {
-            let shape = posed.shaped[i] - ctx.model.v_template[i];
-            let m = posed.vertex_transforms[i]
-                * Mat4::from_translation(shape)
-                * ctx.canonical.vertex_transforms[i].inverse();
-            let r = getavatar_core::geometry::inverse_skinning::nearest_rotation(
-                glam::Mat3::from_mat4(posed.vertex_transforms[i])
-                    * glam::Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
-            );
+            let (m, r) = getavatar_core::generator::repose_transform(ctx, posed, i);
             Bone { position: m.to_cols_array_2d(), normal: Mat4::from_mat3(r).to_cols_array_2d() }
         })
         .collect()

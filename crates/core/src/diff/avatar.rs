@@ -68,11 +68,11 @@ impl PosedGrid {
     /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
     pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
         let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32)> {
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> {
             chunk.iter().map(|p| inv.canonical_template(&ctx.template, *p)).collect()
         };
         #[cfg(not(target_arch = "wasm32"))]
-        let mapped: Vec<(Vec3, f32)> = {
+        let mapped: Vec<(Vec3, f32, bool)> = {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
             let chunk = verts.len().div_ceil(threads).max(1);
             std::thread::scope(|sc| {
@@ -82,8 +82,9 @@ impl PosedGrid {
         };
         #[cfg(target_arch = "wasm32")]
         let mapped = map(verts);
-        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().unzip();
-        let band = field_band(ctx, &template);
+        let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
+        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
+        let band = field_band(ctx, &template, &guarded);
         Self { canonical, template, band }
     }
 }

@@ -56,11 +56,15 @@ impl InverseSkinning {
         (self.cano[i].transform_point3(rest), i, d2.max(0.0).sqrt())
     }
 
-    /// Canonical position of posed grid point `x_d` and the body template's SDF there,
-    /// guarded against un-warps into another body part ([`guarded_template`]).
-    pub fn canonical_template(&self, template: &crate::geometry::TemplateSdf, x_d: Vec3) -> (Vec3, f32) {
+    /// Canonical position of posed grid point `x_d`, the body template's SDF there guarded
+    /// against un-warps into another body part ([`guarded_template`]), and whether the guard
+    /// fired (the point lies in space the pose vacated: the generator's residual must not be
+    /// added there, see `generator::field_band`).
+    pub fn canonical_template(&self, template: &crate::geometry::TemplateSdf, x_d: Vec3) -> (Vec3, f32, bool) {
         let (c, _, d) = self.to_canonical_with_distance(x_d);
-        (c, guarded_template(template.sample(c), d))
+        let t = template.sample(c);
+        let g = guarded_template(t, d);
+        (c, g, g != t)
     }
 
     /// Rotation taking canonical-space directions at body vertex `i` into posed space.
@@ -96,14 +100,14 @@ pub const UNWARP_SLACK: f32 = 0.05;
 
 /// The template SDF `t` at an un-warped point, checked against the posed-space distance `d`
 /// to the body vertex that un-warped it. That vertex's blended transform is nearly rigid, so
-/// the canonical point keeps distance ≈ d to the canonical vertex and the canonical surface
-/// cannot be much farther than d: |t| ≲ d. A point far from the posed body that lands deep
-/// inside the canonical body (t < 0, d > |t| + slack) was carried into another body part: it
-/// lies in space the pose vacated (where the canonical arms were, in an arms-up pose) and is
-/// outside the posed body, so it gets +d. Without this, K = 1 inverse skinning leaves floating
-/// fragments there.
+/// the canonical point keeps distance ≈ d to the canonical vertex, and a correct un-warp has
+/// |t| ≈ d. A point with d > |t| + slack was carried next to or into another body part: it
+/// lies in space the pose vacated (where the canonical arms were, in an arms-up pose), at
+/// least d from the posed body and outside it, so it gets +d. Without this, K = 1 inverse
+/// skinning leaves floating fragments there: of the template itself where t < 0, and of the
+/// learned residual (clothing near the other part's canonical surface) where t is small.
 pub fn guarded_template(t: f32, d: f32) -> f32 {
-    if t < 0.0 && d > -t + UNWARP_SLACK {
+    if d > t.abs() + UNWARP_SLACK {
         d
     } else {
         t
