@@ -174,6 +174,15 @@ fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig 
     }
 }
 
+/// G's optimiser: the paper's Adam β = (0, 0.99) for the adversarial game; β₁ = 0.9 (momentum)
+/// for the reconstruction warm-up, whose L1 gradients are noisy per batch but not adversarial.
+fn generator_adam(rc: &RunConfig) -> Adam {
+    match rc.objective {
+        Objective::Adversarial => Adam::new(0.0, 0.99, 1e-8),
+        Objective::Reconstruction => Adam::new(0.9, 0.99, 1e-8),
+    }
+}
+
 impl State {
     pub fn new(rc: &RunConfig, ad: &Device, plain: &Device) -> Self {
         let seed = rc.seed;
@@ -185,7 +194,7 @@ impl State {
                 .enumerate()
                 .map(|(k, &c)| Discriminator::new(&rc.discriminator, c, seed + 100 + k as u64, ad))
                 .collect(),
-            adam_g: Adam::new(0.0, 0.99, 1e-8),
+            adam_g: generator_adam(rc),
             adam_d: (0..3).map(|_| Adam::new(0.0, 0.99, 1e-8)).collect(),
             step: 0,
             rng: Rng::new(seed, 0x7a1e),
@@ -243,7 +252,7 @@ impl State {
                 .collect::<Result<_, _>>()?;
         let inner = ad.clone().without_autodiff();
         let load_adam = |prefix: &str| -> Result<Adam> {
-            let mut a = Adam::new(0.0, 0.99, 1e-8);
+            let mut a = if prefix == "adam_g/" { generator_adam(rc) } else { Adam::new(0.0, 0.99, 1e-8) };
             a.step = num(&format!("{prefix}step"))?;
             for (k, (shape, vals)) in &st.tensors {
                 if let Some(rest) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {

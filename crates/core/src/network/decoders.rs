@@ -7,10 +7,11 @@
 //!   farther away (training evaluates the decoders only in that band, `diff::avatar`).
 //! - DMTet vertex offset (3), its own MLP on w_geo, squashed to tanh(·) · ¼ grid cell (the
 //!   reference's tanh(·)/90 in its normalised box is about a quarter of its cell).
-//! - Texture feature (`texture_features`) styled by w_tex, then to-RGB (linear, no demod).
+//! - Texture feature (`texture_features`) styled by w_tex, then to-RGB (linear, no demod) and
+//!   a sigmoid.
 
 use burn::module::Module;
-use burn::tensor::activation::tanh;
+use burn::tensor::activation::{sigmoid, tanh};
 use burn::tensor::{Device, Tensor};
 
 use super::config::GeneratorConfig;
@@ -26,6 +27,9 @@ pub const SDF_INIT_SCALE: f32 = 0.001;
 /// Bound of the SDF residual, metres: loose dresses, coats and hair reach about this far from
 /// the body.
 pub const SDF_RESIDUAL_MAX: f32 = 0.2;
+
+/// Overshoot of the colour sigmoid (EG3D's 0.001).
+const RGB_EPS: f32 = 0.001;
 
 #[derive(Module, Debug)]
 pub struct Decoder {
@@ -104,10 +108,13 @@ impl Decoders {
         tanh(self.offset.forward(feat, w.clone(), w)) * (REFERENCE_BOX_SIZE / (4.0 * self.tet_res as f32))
     }
 
-    /// Colours `[B, N, 3]` in [0, 1] from texture features.
+    /// Colours `[B, N, 3]` in [0, 1] from texture features: EG3D's output activation
+    /// `sigmoid(x)·(1 + 2ε) − ε` (ε = 0.001, so 0 and 1 are reached), clamped to [0, 1]. A plain
+    /// clamp of the linear output would have zero gradient wherever a colour saturates, and
+    /// saturated texels could never recover.
     pub fn rgb(&self, feat: Tensor<3>, w_tex: Tensor<2>) -> Tensor<3> {
         let f = self.texture.forward(feat, w_tex.clone(), w_tex.clone());
         let rgb = self.to_rgb.forward(f, w_tex);
-        ((rgb + 1.0) * 0.5).clamp(0.0, 1.0)
+        (sigmoid(rgb) * (1.0 + 2.0 * RGB_EPS) - RGB_EPS).clamp(0.0, 1.0)
     }
 }
