@@ -63,7 +63,8 @@ pub enum Objective {
     /// (z_geo, z_tex) and G learns to reproduce that subject's views (L1 on RGB, normal map and
     /// mask, plus the eikonal and cross-entropy terms). Dense per-pixel gradients teach garment
     /// colours and shapes in far fewer steps than the adversarial game; an adversarial run
-    /// started from it (`--resume GENERATOR`) then spreads the latent space.
+    /// started from it (`--resume GENERATOR`) then spreads the latent space. Adam β₁ = 0.9 and
+    /// lr 0.0005 (a quarter of the adversarial rate).
     Reconstruction,
 }
 
@@ -113,7 +114,12 @@ impl RunConfig {
             resolution: ds.resolution,
             use_normals: ds.has_normals,
             batch,
-            lr_g: 0.002,
+            // The reconstruction warm-up's dense L1 gradients overshoot at the adversarial rate
+            // (the SDF residual inflated and collapsed whole avatars within 100 steps at 0.002).
+            lr_g: match objective {
+                Objective::Adversarial => 0.002,
+                Objective::Reconstruction => 0.0005,
+            },
             lr_d: 0.002,
             r1_gamma,
             r1_every: 16,
