@@ -146,42 +146,7 @@ enum Command {
     },
     /// Train GETAvatar (the paper's adversarial objective with RGB, normal and mask
     /// discriminators) on a prepared dataset; checkpoints, sample grids and metrics go to --out.
-    Train {
-        /// Dataset directory (dataset.json + images, see docs/dataset.md).
-        #[arg(long)]
-        data: PathBuf,
-        /// Generator size: tiny, demo or paper.
-        #[arg(long, default_value = "tiny")]
-        config: String,
-        /// Run directory.
-        #[arg(long, default_value = "runs/train")]
-        out: PathBuf,
-        /// Continue the run in --out; with a file: start the generator from that checkpoint
-        /// (transfer learning, e.g. onto a dataset without normal maps).
-        #[arg(long, num_args = 0..=1)]
-        resume: Option<Option<PathBuf>>,
-        /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
-        #[arg(long, default_value = "ndarray")]
-        backend: String,
-        #[arg(long, default_value_t = 4)]
-        batch: usize,
-        /// Train until this many steps in total.
-        #[arg(long, default_value_t = 1000)]
-        steps: u64,
-        /// Checkpoint and sample grid every N steps.
-        #[arg(long, default_value_t = 100)]
-        snapshot_every: u64,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople).
-        #[arg(long, default_value_t = 10.0)]
-        r1_gamma: f32,
-        /// `adversarial`: the paper's objective. `reconstruction`: a warm-up that is not in the
-        /// paper (fixed latents per training subject, L1 to its views); start an adversarial
-        /// run from its generator with `--resume RUN/generator.safetensors`.
-        #[arg(long, value_enum, default_value = "adversarial")]
-        objective: train::Objective,
-    },
+    Train(train::TrainArgs),
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
     /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
     Eval {
@@ -309,35 +274,11 @@ fn main() -> Result<()> {
                 out,
             })?
         }
-        Command::Train {
-            data,
-            config,
-            out,
-            resume,
-            backend,
-            batch,
-            steps,
-            snapshot_every,
-            seed,
-            r1_gamma,
-            objective,
-        } => {
-            if batch == 0 || snapshot_every == 0 {
+        Command::Train(args) => {
+            if args.batch == 0 || args.snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");
             }
-            train::train(&train::TrainArgs {
-                data,
-                config,
-                out,
-                resume,
-                backend,
-                batch,
-                steps,
-                snapshot_every,
-                seed,
-                r1_gamma,
-                objective,
-            })?
+            train::train(&args)?
         }
         Command::Bench { configs, repeats, backend } => bench::bench(&configs, repeats.max(1), &backend)?,
         Command::BenchTrain { configs, backends, resolutions, batch, steps, work } => {

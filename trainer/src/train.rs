@@ -37,18 +37,41 @@ use serde::{Deserialize, Serialize};
 
 const STATE_FORMAT: &str = "getavatar-train-state/1";
 
+#[derive(clap::Args, Debug)]
 pub struct TrainArgs {
+    /// Dataset directory (dataset.json + images, see docs/dataset.md).
+    #[arg(long)]
     pub data: PathBuf,
+    /// Generator size: tiny, demo or paper.
+    #[arg(long, default_value = "tiny")]
     pub config: String,
+    /// Run directory.
+    #[arg(long, default_value = "runs/train")]
     pub out: PathBuf,
-    /// `None`: fresh run; `Some(None)`: continue RUN; `Some(Some(f))`: start from generator `f`.
+    /// Continue the run in --out; with a file: start the generator from that checkpoint
+    /// (transfer learning, e.g. onto a dataset without normal maps).
+    #[arg(long, num_args = 0..=1)]
     pub resume: Option<Option<PathBuf>>,
+    /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
+    #[arg(long, default_value = "ndarray")]
     pub backend: String,
+    #[arg(long, default_value_t = 4)]
     pub batch: usize,
+    /// Train until this many steps in total.
+    #[arg(long, default_value_t = 1000)]
     pub steps: u64,
+    /// Checkpoint and sample grid every N steps.
+    #[arg(long, default_value_t = 100)]
     pub snapshot_every: u64,
+    #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople).
+    #[arg(long, default_value_t = 10.0)]
     pub r1_gamma: f32,
+    /// `adversarial`: the paper's objective. `reconstruction`: a warm-up that is not in the
+    /// paper (fixed latents per training subject, L1 to its views); start an adversarial
+    /// run from its generator with `--resume RUN/generator.safetensors`.
+    #[arg(long, value_enum, default_value = "adversarial")]
     pub objective: Objective,
 }
 
