@@ -424,13 +424,8 @@ pub fn train_step(
     lap("G losses");
     let grads = total_g.backward();
     lap("G backward");
-    let mut g = st.adam_g.step(rc.lr_g, st.g, &grads);
     // w_avg tracking and the EMA of G.
-    let beta_w = rc.generator.w_avg_beta;
-    let wg = g.mapping_geo.forward(zg.detach());
-    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta_w);
-    let wt = g.mapping_tex.forward(zt.detach());
-    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta_w);
+    let g = track_w_avg(st.adam_g.step(rc.lr_g, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
     let beta = 0.5f32.powf(b as f32 / (rc.ema_kimg * 1000.0).max(1e-8));
     st.g_ema = ema_update(st.g_ema, &g, beta);
     st.g = g;
@@ -440,6 +435,15 @@ pub fn train_step(
     metrics.kimg = st.step as f64 * b as f64 / 1000.0;
     metrics.seconds = t0.elapsed().as_secs_f64();
     Ok((st, metrics))
+}
+
+/// Track both mapping networks' w_avg (decay `beta`) on this step's latents.
+fn track_w_avg(mut g: Generator, zg: Tensor<2>, zt: Tensor<2>, beta: f32) -> Generator {
+    let wg = g.mapping_geo.forward(zg.detach());
+    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta);
+    let wt = g.mapping_tex.forward(zt.detach());
+    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta);
+    g
 }
 
 /// Subject of every dataset entry (the folder part of its image path) as an index into the
@@ -498,12 +502,7 @@ fn reconstruction_step(
     };
     let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
     let grads = total.backward();
-    let mut g = st.adam_g.step(rc.lr_g, st.g, &grads);
-    let beta_w = rc.generator.w_avg_beta;
-    let wg = g.mapping_geo.forward(zg.detach());
-    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta_w);
-    let wt = g.mapping_tex.forward(zt.detach());
-    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta_w);
+    let g = track_w_avg(st.adam_g.step(rc.lr_g, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
     let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
     let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
     st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));
