@@ -184,3 +184,82 @@ fn conv2d_same_matches_burn_conv2d() {
         close(&gw1, &gw0, "∂w");
     }
 }
+
+/// Every float parameter of `m` by checkpoint path.
+fn named_params<M: Module>(m: &M) -> std::collections::BTreeMap<String, Vec<f32>> {
+    use getavatar_core::burn::module::{ModuleVisitor, Param};
+    struct V {
+        path: Vec<String>,
+        seen: std::collections::BTreeMap<String, usize>,
+        out: std::collections::BTreeMap<String, Vec<f32>>,
+    }
+    impl ModuleVisitor for V {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            let name = getavatar_core::checkpoint::unique_name(&self.path, &mut self.seen);
+            self.out.insert(name, values(p.val()));
+        }
+    }
+    let mut v = V { path: Vec::new(), seen: Default::default(), out: Default::default() };
+    m.visit(&mut v);
+    v.out
+}
+
+#[test]
+fn the_texture_branch_learns_at_its_own_rate() {
+    use getavatar_core::burn::module::{ModuleVisitor, Param};
+    use getavatar_core::generator::{is_texture_param, Generator};
+    use getavatar_core::network::GeneratorConfig;
+    let dev = cpu().autodiff();
+    let cfg = GeneratorConfig::preset("tiny").expect("tiny preset");
+    let g = Generator::new(&cfg, 0, &dev);
+    // A loss that reaches every trainable parameter, with non-zero gradients also where a
+    // weight starts at 0 or 1 (biases): Σ (w − 0.37)².
+    struct Sq(Option<Tensor<1>>);
+    impl ModuleVisitor for Sq {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            let s = (p.val() - 0.37).powf_scalar(2.0).sum();
+            self.0 = Some(match self.0.take() {
+                Some(t) => t + s,
+                None => s,
+            });
+        }
+    }
+    let before = named_params(&g);
+    let step = |factor: f32| {
+        let mut sq = Sq(None);
+        g.visit(&mut sq);
+        let grads = sq.0.expect("parameters").backward();
+        let mut adam = Adam::new(0.9, 0.99, 1e-8);
+        named_params(&adam.step_scaled(1e-3, g.clone(), &grads, &|n| if is_texture_param(n) { factor } else { 1.0 }))
+    };
+    let (plain, scaled) = (step(1.0), step(4.0));
+    let mut branches = [0usize; 4];
+    for (name, b) in &before {
+        let moved = |after: &Vec<f32>| after.iter().zip(b).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let (dp, ds) = (moved(&plain[name]), moved(&scaled[name]));
+        if name.ends_with("w_avg") {
+            assert!(dp == 0.0 && ds == 0.0, "{name} is tracked, not trained");
+            continue;
+        }
+        assert!(dp > 5e-4, "{name} moved only {dp}");
+        let want = if is_texture_param(name) { 4.0 } else { 1.0 };
+        assert!((ds / dp - want).abs() < 1e-2 * want, "{name}: moved {ds} vs {dp}, want ×{want}");
+        for (k, p) in ["mapping_tex.", ".to_texture.", "decoders.texture.", "decoders.to_rgb."].iter().enumerate() {
+            branches[k] += name.contains(p) as usize;
+        }
+    }
+    assert!(branches.iter().all(|&n| n > 0), "every texture part was seen: {branches:?}");
+    // The geometry side is outside the branch.
+    for n in
+        ["mapping_geo.layers.0.weight", "synthesis.blocks.0.convs.0.weight", "synthesis.blocks.1.to_geometry.weight"]
+    {
+        assert!(before.contains_key(n) && !is_texture_param(n), "{n}");
+    }
+    assert!(before.contains_key("decoders.sdf.out.weight") && !is_texture_param("decoders.offset.out.weight"));
+}

@@ -20,14 +20,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
 use getavatar_core::camera::to_row_major;
 use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{BodyContext, Generator};
+use getavatar_core::generator::{is_texture_param, BodyContext, Generator};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
@@ -87,7 +87,7 @@ pub enum Objective {
     /// mask, plus the eikonal and cross-entropy terms). Dense per-pixel gradients teach garment
     /// colours and shapes in far fewer steps than the adversarial game; an adversarial run
     /// started from it (`--resume GENERATOR`) then spreads the latent space. Adam β₁ = 0.9 and
-    /// lr 0.0005 (a quarter of the adversarial rate).
+    /// lr 0.0005 (a quarter of the adversarial rate) except the texture branch (0.002).
     Reconstruction,
 }
 
@@ -101,6 +101,11 @@ pub struct RunConfig {
     pub use_normals: bool,
     pub batch: usize,
     pub lr_g: f32,
+    /// Factor on `lr_g` for the generator's texture branch (`generator::is_texture_param`).
+    /// Absent in runs written before it existed: 1. It may be edited in `run.json` between
+    /// sessions; `--resume` reads it back.
+    #[serde(default = "one")]
+    pub lr_texture_mul: f32,
     pub lr_d: f32,
     pub r1_gamma: f32,
     pub r1_every: u64,
@@ -142,6 +147,12 @@ impl RunConfig {
             lr_g: match objective {
                 Objective::Adversarial => 0.002,
                 Objective::Reconstruction => 0.0005,
+            },
+            // Colours only reach the RGB image, so the texture branch cannot inflate or collapse
+            // the surface: it learns at the adversarial rate in the warm-up.
+            lr_texture_mul: match objective {
+                Objective::Adversarial => 1.0,
+                Objective::Reconstruction => 4.0,
             },
             lr_d: 0.002,
             r1_gamma,
@@ -425,7 +436,7 @@ pub fn train_step(
     let grads = total_g.backward();
     lap("G backward");
     // w_avg tracking and the EMA of G.
-    let g = track_w_avg(st.adam_g.step(rc.lr_g, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
+    let g = track_w_avg(generator_update(&mut st.adam_g, rc, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
     let beta = 0.5f32.powf(b as f32 / (rc.ema_kimg * 1000.0).max(1e-8));
     st.g_ema = ema_update(st.g_ema, &g, beta);
     st.g = g;
@@ -435,6 +446,16 @@ pub fn train_step(
     metrics.kimg = st.step as f64 * b as f64 / 1000.0;
     metrics.seconds = t0.elapsed().as_secs_f64();
     Ok((st, metrics))
+}
+
+/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul`.
+fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
+    let tex = rc.lr_texture_mul;
+    adam.step_scaled(rc.lr_g, g, grads, &|name| if is_texture_param(name) { tex } else { 1.0 })
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 /// Track both mapping networks' w_avg (decay `beta`) on this step's latents.
@@ -502,7 +523,7 @@ fn reconstruction_step(
     };
     let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
     let grads = total.backward();
-    let g = track_w_avg(st.adam_g.step(rc.lr_g, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
+    let g = track_w_avg(generator_update(&mut st.adam_g, rc, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
     let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
     let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
     st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));

@@ -30,8 +30,21 @@ impl Adam {
     /// One update of `module` (an autodiff module whose loss produced `grads`) with learning
     /// rate `lr`. Parameters without a gradient are left unchanged.
     pub fn step<M: Module>(&mut self, lr: f32, module: M, grads: &Gradients) -> M {
+        self.step_scaled(lr, module, grads, &|_| 1.0)
+    }
+
+    /// [`Adam::step`] with a per-parameter learning-rate factor: the parameter at path `name`
+    /// (as in checkpoints, e.g. `decoders.texture.out.weight`) is updated with
+    /// `lr · lr_factor(name)`. The moments do not depend on the factor.
+    pub fn step_scaled<M: Module>(
+        &mut self,
+        lr: f32,
+        module: M,
+        grads: &Gradients,
+        lr_factor: &dyn Fn(&str) -> f32,
+    ) -> M {
         self.step += 1;
-        let mut m = AdamMapper { adam: self, lr, grads, path: Vec::new(), seen: BTreeMap::new() };
+        let mut m = AdamMapper { adam: self, lr, lr_factor, grads, path: Vec::new(), seen: BTreeMap::new() };
         module.map(&mut m)
     }
 }
@@ -39,6 +52,7 @@ impl Adam {
 struct AdamMapper<'a> {
     adam: &'a mut Adam,
     lr: f32,
+    lr_factor: &'a dyn Fn(&str) -> f32,
     grads: &'a Gradients,
     path: Vec<String>,
     seen: BTreeMap<String, usize>,
@@ -70,7 +84,8 @@ impl ModuleMapper for AdamMapper<'_> {
         let t = a.step as i32;
         let c1 = 1.0 - a.beta1.powi(t);
         let c2 = 1.0 - a.beta2.powi(t);
-        let update = (m.clone() / c1) / ((v.clone() / c2).sqrt() + a.eps) * self.lr;
+        let lr = self.lr * (self.lr_factor)(&name);
+        let update = (m.clone() / c1) / ((v.clone() / c2).sqrt() + a.eps) * lr;
         a.moments.insert(name, (m, v));
         let inner = tensor.inner();
         let new = inner - update.reshape(dims);
