@@ -132,15 +132,18 @@ fn screen(c: Vec4, w: usize, h: usize) -> Vec2 {
 }
 
 /// For each horizontally or vertically adjacent pixel pair covered by different triangles
-/// (or one by none), find the nearer triangle's silhouette edge crossed by the segment between
-/// the pixel centres; pairs whose segment crosses no silhouette edge (e.g. an interior edge
-/// between two front-facing triangles) are skipped.
+/// (or one by none), find the silhouette edge of the nearer pixel's surface crossed by the
+/// segment between the pixel centres; pairs whose segment crosses no
+/// silhouette edge (e.g. an interior edge between two front-facing triangles) are skipped.
+/// Where nvdiffrast's candidates (the edges at the corners of the triangle seen at the nearer
+/// pixel) miss, any silhouette edge is tried, so meshes with sub-pixel triangles (DMTet at
+/// the training resolution) get their silhouette gradients too.
 pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> SilhouettePairs {
     let (w, h) = (r.width, r.height);
     let mut out = SilhouettePairs::default();
     // Silhouette edges (nvdiffrast's topology test): used by one triangle, by more than two,
     // or by two that face opposite ways on screen. Each is kept with its owning triangle(s),
-    // which say on which side "inside" is, and indexed by its end vertices.
+    // which say on which side "inside" is.
     let scr: Vec<Vec2> = clip.iter().map(|c| screen(*c, w, h)).collect();
     let facing = |t: &[u32; 3]| {
         let s = t.map(|v| scr[v as usize]);
@@ -152,25 +155,48 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
             edge_use.entry((t[i].min(t[j]), t[i].max(t[j]))).or_default().push(ti as u32);
         }
     }
-    // (a, b, owner) per silhouette edge, indexed by vertex.
+    // (a, b, owner) per silhouette edge, indexed by end vertex (nvdiffrast's candidates: the
+    // edges at the corners of the triangle seen at the nearer pixel) and registered in every
+    // pixel cell its screen-space bounding box touches. Marching-tets meshes have triangles
+    // smaller than a pixel, so the silhouette edge crossing a pixel pair rarely touches the
+    // triangle seen at the nearer pixel's centre; the cell index finds it anyway.
     let mut by_vertex: HashMap<u32, Vec<(u32, u32, u32)>> = HashMap::new();
+    let mut by_cell: Vec<Vec<(u32, u32, u32)>> = vec![Vec::new(); w * h];
     for (&(a, b), owners) in &edge_use {
         let silhouette = owners.len() != 2 || {
             let (f0, f1) = (facing(&tris[owners[0] as usize]), facing(&tris[owners[1] as usize]));
             (f0 > 0.0) != (f1 > 0.0)
         };
-        if silhouette {
-            for &o in owners {
-                by_vertex.entry(a).or_default().push((a, b, o));
-                by_vertex.entry(b).or_default().push((a, b, o));
+        if !silhouette {
+            continue;
+        }
+        for &o in owners {
+            by_vertex.entry(a).or_default().push((a, b, o));
+            by_vertex.entry(b).or_default().push((a, b, o));
+        }
+        let (sa, sb) = (scr[a as usize], scr[b as usize]);
+        let (lo, hi) = (sa.min(sb), sa.max(sb));
+        if !(lo.is_finite() && hi.is_finite()) || hi.x < 0.0 || hi.y < 0.0 || lo.x >= w as f32 || lo.y >= h as f32 {
+            continue;
+        }
+        let cell = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
+        for y in cell(lo.y, h)..=cell(hi.y, h) {
+            for x in cell(lo.x, w)..=cell(hi.x, w) {
+                for &o in owners {
+                    by_cell[y * w + x].push((a, b, o));
+                }
             }
         }
     }
     let centre = |k: usize| Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
     // `horizontal`: a and b are left/right neighbours. As in nvdiffrast, an edge is handled by
     // horizontal pairs when it is closer to vertical and by vertical pairs otherwise, so each
-    // edge blends once per crossing. Candidate edges: the silhouette edges touching the
-    // foreground triangle's corners (near a corner the crossed edge can belong to a neighbour).
+    // edge blends once per crossing. First nvdiffrast's candidates (the line of an edge at the
+    // nearer triangle's corners crossing the segment between the pixel centres, nearest to the
+    // nearer pixel); where none crosses, any silhouette edge whose segment crosses it, the one
+    // whose depth at the crossing is closest to the nearer pixel's (edges of surfaces hidden
+    // behind it, or of an occluder whose corner is near, can cross too). Ties are broken by
+    // vertex ids, not by the hash maps' order, so the pairs are deterministic.
     let mut visit = |a: usize, b: usize, horizontal: bool| {
         let (ta, tb) = (r.triangle[a], r.triangle[b]);
         if ta == tb {
@@ -186,29 +212,59 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
         let tf = tris[r.triangle[f] as usize];
         let to = r.triangle[o];
         let (pf, po) = (centre(f), centre(o));
+        // Where edge (i, j) of `owner` crosses the segment pf → po with pf inside: (t along the
+        // segment, s along the edge).
+        let crossing = |i: u32, j: u32, owner: u32| -> Option<(f32, f32)> {
+            let (si, sj) = (scr[i as usize], scr[j as usize]);
+            let d = sj - si;
+            if (d.y.abs() >= d.x.abs()) != horizontal {
+                return None;
+            }
+            if to >= 0 && tris[to as usize].contains(&i) && tris[to as usize].contains(&j) {
+                return None; // the other pixel's triangle owns this edge too: not its silhouette
+            }
+            // Inside of the owner is where its third corner lies.
+            let third = tris[owner as usize].into_iter().find(|&k| k != i && k != j).unwrap_or(i);
+            let orient = d.perp_dot(scr[third as usize] - si).signum();
+            let e = |p: Vec2| orient * d.perp_dot(p - si);
+            let (ef, eo) = (e(pf), e(po));
+            if !(ef >= 0.0 && eo < 0.0) {
+                return None;
+            }
+            let t = ef / (ef - eo);
+            let q = pf + (po - pf) * t;
+            Some((t, (q - si).dot(d) / d.length_squared().max(1e-20)))
+        };
         let mut best: Option<(f32, u32, u32)> = None;
         for v in tf {
             for &(i, j, owner) in by_vertex.get(&v).map(Vec::as_slice).unwrap_or(&[]) {
-                let (si, sj) = (scr[i as usize], scr[j as usize]);
-                let d = sj - si;
-                if (d.y.abs() >= d.x.abs()) != horizontal {
-                    continue;
-                }
-                if to >= 0 && tris[to as usize].contains(&i) && tris[to as usize].contains(&j) {
-                    continue; // the other pixel's triangle owns this edge too: not its silhouette
-                }
-                // Inside of the owner is where its third corner lies.
-                let third = tris[owner as usize].into_iter().find(|&k| k != i && k != j).unwrap_or(i);
-                let orient = d.perp_dot(scr[third as usize] - si).signum();
-                let e = |p: Vec2| orient * d.perp_dot(p - si);
-                let (ef, eo) = (e(pf), e(po));
-                if ef >= 0.0 && eo < 0.0 {
-                    let t = ef / (ef - eo);
-                    if best.is_none_or(|(bt, _, _)| t < bt) {
+                if let Some((t, _)) = crossing(i, j, owner) {
+                    if best.is_none_or(|(bt, bi, bj)| (t, i, j) < (bt, bi, bj)) {
                         best = Some((t, i, j));
                     }
                 }
             }
+        }
+        if best.is_none() {
+            // Depth (clip w) of the surface seen at the nearer pixel.
+            let wf = {
+                let c = tf.map(|v| clip[v as usize].w);
+                let [u, v] = r.bary[f];
+                c[0] * (1.0 - u - v) + c[1] * u + c[2] * v
+            };
+            let mut near: Option<(f32, f32, u32, u32)> = None;
+            for &(i, j, owner) in by_cell[f].iter().chain(&by_cell[o]) {
+                let Some((t, s)) = crossing(i, j, owner) else { continue };
+                if !(-1e-4..=1.0 + 1e-4).contains(&s) {
+                    continue; // the crossing must lie on the edge segment itself
+                }
+                let (ci, cj) = (clip[i as usize].w, clip[j as usize].w);
+                let dw = (ci + (cj - ci) * s.clamp(0.0, 1.0) - wf).abs();
+                if near.is_none_or(|(bd, bt, bi, bj)| (dw, t, i, j) < (bd, bt, bi, bj)) {
+                    near = Some((dw, t, i, j));
+                }
+            }
+            best = near.map(|(_, t, i, j)| (t, i, j));
         }
         let Some((t, vi, vj)) = best else { return };
         let (target, source, sign) = if t > 0.5 { (o, f, 1.0) } else { (f, o, -1.0) };
