@@ -106,6 +106,10 @@ pub struct RunConfig {
     /// sessions; `--resume` reads it back.
     #[serde(default = "one")]
     pub lr_texture_mul: f32,
+    /// Factor on `lr_g` for the SDF-residual and DMTet-offset decoders (`decoders.sdf.*`,
+    /// `decoders.offset.*`). Absent in older runs: 1. Editable in `run.json` like the above.
+    #[serde(default = "one")]
+    pub lr_geometry_head_mul: f32,
     pub lr_d: f32,
     pub r1_gamma: f32,
     pub r1_every: u64,
@@ -153,6 +157,14 @@ impl RunConfig {
             lr_texture_mul: match objective {
                 Objective::Adversarial => 1.0,
                 Objective::Reconstruction => 4.0,
+            },
+            // With silhouette gradients reaching the SDF, the adversarial game at the full rate
+            // moves the surface by centimetres per step while D is still near chance, and
+            // small avatars vanish within a few steps; the heads that place the surface learn
+            // at a tenth of the rate there.
+            lr_geometry_head_mul: match objective {
+                Objective::Adversarial => 0.1,
+                Objective::Reconstruction => 1.0,
             },
             lr_d: 0.002,
             r1_gamma,
@@ -448,10 +460,19 @@ pub fn train_step(
     Ok((st, metrics))
 }
 
-/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul`.
+/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul` and the
+/// geometry heads at `lr_g · lr_geometry_head_mul`.
 fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
-    let tex = rc.lr_texture_mul;
-    adam.step_scaled(rc.lr_g, g, grads, &|name| if is_texture_param(name) { tex } else { 1.0 })
+    let (tex, geo) = (rc.lr_texture_mul, rc.lr_geometry_head_mul);
+    adam.step_scaled(rc.lr_g, g, grads, &|name| {
+        if is_texture_param(name) {
+            tex
+        } else if name.starts_with("decoders.sdf.") || name.starts_with("decoders.offset.") {
+            geo
+        } else {
+            1.0
+        }
+    })
 }
 
 fn one() -> f32 {
