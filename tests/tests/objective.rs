@@ -187,27 +187,7 @@ fn conv2d_same_matches_burn_conv2d() {
 
 /// Every float parameter of `m` by checkpoint path.
 fn named_params<M: Module>(m: &M) -> std::collections::BTreeMap<String, Vec<f32>> {
-    use getavatar_core::burn::module::{ModuleVisitor, Param};
-    struct V {
-        path: Vec<String>,
-        seen: std::collections::BTreeMap<String, usize>,
-        out: std::collections::BTreeMap<String, Vec<f32>>,
-    }
-    impl ModuleVisitor for V {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
-            let name = getavatar_core::checkpoint::unique_name(&self.path, &mut self.seen);
-            self.out.insert(name, values(p.val()));
-        }
-    }
-    let mut v = V { path: Vec::new(), seen: Default::default(), out: Default::default() };
-    m.visit(&mut v);
-    v.out
+    getavatar_core::checkpoint::collect_params(m).into_iter().map(|(name, _, v)| (name, v)).collect()
 }
 
 #[test]

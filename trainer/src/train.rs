@@ -27,7 +27,7 @@ use getavatar_core::checkpoint::{
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{is_texture_param, BodyContext, Generator};
+use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
@@ -106,8 +106,8 @@ pub struct RunConfig {
     /// sessions; `--resume` reads it back.
     #[serde(default = "one")]
     pub lr_texture_mul: f32,
-    /// Factor on `lr_g` for the SDF-residual and DMTet-offset decoders (`decoders.sdf.*`,
-    /// `decoders.offset.*`). Absent in older runs: 1. Editable in `run.json` like the above.
+    /// Factor on `lr_g` for the SDF-residual and DMTet-offset decoders
+    /// (`generator::is_geometry_head_param`). Absent in older runs: 1. Editable in `run.json` like the above.
     #[serde(default = "one")]
     pub lr_geometry_head_mul: f32,
     pub lr_d: f32,
@@ -467,7 +467,7 @@ fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradi
     adam.step_scaled(rc.lr_g, g, grads, &|name| {
         if is_texture_param(name) {
             tex
-        } else if name.starts_with("decoders.sdf.") || name.starts_with("decoders.offset.") {
+        } else if is_geometry_head_param(name) {
             geo
         } else {
             1.0

@@ -42,6 +42,12 @@ pub fn is_texture_param(name: &str) -> bool {
         || name.starts_with("decoders.to_rgb.")
 }
 
+/// Whether the parameter at checkpoint path `name` belongs to the heads that place the
+/// surface: the SDF-residual and DMTet-offset decoders.
+pub fn is_geometry_head_param(name: &str) -> bool {
+    name.starts_with("decoders.sdf.") || name.starts_with("decoders.offset.")
+}
+
 /// Per-layer styles (W+): `[B, n, w_dim]` each.
 #[derive(Clone, Debug)]
 pub struct Styles {
