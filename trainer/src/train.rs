@@ -26,7 +26,7 @@ use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::diff::avatar::{render_avatars, FakeViews, PosedGridCache};
 use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
@@ -73,6 +73,12 @@ pub struct TrainArgs {
     /// run from its generator with `--resume RUN/generator.safetensors`.
     #[arg(long, value_enum, default_value = "adversarial")]
     pub objective: Objective,
+    /// Adversarial runs only (not in the paper): weight of a reconstruction anchor added to
+    /// G's loss, the warm-up's L1 on a batch of subject views at their fixed latents, so that
+    /// an adversarial run started from a warm-up keeps its subjects while the game spreads the
+    /// rest of the latent space. 0 (the default) is the paper's objective.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_reconstruction: f32,
 }
 
 /// What a run optimises.
@@ -121,6 +127,10 @@ pub struct RunConfig {
     /// Absent in runs written before it existed: adversarial.
     #[serde(default)]
     pub objective: Objective,
+    /// Weight of the reconstruction anchor in adversarial G steps (`TrainArgs::lambda_reconstruction`).
+    /// Absent in older runs: 0. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub lambda_reconstruction: f32,
 }
 
 impl RunConfig {
@@ -175,6 +185,7 @@ impl RunConfig {
             ema_kimg: 10.0f32.min(batch as f32 * 10.0 / 32.0),
             seed,
             objective,
+            lambda_reconstruction: 0.0,
         }
     }
 }
@@ -202,6 +213,9 @@ pub struct Metrics {
     pub eikonal: f32,
     pub cross_entropy: f32,
     pub triangles: f32,
+    /// The reconstruction L1 (RGB + mask + normal) of the warm-up, or of the anchor of an
+    /// adversarial run with `lambda_reconstruction > 0`; absent otherwise.
+    pub reconstruction: Option<f32>,
     pub seconds: f64,
 }
 
@@ -443,7 +457,16 @@ pub fn train_step(
     metrics.eikonal = scalar(fakes.eikonal.clone());
     metrics.cross_entropy = scalar(fakes.cross_entropy.clone());
     metrics.triangles = fakes.triangles.iter().sum::<usize>() as f32 / b as f32;
-    let total_g = loss_g + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
+    let mut total_g = loss_g + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
+    if rc.lambda_reconstruction > 0.0 {
+        // The anchor: the subjects' views at their fixed latents, with their own eikonal and
+        // cross-entropy terms (a second surface is extracted).
+        let (rec, anchor, _, _) = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, rc, ad)?;
+        metrics.reconstruction = Some(scalar(rec.clone()));
+        total_g = total_g
+            + (rec + anchor.eikonal * rc.lambda_eikonal + anchor.cross_entropy * rc.lambda_cross_entropy)
+                * rc.lambda_reconstruction;
+    }
     lap("G losses");
     let grads = total_g.backward();
     lap("G backward");
@@ -508,11 +531,36 @@ fn subject_latents(rc: &RunConfig, subjects: &[usize], dev: &Device) -> (Tensor<
     (t(draw(0x9e0)), t(draw(0x7e8)))
 }
 
-/// One step of the reconstruction warm-up (`Objective::Reconstruction`): G renders each sampled
-/// view's subject (its fixed latents) under the view's camera and body pose and is pulled
-/// towards the real images by L1 (RGB, normal map, mask) plus the eikonal and SDF
-/// cross-entropy terms; then w_avg tracking and an EMA with StyleGAN2-ADA's ramp-up (half-life
-/// at most 5 % of the images seen so far).
+/// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
+/// from `rng`), each at its subject's fixed latents and the view's camera and body pose, and
+/// is compared with the real images by L1 (RGB + mask, + normal map where the data has them).
+/// Returns the L1, the renders (for the eikonal and cross-entropy terms) and the latents.
+fn subject_reconstruction(
+    g: &Generator,
+    rng: &mut Rng,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<(Tensor<1>, FakeViews, Tensor<2>, Tensor<2>)> {
+    let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
+    let labels: Vec<Label> = idx.iter().map(|&i| ds.entries[i].1.clone()).collect();
+    let subjects = subject_of_entries(ds);
+    let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
+    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &idx, ad)?;
+    let fakes = render_avatars(g, ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &labels, rc.resolution, grids, ad);
+    let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
+    let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
+    if rc.use_normals {
+        loss = loss + l1(fakes.normal.clone(), real_nrm);
+    }
+    Ok((loss, fakes, zg, zt))
+}
+
+/// One step of the reconstruction warm-up (`Objective::Reconstruction`): the subject
+/// reconstruction L1 plus the eikonal and SDF cross-entropy terms; then w_avg tracking and an
+/// EMA with StyleGAN2-ADA's ramp-up (half-life at most 5 % of the images seen so far).
 fn reconstruction_step(
     mut st: State,
     ds: &Dataset,
@@ -523,20 +571,10 @@ fn reconstruction_step(
 ) -> Result<(State, Metrics)> {
     let t0 = std::time::Instant::now();
     let b = rc.batch;
-    let idx: Vec<usize> = (0..b).map(|_| st.rng.below(ds.len())).collect();
-    let labels: Vec<Label> = idx.iter().map(|&i| ds.entries[i].1.clone()).collect();
-    let subjects = subject_of_entries(ds);
-    let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
-    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &idx, ad)?;
-    let fakes =
-        render_avatars(&st.g, ctx, &st.g.styles(zg.clone(), zt.clone(), 1.0), &labels, rc.resolution, grids, ad);
-    let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
-    let mut loss = l1(fakes.rgb, real_rgb) + l1(fakes.mask, real_msk);
-    if rc.use_normals {
-        loss = loss + l1(fakes.normal, real_nrm);
-    }
+    let (loss, fakes, zg, zt) = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, rc, ad)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone()),
+        reconstruction: Some(scalar(loss.clone())),
         eikonal: scalar(fakes.eikonal.clone()),
         cross_entropy: scalar(fakes.cross_entropy.clone()),
         triangles: fakes.triangles.iter().sum::<usize>() as f32 / b as f32,
@@ -627,7 +665,16 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 a.out.display()
             );
         }
-        let rc = RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective);
+        if a.lambda_reconstruction != 0.0 && a.objective != Objective::Adversarial {
+            bail!("--lambda-reconstruction weighs an anchor of adversarial runs; the reconstruction objective is that term alone");
+        }
+        if !(a.lambda_reconstruction >= 0.0 && a.lambda_reconstruction.is_finite()) {
+            bail!("--lambda-reconstruction must be a finite weight ≥ 0, got {}", a.lambda_reconstruction);
+        }
+        let rc = RunConfig {
+            lambda_reconstruction: a.lambda_reconstruction,
+            ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective)
+        };
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
         rc
     };
@@ -675,8 +722,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         st = next;
         writeln!(log, "{}", serde_json::to_string(&m)?)?;
         bar.set_position(st.step);
+        let rec = m.reconstruction.map(|r| format!(" rec {r:.4}")).unwrap_or_default();
         bar.set_message(format!(
-            "kimg {:.3} G {:.3} D {:.3} eik {:.3} ce {:.3}",
+            "kimg {:.3} G {:.3} D {:.3} eik {:.3} ce {:.3}{rec}",
             m.kimg, m.loss_g, m.loss_d, m.eikonal, m.cross_entropy
         ));
         if !(m.loss_g.is_finite() && m.loss_d.is_finite()) {

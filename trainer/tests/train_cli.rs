@@ -236,6 +236,33 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let adv = std::fs::read_to_string(root.join("adv").join("metrics.jsonl")).unwrap();
     let row: serde_json::Value = serde_json::from_str(adv.lines().next().unwrap()).unwrap();
     assert!(row["loss_d"].as_f64().unwrap() > 0.0, "{row}");
+    assert!(row["reconstruction"].is_null(), "the paper's objective has no anchor: {row}");
+
+    // The anchored adversarial run renders the subjects at the warm-up's latents: its
+    // reconstruction L1 starts where the warm-up ended, not where a fresh generator starts.
+    let o = trainer(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        root.join("bad").to_str().unwrap(),
+        "--objective",
+        "reconstruction",
+        "--lambda-reconstruction",
+        "1",
+    ]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("anchor of adversarial runs"), "{o:?}");
+    let anchored = root.join("anchored");
+    let text = train(&data, &anchored, 2, &["--resume", g.to_str().unwrap(), "--lambda-reconstruction", "1"]);
+    assert!(text.contains("trained 2 steps"), "{text}");
+    let rows: Vec<serde_json::Value> = std::fs::read_to_string(anchored.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let rec = rows[0]["reconstruction"].as_f64().expect("anchor L1 logged");
+    assert!(rows[0]["loss_d"].as_f64().unwrap() > 0.0, "{:?}", rows[0]);
+    assert!(rec < 0.8 * first && rec < 1.5 * last, "anchor L1 {rec:.4}; warm-up from {first:.4} to {last:.4}");
     let _ = std::fs::remove_dir_all(&root);
 }
 
