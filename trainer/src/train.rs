@@ -657,7 +657,16 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let rc = if continuing {
         let text = std::fs::read_to_string(&run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
-        serde_json::from_str::<RunConfig>(&text).context("run.json")?
+        let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
+        if a.lambda_reconstruction != 0.0 && a.lambda_reconstruction != rc.lambda_reconstruction {
+            bail!(
+                "--lambda-reconstruction {} differs from the run's {}: a continued run keeps its settings (edit lambda_reconstruction in {} to change it)",
+                a.lambda_reconstruction,
+                rc.lambda_reconstruction,
+                run_path.display()
+            );
+        }
+        rc
     } else {
         if state_path.exists() {
             bail!(

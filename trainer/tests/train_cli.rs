@@ -263,6 +263,17 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let rec = rows[0]["reconstruction"].as_f64().expect("anchor L1 logged");
     assert!(rows[0]["loss_d"].as_f64().unwrap() > 0.0, "{:?}", rows[0]);
     assert!(rec < 0.8 * first && rec < 1.5 * last, "anchor L1 {rec:.4}; warm-up from {first:.4} to {last:.4}");
+    let o = trainer(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        anchored.to_str().unwrap(),
+        "--resume",
+        "--lambda-reconstruction",
+        "3",
+    ]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("keeps its settings"), "{o:?}");
     let _ = std::fs::remove_dir_all(&root);
 }
 
