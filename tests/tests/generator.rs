@@ -189,3 +189,50 @@ fn checkpoints_round_trip_and_reject_other_configs() {
     assert!(load_generator(&bytes[..bytes.len() / 2], &cfg, &dev).is_err());
     assert!(load_generator(b"junk", &cfg, &dev).is_err());
 }
+
+/// Multi-modal truncation: each w moves towards its nearest mode by 1 − ψ; the modes
+/// travel in the checkpoint and old checkpoints have none.
+#[test]
+fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
+    use getavatar_core::burn::tensor::TensorData;
+    use getavatar_core::checkpoint::{load_generator, load_latent_modes, save_generator, save_generator_with_modes};
+    use getavatar_core::generator::LatentModes;
+    use getavatar_core::network::mapping::truncate_toward_modes;
+    let dev = device();
+    let t2 = |v: Vec<f32>, r: usize| Tensor::<2>::from_data(TensorData::new(v, [r, 2]), &dev);
+    let vals = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().expect("f32");
+    // Modes at (0, 0), (10, 0), (0, 10); w near the second, then the third.
+    let modes = t2(vec![0.0, 0.0, 10.0, 0.0, 0.0, 10.0], 3);
+    let w = t2(vec![8.0, 2.0, 1.0, 7.0], 2);
+    let got = vals(truncate_toward_modes(w.clone(), &modes, 0.5));
+    let want = [9.0, 1.0, 0.5, 8.5];
+    assert!(got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{got:?}");
+    assert_eq!(vals(truncate_toward_modes(w.clone(), &modes, 1.0)), vals(w));
+
+    let cfg = GeneratorConfig::tiny();
+    let g = Generator::new(&cfg, 7, &dev);
+    let extra = std::collections::BTreeMap::new();
+    let plain = save_generator(&g, &cfg, &extra);
+    assert!(load_latent_modes(&plain, &dev).expect("parses").is_none());
+    let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
+    let m = LatentModes { geo: g.mapping_geo.forward(zg.clone()), tex: g.mapping_tex.forward(zt.clone()) };
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&m), &extra);
+    let back = load_generator(&bytes, &cfg, &dev).expect("a checkpoint with modes loads");
+    let m2 = load_latent_modes(&bytes, &dev).expect("parses").expect("modes present");
+    assert_eq!(m2.count(), 1);
+    assert_eq!(vals(m2.geo.clone()), vals(m.geo.clone()));
+    // A latent that is itself a mode is a fixed point of any ψ; another is not.
+    let at = |z: Tensor<2>, psi: f32| {
+        vals(back.styles_with(z, zt.clone(), psi, Some(&m2)).geo.narrow(1, 0, 1).reshape([1, cfg.w_dim]))
+    };
+    let (a, b) = (at(zg.clone(), 0.0), at(zg, 1.0));
+    assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-4));
+    let (zo, _) = seed_latents(&cfg, 99, 4, &dev);
+    let (c, d) = (at(zo.clone(), 0.0), at(zo, 1.0));
+    assert!(c.iter().zip(&a).all(|(x, y)| (x - y).abs() < 1e-4), "ψ = 0 is the nearest (only) mode");
+    assert!(c.iter().zip(&d).any(|(x, y)| (x - y).abs() > 1e-3));
+    // Modes of another width than w_dim are refused.
+    let narrow = LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1) };
+    let bad = save_generator_with_modes(&g, &cfg, Some(&narrow), &extra);
+    assert!(load_latent_modes(&bad, &dev).is_err());
+}

@@ -41,6 +41,8 @@ pub struct EvalArgs {
     pub count: usize,
     pub seed: u64,
     pub psi: f32,
+    /// Truncate towards w_avg even where the checkpoint carries latent modes.
+    pub mean_truncation: bool,
     /// Render resolution of the comparison (None: the dataset's).
     pub res: Option<usize>,
     pub inception: Option<PathBuf>,
@@ -99,7 +101,8 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         Some(p) => Some(crate::inception::Inception::load(p, &dev)?),
         None => None,
     };
-    let g = crate::sample::generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &dev)?;
+    let (g, modes) = crate::sample::generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &dev)?;
+    let modes = crate::sample::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
     let grids = PosedGridCache::default();
@@ -120,7 +123,15 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let sample = ds.load(idx)?;
         let label = sample.label.clone();
         let (zg, zt) = seed_latents(&cfg, a.seed + 2 * k as u64, a.seed + 2 * k as u64 + 1, &dev);
-        let f = render_avatars(&g, &ctx, &g.styles(zg, zt, a.psi), std::slice::from_ref(&label), res, &grids, &dev);
+        let f = render_avatars(
+            &g,
+            &ctx,
+            &g.styles_with(zg, zt, a.psi, modes),
+            std::slice::from_ref(&label),
+            res,
+            &grids,
+            &dev,
+        );
         let mask: Vec<f32> = f.mask.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
         if inception.is_some() {

@@ -171,6 +171,10 @@ enum Command {
         /// Truncation ψ (1 = none).
         #[arg(long, default_value_t = 1.0)]
         psi: f32,
+        /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
+        /// ψ pulls each latent towards its nearest mode there).
+        #[arg(long)]
+        mean_truncation: bool,
         /// Comparison resolution (labels are resolution-free; default: the dataset's). At
         /// 64² a limb is two pixels wide and IoU mostly measures boundary rounding.
         #[arg(long)]
@@ -202,6 +206,10 @@ enum Command {
         /// Truncation ψ (1 = none).
         #[arg(long, default_value_t = 0.7)]
         psi: f32,
+        /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
+        /// ψ pulls each latent towards its nearest mode there).
+        #[arg(long)]
+        mean_truncation: bool,
         /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
         #[arg(long, default_value = "standing")]
         pose: String,
@@ -260,20 +268,31 @@ fn main() -> Result<()> {
                 limit,
             })?
         }
-        Command::Eval { data, config, checkpoint, random_weights, count, seed, psi, res, inception, out } => {
-            eval::eval(&eval::EvalArgs {
-                data,
-                config,
-                checkpoint,
-                random: random_weights,
-                count,
-                seed,
-                psi,
-                res,
-                inception,
-                out,
-            })?
-        }
+        Command::Eval {
+            data,
+            config,
+            checkpoint,
+            random_weights,
+            count,
+            seed,
+            psi,
+            mean_truncation,
+            res,
+            inception,
+            out,
+        } => eval::eval(&eval::EvalArgs {
+            data,
+            config,
+            checkpoint,
+            random: random_weights,
+            count,
+            seed,
+            psi,
+            mean_truncation,
+            res,
+            inception,
+            out,
+        })?,
         Command::Train(args) => {
             if args.batch == 0 || args.snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");
@@ -299,7 +318,20 @@ fn main() -> Result<()> {
         Command::BenchTrainCase { data, config, backend, batch, steps } => {
             bench::train_case(&data, &config, &backend, batch, steps)?
         }
-        Command::Sample { config, checkpoint, random_weights, seed_geo, seed_tex, psi, pose, yaw, res, body, out } => {
+        Command::Sample {
+            config,
+            checkpoint,
+            random_weights,
+            seed_geo,
+            seed_tex,
+            psi,
+            mean_truncation,
+            pose,
+            yaw,
+            res,
+            body,
+            out,
+        } => {
             sample::sample(&sample::SampleArgs {
                 config,
                 checkpoint,
@@ -307,6 +339,7 @@ fn main() -> Result<()> {
                 seed_geo,
                 seed_tex,
                 psi,
+                mean_truncation,
                 pose,
                 yaw_deg: yaw,
                 res,

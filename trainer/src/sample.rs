@@ -7,9 +7,9 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::load_generator;
+use getavatar_core::checkpoint::{load_generator, load_latent_modes};
 use getavatar_core::generator::{block_on_ready, recolor_async};
-use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator, LatentModes};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
@@ -23,6 +23,8 @@ pub struct SampleArgs {
     pub seed_geo: u64,
     pub seed_tex: u64,
     pub psi: f32,
+    /// Truncate towards w_avg even where the checkpoint carries latent modes.
+    pub mean_truncation: bool,
     pub pose: String,
     pub yaw_deg: f32,
     pub res: usize,
@@ -54,15 +56,15 @@ pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
-/// The generator in `checkpoint`; without one, the shipped model of `cfg` (the trained demo
-/// model) unless `random` is set; otherwise (saying so) the deterministic random weights
-/// (seed 0) of `cfg`.
+/// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
+/// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
+/// so) the deterministic random weights (seed 0) of `cfg`.
 pub fn generator_or_random(
     checkpoint: Option<&Path>,
     random: bool,
     cfg: &GeneratorConfig,
     device: &Device,
-) -> Result<Generator> {
+) -> Result<(Generator, Option<LatentModes>)> {
     let shipped = if random { None } else { shipped_model(cfg) };
     Ok(match checkpoint.map(Path::to_path_buf).or(shipped) {
         Some(p) => {
@@ -70,16 +72,25 @@ pub fn generator_or_random(
                 eprintln!("using the shipped demo model {}", p.display());
             }
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
-            load_generator(&bytes, cfg, device).with_context(|| format!("loading checkpoint {}", p.display()))?
+            let loading = || format!("loading checkpoint {}", p.display());
+            (
+                load_generator(&bytes, cfg, device).with_context(loading)?,
+                load_latent_modes(&bytes, device).with_context(loading)?,
+            )
         }
         None => {
             eprintln!(
                 "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
                 cfg.name
             );
-            Generator::new(cfg, 0, device)
+            (Generator::new(cfg, 0, device), None)
         }
     })
+}
+
+/// The modes to truncate towards: the checkpoint's unless `mean_truncation` (then w_avg).
+pub fn truncation_modes(modes: &Option<LatentModes>, mean_truncation: bool) -> Option<&LatentModes> {
+    modes.as_ref().filter(|_| !mean_truncation)
 }
 
 pub fn sample(a: &SampleArgs) -> Result<()> {
@@ -102,11 +113,11 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     };
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let g = generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &device)?;
+    let (g, modes) = generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
     let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-    let styles = g.styles(zg, zt, a.psi);
+    let styles = g.styles_with(zg, zt, a.psi, truncation_modes(&modes, a.mean_truncation));
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device);
     let t2 = std::time::Instant::now();

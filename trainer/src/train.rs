@@ -23,11 +23,11 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
 use getavatar_core::camera::to_row_major;
 use getavatar_core::checkpoint::{
-    collect_params, load_generator, load_params, parse_safetensors, save_generator, write_safetensors,
+    collect_params, load_generator, load_params, parse_safetensors, save_generator_with_modes, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, FakeViews, PosedGridCache};
-use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator};
+use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
@@ -531,6 +531,18 @@ fn subject_latents(rc: &RunConfig, subjects: &[usize], dev: &Device) -> (Tensor<
     (t(draw(0x9e0)), t(draw(0x7e8)))
 }
 
+/// The W codes of the training subjects' fixed latents under `g`, saved with the generator of
+/// reconstruction and anchored runs as the modes of multi-modal truncation; None for the
+/// paper's objective, whose latents have no subjects.
+fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> Option<LatentModes> {
+    if rc.objective == Objective::Adversarial && rc.lambda_reconstruction == 0.0 {
+        return None;
+    }
+    let n = subject_of_entries(ds).into_iter().max()? + 1;
+    let (zg, zt) = subject_latents(rc, &(0..n).collect::<Vec<_>>(), dev);
+    Some(LatentModes { geo: g.mapping_geo.forward(zg), tex: g.mapping_tex.forward(zt) })
+}
+
 /// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
 /// from `rng`), each at its subject's fixed latents and the view's camera and body pose, and
 /// is compared with the real images by L1 (RGB + mask, + normal map where the data has them).
@@ -721,7 +733,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let mut extra = BTreeMap::new();
         extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
         extra.insert("step".to_string(), step.to_string());
-        write_atomic(&a.out.join("generator.safetensors"), &save_generator(&st.g_ema, &rc.generator, &extra))?;
+        let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
+        let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra);
+        write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
         write_atomic(&state_path, &st.save(&rc))?;
         write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &grids, &rc, &plain))?;
         write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl")))

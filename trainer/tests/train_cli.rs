@@ -231,7 +231,18 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let run_json = std::fs::read_to_string(run.join("run.json")).unwrap();
     assert!(run_json.contains("\"objective\": \"reconstruction\""), "{run_json}");
     let g = run.join("generator.safetensors");
+    // The warm-up's generator carries its subjects' W codes as latent modes (the dataset has
+    // 2 subjects; the tiny config's w_dim is 16); the paper's objective has none.
+    let header = |p: &Path| -> serde_json::Value {
+        let b = std::fs::read(p).unwrap();
+        let n = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        serde_json::from_slice(&b[8..8 + n]).unwrap()
+    };
+    let h = header(&g);
+    assert_eq!(h["latent_modes/geo"]["shape"], serde_json::json!([2, 16]), "{}", h["latent_modes/geo"]);
+    assert_eq!(h["latent_modes/tex"]["shape"], serde_json::json!([2, 16]));
     let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
+    assert!(header(&root.join("adv").join("generator.safetensors")).get("latent_modes/geo").is_none());
     assert!(text.contains("initialised the generator from"), "{text}");
     let adv = std::fs::read_to_string(root.join("adv").join("metrics.jsonl")).unwrap();
     let row: serde_json::Value = serde_json::from_str(adv.lines().next().unwrap()).unwrap();

@@ -12,10 +12,14 @@ use std::collections::BTreeMap;
 use burn::module::{Module, ModuleMapper, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::generator::Generator;
+use crate::generator::{Generator, LatentModes};
 use crate::network::GeneratorConfig;
 
 pub const FORMAT: &str = "getavatar-generator/1";
+
+/// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
+pub const MODES_GEO: &str = "latent_modes/geo";
+pub const MODES_TEX: &str = "latent_modes/tex";
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
@@ -72,10 +76,57 @@ impl burn::module::ModuleVisitor for Collect {
 /// parameters back synchronously.
 #[cfg(not(target_arch = "wasm32"))]
 pub fn save_generator(g: &Generator, cfg: &GeneratorConfig, extra: &BTreeMap<String, String>) -> Vec<u8> {
+    save_generator_with_modes(g, cfg, None, extra)
+}
+
+/// [`save_generator`] plus the latent modes for multi-modal truncation ([`MODES_GEO`],
+/// [`MODES_TEX`]).
+#[cfg(not(target_arch = "wasm32"))]
+pub fn save_generator_with_modes(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    modes: Option<&LatentModes>,
+    extra: &BTreeMap<String, String>,
+) -> Vec<u8> {
     let mut meta = extra.clone();
     meta.insert("format".into(), FORMAT.into());
     meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default());
-    write_safetensors(&meta, &collect_params(g))
+    let mut tensors = collect_params(g);
+    if let Some(m) = modes {
+        for (name, t) in [(MODES_GEO, &m.geo), (MODES_TEX, &m.tex)] {
+            let shape = t.dims().to_vec();
+            tensors.push((
+                name.to_string(),
+                shape,
+                t.to_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default(),
+            ));
+        }
+    }
+    write_safetensors(&meta, &tensors)
+}
+
+/// The latent modes a generator checkpoint carries (None for checkpoints without them).
+/// Both branches must be present, `[K, w_dim]` with the same K ≥ 1 and the config's w_dim.
+pub fn load_latent_modes(bytes: &[u8], device: &Device) -> Result<Option<LatentModes>, CheckpointError> {
+    let st = parse_safetensors(bytes)?;
+    let w_dim = checkpoint_config(&st)?.w_dim;
+    let get = |name: &str| st.tensors.get(name);
+    match (get(MODES_GEO), get(MODES_TEX)) {
+        (None, None) => Ok(None),
+        (Some((sg, vg)), Some((stx, vt))) => {
+            let ok = |s: &Vec<usize>| s.len() == 2 && s[0] >= 1 && s[1] == w_dim;
+            if !(ok(sg) && ok(stx) && sg[0] == stx[0]) {
+                return Err(CheckpointError::Param(
+                    MODES_GEO.into(),
+                    format!("latent modes of shapes {sg:?} and {stx:?}, expected [K, {w_dim}] both"),
+                ));
+            }
+            let t =
+                |s: &Vec<usize>, v: &Vec<f32>| Tensor::<2>::from_data(TensorData::new(v.clone(), [s[0], s[1]]), device);
+            Ok(Some(LatentModes { geo: t(sg, vg), tex: t(stx, vt) }))
+        }
+        _ => Err(CheckpointError::Param(MODES_GEO.into(), "only one branch's latent modes present".into())),
+    }
 }
 
 /// The parsed container: metadata and named (shape, values).
@@ -233,7 +284,8 @@ pub fn load_generator(
     if let Some(e) = l.error {
         return Err(e);
     }
-    if l.used != st.tensors.len() {
+    let modes = st.tensors.keys().filter(|k| k.as_str() == MODES_GEO || k.as_str() == MODES_TEX).count();
+    if l.used + modes != st.tensors.len() {
         return Err(fmt_err(format!("{} tensors in the file, {} used by the model", st.tensors.len(), l.used)));
     }
     Ok(g)

@@ -16,7 +16,7 @@ use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
 use crate::network::decoders::{Decoders, SDF_RESIDUAL_MAX};
 use crate::network::init::{latent, Rng};
-use crate::network::mapping::MappingNetwork;
+use crate::network::mapping::{truncate_toward_modes, MappingNetwork};
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
 use crate::network::GeneratorConfig;
@@ -48,6 +48,21 @@ pub fn is_geometry_head_param(name: &str) -> bool {
     name.starts_with("decoders.sdf.") || name.starts_with("decoders.offset.")
 }
 
+/// Modes of the latent space in W, `[K, w_dim]` per branch (e.g. the codes of the training
+/// subjects of a reconstruction warm-up), for multi-modal truncation
+/// ([`Generator::styles_with`]). Checkpoints may carry them (`checkpoint::load_latent_modes`).
+#[derive(Clone, Debug)]
+pub struct LatentModes {
+    pub geo: Tensor<2>,
+    pub tex: Tensor<2>,
+}
+
+impl LatentModes {
+    pub fn count(&self) -> usize {
+        self.geo.dims()[0]
+    }
+}
+
 /// Per-layer styles (W+): `[B, n, w_dim]` each.
 #[derive(Clone, Debug)]
 pub struct Styles {
@@ -76,11 +91,20 @@ impl Generator {
         (self.synthesis.num_ws_geo() + 2, self.synthesis.num_ws_tex() + 3)
     }
 
-    /// Map latents to W+ styles with truncation ψ. `z_geo`, `z_tex`: `[B, z_dim]`.
+    /// Map latents to W+ styles with truncation ψ towards w_avg. `z_geo`, `z_tex`: `[B, z_dim]`.
     pub fn styles(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32) -> Styles {
+        self.styles_with(z_geo, z_tex, psi, None)
+    }
+
+    /// Like [`Generator::styles`]; with `modes`, each w is truncated towards its nearest mode
+    /// instead of w_avg (multi-modal truncation).
+    pub fn styles_with(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32, modes: Option<&LatentModes>) -> Styles {
         let (ng, nt) = self.num_ws();
-        let wg = self.mapping_geo.truncate(self.mapping_geo.forward(z_geo), psi);
-        let wt = self.mapping_tex.truncate(self.mapping_tex.forward(z_tex), psi);
+        let (wg, wt) = (self.mapping_geo.forward(z_geo), self.mapping_tex.forward(z_tex));
+        let (wg, wt) = match modes {
+            Some(m) => (truncate_toward_modes(wg, &m.geo, psi), truncate_toward_modes(wt, &m.tex, psi)),
+            None => (self.mapping_geo.truncate(wg, psi), self.mapping_tex.truncate(wt, psi)),
+        };
         Styles { geo: wg.unsqueeze_dim::<3>(1).repeat_dim(1, ng), tex: wt.unsqueeze_dim::<3>(1).repeat_dim(1, nt) }
     }
 

@@ -14,9 +14,9 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::load_generator;
+use getavatar_core::checkpoint::{load_generator, load_latent_modes};
 use getavatar_core::generator::{
-    generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, RiggedAvatar, Styles,
+    generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, RiggedAvatar, Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
@@ -32,8 +32,8 @@ pub const MANIFEST_URL: &str = "models/manifest.json";
 #[derive(Clone, Debug, PartialEq)]
 pub enum Weights {
     Loading,
-    /// Trained checkpoint (its size in bytes).
-    Trained(usize),
+    /// Trained checkpoint (its size in bytes, and how many latent modes it carries).
+    Trained(usize, usize),
     /// Deterministic random weights, and why.
     Random(String),
 }
@@ -43,23 +43,34 @@ impl Weights {
     pub fn describe(&self) -> String {
         match self {
             Weights::Loading => format!("loading the trained demo model ({MODEL_URL})…"),
-            Weights::Trained(n) => format!("trained demo model ({:.1} MB)", *n as f64 / 1e6),
+            Weights::Trained(n, 0) => format!("trained demo model ({:.1} MB)", *n as f64 / 1e6),
+            Weights::Trained(n, k) => {
+                format!(
+                    "trained demo model ({:.1} MB; ψ truncates towards the nearest of {k} latent modes)",
+                    *n as f64 / 1e6
+                )
+            }
             Weights::Random(why) => format!("untrained demo generator (random weights): {why}"),
         }
     }
 }
 
 /// The shipped demo model, if the build lists one, loaded onto `device`.
-async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<(Generator, usize), String> {
+async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped, String> {
     let manifest: serde_json::Value =
         serde_json::from_slice(&fetch_bytes(MANIFEST_URL).await?).map_err(|e| format!("{MANIFEST_URL}: {e}"))?;
     if manifest.get("demo").is_none() {
         return Err("no trained model ships with this build".into());
     }
     let bytes = fetch_bytes(MODEL_URL).await?;
-    let g = load_generator(&bytes, cfg, device).map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
-    Ok((g, bytes.len()))
+    let bad = |e| format!("{MODEL_URL} is not a demo checkpoint: {e}");
+    let g = load_generator(&bytes, cfg, device).map_err(bad)?;
+    let modes = load_latent_modes(&bytes, device).map_err(bad)?;
+    Ok((g, modes, bytes.len()))
 }
+
+/// A fetched checkpoint: the generator, its latent modes (if any) and its size in bytes.
+type Shipped = (Generator, Option<LatentModes>, usize);
 
 type Job = ((u64, u64), f32, Option<RiggedAvatar>, eframe::egui::Context);
 
@@ -98,10 +109,12 @@ pub struct GenEngine {
     device: Device,
     cfg: GeneratorConfig,
     generator: Rc<Generator>,
+    /// The checkpoint's latent modes: ψ truncates towards the nearest one instead of w_avg.
+    modes: Rc<Option<LatentModes>>,
     ctx: Option<Rc<BodyContext>>,
     slot: Rc<RefCell<Option<Result<Finished, String>>>>,
     /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
-    weights_slot: Rc<RefCell<Option<Result<(Generator, usize), String>>>>,
+    weights_slot: Rc<RefCell<Option<Result<Shipped, String>>>>,
     pub weights: Weights,
     texture_slot: Rc<RefCell<Option<Vec<glam::Vec3>>>>,
     /// A generation asked for while the weights were loading.
@@ -139,6 +152,7 @@ impl GenEngine {
             device,
             cfg,
             generator,
+            modes: Rc::new(None),
             ctx: None,
             slot: Rc::new(RefCell::new(None)),
             weights_slot,
@@ -177,10 +191,11 @@ impl GenEngine {
         };
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
+        let modes = self.modes.clone();
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::web::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
-            let styles = g.styles(zg, zt, psi);
+            let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
             let (rigged, planes) = match keep {
                 Some(mut r) => {
                     let planes = g.triplanes(&styles);
@@ -206,9 +221,11 @@ impl GenEngine {
         let fetched = self.weights_slot.borrow_mut().take();
         if let Some(w) = fetched {
             self.weights = match w {
-                Ok((g, n)) => {
+                Ok((g, modes, n)) => {
                     self.generator = Rc::new(g);
-                    Weights::Trained(n)
+                    let k = modes.as_ref().map_or(0, LatentModes::count);
+                    self.modes = Rc::new(modes);
+                    Weights::Trained(n, k)
                 }
                 Err(e) => Weights::Random(e),
             };

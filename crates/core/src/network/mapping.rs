@@ -1,5 +1,6 @@
 //! Mapping network z → w (8 FC layers in the paper, leaky ReLU, lr multiplier 0.01) with the
-//! tracked average w_avg used by the truncation trick: w' = w_avg + ψ·(w − w_avg).
+//! tracked average w_avg used by the truncation trick: w' = w_avg + ψ·(w − w_avg), and the
+//! multi-modal variant towards the nearest of several modes ([`truncate_toward_modes`]).
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
@@ -48,4 +49,21 @@ impl MappingNetwork {
         let avg = self.w_avg.val().unsqueeze_dim::<2>(0);
         avg.clone() + (w - avg) * psi
     }
+}
+
+/// Multi-modal truncation (Mokady et al. 2022, "Self-Distilled StyleGAN"): each row of `w`
+/// `[B, w_dim]` moves towards its nearest mode `c` (Euclidean in W) of `modes` `[K, w_dim]`:
+/// w' = c + ψ·(w − c). Where the data has distinct modes (garment types, colour schemes), the
+/// mean that ordinary truncation pulls towards is a blend that no subject looks like.
+pub fn truncate_toward_modes(w: Tensor<2>, modes: &Tensor<2>, psi: f32) -> Tensor<2> {
+    if psi == 1.0 {
+        return w;
+    }
+    let [b, _] = w.dims();
+    // ‖w − c‖² up to the per-row constant ‖w‖²: ‖c‖² − 2 w·c, `[B, K]`.
+    let cc = modes.clone().powf_scalar(2.0).sum_dim(1).reshape([1, modes.dims()[0]]);
+    let d = cc - w.clone().matmul(modes.clone().transpose()) * 2.0;
+    let nearest = d.argmin(1).reshape([b]);
+    let c = modes.clone().select(0, nearest);
+    c.clone() + (w - c) * psi
 }
