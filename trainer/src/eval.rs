@@ -32,20 +32,43 @@ use serde::Serialize;
 
 use crate::inception::ImageChw;
 
+#[derive(clap::Args, Debug)]
 pub struct EvalArgs {
+    /// Dataset directory whose labels (camera, θ, β) and images are used.
+    #[arg(long)]
     pub data: PathBuf,
+    /// Generator size: paper, demo or tiny.
+    #[arg(long, default_value = "demo")]
     pub config: String,
+    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+    /// `--config demo`, random weights otherwise).
+    #[arg(long)]
     pub checkpoint: Option<PathBuf>,
-    /// Random weights even where a trained model ships.
+    /// Use deterministic random weights even where a trained model ships.
+    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
     pub random: bool,
+    /// Labels to evaluate (spread evenly over the dataset).
+    #[arg(long, default_value_t = 32)]
     pub count: usize,
+    #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Truncation ψ (1 = none).
+    #[arg(long, default_value_t = 1.0)]
     pub psi: f32,
-    /// Truncate towards w_avg even where the checkpoint carries latent modes.
+    /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
+    /// ψ pulls each latent towards its nearest mode there).
+    #[arg(long)]
     pub mean_truncation: bool,
-    /// Render resolution of the comparison (None: the dataset's).
+    /// Comparison resolution (labels are resolution-free; default: the dataset's). At
+    /// 64² a limb is two pixels wide and IoU mostly measures boundary rounding.
+    #[arg(long)]
     pub res: Option<usize>,
+    /// Inception weights (pt_inception-2015-12-05 converted to safetensors by
+    /// tools/inception_weights.py) for FID/KID; without it they are not computed.
+    #[arg(long)]
     pub inception: Option<PathBuf>,
+    /// Write the figures as JSON here.
+    #[arg(long)]
     pub out: Option<PathBuf>,
 }
 

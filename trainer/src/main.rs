@@ -149,82 +149,9 @@ enum Command {
     Train(train::TrainArgs),
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
     /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
-    Eval {
-        /// Dataset directory whose labels (camera, θ, β) and images are used.
-        #[arg(long)]
-        data: PathBuf,
-        /// Generator size: paper, demo or tiny.
-        #[arg(long, default_value = "demo")]
-        config: String,
-        /// Trained generator (`generator.safetensors`; default: the shipped demo model for
-        /// `--config demo`, random weights otherwise).
-        #[arg(long)]
-        checkpoint: Option<PathBuf>,
-        /// Use deterministic random weights even where a trained model ships.
-        #[arg(long, conflicts_with = "checkpoint")]
-        random_weights: bool,
-        /// Labels to evaluate (spread evenly over the dataset).
-        #[arg(long, default_value_t = 32)]
-        count: usize,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Truncation ψ (1 = none).
-        #[arg(long, default_value_t = 1.0)]
-        psi: f32,
-        /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-        /// ψ pulls each latent towards its nearest mode there).
-        #[arg(long)]
-        mean_truncation: bool,
-        /// Comparison resolution (labels are resolution-free; default: the dataset's). At
-        /// 64² a limb is two pixels wide and IoU mostly measures boundary rounding.
-        #[arg(long)]
-        res: Option<usize>,
-        /// Inception weights (pt_inception-2015-12-05 converted to safetensors by
-        /// tools/inception_weights.py) for FID/KID; without it they are not computed.
-        #[arg(long)]
-        inception: Option<PathBuf>,
-        /// Write the figures as JSON here.
-        #[arg(long)]
-        out: Option<PathBuf>,
-    },
+    Eval(eval::EvalArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
-    Sample {
-        /// Generator size: paper, demo or tiny.
-        #[arg(long, default_value = "demo")]
-        config: String,
-        /// Trained generator (`generator.safetensors`; default: the shipped demo model for
-        /// `--config demo`, random weights otherwise).
-        #[arg(long)]
-        checkpoint: Option<PathBuf>,
-        /// Use deterministic random weights even where a trained model ships.
-        #[arg(long, conflicts_with = "checkpoint")]
-        random_weights: bool,
-        #[arg(long, default_value_t = 0)]
-        seed_geo: u64,
-        #[arg(long, default_value_t = 0)]
-        seed_tex: u64,
-        /// Truncation ψ (1 = none).
-        #[arg(long, default_value_t = 0.7)]
-        psi: f32,
-        /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-        /// ψ pulls each latent towards its nearest mode there).
-        #[arg(long)]
-        mean_truncation: bool,
-        /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
-        #[arg(long, default_value = "standing")]
-        pose: String,
-        /// Camera azimuth, degrees (0 = front).
-        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-        yaw: f32,
-        /// Image size in pixels (square).
-        #[arg(long, default_value_t = 512)]
-        res: usize,
-        /// Body model .npz in the SMPL layout (default: the embedded open body).
-        #[arg(long)]
-        body: Option<PathBuf>,
-        #[arg(long, default_value = "samples")]
-        out: PathBuf,
-    },
+    Sample(sample::SampleArgs),
 }
 
 fn main() -> Result<()> {
@@ -268,31 +195,7 @@ fn main() -> Result<()> {
                 limit,
             })?
         }
-        Command::Eval {
-            data,
-            config,
-            checkpoint,
-            random_weights,
-            count,
-            seed,
-            psi,
-            mean_truncation,
-            res,
-            inception,
-            out,
-        } => eval::eval(&eval::EvalArgs {
-            data,
-            config,
-            checkpoint,
-            random: random_weights,
-            count,
-            seed,
-            psi,
-            mean_truncation,
-            res,
-            inception,
-            out,
-        })?,
+        Command::Eval(args) => eval::eval(&args)?,
         Command::Train(args) => {
             if args.batch == 0 || args.snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");
@@ -318,35 +221,7 @@ fn main() -> Result<()> {
         Command::BenchTrainCase { data, config, backend, batch, steps } => {
             bench::train_case(&data, &config, &backend, batch, steps)?
         }
-        Command::Sample {
-            config,
-            checkpoint,
-            random_weights,
-            seed_geo,
-            seed_tex,
-            psi,
-            mean_truncation,
-            pose,
-            yaw,
-            res,
-            body,
-            out,
-        } => {
-            sample::sample(&sample::SampleArgs {
-                config,
-                checkpoint,
-                random: random_weights,
-                seed_geo,
-                seed_tex,
-                psi,
-                mean_truncation,
-                pose,
-                yaw_deg: yaw,
-                res,
-                out,
-                body,
-            })?;
-        }
+        Command::Sample(args) => sample::sample(&args)?,
     }
     Ok(())
 }

@@ -15,21 +15,43 @@ use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views_textured;
 
+#[derive(clap::Args, Debug)]
 pub struct SampleArgs {
+    /// Generator size: paper, demo or tiny.
+    #[arg(long, default_value = "demo")]
     pub config: String,
+    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+    /// `--config demo`, random weights otherwise).
+    #[arg(long)]
     pub checkpoint: Option<PathBuf>,
-    /// Random weights even where a trained model ships.
+    /// Use deterministic random weights even where a trained model ships.
+    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
     pub random: bool,
+    #[arg(long, default_value_t = 0)]
     pub seed_geo: u64,
+    #[arg(long, default_value_t = 0)]
     pub seed_tex: u64,
+    /// Truncation ψ (1 = none).
+    #[arg(long, default_value_t = 0.7)]
     pub psi: f32,
-    /// Truncate towards w_avg even where the checkpoint carries latent modes.
+    /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
+    /// ψ pulls each latent towards its nearest mode there).
+    #[arg(long)]
     pub mean_truncation: bool,
+    /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
+    #[arg(long, default_value = "standing")]
     pub pose: String,
+    /// Camera azimuth, degrees (0 = front).
+    #[arg(long = "yaw", value_name = "DEG", default_value_t = 0.0, allow_negative_numbers = true)]
     pub yaw_deg: f32,
+    /// Image size in pixels (square).
+    #[arg(long, default_value_t = 512)]
     pub res: usize,
-    pub out: PathBuf,
+    /// Body model .npz in the SMPL layout (default: the embedded open body).
+    #[arg(long)]
     pub body: Option<PathBuf>,
+    #[arg(long, default_value = "samples")]
+    pub out: PathBuf,
 }
 
 pub fn write_png(path: &Path, data: &[u8], size: usize, color: png::ColorType) -> Result<()> {

@@ -241,6 +241,21 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let h = header(&g);
     assert_eq!(h["latent_modes/geo"]["shape"], serde_json::json!([2, 16]), "{}", h["latent_modes/geo"]);
     assert_eq!(h["latent_modes/tex"]["shape"], serde_json::json!([2, 16]));
+    // `trainer sample` truncates towards the nearest mode: at ψ = 0 that differs from w_avg,
+    // at ψ = 1 (no truncation) both agree.
+    let sample = |psi: &str, mean: bool| -> Vec<u8> {
+        let out = root.join(format!("sample_{psi}_{mean}"));
+        let mut args = vec!["sample", "--config", "tiny", "--checkpoint", g.to_str().unwrap(), "--seed-geo", "5"];
+        args.extend(["--psi", psi, "--res", "48", "--out", out.to_str().unwrap()]);
+        if mean {
+            args.push("--mean-truncation");
+        }
+        ok(trainer(&args));
+        assert_eq!(&std::fs::read(out.join("avatar.glb")).unwrap()[..4], b"glTF");
+        std::fs::read(out.join("normal.png")).unwrap()
+    };
+    assert_ne!(sample("0", false), sample("0", true), "ψ = 0: nearest mode vs w_avg");
+    assert_eq!(sample("1", false), sample("1", true), "ψ = 1: no truncation either way");
     let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
     assert!(header(&root.join("adv").join("generator.safetensors")).get("latent_modes/geo").is_none());
     assert!(text.contains("initialised the generator from"), "{text}");
