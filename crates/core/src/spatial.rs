@@ -69,17 +69,25 @@ impl KdTree {
         id
     }
 
-    /// Index and squared distance of the point nearest to `q`; `None` for an empty tree.
+    /// Index and squared distance of the point nearest to `q`; `None` for an empty tree. Ties
+    /// go to the lower index.
     pub fn nearest(&self, q: Vec3) -> Option<(usize, f32)> {
         if self.nodes.is_empty() {
             return None;
         }
         let mut best = (usize::MAX, f32::INFINITY);
-        self.search(0, q, &mut best);
+        self.search(0, q, Vec3::ZERO, &mut best);
         Some(best)
     }
 
-    fn search(&self, node: u32, q: Vec3, best: &mut (usize, f32)) {
+    /// Depth-first search with Arya and Mount's incremental distance: `off` holds, per axis,
+    /// the distance from `q` to the node's cell (0 where `q` lies within its extent), so
+    /// `|off|²` bounds the distance to every point below from beneath. A far child is skipped
+    /// when that bound, not only the distance to its splitting plane, exceeds the best so far;
+    /// queries far from the points (most tet-grid vertices around a body) then visit few
+    /// leaves. The bound is computed with the same operations as the point distances, so
+    /// rounding never makes it exceed a distance it bounds: the result is the exact nearest.
+    fn search(&self, node: u32, q: Vec3, mut off: Vec3, best: &mut (usize, f32)) {
         match self.nodes[node as usize] {
             Node::Leaf { start, end } => {
                 for &i in &self.order[start as usize..end as usize] {
@@ -90,11 +98,13 @@ impl KdTree {
                 }
             }
             Node::Split { axis, value, left, right } => {
-                let diff = q[axis as usize] - value;
+                let a = axis as usize;
+                let diff = q[a] - value;
                 let (near, far) = if diff < 0.0 { (left, right) } else { (right, left) };
-                self.search(near, q, best);
-                if diff * diff <= best.1 {
-                    self.search(far, q, best);
+                self.search(near, q, off, best);
+                off[a] = diff;
+                if off.length_squared() <= best.1 {
+                    self.search(far, q, off, best);
                 }
             }
         }
@@ -126,6 +136,17 @@ mod tests {
             assert_eq!(d, bd);
             assert_eq!(pts[i].distance_squared(q), pts[bi].distance_squared(q));
         }
+        // Queries far outside the points (where the cell bound prunes most), and ties.
+        for k in 0..300 {
+            let q = Vec3::new(r(), r(), r()) * 40.0 + Vec3::X * (k % 3) as f32 * 5.0;
+            let (i, d) = tree.nearest(q).expect("non-empty");
+            let bd = pts.iter().map(|p| p.distance_squared(q)).min_by(f32::total_cmp).expect("points");
+            assert_eq!(d, bd, "query {q}");
+            assert_eq!(pts[i].distance_squared(q), bd);
+        }
+        // Ties go to the lowest index, also across leaves.
+        let dup: Vec<Vec3> = (0..100).map(|k| if k % 7 == 3 { Vec3::X } else { Vec3::splat(k as f32) }).collect();
+        assert_eq!(KdTree::new(&dup).nearest(Vec3::new(1.1, 0.0, 0.0)).map(|(i, _)| i), Some(3));
         assert!(KdTree::new(&[]).nearest(Vec3::ZERO).is_none());
     }
 }
