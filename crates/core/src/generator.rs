@@ -250,14 +250,8 @@ pub async fn generate_avatar_async(
     let planes = g.triplanes(s);
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-    let (mut canon, mut template, mut guarded) = (Vec::new(), Vec::new(), Vec::new());
-    for p in &ctx.grid.vertices {
-        let (c, t, g) = inv.canonical_template(&ctx.template, *p);
-        canon.push(c);
-        template.push(t);
-        guarded.push(g);
-    }
-    let band = field_band(ctx, &template, &guarded);
+    let crate::diff::avatar::PosedGrid { canonical: canon, template, band } =
+        crate::diff::avatar::PosedGrid::new(ctx, &inv);
     let n = canon.len();
     let (mut residual, mut offset) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);
     if !band.is_empty() {

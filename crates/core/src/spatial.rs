@@ -80,6 +80,16 @@ impl KdTree {
         Some(best)
     }
 
+    /// [`KdTree::nearest`] (the same result) starting from the bound given by point `hint`,
+    /// e.g. the answer for a neighbouring query: for coherent query sequences (grid vertices
+    /// in raster order) most of the tree is then pruned at once.
+    pub fn nearest_from(&self, q: Vec3, hint: usize) -> Option<(usize, f32)> {
+        let Some(p) = self.points.get(hint) else { return self.nearest(q) };
+        let mut best = (hint, p.distance_squared(q));
+        self.search(0, q, Vec3::ZERO, &mut best);
+        Some(best)
+    }
+
     /// Depth-first search with Arya and Mount's incremental distance: `off` holds, per axis,
     /// the distance from `q` to the node's cell (0 where `q` lies within its extent), so
     /// `|off|²` bounds the distance to every point below from beneath. A far child is skipped
@@ -144,9 +154,19 @@ mod tests {
             assert_eq!(d, bd, "query {q}");
             assert_eq!(pts[i].distance_squared(q), bd);
         }
+        // A hint (good, bad or out of range) never changes the answer.
+        for k in 0..300 {
+            let q = Vec3::new(r(), r(), r()) * 3.0;
+            let want = tree.nearest(q);
+            for hint in [k, (k * 7919) % 2000, 5000] {
+                assert_eq!(tree.nearest_from(q, hint), want, "query {q} hint {hint}");
+            }
+        }
         // Ties go to the lowest index, also across leaves.
         let dup: Vec<Vec3> = (0..100).map(|k| if k % 7 == 3 { Vec3::X } else { Vec3::splat(k as f32) }).collect();
-        assert_eq!(KdTree::new(&dup).nearest(Vec3::new(1.1, 0.0, 0.0)).map(|(i, _)| i), Some(3));
+        let dup_tree = KdTree::new(&dup);
+        assert_eq!(dup_tree.nearest(Vec3::new(1.1, 0.0, 0.0)).map(|(i, _)| i), Some(3));
+        assert_eq!(dup_tree.nearest_from(Vec3::new(1.1, 0.0, 0.0), 94).map(|(i, _)| i), Some(3));
         assert!(KdTree::new(&[]).nearest(Vec3::ZERO).is_none());
     }
 }

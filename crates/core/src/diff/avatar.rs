@@ -68,9 +68,7 @@ impl PosedGrid {
     /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
     pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
         let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> {
-            chunk.iter().map(|p| inv.canonical_template(&ctx.template, *p)).collect()
-        };
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk) };
         #[cfg(not(target_arch = "wasm32"))]
         let mapped: Vec<(Vec3, f32, bool)> = {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
