@@ -239,6 +239,38 @@ pub fn generate_avatar(g: &Generator, ctx: &BodyContext, s: &Styles, params: &Bo
     block_on_ready(generate_avatar_async(g, ctx, s, params, device))
 }
 
+/// The tet grid under one body pose (paper eq. 2): each posed-space grid vertex carried to
+/// canonical space by SMPL-guided inverse skinning, and the template SDF there.
+pub struct PosedGrid {
+    pub canonical: Vec<Vec3>,
+    pub template: Vec<f32>,
+    /// Grid vertices where the generator's fields are evaluated (`generator::field_band`).
+    pub band: Vec<u32>,
+}
+
+impl PosedGrid {
+    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
+    pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
+        let verts = &ctx.grid.vertices;
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk) };
+        #[cfg(not(target_arch = "wasm32"))]
+        let mapped: Vec<(Vec3, f32, bool)> = {
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
+            let chunk = verts.len().div_ceil(threads).max(1);
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = verts.chunks(chunk).map(|c| sc.spawn(move || map(c))).collect();
+                handles.into_iter().flat_map(|h| h.join().unwrap_or_default()).collect()
+            })
+        };
+        #[cfg(target_arch = "wasm32")]
+        let mapped = map(verts);
+        let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
+        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
+        let band = field_band(ctx, &template, &guarded);
+        Self { canonical, template, band }
+    }
+}
+
 /// [`generate_avatar`] for any platform (awaits GPU readbacks in the browser).
 pub async fn generate_avatar_async(
     g: &Generator,
@@ -250,8 +282,7 @@ pub async fn generate_avatar_async(
     let planes = g.triplanes(s);
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-    let crate::diff::avatar::PosedGrid { canonical: canon, template, band } =
-        crate::diff::avatar::PosedGrid::new(ctx, &inv);
+    let PosedGrid { canonical: canon, template, band } = PosedGrid::new(ctx, &inv);
     let n = canon.len();
     let (mut residual, mut offset) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);
     if !band.is_empty() {

@@ -21,7 +21,7 @@ use super::rasterize::{antialias, compose, interpolate, silhouette_pairs, Covera
 use super::{index_tensor, matrix};
 use crate::camera::OrbitCamera;
 use crate::dataset::Label;
-use crate::generator::{field_band, BodyContext, Generator, Styles};
+use crate::generator::{BodyContext, Generator, PosedGrid, Styles};
 use crate::geometry::inverse_skinning::InverseSkinning;
 use crate::geometry::marching_tets;
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
@@ -53,38 +53,6 @@ fn vec3_tensor(v: &[Vec3], device: &Device) -> Tensor<2> {
 
 fn styles_of(s: &Styles, b: usize) -> Styles {
     Styles { geo: s.geo.clone().narrow(0, b, 1), tex: s.tex.clone().narrow(0, b, 1) }
-}
-
-/// The tet grid under one body pose (paper eq. 2): each posed-space grid vertex carried to
-/// canonical space by SMPL-guided inverse skinning, and the template SDF there.
-pub struct PosedGrid {
-    pub canonical: Vec<Vec3>,
-    pub template: Vec<f32>,
-    /// Grid vertices where the generator's fields are evaluated (`generator::field_band`).
-    pub band: Vec<u32>,
-}
-
-impl PosedGrid {
-    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
-    pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
-        let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk) };
-        #[cfg(not(target_arch = "wasm32"))]
-        let mapped: Vec<(Vec3, f32, bool)> = {
-            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
-            let chunk = verts.len().div_ceil(threads).max(1);
-            std::thread::scope(|sc| {
-                let handles: Vec<_> = verts.chunks(chunk).map(|c| sc.spawn(move || map(c))).collect();
-                handles.into_iter().flat_map(|h| h.join().unwrap_or_default()).collect()
-            })
-        };
-        #[cfg(target_arch = "wasm32")]
-        let mapped = map(verts);
-        let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
-        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
-        let band = field_band(ctx, &template, &guarded);
-        Self { canonical, template, band }
-    }
 }
 
 /// Posed grids memoised per body pose: a dataset has one pose per subject and many views, and
