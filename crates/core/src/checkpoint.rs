@@ -108,8 +108,11 @@ pub fn save_generator_with_modes(
 /// The latent modes a generator checkpoint carries (None for checkpoints without them).
 /// Both branches must be present, `[K, w_dim]` with the same K ≥ 1 and the config's w_dim.
 pub fn load_latent_modes(bytes: &[u8], device: &Device) -> Result<Option<LatentModes>, CheckpointError> {
-    let st = parse_safetensors(bytes)?;
-    let w_dim = checkpoint_config(&st)?.w_dim;
+    latent_modes_of(&parse_safetensors(bytes)?, device)
+}
+
+fn latent_modes_of(st: &SafeTensors, device: &Device) -> Result<Option<LatentModes>, CheckpointError> {
+    let w_dim = checkpoint_config(st)?.w_dim;
     let get = |name: &str| st.tensors.get(name);
     match (get(MODES_GEO), get(MODES_TEX)) {
         (None, None) => Ok(None),
@@ -262,8 +265,21 @@ pub fn load_generator(
     requested: &GeneratorConfig,
     device: &Device,
 ) -> Result<Generator, CheckpointError> {
+    generator_of(&parse_safetensors(bytes)?, requested, device)
+}
+
+/// [`load_generator`] and [`load_latent_modes`] from one parse of the file.
+pub fn load_generator_and_modes(
+    bytes: &[u8],
+    requested: &GeneratorConfig,
+    device: &Device,
+) -> Result<(Generator, Option<LatentModes>), CheckpointError> {
     let st = parse_safetensors(bytes)?;
-    let saved = checkpoint_config(&st)?;
+    Ok((generator_of(&st, requested, device)?, latent_modes_of(&st, device)?))
+}
+
+fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) -> Result<Generator, CheckpointError> {
+    let saved = checkpoint_config(st)?;
     if saved != *requested {
         return Err(CheckpointError::ConfigMismatch {
             saved: saved.name.clone(),

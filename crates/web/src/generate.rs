@@ -14,7 +14,7 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+use getavatar_core::checkpoint::load_generator_and_modes;
 use getavatar_core::generator::{
     generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, RiggedAvatar, Styles,
 };
@@ -63,9 +63,8 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
         return Err("no trained model ships with this build".into());
     }
     let bytes = fetch_bytes(MODEL_URL).await?;
-    let bad = |e| format!("{MODEL_URL} is not a demo checkpoint: {e}");
-    let g = load_generator(&bytes, cfg, device).map_err(bad)?;
-    let modes = load_latent_modes(&bytes, device).map_err(bad)?;
+    let (g, modes) = load_generator_and_modes(&bytes, cfg, device)
+        .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
     Ok((g, modes, bytes.len()))
 }
 
