@@ -1,0 +1,164 @@
+//! Triplane lookup (paper Sec. 4.1): the row-table sampler agrees with burn's
+//! `grid_sample_2d` (bilinear, zero padding, align_corners = false) summed over the three
+//! planes, inside, at the border and outside the box; its gradients with respect to the
+//! planes and the points match finite differences on NdArray and on Wgpu (lavapipe).
+
+use getavatar_core::burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+use getavatar_core::network::triplane::sample_triplanes;
+use getavatar_core::rng::Rng;
+
+const B: usize = 2;
+const C: usize = 3;
+const R: usize = 5;
+
+#[allow(deprecated)]
+fn cpu() -> Device {
+    Device::ndarray()
+}
+
+fn gpu() -> Device {
+    Device::wgpu_options().init().expect("no wgpu adapter: CI uses Debian's mesa-vulkan-drivers (lavapipe)")
+}
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_to_vec::<f32>().expect("f32")
+}
+
+fn planes(v: &[f32], dev: &Device) -> Tensor<4> {
+    Tensor::from_data(TensorData::new(v.to_vec(), [B, 3 * C, R, R]), dev)
+}
+
+fn points(v: &[f32], n: usize, dev: &Device) -> Tensor<3> {
+    Tensor::from_data(TensorData::new(v.to_vec(), [B, n, 3]), dev)
+}
+
+/// Random planes, and canonical points: mostly inside the box, some within a texel of its
+/// faces (partly zero-padded) and some far outside (all zeros).
+fn scene(n: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut rng = Rng::new(3, 4);
+    let p: Vec<f32> = (0..B * 3 * C * R * R).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+    let c = REFERENCE_BOX_CENTER.to_array();
+    let mut q = Vec::new();
+    for i in 0..B * n {
+        let reach = match i % 4 {
+            0 => 1.1,  // across the border
+            1 => 3.0,  // mostly far outside
+            _ => 0.95, // inside
+        };
+        for k in 0..3 {
+            q.push(c[k] + 0.5 * REFERENCE_BOX_SIZE * reach * (rng.uniform() * 2.0 - 1.0));
+        }
+    }
+    (p, q)
+}
+
+/// The same lookup with burn's grid_sample_2d, plane by plane.
+fn reference(p: Tensor<4>, q: Tensor<3>) -> Tensor<3> {
+    let [b, _, r, _] = p.dims();
+    let [_, n, _] = q.dims();
+    let dev = q.device();
+    let center = Tensor::<1>::from_floats(REFERENCE_BOX_CENTER.to_array(), &dev).reshape([1, 1, 3]);
+    let q = (q - center) * (2.0 / REFERENCE_BOX_SIZE);
+    let axis = |k: usize| q.clone().narrow(2, k, 1);
+    let opts = GridSampleOptions::new(InterpolateMode::Bilinear)
+        .with_padding_mode(GridSamplePaddingMode::Zeros)
+        .with_align_corners(false);
+    let mut sum = Tensor::<4>::zeros([b, C, n, 1], &dev);
+    for (k, (u, v)) in [(0, 1), (1, 2), (0, 2)].into_iter().enumerate() {
+        let plane = p.clone().narrow(1, k * C, C).reshape([b, C, r, r]);
+        let grid = Tensor::cat(vec![axis(u), axis(v)], 2).reshape([b, n, 1, 2]);
+        sum = sum + plane.grid_sample_2d(grid, opts.clone());
+    }
+    sum.reshape([b, C, n]).swap_dims(1, 2)
+}
+
+#[test]
+fn triplane_lookup_matches_grid_sample_inside_at_the_border_and_outside() {
+    let dev = cpu();
+    let n = 64;
+    let (p, q) = scene(n);
+    let got = values(sample_triplanes(planes(&p, &dev), points(&q, n, &dev)));
+    let want = values(reference(planes(&p, &dev), points(&q, n, &dev)));
+    let err = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+    assert!(err < 1e-5, "max difference {err}");
+    // The scene exercises all three cases: zeros (far outside), partial borders, interiors.
+    let zero_rows = want.chunks(C).filter(|f| f.iter().all(|x| *x == 0.0)).count();
+    assert!(zero_rows > 0 && zero_rows < B * n / 2, "{zero_rows} all-zero points");
+    // A linear plane is reproduced exactly at interior points (bilinear is exact on it).
+    let mut lin = vec![0f32; B * 3 * C * R * R];
+    for (i, x) in lin.iter_mut().enumerate() {
+        let (y, xx) = ((i / R) % R, i % R);
+        *x = if (i / (R * R)) % (3 * C) == 0 { 0.5 * xx as f32 + 0.25 * y as f32 } else { 0.0 };
+    }
+    let c = REFERENCE_BOX_CENTER.to_array();
+    let texel = REFERENCE_BOX_SIZE / R as f32;
+    // (x, y) = centre + (0.3, −0.7) texels: plane 0 reads 0.5·(2 + 0.3) + 0.25·(2 − 0.7).
+    let one: Vec<f32> = (0..B).flat_map(|_| [c[0] + 0.3 * texel, c[1] - 0.7 * texel, c[2]]).collect();
+    let f = values(sample_triplanes(planes(&lin, &dev), points(&one, 1, &dev)));
+    let want0 = 0.5 * 2.3 + 0.25 * 1.3;
+    assert!((f[0] - want0).abs() < 1e-5, "{} vs {want0}", f[0]);
+}
+
+fn grad_check(dev: &Device) {
+    let n = 24;
+    let (p, q) = scene(n);
+    let mut rng = Rng::new(5, 6);
+    let w: Vec<f32> = (0..B * n * C).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+    let loss = |pl: Tensor<4>, pt: Tensor<3>, d: &Device| {
+        let wt = Tensor::<3>::from_data(TensorData::new(w.clone(), [B, n, C]), d);
+        (sample_triplanes(pl, pt) * wt).sum()
+    };
+    let ad = dev.clone().autodiff();
+    let (pl, pt) = (planes(&p, &ad).require_grad(), points(&q, n, &ad).require_grad());
+    let grads = loss(pl.clone(), pt.clone(), &ad).backward();
+    let gp = values(pl.grad(&grads).expect("plane gradient"));
+    let gq = values(pt.grad(&grads).expect("point gradient"));
+    let plain = |p: &[f32], q: &[f32]| values(loss(planes(p, dev), points(q, n, dev), dev))[0] as f64;
+
+    // Planes: the lookup is linear in them, so central differences are exact up to rounding.
+    let eps = 0.05;
+    let (mut err, mut scale) = (0.0f64, 0.0f64);
+    for i in 0..p.len() {
+        let (mut hi, mut lo) = (p.clone(), p.clone());
+        hi[i] += eps;
+        lo[i] -= eps;
+        let fd = (plain(&hi, &q) - plain(&lo, &q)) / (2.0 * eps as f64);
+        err = err.max((fd - gp[i] as f64).abs());
+        scale = scale.max(fd.abs());
+    }
+    assert!(scale > 0.1 && err / scale < 1e-3, "plane gradients: max error {err} of {scale}");
+
+    // Points: piecewise bilinear; steps well inside a texel (texel = 0.46 m at R = 5) keep
+    // almost every stencil within one cell. A coordinate whose two step sizes disagree
+    // straddles a texel line and is set aside (a few at most).
+    let fd_at = |i: usize, eps: f32| {
+        let (mut hi, mut lo) = (q.clone(), q.clone());
+        hi[i] += eps;
+        lo[i] -= eps;
+        (plain(&p, &hi) - plain(&p, &lo)) / (2.0 * eps as f64)
+    };
+    let fds: Vec<(f64, f64)> = (0..q.len()).map(|i| (fd_at(i, 1e-3), fd_at(i, 3e-3))).collect();
+    let norm = fds.iter().map(|f| f.1.abs()).fold(0.0, f64::max);
+    let stable: Vec<usize> = (0..q.len()).filter(|&i| (fds[i].0 - fds[i].1).abs() < 1e-3 * norm).collect();
+    assert!(stable.len() * 10 >= q.len() * 9, "only {} of {} coordinates are smooth", stable.len(), q.len());
+    let diff: f64 = stable.iter().map(|&i| (fds[i].1 - gq[i] as f64).powi(2)).sum::<f64>().sqrt();
+    let size: f64 = stable.iter().map(|&i| fds[i].1.powi(2)).sum::<f64>().sqrt();
+    assert!(
+        size > 0.1 && diff / size < 1e-2,
+        "point gradients: relative error {} over {} coordinates",
+        diff / size,
+        stable.len()
+    );
+}
+
+#[test]
+fn triplane_gradients_match_finite_differences_on_ndarray() {
+    grad_check(&cpu());
+}
+
+#[test]
+fn triplane_gradients_match_finite_differences_on_wgpu() {
+    grad_check(&gpu());
+}
