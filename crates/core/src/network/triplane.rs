@@ -8,8 +8,10 @@
 //! neighbourhood starting at (y, x); a point selects its row (`Tensor::select`, whose backward
 //! is a row scatter-add) and weights the four texels. burn's generic `grid_sample_2d` under
 //! autodiff instead expands per-channel gather indices and masks, which cost about half of a
-//! training step on NdArray.
+//! training step on NdArray. Without autodiff the backends' native `grid_sample_2d` kernels are
+//! faster, so inference keeps them ([`sample_triplanes`] picks by device).
 
+use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
@@ -18,8 +20,45 @@ use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 /// grid (x → width, y → height).
 const PLANE_AXES: [[i64; 3]; 2] = [[0, 1, 0], [1, 2, 2]];
 
-/// Sample `planes` (`[B, 3·C, R, R]`) at canonical `points` (`[B, N, 3]`, metres) → `[B, N, C]`.
+/// Sample `planes` (`[B, 3·C, R, R]`) at canonical `points` (`[B, N, 3]`, metres) → `[B, N, C]`:
+/// the row-table lookup on autodiff devices, the native kernel otherwise (same values).
 pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
+    if points.device().is_autodiff() {
+        sample_triplanes_rows(planes, points)
+    } else {
+        sample_triplanes_native(planes, points)
+    }
+}
+
+/// Normalised box coordinates in [−1, 1]³ of canonical points.
+fn box_coordinates(points: Tensor<3>) -> Tensor<3> {
+    let center = Tensor::<1>::from_floats(REFERENCE_BOX_CENTER.to_array(), &points.device()).reshape([1, 1, 3]);
+    (points - center) * (2.0 / REFERENCE_BOX_SIZE)
+}
+
+/// [`sample_triplanes`] with the backend's `grid_sample_2d`, plane by plane.
+pub fn sample_triplanes_native(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
+    let [b, c3, r, _] = planes.dims();
+    let [_, n, _] = points.dims();
+    let c = c3 / 3;
+    let q = box_coordinates(points);
+    let axis = |k: i64| q.clone().narrow(2, k as usize, 1); // [B, N, 1]
+    let opts = GridSampleOptions::new(InterpolateMode::Bilinear)
+        .with_padding_mode(GridSamplePaddingMode::Zeros)
+        .with_align_corners(false);
+    let sampled: Vec<Tensor<4>> = (0..3)
+        .map(|k| {
+            let plane = planes.clone().narrow(1, k * c, c).reshape([b, c, r, r]);
+            let grid = Tensor::cat(vec![axis(PLANE_AXES[0][k]), axis(PLANE_AXES[1][k])], 2).reshape([b, n, 1, 2]);
+            plane.grid_sample_2d(grid, opts.clone()) // [B, C, N, 1]
+        })
+        .collect();
+    let sum = sampled.into_iter().reduce(|a, s| a + s).expect("three planes");
+    sum.reshape([b, c, n]).swap_dims(1, 2)
+}
+
+/// [`sample_triplanes`] as one row select per point and plane (see the module notes).
+pub fn sample_triplanes_rows(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
     let [b, c3, r, _] = planes.dims();
     let [_, n, _] = points.dims();
     let c = c3 / 3;
@@ -36,8 +75,7 @@ pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
         .reshape([b * 3 * s * s, 4 * c]);
 
     // Texel coordinates (align_corners = false: −1 ↦ −0.5, 1 ↦ R − 0.5) per plane, [B, N, 3].
-    let center = Tensor::<1>::from_floats(REFERENCE_BOX_CENTER.to_array(), &device).reshape([1, 1, 3]);
-    let t = (points - center) * (r as f64 / REFERENCE_BOX_SIZE as f64) + (r as f64 / 2.0 - 0.5);
+    let t = (box_coordinates(points) + 1.0) * (r as f64 / 2.0) - 0.5;
     let axis =
         |a: [i64; 3]| t.clone().select(2, Tensor::<1, Int>::from_data(TensorData::new(a.to_vec(), [3]), &device));
     let (u, v) = (axis(PLANE_AXES[0]), axis(PLANE_AXES[1]));
