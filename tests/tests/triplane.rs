@@ -62,6 +62,11 @@ fn triplane_lookup_matches_grid_sample_inside_at_the_border_and_outside() {
     let want = values(sample_triplanes_native(planes(&p, &dev), points(&q, n, &dev)));
     let err = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
     assert!(err < 1e-5, "max difference {err}");
+    // Constants on an autodiff device take the native kernel of the inner backend.
+    let ad = dev.clone().autodiff();
+    let (pa, qa) = (planes(&p, &ad), points(&q, n, &ad));
+    assert!(pa.is_autodiff() && !pa.is_tracked());
+    assert_eq!(values(sample_triplanes(pa, qa)), want);
     // The scene exercises all three cases: zeros (far outside), partial borders, interiors.
     let zero_rows = want.chunks(C).filter(|f| f.iter().all(|x| *x == 0.0)).count();
     assert!(zero_rows > 0 && zero_rows < B * n / 2, "{zero_rows} all-zero points");

@@ -21,13 +21,17 @@ use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 const PLANE_AXES: [[i64; 3]; 2] = [[0, 1, 0], [1, 2, 2]];
 
 /// Sample `planes` (`[B, 3·C, R, R]`) at canonical `points` (`[B, N, 3]`, metres) → `[B, N, C]`:
-/// the row-table lookup on autodiff devices, the native kernel otherwise (same values).
+/// the row-table lookup when gradients are recorded, the native kernel otherwise (on the
+/// inner backend for untracked tensors of an autodiff device); the values are the same.
 pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
-    if points.device().is_autodiff() {
-        sample_triplanes_rows(planes, points)
-    } else {
-        sample_triplanes_native(planes, points)
+    #[cfg(feature = "train")]
+    if planes.is_autodiff() || points.is_autodiff() {
+        if planes.is_tracked() || points.is_tracked() {
+            return sample_triplanes_rows(planes, points);
+        }
+        return sample_triplanes_native(planes.inner(), points.inner()).autodiff();
     }
+    sample_triplanes_native(planes, points)
 }
 
 /// Normalised box coordinates in [−1, 1]³ of canonical points.
