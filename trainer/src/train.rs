@@ -26,7 +26,7 @@ use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator_with_modes, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, FakeViews, PosedGridCache};
+use getavatar_core::diff::avatar::{render_avatar_views, render_avatars, FakeViews, PosedGridCache};
 use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
@@ -79,6 +79,12 @@ pub struct TrainArgs {
     /// rest of the latent space. 0 (the default) is the paper's objective.
     #[arg(long, default_value_t = 0.0)]
     pub lambda_reconstruction: f32,
+    /// Reconstruction terms only (the warm-up, and the anchor of adversarial runs): views
+    /// rendered per drawn subject, the drawn one plus others of the same subject and body pose.
+    /// One surface serves all of them (triplanes, inverse skinning and DMTet are per avatar),
+    /// so each step sees `batch × views` images for little more than `batch`.
+    #[arg(long, default_value_t = 1)]
+    pub views: usize,
 }
 
 /// What a run optimises.
@@ -131,6 +137,14 @@ pub struct RunConfig {
     /// Absent in older runs: 0. Editable in `run.json` like the learning-rate factors.
     #[serde(default)]
     pub lambda_reconstruction: f32,
+    /// Views per subject in the reconstruction terms (`TrainArgs::views`). Absent in older
+    /// runs: 1. Editable in `run.json` like the learning-rate factors.
+    #[serde(default = "one_view")]
+    pub views_per_subject: usize,
+}
+
+fn one_view() -> usize {
+    1
 }
 
 impl RunConfig {
@@ -186,6 +200,7 @@ impl RunConfig {
             seed,
             objective,
             lambda_reconstruction: 0.0,
+            views_per_subject: 1,
         }
     }
 }
@@ -544,8 +559,9 @@ fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> O
 }
 
 /// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
-/// from `rng`), each at its subject's fixed latents and the view's camera and body pose, and
-/// is compared with the real images by L1 (RGB + mask, + normal map where the data has them).
+/// from `rng`), each at its subject's fixed latents and the view's camera and body pose, plus
+/// `rc.views_per_subject − 1` further views of the same avatar, and is compared with the real
+/// images by L1 (RGB + mask, + normal map where the data has them).
 /// Returns the L1, the renders (for the eikonal and cross-entropy terms) and the latents.
 fn subject_reconstruction(
     g: &Generator,
@@ -557,11 +573,32 @@ fn subject_reconstruction(
     ad: &Device,
 ) -> Result<(Tensor<1>, FakeViews, Tensor<2>, Tensor<2>)> {
     let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
-    let labels: Vec<Label> = idx.iter().map(|&i| ds.entries[i].1.clone()).collect();
     let subjects = subject_of_entries(ds);
+    // Each drawn view, then further views of its subject under the same body pose and shape
+    // (drawn with replacement; none are drawn with one view per subject, keeping older runs'
+    // random streams).
+    let body = |i: usize| {
+        let l = &ds.entries[i].1;
+        (l.global_orient, l.body_pose, l.betas)
+    };
+    let groups: Vec<Vec<usize>> = idx
+        .iter()
+        .map(|&i| {
+            let mut group = vec![i];
+            if rc.views_per_subject > 1 {
+                let others: Vec<usize> =
+                    (0..ds.len()).filter(|&j| j != i && subjects[j] == subjects[i] && body(j) == body(i)).collect();
+                if !others.is_empty() {
+                    group.extend((1..rc.views_per_subject).map(|_| others[rng.below(others.len())]));
+                }
+            }
+            group
+        })
+        .collect();
+    let views: Vec<Vec<Label>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.clone()).collect()).collect();
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
-    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &idx, ad)?;
-    let fakes = render_avatars(g, ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &labels, rc.resolution, grids, ad);
+    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
+    let fakes = render_avatar_views(g, ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &views, rc.resolution, grids, ad);
     let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
     let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
     if rc.use_normals {
@@ -589,7 +626,7 @@ fn reconstruction_step(
         reconstruction: Some(scalar(loss.clone())),
         eikonal: scalar(fakes.eikonal.clone()),
         cross_entropy: scalar(fakes.cross_entropy.clone()),
-        triangles: fakes.triangles.iter().sum::<usize>() as f32 / b as f32,
+        triangles: fakes.triangles.iter().sum::<usize>() as f32 / fakes.triangles.len().max(1) as f32,
         ..Metrics::default()
     };
     let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
@@ -670,6 +707,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let text = std::fs::read_to_string(&run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
         let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
+        if a.views != 1 && a.views != rc.views_per_subject {
+            bail!(
+                "--views {} differs from the run's {}: a continued run keeps its settings (edit views_per_subject in {} to change it)",
+                a.views,
+                rc.views_per_subject,
+                run_path.display()
+            );
+        }
         if a.lambda_reconstruction != 0.0 && a.lambda_reconstruction != rc.lambda_reconstruction {
             bail!(
                 "--lambda-reconstruction {} differs from the run's {}: a continued run keeps its settings (edit lambda_reconstruction in {} to change it)",
@@ -692,8 +737,15 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         if !(a.lambda_reconstruction >= 0.0 && a.lambda_reconstruction.is_finite()) {
             bail!("--lambda-reconstruction must be a finite weight ≥ 0, got {}", a.lambda_reconstruction);
         }
+        if a.views == 0 {
+            bail!("--views must be at least 1");
+        }
+        if a.views > 1 && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+            bail!("--views applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
         let rc = RunConfig {
             lambda_reconstruction: a.lambda_reconstruction,
+            views_per_subject: a.views,
             ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective)
         };
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;

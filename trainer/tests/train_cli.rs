@@ -315,3 +315,30 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// `--views N` (reconstruction terms): stored in run.json, refused where it has no effect or
+/// conflicts with a continued run.
+#[test]
+fn views_per_subject_is_validated_and_kept_in_the_run() {
+    let root = tmp("views");
+    let data = dataset(&root);
+    let run = root.join("recon");
+    let text = train(&data, &run, 2, &["--objective", "reconstruction", "--views", "3"]);
+    assert!(text.contains("trained 2 steps"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["views_per_subject"], 3, "{rc}");
+    let rows = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    assert_eq!(rows.lines().count(), 2);
+    let refused = |extra: &[&str], out: &Path, needle: &str| {
+        let mut args =
+            vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = trainer(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{extra:?}: {err}");
+    };
+    refused(&["--objective", "reconstruction", "--views", "0"], &root.join("zero"), "at least 1");
+    refused(&["--views", "2"], &root.join("adv"), "reconstruction terms");
+    refused(&["--resume", "--views", "4"], &run, "keeps its settings");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -119,6 +119,26 @@ pub fn render_avatars(
     grids: &PosedGridCache,
     device: &Device,
 ) -> FakeViews {
+    let views: Vec<Vec<Label>> = labels.iter().map(|l| vec![l.clone()]).collect();
+    render_avatar_views(g, ctx, styles, &views, res, grids, device)
+}
+
+/// Render avatar b of `styles` (batch B) under each label of `views[b]` at `res`²: one surface
+/// per avatar (triplanes, inverse skinning, DMTet, surface fields), rasterised and shaded per
+/// view, so several views of one avatar cost little more than one. The avatar's body pose and
+/// shape are those of `views[b][0]`; the other labels contribute their cameras only. The
+/// images come out view by view in order (batch Σ|views[b]|); the eikonal term is the mean over
+/// views, the cross-entropy the mean over avatars.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn render_avatar_views(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    views: &[Vec<Label>],
+    res: usize,
+    grids: &PosedGridCache,
+    device: &Device,
+) -> FakeViews {
     let proj = OrbitCamera::default().projection_gl(1.0);
     let h = 0.5 * ctx.template.cell;
     let n = ctx.grid.vertices.len();
@@ -132,7 +152,8 @@ pub fn render_avatars(
             eprintln!("    {:>8.3} s  render: {what}", t0.elapsed().as_secs_f64());
         }
     };
-    for (b, label) in labels.iter().enumerate() {
+    for (b, cams) in views.iter().enumerate() {
+        let Some(label) = cams.first() else { continue };
         let s = styles_of(styles, b);
         let planes = g.triplanes(&s);
         lap("triplanes");
@@ -175,13 +196,15 @@ pub fn render_avatars(
             .collect();
         lap("band fields (values)");
         let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
-        triangles.push(mesh.faces.len());
+        triangles.extend(cams.iter().map(|_| mesh.faces.len()));
         lap("marching tets");
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
-            rgbs.push(bg(1.0, 3));
-            normals.push(bg(0.0, 3));
-            masks.push(bg(-1.0, 1));
+            for _ in cams {
+                rgbs.push(bg(1.0, 3));
+                normals.push(bg(0.0, 3));
+                masks.push(bg(-1.0, 1));
+            }
             continue;
         }
         let edges = EdgeIndex::new(&mesh);
@@ -221,54 +244,8 @@ pub fn render_avatars(
         ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
         let verts = surface_points(&edges, positions, sdf.clone(), device);
         let vcanon = surface_points(&edges, canon_t, sdf, device);
-
-        // Camera and rasterisation.
-        let vp = proj * label.world_to_camera;
-        let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
         let nv = mesh.vertices.len();
-        let clip = Tensor::cat(vec![verts, Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
-        let clip_v: Vec<Vec4> = values(clip.clone()).chunks_exact(4).map(Vec4::from_slice).collect();
-        let r = rasterize(&clip_v, &mesh.faces, res, res);
-        let cov = Coverage::new(&r, &mesh.faces);
-        let ones = Tensor::<2>::ones([nv, 1], device);
-        if cov.is_empty() {
-            let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
-            rgbs.push(bg(1.0, 3));
-            normals.push(bg(0.0, 3));
-            // Keep the silhouette path alive (zero contribution) for a consistent graph.
-            masks.push(bg(-1.0, 1) + ones.sum().reshape([1, 1, 1, 1]) * 0.0);
-            continue;
-        }
-        lap("rasterize");
-        let p = cov.len();
-        let pix_canon = interpolate(&cov, clip.clone(), vcanon, device); // [P, 3]
-
-        // RGB: texture field at each pixel's canonical coordinate.
-        let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
-        let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
-        let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
-
-        lap("texture field");
-        // Normals: ∇(template + residual) by central differences, rotated to posed space.
-        let dirs = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
-        let offs: Vec<f32> = (0..p).flat_map(|_| dirs.iter().flat_map(|d| (*d * h).to_array())).collect();
-        let probes = pix_canon.clone().unsqueeze_dim::<3>(1).repeat_dim(1, 6)
-            + Tensor::from_data(TensorData::new(offs, [p, 6, 3]), device);
-        let rp = g.sdf_residual(&planes, &s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
-        let grad_res = (rp.clone().narrow(2, 0, 1) - rp.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h));
-        let pc = values(pix_canon);
-        let grad_tmpl: Vec<f32> = pc
-            .chunks_exact(3)
-            .flat_map(|c| {
-                let c = Vec3::from_slice(c);
-                let f = |d: Vec3| ctx.template.sample(c + d * h) - ctx.template.sample(c - d * h);
-                (Vec3::new(f(Vec3::X), f(Vec3::Y), f(Vec3::Z)) / (2.0 * h)).to_array()
-            })
-            .collect();
-        let grad = grad_res + matrix(grad_tmpl, p, 3, device);
-        eik.push(eikonal_loss(grad.clone()));
-        let unit = grad.clone() / (grad.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
-        // Per-vertex skinning rotation (nearest body vertex), interpolated per pixel.
+        // Per-vertex skinning rotation (nearest body vertex), interpolated per pixel below.
         let rot: Vec<f32> = mesh
             .vertices
             .iter()
@@ -277,19 +254,69 @@ pub fn render_avatars(
                 r.transpose().to_cols_array() // row-major
             })
             .collect();
-        let rpix = interpolate(&cov, clip.clone().detach(), matrix(rot, nv, 9, device), device).reshape([p, 3, 3]);
-        let nworld = rpix.matmul(unit.unsqueeze_dim::<3>(2)).reshape([p, 3]);
-        let nworld = nworld.clone() / (nworld.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
-        let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
+        let rot = matrix(rot, nv, 9, device);
+        let ones = Tensor::<2>::ones([nv, 1], device);
+        lap("surface");
 
-        lap("normal field");
-        // Mask with silhouette gradients.
-        let cover = compose(&cov, interpolate(&cov, clip.clone(), ones, device), &[0.0], device);
-        let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
-        lap("antialiased mask");
-        rgbs.push(to_nchw(rgb, res));
-        normals.push(to_nchw(normal, res));
-        masks.push(to_nchw(mask * 2.0 - 1.0, res));
+        for view in cams {
+            // Camera and rasterisation.
+            let vp = proj * view.world_to_camera;
+            let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
+            let clip = Tensor::cat(vec![verts.clone(), Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
+            let clip_v: Vec<Vec4> = values(clip.clone()).chunks_exact(4).map(Vec4::from_slice).collect();
+            let r = rasterize(&clip_v, &mesh.faces, res, res);
+            let cov = Coverage::new(&r, &mesh.faces);
+            if cov.is_empty() {
+                let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
+                rgbs.push(bg(1.0, 3));
+                normals.push(bg(0.0, 3));
+                // Keep the silhouette path alive (zero contribution) for a consistent graph.
+                masks.push(bg(-1.0, 1) + ones.clone().sum().reshape([1, 1, 1, 1]) * 0.0);
+                continue;
+            }
+            lap("rasterize");
+            let p = cov.len();
+            let pix_canon = interpolate(&cov, clip.clone(), vcanon.clone(), device); // [P, 3]
+
+            // RGB: texture field at each pixel's canonical coordinate.
+            let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
+            let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+            let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
+
+            lap("texture field");
+            // Normals: ∇(template + residual) by central differences, rotated to posed space.
+            let dirs = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
+            let offs: Vec<f32> = (0..p).flat_map(|_| dirs.iter().flat_map(|d| (*d * h).to_array())).collect();
+            let probes = pix_canon.clone().unsqueeze_dim::<3>(1).repeat_dim(1, 6)
+                + Tensor::from_data(TensorData::new(offs, [p, 6, 3]), device);
+            let rp = g.sdf_residual(&planes, &s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
+            let grad_res = (rp.clone().narrow(2, 0, 1) - rp.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h));
+            let pc = values(pix_canon);
+            let grad_tmpl: Vec<f32> = pc
+                .chunks_exact(3)
+                .flat_map(|c| {
+                    let c = Vec3::from_slice(c);
+                    let f = |d: Vec3| ctx.template.sample(c + d * h) - ctx.template.sample(c - d * h);
+                    (Vec3::new(f(Vec3::X), f(Vec3::Y), f(Vec3::Z)) / (2.0 * h)).to_array()
+                })
+                .collect();
+            let grad = grad_res + matrix(grad_tmpl, p, 3, device);
+            eik.push(eikonal_loss(grad.clone()));
+            let unit = grad.clone() / (grad.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
+            let rpix = interpolate(&cov, clip.clone().detach(), rot.clone(), device).reshape([p, 3, 3]);
+            let nworld = rpix.matmul(unit.unsqueeze_dim::<3>(2)).reshape([p, 3]);
+            let nworld = nworld.clone() / (nworld.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
+            let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
+
+            lap("normal field");
+            // Mask with silhouette gradients.
+            let cover = compose(&cov, interpolate(&cov, clip.clone(), ones.clone(), device), &[0.0], device);
+            let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
+            lap("antialiased mask");
+            rgbs.push(to_nchw(rgb, res));
+            normals.push(to_nchw(normal, res));
+            masks.push(to_nchw(mask * 2.0 - 1.0, res));
+        }
     }
     let mean = |v: Vec<Tensor<1>>| {
         let k = v.len().max(1) as f32;
