@@ -8,9 +8,8 @@ use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::spatial::KdTree;
 
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec::<f32>().expect("f32 data")
-}
+mod common;
+use common::values;
 
 #[test]
 fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {

@@ -12,20 +12,10 @@ use getavatar_core::rasterize::{interpolate as cpu_interpolate, rasterize};
 use getavatar_core::rng::Rng;
 use glam::{Mat4, Vec3, Vec4};
 
+mod common;
+use common::{cpu, gpu, values};
+
 const SIZE: usize = 48;
-
-#[allow(deprecated)]
-fn cpu() -> Device {
-    Device::ndarray()
-}
-
-fn gpu() -> Device {
-    Device::wgpu_options().init().expect("no wgpu adapter: CI uses Debian's mesa-vulkan-drivers (lavapipe)")
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec::<f32>().expect("f32")
-}
 
 fn tensor2(v: &[f32], n: usize, c: usize, dev: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(v.to_vec(), [n, c]), dev)

@@ -9,14 +9,8 @@ use getavatar_core::network::discriminator::{minibatch_std, Discriminator, Discr
 use getavatar_core::optim::Adam;
 use getavatar_core::rng::Rng;
 
-#[allow(deprecated)]
-fn cpu() -> Device {
-    Device::ndarray()
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec::<f32>().expect("f32")
-}
+mod common;
+use common::{cpu, values};
 
 fn randn4(rng: &mut Rng, dims: [usize; 4], dev: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(rng.normals(dims.iter().product()), dims), dev)

@@ -3,7 +3,7 @@
 
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::{Module, ModuleVisitor, Param};
-use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
+use getavatar_core::burn::tensor::{Gradients, Tensor, TensorData};
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::dataset::Label;
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
@@ -14,14 +14,8 @@ use getavatar_core::rasterize::render_views;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use glam::Vec3;
 
-#[allow(deprecated)]
-fn cpu() -> Device {
-    Device::ndarray()
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec::<f32>().expect("f32")
-}
+mod common;
+use common::{cpu, values};
 
 /// Sum of |gradient| over the parameters under module path `prefix`.
 fn grad_mass<M: Module>(m: &M, grads: &Gradients, prefix: &str) -> f32 {

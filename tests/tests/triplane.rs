@@ -8,22 +8,12 @@ use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZ
 use getavatar_core::network::triplane::{sample_triplanes, sample_triplanes_native, sample_triplanes_rows};
 use getavatar_core::rng::Rng;
 
+mod common;
+use common::{cpu, gpu, values};
+
 const B: usize = 2;
 const C: usize = 3;
 const R: usize = 5;
-
-#[allow(deprecated)]
-fn cpu() -> Device {
-    Device::ndarray()
-}
-
-fn gpu() -> Device {
-    Device::wgpu_options().init().expect("no wgpu adapter: CI uses Debian's mesa-vulkan-drivers (lavapipe)")
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec::<f32>().expect("f32")
-}
 
 fn planes(v: &[f32], dev: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(v.to_vec(), [B, 3 * C, R, R]), dev)
