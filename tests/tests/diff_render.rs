@@ -13,7 +13,7 @@ use getavatar_core::rng::Rng;
 use glam::{Mat4, Vec3, Vec4};
 
 mod common;
-use common::{cpu, gpu, values};
+use common::{cpu, gpu, linear_fd_error, smooth_fd_error, values, SmoothFd};
 
 const SIZE: usize = 48;
 
@@ -88,16 +88,7 @@ fn grad_check(dev: &Device) {
         values(render_loss(tensor2(pos, 8, 3, dev), tensor2(attr, 8, 4, dev), &tris, &wt, dev))[0] as f64
     };
     // Attributes: the image is linear in them, so central differences are exact up to rounding.
-    let eps = 1e-2;
-    let (mut err, mut scale) = (0.0f64, 0.0f64);
-    for i in 0..attr.len() {
-        let (mut hi, mut lo) = (attr.clone(), attr.clone());
-        hi[i] += eps;
-        lo[i] -= eps;
-        let fd = (plain(&pos, &hi) - plain(&pos, &lo)) / (2.0 * eps as f64);
-        err = err.max((fd - ga[i] as f64).abs());
-        scale = scale.max(fd.abs());
-    }
+    let (err, scale) = linear_fd_error(&|a| plain(&pos, a), &attr, &ga, 1e-2);
     assert!(err / scale < 1e-3, "attribute gradients: max error {err} of {scale}");
 
     // Positions: per-coordinate central differences of the whole pipeline (rasterisation
@@ -105,18 +96,8 @@ fn grad_check(dev: &Device) {
     // triangle corners (as in nvdiffrast, an approximation); a coordinate whose finite
     // differences at two step sizes disagree has such an event inside its stencil and is not
     // a test of the gradient, so it is set aside (at most a third of them).
-    let fd_at = |i: usize, eps: f32| {
-        let (mut hi, mut lo) = (pos.clone(), pos.clone());
-        hi[i] += eps;
-        lo[i] -= eps;
-        (plain(&hi, &attr) - plain(&lo, &attr)) / (2.0 * eps as f64)
-    };
-    let fds: Vec<(f64, f64)> = (0..pos.len()).map(|i| (fd_at(i, 1e-4), fd_at(i, 3e-4))).collect();
-    let norm = fds.iter().map(|f| f.1.abs()).fold(0.0, f64::max);
-    let stable: Vec<usize> = (0..pos.len()).filter(|&i| (fds[i].0 - fds[i].1).abs() < 0.01 * norm).collect();
+    let SmoothFd { stable, diff, size } = smooth_fd_error(&|p| plain(p, &attr), &pos, &gp, (1e-4, 3e-4), 0.01);
     assert!(stable.len() * 3 >= pos.len() * 2, "only {} of {} coordinates are smooth", stable.len(), pos.len());
-    let diff: f64 = stable.iter().map(|&i| (fds[i].1 - gp[i] as f64).powi(2)).sum::<f64>().sqrt();
-    let size: f64 = stable.iter().map(|&i| fds[i].1.powi(2)).sum::<f64>().sqrt();
     assert!(diff / size < 1e-2, "position gradients: relative error {} over {} coordinates", diff / size, stable.len());
     // Every vertex of a silhouette gets a gradient; occluded back-quad corners may too.
     assert!(gp.iter().all(|g| g.is_finite()));

@@ -9,7 +9,7 @@ use getavatar_core::network::triplane::{sample_triplanes, sample_triplanes_nativ
 use getavatar_core::rng::Rng;
 
 mod common;
-use common::{cpu, gpu, values};
+use common::{cpu, gpu, linear_fd_error, smooth_fd_error, values, SmoothFd};
 
 const B: usize = 2;
 const C: usize = 3;
@@ -92,33 +92,14 @@ fn grad_check(dev: &Device) {
     let plain = |p: &[f32], q: &[f32]| values(loss(planes(p, dev), points(q, n, dev), dev))[0] as f64;
 
     // Planes: the lookup is linear in them, so central differences are exact up to rounding.
-    let eps = 0.05;
-    let (mut err, mut scale) = (0.0f64, 0.0f64);
-    for i in 0..p.len() {
-        let (mut hi, mut lo) = (p.clone(), p.clone());
-        hi[i] += eps;
-        lo[i] -= eps;
-        let fd = (plain(&hi, &q) - plain(&lo, &q)) / (2.0 * eps as f64);
-        err = err.max((fd - gp[i] as f64).abs());
-        scale = scale.max(fd.abs());
-    }
+    let (err, scale) = linear_fd_error(&|p| plain(p, &q), &p, &gp, 0.05);
     assert!(scale > 0.1 && err / scale < 1e-3, "plane gradients: max error {err} of {scale}");
 
     // Points: piecewise bilinear; steps well inside a texel (texel = 0.46 m at R = 5) keep
     // almost every stencil within one cell. A coordinate whose two step sizes disagree
     // straddles a texel line and is set aside (a few at most).
-    let fd_at = |i: usize, eps: f32| {
-        let (mut hi, mut lo) = (q.clone(), q.clone());
-        hi[i] += eps;
-        lo[i] -= eps;
-        (plain(&p, &hi) - plain(&p, &lo)) / (2.0 * eps as f64)
-    };
-    let fds: Vec<(f64, f64)> = (0..q.len()).map(|i| (fd_at(i, 1e-3), fd_at(i, 3e-3))).collect();
-    let norm = fds.iter().map(|f| f.1.abs()).fold(0.0, f64::max);
-    let stable: Vec<usize> = (0..q.len()).filter(|&i| (fds[i].0 - fds[i].1).abs() < 1e-3 * norm).collect();
+    let SmoothFd { stable, diff, size } = smooth_fd_error(&|q| plain(&p, q), &q, &gq, (1e-3, 3e-3), 1e-3);
     assert!(stable.len() * 10 >= q.len() * 9, "only {} of {} coordinates are smooth", stable.len(), q.len());
-    let diff: f64 = stable.iter().map(|&i| (fds[i].1 - gq[i] as f64).powi(2)).sum::<f64>().sqrt();
-    let size: f64 = stable.iter().map(|&i| fds[i].1.powi(2)).sum::<f64>().sqrt();
     assert!(
         size > 0.1 && diff / size < 1e-2,
         "point gradients: relative error {} over {} coordinates",
