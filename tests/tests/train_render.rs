@@ -7,10 +7,10 @@ use getavatar_core::burn::tensor::{Gradients, Tensor, TensorData};
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::dataset::Label;
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{seed_latents, BodyContext, Generator};
+use getavatar_core::generator::{block_on_ready, recolor_async, seed_latents, BodyContext, Generator};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::render_views;
+use getavatar_core::rasterize::{render_views, render_views_textured};
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use glam::Vec3;
 
@@ -91,7 +91,8 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     let plain = cpu();
     let g2 = Generator::new(&cfg, 0, &plain);
     let (a, b) = seed_latents(&cfg, 1, 2, &plain);
-    let av = getavatar_core::generator::generate_avatar(&g2, &ctx, &g2.styles(a, b, 1.0), &params, &plain);
+    let styles2 = g2.styles(a, b, 1.0);
+    let av = getavatar_core::generator::generate_avatar(&g2, &ctx, &styles2, &params, &plain);
     let gen = render_views(&av.mesh.vertices, &av.mesh.faces, &av.normals, &av.normals, vp, res, 2);
     let iou = |x: &[bool], y: &[bool]| {
         let i = x.iter().zip(y).filter(|(a, b)| **a && **b).count() as f32;
@@ -102,6 +103,28 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     // (At 64² a third of the figure's pixels are on its boundary, where 2×2 supersampling and
     // the antialias pass round differently.)
     assert!(iou(&fake_px, &gen_px) > 0.9, "differentiable vs app path: mask IoU {}", iou(&fake_px, &gen_px));
+    // Colour: the training image is what `trainer sample` and the app show. The texture field
+    // is linear RGB; the training renderer encodes it for comparison with the data's sRGB
+    // pixels (γ 1/2.2), the app path's renderer with the sRGB curve, so the two agree where
+    // both cover a pixel fully (interior, away from the boundary's different rounding).
+    let planes = g2.triplanes(&styles2);
+    let shown =
+        render_views_textured(&av.mesh.vertices, &av.mesh.faces, &av.normals, &av.mesh.attributes, vp, res, 2, |p| {
+            block_on_ready(recolor_async(&g2, &planes, &styles2, p, &plain))
+        });
+    let rgb = values(fakes.rgb.clone());
+    let (mut diff, mut count) = (0.0f32, 0);
+    for k in 0..res * res {
+        if mask[k] > 0.999 && shown.mask[k] == 255 {
+            for c in 0..3 {
+                diff += ((rgb[c * res * res + k] + 1.0) / 2.0 - shown.rgb[3 * k + c] as f32 / 255.0).abs();
+            }
+            count += 3;
+        }
+    }
+    assert!(count > 300, "{count} interior channels");
+    let mean = diff / count as f32;
+    assert!(mean < 0.03, "training vs shown colour: mean |Δ| {mean}");
     // Against the posed body: the tiny config's 9.5 cm cells lose thin limbs, so only roughly.
     assert!(inter / union > 0.5, "mask IoU vs posed body {}", inter / union);
     // Normals: unit length on the avatar, zero on the background.
