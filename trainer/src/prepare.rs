@@ -103,7 +103,7 @@ fn load_texture(path: &Path) -> Result<Texture> {
         .ok_or_else(|| anyhow!("texture {} is empty", path.display()))
 }
 
-fn load_smpl(subject: &str, obj: &Path, smpl_dir: Option<&Path>) -> Result<SmplParams> {
+pub fn load_smpl(subject: &str, obj: &Path, smpl_dir: Option<&Path>) -> Result<SmplParams> {
     let mut candidates = vec![obj.parent().unwrap_or(Path::new(".")).join("smpl.json")];
     if let Some(d) = smpl_dir {
         candidates.insert(0, d.join(format!("{subject}.json")));

@@ -27,6 +27,7 @@ use getavatar_core::checkpoint::{
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatar_views, render_avatars, FakeViews, PosedGridCache};
+use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
 use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
@@ -85,7 +86,21 @@ pub struct TrainArgs {
     /// so each step sees `batch × views` images for little more than `batch`.
     #[arg(long, default_value_t = 1)]
     pub views: usize,
+    /// Reconstruction terms only (not in the paper): the scans the dataset was prepared from
+    /// (`prepare --scans`, one folder per subject with its OBJ and smpl.json). Adds
+    /// canonical-space texture and SDF supervision at points drawn on each drawn subject's
+    /// scan (`diff::scan_supervision`), weighted by `--lambda-scan`.
+    #[arg(long)]
+    pub scans: Option<PathBuf>,
+    /// Weight of the scan terms (with `--scans`).
+    #[arg(long, default_value_t = 1.0)]
+    pub lambda_scan: f32,
 }
+
+/// Points drawn per scan and kept for training (`--scans`).
+pub const SCAN_POOL_POINTS: usize = 16384;
+/// Points of each drawn subject's pool used per step.
+pub const SCAN_POINTS_PER_STEP: usize = 2048;
 
 /// What a run optimises.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -141,6 +156,13 @@ pub struct RunConfig {
     /// runs: 1. Editable in `run.json` like the learning-rate factors.
     #[serde(default = "one_view")]
     pub views_per_subject: usize,
+    /// Scans of the subjects for the canonical-space scan terms (`TrainArgs::scans`); absent:
+    /// none. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub scans: Option<String>,
+    /// Weight of the scan terms. Absent in older runs: 0.
+    #[serde(default)]
+    pub lambda_scan: f32,
 }
 
 fn one_view() -> usize {
@@ -201,6 +223,8 @@ impl RunConfig {
             objective,
             lambda_reconstruction: 0.0,
             views_per_subject: 1,
+            scans: None,
+            lambda_scan: 0.0,
         }
     }
 }
@@ -231,6 +255,9 @@ pub struct Metrics {
     /// The reconstruction L1 (RGB + mask + normal) of the warm-up, or of the anchor of an
     /// adversarial run with `lambda_reconstruction > 0`; absent otherwise.
     pub reconstruction: Option<f32>,
+    /// The scan terms (`--scans`): texture L1 and SDF L1; absent without scans.
+    pub scan_texture: Option<f32>,
+    pub scan_sdf: Option<f32>,
     pub seconds: f64,
 }
 
@@ -392,11 +419,12 @@ pub fn train_step(
     ds: &Dataset,
     ctx: &BodyContext,
     grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
     rc: &RunConfig,
     ad: &Device,
 ) -> Result<(State, Metrics)> {
     if rc.objective == Objective::Reconstruction {
-        return reconstruction_step(st, ds, ctx, grids, rc, ad);
+        return reconstruction_step(st, ds, ctx, grids, scans, rc, ad);
     }
     let t0 = std::time::Instant::now();
     let b = rc.batch;
@@ -476,10 +504,11 @@ pub fn train_step(
     if rc.lambda_reconstruction > 0.0 {
         // The anchor: the subjects' views at their fixed latents, with their own eikonal and
         // cross-entropy terms (a second surface is extracted).
-        let (rec, anchor, _, _) = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, rc, ad)?;
-        metrics.reconstruction = Some(scalar(rec.clone()));
+        let r = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
+        metrics.reconstruction = Some(r.l1);
+        (metrics.scan_texture, metrics.scan_sdf) = (r.scan.map(|s| s.0), r.scan.map(|s| s.1));
         total_g = total_g
-            + (rec + anchor.eikonal * rc.lambda_eikonal + anchor.cross_entropy * rc.lambda_cross_entropy)
+            + (r.loss + r.fakes.eikonal * rc.lambda_eikonal + r.fakes.cross_entropy * rc.lambda_cross_entropy)
                 * rc.lambda_reconstruction;
     }
     lap("G losses");
@@ -562,16 +591,18 @@ fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> O
 /// from `rng`), each at its subject's fixed latents and the view's camera and body pose, plus
 /// `rc.views_per_subject − 1` further views of the same avatar, and is compared with the real
 /// images by L1 (RGB + mask, + normal map where the data has them).
-/// Returns the L1, the renders (for the eikonal and cross-entropy terms) and the latents.
+/// With `scans` (one per subject) and `rc.lambda_scan > 0`, adds the weighted scan terms at
+/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan.
 fn subject_reconstruction(
     g: &Generator,
     rng: &mut Rng,
     ds: &Dataset,
     ctx: &BodyContext,
     grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
     rc: &RunConfig,
     ad: &Device,
-) -> Result<(Tensor<1>, FakeViews, Tensor<2>, Tensor<2>)> {
+) -> Result<SubjectReconstruction> {
     let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
     let subjects = subject_of_entries(ds);
     // Each drawn view, then further views of its subject under the same body pose and shape
@@ -598,13 +629,42 @@ fn subject_reconstruction(
     let views: Vec<Vec<Label>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.clone()).collect()).collect();
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
-    let fakes = render_avatar_views(g, ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &views, rc.resolution, grids, ad);
+    let styles = g.styles(zg.clone(), zt.clone(), 1.0);
+    let fakes = render_avatar_views(g, ctx, &styles, &views, rc.resolution, grids, ad);
     let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
     let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
     if rc.use_normals {
         loss = loss + l1(fakes.normal.clone(), real_nrm);
     }
-    Ok((loss, fakes, zg, zt))
+    let l1 = scalar(loss.clone());
+    let mut scan = None;
+    if rc.lambda_scan > 0.0 && !scans.is_empty() {
+        let batch: Vec<(&CanonicalSamples, Vec<usize>)> = idx
+            .iter()
+            .map(|&i| {
+                let s = &scans[subjects[i].min(scans.len() - 1)];
+                (s, (0..SCAN_POINTS_PER_STEP).map(|_| rng.below(s.len().max(1))).collect())
+            })
+            .collect();
+        let terms = scan_losses(g, ctx, &styles, &batch, ad);
+        scan = Some((scalar(terms.texture.clone()), scalar(terms.sdf.clone())));
+        loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
+    }
+    Ok(SubjectReconstruction { loss, l1, scan, fakes, zg, zt })
+}
+
+/// The reconstruction terms of one step ([`subject_reconstruction`]).
+struct SubjectReconstruction {
+    /// Image L1 plus the weighted scan terms.
+    loss: Tensor<1>,
+    /// The image L1 alone.
+    l1: f32,
+    /// Scan texture and SDF terms (unweighted), where used.
+    scan: Option<(f32, f32)>,
+    /// The renders (for the eikonal and cross-entropy terms).
+    fakes: FakeViews,
+    zg: Tensor<2>,
+    zt: Tensor<2>,
 }
 
 /// One step of the reconstruction warm-up (`Objective::Reconstruction`): the subject
@@ -615,15 +675,19 @@ fn reconstruction_step(
     ds: &Dataset,
     ctx: &BodyContext,
     grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
     rc: &RunConfig,
     ad: &Device,
 ) -> Result<(State, Metrics)> {
     let t0 = std::time::Instant::now();
     let b = rc.batch;
-    let (loss, fakes, zg, zt) = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, rc, ad)?;
+    let SubjectReconstruction { loss, l1, scan, fakes, zg, zt } =
+        subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone()),
-        reconstruction: Some(scalar(loss.clone())),
+        reconstruction: Some(l1),
+        scan_texture: scan.map(|s| s.0),
+        scan_sdf: scan.map(|s| s.1),
         eikonal: scalar(fakes.eikonal.clone()),
         cross_entropy: scalar(fakes.cross_entropy.clone()),
         triangles: fakes.triangles.iter().sum::<usize>() as f32 / fakes.triangles.len().max(1) as f32,
@@ -639,6 +703,54 @@ fn reconstruction_step(
     st.step += 1;
     let (step, seconds) = (st.step, t0.elapsed().as_secs_f64());
     Ok((st, Metrics { step, kimg: step as f64 * b as f64 / 1000.0, seconds, ..metrics }))
+}
+
+/// The scan samples of every dataset subject (index = `subject_of_entries`), in canonical
+/// space under the body fit of the subject's views: `SCAN_POOL_POINTS` points per scan, drawn
+/// deterministically from (seed, subject name). A subject without a scan under `dir` is an
+/// error.
+fn canonical_scan_samples(dir: &Path, ds: &Dataset, ctx: &BodyContext, seed: u64) -> Result<Vec<CanonicalSamples>> {
+    let found: BTreeMap<String, PathBuf> = crate::prepare::find_subjects(dir)?.into_iter().collect();
+    let subjects = subject_of_entries(ds);
+    let n = subjects.iter().copied().max().map_or(0, |m| m + 1);
+    // Each subject's name and the body fit of its first view.
+    let mut first: Vec<Option<(String, Label)>> = vec![None; n];
+    for ((path, label), &s) in ds.entries.iter().zip(&subjects) {
+        if first[s].is_none() {
+            let name = path.rsplit_once('/').map_or("", |(d, _)| d).to_string();
+            first[s] = Some((name, label.clone()));
+        }
+    }
+    let bar = crate::progress::bar(n as u64, "scans");
+    bar.set_message(format!("scan samples from {}", dir.display()));
+    let load = |(name, label): &(String, Label)| -> Result<CanonicalSamples> {
+        let obj = found.get(name).ok_or_else(|| anyhow!("no scan of subject `{name}` under {}", dir.display()))?;
+        let scan = crate::prepare::load_scan(obj)?;
+        let smpl = crate::prepare::load_smpl(name, obj, None)?;
+        let prepared = getavatar_core::scan::RenderableScan::new(&scan, &smpl);
+        let mut rng = Rng::new(seed, getavatar_core::rng::hash_str(name));
+        let surface = getavatar_core::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
+        if surface.is_empty() {
+            bail!("the scan of subject `{name}` has no surface area");
+        }
+        bar.inc(1);
+        Ok(CanonicalSamples::from_surface(&surface, ctx, &label.body_params()))
+    };
+    let todo: Vec<&(String, Label)> = first.iter().flatten().collect();
+    let threads = std::thread::available_parallelism().map_or(1, |t| t.get()).clamp(1, 8);
+    let chunk = todo.len().div_ceil(threads).max(1);
+    let parts: Vec<Result<Vec<CanonicalSamples>>> = std::thread::scope(|sc| {
+        let handles: Vec<_> =
+            todo.chunks(chunk).map(|c| sc.spawn(move || c.iter().map(|x| load(x)).collect())).collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err(anyhow!("a scan loader panicked")))).collect()
+    });
+    bar.finish_and_clear();
+    let mut out = Vec::with_capacity(n);
+    for p in parts {
+        out.extend(p?);
+    }
+    println!("scan terms: {} points from each of {} scans under {}", SCAN_POOL_POINTS, out.len(), dir.display());
+    Ok(out)
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -715,6 +827,16 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 run_path.display()
             );
         }
+        if let Some(dir) = &a.scans {
+            if rc.scans.as_deref() != Some(&*dir.display().to_string()) {
+                bail!(
+                    "--scans {} differs from the run's {:?}: a continued run keeps its settings (edit scans and lambda_scan in {} to change them)",
+                    dir.display(),
+                    rc.scans,
+                    run_path.display()
+                );
+            }
+        }
         if a.lambda_reconstruction != 0.0 && a.lambda_reconstruction != rc.lambda_reconstruction {
             bail!(
                 "--lambda-reconstruction {} differs from the run's {}: a continued run keeps its settings (edit lambda_reconstruction in {} to change it)",
@@ -743,9 +865,17 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         if a.views > 1 && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
             bail!("--views applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
+        if a.scans.is_some() && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+            bail!("--scans applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
+        if !(a.lambda_scan >= 0.0 && a.lambda_scan.is_finite()) {
+            bail!("--lambda-scan must be a finite weight ≥ 0, got {}", a.lambda_scan);
+        }
         let rc = RunConfig {
             lambda_reconstruction: a.lambda_reconstruction,
             views_per_subject: a.views,
+            scans: a.scans.as_ref().map(|d| d.display().to_string()),
+            lambda_scan: if a.scans.is_some() { a.lambda_scan } else { 0.0 },
             ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective)
         };
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
@@ -775,6 +905,10 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model, &rc.generator);
     let grids = PosedGridCache::default();
+    let scans = match &rc.scans {
+        Some(dir) if rc.lambda_scan > 0.0 => canonical_scan_samples(Path::new(dir), &ds, &ctx, rc.seed)?,
+        _ => Vec::new(),
+    };
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(st.step.min(a.steps));
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
@@ -793,7 +927,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl")))
     };
     while st.step < a.steps {
-        let (next, m) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
         st = next;
         writeln!(log, "{}", serde_json::to_string(&m)?)?;
         bar.set_position(st.step);
@@ -848,17 +982,18 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
     let (ad, plain) = (base.clone().autodiff(), base);
     let ctx = BodyContext::new(BodyModel::default_body()?, &rc.generator);
     let grids = PosedGridCache::default();
+    let scans = Vec::new();
     let mut st = State::new(&rc, &ad, &plain);
-    let (next, first) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+    let (next, first) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
     st = next;
     let mut plain_s = Vec::new();
     for _ in 0..steps.max(1) {
-        let (next, m) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
         st = next;
         plain_s.push(m.seconds);
     }
     st.step = rc.r1_every * (st.step / rc.r1_every + 1);
-    let (_, r1) = train_step(st, &ds, &ctx, &grids, &rc, &ad)?;
+    let (_, r1) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
     Ok(StepTimings {
         first_step_s: first.seconds,
         step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,

@@ -342,3 +342,55 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     refused(&["--resume", "--views", "4"], &run, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `--scans` (reconstruction terms, not in the paper): the canonical-space scan terms are
+/// logged and lower the texture error; the setting is kept in run.json and checked.
+#[test]
+fn scan_terms_are_logged_kept_in_the_run_and_lower_the_texture_error() {
+    let root = tmp("scans");
+    let data = dataset(&root);
+    let scans = root.join("scans");
+    let run = root.join("recon");
+    let text = train(
+        &data,
+        &run,
+        40,
+        &["--objective", "reconstruction", "--scans", scans.to_str().unwrap(), "--snapshot-every", "20"],
+    );
+    assert!(text.contains("scan terms: 16384 points from each of 2 scans"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["scans"], scans.display().to_string(), "{rc}");
+    assert_eq!(rc["lambda_scan"], 1.0, "{rc}");
+    let rows: Vec<serde_json::Value> = std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let tex: Vec<f64> = rows.iter().map(|r| r["scan_texture"].as_f64().expect("scan_texture logged")).collect();
+    assert!(rows.iter().all(|r| r["scan_sdf"].as_f64().is_some_and(|v| v.is_finite() && v >= 0.0)));
+    let (first, last) = (tex[..5].iter().sum::<f64>() / 5.0, tex[35..].iter().sum::<f64>() / 5.0);
+    assert!(last < 0.8 * first, "scan texture L1 of steps 1–5 {first:.4}, of steps 36–40 {last:.4}");
+    // Without --scans nothing is logged.
+    train(&data, &root.join("plain"), 1, &["--objective", "reconstruction"]);
+    let row = std::fs::read_to_string(root.join("plain").join("metrics.jsonl")).unwrap();
+    assert!(row.contains("\"scan_texture\":null"), "{row}");
+
+    let refused = |extra: &[&str], out: &Path, needle: &str| {
+        let mut args =
+            vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = trainer(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{extra:?}: {err}");
+    };
+    refused(&["--scans", scans.to_str().unwrap()], &root.join("adv"), "reconstruction terms");
+    let empty = root.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    refused(
+        &["--objective", "reconstruction", "--scans", empty.to_str().unwrap()],
+        &root.join("none"),
+        "no scan of subject",
+    );
+    refused(&["--resume", "--scans", empty.to_str().unwrap()], &run, "keeps its settings");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -454,19 +454,68 @@ pub fn render_scan(
         vp,
         size,
         ss,
-        |attrs| {
-            attrs
-                .iter()
-                .map(|a| {
-                    let mat = (a.z.round().max(0.0) as usize).min(scan.colors.len().saturating_sub(1));
-                    match scan.textures.get(mat).and_then(|t| t.as_ref()) {
-                        Some(t) => t.sample(Vec2::new(a.x, a.y)),
-                        None => scan.colors.get(mat).copied().unwrap_or(Vec3::splat(0.8)),
-                    }
-                })
-                .collect()
-        },
+        |attrs| attrs.iter().map(|a| scan.albedo(*a)).collect(),
     )
+}
+
+impl Scan {
+    /// Linear albedo at a [`RenderableScan`] attribute `(u, v, material)`: the material's
+    /// texture (bilinear) or, without one, its diffuse colour.
+    pub fn albedo(&self, a: Vec3) -> Vec3 {
+        let mat = (a.z.round().max(0.0) as usize).min(self.colors.len().saturating_sub(1));
+        match self.textures.get(mat).and_then(|t| t.as_ref()) {
+            Some(t) => t.sample(Vec2::new(a.x, a.y)),
+            None => self.colors.get(mat).copied().unwrap_or(Vec3::splat(0.8)),
+        }
+    }
+}
+
+/// A point on a scan's surface in the body frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceSample {
+    pub position: Vec3,
+    /// Unit normal (interpolated corner normals).
+    pub normal: Vec3,
+    /// Linear albedo ([`Scan::albedo`]).
+    pub color: Vec3,
+}
+
+/// `n` points drawn uniformly by area over the surface of `prepared` (triangle by its area,
+/// then a uniform point in it), with their normals and albedo. Empty for a surface of zero
+/// area.
+pub fn sample_surface(
+    scan: &Scan,
+    prepared: &RenderableScan,
+    n: usize,
+    rng: &mut crate::rng::Rng,
+) -> Vec<SurfaceSample> {
+    let v = &prepared.vertices;
+    let mut cumulative = Vec::with_capacity(prepared.triangles.len());
+    let mut total = 0.0f64;
+    for t in &prepared.triangles {
+        let [a, b, c] = t.map(|i| v[i as usize]);
+        total += 0.5 * (b - a).cross(c - a).length() as f64;
+        cumulative.push(total);
+    }
+    if !(total > 0.0) {
+        return Vec::new();
+    }
+    (0..n)
+        .map(|_| {
+            let x = rng.uniform() as f64 * total;
+            let k = cumulative.partition_point(|&c| c < x).min(cumulative.len() - 1);
+            let t = prepared.triangles[k].map(|i| i as usize);
+            // Uniform barycentrics: (1 − √r₁, √r₁ (1 − r₂), √r₁ r₂).
+            let (r1, r2) = (rng.uniform().sqrt(), rng.uniform());
+            let w = [1.0 - r1, r1 * (1.0 - r2), r1 * r2];
+            let mix = |a: &[Vec3]| w[0] * a[t[0]] + w[1] * a[t[1]] + w[2] * a[t[2]];
+            SurfaceSample {
+                position: mix(v),
+                normal: mix(&prepared.normals).normalize_or_zero(),
+                color: scan.albedo(mix(&prepared.attributes).with_z(prepared.attributes[t[0]].z)),
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -514,6 +563,40 @@ mod tests {
         p.body_pose.pop();
         let e = SmplParams::from_json(&p.to_json()).unwrap_err().to_string();
         assert!(e.contains("`body_pose` has 68 numbers"), "{e}");
+    }
+
+    #[test]
+    fn surface_samples_are_uniform_by_area_with_normals_and_albedo() {
+        // Two triangles in the z = 0 plane, areas 3 : 1, red and blue diffuse materials.
+        let text = "v 0 0 0\nv 3 0 0\nv 0 2 0\nv 3 2 0\nv 4 2 0\nusemtl red\nf 1 2 3\nusemtl blue\nf 2 5 4\n";
+        let mesh = parse_obj(text).unwrap();
+        let scan = Scan { mesh, textures: vec![None, None], colors: vec![Vec3::X, Vec3::Z] };
+        let smpl = SmplParams::from_body(&BodyParams::default(), 1.0);
+        let prepared = RenderableScan::new(&scan, &smpl);
+        let n = 4000;
+        let s = sample_surface(&scan, &prepared, n, &mut crate::rng::Rng::new(7, 0));
+        assert_eq!(s.len(), n);
+        let red = s.iter().filter(|p| p.color == Vec3::X).count() as f32 / n as f32;
+        assert!((red - 0.75).abs() < 0.03, "red share {red}");
+        assert!(s.iter().all(|p| p.color == Vec3::X || p.color == Vec3::Z));
+        for p in &s {
+            assert!(p.position.z == 0.0 && (p.normal - Vec3::Z).length() < 1e-5, "{p:?}");
+            // Inside its triangle: red below the diagonal x/3 + y/2 = 1, blue in x ∈ [3, 4].
+            if p.color == Vec3::X {
+                assert!(p.position.x / 3.0 + p.position.y / 2.0 <= 1.0 + 1e-5 && p.position.min_element() >= 0.0);
+            } else {
+                assert!(p.position.x >= 3.0 - 1e-5 && p.position.y >= 2.0 * (p.position.x - 3.0) - 1e-4);
+            }
+        }
+        // Uniform within the red triangle: its centroid is (1, 2/3).
+        let reds: Vec<Vec3> = s.iter().filter(|p| p.color == Vec3::X).map(|p| p.position).collect();
+        let c = reds.iter().copied().sum::<Vec3>() / reds.len() as f32;
+        assert!((c - Vec3::new(1.0, 2.0 / 3.0, 0.0)).length() < 0.05, "{c}");
+        let flat = parse_obj("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n").unwrap();
+        let scan = Scan { mesh: flat, textures: vec![None], colors: vec![Vec3::ONE] };
+        assert!(
+            sample_surface(&scan, &RenderableScan::new(&scan, &smpl), 5, &mut crate::rng::Rng::new(1, 0)).is_empty()
+        );
     }
 
     #[test]

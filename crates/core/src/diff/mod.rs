@@ -11,7 +11,9 @@
 //!   ([`rasterize::interpolate`]), and silhouette-edge blending ([`rasterize::antialias`]).
 //!
 //! [`avatar`] (feature `train`) puts them together: generated avatars rendered to RGB, normal
-//! and mask images under dataset labels, with the geometry regularisers.
+//! and mask images under dataset labels, with the geometry regularisers;
+//! [`scan_supervision`] (feature `train`, not in the paper) the reconstruction warm-up's
+//! canonical-space texture and SDF terms from the training scans.
 //!
 //! The functions are backend-agnostic (`Tensor<D>` on any `Device`); gradients need a device
 //! with autodiff (`Device::autodiff()`, feature `train`).
@@ -20,6 +22,8 @@
 pub mod avatar;
 pub mod dmtet;
 pub mod rasterize;
+#[cfg(feature = "train")]
+pub mod scan_supervision;
 
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
