@@ -312,3 +312,45 @@ fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
         assert_eq!(unguarded.iter().any(|&i| guarded[i as usize]), expect_vacated, "{pose}");
     }
 }
+
+/// Grid vertices far from the posed body are not un-warped (`generator::far_from_body`): the
+/// band where the fields are evaluated, its values, every vertex's sign and the extracted
+/// surface are those of un-warping every vertex.
+#[test]
+fn skipping_far_grid_vertices_keeps_the_band_and_the_surface() {
+    use getavatar_core::generator::{far_from_body, BodyContext, PosedGrid};
+    use getavatar_core::network::GeneratorConfig;
+    let model = body();
+    let lib = PoseLibrary::builtin();
+    for cfg in [GeneratorConfig::demo(), GeneratorConfig::tiny()] {
+        let ctx = BodyContext::new(model.clone(), &cfg);
+        let far = far_from_body(&ctx);
+        for pose in ["Da", "sitting", "arms_up"] {
+            let posed = pose_body(&model, &lib.params(pose, &[]).expect("pose"));
+            let inv = InverseSkinning::new(&model, &posed, &ctx.canonical);
+            let (fast, all) = (PosedGrid::new(&ctx, &inv), PosedGrid::with_far(&ctx, &inv, f32::INFINITY));
+            assert_eq!(fast.band, all.band, "{pose}: band");
+            for &i in &fast.band {
+                let i = i as usize;
+                assert_eq!(
+                    (fast.canonical[i], fast.template[i]),
+                    (all.canonical[i], all.template[i]),
+                    "{pose}: vertex {i}"
+                );
+            }
+            let skipped = fast.template.iter().filter(|&&t| t == far).count();
+            assert!(skipped > fast.template.len() / 4, "{pose}: only {skipped} far vertices skipped");
+            for (i, (a, b)) in fast.template.iter().zip(&all.template).enumerate() {
+                assert_eq!(*a < 0.0, *b < 0.0, "{pose}: sign of vertex {i}: {a} vs {b}");
+            }
+            let mesh = |g: &PosedGrid| marching_tets(&ctx.grid.vertices, &ctx.grid.tets, &g.template, &g.canonical);
+            let (m1, m2) = (mesh(&fast), mesh(&all));
+            assert!(m1.faces.len() > 200, "{pose}: {} faces", m1.faces.len());
+            assert_eq!(
+                (m1.vertices, m1.faces, m1.attributes),
+                (m2.vertices, m2.faces, m2.attributes),
+                "{pose}: surface"
+            );
+        }
+    }
+}

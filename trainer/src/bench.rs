@@ -7,8 +7,9 @@ use anyhow::{Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::generator::{
-    block_on_ready, generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator,
+    block_on_ready, generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator, PosedGrid,
 };
+use getavatar_core::geometry::InverseSkinning;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views;
@@ -32,8 +33,19 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!(
-        "{:<6} {:>10} {:>10} {:>10} {:>10} {:>10} {:>12} {:>12} {:>8}",
-        "config", "setup s", "gen s", "extract s", "r512 s", "r1024 s", "exact/pose s", "fast/pose s", "ratio"
+        "{:<6} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>8} {:>10} {:>12} {:>12} {:>8}",
+        "config",
+        "setup s",
+        "gen s",
+        "extract s",
+        "grid s",
+        "grid-all s",
+        "skip",
+        "r512 s",
+        "r1024 s",
+        "exact/pose s",
+        "fast/pose s",
+        "ratio"
     );
     for name in configs {
         let cfg = GeneratorConfig::preset(name).with_context(|| format!("unknown config `{name}`"))?;
@@ -58,6 +70,24 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let exact = exact_total / (repeats * params.len()) as f64;
         let avatar = avatar.context("no avatar")?;
         let extract = (exact - gen).max(0.0);
+        // The posed grid (inverse skinning of every tet-grid vertex) with far vertices skipped,
+        // and with every vertex un-warped.
+        let invs: Vec<InverseSkinning> =
+            params.iter().map(|p| InverseSkinning::new(&model, &pose_body(&model, p), &ctx.canonical)).collect();
+        let per_pose = |far: Option<f32>| {
+            secs(|| {
+                for _ in 0..repeats {
+                    for inv in &invs {
+                        let _ = match far {
+                            None => PosedGrid::new(&ctx, inv),
+                            Some(f) => PosedGrid::with_far(&ctx, inv, f),
+                        };
+                    }
+                }
+            })
+            .1 / (repeats * invs.len()) as f64
+        };
+        let (grid, grid_all) = (per_pose(None), per_pose(Some(f32::INFINITY)));
         let cam = OrbitCamera::default();
         let vp = cam.projection_gl(1.0) * cam.world_to_camera();
         let m = &avatar.mesh;
@@ -74,11 +104,14 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         });
         let fast = fast_total / (repeats * params.len()) as f64;
         println!(
-            "{:<6} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>12.3} {:>12.4} {:>7.0}×",
+            "{:<6} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>7.1}× {:>10.3} {:>10.3} {:>12.3} {:>12.4} {:>7.0}×",
             name,
             setup,
             gen,
             extract,
+            grid,
+            grid_all,
+            grid_all / grid.max(1e-9),
             r512,
             r1024,
             exact,
@@ -88,6 +121,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     }
     println!("gen = mapping + triplane synthesis; extract = exact per-pose path minus gen (inverse skinning, decoders, DMTet, normal field, colours);");
     println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU);");
+    println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
     Ok(())
 }

@@ -187,8 +187,7 @@ pub struct Avatar {
 /// sign whatever the residual and no sign-changing edge reaches (the template is ~1-Lipschitz),
 /// so residual and offsets are 0 there: same surface, a fraction of the decoder work.
 pub fn field_band(ctx: &BodyContext, template: &[f32], guarded: &[bool]) -> Vec<u32> {
-    let edge = REFERENCE_BOX_SIZE / ctx.grid.res.max(1) as f32 * 3f32.sqrt();
-    let reach = SDF_RESIDUAL_MAX + 2.0 * edge;
+    let reach = field_reach(ctx);
     (0..template.len())
         .filter(|&i| {
             template[i].abs() < reach
@@ -197,6 +196,24 @@ pub fn field_band(ctx: &BodyContext, template: &[f32], guarded: &[bool]) -> Vec<
         })
         .map(|i| i as u32)
         .collect()
+}
+
+/// Longest tet edge of the grid of `ctx`.
+fn grid_edge(ctx: &BodyContext) -> f32 {
+    REFERENCE_BOX_SIZE / ctx.grid.res.max(1) as f32 * 3f32.sqrt()
+}
+
+/// |template SDF| below which [`field_band`] evaluates the fields.
+fn field_reach(ctx: &BodyContext) -> f32 {
+    SDF_RESIDUAL_MAX + 2.0 * grid_edge(ctx)
+}
+
+/// Posed-space distance from the body beyond which [`PosedGrid`] skips un-warping a grid
+/// vertex (`InverseSkinning::canonical_templates`): past the field band by the un-warp slack
+/// and one more edge, and deeper than any body part is thick, so those vertices are outside,
+/// off the band and on no sign-changing edge either way.
+pub fn far_from_body(ctx: &BodyContext) -> f32 {
+    field_reach(ctx) + crate::geometry::inverse_skinning::UNWARP_SLACK + grid_edge(ctx)
 }
 
 fn to_tensor3(points: &[Vec3], device: &Device) -> Tensor<3> {
@@ -249,10 +266,16 @@ pub struct PosedGrid {
 }
 
 impl PosedGrid {
-    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively).
+    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively),
+    /// except those farther than [`far_from_body`] from the posed body.
     pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
+        Self::with_far(ctx, inv, far_from_body(ctx))
+    }
+
+    /// [`PosedGrid::new`] with the far-vertex distance `far` (`f32::INFINITY`: un-warp all).
+    pub fn with_far(ctx: &BodyContext, inv: &InverseSkinning, far: f32) -> Self {
         let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk) };
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk, far) };
         #[cfg(not(target_arch = "wasm32"))]
         let mapped: Vec<(Vec3, f32, bool)> = {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);

@@ -97,6 +97,25 @@ impl KdTree {
     /// queries far from the points (most tet-grid vertices around a body) then visit few
     /// leaves. The bound is computed with the same operations as the point distances, so
     /// rounding never makes it exceed a distance it bounds: the result is the exact nearest.
+    /// [`KdTree::nearest_from`] restricted to points closer than `radius`: None when there is
+    /// none. Far queries prune almost the whole tree, so they cost a few node visits instead of
+    /// a search over every leaf as close as the nearest point.
+    pub fn nearest_within(&self, q: Vec3, radius: f32, hint: Option<usize>) -> Option<(usize, f32)> {
+        if self.nodes.is_empty() {
+            return None;
+        }
+        let r2 = radius * radius;
+        let mut best = (usize::MAX, r2);
+        if let Some((h, p)) = hint.and_then(|h| self.points.get(h).map(|p| (h, p))) {
+            let d = p.distance_squared(q);
+            if d < r2 {
+                best = (h, d);
+            }
+        }
+        self.search(0, q, Vec3::ZERO, &mut best);
+        (best.0 != usize::MAX && best.1 < r2).then_some(best)
+    }
+
     fn search(&self, node: u32, q: Vec3, mut off: Vec3, best: &mut (usize, f32)) {
         match self.nodes[node as usize] {
             Node::Leaf { start, end } => {
@@ -162,6 +181,16 @@ mod tests {
                 assert_eq!(tree.nearest_from(q, hint), want, "query {q} hint {hint}");
             }
         }
+        // Within a radius: the nearest point where it is closer than the radius, else none.
+        for k in 0..600 {
+            let q = Vec3::new(r(), r(), r()) * 3.0;
+            let want = tree.nearest(q).expect("non-empty");
+            for radius in [0.05f32, 0.2, 1.0] {
+                let got = tree.nearest_within(q, radius, [None, Some(k % 2000), Some(9999)][k % 3]);
+                assert_eq!(got, (want.1 < radius * radius).then_some(want), "query {q} radius {radius}");
+            }
+        }
+        assert!(KdTree::new(&[]).nearest_within(Vec3::ZERO, 1.0, None).is_none());
         // Ties go to the lowest index, also across leaves.
         let dup: Vec<Vec3> = (0..100).map(|k| if k % 7 == 3 { Vec3::X } else { Vec3::splat(k as f32) }).collect();
         let dup_tree = KdTree::new(&dup);

@@ -65,24 +65,38 @@ impl InverseSkinning {
     /// fired (the point lies in space the pose vacated: the generator's residual must not be
     /// added there, see `generator::field_band`).
     pub fn canonical_template(&self, template: &crate::geometry::TemplateSdf, x_d: Vec3) -> (Vec3, f32, bool) {
-        self.canonical_templates(template, &[x_d])[0]
+        self.canonical_templates(template, &[x_d], f32::INFINITY)[0]
     }
 
     /// [`InverseSkinning::canonical_template`] of every point of `points`; each nearest-vertex
     /// search starts from the previous point's answer, which for points in a coherent order
     /// (tet-grid vertices in raster order) is close: the same values, a fraction of the time.
+    /// Points with no posed body vertex within `far` are not un-warped: they get
+    /// `(x_d, far, false)`. Their template SDF would be positive and at least `far` minus the
+    /// body mesh's vertex spacing, so for `far` beyond every band and edge that depends on the
+    /// value (`generator::PosedGrid`) the surface is the same; the exact search there is the
+    /// costliest (the whole body lies at similar distances). `f32::INFINITY` un-warps all.
     pub fn canonical_templates(
         &self,
         template: &crate::geometry::TemplateSdf,
         points: &[Vec3],
+        far: f32,
     ) -> Vec<(Vec3, f32, bool)> {
         let mut hint = None;
         points
             .iter()
             .map(|&x_d| {
-                let nearest = match hint {
-                    Some(h) => self.tree.nearest_from(x_d, h),
-                    None => self.tree.nearest(x_d),
+                let nearest = if far.is_finite() {
+                    let n = self.tree.nearest_within(x_d, far, hint);
+                    if n.is_none() {
+                        return (x_d, far, false);
+                    }
+                    n
+                } else {
+                    match hint {
+                        Some(h) => self.tree.nearest_from(x_d, h),
+                        None => self.tree.nearest(x_d),
+                    }
                 };
                 hint = nearest.map(|n| n.0);
                 let (c, _, d) = self.unwarp(x_d, nearest);
