@@ -303,6 +303,15 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `trainer train --data DATA --config tiny --out OUT EXTRA…` fails with `needle` in stderr.
+fn refused(data: &Path, extra: &[&str], out: &Path, needle: &str) {
+    let mut args = vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let o = trainer(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains(needle), "{extra:?}: {err}");
+}
+
 fn walk(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
     for e in std::fs::read_dir(dir).unwrap().flatten() {
@@ -329,14 +338,7 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     assert_eq!(rc["views_per_subject"], 3, "{rc}");
     let rows = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
     assert_eq!(rows.lines().count(), 2);
-    let refused = |extra: &[&str], out: &Path, needle: &str| {
-        let mut args =
-            vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
-        args.extend_from_slice(extra);
-        let o = trainer(&args);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success() && err.contains(needle), "{extra:?}: {err}");
-    };
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
     refused(&["--objective", "reconstruction", "--views", "0"], &root.join("zero"), "at least 1");
     refused(&["--views", "2"], &root.join("adv"), "reconstruction terms");
     refused(&["--resume", "--views", "4"], &run, "keeps its settings");
@@ -375,14 +377,7 @@ fn scan_terms_are_logged_kept_in_the_run_and_lower_the_texture_error() {
     let row = std::fs::read_to_string(root.join("plain").join("metrics.jsonl")).unwrap();
     assert!(row.contains("\"scan_texture\":null"), "{row}");
 
-    let refused = |extra: &[&str], out: &Path, needle: &str| {
-        let mut args =
-            vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
-        args.extend_from_slice(extra);
-        let o = trainer(&args);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success() && err.contains(needle), "{extra:?}: {err}");
-    };
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
     refused(&["--scans", scans.to_str().unwrap()], &root.join("adv"), "reconstruction terms");
     let empty = root.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
