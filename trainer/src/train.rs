@@ -558,10 +558,14 @@ fn track_w_avg(mut g: Generator, zg: Tensor<2>, zt: Tensor<2>, beta: f32) -> Gen
 /// Subject of every dataset entry (the folder part of its image path) as an index into the
 /// sorted subject names.
 fn subject_of_entries(ds: &Dataset) -> Vec<usize> {
-    let name = |p: &str| p.rsplit_once('/').map_or(String::new(), |(d, _)| d.to_string());
-    let names: std::collections::BTreeSet<String> = ds.entries.iter().map(|(p, _)| name(p)).collect();
-    let names: Vec<String> = names.into_iter().collect();
-    ds.entries.iter().map(|(p, _)| names.binary_search(&name(p)).unwrap_or(0)).collect()
+    let names: std::collections::BTreeSet<&str> = ds.entries.iter().map(|(p, _)| subject_name(p)).collect();
+    let names: Vec<&str> = names.into_iter().collect();
+    ds.entries.iter().map(|(p, _)| names.binary_search(&subject_name(p)).unwrap_or(0)).collect()
+}
+
+/// The subject (folder) of a dataset entry `subject/view.png`; "" for a top-level file.
+fn subject_name(entry: &str) -> &str {
+    entry.rsplit_once('/').map_or("", |(d, _)| d)
 }
 
 /// The fixed latent pair (z_geo, z_tex) `[B, z_dim]` of each subject for the reconstruction
@@ -717,8 +721,7 @@ fn canonical_scan_samples(dir: &Path, ds: &Dataset, ctx: &BodyContext, seed: u64
     let mut first: Vec<Option<(String, Label)>> = vec![None; n];
     for ((path, label), &s) in ds.entries.iter().zip(&subjects) {
         if first[s].is_none() {
-            let name = path.rsplit_once('/').map_or("", |(d, _)| d).to_string();
-            first[s] = Some((name, label.clone()));
+            first[s] = Some((subject_name(path).to_string(), label.clone()));
         }
     }
     let bar = crate::progress::bar(n as u64, "scans");
