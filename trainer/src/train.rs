@@ -767,6 +767,19 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// RGB | normal | mask rows of G_ema at fixed seeds and the first labels of the dataset.
+/// L1 (in [0, 1] units, mean over pixels and channels) between G_ema's renders of the
+/// sample grid's subjects and the data's views of them: a fixed yardstick of how far a
+/// reconstruction run has fitted its subjects, comparable across snapshots of one dataset.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct GridL1 {
+    pub step: u64,
+    pub rgb: f32,
+    pub normal: Option<f32>,
+    pub mask: f32,
+}
+
+/// The snapshot's sample grid (PNG) and, for reconstruction runs, its [`GridL1`] against the
+/// data.
 fn sample_grid(
     st: &State,
     ds: &Dataset,
@@ -774,9 +787,10 @@ fn sample_grid(
     grids: &PosedGridCache,
     rc: &RunConfig,
     plain: &Device,
-) -> Vec<u8> {
+) -> Result<(Vec<u8>, Option<GridL1>)> {
     let n = 4.min(ds.len());
-    let labels: Vec<Label> = (0..n).map(|i| ds.entries[i * ds.len() / n].1.clone()).collect();
+    let shown: Vec<usize> = (0..n).map(|i| i * ds.len() / n).collect();
+    let labels: Vec<Label> = shown.iter().map(|&i| ds.entries[i].1.clone()).collect();
     let (zg, zt) = if rc.objective == Objective::Reconstruction {
         // The subjects of the shown views, to compare with the data.
         let subjects = subject_of_entries(ds);
@@ -786,6 +800,19 @@ fn sample_grid(
         (latents(&mut rng, n, rc.generator.z_dim, plain), latents(&mut rng, n, rc.generator.z_dim, plain))
     };
     let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, grids, plain);
+    let fit = if rc.objective == Objective::Reconstruction {
+        let (rgb, nrm, msk, _) = load_reals(ds, &shown, plain)?;
+        // Images are in [-1, 1]: half the mean absolute difference is in [0, 1] units.
+        let l1 = |a: Tensor<4>, b: Tensor<4>| scalar((a - b).abs().mean()) / 2.0;
+        Some(GridL1 {
+            step: st.step,
+            rgb: l1(f.rgb.clone(), rgb),
+            normal: rc.use_normals.then(|| l1(f.normal.clone(), nrm)),
+            mask: l1(f.mask.clone(), msk),
+        })
+    } else {
+        None
+    };
     let r = rc.resolution;
     let imgs = [f.rgb, f.normal, f.mask.repeat_dim(1, 3)];
     let vals: Vec<Vec<f32>> = imgs.into_iter().map(|t| t.into_data().try_to_vec::<f32>().unwrap_or_default()).collect();
@@ -803,7 +830,7 @@ fn sample_grid(
             }
         }
     }
-    encode_png(w, h, 3, &px)
+    Ok((encode_png(w, h, 3, &px), fit))
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
@@ -926,7 +953,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra);
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
         write_atomic(&state_path, &st.save(&rc))?;
-        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &sample_grid(st, &ds, &ctx, &grids, &rc, &plain))?;
+        let (png, fit) = sample_grid(st, &ds, &ctx, &grids, &rc, &plain)?;
+        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &png)?;
+        if let Some(fit) = fit {
+            // One line per snapshot; a resumed run appends (rows of steps done twice after
+            // a crash appear twice, the later one counts).
+            let mut f = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("grid_l1.jsonl"))?;
+            writeln!(f, "{}", serde_json::to_string(&fit)?)?;
+        }
         write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl")))
     };
     while st.step < a.steps {

@@ -228,6 +228,26 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let l1: Vec<f64> = rows.iter().map(|r| r["loss_g"].as_f64().unwrap()).collect();
     let (first, last) = (l1[..10].iter().sum::<f64>() / 10.0, l1[70..].iter().sum::<f64>() / 10.0);
     assert!(last < 0.8 * first, "L1 of steps 1–10 {first:.4}, of steps 71–80 {last:.4}");
+    // Every snapshot logs G_ema's L1 on the sample grid's subjects against their data views;
+    // it falls as the subjects are fitted.
+    let fits: Vec<serde_json::Value> = std::fs::read_to_string(run.join("grid_l1.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let steps: Vec<u64> = fits.iter().map(|r| r["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [40, 80], "{fits:?}");
+    let sum = |r: &serde_json::Value| -> f64 {
+        ["rgb", "normal", "mask"]
+            .iter()
+            .map(|k| {
+                let v = r[*k].as_f64().unwrap();
+                assert!(v > 0.0 && v < 1.0, "{k} = {v}");
+                v
+            })
+            .sum()
+    };
+    assert!(sum(&fits[1]) < sum(&fits[0]), "grid L1 did not fall: {fits:?}");
     let run_json = std::fs::read_to_string(run.join("run.json")).unwrap();
     assert!(run_json.contains("\"objective\": \"reconstruction\""), "{run_json}");
     let g = run.join("generator.safetensors");
