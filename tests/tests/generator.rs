@@ -190,14 +190,15 @@ fn checkpoints_round_trip_and_reject_other_configs() {
     assert!(load_generator(b"junk", &cfg, &dev).is_err());
 }
 
-/// Multi-modal truncation: each w moves towards its nearest mode by 1 − ψ; the modes
-/// travel in the checkpoint and old checkpoints have none.
+/// Multi-modal truncation: each w moves towards its nearest mode by 1 − ψ, the texture code
+/// towards the mode of the subject chosen by the geometry code; the modes travel in the
+/// checkpoint and old checkpoints have none.
 #[test]
 fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     use getavatar_core::burn::tensor::TensorData;
     use getavatar_core::checkpoint::{load_generator, load_latent_modes, save_generator, save_generator_with_modes};
     use getavatar_core::generator::LatentModes;
-    use getavatar_core::network::mapping::truncate_toward_modes;
+    use getavatar_core::network::mapping::{truncate_toward_modes, truncate_toward_subject};
     let dev = device();
     let t2 = |v: Vec<f32>, r: usize| Tensor::<2>::from_data(TensorData::new(v, [r, 2]), &dev);
     let vals = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().expect("f32");
@@ -208,6 +209,20 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let want = [9.0, 1.0, 0.5, 8.5];
     assert!(got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{got:?}");
     assert_eq!(vals(truncate_toward_modes(w.clone(), &modes, 1.0)), vals(w));
+    // Generation pairs the branches: the subject is the one whose geometry mode is nearest
+    // to w_geo, and w_tex moves towards *that* subject's texture mode, even where another
+    // texture mode is nearer (which would pair codes of two subjects).
+    let (geo_modes, tex_modes) = (t2(vec![0.0, 0.0, 10.0, 0.0], 2), t2(vec![0.0, 0.0, 10.0, 0.0], 2));
+    let (wg, wt) = (t2(vec![9.0, 1.0], 1), t2(vec![1.0, 1.0], 1));
+    let pair = |psi: f32| {
+        let (g, t) = truncate_toward_subject(wg.clone(), wt.clone(), &geo_modes, &tex_modes, psi);
+        (vals(g), vals(t))
+    };
+    assert_eq!(pair(0.0), (vec![10.0, 0.0], vec![10.0, 0.0]));
+    let (g, t) = pair(0.5);
+    let close = |a: &[f32], b: [f32; 2]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+    assert!(close(&g, [9.5, 0.5]) && close(&t, [5.5, 0.5]), "{g:?} {t:?}");
+    assert_eq!(pair(1.0), (vals(wg.clone()), vals(wt.clone())));
 
     let cfg = GeneratorConfig::tiny();
     let g = Generator::new(&cfg, 7, &dev);

@@ -16,7 +16,7 @@ use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
 use crate::network::decoders::{Decoders, SDF_RESIDUAL_MAX};
 use crate::network::init::{latent, Rng};
-use crate::network::mapping::{truncate_toward_modes, MappingNetwork};
+use crate::network::mapping::{truncate_toward_subject, MappingNetwork};
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
 use crate::network::GeneratorConfig;
@@ -96,13 +96,15 @@ impl Generator {
         self.styles_with(z_geo, z_tex, psi, None)
     }
 
-    /// Like [`Generator::styles`]; with `modes`, each w is truncated towards its nearest mode
-    /// instead of w_avg (multi-modal truncation).
+    /// Like [`Generator::styles`]; with `modes`, the pair (w_geo, w_tex) is truncated towards
+    /// the subject whose geometry mode is nearest to w_geo, both branches towards that
+    /// subject's codes, instead of w_avg (multi-modal truncation,
+    /// [`truncate_toward_subject`]).
     pub fn styles_with(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32, modes: Option<&LatentModes>) -> Styles {
         let (ng, nt) = self.num_ws();
         let (wg, wt) = (self.mapping_geo.forward(z_geo), self.mapping_tex.forward(z_tex));
         let (wg, wt) = match modes {
-            Some(m) => (truncate_toward_modes(wg, &m.geo, psi), truncate_toward_modes(wt, &m.tex, psi)),
+            Some(m) => truncate_toward_subject(wg, wt, &m.geo, &m.tex, psi),
             None => (self.mapping_geo.truncate(wg, psi), self.mapping_tex.truncate(wt, psi)),
         };
         Styles { geo: wg.unsqueeze_dim::<3>(1).repeat_dim(1, ng), tex: wt.unsqueeze_dim::<3>(1).repeat_dim(1, nt) }

@@ -3,7 +3,7 @@
 //! multi-modal variant towards the nearest of several modes ([`truncate_toward_modes`]).
 
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Int, Tensor};
 
 use super::init::{full, Rng};
 use super::layers::FullyConnected;
@@ -59,11 +59,37 @@ pub fn truncate_toward_modes(w: Tensor<2>, modes: &Tensor<2>, psi: f32) -> Tenso
     if psi == 1.0 {
         return w;
     }
+    let c = modes.clone().select(0, nearest_mode(&w, modes));
+    c.clone() + (w - c) * psi
+}
+
+/// Index `[B]` of the nearest row of `modes` `[K, w_dim]` (Euclidean) to each row of `w`.
+fn nearest_mode(w: &Tensor<2>, modes: &Tensor<2>) -> Tensor<1, Int> {
     let [b, _] = w.dims();
     // ‖w − c‖² up to the per-row constant ‖w‖²: ‖c‖² − 2 w·c, `[B, K]`.
     let cc = modes.clone().powf_scalar(2.0).sum_dim(1).reshape([1, modes.dims()[0]]);
     let d = cc - w.clone().matmul(modes.clone().transpose()) * 2.0;
-    let nearest = d.argmin(1).reshape([b]);
-    let c = modes.clone().select(0, nearest);
-    c.clone() + (w - c) * psi
+    d.argmin(1).reshape([b])
+}
+
+/// Multi-modal truncation of a (w_geo, w_tex) pair towards one *subject*: the mode index `k`
+/// nearest to `w_geo` among `geo_modes`, then w_geo' = g_k + ψ·(w_geo − g_k) and
+/// w_tex' = t_k + ψ·(w_tex − t_k). Row k of `geo_modes` and `tex_modes` are the two codes of
+/// one training subject. The texture planes are the backbone's features (styled by w_geo)
+/// projected by w_tex, so a subject's texture code only reproduces its garments together with
+/// its own geometry code; truncating each branch towards its own nearest mode pairs codes of
+/// different subjects and renders blends.
+pub fn truncate_toward_subject(
+    w_geo: Tensor<2>,
+    w_tex: Tensor<2>,
+    geo_modes: &Tensor<2>,
+    tex_modes: &Tensor<2>,
+    psi: f32,
+) -> (Tensor<2>, Tensor<2>) {
+    if psi == 1.0 {
+        return (w_geo, w_tex);
+    }
+    let k = nearest_mode(&w_geo, geo_modes);
+    let (cg, ct) = (geo_modes.clone().select(0, k.clone()), tex_modes.clone().select(0, k));
+    (cg.clone() + (w_geo - cg) * psi, ct.clone() + (w_tex - ct) * psi)
 }
