@@ -56,7 +56,7 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 1.0)]
     pub psi: f32,
     /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-    /// ψ pulls each latent towards its nearest mode there).
+    /// ψ pulls both latents towards the training subject whose geometry mode is nearest there).
     #[arg(long)]
     pub mean_truncation: bool,
     /// Comparison resolution (labels are resolution-free; default: the dataset's). At

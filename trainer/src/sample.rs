@@ -35,7 +35,7 @@ pub struct SampleArgs {
     #[arg(long, default_value_t = 0.7)]
     pub psi: f32,
     /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-    /// ψ pulls each latent towards its nearest mode there).
+    /// ψ pulls both latents towards the training subject whose geometry mode is nearest there).
     #[arg(long)]
     pub mean_truncation: bool,
     /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).

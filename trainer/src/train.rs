@@ -766,7 +766,6 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
 }
 
-/// RGB | normal | mask rows of G_ema at fixed seeds and the first labels of the dataset.
 /// L1 (in [0, 1] units, mean over pixels and channels) between G_ema's renders of the
 /// sample grid's subjects and the data's views of them: a fixed yardstick of how far a
 /// reconstruction run has fitted its subjects, comparable across snapshots of one dataset.
@@ -778,8 +777,8 @@ pub struct GridL1 {
     pub mask: f32,
 }
 
-/// The snapshot's sample grid (PNG) and, for reconstruction runs, its [`GridL1`] against the
-/// data.
+/// RGB | normal | mask rows of G_ema at fixed seeds and the first labels of the dataset: the
+/// snapshot's sample grid (PNG) and, for reconstruction runs, its [`GridL1`] against the data.
 fn sample_grid(
     st: &State,
     ds: &Dataset,

@@ -1,6 +1,7 @@
 //! Mapping network z → w (8 FC layers in the paper, leaky ReLU, lr multiplier 0.01) with the
 //! tracked average w_avg used by the truncation trick: w' = w_avg + ψ·(w − w_avg), and the
-//! multi-modal variant towards the nearest of several modes ([`truncate_toward_modes`]).
+//! multi-modal variants towards the nearest of several modes ([`truncate_toward_modes`]) and,
+//! for a (w_geo, w_tex) pair, towards one training subject's pair ([`truncate_toward_subject`]).
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor};
