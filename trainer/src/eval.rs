@@ -15,6 +15,10 @@
 //!   labels (both in [0, 1], resized to 299² as pytorch-fid does). With the few dozen
 //!   images a CPU eval affords, FID is strongly biased upwards; compare runs at equal
 //!   `--count` only. Without the weights file it says so and reports null.
+//!
+//! The JSON report (`--out`) lists every label's two IoUs (`per_label`), and `--images DIR`
+//! writes one PNG per label (generated RGB | generated mask against the posed body | data),
+//! so a low mean can be traced to the labels and shapes that cause it.
 
 use std::path::PathBuf;
 
@@ -70,6 +74,11 @@ pub struct EvalArgs {
     /// Write the figures as JSON here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Also write one PNG per label here (`NN.png`: generated RGB | generated mask against
+    /// the posed body, white both, red generated only, blue body only | the data's image),
+    /// to see where the IoU is lost.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
 }
 
 #[derive(Debug, Serialize)]
@@ -86,6 +95,16 @@ pub struct EvalReport {
     pub normal_error_deg: Option<f32>,
     pub fid: Option<f32>,
     pub kid: Option<f32>,
+    /// The same figures per label, in evaluation order (seeds `seed + 2k`, `seed + 2k + 1`).
+    pub per_label: Vec<LabelFigures>,
+}
+
+/// One evaluated label: which dataset image, and both IoUs against the posed body.
+#[derive(Debug, Serialize)]
+pub struct LabelFigures {
+    pub image: String,
+    pub mask_iou: f32,
+    pub data_mask_iou: f32,
 }
 
 fn iou(a: &[bool], b: &[bool]) -> f32 {
@@ -137,8 +156,11 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     // Nearest sampling of a dataset image at comparison pixel p.
     let src = |p: usize| ((p / res) * dres / res) * dres + (p % res) * dres / res;
     let count = a.count.min(ds.len());
+    if let Some(dir) = &a.images {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     let bar = crate::progress::bar(count as u64, "labels");
-    let (mut ious, mut data_ious) = (Vec::new(), Vec::new());
+    let (mut ious, mut data_ious, mut per_label) = (Vec::new(), Vec::new(), Vec::new());
     let (mut angle_sum, mut angle_n) = (0f64, 0usize);
     let (mut fake_rgb, mut real_rgb) = (Vec::new(), Vec::new());
     for k in 0..count {
@@ -170,6 +192,27 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         ious.push(iou(&fake, &body));
         let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
         data_ious.push(iou(&real, &body));
+        if let Some(dir) = &a.images {
+            let rgb: Vec<f32> = f.rgb.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
+            let real_rgb: Vec<f32> = (0..res * res * 3)
+                .map(|i| {
+                    let q = src(i / 3);
+                    let m = sample.mask[q];
+                    sample.rgb[3 * q + i % 3] * m + (1.0 - m)
+                })
+                .collect();
+            let overlay: Vec<f32> = (0..res * res * 3)
+                .map(|i| match (fake[i / 3], body[i / 3], i % 3) {
+                    (true, true, _) => 1.0,
+                    (true, false, c) => [0.9, 0.1, 0.1][c],
+                    (false, true, c) => [0.1, 0.3, 0.9][c],
+                    (false, false, _) => 0.0,
+                })
+                .collect();
+            write_strip(&dir.join(format!("{k:02}.png")), &[&fake_rgb, &overlay, &real_rgb], res)?;
+        }
+        per_label.push(LabelFigures { image: sample.name.clone(), mask_iou: ious[k], data_mask_iou: data_ious[k] });
         if let Some(rn) = &sample.normal {
             let fnrm: Vec<f32> = f.normal.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
             for p in 0..res * res {
@@ -216,7 +259,30 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         normal_error_deg: (angle_n > 0).then(|| (angle_sum / angle_n as f64) as f32),
         fid,
         kid,
+        per_label,
     })
+}
+
+/// Interleaved RGB images in [0, 1] (`res²·3` each) side by side as one PNG.
+fn write_strip(path: &std::path::Path, images: &[&[f32]], res: usize) -> Result<()> {
+    let w = res * images.len();
+    let mut buf = vec![0u8; w * res * 3];
+    for (j, im) in images.iter().enumerate() {
+        for y in 0..res {
+            for x in 0..res {
+                for c in 0..3 {
+                    buf[(y * w + j * res + x) * 3 + c] =
+                        (im[(y * res + x) * 3 + c].clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
+        }
+    }
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w as u32, res as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header()?.write_image_data(&buf)?;
+    Ok(())
 }
 
 pub fn eval(a: &EvalArgs) -> Result<()> {

@@ -135,11 +135,38 @@ fn tiny_trains_twenty_steps() {
     let report = root.join("eval.json");
     let gen = run.join("generator.safetensors");
     let (gen_s, report_s) = (gen.to_str().unwrap(), report.to_str().unwrap());
-    let text = ok(eval(&data, &["--checkpoint", gen_s, "--out", report_s]));
+    let images = root.join("eval_images");
+    let text = ok(eval(&data, &["--checkpoint", gen_s, "--out", report_s, "--images", images.to_str().unwrap()]));
     assert!(text.contains("FID/KID: not computed"), "{text}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let iou = r["mask_iou_mean"].as_f64().unwrap();
     assert!(iou > 0.0 && iou <= 1.0, "{r}");
+    // Per-label figures average to the reported mean, and each label's image shows the same
+    // IoU: its middle panel is white where both masks cover, red generated only, blue body only.
+    let per = r["per_label"].as_array().unwrap();
+    assert_eq!(per.len(), 4, "{r}");
+    let mean = per.iter().map(|l| l["mask_iou"].as_f64().unwrap()).sum::<f64>() / 4.0;
+    assert!((mean - iou).abs() < 1e-5, "{mean} vs {iou}");
+    for (k, l) in per.iter().enumerate() {
+        let dec = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(images.join(format!("{k:02}.png"))).unwrap(),
+        ));
+        let mut reader = dec.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        let (w, h) = (info.width as usize, info.height as usize);
+        assert_eq!((w, h), (3 * 16, 16), "RGB | overlay | data at the dataset's 16²");
+        let (mut both, mut union) = (0, 0);
+        for y in 0..h {
+            for x in 16..32 {
+                let p = &buf[(y * w + x) * 3..][..3];
+                both += (p == [255, 255, 255]) as usize;
+                union += (p != [0, 0, 0]) as usize;
+            }
+        }
+        let from_image = if union == 0 { 1.0 } else { both as f64 / union as f64 };
+        assert!((from_image - l["mask_iou"].as_f64().unwrap()).abs() < 1e-5, "label {k}: {from_image} vs {l}");
+    }
     assert!(r["data_mask_iou_mean"].as_f64().unwrap() > 0.6, "{r}");
     let err = r["normal_error_deg"].as_f64().unwrap();
     assert!(err > 0.0 && err < 90.0, "{r}");
