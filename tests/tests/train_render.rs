@@ -291,6 +291,57 @@ fn views_of_one_avatar_equal_separate_renders() {
     }
 }
 
+/// The texture-swap term's renders (not in the paper): the surface of one code coloured by the
+/// texture field of other styles. With the same styles they equal the plain RGB; with another
+/// geometry code in the texture styles only covered pixels change, and the term's gradient
+/// reaches the texture path (mapping networks, synthesis, colour decoders) but not the heads
+/// that place the surface.
+#[test]
+fn retextured_views_keep_the_surface_and_train_only_the_colours() {
+    use getavatar_core::diff::avatar::render_avatar_views_retextured;
+    use getavatar_core::generator::Styles;
+    let dev = cpu().autodiff();
+    let cfg = GeneratorConfig::tiny();
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let g = Generator::new(&cfg, 0, &dev);
+    let params = PoseLibrary::builtin().params("walking", &[]).unwrap();
+    let labels: Vec<Label> = [0.4f32, 2.1]
+        .iter()
+        .map(|&yaw| Label::new(OrbitCamera { yaw, pitch: 0.1, ..OrbitCamera::default() }.world_to_camera(), &params))
+        .collect();
+    let (res, grids) = (32, PosedGridCache::default());
+    let (zg, zt) = seed_latents(&cfg, 5, 6, &dev);
+    let (zg2, _) = seed_latents(&cfg, 7, 8, &dev);
+    let own = g.styles(zg.clone(), zt.clone(), 1.0);
+    let same = render_avatar_views_retextured(&g, &ctx, &own, Some(&own), &[labels.clone()], res, &grids, &dev);
+    let rgb = values(same.rgb.clone());
+    let max_diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+    assert!(max_diff(&rgb, &values(same.rgb_retextured.clone().unwrap())) < 1e-6);
+    let swapped = Styles { geo: g.styles(zg2, zt.clone(), 1.0).geo, tex: own.tex.clone() };
+    let f = render_avatar_views_retextured(&g, &ctx, &own, Some(&swapped), &[labels.clone()], res, &grids, &dev);
+    let re = values(f.rgb_retextured.clone().unwrap());
+    assert_eq!(re.len(), rgb.len());
+    let (mask, n) = (values(f.mask.clone()), res * res);
+    let (mut changed, mut covered) = (0, 0);
+    for (i, (a, b)) in rgb.iter().zip(&re).enumerate() {
+        let (view, pix) = (i / (3 * n), i % n);
+        if mask[view * n + pix] > 0.99 {
+            covered += 1;
+            changed += ((a - b).abs() > 1e-3) as usize;
+        } else if mask[view * n + pix] < -0.99 {
+            assert_eq!((*a, *b), (1.0, 1.0), "background stays white in both");
+        }
+    }
+    assert!(covered > 100 && changed * 2 > covered, "{changed} of {covered} covered values changed");
+    let grads = f.rgb_retextured.unwrap().mean().backward();
+    for prefix in ["mapping_geo", "mapping_tex", "synthesis", "decoders.texture", "decoders.to_rgb"] {
+        assert!(grad_mass(&g, &grads, prefix) > 0.0, "{prefix}: no gradient");
+    }
+    for prefix in ["decoders.sdf", "decoders.offset"] {
+        assert_eq!(grad_mass(&g, &grads, prefix), 0.0, "{prefix}: the swap term must not move the surface");
+    }
+}
+
 /// The scan terms (not in the paper): surface points of a posed scan land on the canonical
 /// surface, and each term trains exactly its branch.
 #[test]

@@ -38,6 +38,11 @@ pub struct SampleArgs {
     /// ψ pulls both latents towards the training subject whose geometry mode is nearest there).
     #[arg(long)]
     pub mean_truncation: bool,
+    /// A training subject's own codes instead of seeds: `K` (its geometry and texture) or
+    /// `K,M` (subject K's geometry with subject M's colours), for checkpoints that carry
+    /// latent modes (reconstruction and anchored runs); ψ and the seeds are then unused.
+    #[arg(long, value_name = "K[,M]")]
+    pub subject: Option<String>,
     /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
     #[arg(long, default_value = "standing")]
     pub pose: String,
@@ -115,6 +120,17 @@ pub fn truncation_modes(modes: &Option<LatentModes>, mean_truncation: bool) -> O
     modes.as_ref().filter(|_| !mean_truncation)
 }
 
+/// `K` or `K,M` of `--subject`.
+fn parse_subject(spec: &str) -> Result<(usize, usize)> {
+    let num = |t: &str| {
+        t.trim().parse::<usize>().with_context(|| format!("--subject {spec}: expected K or K,M with subject indices"))
+    };
+    match spec.split_once(',') {
+        Some((k, m)) => Ok((num(k)?, num(m)?)),
+        None => num(spec).map(|k| (k, k)),
+    }
+}
+
 pub fn sample(a: &SampleArgs) -> Result<()> {
     let cfg = GeneratorConfig::preset(&a.config)
         .with_context(|| format!("unknown config `{}` (paper, demo, tiny)", a.config))?;
@@ -138,8 +154,22 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let (g, modes) = generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
-    let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-    let styles = g.styles_with(zg, zt, a.psi, truncation_modes(&modes, a.mean_truncation));
+    let styles = match &a.subject {
+        Some(spec) => {
+            let (k, m) = parse_subject(spec)?;
+            let Some(modes) = &modes else {
+                bail!("--subject needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
+            };
+            let (wg, wt) = modes.subject(k, m).with_context(|| {
+                format!("--subject {spec}: the checkpoint has {} subjects (0…{})", modes.count(), modes.count() - 1)
+            })?;
+            g.styles_from_w(wg, wt)
+        }
+        None => {
+            let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
+            g.styles_with(zg, zt, a.psi, truncation_modes(&modes, a.mean_truncation))
+        }
+    };
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device);
     let t2 = std::time::Instant::now();

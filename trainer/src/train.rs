@@ -26,9 +26,11 @@ use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator_with_modes, write_safetensors,
 };
 use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatar_views, render_avatars, FakeViews, PosedGridCache};
+use getavatar_core::diff::avatar::{render_avatar_views_retextured, render_avatars, FakeViews, PosedGridCache};
 use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
-use getavatar_core::generator::{is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes};
+use getavatar_core::generator::{
+    is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes, Styles,
+};
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
@@ -95,6 +97,14 @@ pub struct TrainArgs {
     /// Weight of the scan terms (with `--scans`).
     #[arg(long, default_value_t = 1.0)]
     pub lambda_scan: f32,
+    /// Reconstruction terms only (not in the paper): weight of a texture-swap term. Each drawn
+    /// subject's surface is also coloured by the texture field built from another drawn
+    /// subject's geometry code with its own texture code, and that RGB is compared with the
+    /// subject's views by L1 too. With fixed latent pairs alone the colours can hide in the
+    /// geometry-styled backbone, and a seed's texture code then hardly changes the colours
+    /// (re-texturing renders blends); this term makes them follow the texture code. 0: off.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_texture_swap: f32,
 }
 
 /// Points drawn per scan and kept for training (`--scans`).
@@ -163,6 +173,10 @@ pub struct RunConfig {
     /// Weight of the scan terms. Absent in older runs: 0.
     #[serde(default)]
     pub lambda_scan: f32,
+    /// Weight of the texture-swap term (`TrainArgs::lambda_texture_swap`). Absent in older
+    /// runs: 0. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub lambda_texture_swap: f32,
 }
 
 fn one_view() -> usize {
@@ -225,6 +239,7 @@ impl RunConfig {
             views_per_subject: 1,
             scans: None,
             lambda_scan: 0.0,
+            lambda_texture_swap: 0.0,
         }
     }
 }
@@ -258,6 +273,9 @@ pub struct Metrics {
     /// The scan terms (`--scans`): texture L1 and SDF L1; absent without scans.
     pub scan_texture: Option<f32>,
     pub scan_sdf: Option<f32>,
+    /// The texture-swap RGB L1 (`lambda_texture_swap > 0`); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub texture_swap: Option<f32>,
     pub seconds: f64,
 }
 
@@ -596,7 +614,10 @@ fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> O
 /// `rc.views_per_subject − 1` further views of the same avatar, and is compared with the real
 /// images by L1 (RGB + mask, + normal map where the data has them).
 /// With `scans` (one per subject) and `rc.lambda_scan > 0`, adds the weighted scan terms at
-/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan.
+/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan. With
+/// `rc.lambda_texture_swap > 0` (and more than one subject in the batch), adds the weighted
+/// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
+/// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views.
 fn subject_reconstruction(
     g: &Generator,
     rng: &mut Rng,
@@ -634,13 +655,28 @@ fn subject_reconstruction(
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
     let styles = g.styles(zg.clone(), zt.clone(), 1.0);
-    let fakes = render_avatar_views(g, ctx, &styles, &views, rc.resolution, grids, ad);
+    let b = styles.geo.dims()[0];
+    let swap = (rc.lambda_texture_swap > 0.0 && b > 1).then(|| Styles {
+        geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),
+        tex: styles.tex.clone(),
+    });
+    let fakes = render_avatar_views_retextured(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad);
     let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
+    let mut texture_swap = None;
+    let mut swap_loss = None;
+    if let Some(rgb) = fakes.rgb_retextured.clone() {
+        let t = l1(rgb, real_rgb.clone());
+        texture_swap = Some(scalar(t.clone()));
+        swap_loss = Some(t * rc.lambda_texture_swap);
+    }
     let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
     if rc.use_normals {
         loss = loss + l1(fakes.normal.clone(), real_nrm);
     }
     let l1 = scalar(loss.clone());
+    if let Some(t) = swap_loss {
+        loss = loss + t;
+    }
     let mut scan = None;
     if rc.lambda_scan > 0.0 && !scans.is_empty() {
         let batch: Vec<(&CanonicalSamples, Vec<usize>)> = idx
@@ -654,7 +690,7 @@ fn subject_reconstruction(
         scan = Some((scalar(terms.texture.clone()), scalar(terms.sdf.clone())));
         loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
     }
-    Ok(SubjectReconstruction { loss, l1, scan, fakes, zg, zt })
+    Ok(SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt })
 }
 
 /// The reconstruction terms of one step ([`subject_reconstruction`]).
@@ -665,6 +701,8 @@ struct SubjectReconstruction {
     l1: f32,
     /// Scan texture and SDF terms (unweighted), where used.
     scan: Option<(f32, f32)>,
+    /// The texture-swap L1 (unweighted), where used.
+    texture_swap: Option<f32>,
     /// The renders (for the eikonal and cross-entropy terms).
     fakes: FakeViews,
     zg: Tensor<2>,
@@ -685,13 +723,14 @@ fn reconstruction_step(
 ) -> Result<(State, Metrics)> {
     let t0 = std::time::Instant::now();
     let b = rc.batch;
-    let SubjectReconstruction { loss, l1, scan, fakes, zg, zt } =
+    let SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt } =
         subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone()),
         reconstruction: Some(l1),
         scan_texture: scan.map(|s| s.0),
         scan_sdf: scan.map(|s| s.1),
+        texture_swap,
         eikonal: scalar(fakes.eikonal.clone()),
         cross_entropy: scalar(fakes.cross_entropy.clone()),
         triangles: fakes.triangles.iter().sum::<usize>() as f32 / fakes.triangles.len().max(1) as f32,
@@ -874,6 +913,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 run_path.display()
             );
         }
+        if a.lambda_texture_swap != 0.0 && a.lambda_texture_swap != rc.lambda_texture_swap {
+            bail!(
+                "--lambda-texture-swap {} differs from the run's {}: a continued run keeps its settings (edit lambda_texture_swap in {} to change it)",
+                a.lambda_texture_swap,
+                rc.lambda_texture_swap,
+                run_path.display()
+            );
+        }
         rc
     } else {
         if state_path.exists() {
@@ -900,11 +947,18 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         if !(a.lambda_scan >= 0.0 && a.lambda_scan.is_finite()) {
             bail!("--lambda-scan must be a finite weight ≥ 0, got {}", a.lambda_scan);
         }
+        if !(a.lambda_texture_swap >= 0.0 && a.lambda_texture_swap.is_finite()) {
+            bail!("--lambda-texture-swap must be a finite weight ≥ 0, got {}", a.lambda_texture_swap);
+        }
+        if a.lambda_texture_swap > 0.0 && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+            bail!("--lambda-texture-swap applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
         let rc = RunConfig {
             lambda_reconstruction: a.lambda_reconstruction,
             views_per_subject: a.views,
             scans: a.scans.as_ref().map(|d| d.display().to_string()),
             lambda_scan: if a.scans.is_some() { a.lambda_scan } else { 0.0 },
+            lambda_texture_swap: a.lambda_texture_swap,
             ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective)
         };
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;

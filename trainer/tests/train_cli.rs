@@ -303,6 +303,23 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     };
     assert_ne!(sample("0", false), sample("0", true), "ψ = 0: nearest mode vs w_avg");
     assert_eq!(sample("1", false), sample("1", true), "ψ = 1: no truncation either way");
+    // `--subject K,M`: subject K's geometry with subject M's colours (same mask, other RGB);
+    // out-of-range indices and checkpoints without modes are refused by name.
+    let subject = |spec: &str, ckpt: &Path| {
+        let out = root.join(format!("subject_{}", spec.replace(',', "_")));
+        let args = ["sample", "--config", "tiny", "--checkpoint", ckpt.to_str().unwrap(), "--subject", spec];
+        (trainer(&[&args[..], &["--res", "48", "--out", out.to_str().unwrap()]].concat()), out)
+    };
+    let read = |dir: &Path, f: &str| std::fs::read(dir.join(f)).unwrap();
+    let (o, own) = subject("0", &g);
+    ok(o);
+    let (o, swapped) = subject("0,1", &g);
+    ok(o);
+    assert_eq!(read(&own, "mask.png"), read(&swapped, "mask.png"), "the geometry is subject 0's in both");
+    assert_ne!(read(&own, "rgb.png"), read(&swapped, "rgb.png"), "subject 1's colours");
+    let (o, _) = subject("0,2", &g);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("2 subjects"), "{err}");
     let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
     assert!(header(&root.join("adv").join("generator.safetensors")).get("latent_modes/geo").is_none());
     assert!(text.contains("initialised the generator from"), "{text}");
@@ -310,6 +327,9 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let row: serde_json::Value = serde_json::from_str(adv.lines().next().unwrap()).unwrap();
     assert!(row["loss_d"].as_f64().unwrap() > 0.0, "{row}");
     assert!(row["reconstruction"].is_null(), "the paper's objective has no anchor: {row}");
+    let (o, _) = subject("0", &root.join("adv").join("generator.safetensors"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("latent modes"), "{err}");
 
     // The anchored adversarial run renders the subjects at the warm-up's latents: its
     // reconstruction L1 starts where the warm-up ended, not where a fresh generator starts.
@@ -389,6 +409,31 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     refused(&["--objective", "reconstruction", "--views", "0"], &root.join("zero"), "at least 1");
     refused(&["--views", "2"], &root.join("adv"), "reconstruction terms");
     refused(&["--resume", "--views", "4"], &run, "keeps its settings");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// `--lambda-texture-swap` (reconstruction terms, not in the paper): logged every step, kept
+/// in run.json, refused where it has no effect, when negative, or when a continued run differs.
+#[test]
+fn texture_swap_term_is_logged_and_validated() {
+    let root = tmp("swap");
+    let data = dataset(&root);
+    let run = root.join("recon");
+    let text = train(&data, &run, 2, &["--objective", "reconstruction", "--lambda-texture-swap", "0.5"]);
+    assert!(text.contains("trained 2 steps"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["lambda_texture_swap"], 0.5, "{rc}");
+    for line in std::fs::read_to_string(run.join("metrics.jsonl")).unwrap().lines() {
+        let r: serde_json::Value = serde_json::from_str(line).unwrap();
+        let (swap, rec) = (r["texture_swap"].as_f64().unwrap(), r["reconstruction"].as_f64().unwrap());
+        assert!(swap > 0.0 && swap < 1.0, "{r}");
+        // loss_g = image L1 + 0.5 · swap L1 (no scan terms).
+        assert!((r["loss_g"].as_f64().unwrap() - (rec + 0.5 * swap)).abs() < 1e-4, "{r}");
+    }
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
+    refused(&["--lambda-texture-swap", "0.5"], &root.join("adv"), "reconstruction terms");
+    refused(&["--objective", "reconstruction", "--lambda-texture-swap=-1"], &root.join("neg"), "≥ 0");
+    refused(&["--resume", "--lambda-texture-swap", "2"], &run, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }
 

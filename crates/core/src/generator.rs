@@ -61,6 +61,13 @@ impl LatentModes {
     pub fn count(&self) -> usize {
         self.geo.dims()[0]
     }
+
+    /// Subject `geo`'s geometry code and subject `tex`'s texture code, `[1, w_dim]` each
+    /// (re-texturing one training subject with another's colours); None out of range.
+    pub fn subject(&self, geo: usize, tex: usize) -> Option<(Tensor<2>, Tensor<2>)> {
+        let k = self.count();
+        (geo < k && tex < k).then(|| (self.geo.clone().narrow(0, geo, 1), self.tex.clone().narrow(0, tex, 1)))
+    }
 }
 
 /// Per-layer styles (W+): `[B, n, w_dim]` each.
@@ -101,13 +108,22 @@ impl Generator {
     /// subject's codes, instead of w_avg (multi-modal truncation,
     /// [`truncate_toward_subject`]).
     pub fn styles_with(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32, modes: Option<&LatentModes>) -> Styles {
-        let (ng, nt) = self.num_ws();
         let (wg, wt) = (self.mapping_geo.forward(z_geo), self.mapping_tex.forward(z_tex));
         let (wg, wt) = match modes {
             Some(m) => truncate_toward_subject(wg, wt, &m.geo, &m.tex, psi),
             None => (self.mapping_geo.truncate(wg, psi), self.mapping_tex.truncate(wt, psi)),
         };
-        Styles { geo: wg.unsqueeze_dim::<3>(1).repeat_dim(1, ng), tex: wt.unsqueeze_dim::<3>(1).repeat_dim(1, nt) }
+        self.styles_from_w(wg, wt)
+    }
+
+    /// Styles from W codes `[B, w_dim]` per branch (each repeated over its layers), e.g. a
+    /// training subject's modes (`LatentModes::subject`).
+    pub fn styles_from_w(&self, w_geo: Tensor<2>, w_tex: Tensor<2>) -> Styles {
+        let (ng, nt) = self.num_ws();
+        Styles {
+            geo: w_geo.unsqueeze_dim::<3>(1).repeat_dim(1, ng),
+            tex: w_tex.unsqueeze_dim::<3>(1).repeat_dim(1, nt),
+        }
     }
 
     pub fn triplanes(&self, s: &Styles) -> Triplanes {

@@ -41,6 +41,9 @@ pub struct FakeViews {
     pub cross_entropy: Tensor<1>,
     /// Triangles extracted per sample (0 = empty surface: its images are background).
     pub triangles: Vec<usize>,
+    /// With [`render_avatar_views_retextured`]: the RGB images of the same surfaces coloured
+    /// by the texture field of the other styles (same layout as `rgb`).
+    pub rgb_retextured: Option<Tensor<4>>,
 }
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -139,12 +142,33 @@ pub fn render_avatar_views(
     grids: &PosedGridCache,
     device: &Device,
 ) -> FakeViews {
+    render_avatar_views_retextured(g, ctx, styles, None, views, res, grids, device)
+}
+
+/// [`render_avatar_views`], and with `retexture` (batch B styles) also the RGB of each surface
+/// of `styles` coloured by the texture field of `retexture` (its triplanes and texture styles)
+/// at the same canonical pixel coordinates, held constant (`FakeViews::rgb_retextured`). The
+/// texture-swap term of the reconstruction warm-up uses it: geometry from one code, colours
+/// that must follow the texture code alone.
+#[cfg(not(target_arch = "wasm32"))]
+#[allow(clippy::too_many_arguments)]
+pub fn render_avatar_views_retextured(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    retexture: Option<&Styles>,
+    views: &[Vec<Label>],
+    res: usize,
+    grids: &PosedGridCache,
+    device: &Device,
+) -> FakeViews {
     let proj = OrbitCamera::default().projection_gl(1.0);
     let h = 0.5 * ctx.template.cell;
     let n = ctx.grid.vertices.len();
     let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
     let mut triangles = Vec::new();
+    let mut retextured = Vec::new();
     let prof = std::env::var_os("GETAVATAR_PROFILE").is_some();
     let t0 = std::time::Instant::now();
     let lap = |what: &str| {
@@ -156,6 +180,10 @@ pub fn render_avatar_views(
         let Some(label) = cams.first() else { continue };
         let s = styles_of(styles, b);
         let planes = g.triplanes(&s);
+        let re = retexture.map(|r| {
+            let r = styles_of(r, b);
+            (g.triplanes(&r), r)
+        });
         lap("triplanes");
         // Inverse skinning of the posed-space grid (eq. 2).
         let posed = pose_body(&ctx.model, &label.body_params());
@@ -204,6 +232,9 @@ pub fn render_avatar_views(
                 rgbs.push(bg(1.0, 3));
                 normals.push(bg(0.0, 3));
                 masks.push(bg(-1.0, 1));
+                if re.is_some() {
+                    retextured.push(bg(1.0, 3));
+                }
             }
             continue;
         }
@@ -270,6 +301,9 @@ pub fn render_avatar_views(
                 let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
                 rgbs.push(bg(1.0, 3));
                 normals.push(bg(0.0, 3));
+                if re.is_some() {
+                    retextured.push(bg(1.0, 3));
+                }
                 // Keep the silhouette path alive (zero contribution) for a consistent graph.
                 masks.push(bg(-1.0, 1) + ones.clone().sum().reshape([1, 1, 1, 1]) * 0.0);
                 continue;
@@ -282,6 +316,11 @@ pub fn render_avatar_views(
             let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
             let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
             let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
+            if let Some((rp, rs)) = &re {
+                let c = g.texture_field(rp, rs, pix_canon.clone().detach().unsqueeze_dim::<3>(0)).reshape([p, 3]);
+                let c = c.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+                retextured.push(to_nchw(compose(&cov, c * 2.0 - 1.0, &[1.0, 1.0, 1.0], device), res));
+            }
 
             lap("texture field");
             // Normals: ∇(template + residual) by central differences, rotated to posed space.
@@ -329,5 +368,6 @@ pub fn render_avatar_views(
         eikonal: mean(eik),
         cross_entropy: mean(ce),
         triangles,
+        rgb_retextured: (!retextured.is_empty()).then(|| Tensor::cat(retextured, 0)),
     }
 }
