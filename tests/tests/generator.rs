@@ -197,7 +197,7 @@ fn checkpoints_round_trip_and_reject_other_configs() {
 fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     use getavatar_core::burn::tensor::TensorData;
     use getavatar_core::checkpoint::{load_generator, load_latent_modes, save_generator, save_generator_with_modes};
-    use getavatar_core::generator::LatentModes;
+    use getavatar_core::generator::{LatentModes, ModePairing};
     use getavatar_core::network::mapping::{truncate_toward_modes, truncate_toward_subject};
     let dev = device();
     let t2 = |v: Vec<f32>, r: usize| Tensor::<2>::from_data(TensorData::new(v, [r, 2]), &dev);
@@ -230,7 +230,11 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let plain = save_generator(&g, &cfg, &extra);
     assert!(load_latent_modes(&plain, &dev).expect("parses").is_none());
     let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
-    let m = LatentModes { geo: g.mapping_geo.forward(zg.clone()), tex: g.mapping_tex.forward(zt.clone()) };
+    let m = LatentModes {
+        geo: g.mapping_geo.forward(zg.clone()),
+        tex: g.mapping_tex.forward(zt.clone()),
+        pairing: ModePairing::Subject,
+    };
     let bytes = save_generator_with_modes(&g, &cfg, Some(&m), &extra);
     let back = load_generator(&bytes, &cfg, &dev).expect("a checkpoint with modes loads");
     let m2 = load_latent_modes(&bytes, &dev).expect("parses").expect("modes present");
@@ -247,7 +251,38 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     assert!(c.iter().zip(&a).all(|(x, y)| (x - y).abs() < 1e-4), "ψ = 0 is the nearest (only) mode");
     assert!(c.iter().zip(&d).any(|(x, y)| (x - y).abs() > 1e-3));
     // Modes of another width than w_dim are refused.
-    let narrow = LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1) };
+    let narrow = LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1), pairing: m.pairing };
     let bad = save_generator_with_modes(&g, &cfg, Some(&narrow), &extra);
     assert!(load_latent_modes(&bad, &dev).is_err());
+
+    // Pairing: subject 0 = codes of seeds (1, 3), subject 1 = (2, 4). Geometry seed 1 with
+    // texture seed 4 at ψ = 0: `subject` gives subject 0's texture code, `branch` keeps the
+    // texture code's own subject (1). The pairing travels in the checkpoint; an unknown value
+    // is refused.
+    let (z1, z3) = seed_latents(&cfg, 1, 3, &dev);
+    let (z2, z4) = seed_latents(&cfg, 2, 4, &dev);
+    let w = |m: &getavatar_core::network::mapping::MappingNetwork, a: &Tensor<2>, b: &Tensor<2>| {
+        m.forward(Tensor::cat(vec![a.clone(), b.clone()], 0))
+    };
+    let two = LatentModes {
+        geo: w(&g.mapping_geo, &z1, &z2),
+        tex: w(&g.mapping_tex, &z3, &z4),
+        pairing: ModePairing::Branch,
+    };
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&two), &extra);
+    let loaded = load_latent_modes(&bytes, &dev).expect("parses").expect("modes present");
+    assert_eq!(loaded.pairing, ModePairing::Branch);
+    let tex_at = |m: &LatentModes| {
+        vals(g.styles_with(z1.clone(), z4.clone(), 0.0, Some(m)).tex.narrow(1, 0, 1).reshape([1, cfg.w_dim]))
+    };
+    let row = |t: &Tensor<2>, k: usize| vals(t.clone().narrow(0, k, 1));
+    let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-4);
+    assert!(near(&tex_at(&loaded), &row(&two.tex, 1)), "branch: the texture code's own subject");
+    let subject = LatentModes { pairing: ModePairing::Subject, ..two.clone() };
+    assert!(near(&tex_at(&subject), &row(&two.tex, 0)), "subject: the geometry code's subject");
+    let mut patched = bytes.clone();
+    let at = patched.windows(8).position(|x| x == b"\"branch\"").expect("pairing in the header");
+    patched[at + 1..at + 7].copy_from_slice(b"braNch");
+    let err = load_latent_modes(&patched, &dev).expect_err("unknown pairing").to_string();
+    assert!(err.contains("latent_modes/pairing"), "{err}");
 }

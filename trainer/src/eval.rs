@@ -60,7 +60,8 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 1.0)]
     pub psi: f32,
     /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-    /// ψ pulls both latents towards the training subject whose geometry mode is nearest there).
+    /// ψ pulls the latents towards the training subjects: both towards the subject whose
+    /// geometry mode is nearest, or each to its own nearest, as the checkpoint's pairing says).
     #[arg(long)]
     pub mean_truncation: bool,
     /// Comparison resolution (labels are resolution-free; default: the dataset's). At

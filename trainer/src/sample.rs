@@ -9,7 +9,7 @@ use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{load_generator, load_latent_modes};
 use getavatar_core::generator::{block_on_ready, recolor_async};
-use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator, LatentModes};
+use getavatar_core::generator::{default_psi, generate_avatar, seed_latents, BodyContext, Generator, LatentModes};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
@@ -31,11 +31,13 @@ pub struct SampleArgs {
     pub seed_geo: u64,
     #[arg(long, default_value_t = 0)]
     pub seed_tex: u64,
-    /// Truncation ψ (1 = none).
-    #[arg(long, default_value_t = 0.7)]
-    pub psi: f32,
+    /// Truncation ψ (1 = none; default: 0 for a checkpoint with latent modes, i.e. its training
+    /// subjects, else 0.7).
+    #[arg(long)]
+    pub psi: Option<f32>,
     /// Truncate towards w_avg even where the checkpoint carries latent modes (by default
-    /// ψ pulls both latents towards the training subject whose geometry mode is nearest there).
+    /// ψ pulls the latents towards the training subjects: both towards the subject whose
+    /// geometry mode is nearest, or each to its own nearest, as the checkpoint's pairing says).
     #[arg(long)]
     pub mean_truncation: bool,
     /// A training subject's own codes instead of seeds: `K` (its geometry and texture) or
@@ -137,7 +139,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     if !(16..=4096).contains(&a.res) {
         bail!("--res must be between 16 and 4096 (got {})", a.res);
     }
-    if !a.psi.is_finite() {
+    if a.psi.is_some_and(|p| !p.is_finite()) {
         bail!("--psi must be a number");
     }
     let lib = PoseLibrary::builtin();
@@ -167,7 +169,8 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         }
         None => {
             let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-            g.styles_with(zg, zt, a.psi, truncation_modes(&modes, a.mean_truncation))
+            let modes = truncation_modes(&modes, a.mean_truncation);
+            g.styles_with(zg, zt, a.psi.unwrap_or_else(|| default_psi(modes)), modes)
         }
     };
     let t1 = std::time::Instant::now();

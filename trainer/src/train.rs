@@ -29,7 +29,7 @@ use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatar_views_retextured, render_avatars, FakeViews, PosedGridCache};
 use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
 use getavatar_core::generator::{
-    is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes, Styles,
+    is_geometry_head_param, is_texture_param, BodyContext, Generator, LatentModes, ModePairing, Styles,
 };
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
@@ -606,7 +606,10 @@ fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> O
     }
     let n = subject_of_entries(ds).into_iter().max()? + 1;
     let (zg, zt) = subject_latents(rc, &(0..n).collect::<Vec<_>>(), dev);
-    Some(LatentModes { geo: g.mapping_geo.forward(zg), tex: g.mapping_tex.forward(zt) })
+    // With the texture-swap term the colours follow the texture code, so each branch may
+    // go to its own nearest subject (one subject's geometry, another's colours).
+    let pairing = if rc.lambda_texture_swap > 0.0 { ModePairing::Branch } else { ModePairing::Subject };
+    Some(LatentModes { geo: g.mapping_geo.forward(zg), tex: g.mapping_tex.forward(zt), pairing })
 }
 
 /// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn

@@ -303,6 +303,22 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     };
     assert_ne!(sample("0", false), sample("0", true), "ψ = 0: nearest mode vs w_avg");
     assert_eq!(sample("1", false), sample("1", true), "ψ = 1: no truncation either way");
+    // Without --psi, a checkpoint with modes samples at ψ = 0 (its subjects).
+    let out = root.join("sample_default_psi");
+    ok(trainer(&[
+        "sample",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        g.to_str().unwrap(),
+        "--seed-geo",
+        "5",
+        "--res",
+        "48",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert_eq!(std::fs::read(out.join("normal.png")).unwrap(), sample("0", false), "default ψ with modes is 0");
     // `--subject K,M`: subject K's geometry with subject M's colours (same mask, other RGB);
     // out-of-range indices and checkpoints without modes are refused by name.
     let subject = |spec: &str, ckpt: &Path| {

@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use burn::module::{Module, ModuleMapper, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::generator::{Generator, LatentModes};
+use crate::generator::{Generator, LatentModes, ModePairing};
 use crate::network::GeneratorConfig;
 
 pub const FORMAT: &str = "getavatar-generator/1";
@@ -20,6 +20,9 @@ pub const FORMAT: &str = "getavatar-generator/1";
 /// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
 pub const MODES_GEO: &str = "latent_modes/geo";
 pub const MODES_TEX: &str = "latent_modes/tex";
+/// Metadata key: how ψ pairs the branches' modes (`subject` or `branch`, see
+/// [`ModePairing`]); absent in older checkpoints: `subject`.
+pub const MODES_PAIRING: &str = "latent_modes/pairing";
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
@@ -93,6 +96,7 @@ pub fn save_generator_with_modes(
     meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default());
     let mut tensors = collect_params(g);
     if let Some(m) = modes {
+        meta.insert(MODES_PAIRING.into(), m.pairing.as_str().into());
         for (name, t) in [(MODES_GEO, &m.geo), (MODES_TEX, &m.tex)] {
             let shape = t.dims().to_vec();
             tensors.push((
@@ -126,7 +130,13 @@ fn latent_modes_of(st: &SafeTensors, device: &Device) -> Result<Option<LatentMod
             }
             let t =
                 |s: &Vec<usize>, v: &Vec<f32>| Tensor::<2>::from_data(TensorData::new(v.clone(), [s[0], s[1]]), device);
-            Ok(Some(LatentModes { geo: t(sg, vg), tex: t(stx, vt) }))
+            let pairing = match st.metadata.get(MODES_PAIRING) {
+                None => ModePairing::default(),
+                Some(v) => ModePairing::parse(v).ok_or_else(|| {
+                    fmt_err(format!("metadata `{MODES_PAIRING}` is {v:?}, expected \"subject\" or \"branch\""))
+                })?,
+            };
+            Ok(Some(LatentModes { geo: t(sg, vg), tex: t(stx, vt), pairing }))
         }
         _ => Err(CheckpointError::Param(MODES_GEO.into(), "only one branch's latent modes present".into())),
     }

@@ -16,7 +16,7 @@ use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
 use crate::network::decoders::{Decoders, SDF_RESIDUAL_MAX};
 use crate::network::init::{latent, Rng};
-use crate::network::mapping::{truncate_toward_subject, MappingNetwork};
+use crate::network::mapping::{truncate_toward_modes, truncate_toward_subject, MappingNetwork};
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
 use crate::network::GeneratorConfig;
@@ -55,6 +55,52 @@ pub fn is_geometry_head_param(name: &str) -> bool {
 pub struct LatentModes {
     pub geo: Tensor<2>,
     pub tex: Tensor<2>,
+    /// How ψ pairs the two branches' modes (stored in the checkpoint).
+    pub pairing: ModePairing,
+}
+
+/// Truncation ψ used where the user sets none, for a generator with these latent modes
+/// (`None`: a checkpoint without modes, truncating towards w_avg): 0 with modes, i.e. the
+/// training subjects' own codes (a reconstruction warm-up has only been trained there; between
+/// them it renders blends), else StyleGAN's customary 0.7.
+pub fn default_psi(modes: Option<&LatentModes>) -> f32 {
+    if modes.is_some() {
+        0.0
+    } else {
+        0.7
+    }
+}
+
+/// How multi-modal truncation picks the modes of the two branches.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ModePairing {
+    /// One subject for both, the one whose geometry mode is nearest to w_geo
+    /// ([`truncate_toward_subject`]): for generators whose colours are tied to their geometry
+    /// code (a reconstruction warm-up without the texture-swap term).
+    #[default]
+    Subject,
+    /// Each branch towards its own nearest mode ([`truncate_toward_modes`]): for generators
+    /// trained with the texture-swap term, whose colours follow the texture code, so a seed
+    /// pair gives one subject's geometry with another's colours.
+    Branch,
+}
+
+impl ModePairing {
+    /// The checkpoint metadata value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Subject => "subject",
+            Self::Branch => "branch",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "subject" => Some(Self::Subject),
+            "branch" => Some(Self::Branch),
+            _ => None,
+        }
+    }
 }
 
 impl LatentModes {
@@ -103,13 +149,16 @@ impl Generator {
         self.styles_with(z_geo, z_tex, psi, None)
     }
 
-    /// Like [`Generator::styles`]; with `modes`, the pair (w_geo, w_tex) is truncated towards
-    /// the subject whose geometry mode is nearest to w_geo, both branches towards that
-    /// subject's codes, instead of w_avg (multi-modal truncation,
-    /// [`truncate_toward_subject`]).
+    /// Like [`Generator::styles`]; with `modes`, ψ truncates towards the training subjects'
+    /// codes instead of w_avg (multi-modal truncation): both branches towards the subject whose
+    /// geometry mode is nearest to w_geo ([`truncate_toward_subject`]), or each branch towards
+    /// its own nearest mode ([`truncate_toward_modes`]), as `modes.pairing` says.
     pub fn styles_with(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32, modes: Option<&LatentModes>) -> Styles {
         let (wg, wt) = (self.mapping_geo.forward(z_geo), self.mapping_tex.forward(z_tex));
         let (wg, wt) = match modes {
+            Some(m) if m.pairing == ModePairing::Branch => {
+                (truncate_toward_modes(wg, &m.geo, psi), truncate_toward_modes(wt, &m.tex, psi))
+            }
             Some(m) => truncate_toward_subject(wg, wt, &m.geo, &m.tex, psi),
             None => (self.mapping_geo.truncate(wg, psi), self.mapping_tex.truncate(wt, psi)),
         };

@@ -14,7 +14,7 @@ use getavatar_core::OrbitCamera;
 
 use std::rc::Rc;
 
-use getavatar_core::generator::RiggedAvatar;
+use getavatar_core::generator::{default_psi, RiggedAvatar};
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
 use crate::generate::{GenEngine, TextureField};
@@ -62,6 +62,9 @@ pub struct GetAvatarApp {
     seed_geo: u64,
     seed_tex: u64,
     psi: f32,
+    /// Whether the user (slider or automation) set ψ; until then each generation uses the
+    /// loaded model's default and the slider shows it afterwards.
+    psi_from_user: bool,
     /// Generation requested by a command before egui's context was available.
     queued: Option<(bool, GenerateArgs)>,
 }
@@ -130,7 +133,8 @@ impl GetAvatarApp {
             show_avatar: false,
             seed_geo: 0,
             seed_tex: 0,
-            psi: 0.7,
+            psi: default_psi(None),
+            psi_from_user: false,
             queued: None,
         };
         for a in startup {
@@ -214,13 +218,17 @@ impl GetAvatarApp {
         }
         if let Some(p) = a.psi {
             self.psi = p;
+            self.psi_from_user = true;
         }
         let keep = if texture_only { self.rigged.clone() } else { None };
         if texture_only && keep.is_none() {
             self.messages.push("generate an avatar before re-texturing it".into());
             return;
         }
-        engine.start(body, (self.seed_geo, self.seed_tex), self.psi, keep, ctx.clone());
+        // Until the user sets ψ, the loaded model's default applies (0 for a checkpoint with
+        // latent modes: its training subjects, `generator::default_psi`).
+        let psi = self.psi_from_user.then_some(self.psi);
+        engine.start(body, (self.seed_geo, self.seed_tex), psi, keep, ctx.clone());
     }
 
     fn poll_generation(&mut self) {
@@ -234,6 +242,7 @@ impl GetAvatarApp {
                 self.status.last_generation_ms = done.millis as f32;
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
                 (self.seed_geo, self.seed_tex) = done.seeds;
+                self.psi = done.psi;
                 self.rigged = Some(done.rigged);
                 self.field = Some(done.field);
                 self.show_avatar = true;
@@ -391,7 +400,9 @@ impl GetAvatarApp {
             ui.label("texture seed");
             ui.add(egui::DragValue::new(&mut self.seed_tex));
         });
-        ui.add(egui::Slider::new(&mut self.psi, 0.0..=1.0).text("truncation ψ"));
+        if ui.add(egui::Slider::new(&mut self.psi, 0.0..=1.0).text("truncation ψ")).changed() {
+            self.psi_from_user = true;
+        }
         let busy = self.engine.as_ref().is_some_and(|e| e.busy);
         ui.horizontal(|ui| {
             if ui.add_enabled(!busy, egui::Button::new("Generate")).clicked() {

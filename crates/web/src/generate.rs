@@ -16,7 +16,8 @@ use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::load_generator_and_modes;
 use getavatar_core::generator::{
-    generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, RiggedAvatar, Styles,
+    default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, RiggedAvatar,
+    Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
@@ -71,7 +72,7 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
 /// A fetched checkpoint: the generator, its latent modes (if any) and its size in bytes.
 type Shipped = (Generator, Option<LatentModes>, usize);
 
-type Job = ((u64, u64), f32, Option<RiggedAvatar>, eframe::egui::Context);
+type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
 
 async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
     let window = web_sys::window().ok_or("no window")?;
@@ -102,6 +103,8 @@ pub struct Finished {
     pub millis: f64,
     /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
+    /// The truncation ψ it was generated with.
+    pub psi: f32,
 }
 
 pub struct GenEngine {
@@ -168,7 +171,7 @@ impl GenEngine {
         &mut self,
         body: &BodyModel,
         seeds: (u64, u64),
-        psi: f32,
+        psi: Option<f32>,
         keep: Option<RiggedAvatar>,
         repaint: eframe::egui::Context,
     ) {
@@ -191,6 +194,8 @@ impl GenEngine {
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
         let modes = self.modes.clone();
+        // No ψ from the user: the loaded model's default (`generator::default_psi`).
+        let psi = psi.unwrap_or_else(|| default_psi(modes.as_ref().as_ref()));
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::web::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
@@ -207,7 +212,7 @@ impl GenEngine {
             let result = if rigged.canonical.mesh.faces.is_empty() {
                 Err("the generator produced an empty surface".to_string())
             } else {
-                Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds })
+                Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds, psi })
             };
             *slot.borrow_mut() = Some(result);
             repaint.request_repaint();
