@@ -9,8 +9,8 @@
 //  - the normal view encodes world normals as (n+1)/2 (background = zero vector);
 //  - changing the pose changes the silhouette;
 //  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors;
-//  - Generate runs the generator on WebGPU and shows an avatar; a new texture seed changes
-//    RGB pixels but not the mask.
+//  - Generate runs the generator on WebGPU and shows an avatar at the model's default ψ; a new
+//    texture seed changes RGB pixels but not the mask.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -222,6 +222,10 @@ try {
   await page.waitForTimeout(800);
   console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
   check(s.showing === 'avatar' && s.avatar_vertices > 500, `Generate shows an avatar (${s.avatar_vertices} vertices)`);
+  // ψ was not set, so the model's default applies: 0 (its training subjects) for a checkpoint
+  // with latent modes, 0.7 otherwise; the slider shows it.
+  const wantPsi = s.model.includes('latent modes') ? 0 : 0.7;
+  check(Math.abs(s.psi - wantPsi) < 1e-6, `default ψ follows the model: ${s.psi} (${s.model})`);
   const avMask = maskOf(await grab('mask_avatar'), (c) => c[0] > 127);
   const jb = iou(avMask, bodyStanding);
   check(jb > 0.6, `the avatar follows the posed body (mask IoU ${jb.toFixed(3)})`);
