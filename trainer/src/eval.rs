@@ -26,7 +26,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::dataset::{Dataset, Label};
+use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{seed_latents, BodyContext};
 use getavatar_core::network::GeneratorConfig;
@@ -278,12 +278,7 @@ fn write_strip(path: &std::path::Path, images: &[&[f32]], res: usize) -> Result<
             }
         }
     }
-    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w as u32, res as u32);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    enc.write_header()?.write_image_data(&buf)?;
-    Ok(())
+    std::fs::write(path, encode_png(w, res, 3, &buf)).with_context(|| format!("writing {}", path.display()))
 }
 
 pub fn eval(a: &EvalArgs) -> Result<()> {
