@@ -29,7 +29,6 @@ use getavatar_core::camera::OrbitCamera;
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{seed_latents, BodyContext};
-use getavatar_core::network::GeneratorConfig;
 use getavatar_core::rasterize::render_views;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use serde::Serialize;
@@ -41,16 +40,8 @@ pub struct EvalArgs {
     /// Dataset directory whose labels (camera, θ, β) and images are used.
     #[arg(long)]
     pub data: PathBuf,
-    /// Generator size: paper, demo or tiny.
-    #[arg(long, default_value = "demo")]
-    pub config: String,
-    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
-    /// `--config demo`, random weights otherwise).
-    #[arg(long)]
-    pub checkpoint: Option<PathBuf>,
-    /// Use deterministic random weights even where a trained model ships.
-    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
-    pub random: bool,
+    #[command(flatten)]
+    pub model: crate::sample::GeneratorArgs,
     /// Labels to evaluate (spread evenly over the dataset).
     #[arg(long, default_value_t = 32)]
     pub count: usize,
@@ -129,8 +120,6 @@ pub fn body_silhouette(model: &BodyModel, label: &Label, res: usize) -> Vec<bool
 
 pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
-    let cfg = GeneratorConfig::preset(&a.config)
-        .with_context(|| format!("unknown --config `{}` (paper, demo, tiny)", a.config))?;
     if a.count == 0 {
         bail!("--count must be at least 1");
     }
@@ -144,7 +133,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         Some(p) => Some(crate::inception::Inception::load(p, &dev)?),
         None => None,
     };
-    let (g, modes) = crate::sample::generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &dev)?;
+    let (cfg, g, modes) = a.model.load(&dev)?;
     let modes = crate::sample::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);

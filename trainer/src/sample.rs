@@ -17,16 +17,8 @@ use getavatar_core::rasterize::render_views_textured;
 
 #[derive(clap::Args, Debug)]
 pub struct SampleArgs {
-    /// Generator size: paper, demo or tiny.
-    #[arg(long, default_value = "demo")]
-    pub config: String,
-    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
-    /// `--config demo`, random weights otherwise).
-    #[arg(long)]
-    pub checkpoint: Option<PathBuf>,
-    /// Use deterministic random weights even where a trained model ships.
-    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
-    pub random: bool,
+    #[command(flatten)]
+    pub model: GeneratorArgs,
     #[arg(long, default_value_t = 0)]
     pub seed_geo: u64,
     #[arg(long, default_value_t = 0)]
@@ -85,6 +77,32 @@ pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
+/// Which generator a command runs: `--config`, `--checkpoint`, `--random-weights` (shared by
+/// `sample` and `eval`).
+#[derive(clap::Args, Debug)]
+pub struct GeneratorArgs {
+    /// Generator size: paper, demo or tiny.
+    #[arg(long, default_value = "demo")]
+    pub config: String,
+    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+    /// `--config demo`, random weights otherwise).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Use deterministic random weights even where a trained model ships.
+    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
+    pub random: bool,
+}
+
+impl GeneratorArgs {
+    /// The config preset, the generator (see [`generator_or_random`]) and its latent modes.
+    pub fn load(&self, device: &Device) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
+        let cfg = GeneratorConfig::preset(&self.config)
+            .with_context(|| format!("unknown --config `{}` (paper, demo, tiny)", self.config))?;
+        let (g, modes) = generator_or_random(self.checkpoint.as_deref(), self.random, &cfg, device)?;
+        Ok((cfg, g, modes))
+    }
+}
+
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
 /// so) the deterministic random weights (seed 0) of `cfg`.
@@ -134,8 +152,6 @@ fn parse_subject(spec: &str) -> Result<(usize, usize)> {
 }
 
 pub fn sample(a: &SampleArgs) -> Result<()> {
-    let cfg = GeneratorConfig::preset(&a.config)
-        .with_context(|| format!("unknown config `{}` (paper, demo, tiny)", a.config))?;
     if !(16..=4096).contains(&a.res) {
         bail!("--res must be between 16 and 4096 (got {})", a.res);
     }
@@ -153,7 +169,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     };
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let (g, modes) = generator_or_random(a.checkpoint.as_deref(), a.random, &cfg, &device)?;
+    let (cfg, g, modes) = a.model.load(&device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
     let styles = match &a.subject {
