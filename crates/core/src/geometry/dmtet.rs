@@ -133,6 +133,79 @@ impl TriMesh {
             .sum()
     }
 
+    /// Connected components (faces sharing a vertex): each face's component id, and each
+    /// component's face count, ids in order of first appearance.
+    pub fn components(&self) -> (Vec<u32>, Vec<usize>) {
+        let mut parent: Vec<u32> = (0..self.vertices.len() as u32).collect();
+        fn root(parent: &mut [u32], mut i: u32) -> u32 {
+            while parent[i as usize] != i {
+                parent[i as usize] = parent[parent[i as usize] as usize];
+                i = parent[i as usize];
+            }
+            i
+        }
+        for f in &self.faces {
+            let r0 = root(&mut parent, f[0]);
+            for &v in &f[1..] {
+                let r = root(&mut parent, v);
+                if r != r0 {
+                    parent[r as usize] = r0;
+                }
+            }
+        }
+        let mut id_of_root: HashMap<u32, u32> = HashMap::new();
+        let mut sizes = Vec::new();
+        let ids = self
+            .faces
+            .iter()
+            .map(|f| {
+                let r = root(&mut parent, f[0]);
+                let id = *id_of_root.entry(r).or_insert_with(|| {
+                    sizes.push(0);
+                    (sizes.len() - 1) as u32
+                });
+                sizes[id as usize] += 1;
+                id
+            })
+            .collect();
+        (ids, sizes)
+    }
+
+    /// This mesh without its floating fragments: components with fewer faces than
+    /// `min_share` × the largest component's are dropped (with their vertices, attributes and
+    /// edges; the rest keep their order). Returns the mesh and how many components it dropped.
+    pub fn without_small_components(&self, min_share: f32) -> (TriMesh, usize) {
+        let (ids, sizes) = self.components();
+        let largest = sizes.iter().copied().max().unwrap_or(0);
+        let keep: Vec<bool> = sizes.iter().map(|&n| n as f32 >= min_share * largest as f32).collect();
+        let dropped = keep.iter().filter(|k| !**k).count();
+        if dropped == 0 {
+            return (self.clone(), 0);
+        }
+        let mut remap = vec![u32::MAX; self.vertices.len()];
+        let mut out = TriMesh::default();
+        for (f, id) in self.faces.iter().zip(&ids) {
+            if !keep[*id as usize] {
+                continue;
+            }
+            let g = f.map(|v| {
+                if remap[v as usize] == u32::MAX {
+                    remap[v as usize] = out.vertices.len() as u32;
+                    out.vertices.push(self.vertices[v as usize]);
+                    if !self.attributes.is_empty() {
+                        out.attributes.push(self.attributes[v as usize]);
+                    }
+                    if !self.edges.is_empty() {
+                        out.edges.push(self.edges[v as usize]);
+                    }
+                }
+                remap[v as usize]
+            });
+            out.faces.push(g);
+        }
+        (out, dropped)
+    }
+
     /// Number of boundary or non-manifold edges, and of edges used twice in the same
     /// direction (inconsistent orientation). Both are zero for a closed, oriented manifold.
     pub fn topology_defects(&self) -> (usize, usize) {
