@@ -49,33 +49,31 @@ fn dmtet_sphere_is_closed_outward_and_has_the_right_area() {
 }
 
 #[test]
-fn floating_fragments_are_dropped_and_the_body_kept() {
+fn cavities_are_dropped_and_outer_surfaces_kept() {
     let grid = TetGrid::cube(40, Vec3::ZERO, 2.0);
-    let (big, small) = (|p: Vec3| p.length() - 0.5, |p: Vec3| (p - Vec3::new(0.75, 0.75, 0.0)).length() - 0.12);
-    let both = extract(&grid, |p| big(p).min(small(p)));
-    let alone = extract(&grid, big);
-    let (ids, sizes) = both.components();
-    assert_eq!(sizes.len(), 2, "two spheres, two components");
-    assert_eq!(ids.len(), both.faces.len());
-    assert_eq!(sizes.iter().sum::<usize>(), both.faces.len());
-    assert_eq!(*sizes.iter().max().unwrap(), alone.faces.len());
-    // Above the fragment's share of the largest component it is dropped…
-    let share = *sizes.iter().min().unwrap() as f32 / alone.faces.len() as f32;
-    let (kept, dropped) = both.without_small_components(share * 1.5);
-    assert_eq!(dropped, 1);
+    // A ball with a spherical pocket inside, and a small separate ball beside it.
+    let shell = |p: Vec3| (p.length() - 0.5).max(0.25 - p.length());
+    let small = |p: Vec3| (p - Vec3::new(0.75, 0.75, 0.0)).length() - 0.12;
+    let all = extract(&grid, |p| shell(p).min(small(p)));
+    let outer = extract(&grid, |p| (p.length() - 0.5).min(small(p)));
+    let (ids, sizes) = all.components();
+    assert_eq!(sizes.len(), 3, "outer sphere, pocket, small ball");
+    assert_eq!(ids.len(), all.faces.len());
+    assert_eq!(sizes.iter().sum::<usize>(), all.faces.len());
+    let (kept, dropped) = all.without_cavities();
+    assert_eq!(dropped, 1, "only the pocket goes");
     assert_eq!(kept.topology_defects(), (0, 0), "what is kept stays closed");
-    assert_eq!(kept.faces.len(), alone.faces.len());
-    assert_eq!(kept.vertices.len(), alone.vertices.len());
-    assert!((kept.area() - alone.area()).abs() < 1e-4 * alone.area());
-    assert!((kept.volume() - alone.volume()).abs() < 1e-4 * alone.volume());
-    assert!(kept.vertices.iter().all(|v| (v.length() - 0.5).abs() < 0.02), "only the big sphere's vertices remain");
+    assert_eq!((kept.faces.len(), kept.vertices.len()), (outer.faces.len(), outer.vertices.len()));
+    assert!((kept.area() - outer.area()).abs() < 1e-4 * outer.area());
+    assert!((kept.volume() - outer.volume()).abs() < 1e-4 * outer.volume());
+    assert!(kept.vertices.iter().all(|v| v.length() > 0.4), "no pocket vertex remains");
     assert_eq!((kept.attributes.len(), kept.edges.len()), (kept.vertices.len(), kept.vertices.len()));
     for (v, a) in kept.vertices.iter().zip(&kept.attributes) {
         assert!((*v - *a).length() < 1e-5, "attributes follow their vertices");
     }
-    // …below it, nothing is.
-    let (same, none) = both.without_small_components(share * 0.5);
-    assert_eq!((none, same.faces.len()), (0, both.faces.len()));
+    // A mesh without pockets is returned as it is.
+    let (same, none) = outer.without_cavities();
+    assert_eq!((none, same.faces, same.vertices), (0, outer.faces.clone(), outer.vertices.clone()));
 }
 
 #[test]

@@ -361,12 +361,6 @@ impl PosedGrid {
     }
 }
 
-/// Extracted components with fewer triangles than this share of the largest are floating
-/// fragments (a grid vertex or two whose SDF turned negative away from the body: 24–72
-/// triangles on the demo model, whose bodies have ~12 000) and are dropped from the avatars
-/// users see and export. Training renders keep them, so the losses still push them out.
-pub const FRAGMENT_SHARE: f32 = 0.01;
-
 /// [`generate_avatar`] for any platform (awaits GPU readbacks in the browser).
 pub async fn generate_avatar_async(
     g: &Generator,
@@ -400,7 +394,10 @@ pub async fn generate_avatar_async(
         .collect();
     let positions: Vec<Vec3> =
         ctx.grid.vertices.iter().enumerate().map(|(i, p)| *p + Vec3::from_slice(&offset[3 * i..3 * i + 3])).collect();
-    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, &canon).without_small_components(FRAGMENT_SHARE);
+    // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
+    // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
+    // seen and would only pollute the exported mesh.
+    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, &canon).without_cavities();
     if mesh.vertices.is_empty() {
         return Avatar { mesh, normals: Vec::new(), colors: Vec::new() };
     }

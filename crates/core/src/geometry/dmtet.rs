@@ -171,13 +171,19 @@ impl TriMesh {
         (ids, sizes)
     }
 
-    /// This mesh without its floating fragments: components with fewer faces than
-    /// `min_share` × the largest component's are dropped (with their vertices, attributes and
-    /// edges; the rest keep their order). Returns the mesh and how many components it dropped.
-    pub fn without_small_components(&self, min_share: f32) -> (TriMesh, usize) {
+    /// This mesh without its cavities: components with negative signed volume, i.e. closed
+    /// surfaces facing inwards, which bound empty pockets inside the solid and cannot be seen
+    /// from outside. Everything else (also small detached pieces, which at grid resolution are
+    /// often fingertips or toes) keeps its order, attributes and edges. Returns the mesh and
+    /// how many components it dropped.
+    pub fn without_cavities(&self) -> (TriMesh, usize) {
         let (ids, sizes) = self.components();
-        let largest = sizes.iter().copied().max().unwrap_or(0);
-        let keep: Vec<bool> = sizes.iter().map(|&n| n as f32 >= min_share * largest as f32).collect();
+        let mut volume = vec![0.0f64; sizes.len()];
+        for (f, id) in self.faces.iter().zip(&ids) {
+            let [a, b, c] = f.map(|i| self.vertices[i as usize].as_dvec3());
+            volume[*id as usize] += a.dot(b.cross(c)) / 6.0;
+        }
+        let keep: Vec<bool> = volume.iter().map(|v| *v >= 0.0).collect();
         let dropped = keep.iter().filter(|k| !**k).count();
         if dropped == 0 {
             return (self.clone(), 0);
