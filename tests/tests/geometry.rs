@@ -72,8 +72,8 @@ fn cavities_are_dropped_and_outer_surfaces_kept() {
         assert!((*v - *a).length() < 1e-5, "attributes follow their vertices");
     }
     // A mesh without pockets is returned as it is.
-    let (same, none) = outer.without_cavities();
-    assert_eq!((none, same.faces, same.vertices), (0, outer.faces.clone(), outer.vertices.clone()));
+    let (same, none) = outer.clone().without_cavities();
+    assert_eq!((none, same.faces, same.vertices), (0, outer.faces, outer.vertices));
 }
 
 #[test]

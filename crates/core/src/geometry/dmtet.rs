@@ -176,7 +176,7 @@ impl TriMesh {
     /// from outside. Everything else (also small detached pieces, which at grid resolution are
     /// often fingertips or toes) keeps its order, attributes and edges. Returns the mesh and
     /// how many components it dropped.
-    pub fn without_cavities(&self) -> (TriMesh, usize) {
+    pub fn without_cavities(self) -> (TriMesh, usize) {
         let (ids, sizes) = self.components();
         let mut volume = vec![0.0f64; sizes.len()];
         for (f, id) in self.faces.iter().zip(&ids) {
@@ -186,7 +186,7 @@ impl TriMesh {
         let keep: Vec<bool> = volume.iter().map(|v| *v >= 0.0).collect();
         let dropped = keep.iter().filter(|k| !**k).count();
         if dropped == 0 {
-            return (self.clone(), 0);
+            return (self, 0);
         }
         let mut remap = vec![u32::MAX; self.vertices.len()];
         let mut out = TriMesh::default();
