@@ -49,7 +49,7 @@ fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
     let params = PoseLibrary::builtin().params("walking", &[]).expect("pose");
     let avatar = |g: &Generator, dev: &Device| {
         let (zg, zt) = seed_latents(&cfg, 3, 4, dev);
-        generate_avatar(g, &ctx, &g.styles(zg, zt, 0.7), &params, dev)
+        generate_avatar(g, &ctx, &g.styles(zg, zt, 0.7), &params, dev).expect("generation reads back")
     };
     let (ma, mb) = (avatar(&gc, &cpu), avatar(&gg, &gpu));
     assert_eq!(ma.mesh.faces.len(), mb.mesh.faces.len(), "different triangle counts");

@@ -228,7 +228,7 @@ fn box_scan_is_flat_shaded_and_covers_its_projected_hull() {
     assert!(mean < 2.0, "mean normal error {mean:.3}° (shared corners must not smooth the faces)");
     // Untextured material: the Kd colour, sRGB-encoded.
     let centre = (size / 2) * size + size / 2;
-    let want = getavatar_core::rasterize::linear_to_srgb(Vec3::new(0.2, 0.6, 0.4)) * 255.0;
+    let want = getavatar_core::colour::linear_to_srgb(Vec3::new(0.2, 0.6, 0.4)) * 255.0;
     let p = &v.rgb[3 * centre..3 * centre + 3];
     assert!((p[1] as f32 - want.y).abs() <= 1.0, "{p:?} vs {want}");
 }
@@ -273,7 +273,7 @@ fn dataset_reader_validates_images_and_names_bad_files() {
     let rgba: Vec<u8> = (0..8 * 8).flat_map(|i| [i as u8, 10, 20, if i % 2 == 0 { 255 } else { 0 }]).collect();
     let normal = vec![128u8; 8 * 8 * 3];
     for v in ["000", "001"] {
-        std::fs::write(dir.join(format!("s/{v}.png")), encode_png(8, 8, 4, &rgba)).unwrap();
+        std::fs::write(dir.join(format!("s/{v}.png")), encode_png(8, 8, 4, &rgba).unwrap()).unwrap();
     }
     // RGB-only datasets (no normal maps at all) are valid.
     let ds = Dataset::open(&dir).unwrap();
@@ -283,18 +283,18 @@ fn dataset_reader_validates_images_and_names_bad_files() {
     assert_eq!(s.mask[1], 0.0);
     assert!((s.rgb[3] - 1.0 / 255.0).abs() < 1e-6);
     // Normal maps for some images but not all: the missing one is named.
-    std::fs::write(dir.join("s/000_normal.png"), encode_png(8, 8, 3, &normal)).unwrap();
+    std::fs::write(dir.join("s/000_normal.png"), encode_png(8, 8, 3, &normal).unwrap()).unwrap();
     let e = Dataset::open(&dir).unwrap_err().to_string();
     assert!(e.contains("s/001_normal.png") && e.contains("missing"), "{e}");
-    std::fs::write(dir.join("s/001_normal.png"), encode_png(8, 8, 3, &normal)).unwrap();
+    std::fs::write(dir.join("s/001_normal.png"), encode_png(8, 8, 3, &normal).unwrap()).unwrap();
     let ds = Dataset::open(&dir).unwrap();
     assert!(ds.has_normals);
     assert!(ds.load(0).unwrap().normal.unwrap().iter().all(|x| x.abs() < 0.01));
     // A wrongly sized image is named when loaded; an RGB image without alpha too.
-    std::fs::write(dir.join("s/001.png"), encode_png(4, 4, 4, &rgba[..64])).unwrap();
+    std::fs::write(dir.join("s/001.png"), encode_png(4, 4, 4, &rgba[..64]).unwrap()).unwrap();
     let e = ds.load(1).unwrap_err().to_string();
     assert!(e.contains("001.png") && e.contains("4×4, expected 8×8"), "{e}");
-    std::fs::write(dir.join("s/001.png"), encode_png(8, 8, 3, &normal)).unwrap();
+    std::fs::write(dir.join("s/001.png"), encode_png(8, 8, 3, &normal).unwrap()).unwrap();
     let e = ds.load(1).unwrap_err().to_string();
     assert!(e.contains("no alpha channel"), "{e}");
     // A label with a wrong float count is rejected naming the entry.

@@ -4,11 +4,10 @@
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Param;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::generator::{
-    block_on_ready, generate_avatar, generate_rigged_async, seed_latents, Avatar, BodyContext, Generator,
-};
+use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, Avatar, BodyContext, Generator};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::readback::block_on_ready;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use getavatar_core::spatial::KdTree;
 use glam::Vec3;
@@ -23,7 +22,7 @@ fn generate(g: &Generator, ctx: &BodyContext, cfg: &GeneratorConfig, seeds: (u64
     let (zg, zt) = seed_latents(cfg, seeds.0, seeds.1, &dev);
     let s = g.styles(zg, zt, 0.7);
     let params = PoseLibrary::builtin().params(pose, &[]).expect("pose");
-    generate_avatar(g, ctx, &s, &params, &dev)
+    generate_avatar(g, ctx, &s, &params, &dev).expect("generation reads back")
 }
 
 #[test]
@@ -136,7 +135,7 @@ fn fast_repose_path_matches_the_exact_path() {
     let g = Generator::new(&cfg, 0, &dev);
     let (zg, zt) = seed_latents(&cfg, 11, 12, &dev);
     let s = g.styles(zg, zt, 0.7);
-    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev));
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
     // Re-posing to the canonical pose is the identity.
     let cano = pose_body(&model, &PoseLibrary::builtin().params("Da", &[]).expect("pose"));
     let (v, n) = rigged.repose(&ctx, &cano);
@@ -148,7 +147,7 @@ fn fast_repose_path_matches_the_exact_path() {
     let params = PoseLibrary::builtin().params("standing", &[]).expect("pose");
     let posed = pose_body(&model, &params);
     let (v, _) = rigged.repose(&ctx, &posed);
-    let exact = generate_avatar(&g, &ctx, &s, &params, &dev);
+    let exact = generate_avatar(&g, &ctx, &s, &params, &dev).expect("generation reads back");
     let (ta, tb) = (KdTree::new(&v), KdTree::new(&exact.mesh.vertices));
     let d1 = v.iter().map(|p| tb.nearest(*p).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
     let d2 = exact.mesh.vertices.iter().map(|p| ta.nearest(*p).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
@@ -165,7 +164,7 @@ fn checkpoints_round_trip_and_reject_other_configs() {
     let g = Generator::new(&cfg, 42, &dev);
     let mut extra = std::collections::BTreeMap::new();
     extra.insert("kimg".to_string(), "1.5".to_string());
-    let bytes = save_generator(&g, &cfg, &extra);
+    let bytes = save_generator(&g, &cfg, &extra).unwrap();
     let st = parse_safetensors(&bytes).expect("parses");
     assert_eq!(st.metadata.get("kimg").map(String::as_str), Some("1.5"));
     assert!(
@@ -227,7 +226,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let cfg = GeneratorConfig::tiny();
     let g = Generator::new(&cfg, 7, &dev);
     let extra = std::collections::BTreeMap::new();
-    let plain = save_generator(&g, &cfg, &extra);
+    let plain = save_generator(&g, &cfg, &extra).unwrap();
     assert!(load_latent_modes(&plain, &dev).expect("parses").is_none());
     let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
     let m = LatentModes {
@@ -235,7 +234,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
         tex: g.mapping_tex.forward(zt.clone()),
         pairing: ModePairing::Subject,
     };
-    let bytes = save_generator_with_modes(&g, &cfg, Some(&m), &extra);
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&m), &extra).unwrap();
     let back = load_generator(&bytes, &cfg, &dev).expect("a checkpoint with modes loads");
     let m2 = load_latent_modes(&bytes, &dev).expect("parses").expect("modes present");
     assert_eq!(m2.count(), 1);
@@ -252,7 +251,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     assert!(c.iter().zip(&d).any(|(x, y)| (x - y).abs() > 1e-3));
     // Modes of another width than w_dim are refused.
     let narrow = LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1), pairing: m.pairing };
-    let bad = save_generator_with_modes(&g, &cfg, Some(&narrow), &extra);
+    let bad = save_generator_with_modes(&g, &cfg, Some(&narrow), &extra).unwrap();
     assert!(load_latent_modes(&bad, &dev).is_err());
 
     // Pairing: subject 0 = codes of seeds (1, 3), subject 1 = (2, 4). Geometry seed 1 with
@@ -269,7 +268,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
         tex: w(&g.mapping_tex, &z3, &z4),
         pairing: ModePairing::Branch,
     };
-    let bytes = save_generator_with_modes(&g, &cfg, Some(&two), &extra);
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&two), &extra).unwrap();
     let loaded = load_latent_modes(&bytes, &dev).expect("parses").expect("modes present");
     assert_eq!(loaded.pairing, ModePairing::Branch);
     let tex_at = |m: &LatentModes| {

@@ -310,7 +310,7 @@ fn demo_grid_resolves_the_posed_body() {
 /// cannot turn it inside and leave floating fragments. The Da-pose vacates nothing.
 #[test]
 fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
-    use getavatar_core::generator::{field_band, BodyContext};
+    use getavatar_core::geometry::posed_grid::{field_band, BodyContext};
     use getavatar_core::network::GeneratorConfig;
     // The demo grid (3.6 cm cells); vacated space near the body needs cells this fine.
     let ctx = BodyContext::new(body(), &GeneratorConfig { tet_res: 64, template_res: 128, ..GeneratorConfig::tiny() });
@@ -346,7 +346,7 @@ fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
 /// surface are those of un-warping every vertex.
 #[test]
 fn skipping_far_grid_vertices_keeps_the_band_and_the_surface() {
-    use getavatar_core::generator::{far_from_body, BodyContext, PosedGrid};
+    use getavatar_core::geometry::posed_grid::{far_from_body, BodyContext, PosedGrid};
     use getavatar_core::network::GeneratorConfig;
     let model = body();
     let lib = PoseLibrary::builtin();

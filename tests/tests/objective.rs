@@ -181,7 +181,7 @@ fn conv2d_same_matches_burn_conv2d() {
 
 /// Every float parameter of `m` by checkpoint path.
 fn named_params<M: Module>(m: &M) -> std::collections::BTreeMap<String, Vec<f32>> {
-    getavatar_core::checkpoint::collect_params(m).into_iter().map(|(name, _, v)| (name, v)).collect()
+    getavatar_core::checkpoint::collect_params(m).unwrap().into_iter().map(|(name, _, v)| (name, v)).collect()
 }
 
 #[test]

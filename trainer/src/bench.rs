@@ -6,13 +6,12 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::generator::{
-    block_on_ready, generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator, PosedGrid,
-};
-use getavatar_core::geometry::InverseSkinning;
+use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator};
+use getavatar_core::geometry::{InverseSkinning, PosedGrid};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views;
+use getavatar_core::readback::{block_on_ready, read_f32_now};
 use getavatar_core::skinning::pose_body;
 
 fn secs<T>(f: impl FnOnce() -> T) -> (T, f64) {
@@ -53,22 +52,23 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let (zg, zt) = seed_latents(&cfg, 1, 2, &device);
         let s = g.styles(zg, zt, 0.7);
         // Network only: styles → triplanes, read back to force execution.
-        let (_, gen) = secs(|| {
+        let (gen_read, gen) = secs(|| {
             let p = g.triplanes(&s);
-            let _ = p.geometry.into_data();
+            read_f32_now(p.geometry).map(|_| ())
         });
+        gen_read?;
         let params: Vec<_> = poses.iter().map(|p| lib.params(p, &[])).collect::<Result<_, _>>()?;
-        let (avatar, exact_total) = secs(|| {
+        let (avatar, exact_total) = secs(|| -> Result<_> {
             let mut last = None;
             for _ in 0..repeats {
                 for p in &params {
-                    last = Some(generate_avatar(&g, &ctx, &s, p, &device));
+                    last = Some(generate_avatar(&g, &ctx, &s, p, &device)?);
                 }
             }
-            last
+            Ok(last)
         });
         let exact = exact_total / (repeats * params.len()) as f64;
-        let avatar = avatar.context("no avatar")?;
+        let avatar = avatar?.context("no avatar")?;
         let extract = (exact - gen).max(0.0);
         // The posed grid (inverse skinning of every tet-grid vertex) with far vertices skipped,
         // and with every vertex un-warped.
@@ -93,7 +93,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let m = &avatar.mesh;
         let (_, r512) = secs(|| render_views(&m.vertices, &m.faces, &avatar.normals, &avatar.colors, vp, 512, 1));
         let (_, r1024) = secs(|| render_views(&m.vertices, &m.faces, &avatar.normals, &avatar.colors, vp, 1024, 1));
-        let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &device));
+        let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &device))?;
         let (_, fast_total) = secs(|| {
             for _ in 0..repeats {
                 for p in &params {

@@ -189,6 +189,17 @@ fn parse_obj(text: &str) -> Result<Obj> {
             _ => {}
         }
     }
+    // Every face index must name a vertex (and texture coordinate) of the file.
+    for (name, faces) in &obj.groups {
+        for &(vi, ti) in faces.iter().flatten() {
+            if vi >= obj.v.len() {
+                bail!("group {name}: face refers to vertex {} of {}", vi + 1, obj.v.len());
+            }
+            if ti >= obj.vt.len().max(1) {
+                bail!("group {name}: face refers to texture coordinate {} of {}", ti + 1, obj.vt.len());
+            }
+        }
+    }
     Ok(obj)
 }
 
@@ -255,15 +266,10 @@ fn solve(mut a: Vec<f64>, mut b: Vec<f64>) -> Result<Vec<f64>> {
     Ok(x)
 }
 
+/// The shortest rotation taking direction `from` to direction `to` (for opposite directions a
+/// half turn about an axis perpendicular to both; glam's `from_rotation_arc`).
 fn rotation_between(from: DVec3, to: DVec3) -> DMat3 {
-    let (f, t) = (from.normalize(), to.normalize());
-    let axis = f.cross(t);
-    let s = axis.length();
-    let c = f.dot(t);
-    if s < 1e-12 {
-        return DMat3::IDENTITY;
-    }
-    DMat3::from_axis_angle(axis / s, s.atan2(c))
+    DMat3::from_quat(glam::DQuat::from_rotation_arc(from.normalize(), to.normalize()))
 }
 
 fn matrix_to_axis_angle(m: DMat3) -> DVec3 {
@@ -533,12 +539,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         shape_names: comps.iter().map(|c| c.0.to_string()).collect(),
     };
     let bytes = model.to_npz_bytes()?;
-    if let Some(dir) = out.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    let tmp = out.with_extension("npz.tmp");
-    std::fs::write(&tmp, &bytes)?;
-    std::fs::rename(&tmp, out)?;
+    crate::atomic::write_atomic(out, &bytes)?;
 
     let (lo, hi) = model
         .v_template
@@ -552,4 +553,31 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         regressor_fit_mm: worst_fit * 1000.0,
         height_m: (hi.y - lo.y) as f64,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_between_takes_any_direction_to_any_other() {
+        let dirs = [DVec3::X, DVec3::NEG_X, DVec3::Y, DVec3::new(0.3, -0.2, 0.9), DVec3::new(-0.3, 0.2, -0.9)];
+        for a in dirs {
+            for b in dirs {
+                let r = rotation_between(a, b);
+                let got = r * a.normalize();
+                assert!((got - b.normalize()).length() < 1e-9, "{a} → {b}: got {got}");
+                assert!((r.determinant() - 1.0).abs() < 1e-9, "a rotation");
+            }
+        }
+    }
+
+    #[test]
+    fn faces_out_of_range_are_refused() {
+        let ok = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n";
+        assert_eq!(parse_obj(ok).unwrap().groups["default"].len(), 1);
+        for bad in ["v 0 0 0\nf 1 2 3\n", "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n", "v 0 0 0\nf 0 1 1\n"] {
+            assert!(parse_obj(bad).is_err(), "accepted {bad:?}");
+        }
+    }
 }

@@ -30,6 +30,7 @@ use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{seed_latents, BodyContext};
 use getavatar_core::rasterize::render_views;
+use getavatar_core::readback::read_f32_now;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use serde::Serialize;
 
@@ -158,19 +159,11 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let sample = ds.load(idx)?;
         let label = sample.label.clone();
         let (zg, zt) = seed_latents(&cfg, a.seed + 2 * k as u64, a.seed + 2 * k as u64 + 1, &dev);
-        let f = render_avatars(
-            &g,
-            &ctx,
-            &g.styles_with(zg, zt, a.psi, modes),
-            std::slice::from_ref(&label),
-            res,
-            &grids,
-            &dev,
-        );
-        let mask: Vec<f32> = f.mask.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        let f = render_avatars(&g, &ctx, &g.styles_with(zg, zt, a.psi, modes), &[label.view()], res, &grids, &dev)?;
+        let mask: Vec<f32> = read_f32_now(f.mask)?;
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
         if inception.is_some() {
-            let rgb: Vec<f32> = f.rgb.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let rgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
             fake_rgb.push(ImageChw {
                 data: rgb.iter().map(|v| ((v + 1.0) * 0.5).clamp(0.0, 1.0)).collect(),
                 height: res,
@@ -183,7 +176,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
         data_ious.push(iou(&real, &body));
         if let Some(dir) = &a.images {
-            let rgb: Vec<f32> = f.rgb.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let rgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
             let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
             let real_rgb: Vec<f32> = (0..res * res * 3)
                 .map(|i| {
@@ -204,7 +197,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         }
         per_label.push(LabelFigures { image: sample.name.clone(), mask_iou: ious[k], data_mask_iou: data_ious[k] });
         if let Some(rn) = &sample.normal {
-            let fnrm: Vec<f32> = f.normal.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let fnrm: Vec<f32> = read_f32_now(f.normal)?;
             for p in 0..res * res {
                 if fake[p] && real[p] {
                     let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
@@ -267,7 +260,7 @@ fn write_strip(path: &std::path::Path, images: &[&[f32]], res: usize) -> Result<
             }
         }
     }
-    std::fs::write(path, encode_png(w, res, 3, &buf)).with_context(|| format!("writing {}", path.display()))
+    crate::atomic::write_atomic(path, &encode_png(w, res, 3, &buf)?)
 }
 
 pub fn eval(a: &EvalArgs) -> Result<()> {
@@ -285,7 +278,7 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
         println!("FID {fid:.2}, KID {kid:.4} ({} images per set)", r.labels);
     }
     if let Some(out) = &a.out {
-        std::fs::write(out, serde_json::to_string_pretty(&r)?).with_context(|| format!("writing {}", out.display()))?;
+        crate::atomic::write_atomic(out, serde_json::to_string_pretty(&r)?.as_bytes())?;
         println!("wrote {}", out.display());
     }
     Ok(())

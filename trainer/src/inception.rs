@@ -454,7 +454,8 @@ mod tests {
         let bytes = getavatar_core::checkpoint::write_safetensors(
             &Default::default(),
             &[("Conv2d_1a_3x3.conv.weight".into(), vec![32, 3, 3, 2], vec![0.0; 32 * 3 * 3 * 2])],
-        );
+        )
+        .unwrap();
         let e = format!("{:#}", Inception::from_bytes(&bytes, &dev).err().expect("must fail"));
         assert!(e.contains("Conv2d_1a_3x3.conv.weight") && e.contains("[32, 3, 3, 3]"), "{e}");
         let e = format!("{:#}", Inception::from_bytes(b"junk", &dev).err().expect("must fail"));
@@ -469,9 +470,11 @@ mod tests {
         let dev = Device::ndarray();
         let tensors: Vec<(String, Vec<usize>, Vec<f32>)> =
             parameter_shapes().into_iter().map(|(k, s)| (k.clone(), s.clone(), hash_tensor(&k, &s))).collect();
-        let net =
-            Inception::from_bytes(&getavatar_core::checkpoint::write_safetensors(&Default::default(), &tensors), &dev)
-                .expect("hash weights load");
+        let net = Inception::from_bytes(
+            &getavatar_core::checkpoint::write_safetensors(&Default::default(), &tensors).unwrap(),
+            &dev,
+        )
+        .expect("hash weights load");
         let fixture =
             std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/inception_reference.safetensors"))
                 .expect("fixture");

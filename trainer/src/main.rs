@@ -2,6 +2,7 @@
 //! dataset preparation, sampling and benchmarks (training, evaluation and inversion as their
 //! issues land).
 
+mod atomic;
 mod bench;
 mod body_convert;
 mod eval;
@@ -197,7 +198,7 @@ fn main() -> Result<()> {
         }
         Command::Eval(args) => eval::eval(&args)?,
         Command::Train(args) => {
-            if args.batch == 0 || args.snapshot_every == 0 {
+            if args.batch == Some(0) || args.snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");
             }
             train::train(&args)?
@@ -209,13 +210,13 @@ fn main() -> Result<()> {
         Command::PlotLosses { run } => {
             let metrics = run.join("metrics.jsonl");
             anyhow::ensure!(metrics.is_file(), "{} has no metrics.jsonl", run.display());
-            std::fs::write(run.join("losses.png"), train::loss_plot(&metrics))?;
+            atomic::write_atomic(&run.join("losses.png"), &train::loss_plot(&metrics)?)?;
             println!("wrote {}", run.join("losses.png").display());
         }
         Command::InceptionTestWeights { out } => {
             let bytes =
-                getavatar_core::checkpoint::write_safetensors(&Default::default(), &inception::hashed_weights());
-            anyhow::Context::with_context(std::fs::write(&out, bytes), || format!("writing {}", out.display()))?;
+                getavatar_core::checkpoint::write_safetensors(&Default::default(), &inception::hashed_weights())?;
+            atomic::write_atomic(&out, &bytes)?;
             println!("wrote {} (hash-generated stand-in weights, not a trained network)", out.display());
         }
         Command::BenchTrainCase { data, config, backend, batch, steps } => {

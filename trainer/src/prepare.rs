@@ -12,7 +12,8 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
+
+use rayon::prelude::*;
 
 use anyhow::{anyhow, bail, Context, Result};
 use getavatar_core::camera::sample_data_camera;
@@ -118,11 +119,7 @@ pub fn load_smpl(subject: &str, obj: &Path, smpl_dir: Option<&Path>) -> Result<S
     SmplParams::from_json(&text).with_context(|| format!("in {}", path.display()))
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension(format!("{}.tmp", path.extension().and_then(|e| e.to_str()).unwrap_or("")));
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
-}
+use crate::atomic::write_atomic;
 
 /// The cameras of a subject: deterministic in (seed, subject name), so a resumed run and a
 /// fresh run agree.
@@ -146,7 +143,7 @@ pub fn prepare_subject(subject: &str, obj: &Path, a: &PrepareArgs, on_view: &dyn
     let mut labels = Vec::with_capacity(a.views);
     for (k, cam) in cams.iter().enumerate() {
         let views = render_scan(&scan, &prepared, cam, a.res, a.ss);
-        let (rgba, normal) = encode_views(&views);
+        let (rgba, normal) = encode_views(&views)?;
         let name = format!("{k:0digits$}");
         write_atomic(&dir.join(format!("{name}.png")), &rgba)?;
         write_atomic(&dir.join(format!("{name}_normal.png")), &normal)?;
@@ -173,25 +170,21 @@ pub fn prepare(a: &PrepareArgs) -> Result<()> {
         subjects.iter().filter(|(s, _)| !a.out.join(s).join(PART_FILE).is_file()).collect();
     let done_before = subjects.len() - todo.len();
     let bar = crate::progress::bar((todo.len() * a.views) as u64, "views");
-    let next = AtomicUsize::new(0);
-    let errors = Mutex::new(Vec::<String>::new());
     let rendered = AtomicUsize::new(0);
     let t0 = std::time::Instant::now();
-    std::thread::scope(|s| {
-        for _ in 0..a.threads.max(1) {
-            s.spawn(|| loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                let Some((subject, obj)) = todo.get(i) else { break };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(a.threads.max(1)).build()?;
+    let errors: Vec<String> = pool.install(|| {
+        todo.par_iter()
+            .filter_map(|(subject, obj)| {
                 let on_view = || {
                     bar.inc(1);
                     rendered.fetch_add(1, Ordering::Relaxed);
                 };
-                if let Err(e) = prepare_subject(subject, obj, a, &on_view) {
-                    bar.println(format!("skipping subject {subject}: {e:#}"));
-                    errors.lock().expect("poisoned").push(format!("{subject}: {e:#}"));
-                }
-            });
-        }
+                let e = prepare_subject(subject, obj, a, &on_view).err()?;
+                bar.println(format!("skipping subject {subject}: {e:#}"));
+                Some(format!("{subject}: {e:#}"))
+            })
+            .collect()
     });
     bar.finish_and_clear();
     let dt = t0.elapsed().as_secs_f64();
@@ -207,7 +200,6 @@ pub fn prepare(a: &PrepareArgs) -> Result<()> {
     }
     all.sort_by(|x, y| x.0.cmp(&y.0));
     write_atomic(&a.out.join(LABELS_FILE), labels_to_json(&all).as_bytes())?;
-    let errors = errors.into_inner().expect("poisoned");
     let views = rendered.load(Ordering::Relaxed);
     println!(
         "rendered {} subjects ({} views at {}², {}× supersampling) in {:.1} s: {:.2} views/s, {:.3} subjects/s; {} subjects were already done; {} has {} labels",

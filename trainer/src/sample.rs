@@ -8,12 +8,14 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{load_generator, load_latent_modes};
-use getavatar_core::generator::{block_on_ready, recolor_async};
+use getavatar_core::dataset::encode_png;
+use getavatar_core::generator::recolor_async;
 use getavatar_core::generator::{default_psi, generate_avatar, seed_latents, BodyContext, Generator, LatentModes};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views_textured;
+use getavatar_core::readback::block_on_ready;
 
 #[derive(clap::Args, Debug)]
 pub struct SampleArgs {
@@ -53,14 +55,9 @@ pub struct SampleArgs {
     pub out: PathBuf,
 }
 
-pub fn write_png(path: &Path, data: &[u8], size: usize, color: png::ColorType) -> Result<()> {
-    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), size as u32, size as u32);
-    enc.set_color(color);
-    enc.set_depth(png::BitDepth::Eight);
-    let mut w = enc.write_header()?;
-    w.write_image_data(data)?;
-    Ok(())
+pub fn write_png(path: &Path, data: &[u8], size: usize, channels: usize) -> Result<()> {
+    let png = encode_png(size, size, channels, data).with_context(|| format!("encoding {}", path.display()))?;
+    crate::atomic::write_atomic(path, &png)
 }
 
 /// Where the shipped demo model lives (see `assets/models/MODEL_CARD.md`).
@@ -190,7 +187,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         }
     };
     let t1 = std::time::Instant::now();
-    let avatar = generate_avatar(&g, &ctx, &styles, &params, &device);
+    let avatar = generate_avatar(&g, &ctx, &styles, &params, &device)?;
     let t2 = std::time::Instant::now();
     if avatar.mesh.faces.is_empty() {
         bail!("the generator produced an empty surface");
@@ -202,11 +199,11 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let m = &avatar.mesh;
     let views = render_views_textured(&m.vertices, &m.faces, &avatar.normals, &m.attributes, vp, a.res, 2, |pts| {
         block_on_ready(recolor_async(&g, &planes, &styles, pts, &device))
-    });
+    })?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    write_png(&a.out.join("rgb.png"), &views.rgb, a.res, png::ColorType::Rgb)?;
-    write_png(&a.out.join("normal.png"), &views.normal, a.res, png::ColorType::Rgb)?;
-    write_png(&a.out.join("mask.png"), &views.mask, a.res, png::ColorType::Grayscale)?;
+    write_png(&a.out.join("rgb.png"), &views.rgb, a.res, 3)?;
+    write_png(&a.out.join("normal.png"), &views.normal, a.res, 3)?;
+    write_png(&a.out.join("mask.png"), &views.mask, a.res, 1)?;
     let glb = write_glb(&ExportMesh {
         positions: avatar.mesh.vertices.clone(),
         normals: avatar.normals.clone(),
@@ -215,7 +212,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         indices: avatar.mesh.faces.clone(),
         name: format!("getavatar_{}_{}_{}", a.seed_geo, a.seed_tex, a.pose),
     })?;
-    std::fs::write(a.out.join("avatar.glb"), glb)?;
+    crate::atomic::write_atomic(&a.out.join("avatar.glb"), &glb)?;
     println!(
         "wrote {}/{{rgb,normal,mask}}.png and avatar.glb: {} vertices, {} triangles; setup {:.2} s, generation {:.2} s, render {:.2} s",
         a.out.display(),

@@ -20,7 +20,8 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
+
+use rayon::prelude::*;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::{BodyModel, NUM_JOINTS};
@@ -54,30 +55,27 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
     let model = BodyModel::default_body()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let bar = crate::progress::bar(a.count as u64, "scans");
-    let next = AtomicUsize::new(0);
-    let errors = Mutex::new(Vec::new());
     let skipped = AtomicUsize::new(0);
     let t0 = std::time::Instant::now();
-    std::thread::scope(|s| {
-        for _ in 0..a.threads.max(1) {
-            s.spawn(|| loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                if i >= a.count {
-                    break;
-                }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(a.threads.max(1)).build()?;
+    let errors: Vec<String> = pool.install(|| {
+        (0..a.count)
+            .into_par_iter()
+            .filter_map(|i| {
                 let id = format!("{i:04}");
                 let dir = a.out.join(&id);
-                if dir.join("smpl.json").is_file() {
+                let result = if dir.join("smpl.json").is_file() {
                     skipped.fetch_add(1, Ordering::Relaxed);
-                } else if let Err(e) = write_scan(&model, a.seed, &id, a.texture_size, &dir) {
-                    errors.lock().expect("poisoned").push(format!("{id}: {e:#}"));
-                }
+                    Ok(())
+                } else {
+                    write_scan(&model, a.seed, &id, a.texture_size, &dir)
+                };
                 bar.inc(1);
-            });
-        }
+                result.err().map(|e| format!("{id}: {e:#}"))
+            })
+            .collect()
     });
     bar.finish_and_clear();
-    let errors = errors.into_inner().expect("poisoned");
     let made = a.count - errors.len() - skipped.load(Ordering::Relaxed);
     let dt = t0.elapsed().as_secs_f64();
     println!(
@@ -97,14 +95,10 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
 fn write_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize, dir: &Path) -> Result<()> {
     let scan = make_scan(model, seed, id, texture_size);
     std::fs::create_dir_all(dir)?;
-    let put = |name: &str, bytes: &[u8]| -> Result<()> {
-        let tmp = dir.join(format!(".{name}.tmp"));
-        std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-        std::fs::rename(&tmp, dir.join(name)).with_context(|| format!("renaming {}", tmp.display()))
-    };
+    let put = |name: &str, bytes: &[u8]| -> Result<()> { crate::atomic::write_atomic(&dir.join(name), bytes) };
     put("mesh.obj", write_obj(&scan.mesh).as_bytes())?;
     put("material.mtl", write_mtl("material0", "texture.png").as_bytes())?;
-    put("texture.png", &encode_png(scan.texture_size, scan.texture_size, 3, &scan.texture))?;
+    put("texture.png", &encode_png(scan.texture_size, scan.texture_size, 3, &scan.texture)?)?;
     put("smpl.json", scan.smpl.to_json().as_bytes())?;
     Ok(())
 }

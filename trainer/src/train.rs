@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
-use getavatar_core::camera::to_row_major;
+use getavatar_core::camera::{to_row_major, View};
 use getavatar_core::checkpoint::{
     collect_params, load_generator, load_params, parse_safetensors, save_generator_with_modes, write_safetensors,
 };
@@ -35,6 +35,7 @@ use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::optim::{ema_update, Adam};
+use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -45,9 +46,10 @@ pub struct TrainArgs {
     /// Dataset directory (dataset.json + images, see docs/dataset.md).
     #[arg(long)]
     pub data: PathBuf,
-    /// Generator size: tiny, demo or paper.
-    #[arg(long, default_value = "tiny")]
-    pub config: String,
+    /// Generator size: tiny, demo or paper [default: tiny]. Like every run setting below, it
+    /// is fixed when a run starts: with `--resume` a value that differs from the run's is refused.
+    #[arg(long)]
+    pub config: Option<String>,
     /// Run directory.
     #[arg(long, default_value = "runs/train")]
     pub out: PathBuf,
@@ -58,53 +60,109 @@ pub struct TrainArgs {
     /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
     #[arg(long, default_value = "ndarray")]
     pub backend: String,
-    #[arg(long, default_value_t = 4)]
-    pub batch: usize,
+    /// [default: 4]
+    #[arg(long)]
+    pub batch: Option<usize>,
     /// Train until this many steps in total.
     #[arg(long, default_value_t = 1000)]
     pub steps: u64,
     /// Checkpoint and sample grid every N steps.
     #[arg(long, default_value_t = 100)]
     pub snapshot_every: u64,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople).
-    #[arg(long, default_value_t = 10.0)]
-    pub r1_gamma: f32,
+    /// [default: 0]
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople) [default: 10].
+    #[arg(long)]
+    pub r1_gamma: Option<f32>,
     /// `adversarial`: the paper's objective. `reconstruction`: a warm-up that is not in the
     /// paper (fixed latents per training subject, L1 to its views); start an adversarial
-    /// run from its generator with `--resume RUN/generator.safetensors`.
-    #[arg(long, value_enum, default_value = "adversarial")]
-    pub objective: Objective,
+    /// run from its generator with `--resume RUN/generator.safetensors` [default: adversarial].
+    #[arg(long, value_enum)]
+    pub objective: Option<Objective>,
     /// Adversarial runs only (not in the paper): weight of a reconstruction anchor added to
     /// G's loss, the warm-up's L1 on a batch of subject views at their fixed latents, so that
     /// an adversarial run started from a warm-up keeps its subjects while the game spreads the
     /// rest of the latent space. 0 (the default) is the paper's objective.
-    #[arg(long, default_value_t = 0.0)]
-    pub lambda_reconstruction: f32,
+    #[arg(long)]
+    pub lambda_reconstruction: Option<f32>,
     /// Reconstruction terms only (the warm-up, and the anchor of adversarial runs): views
     /// rendered per drawn subject, the drawn one plus others of the same subject and body pose.
     /// One surface serves all of them (triplanes, inverse skinning and DMTet are per avatar),
-    /// so each step sees `batch × views` images for little more than `batch`.
-    #[arg(long, default_value_t = 1)]
-    pub views: usize,
+    /// so each step sees `batch × views` images for little more than `batch` [default: 1].
+    #[arg(long)]
+    pub views: Option<usize>,
     /// Reconstruction terms only (not in the paper): the scans the dataset was prepared from
     /// (`prepare --scans`, one folder per subject with its OBJ and smpl.json). Adds
     /// canonical-space texture and SDF supervision at points drawn on each drawn subject's
     /// scan (`diff::scan_supervision`), weighted by `--lambda-scan`.
     #[arg(long)]
     pub scans: Option<PathBuf>,
-    /// Weight of the scan terms (with `--scans`).
-    #[arg(long, default_value_t = 1.0)]
-    pub lambda_scan: f32,
+    /// Weight of the scan terms (with `--scans`) [default: 1].
+    #[arg(long)]
+    pub lambda_scan: Option<f32>,
     /// Reconstruction terms only (not in the paper): weight of a texture-swap term. Each drawn
     /// subject's surface is also coloured by the texture field built from another drawn
     /// subject's geometry code with its own texture code, and that RGB is compared with the
     /// subject's views by L1 too. With fixed latent pairs alone the colours can hide in the
     /// geometry-styled backbone, and a seed's texture code then hardly changes the colours
-    /// (re-texturing renders blends); this term makes them follow the texture code. 0: off.
-    #[arg(long, default_value_t = 0.0)]
-    pub lambda_texture_swap: f32,
+    /// (re-texturing renders blends); this term makes them follow the texture code. 0 (the
+    /// default): off.
+    #[arg(long)]
+    pub lambda_texture_swap: Option<f32>,
+}
+
+impl TrainArgs {
+    /// `--config`, or its default.
+    pub fn config_name(&self) -> &str {
+        self.config.as_deref().unwrap_or("tiny")
+    }
+
+    /// `--batch`, or its default.
+    pub fn batch_size(&self) -> usize {
+        self.batch.unwrap_or(4)
+    }
+
+    /// The flags that fix a run's settings and conflict with a continued run `rc`: one row per
+    /// flag (the flag, the value given, the run's value, the `run.json` field to edit instead).
+    /// Flags that were not given never conflict; the others must equal the run's value.
+    pub fn resume_conflicts(&self, rc: &RunConfig) -> Vec<String> {
+        let num = |v: f32| v.to_string();
+        let objective = |o: Objective| format!("{o:?}").to_lowercase();
+        let rows: [(&str, Option<String>, String, &str); 10] = [
+            ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
+            ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
+            ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
+            ("--r1-gamma", self.r1_gamma.map(num), num(rc.r1_gamma), "r1_gamma"),
+            ("--objective", self.objective.map(objective), objective(rc.objective), "objective"),
+            ("--views", self.views.map(|v| v.to_string()), rc.views_per_subject.to_string(), "views_per_subject"),
+            (
+                "--scans",
+                self.scans.as_ref().map(|d| d.display().to_string()),
+                rc.scans.clone().unwrap_or_else(|| "(none)".into()),
+                "scans",
+            ),
+            ("--lambda-scan", self.lambda_scan.map(num), num(rc.lambda_scan), "lambda_scan"),
+            (
+                "--lambda-reconstruction",
+                self.lambda_reconstruction.map(num),
+                num(rc.lambda_reconstruction),
+                "lambda_reconstruction",
+            ),
+            (
+                "--lambda-texture-swap",
+                self.lambda_texture_swap.map(num),
+                num(rc.lambda_texture_swap),
+                "lambda_texture_swap",
+            ),
+        ];
+        rows.into_iter()
+            .filter_map(|(flag, given, run, field)| match given {
+                Some(g) if g != run => Some(format!("{flag} {g} differs from the run's {run} (field `{field}`)")),
+                _ => None,
+            })
+            .collect()
+    }
 }
 
 /// Points drawn per scan and kept for training (`--scans`).
@@ -279,8 +337,9 @@ pub struct Metrics {
     pub seconds: f64,
 }
 
-fn scalar(t: Tensor<1>) -> f32 {
-    t.into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN)
+/// The value of a one-element tensor.
+fn scalar(t: Tensor<1>) -> Result<f32> {
+    read_f32_now(t)?.first().copied().ok_or_else(|| anyhow!("an empty tensor where a scalar was expected"))
 }
 
 pub fn device_for(backend: &str) -> Result<Device> {
@@ -327,15 +386,15 @@ impl State {
         }
     }
 
-    fn save(&self, rc: &RunConfig) -> Vec<u8> {
+    fn save(&self, rc: &RunConfig) -> Result<Vec<u8>> {
         let mut tensors = Vec::new();
         let mut put = |prefix: &str, v: Vec<(String, Vec<usize>, Vec<f32>)>| {
             tensors.extend(v.into_iter().map(|(n, s, d)| (format!("{prefix}{n}"), s, d)));
         };
-        put("g/", collect_params(&self.g));
-        put("g_ema/", collect_params(&self.g_ema));
+        put("g/", collect_params(&self.g)?);
+        put("g_ema/", collect_params(&self.g_ema)?);
         for (k, d) in self.d.iter().enumerate() {
-            put(&format!("d{k}/"), collect_params(d));
+            put(&format!("d{k}/"), collect_params(d)?);
         }
         let adams: Vec<(String, &Adam)> = std::iter::once(("adam_g/".to_string(), &self.adam_g))
             .chain(self.adam_d.iter().enumerate().map(|(k, a)| (format!("adam_d{k}/"), a)))
@@ -343,9 +402,8 @@ impl State {
         let mut meta = BTreeMap::new();
         for (prefix, a) in &adams {
             for (name, (m, v)) in &a.moments {
-                let vals =
-                    |t: &Tensor<1>| t.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-                let (mv, vv) = (vals(m), vals(v));
+                let vals = |t: &Tensor<1>| read_f32_now(t.clone()).map_err(|e| e.context(format!("{prefix}{name}")));
+                let (mv, vv) = (vals(m)?, vals(v)?);
                 tensors.push((format!("{prefix}{name}/m"), vec![mv.len()], mv));
                 tensors.push((format!("{prefix}{name}/v"), vec![vv.len()], vv));
             }
@@ -356,8 +414,8 @@ impl State {
         meta.insert("step".into(), self.step.to_string());
         meta.insert("rng_state".into(), s.to_string());
         meta.insert("rng_inc".into(), inc.to_string());
-        meta.insert("run".into(), serde_json::to_string(rc).unwrap_or_default());
-        write_safetensors(&meta, &tensors)
+        meta.insert("run".into(), serde_json::to_string(rc)?);
+        Ok(write_safetensors(&meta, &tensors)?)
     }
 
     fn load(bytes: &[u8], rc: &RunConfig, ad: &Device, plain: &Device) -> Result<Self> {
@@ -465,7 +523,8 @@ pub fn train_step(
         }
     };
     lap("reals loaded");
-    let fakes = render_avatars(&st.g, ctx, &styles, &fake_labels, res, grids, ad);
+    let fake_views: Vec<View> = fake_labels.iter().map(Label::view).collect();
+    let fakes = render_avatars(&st.g, ctx, &styles, &fake_views, res, grids, ad)?;
     lap("fakes rendered");
     let fake_imgs = [fakes.rgb.clone().detach(), fakes.normal.clone().detach(), fakes.mask.clone().detach()];
     let reals = [real_rgb, real_nrm, real_msk];
@@ -482,7 +541,7 @@ pub fn train_step(
         add(&mut loss_d, discriminator_loss(lf, lr));
     }
     let loss_d = loss_d.expect("active discriminators");
-    let mut metrics = Metrics { loss_d: scalar(loss_d.clone()), ..Metrics::default() };
+    let mut metrics = Metrics { loss_d: scalar(loss_d.clone())?, ..Metrics::default() };
     let mut total_d = loss_d;
     if st.step % rc.r1_every == 0 {
         let mut r1_sum: Option<Tensor<1>> = None;
@@ -493,7 +552,7 @@ pub fn train_step(
             add(&mut r1_sum, r1.mean());
         }
         let r1 = r1_sum.expect("active");
-        metrics.r1 = Some(scalar(r1.clone()));
+        metrics.r1 = Some(scalar(r1.clone())?);
         total_d = total_d + r1 * (rc.r1_gamma / 2.0 * rc.r1_every as f32);
     }
     lap("D losses");
@@ -514,9 +573,9 @@ pub fn train_step(
         add(&mut loss_g, generator_loss(st.d[k].forward(imgs[k].clone(), c_fake.clone())));
     }
     let loss_g = loss_g.expect("active");
-    metrics.loss_g = scalar(loss_g.clone());
-    metrics.eikonal = scalar(fakes.eikonal.clone());
-    metrics.cross_entropy = scalar(fakes.cross_entropy.clone());
+    metrics.loss_g = scalar(loss_g.clone())?;
+    metrics.eikonal = scalar(fakes.eikonal.clone())?;
+    metrics.cross_entropy = scalar(fakes.cross_entropy.clone())?;
     metrics.triangles = fakes.triangles.iter().sum::<usize>() as f32 / b as f32;
     let mut total_g = loss_g + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
     if rc.lambda_reconstruction > 0.0 {
@@ -654,7 +713,7 @@ fn subject_reconstruction(
             group
         })
         .collect();
-    let views: Vec<Vec<Label>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.clone()).collect()).collect();
+    let views: Vec<Vec<View>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.view()).collect()).collect();
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
     let styles = g.styles(zg.clone(), zt.clone(), 1.0);
@@ -663,20 +722,20 @@ fn subject_reconstruction(
         geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),
         tex: styles.tex.clone(),
     });
-    let fakes = render_avatar_views_retextured(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad);
+    let fakes = render_avatar_views_retextured(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad)?;
     let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
     let mut texture_swap = None;
     let mut swap_loss = None;
     if let Some(rgb) = fakes.rgb_retextured.clone() {
         let t = l1(rgb, real_rgb.clone());
-        texture_swap = Some(scalar(t.clone()));
+        texture_swap = Some(scalar(t.clone())?);
         swap_loss = Some(t * rc.lambda_texture_swap);
     }
     let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
     if rc.use_normals {
         loss = loss + l1(fakes.normal.clone(), real_nrm);
     }
-    let l1 = scalar(loss.clone());
+    let l1 = scalar(loss.clone())?;
     if let Some(t) = swap_loss {
         loss = loss + t;
     }
@@ -690,7 +749,7 @@ fn subject_reconstruction(
             })
             .collect();
         let terms = scan_losses(g, ctx, &styles, &batch, ad);
-        scan = Some((scalar(terms.texture.clone()), scalar(terms.sdf.clone())));
+        scan = Some((scalar(terms.texture.clone())?, scalar(terms.sdf.clone())?));
         loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
     }
     Ok(SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt })
@@ -729,13 +788,13 @@ fn reconstruction_step(
     let SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt } =
         subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
     let metrics = Metrics {
-        loss_g: scalar(loss.clone()),
+        loss_g: scalar(loss.clone())?,
         reconstruction: Some(l1),
         scan_texture: scan.map(|s| s.0),
         scan_sdf: scan.map(|s| s.1),
         texture_swap,
-        eikonal: scalar(fakes.eikonal.clone()),
-        cross_entropy: scalar(fakes.cross_entropy.clone()),
+        eikonal: scalar(fakes.eikonal.clone())?,
+        cross_entropy: scalar(fakes.cross_entropy.clone())?,
         triangles: fakes.triangles.iter().sum::<usize>() as f32 / fakes.triangles.len().max(1) as f32,
         ..Metrics::default()
     };
@@ -782,31 +841,16 @@ fn canonical_scan_samples(dir: &Path, ds: &Dataset, ctx: &BodyContext, seed: u64
         Ok(CanonicalSamples::from_surface(&surface, ctx, &label.body_params()))
     };
     let todo: Vec<&(String, Label)> = first.iter().flatten().collect();
-    let threads = std::thread::available_parallelism().map_or(1, |t| t.get()).clamp(1, 8);
-    let chunk = todo.len().div_ceil(threads).max(1);
-    let parts: Vec<Result<Vec<CanonicalSamples>>> = std::thread::scope(|sc| {
-        let handles: Vec<_> =
-            todo.chunks(chunk).map(|c| sc.spawn(move || c.iter().map(|x| load(x)).collect())).collect();
-        handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err(anyhow!("a scan loader panicked")))).collect()
-    });
+    let out: Vec<CanonicalSamples> = {
+        use rayon::prelude::*;
+        todo.par_iter().map(|x| load(x)).collect::<Result<_>>()?
+    };
     bar.finish_and_clear();
-    let mut out = Vec::with_capacity(n);
-    for p in parts {
-        out.extend(p?);
-    }
     println!("scan terms: {} points from each of {} scans under {}", SCAN_POOL_POINTS, out.len(), dir.display());
     Ok(out)
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    {
-        let mut f = std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-    }
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
-}
+use crate::atomic::write_atomic;
 
 /// L1 (in [0, 1] units, mean over pixels and channels) between G_ema's renders of the
 /// sample grid's subjects and the data's views of them: a fixed yardstick of how far a
@@ -840,23 +884,24 @@ fn sample_grid(
         let mut rng = Rng::new(12345, 1);
         (latents(&mut rng, n, rc.generator.z_dim, plain), latents(&mut rng, n, rc.generator.z_dim, plain))
     };
-    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &labels, rc.resolution, grids, plain);
+    let views: Vec<View> = labels.iter().map(Label::view).collect();
+    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &views, rc.resolution, grids, plain)?;
     let fit = if rc.objective == Objective::Reconstruction {
         let (rgb, nrm, msk, _) = load_reals(ds, &shown, plain)?;
         // Images are in [-1, 1]: half the mean absolute difference is in [0, 1] units.
-        let l1 = |a: Tensor<4>, b: Tensor<4>| scalar((a - b).abs().mean()) / 2.0;
+        let l1 = |a: Tensor<4>, b: Tensor<4>| -> Result<f32> { Ok(scalar((a - b).abs().mean())? / 2.0) };
         Some(GridL1 {
             step: st.step,
-            rgb: l1(f.rgb.clone(), rgb),
-            normal: rc.use_normals.then(|| l1(f.normal.clone(), nrm)),
-            mask: l1(f.mask.clone(), msk),
+            rgb: l1(f.rgb.clone(), rgb)?,
+            normal: if rc.use_normals { Some(l1(f.normal.clone(), nrm)?) } else { None },
+            mask: l1(f.mask.clone(), msk)?,
         })
     } else {
         None
     };
     let r = rc.resolution;
     let imgs = [f.rgb, f.normal, f.mask.repeat_dim(1, 3)];
-    let vals: Vec<Vec<f32>> = imgs.into_iter().map(|t| t.into_data().try_to_vec::<f32>().unwrap_or_default()).collect();
+    let vals: Vec<Vec<f32>> = imgs.into_iter().map(read_f32_now).collect::<Result<_, _>>()?;
     let (w, h) = (n * r, 3 * r);
     let mut px = vec![0u8; w * h * 3];
     for (row, v) in vals.iter().enumerate() {
@@ -871,12 +916,11 @@ fn sample_grid(
             }
         }
     }
-    Ok((encode_png(w, h, 3, &px), fit))
+    Ok((encode_png(w, h, 3, &px)?, fit))
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
-    let gcfg = GeneratorConfig::preset(&a.config).with_context(|| format!("unknown --config `{}`", a.config))?;
     if !ds.resolution.is_power_of_two() || ds.resolution < 16 {
         bail!("dataset resolution {} must be a power of two ≥ 16", ds.resolution);
     }
@@ -890,37 +934,11 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let text = std::fs::read_to_string(&run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
         let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
-        if a.views != 1 && a.views != rc.views_per_subject {
+        let conflicts = a.resume_conflicts(&rc);
+        if !conflicts.is_empty() {
             bail!(
-                "--views {} differs from the run's {}: a continued run keeps its settings (edit views_per_subject in {} to change it)",
-                a.views,
-                rc.views_per_subject,
-                run_path.display()
-            );
-        }
-        if let Some(dir) = &a.scans {
-            if rc.scans.as_deref() != Some(&*dir.display().to_string()) {
-                bail!(
-                    "--scans {} differs from the run's {:?}: a continued run keeps its settings (edit scans and lambda_scan in {} to change them)",
-                    dir.display(),
-                    rc.scans,
-                    run_path.display()
-                );
-            }
-        }
-        if a.lambda_reconstruction != 0.0 && a.lambda_reconstruction != rc.lambda_reconstruction {
-            bail!(
-                "--lambda-reconstruction {} differs from the run's {}: a continued run keeps its settings (edit lambda_reconstruction in {} to change it)",
-                a.lambda_reconstruction,
-                rc.lambda_reconstruction,
-                run_path.display()
-            );
-        }
-        if a.lambda_texture_swap != 0.0 && a.lambda_texture_swap != rc.lambda_texture_swap {
-            bail!(
-                "--lambda-texture-swap {} differs from the run's {}: a continued run keeps its settings (edit lambda_texture_swap in {} to change it)",
-                a.lambda_texture_swap,
-                rc.lambda_texture_swap,
+                "{}: a continued run keeps its settings (edit them in {} to change them)",
+                conflicts.join("; "),
                 run_path.display()
             );
         }
@@ -932,37 +950,49 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 a.out.display()
             );
         }
-        if a.lambda_reconstruction != 0.0 && a.objective != Objective::Adversarial {
+        let objective = a.objective.unwrap_or_default();
+        let lambda_reconstruction = a.lambda_reconstruction.unwrap_or(0.0);
+        let lambda_texture_swap = a.lambda_texture_swap.unwrap_or(0.0);
+        let lambda_scan = a.lambda_scan.unwrap_or(1.0);
+        let views = a.views.unwrap_or(1);
+        let reconstruction_terms = objective == Objective::Reconstruction || lambda_reconstruction > 0.0;
+        if lambda_reconstruction != 0.0 && objective != Objective::Adversarial {
             bail!("--lambda-reconstruction weighs an anchor of adversarial runs; the reconstruction objective is that term alone");
         }
-        if !(a.lambda_reconstruction >= 0.0 && a.lambda_reconstruction.is_finite()) {
-            bail!("--lambda-reconstruction must be a finite weight ≥ 0, got {}", a.lambda_reconstruction);
+        if !(lambda_reconstruction >= 0.0 && lambda_reconstruction.is_finite()) {
+            bail!("--lambda-reconstruction must be a finite weight ≥ 0, got {lambda_reconstruction}");
         }
-        if a.views == 0 {
+        if views == 0 {
             bail!("--views must be at least 1");
         }
-        if a.views > 1 && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+        if views > 1 && !reconstruction_terms {
             bail!("--views applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
-        if a.scans.is_some() && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+        if a.scans.is_some() && !reconstruction_terms {
             bail!("--scans applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
-        if !(a.lambda_scan >= 0.0 && a.lambda_scan.is_finite()) {
-            bail!("--lambda-scan must be a finite weight ≥ 0, got {}", a.lambda_scan);
+        if !(lambda_scan >= 0.0 && lambda_scan.is_finite()) {
+            bail!("--lambda-scan must be a finite weight ≥ 0, got {lambda_scan}");
         }
-        if !(a.lambda_texture_swap >= 0.0 && a.lambda_texture_swap.is_finite()) {
-            bail!("--lambda-texture-swap must be a finite weight ≥ 0, got {}", a.lambda_texture_swap);
+        if !(lambda_texture_swap >= 0.0 && lambda_texture_swap.is_finite()) {
+            bail!("--lambda-texture-swap must be a finite weight ≥ 0, got {lambda_texture_swap}");
         }
-        if a.lambda_texture_swap > 0.0 && a.objective == Objective::Adversarial && a.lambda_reconstruction == 0.0 {
+        if lambda_texture_swap > 0.0 && !reconstruction_terms {
             bail!("--lambda-texture-swap applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
+        let r1_gamma = a.r1_gamma.unwrap_or(10.0);
+        if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
+            bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
+        }
+        let gcfg = GeneratorConfig::preset(a.config_name())
+            .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
         let rc = RunConfig {
-            lambda_reconstruction: a.lambda_reconstruction,
-            views_per_subject: a.views,
+            lambda_reconstruction,
+            views_per_subject: views,
             scans: a.scans.as_ref().map(|d| d.display().to_string()),
-            lambda_scan: if a.scans.is_some() { a.lambda_scan } else { 0.0 },
-            lambda_texture_swap: a.lambda_texture_swap,
-            ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch, a.r1_gamma, a.seed, a.objective)
+            lambda_scan: if a.scans.is_some() { lambda_scan } else { 0.0 },
+            lambda_texture_swap,
+            ..RunConfig::with_objective(&ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective)
         };
         write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
         rc
@@ -1006,9 +1036,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
         extra.insert("step".to_string(), step.to_string());
         let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
-        let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra);
+        let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
-        write_atomic(&state_path, &st.save(&rc))?;
+        write_atomic(&state_path, &st.save(&rc)?)?;
         let (png, fit) = sample_grid(st, &ds, &ctx, &grids, &rc, &plain)?;
         write_atomic(&a.out.join(format!("samples_{step:06}.png")), &png)?;
         if let Some(fit) = fit {
@@ -1017,7 +1047,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
             let mut f = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("grid_l1.jsonl"))?;
             writeln!(f, "{}", serde_json::to_string(&fit)?)?;
         }
-        write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl")))
+        write_atomic(&a.out.join("losses.png"), &loss_plot(&a.out.join("metrics.jsonl"))?)
     };
     while st.step < a.steps {
         let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
@@ -1096,19 +1126,17 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
 
 /// `losses.png` from a run's `metrics.jsonl`: G loss, D loss, eikonal, SDF cross-entropy
 /// (top to bottom; raw faint, 20-step moving average bold).
-pub fn loss_plot(metrics: &Path) -> Vec<u8> {
+pub fn loss_plot(metrics: &Path) -> Result<Vec<u8>> {
     // A step logged twice (a run killed after logging, before its checkpoint) keeps the
-    // later row: the one the resumed run continued from.
+    // later row: the one the resumed run continued from. A torn last line (a kill while
+    // appending) is skipped.
     let mut by_step = BTreeMap::new();
-    for v in std::fs::read_to_string(metrics)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-    {
+    let text = std::fs::read_to_string(metrics).with_context(|| format!("reading {}", metrics.display()))?;
+    for v in text.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()) {
         let row = crate::plot::SERIES.map(|(k, _)| v.get(k).and_then(|x| x.as_f64()).map_or(f32::NAN, |x| x as f32));
         by_step.insert(v.get("step").and_then(|s| s.as_u64()).unwrap_or(0), row);
     }
     let rows: Vec<[f32; 4]> = by_step.into_values().collect();
     let (w, panel) = (640, 120);
-    encode_png(w, panel * crate::plot::SERIES.len(), 3, &crate::plot::loss_curves(&rows, w, panel, 20))
+    Ok(encode_png(w, panel * crate::plot::SERIES.len(), 3, &crate::plot::loss_curves(&rows, w, panel, 20))?)
 }

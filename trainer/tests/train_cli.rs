@@ -425,6 +425,34 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     refused(&["--objective", "reconstruction", "--views", "0"], &root.join("zero"), "at least 1");
     refused(&["--views", "2"], &root.join("adv"), "reconstruction terms");
     refused(&["--resume", "--views", "4"], &run, "keeps its settings");
+    // Every flag that fixes a run setting is refused, and named, where it differs from the
+    // continued run's (before, --batch, --seed, --r1-gamma, --objective and --lambda-scan were
+    // silently ignored), and accepted where it equals it.
+    for (flag, value) in [
+        ("--batch", "8"),
+        ("--seed", "7"),
+        ("--r1-gamma", "20"),
+        ("--objective", "adversarial"),
+        ("--lambda-scan", "0.5"),
+        ("--lambda-reconstruction", "1"),
+    ] {
+        refused(&["--resume", flag, value], &run, &format!("{flag} {value} differs from the run's"));
+    }
+    let o = trainer(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--config",
+        "demo",
+        "--out",
+        run.to_str().unwrap(),
+        "--resume",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--config demo differs from the run's tiny"), "{err}");
+    let same = ["--resume", "--views", "3", "--objective", "reconstruction", "--seed", "0", "--r1-gamma", "10"];
+    let text = train(&data, &run, 3, &same);
+    assert!(text.contains("trained 1 steps") || text.contains("trained 1 step"), "{text}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

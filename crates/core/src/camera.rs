@@ -4,6 +4,8 @@
 use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
+use crate::skinning::BodyParams;
+
 /// Vertical field of view of the reference code, radians: 2·atan(16/35).
 pub fn reference_fov_y() -> f32 {
     2.0 * (16.0f32 / 35.0).atan()
@@ -151,4 +153,13 @@ mod tests {
         let want = glam::Vec2::new((clip.x / clip.w + 1.0) * 64.0, (1.0 - clip.y / clip.w) * 64.0);
         assert!((project_to_pixel(m, q, 128).unwrap() - want).length() < 1e-3);
     }
+}
+
+/// One rendering of a posed body: the camera (world → camera, the dataset label's 16 numbers)
+/// and the body pose and shape it sees. A dataset label is one (`dataset::Label::view`); the
+/// training renderer and inversion take views, not files' labels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    pub world_to_camera: Mat4,
+    pub body: BodyParams,
 }

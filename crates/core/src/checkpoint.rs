@@ -14,6 +14,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::generator::{Generator, LatentModes, ModePairing};
 use crate::network::GeneratorConfig;
+#[cfg(not(target_arch = "wasm32"))]
+use crate::readback::read_f32_now;
+use crate::readback::ReadbackError;
 
 pub const FORMAT: &str = "getavatar-generator/1";
 
@@ -32,6 +35,8 @@ pub enum CheckpointError {
     ConfigMismatch { saved: String, requested: String, detail: String },
     #[error("checkpoint parameter `{0}`: {1}")]
     Param(String, String),
+    #[error(transparent)]
+    Readback(#[from] ReadbackError),
 }
 
 fn fmt_err(m: impl Into<String>) -> CheckpointError {
@@ -56,6 +61,7 @@ struct Collect {
     path: Vec<String>,
     seen: BTreeMap<String, usize>,
     out: Vec<(String, Vec<usize>, Vec<f32>)>,
+    error: Option<CheckpointError>,
 }
 
 #[cfg(not(target_arch = "wasm32"))]
@@ -70,15 +76,23 @@ impl burn::module::ModuleVisitor for Collect {
         let tensor = param.val();
         let name = unique_name(&self.path, &mut self.seen);
         let shape = tensor.dims().to_vec();
-        let data = tensor.to_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-        self.out.push((name, shape, data));
+        match read_f32_now(tensor) {
+            Ok(data) => self.out.push((name, shape, data)),
+            Err(e) => {
+                self.error.get_or_insert(CheckpointError::Readback(e.context(name)));
+            }
+        }
     }
 }
 
 /// Serialise generator `g` (built with `cfg`) to safetensors bytes. Native only: it reads
 /// parameters back synchronously.
 #[cfg(not(target_arch = "wasm32"))]
-pub fn save_generator(g: &Generator, cfg: &GeneratorConfig, extra: &BTreeMap<String, String>) -> Vec<u8> {
+pub fn save_generator(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    extra: &BTreeMap<String, String>,
+) -> Result<Vec<u8>, CheckpointError> {
     save_generator_with_modes(g, cfg, None, extra)
 }
 
@@ -90,20 +104,16 @@ pub fn save_generator_with_modes(
     cfg: &GeneratorConfig,
     modes: Option<&LatentModes>,
     extra: &BTreeMap<String, String>,
-) -> Vec<u8> {
+) -> Result<Vec<u8>, CheckpointError> {
     let mut meta = extra.clone();
     meta.insert("format".into(), FORMAT.into());
-    meta.insert("config".into(), serde_json::to_string(cfg).unwrap_or_default());
-    let mut tensors = collect_params(g);
+    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
+    let mut tensors = collect_params(g)?;
     if let Some(m) = modes {
         meta.insert(MODES_PAIRING.into(), m.pairing.as_str().into());
         for (name, t) in [(MODES_GEO, &m.geo), (MODES_TEX, &m.tex)] {
             let shape = t.dims().to_vec();
-            tensors.push((
-                name.to_string(),
-                shape,
-                t.to_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default(),
-            ));
+            tensors.push((name.to_string(), shape, read_f32_now(t.clone()).map_err(|e| e.context(name))?));
         }
     }
     write_safetensors(&meta, &tensors)
@@ -159,46 +169,21 @@ pub fn parse_safetensors_lenient(bytes: &[u8]) -> Result<SafeTensors, Checkpoint
 }
 
 fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, CheckpointError> {
-    if bytes.len() < 8 {
-        return Err(fmt_err("file shorter than the 8-byte header length"));
-    }
-    let n = u64::from_le_bytes(bytes[..8].try_into().map_err(|_| fmt_err("header length"))?) as usize;
-    let header =
-        bytes.get(8..8usize.saturating_add(n)).ok_or_else(|| fmt_err(format!("header of {n} bytes is truncated")))?;
-    let data = &bytes[8 + n..];
-    let json: serde_json::Value = serde_json::from_slice(header).map_err(|e| fmt_err(format!("header JSON: {e}")))?;
-    let obj = json.as_object().ok_or_else(|| fmt_err("header is not a JSON object"))?;
-    let mut out = SafeTensors { metadata: BTreeMap::new(), tensors: BTreeMap::new() };
-    for (k, v) in obj {
-        if k == "__metadata__" {
-            for (mk, mv) in v.as_object().into_iter().flatten() {
-                out.metadata.insert(mk.clone(), mv.as_str().unwrap_or_default().to_string());
-            }
-            continue;
-        }
-        let dtype = v["dtype"].as_str().unwrap_or("");
-        if dtype != "F32" {
+    // The safetensors crate validates the header (length, JSON, offsets contiguous and within
+    // the file, shape × dtype = bytes with overflow checks) before anything is allocated.
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fmt_err(e.to_string()))?;
+    let file = safetensors::SafeTensors::deserialize(bytes).map_err(|e| fmt_err(e.to_string()))?;
+    let metadata = header.metadata().iter().flatten().map(|(k, v)| (k.clone(), v.clone())).collect();
+    let mut out = SafeTensors { metadata, tensors: BTreeMap::new() };
+    for (name, view) in file.iter() {
+        if view.dtype() != safetensors::Dtype::F32 {
             if skip_other_dtypes {
                 continue;
             }
-            return Err(CheckpointError::Param(k.clone(), format!("dtype {dtype} (only F32 is supported)")));
+            return Err(CheckpointError::Param(name.into(), format!("dtype {} (only F32 is supported)", view.dtype())));
         }
-        let shape: Vec<usize> =
-            v["shape"].as_array().into_iter().flatten().filter_map(|x| x.as_u64().map(|x| x as usize)).collect();
-        let offs: Vec<usize> =
-            v["data_offsets"].as_array().into_iter().flatten().filter_map(|x| x.as_u64().map(|x| x as usize)).collect();
-        let (a, b) = match offs.as_slice() {
-            [a, b] if a <= b && *b <= data.len() => (*a, *b),
-            _ => return Err(CheckpointError::Param(k.clone(), "data offsets out of range".into())),
-        };
-        if (b - a) != shape.iter().product::<usize>() * 4 {
-            return Err(CheckpointError::Param(
-                k.clone(),
-                format!("shape {shape:?} does not match {} data bytes", b - a),
-            ));
-        }
-        let vals = data[a..b].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        out.tensors.insert(k.clone(), (shape, vals));
+        let vals = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        out.tensors.insert(name.to_string(), (view.shape().to_vec(), vals));
     }
     Ok(out)
 }
@@ -213,12 +198,14 @@ pub fn checkpoint_config(st: &SafeTensors) -> Result<GeneratorConfig, Checkpoint
 }
 
 fn config_difference(a: &GeneratorConfig, b: &GeneratorConfig) -> String {
-    let (ja, jb) = (serde_json::to_value(a).unwrap_or_default(), serde_json::to_value(b).unwrap_or_default());
+    let (ja, jb) = (serde_json::to_value(a), serde_json::to_value(b));
     let mut diffs = Vec::new();
-    if let (Some(oa), Some(ob)) = (ja.as_object(), jb.as_object()) {
+    if let (Ok(serde_json::Value::Object(oa)), Ok(serde_json::Value::Object(ob))) = (&ja, &jb) {
         for (k, va) in oa {
-            if k != "name" && ob.get(k) != Some(va) {
-                diffs.push(format!("{k} {} vs {}", va, ob.get(k).cloned().unwrap_or_default()));
+            match ob.get(k) {
+                Some(vb) if vb == va || k == "name" => {}
+                Some(vb) => diffs.push(format!("{k} {va} vs {vb}")),
+                None => diffs.push(format!("{k} {va} vs (absent)")),
             }
         }
     }
@@ -319,10 +306,13 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 
 /// Every float parameter of `module` as (name by module path, shape, values). Native only.
 #[cfg(not(target_arch = "wasm32"))]
-pub fn collect_params<M: Module>(module: &M) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
+pub fn collect_params<M: Module>(module: &M) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>, CheckpointError> {
+    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new(), error: None };
     module.visit(&mut c);
-    c.out
+    match c.error {
+        Some(e) => Err(e),
+        None => Ok(c.out),
+    }
 }
 
 /// Replace `module`'s parameters with the tensors named `prefix + name` (all must be present
@@ -345,29 +335,77 @@ pub fn load_params<M: Module>(
 }
 
 /// Serialise named F32 tensors and string metadata as safetensors bytes.
-pub fn write_safetensors(metadata: &BTreeMap<String, String>, tensors: &[(String, Vec<usize>, Vec<f32>)]) -> Vec<u8> {
-    let mut header = serde_json::Map::new();
-    let meta: serde_json::Map<String, serde_json::Value> =
-        metadata.iter().map(|(k, v)| (k.clone(), serde_json::Value::from(v.clone()))).collect();
-    header.insert("__metadata__".into(), meta.into());
-    let mut offset = 0usize;
-    for (name, shape, data) in tensors {
-        let end = offset + data.len() * 4;
-        header
-            .insert(name.clone(), serde_json::json!({ "dtype": "F32", "shape": shape, "data_offsets": [offset, end] }));
-        offset = end;
+pub fn write_safetensors(
+    metadata: &BTreeMap<String, String>,
+    tensors: &[(String, Vec<usize>, Vec<f32>)],
+) -> Result<Vec<u8>, CheckpointError> {
+    let bytes: Vec<Vec<u8>> =
+        tensors.iter().map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
+    let views = tensors
+        .iter()
+        .zip(&bytes)
+        .map(|((name, shape, _), b)| {
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), b)
+                .map(|v| (name.as_str(), v))
+                .map_err(|e| CheckpointError::Param(name.clone(), e.to_string()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let meta = metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    safetensors::serialize(views, Some(meta)).map_err(|e| fmt_err(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A safetensors file whose header is `json`, followed by `data`.
+    fn file(json: &str, data: &[u8]) -> Vec<u8> {
+        let mut out = (json.len() as u64).to_le_bytes().to_vec();
+        out.extend_from_slice(json.as_bytes());
+        out.extend_from_slice(data);
+        out
     }
-    let mut h = serde_json::Value::Object(header).to_string().into_bytes();
-    while h.len() % 8 != 0 {
-        h.push(b' ');
-    }
-    let mut out = Vec::with_capacity(8 + h.len() + offset);
-    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
-    out.extend_from_slice(&h);
-    for (_, _, data) in tensors {
-        for x in data {
-            out.extend_from_slice(&x.to_le_bytes());
+
+    #[test]
+    fn hostile_headers_are_refused_without_overflow_or_allocation() {
+        let huge = 1u64 << 62;
+        let cases = [
+            // shape product × 4 overflows usize.
+            format!(r#"{{"a":{{"dtype":"F32","shape":[{huge},{huge}],"data_offsets":[0,0]}}}}"#),
+            // a shape that claims far more than the file holds.
+            r#"{"a":{"dtype":"F32","shape":[1000000000],"data_offsets":[0,8]}}"#.to_string(),
+            // offsets past the end, reversed, or overlapping.
+            r#"{"a":{"dtype":"F32","shape":[2],"data_offsets":[0,4096]}}"#.to_string(),
+            r#"{"a":{"dtype":"F32","shape":[0],"data_offsets":[8,0]}}"#.to_string(),
+            r#"{"a":{"dtype":"F32","shape":[2],"data_offsets":[0,8]},"b":{"dtype":"F32","shape":[2],"data_offsets":[4,12]}}"#.to_string(),
+            // not JSON, not an object.
+            "{\"a\":".to_string(),
+            "[1, 2]".to_string(),
+        ];
+        for json in &cases {
+            assert!(parse_safetensors(&file(json, &[0u8; 8])).is_err(), "accepted {json}");
         }
+        // A header length beyond the file, or beyond usize.
+        let mut lie = u64::MAX.to_le_bytes().to_vec();
+        lie.extend_from_slice(b"{}");
+        assert!(parse_safetensors(&lie).is_err());
+        assert!(parse_safetensors(&[1, 2, 3]).is_err());
     }
-    out
+
+    #[test]
+    fn tensors_and_metadata_round_trip() {
+        let meta: BTreeMap<String, String> = [("format".to_string(), "x".to_string())].into();
+        let tensors = vec![
+            ("b.weight".to_string(), vec![2, 3], vec![1.0, -2.0, 3.5, 0.0, 5.0, f32::MIN_POSITIVE]),
+            ("a".to_string(), vec![1], vec![7.0]),
+        ];
+        let bytes = write_safetensors(&meta, &tensors).unwrap();
+        let st = parse_safetensors(&bytes).unwrap();
+        assert_eq!(st.metadata, meta);
+        for (name, shape, vals) in &tensors {
+            assert_eq!(st.tensors[name], (shape.clone(), vals.clone()), "{name}");
+        }
+        // A tensor whose shape does not match its values is refused, not written.
+        assert!(write_safetensors(&meta, &[("c".into(), vec![4], vec![1.0])]).is_err());
+    }
 }

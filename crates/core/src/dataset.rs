@@ -101,6 +101,11 @@ impl Label {
     pub fn body_params(&self) -> BodyParams {
         BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas)
     }
+
+    /// The camera and body of this label, as the renderers take them.
+    pub fn view(&self) -> crate::camera::View {
+        crate::camera::View { world_to_camera: self.world_to_camera, body: self.body_params() }
+    }
 }
 
 /// `{"labels": {...}}` with entries sorted by name.
@@ -140,26 +145,46 @@ pub fn normal_name(image: &str) -> String {
 }
 
 /// Encode rendered views as the dataset's RGBA image (alpha = mask) and RGB normal map.
-pub fn encode_views(v: &RenderedViews) -> (Vec<u8>, Vec<u8>) {
+pub fn encode_views(v: &RenderedViews) -> Result<(Vec<u8>, Vec<u8>), PngEncodeError> {
     let rgba: Vec<u8> = v.rgb.chunks_exact(3).zip(&v.mask).flat_map(|(c, m)| [c[0], c[1], c[2], *m]).collect();
-    (encode_png(v.size, v.size, 4, &rgba), encode_png(v.size, v.size, 3, &v.normal))
+    Ok((encode_png(v.size, v.size, 4, &rgba)?, encode_png(v.size, v.size, 3, &v.normal)?))
 }
 
-/// Encode 8-bit pixels (1, 3 or 4 channels) as PNG.
-pub fn encode_png(width: usize, height: usize, channels: usize, pixels: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
-    enc.set_color(match channels {
+/// Why pixels could not be encoded as PNG.
+#[derive(Debug, thiserror::Error)]
+pub enum PngEncodeError {
+    #[error("{0} channels per pixel (1–4 are supported)")]
+    Channels(usize),
+    #[error("{len} bytes of pixels for a {width}×{height} image of {channels} channels")]
+    Pixels { width: usize, height: usize, channels: usize, len: usize },
+    #[error(transparent)]
+    Png(#[from] png::EncodingError),
+}
+
+/// Encode 8-bit pixels (1–4 channels, row-major from the top) as PNG; a pixel buffer of the
+/// wrong length or a size PNG cannot hold is an error.
+pub fn encode_png(width: usize, height: usize, channels: usize, pixels: &[u8]) -> Result<Vec<u8>, PngEncodeError> {
+    let color = match channels {
         1 => png::ColorType::Grayscale,
         2 => png::ColorType::GrayscaleAlpha,
         3 => png::ColorType::Rgb,
-        _ => png::ColorType::Rgba,
-    });
+        4 => png::ColorType::Rgba,
+        _ => return Err(PngEncodeError::Channels(channels)),
+    };
+    if width.checked_mul(height).and_then(|n| n.checked_mul(channels)) != Some(pixels.len()) {
+        return Err(PngEncodeError::Pixels { width, height, channels, len: pixels.len() });
+    }
+    let (Ok(w), Ok(h)) = (u32::try_from(width), u32::try_from(height)) else {
+        return Err(PngEncodeError::Pixels { width, height, channels, len: pixels.len() });
+    };
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, w, h);
+    enc.set_color(color);
     enc.set_depth(png::BitDepth::Eight);
-    let mut w = enc.write_header().expect("in-memory PNG header");
-    w.write_image_data(pixels).expect("pixel count matches the header");
-    drop(w);
-    out
+    let mut writer = enc.write_header()?;
+    writer.write_image_data(pixels)?;
+    writer.finish()?;
+    Ok(out)
 }
 
 /// A decoded 8-bit image.
@@ -356,7 +381,7 @@ mod tests {
     #[test]
     fn png_round_trip() {
         let px: Vec<u8> = (0..4 * 3 * 2).map(|i| i as u8 * 7).collect();
-        let img = decode_png(&encode_png(3, 2, 4, &px)).unwrap();
+        let img = decode_png(&encode_png(3, 2, 4, &px).unwrap()).unwrap();
         assert_eq!((img.width, img.height, img.channels), (3, 2, 4));
         assert_eq!(img.pixels, px);
         assert!(decode_png(b"not a png").unwrap_err().contains("not a PNG"));

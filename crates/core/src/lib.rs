@@ -13,12 +13,17 @@
 //! | nearest-vertex search for inverse skinning | [`spatial`] |
 //! | Sec. 4.1 mapping, triplane synthesis, decoders (burn; feature `generator`/`wgpu`) | `network` |
 //! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
+//! | Sec. 4.2 SDF = template + residual, DMTet offsets on the grid's field band | `fields` (+ `geometry::posed_grid`) |
+//! | eq. 4 normal field (∇SDF rotated by skinning) | `normal_field` |
+//! | re-posing an extracted avatar by LBS (the app's fast path) | `rigging` |
+//! | tensor read-backs as `Result` (never empty vectors) | `readback` |
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
 //! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
 //! | mesh download (.glb)                    | [`gltf_export`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
+//! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
 //! `docs/conventions.md`. Shared code never blocks, touches files or spawns threads: it takes
@@ -28,10 +33,13 @@ pub mod body_model;
 pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod checkpoint;
+pub mod colour;
 #[cfg(feature = "dataset")]
 pub mod dataset;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod diff;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod fields;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;
 pub mod geometry;
@@ -40,11 +48,17 @@ pub mod gltf_export;
 pub mod losses;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod network;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod normal_field;
 pub mod npz;
 #[cfg(feature = "train")]
 pub mod optim;
 pub mod pose_library;
 pub mod rasterize;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod readback;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod rigging;
 pub mod rng;
 pub mod scan;
 pub mod skinning;

@@ -8,6 +8,7 @@
 //! pixel (0, 0) is the top-left, pixel centres at +0.5; depth test on z/w, nearest wins;
 //! triangles with a vertex at w ≤ 0 are dropped (no near-plane clipping).
 
+use crate::colour::{decode_srgb, linear_to_srgb};
 use glam::{Vec2, Vec3, Vec4};
 
 /// Output of [`rasterize`]: per pixel, row-major from the top-left.
@@ -101,7 +102,7 @@ impl Texture {
         if width == 0 || height == 0 || !(3..=4).contains(&channels) || pixels.len() != width * height * channels {
             return None;
         }
-        let lut: Vec<f32> = (0..256).map(|i| srgb_to_linear(i as f32 / 255.0)).collect();
+        let lut: Vec<f32> = (0..256).map(|i| decode_srgb(i as f32 / 255.0)).collect();
         let texels = pixels
             .chunks_exact(channels)
             .map(|p| Vec3::new(lut[p[0] as usize], lut[p[1] as usize], lut[p[2] as usize]));
@@ -163,9 +164,10 @@ pub fn render_views(
 
 /// Like [`render_views`], but each pixel's colour comes from `texture`, called once with the
 /// interpolated `canonical` coordinates of all covered (super)samples — the paper's Sec. 4.4:
-/// the texture field is queried at the canonical coordinate of every pixel.
+/// the texture field is queried at the canonical coordinate of every pixel. An error of
+/// `texture` (e.g. a failed GPU read-back) is returned as it is.
 #[allow(clippy::too_many_arguments)]
-pub fn render_views_textured(
+pub fn render_views_textured<E>(
     vertices: &[Vec3],
     tris: &[[u32; 3]],
     normals: &[Vec3],
@@ -173,20 +175,20 @@ pub fn render_views_textured(
     view_proj: glam::Mat4,
     size: usize,
     ss: usize,
-    texture: impl FnOnce(&[Vec3]) -> Vec<Vec3>,
-) -> RenderedViews {
+    texture: impl FnOnce(&[Vec3]) -> Result<Vec<Vec3>, E>,
+) -> Result<RenderedViews, E> {
     let hi = size * ss.max(1);
     let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
     let r = rasterize(&clip, tris, hi, hi);
     let canon = interpolate(canonical, &r, tris);
     let covered: Vec<usize> = (0..canon.len()).filter(|&k| canon[k].is_some()).collect();
     let points: Vec<Vec3> = covered.iter().filter_map(|&k| canon[k]).collect();
-    let colors = texture(&points);
+    let colors = texture(&points)?;
     let mut c = vec![None; canon.len()];
     for (&k, col) in covered.iter().zip(colors) {
         c[k] = Some(col);
     }
-    composite(&r, &interpolate(normals, &r, tris), &c, size, ss.max(1))
+    Ok(composite(&r, &interpolate(normals, &r, tris), &c, size, ss.max(1)))
 }
 
 /// Average `ss`×`ss` samples into the three 8-bit images.
@@ -227,28 +229,6 @@ fn composite(r: &Raster, n: &[Option<Vec3>], c: &[Option<Vec3>], size: usize, ss
         }
     }
     out
-}
-
-/// Inverse sRGB transfer function of one channel in [0, 1].
-pub fn srgb_to_linear(x: f32) -> f32 {
-    if x <= 0.04045 {
-        x / 12.92
-    } else {
-        ((x + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-/// sRGB transfer function of a linear colour.
-pub fn linear_to_srgb(c: Vec3) -> Vec3 {
-    let f = |x: f32| {
-        let x = x.clamp(0.0, 1.0);
-        if x <= 0.0031308 {
-            12.92 * x
-        } else {
-            1.055 * x.powf(1.0 / 2.4) - 0.055
-        }
-    };
-    Vec3::new(f(c.x), f(c.y), f(c.z))
 }
 
 #[cfg(test)]
@@ -295,8 +275,11 @@ mod tests {
         let mut seen = 0;
         let b = render_views_textured(&v, &tris, &normals, &v, vp, size, 1, |pts| {
             seen = pts.len();
-            pts.iter().map(|p| (*p - t + Vec3::splat(0.5)).clamp(Vec3::ZERO, Vec3::ONE)).collect()
-        });
+            Ok::<_, std::convert::Infallible>(
+                pts.iter().map(|p| (*p - t + Vec3::splat(0.5)).clamp(Vec3::ZERO, Vec3::ONE)).collect(),
+            )
+        })
+        .unwrap_or_else(|never| match never {});
         assert_eq!(seen as f32, covered);
         let max_diff = a.rgb.iter().zip(&b.rgb).map(|(x, y)| (*x as i32 - *y as i32).abs()).max().unwrap_or(0);
         assert!(max_diff <= 1, "per-pixel vs per-vertex colours differ by {max_diff}");
@@ -320,6 +303,6 @@ mod tests {
         assert!(Texture::from_srgb8(2, 2, 3, &px[..6]).is_none());
         let r = texture(&t, &[None, Some(Vec2::new(0.75, 0.75))]);
         assert!(r[0].is_none() && (r[1].unwrap() - Vec3::ONE).length() < 1e-6);
-        assert!((srgb_to_linear(linear_to_srgb(Vec3::splat(0.3)).x) - 0.3).abs() < 1e-5);
+        assert!((decode_srgb(linear_to_srgb(Vec3::splat(0.3)).x) - 0.3).abs() < 1e-5);
     }
 }

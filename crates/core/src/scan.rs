@@ -446,6 +446,7 @@ pub fn render_scan(
     ss: usize,
 ) -> RenderedViews {
     let vp = camera.projection_gl(1.0) * camera.world_to_camera();
+    let albedo = |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|a| scan.albedo(*a)).collect());
     render_views_textured(
         &prepared.vertices,
         &prepared.triangles,
@@ -454,8 +455,9 @@ pub fn render_scan(
         vp,
         size,
         ss,
-        |attrs| attrs.iter().map(|a| scan.albedo(*a)).collect(),
+        albedo,
     )
+    .unwrap_or_else(|never| match never {})
 }
 
 impl Scan {

@@ -6,15 +6,16 @@ use eframe::egui_wgpu;
 use glam::Vec3;
 
 use getavatar_core::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
+use getavatar_core::colour::linear_to_srgb;
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
-use getavatar_core::rasterize::linear_to_srgb;
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 use getavatar_core::OrbitCamera;
 
 use std::rc::Rc;
 
-use getavatar_core::generator::{default_psi, RiggedAvatar};
+use getavatar_core::generator::default_psi;
+use getavatar_core::rigging::RiggedAvatar;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
 use crate::generate::{GenEngine, TextureField};
@@ -569,7 +570,13 @@ impl GetAvatarApp {
             },
             Some(job) => match engine.poll_texture() {
                 None => self.texture_job = Some(job),
-                Some(colors) => {
+                Some(Err(e)) => {
+                    self.texture_failed_epoch = Some(job.epoch);
+                    self.messages
+                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
+                }
+                Some(Ok(colors)) => {
+                    let Some(pixels) = job.pixels else { return };
                     if job.epoch != self.texture_epoch || !wanted {
                         return;
                     }
@@ -577,7 +584,6 @@ impl GetAvatarApp {
                     let bg = crate::viewer::background(ViewMode::Texture);
                     let mut img =
                         egui::ColorImage::new([n, n], vec![egui::Color32::from_rgb(bg[0], bg[1], bg[2]); n * n]);
-                    let pixels = job.pixels.unwrap_or_default();
                     for (&i, c) in pixels.iter().zip(&colors) {
                         let e = (linear_to_srgb(*c) * 255.0).round().clamp(Vec3::ZERO, Vec3::splat(255.0));
                         img.pixels[i as usize] = egui::Color32::from_rgb(e.x as u8, e.y as u8, e.z as u8);

@@ -16,11 +16,11 @@ use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::load_generator_and_modes;
 use getavatar_core::generator::{
-    default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, RiggedAvatar,
-    Styles,
+    default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
+use getavatar_core::rigging::RiggedAvatar;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
 
@@ -118,7 +118,7 @@ pub struct GenEngine {
     /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
     weights_slot: Rc<RefCell<Option<Result<Shipped, String>>>>,
     pub weights: Weights,
-    texture_slot: Rc<RefCell<Option<Vec<glam::Vec3>>>>,
+    texture_slot: Rc<RefCell<Option<Result<Vec<glam::Vec3>, String>>>>,
     /// A generation asked for while the weights were loading.
     pending: Option<Job>,
     pub busy: bool,
@@ -200,19 +200,25 @@ impl GenEngine {
             let t0 = crate::web::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
-            let (rigged, planes) = match keep {
+            let generated = match keep {
                 Some(mut r) => {
                     let planes = g.triplanes(&styles);
-                    r.canonical.colors = recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await;
-                    (r, Some(planes))
+                    recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await.map(|colors| {
+                        r.canonical.colors = colors;
+                        (r, Some(planes))
+                    })
                 }
-                None => (generate_rigged_async(&g, &ctx, &styles, &dev).await, None),
+                None => generate_rigged_async(&g, &ctx, &styles, &dev).await.map(|r| (r, None)),
             };
-            let field = Rc::new(TextureField { styles, planes: RefCell::new(planes) });
-            let result = if rigged.canonical.mesh.faces.is_empty() {
-                Err("the generator produced an empty surface".to_string())
-            } else {
-                Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds, psi })
+            let result = match generated {
+                Err(e) => Err(format!("generation failed: {e}")),
+                Ok((rigged, _)) if rigged.canonical.mesh.faces.is_empty() => {
+                    Err("the generator produced an empty surface".to_string())
+                }
+                Ok((rigged, planes)) => {
+                    let field = Rc::new(TextureField { styles, planes: RefCell::new(planes) });
+                    Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds, psi })
+                }
             };
             *slot.borrow_mut() = Some(result);
             repaint.request_repaint();
@@ -257,13 +263,13 @@ impl GenEngine {
                 p
             });
             let colors = recolor_async(&g, &planes, &field.styles, &points, &dev).await;
-            *slot.borrow_mut() = Some(colors);
+            *slot.borrow_mut() = Some(colors.map_err(|e| format!("texture query failed: {e}")));
             repaint.request_repaint();
         });
     }
 
-    /// Colours of the last [`GenEngine::query_texture`], once.
-    pub fn poll_texture(&mut self) -> Option<Vec<glam::Vec3>> {
+    /// Colours of the last [`GenEngine::query_texture`] (or why it failed), once.
+    pub fn poll_texture(&mut self) -> Option<Result<Vec<glam::Vec3>, String>> {
         self.texture_slot.borrow_mut().take()
     }
 

@@ -56,7 +56,7 @@ pub fn bone_transforms(
 ) -> Vec<Bone> {
     (0..posed.vertex_transforms.len())
         .map(|i| {
-            let (m, r) = getavatar_core::generator::repose_transform(ctx, posed, i);
+            let (m, r) = getavatar_core::rigging::repose_transform(ctx, posed, i);
             Bone { position: m.to_cols_array_2d(), normal: Mat4::from_mat3(r).to_cols_array_2d() }
         })
         .collect()

@@ -7,7 +7,8 @@
 //! sign-changing tet edges).
 //!
 //! Image conventions for the discriminators (all `[B, C, R, R]` in [−1, 1]): RGB sRGB-encoded
-//! (texture field output through γ = 1/2.2) on white; normals in world space with the zero
+//! (texture field output through [`crate::colour::encode_srgb_tensor`], the curve of the data
+//! and the app) on white; normals in world space with the zero
 //! vector on background; mask 2·coverage − 1.
 
 use std::collections::HashMap;
@@ -19,16 +20,18 @@ use glam::{Mat3, Vec3, Vec4};
 use super::dmtet::{surface_points, EdgeIndex};
 use super::rasterize::{antialias, compose, interpolate, silhouette_pairs, Coverage};
 use super::{index_tensor, matrix};
-use crate::camera::OrbitCamera;
-use crate::dataset::Label;
-use crate::generator::{BodyContext, Generator, PosedGrid, Styles};
+use crate::camera::{OrbitCamera, View};
+use crate::colour::encode_srgb_tensor;
+use crate::fields::{band_fields, GridFields};
+use crate::generator::{BodyContext, Generator, Styles};
 use crate::geometry::inverse_skinning::InverseSkinning;
-use crate::geometry::marching_tets;
-use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::geometry::{marching_tets, PosedGrid};
 use crate::losses::{eikonal_loss, sdf_cross_entropy};
 use crate::network::synthesis::Triplanes;
+use crate::normal_field::{posed_normals, sdf_gradient};
 use crate::rasterize::rasterize;
-use crate::skinning::pose_body;
+use crate::readback::{block_on_ready, read_f32_now, ReadbackError};
+use crate::skinning::{pose_body, BodyParams};
 
 /// Rendered fakes and regularisers of a batch.
 pub struct FakeViews {
@@ -44,10 +47,6 @@ pub struct FakeViews {
     /// With [`render_avatar_views_retextured`]: the RGB images of the same surfaces coloured
     /// by the texture field of the other styles (same layout as `rgb`).
     pub rgb_retextured: Option<Tensor<4>>,
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
 }
 
 fn vec3_tensor(v: &[Vec3], device: &Device) -> Tensor<2> {
@@ -77,10 +76,16 @@ impl PosedGridCache {
         Self { map: Mutex::new(HashMap::new()), capacity: capacity.max(1) }
     }
 
-    /// The posed grid of `label`'s body (pose and shape), computed on first use.
-    pub fn get(&self, ctx: &BodyContext, label: &Label, inv: &InverseSkinning) -> Arc<PosedGrid> {
-        let key: Vec<u32> =
-            label.global_orient.iter().chain(&label.body_pose).chain(&label.betas).map(|v| v.to_bits()).collect();
+    /// The posed grid of `body` (pose, shape and translation), computed on first use.
+    pub fn get(&self, ctx: &BodyContext, body: &BodyParams, inv: &InverseSkinning) -> Arc<PosedGrid> {
+        let key: Vec<u32> = body
+            .pose
+            .iter()
+            .flat_map(|r| r.to_array())
+            .chain(body.betas.iter().copied())
+            .chain(body.transl.to_array())
+            .map(f32::to_bits)
+            .collect();
         if let Some(g) = self.map.lock().ok().and_then(|m| m.get(&key).cloned()) {
             return g;
         }
@@ -109,7 +114,7 @@ fn to_nchw(img: Tensor<2>, res: usize) -> Tensor<4> {
     img.reshape([res, res, c]).permute([2, 0, 1]).unsqueeze_dim::<4>(0)
 }
 
-/// Render the generated avatars of `styles` (batch B) under `labels` (B entries: camera and body
+/// Render the generated avatars of `styles` (batch B) under `views` (B entries: camera and body
 /// pose) at `res`², with posed grids from `grids`. Native: reads intermediate values back
 /// synchronously.
 #[cfg(not(target_arch = "wasm32"))]
@@ -117,19 +122,19 @@ pub fn render_avatars(
     g: &Generator,
     ctx: &BodyContext,
     styles: &Styles,
-    labels: &[Label],
+    views: &[View],
     res: usize,
     grids: &PosedGridCache,
     device: &Device,
-) -> FakeViews {
-    let views: Vec<Vec<Label>> = labels.iter().map(|l| vec![l.clone()]).collect();
+) -> Result<FakeViews, ReadbackError> {
+    let views: Vec<Vec<View>> = views.iter().map(|v| vec![v.clone()]).collect();
     render_avatar_views(g, ctx, styles, &views, res, grids, device)
 }
 
-/// Render avatar b of `styles` (batch B) under each label of `views[b]` at `res`²: one surface
+/// Render avatar b of `styles` (batch B) under each view of `views[b]` at `res`²: one surface
 /// per avatar (triplanes, inverse skinning, DMTet, surface fields), rasterised and shaded per
 /// view, so several views of one avatar cost little more than one. The avatar's body pose and
-/// shape are those of `views[b][0]`; the other labels contribute their cameras only. The
+/// shape are those of `views[b][0]`; the other views contribute their cameras only. The
 /// images come out view by view in order (batch Σ|views[b]|); the eikonal term is the mean over
 /// views, the cross-entropy the mean over avatars.
 #[cfg(not(target_arch = "wasm32"))]
@@ -137,11 +142,11 @@ pub fn render_avatar_views(
     g: &Generator,
     ctx: &BodyContext,
     styles: &Styles,
-    views: &[Vec<Label>],
+    views: &[Vec<View>],
     res: usize,
     grids: &PosedGridCache,
     device: &Device,
-) -> FakeViews {
+) -> Result<FakeViews, ReadbackError> {
     render_avatar_views_retextured(g, ctx, styles, None, views, res, grids, device)
 }
 
@@ -157,13 +162,12 @@ pub fn render_avatar_views_retextured(
     ctx: &BodyContext,
     styles: &Styles,
     retexture: Option<&Styles>,
-    views: &[Vec<Label>],
+    views: &[Vec<View>],
     res: usize,
     grids: &PosedGridCache,
     device: &Device,
-) -> FakeViews {
+) -> Result<FakeViews, ReadbackError> {
     let proj = OrbitCamera::default().projection_gl(1.0);
-    let h = 0.5 * ctx.template.cell;
     let n = ctx.grid.vertices.len();
     let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
@@ -177,7 +181,7 @@ pub fn render_avatar_views_retextured(
         }
     };
     for (b, cams) in views.iter().enumerate() {
-        let Some(label) = cams.first() else { continue };
+        let Some(first) = cams.first() else { continue };
         let s = styles_of(styles, b);
         let planes = g.triplanes(&s);
         let re = retexture.map(|r| {
@@ -186,42 +190,24 @@ pub fn render_avatar_views_retextured(
         });
         lap("triplanes");
         // Inverse skinning of the posed-space grid (eq. 2).
-        let posed = pose_body(&ctx.model, &label.body_params());
+        let posed = pose_body(&ctx.model, &first.body);
         let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-        let grid = grids.get(ctx, label, &inv);
+        let grid = grids.get(ctx, &first.body, &inv);
         let canon = &grid.canonical;
         let canon_t = vec3_tensor(canon, device);
         lap("posed grid");
         // Pass 1, values only: the fields on the whole band decide the topology.
-        let (mut res_v, mut off_v) = (vec![0f32; n], vec![0f32; 3 * n]);
-        if !grid.band.is_empty() {
-            let band = index_tensor(&grid.band, device);
-            let pts = canon_t.clone().select(0, band).unsqueeze_dim::<3>(0);
+        let fields = if grid.band.is_empty() {
+            GridFields::zeros(n)
+        } else {
+            let band_pts = canon_t.clone().select(0, index_tensor(&grid.band, device)).unsqueeze_dim::<3>(0);
             let planes_c =
                 Triplanes { geometry: planes.geometry.clone().detach(), texture: planes.texture.clone().detach() };
             let s_c = Styles { geo: s.geo.clone().detach(), tex: s.tex.clone().detach() };
-            let (r, o) = g.geometry_fields(&planes_c, &s_c, pts);
-            let (r, o) = (values(r.detach()), values(o.detach()));
-            for (k, &i) in grid.band.iter().enumerate() {
-                let i = i as usize;
-                res_v[i] = r[k];
-                off_v[3 * i..3 * i + 3].copy_from_slice(&o[3 * k..3 * k + 3]);
-            }
-        }
-        let sdf_v: Vec<f32> = grid
-            .template
-            .iter()
-            .zip(&res_v)
-            .zip(&ctx.boundary)
-            .map(|((t, r), &b)| if b { OUTSIDE_VALUE } else { t + r })
-            .collect();
-        let pos_v: Vec<Vec3> = ctx
-            .grid
-            .vertices
-            .iter()
-            .enumerate()
-            .map(|(i, p)| *p + Vec3::from_slice(&off_v[3 * i..3 * i + 3]))
-            .collect();
+            block_on_ready(band_fields(g, &planes_c, &s_c, band_pts, &grid.band, n))?
+        };
+        let sdf_v = fields.sdf(&grid.template, &ctx.boundary);
+        let pos_v = fields.positions(&ctx.grid.vertices);
         lap("band fields (values)");
         let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
         triangles.extend(cams.iter().map(|_| mesh.faces.len()));
@@ -263,8 +249,8 @@ pub fn render_avatar_views_retextured(
             let idx = index_tensor(&ends, device);
             let pts = canon_t.clone().select(0, idx.clone()).unsqueeze_dim::<3>(0);
             let (r, o) = g.geometry_fields(&planes, &s, pts);
-            let r0: Vec<f32> = ends.iter().map(|&i| res_v[i as usize]).collect();
-            let o0: Vec<f32> = ends.iter().flat_map(|&i| off_v[3 * i as usize..3 * i as usize + 3].to_vec()).collect();
+            let r0: Vec<f32> = ends.iter().map(|&i| fields.residual[i as usize]).collect();
+            let o0: Vec<f32> = ends.iter().flat_map(|&i| fields.offset_of(i as usize)).collect();
             let dr = r.reshape([m]) - Tensor::<1>::from_data(TensorData::new(r0, [m]), device);
             let d_o = o.reshape([m, 3]) - Tensor::<2>::from_data(TensorData::new(o0, [m, 3]), device);
             sdf = sdf.select_assign(0, idx.clone(), dr, IndexingUpdateOp::Add);
@@ -294,7 +280,7 @@ pub fn render_avatar_views_retextured(
             let vp = proj * view.world_to_camera;
             let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
             let clip = Tensor::cat(vec![verts.clone(), Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
-            let clip_v: Vec<Vec4> = values(clip.clone()).chunks_exact(4).map(Vec4::from_slice).collect();
+            let clip_v: Vec<Vec4> = read_f32_now(clip.clone())?.chunks_exact(4).map(Vec4::from_slice).collect();
             let r = rasterize(&clip_v, &mesh.faces, res, res);
             let cov = Coverage::new(&r, &mesh.faces);
             if cov.is_empty() {
@@ -314,37 +300,22 @@ pub fn render_avatar_views_retextured(
 
             // RGB: texture field at each pixel's canonical coordinate.
             let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
-            let color = color.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+            let color = encode_srgb_tensor(color);
             let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
             if let Some((rp, rs)) = &re {
                 let c = g.texture_field(rp, rs, pix_canon.clone().detach().unsqueeze_dim::<3>(0)).reshape([p, 3]);
-                let c = c.clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+                let c = encode_srgb_tensor(c);
                 retextured.push(to_nchw(compose(&cov, c * 2.0 - 1.0, &[1.0, 1.0, 1.0], device), res));
             }
 
             lap("texture field");
-            // Normals: ∇(template + residual) by central differences, rotated to posed space.
-            let dirs = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
-            let offs: Vec<f32> = (0..p).flat_map(|_| dirs.iter().flat_map(|d| (*d * h).to_array())).collect();
-            let probes = pix_canon.clone().unsqueeze_dim::<3>(1).repeat_dim(1, 6)
-                + Tensor::from_data(TensorData::new(offs, [p, 6, 3]), device);
-            let rp = g.sdf_residual(&planes, &s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
-            let grad_res = (rp.clone().narrow(2, 0, 1) - rp.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h));
-            let pc = values(pix_canon);
-            let grad_tmpl: Vec<f32> = pc
-                .chunks_exact(3)
-                .flat_map(|c| {
-                    let c = Vec3::from_slice(c);
-                    let f = |d: Vec3| ctx.template.sample(c + d * h) - ctx.template.sample(c - d * h);
-                    (Vec3::new(f(Vec3::X), f(Vec3::Y), f(Vec3::Z)) / (2.0 * h)).to_array()
-                })
-                .collect();
-            let grad = grad_res + matrix(grad_tmpl, p, 3, device);
+            // Normal field (eq. 4): ∇(template + residual) at each pixel's canonical point,
+            // rotated to posed space by the interpolated skinning rotation.
+            let pc: Vec<Vec3> = read_f32_now(pix_canon.clone())?.chunks_exact(3).map(Vec3::from_slice).collect();
+            let grad = sdf_gradient(g, &planes, &s, &ctx.template, pix_canon, &pc, device);
             eik.push(eikonal_loss(grad.clone()));
-            let unit = grad.clone() / (grad.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
             let rpix = interpolate(&cov, clip.clone().detach(), rot.clone(), device).reshape([p, 3, 3]);
-            let nworld = rpix.matmul(unit.unsqueeze_dim::<3>(2)).reshape([p, 3]);
-            let nworld = nworld.clone() / (nworld.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
+            let nworld = posed_normals(rpix, grad);
             let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
 
             lap("normal field");
@@ -361,7 +332,7 @@ pub fn render_avatar_views_retextured(
         let k = v.len().max(1) as f32;
         v.into_iter().reduce(|a, b| a + b).map(|t| t / k).unwrap_or_else(|| Tensor::zeros([1], device))
     };
-    FakeViews {
+    Ok(FakeViews {
         rgb: Tensor::cat(rgbs, 0),
         normal: Tensor::cat(normals, 0),
         mask: Tensor::cat(masks, 0),
@@ -369,5 +340,5 @@ pub fn render_avatar_views_retextured(
         cross_entropy: mean(ce),
         triangles,
         rgb_retextured: (!retextured.is_empty()).then(|| Tensor::cat(retextured, 0)),
-    }
+    })
 }

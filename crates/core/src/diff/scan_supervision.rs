@@ -6,7 +6,7 @@
 //! by the generator's own SMPL-guided inverse skinning under the scan's body fit (the mapping
 //! its renders use, paper eq. 2), and there
 //!
-//! - the texture field must give the scan's albedo (L1, in the γ 1/2.2 space the image loss
+//! - the texture field must give the scan's albedo (L1, in the sRGB-encoded space the image loss
 //!   compares in), and
 //! - the SDF (template + residual) must be 0 on the surface and ±δ at ±δ along the normal
 //!   (L1, in units of [`SDF_UNIT`]).
@@ -16,6 +16,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
+use crate::colour::{encode_srgb, encode_srgb_tensor};
 use crate::generator::{BodyContext, Generator, Styles};
 use crate::geometry::InverseSkinning;
 use crate::scan::SurfaceSample;
@@ -63,14 +64,10 @@ impl CanonicalSamples {
 
 /// The two terms, each a mean over the batch's points.
 pub struct ScanLosses {
-    /// L1 between texture field and albedo, γ 1/2.2-encoded.
+    /// L1 between texture field and albedo, both sRGB-encoded ([`crate::colour`]).
     pub texture: Tensor<1>,
     /// L1 between SDF and its target on and off the surface, in units of [`SDF_UNIT`].
     pub sdf: Tensor<1>,
-}
-
-fn gamma(c: f32) -> f32 {
-    c.clamp(1e-6, 1.0).powf(1.0 / 2.2)
 }
 
 /// The scan terms of avatar b of `styles` (batch B) against `batch[b]`: the samples of its
@@ -91,8 +88,8 @@ pub fn scan_losses(
     // Texture at the surface points.
     let pts: Vec<f32> = batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.points[i].to_array())).collect();
     let want: Vec<f32> =
-        batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.colors[i].to_array().map(gamma))).collect();
-    let color = g.texture_field(&planes, styles, t3(pts, m)).clamp(1e-6, 1.0).powf_scalar(1.0 / 2.2);
+        batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.colors[i].to_array().map(encode_srgb))).collect();
+    let color = encode_srgb_tensor(g.texture_field(&planes, styles, t3(pts, m)));
     let texture = (color - t3(want, m)).abs().mean();
 
     // SDF at p, p + δn, p − δn: targets 0, +δ, −δ. The template part is a constant.

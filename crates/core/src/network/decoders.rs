@@ -24,9 +24,7 @@ use crate::geometry::tet_grid::REFERENCE_BOX_SIZE;
 /// weights) start from the body template on the regular grid.
 pub const SDF_INIT_SCALE: f32 = 0.001;
 
-/// Bound of the SDF residual, metres: loose dresses, coats and hair reach about this far from
-/// the body.
-pub const SDF_RESIDUAL_MAX: f32 = 0.2;
+pub use crate::geometry::posed_grid::SDF_RESIDUAL_MAX;
 
 /// Overshoot of the colour sigmoid (EG3D's 0.001).
 const RGB_EPS: f32 = 0.001;

@@ -94,3 +94,71 @@ pub fn truncate_toward_subject(
     let (cg, ct) = (geo_modes.clone().select(0, k.clone()), tex_modes.clone().select(0, k));
     (cg.clone() + (w_geo - cg) * psi, ct.clone() + (w_tex - ct) * psi)
 }
+
+/// Modes of the latent space in W, `[K, w_dim]` per branch (e.g. the codes of the training
+/// subjects of a reconstruction warm-up), for multi-modal truncation
+/// ([`crate::generator::Generator::styles_with`]). Checkpoints may carry them (`checkpoint::load_latent_modes`).
+#[derive(Clone, Debug)]
+pub struct LatentModes {
+    pub geo: Tensor<2>,
+    pub tex: Tensor<2>,
+    /// How ψ pairs the two branches' modes (stored in the checkpoint).
+    pub pairing: ModePairing,
+}
+
+/// Truncation ψ used where the user sets none, for a generator with these latent modes
+/// (`None`: a checkpoint without modes, truncating towards w_avg): 0 with modes, i.e. the
+/// training subjects' own codes (a reconstruction warm-up has only been trained there; between
+/// them it renders blends), else StyleGAN's customary 0.7.
+pub fn default_psi(modes: Option<&LatentModes>) -> f32 {
+    if modes.is_some() {
+        0.0
+    } else {
+        0.7
+    }
+}
+
+/// How multi-modal truncation picks the modes of the two branches.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ModePairing {
+    /// One subject for both, the one whose geometry mode is nearest to w_geo
+    /// ([`truncate_toward_subject`]): for generators whose colours are tied to their geometry
+    /// code (a reconstruction warm-up without the texture-swap term).
+    #[default]
+    Subject,
+    /// Each branch towards its own nearest mode ([`truncate_toward_modes`]): for generators
+    /// trained with the texture-swap term, whose colours follow the texture code, so a seed
+    /// pair gives one subject's geometry with another's colours.
+    Branch,
+}
+
+impl ModePairing {
+    /// The checkpoint metadata value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Subject => "subject",
+            Self::Branch => "branch",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "subject" => Some(Self::Subject),
+            "branch" => Some(Self::Branch),
+            _ => None,
+        }
+    }
+}
+
+impl LatentModes {
+    pub fn count(&self) -> usize {
+        self.geo.dims()[0]
+    }
+
+    /// Subject `geo`'s geometry code and subject `tex`'s texture code, `[1, w_dim]` each
+    /// (re-texturing one training subject with another's colours); None out of range.
+    pub fn subject(&self, geo: usize, tex: usize) -> Option<(Tensor<2>, Tensor<2>)> {
+        let k = self.count();
+        (geo < k && tex < k).then(|| (self.geo.clone().narrow(0, geo, 1), self.tex.clone().narrow(0, tex, 1)))
+    }
+}

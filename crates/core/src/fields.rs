@@ -1,0 +1,81 @@
+//! The generator's geometry fields on the tet grid (paper Sec. 4.2): SDF = template SDF +
+//! learned residual, and the DMTet vertex offsets, evaluated on the field band of a posed grid
+//! (`geometry::posed_grid::field_band`) and zero elsewhere. Inference (`generator`) and
+//! training (`diff::avatar`) both go through these functions, so the surface the app shows is
+//! the surface training renders.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::Vec3;
+
+use crate::generator::{Generator, Styles};
+use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::network::synthesis::Triplanes;
+use crate::readback::{read_f32, ReadbackError};
+
+/// Values of the geometry fields at every grid vertex (0 off the band).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GridFields {
+    /// SDF residual per grid vertex, metres.
+    pub residual: Vec<f32>,
+    /// DMTet offset per grid vertex, metres, `3·n` (x, y, z).
+    pub offset: Vec<f32>,
+}
+
+impl GridFields {
+    /// Fields of `n` grid vertices that are all zero (an untouched grid).
+    pub fn zeros(n: usize) -> Self {
+        Self { residual: vec![0.0; n], offset: vec![0.0; 3 * n] }
+    }
+
+    /// The full SDF: template + residual, and [`OUTSIDE_VALUE`] on the box boundary so every
+    /// extracted surface is closed.
+    pub fn sdf(&self, template: &[f32], boundary: &[bool]) -> Vec<f32> {
+        template
+            .iter()
+            .zip(&self.residual)
+            .zip(boundary)
+            .map(|((t, r), &b)| if b { OUTSIDE_VALUE } else { t + r })
+            .collect()
+    }
+
+    /// Grid vertex positions moved by their DMTet offsets.
+    pub fn positions(&self, grid: &[Vec3]) -> Vec<Vec3> {
+        grid.iter().enumerate().map(|(i, p)| *p + Vec3::from_slice(&self.offset[3 * i..3 * i + 3])).collect()
+    }
+
+    /// The offset of grid vertex `i`.
+    pub fn offset_of(&self, i: usize) -> [f32; 3] {
+        [self.offset[3 * i], self.offset[3 * i + 1], self.offset[3 * i + 2]]
+    }
+}
+
+/// `[1, N, 3]` tensor of points.
+pub fn points_tensor(points: &[Vec3], device: &Device) -> Tensor<3> {
+    let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+    Tensor::from_data(TensorData::new(flat, [1, points.len(), 3]), device)
+}
+
+/// The geometry fields of styles `s` (batch 1) on a grid of `n` vertices: evaluated at the
+/// canonical points `band_points` (`[1, |band|, 3]`, those of the grid vertices `band`), zero
+/// elsewhere. Values only (nothing here is differentiated).
+pub async fn band_fields(
+    g: &Generator,
+    planes: &Triplanes,
+    s: &Styles,
+    band_points: Tensor<3>,
+    band: &[u32],
+    n: usize,
+) -> Result<GridFields, ReadbackError> {
+    let mut f = GridFields::zeros(n);
+    if band.is_empty() {
+        return Ok(f);
+    }
+    let (r, o) = g.geometry_fields(planes, s, band_points);
+    let (r, o) = (read_f32(r.detach()).await?, read_f32(o.detach()).await?);
+    for (k, &i) in band.iter().enumerate() {
+        let i = i as usize;
+        f.residual[i] = r[k];
+        f.offset[3 * i..3 * i + 3].copy_from_slice(&o[3 * k..3 * k + 3]);
+    }
+    Ok(f)
+}

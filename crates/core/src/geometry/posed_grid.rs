@@ -1,0 +1,123 @@
+//! The tet grid under one body pose (paper eq. 2) and the band where the generator's fields
+//! are evaluated: what generation needs about the body ([`BodyContext`], prepared once per
+//! body model and config), each posed-space grid vertex carried to canonical space by
+//! SMPL-guided inverse skinning ([`PosedGrid`]), and the grid vertices near enough to the body
+//! for the SDF residual to matter ([`field_band`]).
+
+use glam::Vec3;
+
+use super::inverse_skinning::{canonical_body, InverseSkinning, UNWARP_SLACK};
+use super::template_sdf::TemplateSdf;
+use super::tet_grid::{TetGrid, REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+use crate::body_model::BodyModel;
+use crate::skinning::PosedBody;
+
+/// Bound of the generator's SDF residual on top of the template SDF, metres: loose dresses,
+/// coats and hair reach about this far from the body. The residual decoder is softly bounded
+/// to it (`network::decoders`), so farther out the SDF has the template's sign.
+pub const SDF_RESIDUAL_MAX: f32 = 0.2;
+
+/// What generation needs about the body, prepared once per body model and grid resolution.
+pub struct BodyContext {
+    pub model: BodyModel,
+    /// Canonical body: Da-pose, β = 0.
+    pub canonical: PosedBody,
+    pub template: TemplateSdf,
+    pub grid: TetGrid,
+    /// Whether each grid vertex lies on the box boundary.
+    pub boundary: Vec<bool>,
+}
+
+impl BodyContext {
+    /// The context of `model` for a template SDF of `template_res`³ cells and a tet grid of
+    /// `tet_res`³ cubes (a generator config's `template_res` and `tet_res`).
+    pub fn with_resolution(model: BodyModel, template_res: usize, tet_res: usize) -> Self {
+        let canonical = canonical_body(&model);
+        let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
+        let template =
+            TemplateSdf::from_mesh(&canonical.vertices, &model.faces, template_res, min, REFERENCE_BOX_SIZE, 3);
+        let grid = TetGrid::reference(tet_res);
+        let boundary = grid.boundary_flags();
+        Self { model, canonical, template, grid, boundary }
+    }
+
+    /// Longest tet edge of the grid.
+    fn grid_edge(&self) -> f32 {
+        REFERENCE_BOX_SIZE / self.grid.res.max(1) as f32 * 3f32.sqrt()
+    }
+
+    /// |template SDF| below which [`field_band`] evaluates the fields.
+    fn field_reach(&self) -> f32 {
+        SDF_RESIDUAL_MAX + 2.0 * self.grid_edge()
+    }
+}
+
+/// Grid vertices where the generator's geometry fields are evaluated: |template SDF| below
+/// the residual bound ([`SDF_RESIDUAL_MAX`]) plus two tet edges, off the box boundary, and not
+/// `guarded` (space the pose vacated, see `inverse_skinning::guarded_template`: there the
+/// canonical point lies inside another body part, whose learned residual would turn the
+/// vacated space inside and leave floating fragments). Farther out the SDF has the template's
+/// sign whatever the residual and no sign-changing edge reaches (the template is ~1-Lipschitz),
+/// so residual and offsets are 0 there: same surface, a fraction of the decoder work.
+pub fn field_band(ctx: &BodyContext, template: &[f32], guarded: &[bool]) -> Vec<u32> {
+    let reach = ctx.field_reach();
+    (0..template.len())
+        .filter(|&i| {
+            template[i].abs() < reach
+                && !ctx.boundary.get(i).copied().unwrap_or(true)
+                && !guarded.get(i).copied().unwrap_or(false)
+        })
+        .map(|i| i as u32)
+        .collect()
+}
+
+/// Posed-space distance from the body beyond which [`PosedGrid`] skips un-warping a grid
+/// vertex (`InverseSkinning::canonical_templates`): past the field band by the un-warp slack
+/// and one more edge, and deeper than any body part is thick, so those vertices are outside,
+/// off the band and on no sign-changing edge either way.
+pub fn far_from_body(ctx: &BodyContext) -> f32 {
+    ctx.field_reach() + UNWARP_SLACK + ctx.grid_edge()
+}
+
+/// The tet grid under one body pose (paper eq. 2): each posed-space grid vertex carried to
+/// canonical space by SMPL-guided inverse skinning, and the template SDF there.
+pub struct PosedGrid {
+    pub canonical: Vec<Vec3>,
+    pub template: Vec<f32>,
+    /// Grid vertices where the generator's fields are evaluated ([`field_band`]).
+    pub band: Vec<u32>,
+}
+
+impl PosedGrid {
+    /// Inverse-skin every grid vertex of `ctx` under `inv` (split over the CPU cores natively),
+    /// except those farther than [`far_from_body`] from the posed body.
+    pub fn new(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
+        Self::with_far(ctx, inv, far_from_body(ctx))
+    }
+
+    /// [`PosedGrid::new`] with the far-vertex distance `far` (`f32::INFINITY`: un-warp all).
+    pub fn with_far(ctx: &BodyContext, inv: &InverseSkinning, far: f32) -> Self {
+        let verts = &ctx.grid.vertices;
+        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk, far) };
+        #[cfg(not(target_arch = "wasm32"))]
+        let mapped: Vec<(Vec3, f32, bool)> = {
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
+            let chunk = verts.len().div_ceil(threads).max(1);
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = verts.chunks(chunk).map(|c| sc.spawn(move || map(c))).collect();
+                // A worker's panic is a bug: re-raise it here rather than drop its chunk of
+                // the grid (which would misalign every later index).
+                handles
+                    .into_iter()
+                    .flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+                    .collect()
+            })
+        };
+        #[cfg(target_arch = "wasm32")]
+        let mapped = map(verts);
+        let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
+        let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
+        let band = field_band(ctx, &template, &guarded);
+        Self { canonical, template, band }
+    }
+}
