@@ -334,24 +334,45 @@ pub fn load_params<M: Module>(
     }
 }
 
-/// Serialise named F32 tensors and string metadata as safetensors bytes.
+/// Serialise named F32 tensors and string metadata as safetensors bytes, deterministically
+/// (metadata and tensors in name order), so that identical training states give identical
+/// files. The safetensors crate's own serializer orders the metadata by a randomly seeded hash
+/// map; what it parses (and validates) is this same container. A tensor whose shape does not
+/// match its values is an error.
 pub fn write_safetensors(
     metadata: &BTreeMap<String, String>,
     tensors: &[(String, Vec<usize>, Vec<f32>)],
 ) -> Result<Vec<u8>, CheckpointError> {
-    let bytes: Vec<Vec<u8>> =
-        tensors.iter().map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
-    let views = tensors
-        .iter()
-        .zip(&bytes)
-        .map(|((name, shape, _), b)| {
-            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), b)
-                .map(|v| (name.as_str(), v))
-                .map_err(|e| CheckpointError::Param(name.clone(), e.to_string()))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let meta = metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-    safetensors::serialize(views, Some(meta)).map_err(|e| fmt_err(e.to_string()))
+    let mut header = serde_json::Map::new();
+    let meta: serde_json::Map<String, serde_json::Value> =
+        metadata.iter().map(|(k, v)| (k.clone(), serde_json::Value::from(v.clone()))).collect();
+    header.insert("__metadata__".into(), meta.into());
+    let mut sorted: Vec<&(String, Vec<usize>, Vec<f32>)> = tensors.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut offset = 0usize;
+    for (name, shape, data) in &sorted {
+        let n = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+        if n != Some(data.len()) {
+            return Err(CheckpointError::Param(name.clone(), format!("shape {shape:?} but {} values", data.len())));
+        }
+        let end = offset + data.len() * 4;
+        header
+            .insert(name.clone(), serde_json::json!({ "dtype": "F32", "shape": shape, "data_offsets": [offset, end] }));
+        offset = end;
+    }
+    let mut h = serde_json::Value::Object(header).to_string().into_bytes();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + h.len() + offset);
+    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    out.extend_from_slice(&h);
+    for (_, _, data) in &sorted {
+        for x in data {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -400,6 +421,8 @@ mod tests {
             ("a".to_string(), vec![1], vec![7.0]),
         ];
         let bytes = write_safetensors(&meta, &tensors).unwrap();
+        // Deterministic: the same input gives the same bytes (bit-identical resumes).
+        assert_eq!(bytes, write_safetensors(&meta, &tensors).unwrap());
         let st = parse_safetensors(&bytes).unwrap();
         assert_eq!(st.metadata, meta);
         for (name, shape, vals) in &tensors {
