@@ -3,7 +3,14 @@
 
 use std::time::Instant;
 
+use std::path::Path;
+
 use anyhow::{Context, Result};
+use getavatar_core::dataset::Dataset;
+use getavatar_core::diff::avatar::PosedGridCache;
+use serde::{Deserialize, Serialize};
+
+use crate::train::{device_for, train_step, RunConfig, State};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator};
@@ -21,7 +28,7 @@ fn secs<T>(f: impl FnOnce() -> T) -> (T, f64) {
 }
 
 pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
-    let device = crate::train::device_for(backend)?;
+    let device = device_for(backend)?;
     let model = BodyModel::default_body()?;
     let lib = PoseLibrary::builtin();
     let poses = ["standing", "walking", "sitting", "arms_up"];
@@ -140,7 +147,7 @@ pub struct TrainBenchArgs {
 /// One measured case, as the child process reports it.
 #[derive(serde::Serialize, serde::Deserialize)]
 pub struct CaseReport {
-    pub timings: crate::train::StepTimings,
+    pub timings: StepTimings,
     /// Peak resident memory of the process (VmHWM), MiB; lavapipe's "GPU" memory is host
     /// memory, so this covers both backends.
     pub peak_mib: Option<f64>,
@@ -159,7 +166,7 @@ fn peak_rss_mib() -> Option<f64> {
 /// The child side: time one case and print its report (one process per case, so the peak
 /// memory is that case's).
 pub fn train_case(data: &std::path::Path, config: &str, backend: &str, batch: usize, steps: usize) -> Result<()> {
-    let timings = crate::train::time_steps(data, config, backend, batch, steps)?;
+    let timings = time_steps(data, config, backend, batch, steps)?;
     let r = CaseReport { timings, peak_mib: peak_rss_mib() };
     println!("{CASE_TAG}{}", serde_json::to_string(&r)?);
     Ok(())
@@ -259,4 +266,44 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
     println!("first = warm-up step (R1, tet-grid inverse skinning, kernel compilation); step = mean plain step; s/kimg = (step + (R1 step − step)/16) · 1000/batch;");
     println!("peak = the case process's peak resident memory; vs ndarr = step time / NdArray's at the same config and resolution; vs res0 = / the first resolution's.");
     Ok(())
+}
+
+/// Timings of a few training steps of a fresh run (the training benchmark's measurement).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct StepTimings {
+    /// First step: R1, inverse-skinning cache fill, kernel compilation.
+    pub first_step_s: f64,
+    /// Mean of the following plain steps (no R1).
+    pub step_s: f64,
+    /// One step with the lazy R1 penalty, after warm-up.
+    pub r1_step_s: f64,
+}
+
+/// Run `steps` plain steps (after one warm-up step) and one R1 step of a fresh run of `config`
+/// on `ds` with `backend`.
+pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps: usize) -> Result<StepTimings> {
+    let ds = Dataset::open(data).with_context(|| format!("opening dataset {}", data.display()))?;
+    let gcfg = GeneratorConfig::preset(config).with_context(|| format!("unknown config `{config}`"))?;
+    let rc = RunConfig::new(&ds, data, gcfg, batch, 10.0, 0);
+    let base = device_for(backend)?;
+    let (ad, plain) = (base.clone().autodiff(), base);
+    let ctx = BodyContext::new(BodyModel::default_body()?, &rc.generator);
+    let grids = PosedGridCache::default();
+    let scans = Vec::new();
+    let mut st = State::new(&rc, &ad, &plain);
+    let (next, first) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+    st = next;
+    let mut plain_s = Vec::new();
+    for _ in 0..steps.max(1) {
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+        st = next;
+        plain_s.push(m.seconds);
+    }
+    st.step = rc.r1_every * (st.step / rc.r1_every + 1);
+    let (_, r1) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+    Ok(StepTimings {
+        first_step_s: first.seconds,
+        step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,
+        r1_step_s: r1.seconds,
+    })
 }

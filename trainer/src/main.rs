@@ -1,6 +1,6 @@
 //! `trainer`: the native GETAvatar command line: body-model conversion, synthetic scans,
-//! dataset preparation, sampling and benchmarks (training, evaluation and inversion as their
-//! issues land).
+//! dataset preparation, training, evaluation, sampling with .glb export, loss plots and
+//! benchmarks. Each subcommand lives in its own module; this file only parses arguments.
 
 mod atomic;
 mod bench;
@@ -210,7 +210,7 @@ fn main() -> Result<()> {
         Command::PlotLosses { run } => {
             let metrics = run.join("metrics.jsonl");
             anyhow::ensure!(metrics.is_file(), "{} has no metrics.jsonl", run.display());
-            atomic::write_atomic(&run.join("losses.png"), &train::loss_plot(&metrics)?)?;
+            atomic::write_atomic(&run.join("losses.png"), &plot::loss_plot(&metrics)?)?;
             println!("wrote {}", run.join("losses.png").display());
         }
         Command::InceptionTestWeights { out } => {

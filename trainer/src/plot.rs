@@ -2,6 +2,12 @@
 //! a moving average bold, horizontal grid lines at round values. `trainer train` writes
 //! `RUN/losses.png` with every snapshot; the legend is fixed (see [`loss_curves`]).
 
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use getavatar_core::dataset::encode_png;
+
 /// Series drawn by [`loss_curves`], top to bottom, with their colours.
 pub const SERIES: [(&str, [u8; 3]); 4] = [
     ("loss_g", [200, 40, 40]),
@@ -81,6 +87,23 @@ pub fn loss_curves(rows: &[[f32; 4]], width: usize, panel: usize, window: usize)
         }
     }
     px
+}
+
+/// `losses.png` from a run's `metrics.jsonl`: G loss, D loss, eikonal, SDF cross-entropy
+/// (top to bottom; raw faint, 20-step moving average bold).
+pub fn loss_plot(metrics: &Path) -> Result<Vec<u8>> {
+    // A step logged twice (a run killed after logging, before its checkpoint) keeps the
+    // later row: the one the resumed run continued from. A torn last line (a kill while
+    // appending) is skipped.
+    let mut by_step = BTreeMap::new();
+    let text = std::fs::read_to_string(metrics).with_context(|| format!("reading {}", metrics.display()))?;
+    for v in text.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()) {
+        let row = SERIES.map(|(k, _)| v.get(k).and_then(|x| x.as_f64()).map_or(f32::NAN, |x| x as f32));
+        by_step.insert(v.get("step").and_then(|s| s.as_u64()).unwrap_or(0), row);
+    }
+    let rows: Vec<[f32; 4]> = by_step.into_values().collect();
+    let (w, panel) = (640, 120);
+    Ok(encode_png(w, panel * SERIES.len(), 3, &loss_curves(&rows, w, panel, 20))?)
 }
 
 #[cfg(test)]

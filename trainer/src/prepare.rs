@@ -15,12 +15,12 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{bail, Context, Result};
 use getavatar_core::camera::sample_data_camera;
 use getavatar_core::dataset::{encode_views, labels_to_json, parse_labels, Label, LABELS_FILE};
-use getavatar_core::rasterize::Texture;
+use getavatar_core::dataset::{find_scans, load_body_fit, load_scan};
 use getavatar_core::rng::{hash_str, Rng};
-use getavatar_core::scan::{parse_mtl, parse_obj, render_scan, RenderableScan, Scan, SmplParams};
+use getavatar_core::scan::{render_scan, RenderableScan};
 
 /// Per-subject labels file of a finished subject (merged into dataset.json).
 const PART_FILE: &str = "labels.part.json";
@@ -39,86 +39,6 @@ pub struct PrepareArgs {
     pub limit: Option<usize>,
 }
 
-/// Subject folders (sorted) of a scans directory: those containing an `.obj`.
-pub fn find_subjects(scans: &Path) -> Result<Vec<(String, PathBuf)>> {
-    let mut out = Vec::new();
-    let rd = std::fs::read_dir(scans).with_context(|| format!("reading scans directory {}", scans.display()))?;
-    for e in rd {
-        let e = e?;
-        if !e.file_type()?.is_dir() {
-            continue;
-        }
-        let dir = e.path();
-        let mut objs: Vec<PathBuf> = std::fs::read_dir(&dir)?
-            .filter_map(|f| f.ok().map(|f| f.path()))
-            .filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case("obj")))
-            .collect();
-        objs.sort();
-        if let Some(obj) = objs.into_iter().next() {
-            out.push((e.file_name().to_string_lossy().into_owned(), obj));
-        }
-    }
-    out.sort();
-    Ok(out)
-}
-
-/// Load a scan: OBJ, its MTL files (next to it) and their textures (PNG or JPEG).
-pub fn load_scan(obj_path: &Path) -> Result<Scan> {
-    let dir = obj_path.parent().unwrap_or(Path::new("."));
-    let text = std::fs::read_to_string(obj_path).with_context(|| format!("reading {}", obj_path.display()))?;
-    let mesh = parse_obj(&text).with_context(|| format!("parsing {}", obj_path.display()))?;
-    let mut materials = Vec::new();
-    for lib in &mesh.mtllibs {
-        let p = dir.join(lib);
-        let t = std::fs::read_to_string(&p).with_context(|| format!("reading material file {}", p.display()))?;
-        materials.extend(parse_mtl(&t).with_context(|| format!("parsing {}", p.display()))?);
-    }
-    let mut textures = Vec::new();
-    let mut colors = Vec::new();
-    for name in &mesh.materials {
-        // Faces without `usemtl` use the only material when there is exactly one.
-        let m =
-            materials.iter().find(|m| &m.name == name).or(if materials.len() == 1 { materials.first() } else { None });
-        colors.push(m.map_or(glam::Vec3::splat(0.8), |m| m.kd));
-        let tex = match m.and_then(|m| m.map_kd.as_ref()) {
-            Some(file) => Some(load_texture(&dir.join(file))?),
-            None => None,
-        };
-        textures.push(tex);
-    }
-    if mesh.uvs.is_empty() && textures.iter().any(Option::is_some) {
-        bail!("{}: textured material but the OBJ has no texture coordinates (vt)", obj_path.display());
-    }
-    Ok(Scan { mesh, textures, colors })
-}
-
-fn load_texture(path: &Path) -> Result<Texture> {
-    let img = image::ImageReader::open(path)
-        .with_context(|| format!("opening texture {}", path.display()))?
-        .with_guessed_format()
-        .with_context(|| format!("reading texture {}", path.display()))?
-        .decode()
-        .with_context(|| format!("decoding texture {}", path.display()))?
-        .to_rgb8();
-    Texture::from_srgb8(img.width() as usize, img.height() as usize, 3, img.as_raw())
-        .ok_or_else(|| anyhow!("texture {} is empty", path.display()))
-}
-
-pub fn load_smpl(subject: &str, obj: &Path, smpl_dir: Option<&Path>) -> Result<SmplParams> {
-    let mut candidates = vec![obj.parent().unwrap_or(Path::new(".")).join("smpl.json")];
-    if let Some(d) = smpl_dir {
-        candidates.insert(0, d.join(format!("{subject}.json")));
-    }
-    let path = candidates.iter().find(|p| p.is_file()).ok_or_else(|| {
-        anyhow!(
-            "no body fit: looked for {}",
-            candidates.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
-        )
-    })?;
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    SmplParams::from_json(&text).with_context(|| format!("in {}", path.display()))
-}
-
 use crate::atomic::write_atomic;
 
 /// The cameras of a subject: deterministic in (seed, subject name), so a resumed run and a
@@ -131,7 +51,7 @@ pub fn subject_cameras(seed: u64, subject: &str, views: usize, centre_y: f32) ->
 /// Render one subject into `out/<subject>/`; returns its labels.
 pub fn prepare_subject(subject: &str, obj: &Path, a: &PrepareArgs, on_view: &dyn Fn()) -> Result<Vec<(String, Label)>> {
     let scan = load_scan(obj)?;
-    let smpl = load_smpl(subject, obj, a.smpl_dir.as_deref())?;
+    let smpl = load_body_fit(subject, obj, a.smpl_dir.as_deref())?;
     let prepared = RenderableScan::new(&scan, &smpl);
     let (lo, hi) = prepared.y_range();
     let cams = subject_cameras(a.seed, subject, a.views, 0.5 * (lo + hi));
@@ -158,7 +78,7 @@ pub fn prepare(a: &PrepareArgs) -> Result<()> {
     if a.views == 0 || !(16..=4096).contains(&a.res) || !(1..=8).contains(&a.ss) {
         bail!("need --views ≥ 1, --res in 16..=4096 and --ss in 1..=8 (got {}, {}, {})", a.views, a.res, a.ss);
     }
-    let mut subjects = find_subjects(&a.scans)?;
+    let mut subjects = find_scans(&a.scans)?;
     if subjects.is_empty() {
         bail!("no subject folders with an .obj under {}", a.scans.display());
     }

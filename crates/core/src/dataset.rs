@@ -16,7 +16,8 @@ use std::path::{Path, PathBuf};
 use glam::Mat4;
 
 use crate::camera::{from_row_major, to_row_major};
-use crate::rasterize::RenderedViews;
+use crate::rasterize::{RenderedViews, Texture};
+use crate::scan::{parse_mtl, parse_obj, Scan, ScanError, SmplParams};
 use crate::skinning::BodyParams;
 
 /// Name of the labels file in a dataset directory.
@@ -37,6 +38,8 @@ pub enum DatasetError {
     Label { entry: String, msg: String },
     #[error("{path}: {msg}")]
     Image { path: PathBuf, msg: String },
+    #[error("{path}: {source}")]
+    Scan { path: PathBuf, source: ScanError },
 }
 
 /// One image's label.
@@ -242,6 +245,100 @@ pub struct Dataset {
 
 fn read(path: &Path) -> Result<Vec<u8>, DatasetError> {
     std::fs::read(path).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })
+}
+
+// Scans on disk: the input of `trainer prepare` and of the training's scan terms (paper
+// Sec. 5: one folder per subject with its OBJ, MTL, textures and body fit `smpl.json`).
+
+/// Subject folders (sorted by name) of a scans directory: those holding an `.obj` (the
+/// first by name when several).
+pub fn find_scans(scans: &Path) -> Result<Vec<(String, PathBuf)>, DatasetError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| DatasetError::Io { path, source }
+    };
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(scans).map_err(io(scans))? {
+        let e = e.map_err(io(scans))?;
+        let dir = e.path();
+        if !e.file_type().map_err(io(&dir))?.is_dir() {
+            continue;
+        }
+        let mut objs = Vec::new();
+        for f in std::fs::read_dir(&dir).map_err(io(&dir))? {
+            let p = f.map_err(io(&dir))?.path();
+            if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("obj")) {
+                objs.push(p);
+            }
+        }
+        objs.sort();
+        if let Some(obj) = objs.into_iter().next() {
+            out.push((e.file_name().to_string_lossy().into_owned(), obj));
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+fn read_text(path: &Path) -> Result<String, DatasetError> {
+    std::fs::read_to_string(path).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })
+}
+
+/// Load a scan: the OBJ, its MTL files (next to it) and their textures (PNG or JPEG).
+pub fn load_scan(obj_path: &Path) -> Result<Scan, DatasetError> {
+    let dir = obj_path.parent().unwrap_or(Path::new("."));
+    let scan_err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| DatasetError::Scan { path, source }
+    };
+    let mesh = parse_obj(&read_text(obj_path)?).map_err(scan_err(obj_path))?;
+    let mut materials = Vec::new();
+    for lib in &mesh.mtllibs {
+        let p = dir.join(lib);
+        materials.extend(parse_mtl(&read_text(&p)?).map_err(scan_err(&p))?);
+    }
+    let mut textures = Vec::new();
+    let mut colors = Vec::new();
+    for name in &mesh.materials {
+        // Faces without `usemtl` use the only material when there is exactly one.
+        let m =
+            materials.iter().find(|m| &m.name == name).or(if materials.len() == 1 { materials.first() } else { None });
+        colors.push(m.map_or(glam::Vec3::splat(0.8), |m| m.kd));
+        let tex = match m.and_then(|m| m.map_kd.as_ref()) {
+            Some(file) => Some(load_texture(&dir.join(file))?),
+            None => None,
+        };
+        textures.push(tex);
+    }
+    if mesh.uvs.is_empty() && textures.iter().any(Option::is_some) {
+        return Err(DatasetError::Image {
+            path: obj_path.to_path_buf(),
+            msg: "textured material but the OBJ has no texture coordinates (vt)".into(),
+        });
+    }
+    Ok(Scan { mesh, textures, colors })
+}
+
+/// A scan's texture image (PNG or JPEG, by content), as sRGB 8-bit RGB.
+fn load_texture(path: &Path) -> Result<Texture, DatasetError> {
+    let bad = |msg: String| DatasetError::Image { path: path.to_path_buf(), msg };
+    let img = image::load_from_memory(&read(path)?).map_err(|e| bad(format!("texture: {e}")))?.to_rgb8();
+    Texture::from_srgb8(img.width() as usize, img.height() as usize, 3, img.as_raw())
+        .ok_or_else(|| bad("texture is empty".into()))
+}
+
+/// A subject's body fit: `<smpl_dir>/<subject>.json` where given and present, else
+/// `smpl.json` next to its OBJ.
+pub fn load_body_fit(subject: &str, obj: &Path, smpl_dir: Option<&Path>) -> Result<SmplParams, DatasetError> {
+    let mut candidates = vec![obj.parent().unwrap_or(Path::new(".")).join("smpl.json")];
+    if let Some(d) = smpl_dir {
+        candidates.insert(0, d.join(format!("{subject}.json")));
+    }
+    let Some(path) = candidates.iter().find(|p| p.is_file()) else {
+        let looked = candidates.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ");
+        return Err(DatasetError::Labels { path: obj.to_path_buf(), msg: format!("no body fit: looked for {looked}") });
+    };
+    SmplParams::from_json(&read_text(path)?).map_err(|source| DatasetError::Scan { path: path.clone(), source })
 }
 
 impl Dataset {

@@ -18,8 +18,8 @@ pub fn discriminator_loss(fake_logits: Tensor<2>, real_logits: Tensor<2>) -> Ten
     softplus(fake_logits, 1.0).mean() + softplus(real_logits.neg(), 1.0).mean()
 }
 
-/// Random unit directions `[K, B, …]`-shaped like `x` repeated: for each of `k` draws, one
-/// direction per sample, normalised over the sample's elements.
+/// Random unit directions shaped like a batch `[B, C, H, W]`: one per sample, uniform on the
+/// sphere of the sample's C·H·W numbers.
 fn unit_directions(rng: &mut Rng, dims: [usize; 4], device: &Device) -> Tensor<4> {
     let [b, c, h, w] = dims;
     let n = c * h * w;
@@ -47,18 +47,16 @@ pub fn r1_penalty(
 ) -> Tensor<1> {
     let dims = x.dims();
     let n = (dims[1] * dims[2] * dims[3]) as f32;
-    let mut acc: Option<Tensor<1>> = None;
-    for _ in 0..k.max(1) {
+    let squared_derivative = |rng: &mut Rng| {
         let u = unit_directions(rng, dims, device) * eps;
         let diff = (d(x.clone() + u.clone()) - d(x.clone() - u)) * (1.0 / (2.0 * eps));
-        let [b, _] = diff.dims();
-        let sq = diff.powf_scalar(2.0).reshape([b]);
-        acc = Some(match acc {
-            None => sq,
-            Some(a) => a + sq,
-        });
+        diff.powf_scalar(2.0).reshape([dims[0]])
+    };
+    let mut acc = squared_derivative(rng);
+    for _ in 1..k {
+        acc = acc + squared_derivative(rng);
     }
-    acc.expect("k ≥ 1") * (n / k.max(1) as f32)
+    acc * (n / k.max(1) as f32)
 }
 
 /// Eikonal loss `mean (‖∇SDF‖ − 1)²` from gradients `[N, 3]`.

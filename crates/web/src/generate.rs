@@ -197,7 +197,7 @@ impl GenEngine {
         // No ψ from the user: the loaded model's default (`generator::default_psi`).
         let psi = psi.unwrap_or_else(|| default_psi(modes.as_ref().as_ref()));
         wasm_bindgen_futures::spawn_local(async move {
-            let t0 = crate::web::now_ms();
+            let t0 = crate::platform::now_ms();
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
             let generated = match keep {
@@ -217,7 +217,7 @@ impl GenEngine {
                 }
                 Ok((rigged, planes)) => {
                     let field = Rc::new(TextureField { styles, planes: RefCell::new(planes) });
-                    Ok(Finished { rigged, field, millis: crate::web::now_ms() - t0, seeds, psi })
+                    Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, seeds, psi })
                 }
             };
             *slot.borrow_mut() = Some(result);

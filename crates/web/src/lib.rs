@@ -5,10 +5,11 @@
 //! download. Everything model-related comes from `getavatar-core`.
 //!
 //! - [`automation`]: URL parameters and the JS hook's commands/status (pure, tested natively)
-//! - `app` (wasm32): the egui application state and panels
+//! - `app` (wasm32): the egui application state and per-frame flow; `app::panels`, `app::texture_job`
 //! - `generate` (wasm32): the generator on burn's wgpu backend sharing egui's WebGPU device
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
-//! - `web` (wasm32): entry point, JS hook, file download
+//! - `platform` (wasm32): clock and file downloads
+//! - `web` (wasm32): entry point owning the app, JS automation hook
 
 pub mod automation;
 
@@ -16,6 +17,8 @@ pub mod automation;
 mod app;
 #[cfg(target_arch = "wasm32")]
 mod generate;
+#[cfg(target_arch = "wasm32")]
+mod platform;
 #[cfg(target_arch = "wasm32")]
 mod viewer;
 #[cfg(target_arch = "wasm32")]

@@ -1,5 +1,5 @@
-//! Browser glue: the wasm entry point, the JS automation hook (`window.getavatar`), file
-//! downloads and timing. Nothing here blocks; commands from JS are queued and applied by the
+//! Browser glue: the wasm entry point, which owns the app, and the JS automation hook
+//! (`window.getavatar`). Nothing here blocks; commands from JS are queued and applied by the
 //! app at the start of its next frame.
 
 use std::cell::RefCell;
@@ -9,7 +9,9 @@ use eframe::egui;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
+use crate::app::GetAvatarApp;
 use crate::automation::{parse_command, parse_query, Action, Status};
+use crate::platform::now_ms;
 
 thread_local! {
     static COMMANDS: RefCell<VecDeque<Result<Action, String>>> = RefCell::new(VecDeque::new());
@@ -17,7 +19,7 @@ thread_local! {
     static CONTEXT: RefCell<Option<egui::Context>> = const { RefCell::new(None) };
 }
 
-pub(crate) fn set_context(ctx: &egui::Context) {
+fn set_context(ctx: &egui::Context) {
     CONTEXT.with(|c| {
         if c.borrow().is_none() {
             *c.borrow_mut() = Some(ctx.clone());
@@ -25,13 +27,35 @@ pub(crate) fn set_context(ctx: &egui::Context) {
     });
 }
 
-pub(crate) fn take_commands() -> Vec<Result<Action, String>> {
+fn take_commands() -> Vec<Result<Action, String>> {
     COMMANDS.with(|q| q.borrow_mut().drain(..).collect())
 }
 
-pub(crate) fn publish_status(status: &Status) {
-    if let Ok(s) = serde_json::to_string(status) {
-        STATUS.with(|st| *st.borrow_mut() = s);
+fn publish_status(status: &Status) -> Result<(), String> {
+    let s = serde_json::to_string(status).map_err(|e| format!("status not serialisable: {e}"))?;
+    STATUS.with(|st| *st.borrow_mut() = s);
+    Ok(())
+}
+
+/// The app as the page runs it: each frame applies the queued automation commands, draws
+/// the app's frame and publishes its status for `getavatar_status()`.
+struct WebApp {
+    app: GetAvatarApp,
+}
+
+impl eframe::App for WebApp {
+    fn ui(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
+        set_context(ui.ctx());
+        for cmd in take_commands() {
+            match cmd {
+                Ok(a) => self.app.apply(a),
+                Err(e) => self.app.report(e),
+            }
+        }
+        self.app.frame(ui, frame);
+        if let Err(e) = publish_status(self.app.status(now_ms())) {
+            console_log(&e);
+        }
     }
 }
 
@@ -54,35 +78,6 @@ pub fn getavatar_command(json: &str) -> String {
 #[wasm_bindgen]
 pub fn getavatar_status() -> String {
     STATUS.with(|s| s.borrow().clone())
-}
-
-pub(crate) fn now_ms() -> f64 {
-    web_sys::window().and_then(|w| w.performance()).map(|p| p.now()).unwrap_or(0.0)
-}
-
-/// Offer `bytes` to the user as a file download.
-pub(crate) fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(), String> {
-    let err = |e: JsValue| format!("{e:?}");
-    let array = js_sys::Uint8Array::from(bytes);
-    let parts = js_sys::Array::of1(&array);
-    let opts = web_sys::BlobPropertyBag::new();
-    opts.set_type(mime);
-    let blob = web_sys::Blob::new_with_u8_array_sequence_and_options(&parts, &opts).map_err(err)?;
-    let url = web_sys::Url::create_object_url_with_blob(&blob).map_err(err)?;
-    let document = web_sys::window().and_then(|w| w.document()).ok_or("no document")?;
-    let a: web_sys::HtmlAnchorElement =
-        document.create_element("a").map_err(err)?.dyn_into().map_err(|_| "not an anchor".to_string())?;
-    a.set_href(&url);
-    a.set_download(name);
-    a.click();
-    // Revoke later: the download has started reading the blob by then.
-    let revoke = Closure::once_into_js(move || {
-        let _ = web_sys::Url::revoke_object_url(&url);
-    });
-    if let Some(w) = web_sys::window() {
-        let _ = w.set_timeout_with_callback_and_timeout_and_arguments_0(revoke.unchecked_ref(), 60_000);
-    }
-    Ok(())
 }
 
 /// Entry point, called by `index.html` after the module loads.
@@ -112,12 +107,31 @@ async fn run() -> Result<(), JsValue> {
         document.get_element_by_id("getavatar_canvas").ok_or("no #getavatar_canvas")?.dyn_into()?;
     let query = window.location().search().unwrap_or_default();
     let (actions, errors) = parse_query(&query);
-    let options = eframe::WebOptions { wgpu_options: crate::app::wgpu_options(), ..Default::default() };
+    let options = eframe::WebOptions { wgpu_options: wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
-        .start(canvas, options, Box::new(move |cc| Ok(Box::new(crate::app::GetAvatarApp::new(cc, actions, errors)))))
+        .start(
+            canvas,
+            options,
+            Box::new(move |cc| Ok(Box::new(WebApp { app: GetAvatarApp::new(cc, actions, errors) }))),
+        )
         .await?;
     if let Some(el) = document.get_element_by_id("loading") {
         el.remove();
     }
     Ok(())
+}
+
+/// The egui wgpu configuration: WebGPU, and a device with the adapter's own limits
+/// (burn kernels need more storage buffers per stage than wgpu's defaults).
+fn wgpu_options() -> eframe::egui_wgpu::WgpuConfiguration {
+    use eframe::egui_wgpu::{self, wgpu, WgpuSetup, WgpuSetupCreateNew};
+    let mut create = WgpuSetupCreateNew::without_display_handle();
+    create.instance_descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
+    create.device_descriptor = std::sync::Arc::new(|adapter: &wgpu::Adapter| wgpu::DeviceDescriptor {
+        label: Some("getavatar device"),
+        required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
+        required_limits: adapter.limits(),
+        ..Default::default()
+    });
+    egui_wgpu::WgpuConfiguration { wgpu_setup: WgpuSetup::CreateNew(create), ..Default::default() }
 }

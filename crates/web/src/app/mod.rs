@@ -1,26 +1,31 @@
-//! The egui application: state, panels and the per-frame flow
-//! (commands → pose the body → upload → render → show → publish status).
+//! The egui application: state and the per-frame flow (poll the generator → start queued
+//! work → pose the body → upload → render → per-pixel texture → panels). The browser side
+//! (`web.rs`) owns the app: it hands it automation commands and publishes its status.
+//!
+//! - `panels`: the side panel and the viewport
+//! - `texture_job`: the per-pixel texture view's job
 
-use eframe::egui;
-use eframe::egui_wgpu;
-use glam::Vec3;
-
-use getavatar_core::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
-use getavatar_core::colour::linear_to_srgb;
-use getavatar_core::gltf_export::{write_glb, ExportMesh};
-use getavatar_core::pose_library::{PoseLibrary, BUILTIN_POSE_NAMES};
-use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
-use getavatar_core::OrbitCamera;
+mod panels;
+mod texture_job;
 
 use std::rc::Rc;
 
-use getavatar_core::generator::default_psi;
-use getavatar_core::rigging::RiggedAvatar;
+use eframe::egui;
+use glam::Vec3;
 
-use crate::automation::{Action, GenerateArgs, Status, ViewMode, RESOLUTIONS};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::generator::default_psi;
+use getavatar_core::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::rigging::RiggedAvatar;
+use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
+use getavatar_core::OrbitCamera;
+
+use crate::automation::{Action, GenerateArgs, Status, ViewMode};
 use crate::generate::{GenEngine, TextureField};
+use crate::platform::{download_bytes, now_ms};
 use crate::viewer::{bone_transforms, Vertex, Viewer};
-use crate::web;
+use texture_job::TextureJob;
 
 /// Linear RGB albedo of the untextured body.
 const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
@@ -144,7 +149,8 @@ impl GetAvatarApp {
         app
     }
 
-    fn apply(&mut self, action: Action) {
+    /// Apply one action: a widget's, a URL parameter's or an automation command's.
+    pub fn apply(&mut self, action: Action) {
         match action {
             Action::Pose(name) => match self.poses.pose(&name) {
                 Ok(p) => {
@@ -295,7 +301,7 @@ impl GetAvatarApp {
         match write_glb(&mesh) {
             Ok(bytes) => {
                 let name = format!("getavatar_{}.glb", self.pose_name);
-                match web::download_bytes(&name, &bytes, "model/gltf-binary") {
+                match download_bytes(&name, &bytes, "model/gltf-binary") {
                     Ok(()) => {
                         self.status.downloads += 1;
                         self.status.last_glb_bytes = bytes.len();
@@ -369,7 +375,7 @@ impl GetAvatarApp {
         if !(self.mesh_dirty || self.render_dirty || self.continuous) {
             return;
         }
-        let t0 = web::now_ms();
+        let t0 = now_ms();
         // The per-pixel texture image no longer shows this frame.
         self.texture_valid = false;
         self.texture_epoch += 1;
@@ -383,265 +389,16 @@ impl GetAvatarApp {
         viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, view_proj, self.camera.eye(), self.view);
         self.render_dirty = false;
         self.status.renders += 1;
-        self.status.last_render_ms = (web::now_ms() - t0) as f32;
+        self.status.last_render_ms = (now_ms() - t0) as f32;
     }
 
-    fn side_panel(&mut self, ui: &mut egui::Ui) {
-        ui.heading("GETAvatar");
-        ui.label(egui::RichText::new(format!("{} · {}", self.status.adapter, self.status.backend)).small());
-        ui.separator();
-
-        ui.strong("Generate");
-        if let Some(e) = &self.engine {
-            ui.label(egui::RichText::new(e.weights.describe()).small());
-        }
-        ui.horizontal(|ui| {
-            ui.label("geometry seed");
-            ui.add(egui::DragValue::new(&mut self.seed_geo));
-            ui.label("texture seed");
-            ui.add(egui::DragValue::new(&mut self.seed_tex));
-        });
-        if ui.add(egui::Slider::new(&mut self.psi, 0.0..=1.0).text("truncation ψ")).changed() {
-            self.psi_from_user = true;
-        }
-        let busy = self.engine.as_ref().is_some_and(|e| e.busy);
-        ui.horizontal(|ui| {
-            if ui.add_enabled(!busy, egui::Button::new("Generate")).clicked() {
-                self.apply(Action::Generate(GenerateArgs::default()));
-            }
-            if ui.add_enabled(!busy && self.rigged.is_some(), egui::Button::new("New texture only")).clicked() {
-                self.seed_tex += 1;
-                self.apply(Action::Retexture(GenerateArgs::default()));
-            }
-            if busy {
-                ui.spinner();
-            }
-        });
-        if self.rigged.is_some() {
-            let mut show = self.show_avatar;
-            if ui.checkbox(&mut show, "show avatar (off: bare body)").changed() {
-                self.apply(Action::ShowAvatar(show));
-            }
-            ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
-        }
-        ui.separator();
-
-        ui.strong("Pose");
-        let mut chosen = None;
-        ui.horizontal_wrapped(|ui| {
-            for name in BUILTIN_POSE_NAMES {
-                if ui
-                    .selectable_label(self.pose_name == name, name)
-                    .on_hover_text(self.poses.description(name).unwrap_or(""))
-                    .clicked()
-                {
-                    chosen = Some(name.to_string());
-                }
-            }
-        });
-        if let Some(n) = chosen {
-            self.apply(Action::Pose(n));
-        }
-        egui::CollapsingHeader::new("Joint rotations (axis-angle, rad)").default_open(false).show(ui, |ui| {
-            egui::ComboBox::from_id_salt("joint").selected_text(JOINT_NAMES[self.edit_joint]).show_ui(ui, |ui| {
-                for (j, n) in JOINT_NAMES.iter().enumerate() {
-                    ui.selectable_value(&mut self.edit_joint, j, *n);
-                }
-            });
-            let j = self.edit_joint.min(NUM_JOINTS - 1);
-            let mut v = self.params.pose[j].to_array();
-            let mut changed = false;
-            for (axis, x) in ["x", "y", "z"].iter().zip(v.iter_mut()) {
-                changed |=
-                    ui.add(egui::Slider::new(x, -std::f32::consts::PI..=std::f32::consts::PI).text(*axis)).changed();
-            }
-            if changed {
-                self.apply(Action::Joint(j, v));
-            }
-            if ui.button("Zero this joint").clicked() {
-                self.apply(Action::Joint(j, [0.0; 3]));
-            }
-        });
-
-        ui.separator();
-        ui.strong("Shape β");
-        if let Some(body) = &self.body {
-            let names = body.shape_names.clone();
-            let nb = body.num_betas;
-            let mut betas = self.params.betas.clone();
-            betas.resize(nb, 0.0);
-            let mut changed = false;
-            for (k, b) in betas.iter_mut().enumerate() {
-                let label = names.get(k).cloned().unwrap_or_else(|| format!("β{k}"));
-                changed |= ui.add(egui::Slider::new(b, -2.0..=2.0).text(label)).changed();
-            }
-            if ui.button("Reset shape").clicked() {
-                betas = vec![0.0; nb];
-                changed = true;
-            }
-            if changed {
-                self.apply(Action::Betas(betas));
-            }
-        }
-
-        ui.separator();
-        ui.strong("View");
-        ui.horizontal(|ui| {
-            for m in [ViewMode::Rgb, ViewMode::Texture, ViewMode::Normal, ViewMode::Mask] {
-                if ui.selectable_label(self.view == m, m.as_str()).clicked() {
-                    self.apply(Action::View(m));
-                }
-            }
-        });
-        ui.horizontal(|ui| {
-            ui.label("Resolution");
-            for r in RESOLUTIONS {
-                if ui.selectable_label(self.res == r, format!("{r}²")).clicked() {
-                    self.apply(Action::Res(r));
-                }
-            }
-        });
-        ui.horizontal(|ui| {
-            if ui.button("Reset camera").clicked() {
-                self.apply(Action::ResetCamera);
-            }
-            ui.checkbox(&mut self.continuous, "continuous")
-                .on_hover_text("re-render every frame (measures FPS under load)");
-        });
-        ui.label(format!(
-            "{:.1} FPS · render {:.1} ms · {} verts · {} tris",
-            self.status.fps, self.status.last_render_ms, self.status.vertices, self.status.triangles
-        ));
-        ui.label(egui::RichText::new("drag: orbit · wheel: zoom · double-click: reset").small());
-
-        ui.separator();
-        if ui.button("⬇ Download .glb").on_hover_text("posed mesh with normals, glTF 2.0 binary").clicked() {
-            self.apply(Action::Download);
-        }
-        if !self.messages.is_empty() {
-            ui.separator();
-            for m in self.messages.iter().rev().take(5) {
-                ui.colored_label(egui::Color32::from_rgb(230, 120, 100), m);
-            }
-        }
+    /// Report an error to the user (shown in the panel and in the status).
+    pub fn report(&mut self, message: String) {
+        self.messages.push(message);
     }
 
-    /// The paper's per-pixel RGB (Sec. 4.4) for the `texture` view: rasterise canonical
-    /// coordinates on the GPU, read them back, query the texture field at every covered
-    /// pixel (burn on the same device), and show the result. One job at a time; a job whose
-    /// frame changed meanwhile is dropped and restarted.
-    fn update_texture(&mut self, rs: &eframe::egui_wgpu::RenderState, ctx: &egui::Context) {
-        let wanted = self.view == ViewMode::Texture && self.show_avatar && self.field.is_some();
-        let (Some(viewer), Some(engine)) = (self.viewer.as_mut(), self.engine.as_mut()) else { return };
-        match self.texture_job.take() {
-            None => {
-                let failed = self.texture_failed_epoch == Some(self.texture_epoch);
-                if wanted && !self.texture_valid && !failed && viewer.request_canonical(&rs.device, &rs.queue, self.res)
-                {
-                    self.texture_job =
-                        Some(TextureJob { epoch: self.texture_epoch, res: self.res, t0: web::now_ms(), pixels: None });
-                }
-            }
-            Some(mut job) if job.pixels.is_none() => match viewer.take_canonical() {
-                None => self.texture_job = Some(job),
-                Some(Err(e)) => {
-                    self.texture_failed_epoch = Some(job.epoch);
-                    self.messages
-                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
-                }
-                Some(Ok(data)) => {
-                    if job.epoch != self.texture_epoch || !wanted {
-                        return;
-                    }
-                    let mut pixels = Vec::new();
-                    let mut points = Vec::new();
-                    for (i, p) in data.chunks_exact(4).enumerate() {
-                        if p[3] > 0.5 {
-                            pixels.push(i as u32);
-                            points.push(Vec3::new(p[0], p[1], p[2]));
-                        }
-                    }
-                    if let Some(field) = &self.field {
-                        engine.query_texture(field.clone(), points, ctx.clone());
-                        job.pixels = Some(pixels);
-                        self.texture_job = Some(job);
-                    }
-                }
-            },
-            Some(job) => match engine.poll_texture() {
-                None => self.texture_job = Some(job),
-                Some(Err(e)) => {
-                    self.texture_failed_epoch = Some(job.epoch);
-                    self.messages
-                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
-                }
-                Some(Ok(colors)) => {
-                    let Some(pixels) = job.pixels else { return };
-                    if job.epoch != self.texture_epoch || !wanted {
-                        return;
-                    }
-                    let n = job.res as usize;
-                    let bg = crate::viewer::background(ViewMode::Texture);
-                    let mut img =
-                        egui::ColorImage::new([n, n], vec![egui::Color32::from_rgb(bg[0], bg[1], bg[2]); n * n]);
-                    for (&i, c) in pixels.iter().zip(&colors) {
-                        let e = (linear_to_srgb(*c) * 255.0).round().clamp(Vec3::ZERO, Vec3::splat(255.0));
-                        img.pixels[i as usize] = egui::Color32::from_rgb(e.x as u8, e.y as u8, e.z as u8);
-                    }
-                    match &mut self.texture_image {
-                        Some(h) => h.set(img, egui::TextureOptions::LINEAR),
-                        None => {
-                            self.texture_image =
-                                Some(ctx.load_texture("per-pixel texture", img, egui::TextureOptions::LINEAR))
-                        }
-                    }
-                    self.texture_valid = true;
-                    self.status.texture_images += 1;
-                    self.status.texture_pixels = pixels.len();
-                    self.status.last_texture_ms = (web::now_ms() - job.t0) as f32;
-                }
-            },
-        }
-    }
-
-    fn viewport(&mut self, ui: &mut egui::Ui) {
-        let texture = match &self.texture_image {
-            Some(h) if self.view == ViewMode::Texture && self.texture_valid && self.show_avatar => Some(h.id()),
-            _ => None,
-        };
-        let Some(id) = texture.or_else(|| self.viewer.as_ref().and_then(|v| v.texture_id)) else {
-            ui.centered_and_justified(|ui| ui.label("WebGPU is not available"));
-            return;
-        };
-        let avail = ui.available_rect_before_wrap();
-        let side = avail.width().min(avail.height()).max(64.0);
-        let rect = egui::Rect::from_center_size(avail.center(), egui::vec2(side, side));
-        let img = egui::Image::new(egui::load::SizedTexture::new(id, egui::vec2(side, side)))
-            .sense(egui::Sense::click_and_drag());
-        let resp = ui.put(rect, img);
-        let r = resp.rect;
-        self.status.viewport = [r.min.x, r.min.y, r.width(), r.height()];
-        if resp.dragged() {
-            let d = resp.drag_delta();
-            self.camera.yaw -= d.x * 0.01;
-            self.camera.pitch += d.y * 0.01;
-            self.camera = self.camera.clamped();
-            self.render_dirty = true;
-        }
-        if resp.double_clicked() {
-            self.apply(Action::ResetCamera);
-        }
-        if resp.hovered() {
-            let scroll = ui.input(|i| i.smooth_scroll_delta.y);
-            if scroll != 0.0 {
-                self.camera.radius *= (-scroll * 0.002).exp();
-                self.camera = self.camera.clamped();
-                self.render_dirty = true;
-            }
-        }
-    }
-
-    fn publish_status(&mut self, now: f64) {
+    /// The status after a frame drawn at `now` (ms): frame rate, camera, errors, counters.
+    pub fn status(&mut self, now: f64) -> &Status {
         self.frame_times.push_back(now);
         while self.frame_times.front().is_some_and(|t| now - t > 1000.0) {
             self.frame_times.pop_front();
@@ -659,20 +416,12 @@ impl GetAvatarApp {
         self.status.seed_tex = self.seed_tex;
         self.status.psi = self.psi;
         self.status.showing = if self.show_avatar { "avatar" } else { "body" }.into();
-        web::publish_status(&self.status);
+        &self.status
     }
-}
 
-impl eframe::App for GetAvatarApp {
-    fn ui(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
-        web::set_context(ui.ctx());
+    /// One frame: everything but the automation hook, which the caller drives.
+    pub fn frame(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
         self.poll_generation();
-        for cmd in web::take_commands() {
-            match cmd {
-                Ok(a) => self.apply(a),
-                Err(e) => self.messages.push(e),
-            }
-        }
         self.start_queued(&ui.ctx().clone());
         self.update_gpu(frame);
         if let Some(rs) = frame.wgpu_render_state() {
@@ -696,31 +445,5 @@ impl eframe::App for GetAvatarApp {
         {
             ui.ctx().request_repaint();
         }
-        self.publish_status(web::now_ms());
     }
-}
-
-/// The egui wgpu configuration: WebGPU, and a device with the adapter's own limits
-/// (burn kernels need more storage buffers per stage than wgpu's defaults).
-pub fn wgpu_options() -> egui_wgpu::WgpuConfiguration {
-    use egui_wgpu::{wgpu, WgpuSetup, WgpuSetupCreateNew};
-    let mut create = WgpuSetupCreateNew::without_display_handle();
-    create.instance_descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
-    create.device_descriptor = std::sync::Arc::new(|adapter: &wgpu::Adapter| wgpu::DeviceDescriptor {
-        label: Some("getavatar device"),
-        required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
-        required_limits: adapter.limits(),
-        ..Default::default()
-    });
-    egui_wgpu::WgpuConfiguration { wgpu_setup: WgpuSetup::CreateNew(create), ..Default::default() }
-}
-
-/// A per-pixel texture image in the making (see `GetAvatarApp::update_texture`).
-struct TextureJob {
-    /// The frame it belongs to.
-    epoch: u64,
-    res: u32,
-    t0: f64,
-    /// Covered pixels (row-major indices) once the canonical coordinates are read back.
-    pixels: Option<Vec<u32>>,
 }

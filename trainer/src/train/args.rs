@@ -1,0 +1,129 @@
+//! `trainer train`'s arguments, and which of them conflict with a continued run.
+
+use std::path::PathBuf;
+
+use super::run_config::{Objective, RunConfig};
+
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    /// Dataset directory (dataset.json + images, see docs/dataset.md).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Generator size: tiny, demo or paper [default: tiny]. Like every run setting below, it
+    /// is fixed when a run starts: with `--resume` a value that differs from the run's is refused.
+    #[arg(long)]
+    pub config: Option<String>,
+    /// Run directory.
+    #[arg(long, default_value = "runs/train")]
+    pub out: PathBuf,
+    /// Continue the run in --out; with a file: start the generator from that checkpoint
+    /// (transfer learning, e.g. onto a dataset without normal maps).
+    #[arg(long, num_args = 0..=1)]
+    pub resume: Option<Option<PathBuf>>,
+    /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
+    #[arg(long, default_value = "ndarray")]
+    pub backend: String,
+    /// [default: 4]
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Train until this many steps in total.
+    #[arg(long, default_value_t = 1000)]
+    pub steps: u64,
+    /// Checkpoint and sample grid every N steps.
+    #[arg(long, default_value_t = 100)]
+    pub snapshot_every: u64,
+    /// [default: 0]
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// R1 weight γ (10 for THUman2.0-like data, 20 for RenderPeople) [default: 10].
+    #[arg(long)]
+    pub r1_gamma: Option<f32>,
+    /// `adversarial`: the paper's objective. `reconstruction`: a warm-up that is not in the
+    /// paper (fixed latents per training subject, L1 to its views); start an adversarial
+    /// run from its generator with `--resume RUN/generator.safetensors` [default: adversarial].
+    #[arg(long, value_enum)]
+    pub objective: Option<Objective>,
+    /// Adversarial runs only (not in the paper): weight of a reconstruction anchor added to
+    /// G's loss, the warm-up's L1 on a batch of subject views at their fixed latents, so that
+    /// an adversarial run started from a warm-up keeps its subjects while the game spreads the
+    /// rest of the latent space. 0 (the default) is the paper's objective.
+    #[arg(long)]
+    pub lambda_reconstruction: Option<f32>,
+    /// Reconstruction terms only (the warm-up, and the anchor of adversarial runs): views
+    /// rendered per drawn subject, the drawn one plus others of the same subject and body pose.
+    /// One surface serves all of them (triplanes, inverse skinning and DMTet are per avatar),
+    /// so each step sees `batch × views` images for little more than `batch` [default: 1].
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Reconstruction terms only (not in the paper): the scans the dataset was prepared from
+    /// (`prepare --scans`, one folder per subject with its OBJ and smpl.json). Adds
+    /// canonical-space texture and SDF supervision at points drawn on each drawn subject's
+    /// scan (`diff::scan_supervision`), weighted by `--lambda-scan`.
+    #[arg(long)]
+    pub scans: Option<PathBuf>,
+    /// Weight of the scan terms (with `--scans`) [default: 1].
+    #[arg(long)]
+    pub lambda_scan: Option<f32>,
+    /// Reconstruction terms only (not in the paper): weight of a texture-swap term. Each drawn
+    /// subject's surface is also coloured by the texture field built from another drawn
+    /// subject's geometry code with its own texture code, and that RGB is compared with the
+    /// subject's views by L1 too. With fixed latent pairs alone the colours can hide in the
+    /// geometry-styled backbone, and a seed's texture code then hardly changes the colours
+    /// (re-texturing renders blends); this term makes them follow the texture code. 0 (the
+    /// default): off.
+    #[arg(long)]
+    pub lambda_texture_swap: Option<f32>,
+}
+
+impl TrainArgs {
+    /// `--config`, or its default.
+    pub fn config_name(&self) -> &str {
+        self.config.as_deref().unwrap_or("tiny")
+    }
+
+    /// `--batch`, or its default.
+    pub fn batch_size(&self) -> usize {
+        self.batch.unwrap_or(4)
+    }
+
+    /// The flags that fix a run's settings and conflict with a continued run `rc`: one row per
+    /// flag (the flag, the value given, the run's value, the `run.json` field to edit instead).
+    /// Flags that were not given never conflict; the others must equal the run's value.
+    pub fn resume_conflicts(&self, rc: &RunConfig) -> Vec<String> {
+        let num = |v: f32| v.to_string();
+        let objective = |o: Objective| format!("{o:?}").to_lowercase();
+        let rows: [(&str, Option<String>, String, &str); 10] = [
+            ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
+            ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
+            ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
+            ("--r1-gamma", self.r1_gamma.map(num), num(rc.r1_gamma), "r1_gamma"),
+            ("--objective", self.objective.map(objective), objective(rc.objective), "objective"),
+            ("--views", self.views.map(|v| v.to_string()), rc.views_per_subject.to_string(), "views_per_subject"),
+            (
+                "--scans",
+                self.scans.as_ref().map(|d| d.display().to_string()),
+                rc.scans.clone().unwrap_or_else(|| "(none)".into()),
+                "scans",
+            ),
+            ("--lambda-scan", self.lambda_scan.map(num), num(rc.lambda_scan), "lambda_scan"),
+            (
+                "--lambda-reconstruction",
+                self.lambda_reconstruction.map(num),
+                num(rc.lambda_reconstruction),
+                "lambda_reconstruction",
+            ),
+            (
+                "--lambda-texture-swap",
+                self.lambda_texture_swap.map(num),
+                num(rc.lambda_texture_swap),
+                "lambda_texture_swap",
+            ),
+        ];
+        rows.into_iter()
+            .filter_map(|(flag, given, run, field)| match given {
+                Some(g) if g != run => Some(format!("{flag} {g} differs from the run's {run} (field `{field}`)")),
+                _ => None,
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,177 @@
+//! `trainer train`: the paper's adversarial training (Sec. 4.5) on a prepared dataset.
+//!
+//! Per step (`adversarial`): a D phase (non-saturating loss of the three discriminators — RGB, normal map,
+//! mask — on real images and detached fakes; every `r1_every` steps the finite-difference R1
+//! penalty on reals, scaled for lazy regularisation) and a G phase (non-saturating G loss
+//! through the differentiable renderer + λ_eik·eikonal + λ_ce·SDF cross-entropy), Adam
+//! β = (0, 0.99), w_avg tracking and an EMA of G. Fakes use body poses and cameras drawn from
+//! the dataset's labels.
+//!
+//! `RUN/` holds `run.json` (the run's settings), `state.safetensors` (G, G_ema, the three Ds,
+//! Adam moments, step and RNG state: resume continues bit-identically on the same backend),
+//! `generator.safetensors` (G_ema alone, what `trainer sample` and the app load),
+//! `metrics.jsonl` and `samples_<step>.png` grids (RGB | normal | mask at fixed seeds and
+//! poses). Every file is written to a temporary name and renamed, so a kill at any moment
+//! leaves the previous checkpoint intact.
+//!
+//! Modules, along StyleGAN's training loop: `args` (the CLI), `run_config` (`run.json`),
+//! `state` (`state.safetensors`), `step` (what both objectives share), `adversarial` (the
+//! paper's step), `reconstruction` (the warm-up, anchor and scan terms), `snapshots`
+//! (sample grids).
+
+mod adversarial;
+mod args;
+mod reconstruction;
+mod run_config;
+mod snapshots;
+mod state;
+mod step;
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::checkpoint::{load_generator, save_generator_with_modes};
+use getavatar_core::dataset::Dataset;
+use getavatar_core::diff::avatar::PosedGridCache;
+use getavatar_core::diff::scan_supervision::CanonicalSamples;
+use getavatar_core::generator::BodyContext;
+
+pub use args::TrainArgs;
+pub use run_config::{Objective, RunConfig};
+pub use state::{device_for, State};
+pub use step::Metrics;
+
+use crate::atomic::write_atomic;
+use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
+use snapshots::sample_grid;
+
+/// One training step of the run's objective.
+pub fn train_step(
+    st: State,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<(State, Metrics)> {
+    match rc.objective {
+        Objective::Adversarial => adversarial::adversarial_step(st, ds, ctx, grids, scans, rc, ad),
+        Objective::Reconstruction => reconstruction_step(st, ds, ctx, grids, scans, rc, ad),
+    }
+}
+
+pub fn train(a: &TrainArgs) -> Result<()> {
+    let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
+    if !ds.resolution.is_power_of_two() || ds.resolution < 16 {
+        bail!("dataset resolution {} must be a power of two ≥ 16", ds.resolution);
+    }
+    let base = device_for(&a.backend)?;
+    let (ad, plain) = (base.clone().autodiff(), base);
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let run_path = a.out.join("run.json");
+    let state_path = a.out.join("state.safetensors");
+    let continuing = matches!(a.resume, Some(None));
+    let rc = if continuing {
+        RunConfig::continued(a, &run_path)?
+    } else {
+        if state_path.exists() {
+            bail!(
+                "{} already holds a training run: pass --resume to continue it, or choose another --out",
+                a.out.display()
+            );
+        }
+        let rc = RunConfig::from_args(a, &ds)?;
+        write_atomic(&run_path, serde_json::to_string_pretty(&rc)?.as_bytes())?;
+        rc
+    };
+    if rc.resolution != ds.resolution {
+        bail!("the run was trained at {}², the dataset has {}² images", rc.resolution, ds.resolution);
+    }
+    let rc = RunConfig { use_normals: rc.use_normals && ds.has_normals, ..rc };
+    let mut st = if continuing && state_path.exists() {
+        let bytes = std::fs::read(&state_path)?;
+        State::load(&bytes, &rc, &ad, &plain).with_context(|| format!("loading {}", state_path.display()))?
+    } else {
+        let mut st = State::new(&rc, &ad, &plain);
+        if let Some(Some(init)) = &a.resume {
+            // Transfer learning (paper Sec. 5.3): start G from a trained generator.
+            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+            st.g = load_generator(&bytes, &rc.generator, &ad)?;
+            st.g_ema = load_generator(&bytes, &rc.generator, &plain)?;
+            println!("initialised the generator from {}", init.display());
+        }
+        st
+    };
+    if !rc.use_normals {
+        println!("the dataset has no normal maps: the normal discriminator is off");
+    }
+    let model = BodyModel::default_body()?;
+    let ctx = BodyContext::new(model, &rc.generator);
+    let grids = PosedGridCache::default();
+    let scans = match &rc.scans {
+        Some(dir) if rc.lambda_scan > 0.0 => canonical_scan_samples(Path::new(dir), &ds, &ctx, rc.seed)?,
+        _ => Vec::new(),
+    };
+    let bar = crate::progress::bar(a.steps, "steps");
+    bar.set_position(st.step.min(a.steps));
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
+    let t0 = std::time::Instant::now();
+    let start = st.step;
+    let mut last = Metrics::default();
+    let snapshot = |st: &State, step: u64| -> Result<()> {
+        let mut extra = BTreeMap::new();
+        extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
+        extra.insert("step".to_string(), step.to_string());
+        let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
+        let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
+        write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
+        write_atomic(&state_path, &st.save(&rc)?)?;
+        let (png, fit) = sample_grid(st, &ds, &ctx, &grids, &rc, &plain)?;
+        write_atomic(&a.out.join(format!("samples_{step:06}.png")), &png)?;
+        if let Some(fit) = fit {
+            // One line per snapshot; a resumed run appends (rows of steps done twice after
+            // a crash appear twice, the later one counts).
+            let mut f = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("grid_l1.jsonl"))?;
+            writeln!(f, "{}", serde_json::to_string(&fit)?)?;
+        }
+        write_atomic(&a.out.join("losses.png"), &crate::plot::loss_plot(&a.out.join("metrics.jsonl"))?)
+    };
+    while st.step < a.steps {
+        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+        st = next;
+        writeln!(log, "{}", serde_json::to_string(&m)?)?;
+        bar.set_position(st.step);
+        let rec = m.reconstruction.map(|r| format!(" rec {r:.4}")).unwrap_or_default();
+        bar.set_message(format!(
+            "kimg {:.3} G {:.3} D {:.3} eik {:.3} ce {:.3}{rec}",
+            m.kimg, m.loss_g, m.loss_d, m.eikonal, m.cross_entropy
+        ));
+        if !(m.loss_g.is_finite() && m.loss_d.is_finite()) {
+            bail!("step {}: non-finite loss (G {}, D {}); the last checkpoint is intact", m.step, m.loss_g, m.loss_d);
+        }
+        if st.step % a.snapshot_every == 0 || st.step == a.steps {
+            snapshot(&st, st.step)?;
+        }
+        last = m;
+    }
+    bar.finish_and_clear();
+    let dt = t0.elapsed().as_secs_f64();
+    let done = st.step - start;
+    println!(
+        "trained {done} steps ({:.3} kimg total) in {:.1} s ({:.2} s/step, {:.1} s/kimg) on {}; last losses G {:.4} D {:.4}; checkpoint {}",
+        st.step as f64 * rc.batch as f64 / 1000.0,
+        dt,
+        dt / done.max(1) as f64,
+        dt / (done.max(1) as f64 * rc.batch as f64 / 1000.0),
+        a.backend,
+        last.loss_g,
+        last.loss_d,
+        state_path.display()
+    );
+    Ok(())
+}

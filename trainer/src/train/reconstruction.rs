@@ -1,0 +1,243 @@
+//! The reconstruction terms (not in the paper): the warm-up objective (fixed latents per
+//! training subject, L1 to its views), the anchor of adversarial runs, the texture-swap and
+//! canonical-space scan terms, and the subjects' latent modes saved with the generator.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Result};
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::camera::View;
+use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset, Label};
+use getavatar_core::diff::avatar::{render_avatar_views_retextured, FakeViews, PosedGridCache};
+use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
+use getavatar_core::generator::{BodyContext, Generator, LatentModes, ModePairing, Styles};
+use getavatar_core::optim::ema_update;
+use getavatar_core::rng::Rng;
+
+use super::run_config::{Objective, RunConfig, SCAN_POINTS_PER_STEP, SCAN_POOL_POINTS};
+use super::state::State;
+use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics};
+
+/// Subject of every dataset entry (the folder part of its image path) as an index into the
+/// sorted subject names.
+pub(crate) fn subject_of_entries(ds: &Dataset) -> Vec<usize> {
+    let names: std::collections::BTreeSet<&str> = ds.entries.iter().map(|(p, _)| subject_name(p)).collect();
+    let names: Vec<&str> = names.into_iter().collect();
+    ds.entries.iter().map(|(p, _)| names.binary_search(&subject_name(p)).unwrap_or(0)).collect()
+}
+
+/// The subject (folder) of a dataset entry `subject/view.png`; "" for a top-level file.
+pub(crate) fn subject_name(entry: &str) -> &str {
+    entry.rsplit_once('/').map_or("", |(d, _)| d)
+}
+
+/// The fixed latent pair (z_geo, z_tex) `[B, z_dim]` of each subject for the reconstruction
+/// objective (a function of the run seed and the subject index only).
+pub(crate) fn subject_latents(rc: &RunConfig, subjects: &[usize], dev: &Device) -> (Tensor<2>, Tensor<2>) {
+    let z = rc.generator.z_dim;
+    let draw = |stream: u64| -> Vec<f32> {
+        subjects.iter().flat_map(|&s| Rng::new(rc.seed.wrapping_add(stream), s as u64).normals(z)).collect()
+    };
+    let t = |v: Vec<f32>| Tensor::from_data(TensorData::new(v, [subjects.len(), z]), dev);
+    (t(draw(0x9e0)), t(draw(0x7e8)))
+}
+
+/// The W codes of the training subjects' fixed latents under `g`, saved with the generator of
+/// reconstruction and anchored runs as the modes of multi-modal truncation; None for the
+/// paper's objective, whose latents have no subjects.
+pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> Option<LatentModes> {
+    if rc.objective == Objective::Adversarial && rc.lambda_reconstruction == 0.0 {
+        return None;
+    }
+    let n = subject_of_entries(ds).into_iter().max()? + 1;
+    let (zg, zt) = subject_latents(rc, &(0..n).collect::<Vec<_>>(), dev);
+    // With the texture-swap term the colours follow the texture code, so each branch may
+    // go to its own nearest subject (one subject's geometry, another's colours).
+    let pairing = if rc.lambda_texture_swap > 0.0 { ModePairing::Branch } else { ModePairing::Subject };
+    Some(LatentModes { geo: g.mapping_geo.forward(zg), tex: g.mapping_tex.forward(zt), pairing })
+}
+
+/// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
+/// from `rng`), each at its subject's fixed latents and the view's camera and body pose, plus
+/// `rc.views_per_subject − 1` further views of the same avatar, and is compared with the real
+/// images by L1 (RGB + mask, + normal map where the data has them).
+/// With `scans` (one per subject) and `rc.lambda_scan > 0`, adds the weighted scan terms at
+/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan. With
+/// `rc.lambda_texture_swap > 0` (and more than one subject in the batch), adds the weighted
+/// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
+/// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views.
+pub(crate) fn subject_reconstruction(
+    g: &Generator,
+    rng: &mut Rng,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<SubjectReconstruction> {
+    let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
+    let subjects = subject_of_entries(ds);
+    // Each drawn view, then further views of its subject under the same body pose and shape
+    // (drawn with replacement; none are drawn with one view per subject, keeping older runs'
+    // random streams).
+    let body = |i: usize| {
+        let l = &ds.entries[i].1;
+        (l.global_orient, l.body_pose, l.betas)
+    };
+    let groups: Vec<Vec<usize>> = idx
+        .iter()
+        .map(|&i| {
+            let mut group = vec![i];
+            if rc.views_per_subject > 1 {
+                let others: Vec<usize> =
+                    (0..ds.len()).filter(|&j| j != i && subjects[j] == subjects[i] && body(j) == body(i)).collect();
+                if !others.is_empty() {
+                    group.extend((1..rc.views_per_subject).map(|_| others[rng.below(others.len())]));
+                }
+            }
+            group
+        })
+        .collect();
+    let views: Vec<Vec<View>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.view()).collect()).collect();
+    let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
+    let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
+    let styles = g.styles(zg.clone(), zt.clone(), 1.0);
+    let b = styles.geo.dims()[0];
+    let swap = (rc.lambda_texture_swap > 0.0 && b > 1).then(|| Styles {
+        geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),
+        tex: styles.tex.clone(),
+    });
+    let fakes = render_avatar_views_retextured(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad)?;
+    let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
+    let mut texture_swap = None;
+    let mut swap_loss = None;
+    if let Some(rgb) = fakes.rgb_retextured.clone() {
+        let t = l1(rgb, real_rgb.clone());
+        texture_swap = Some(scalar(t.clone())?);
+        swap_loss = Some(t * rc.lambda_texture_swap);
+    }
+    let mut loss = l1(fakes.rgb.clone(), real_rgb) + l1(fakes.mask.clone(), real_msk);
+    if rc.use_normals {
+        loss = loss + l1(fakes.normal.clone(), real_nrm);
+    }
+    let l1 = scalar(loss.clone())?;
+    if let Some(t) = swap_loss {
+        loss = loss + t;
+    }
+    let mut scan = None;
+    if rc.lambda_scan > 0.0 && !scans.is_empty() {
+        let batch: Vec<(&CanonicalSamples, Vec<usize>)> = idx
+            .iter()
+            .map(|&i| {
+                let s = &scans[subjects[i].min(scans.len() - 1)];
+                (s, (0..SCAN_POINTS_PER_STEP).map(|_| rng.below(s.len().max(1))).collect())
+            })
+            .collect();
+        let terms = scan_losses(g, ctx, &styles, &batch, ad);
+        scan = Some((scalar(terms.texture.clone())?, scalar(terms.sdf.clone())?));
+        loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
+    }
+    Ok(SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt })
+}
+
+/// The reconstruction terms of one step ([`subject_reconstruction`]).
+pub(crate) struct SubjectReconstruction {
+    /// Image L1 plus the weighted scan terms.
+    pub(crate) loss: Tensor<1>,
+    /// The image L1 alone.
+    pub(crate) l1: f32,
+    /// Scan texture and SDF terms (unweighted), where used.
+    pub(crate) scan: Option<(f32, f32)>,
+    /// The texture-swap L1 (unweighted), where used.
+    pub(crate) texture_swap: Option<f32>,
+    /// The renders (for the eikonal and cross-entropy terms).
+    pub(crate) fakes: FakeViews,
+    pub(crate) zg: Tensor<2>,
+    pub(crate) zt: Tensor<2>,
+}
+
+/// One step of the reconstruction warm-up (`Objective::Reconstruction`): the subject
+/// reconstruction L1 plus the eikonal and SDF cross-entropy terms; then w_avg tracking and an
+/// EMA with StyleGAN2-ADA's ramp-up (half-life at most 5 % of the images seen so far).
+pub(crate) fn reconstruction_step(
+    mut st: State,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    grids: &PosedGridCache,
+    scans: &[CanonicalSamples],
+    rc: &RunConfig,
+    ad: &Device,
+) -> Result<(State, Metrics)> {
+    let t0 = std::time::Instant::now();
+    let b = rc.batch;
+    let SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt } =
+        subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
+    let metrics = Metrics {
+        loss_g: scalar(loss.clone())?,
+        reconstruction: Some(l1),
+        scan_texture: scan.map(|s| s.0),
+        scan_sdf: scan.map(|s| s.1),
+        texture_swap,
+        eikonal: scalar(fakes.eikonal.clone())?,
+        cross_entropy: scalar(fakes.cross_entropy.clone())?,
+        triangles: fakes.triangles.iter().sum::<usize>() as f32 / fakes.triangles.len().max(1) as f32,
+        ..Metrics::default()
+    };
+    let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
+    let grads = total.backward();
+    let g = track_w_avg(generator_update(&mut st.adam_g, rc, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
+    let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
+    let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
+    st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));
+    st.g = g;
+    st.step += 1;
+    let (step, seconds) = (st.step, t0.elapsed().as_secs_f64());
+    Ok((st, Metrics { step, kimg: step as f64 * b as f64 / 1000.0, seconds, ..metrics }))
+}
+
+/// The scan samples of every dataset subject (index = `subject_of_entries`), in canonical
+/// space under the body fit of the subject's views: `SCAN_POOL_POINTS` points per scan, drawn
+/// deterministically from (seed, subject name). A subject without a scan under `dir` is an
+/// error.
+pub(crate) fn canonical_scan_samples(
+    dir: &Path,
+    ds: &Dataset,
+    ctx: &BodyContext,
+    seed: u64,
+) -> Result<Vec<CanonicalSamples>> {
+    let found: BTreeMap<String, PathBuf> = find_scans(dir)?.into_iter().collect();
+    let subjects = subject_of_entries(ds);
+    let n = subjects.iter().copied().max().map_or(0, |m| m + 1);
+    // Each subject's name and the body fit of its first view.
+    let mut first: Vec<Option<(String, Label)>> = vec![None; n];
+    for ((path, label), &s) in ds.entries.iter().zip(&subjects) {
+        if first[s].is_none() {
+            first[s] = Some((subject_name(path).to_string(), label.clone()));
+        }
+    }
+    let bar = crate::progress::bar(n as u64, "scans");
+    bar.set_message(format!("scan samples from {}", dir.display()));
+    let load = |(name, label): &(String, Label)| -> Result<CanonicalSamples> {
+        let obj = found.get(name).ok_or_else(|| anyhow!("no scan of subject `{name}` under {}", dir.display()))?;
+        let scan = load_scan(obj)?;
+        let smpl = load_body_fit(name, obj, None)?;
+        let prepared = getavatar_core::scan::RenderableScan::new(&scan, &smpl);
+        let mut rng = Rng::new(seed, getavatar_core::rng::hash_str(name));
+        let surface = getavatar_core::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
+        if surface.is_empty() {
+            bail!("the scan of subject `{name}` has no surface area");
+        }
+        bar.inc(1);
+        Ok(CanonicalSamples::from_surface(&surface, ctx, &label.body_params()))
+    };
+    let todo: Vec<&(String, Label)> = first.iter().flatten().collect();
+    let out: Vec<CanonicalSamples> = {
+        use rayon::prelude::*;
+        todo.par_iter().map(|x| load(x)).collect::<Result<_>>()?
+    };
+    bar.finish_and_clear();
+    println!("scan terms: {} points from each of {} scans under {}", SCAN_POOL_POINTS, out.len(), dir.display());
+    Ok(out)
+}

@@ -1,0 +1,228 @@
+//! A run's settings (`run.json`): the reference code's values for a fresh run, or the
+//! flags' values where given. Fixed when the run starts; `--resume` reads them back.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::dataset::Dataset;
+use getavatar_core::network::discriminator::DiscriminatorConfig;
+use getavatar_core::network::GeneratorConfig;
+use serde::{Deserialize, Serialize};
+
+use super::args::TrainArgs;
+
+/// Points drawn per scan and kept for training (`--scans`).
+pub const SCAN_POOL_POINTS: usize = 16384;
+/// Points of each drawn subject's pool used per step.
+pub const SCAN_POINTS_PER_STEP: usize = 2048;
+
+/// What a run optimises.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Objective {
+    /// The paper's objective (Sec. 4.5): three discriminators, R1, eikonal, SDF cross-entropy.
+    #[default]
+    Adversarial,
+    /// A warm-up that is not in the paper: every training subject gets a fixed latent pair
+    /// (z_geo, z_tex) and G learns to reproduce that subject's views (L1 on RGB, normal map and
+    /// mask, plus the eikonal and cross-entropy terms). Dense per-pixel gradients teach garment
+    /// colours and shapes in far fewer steps than the adversarial game; an adversarial run
+    /// started from it (`--resume GENERATOR`) then spreads the latent space. Adam β₁ = 0.9 and
+    /// lr 0.0005 (a quarter of the adversarial rate) except the texture branch (0.002).
+    Reconstruction,
+}
+
+/// Settings of a run (written once to `run.json`, read back on resume).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct RunConfig {
+    pub generator: GeneratorConfig,
+    pub discriminator: DiscriminatorConfig,
+    pub data: String,
+    pub resolution: usize,
+    pub use_normals: bool,
+    pub batch: usize,
+    pub lr_g: f32,
+    /// Factor on `lr_g` for the generator's texture branch (`generator::is_texture_param`).
+    /// Absent in runs written before it existed: 1. It may be edited in `run.json` between
+    /// sessions; `--resume` reads it back.
+    #[serde(default = "one")]
+    pub lr_texture_mul: f32,
+    /// Factor on `lr_g` for the SDF-residual and DMTet-offset decoders
+    /// (`generator::is_geometry_head_param`). Absent in older runs: 1. Editable in `run.json` like the above.
+    #[serde(default = "one")]
+    pub lr_geometry_head_mul: f32,
+    pub lr_d: f32,
+    pub r1_gamma: f32,
+    pub r1_every: u64,
+    pub r1_directions: usize,
+    pub lambda_eikonal: f32,
+    pub lambda_cross_entropy: f32,
+    pub ema_kimg: f32,
+    pub seed: u64,
+    /// Absent in runs written before it existed: adversarial.
+    #[serde(default)]
+    pub objective: Objective,
+    /// Weight of the reconstruction anchor in adversarial G steps (`TrainArgs::lambda_reconstruction`).
+    /// Absent in older runs: 0. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub lambda_reconstruction: f32,
+    /// Views per subject in the reconstruction terms (`TrainArgs::views`). Absent in older
+    /// runs: 1. Editable in `run.json` like the learning-rate factors.
+    #[serde(default = "one_view")]
+    pub views_per_subject: usize,
+    /// Scans of the subjects for the canonical-space scan terms (`TrainArgs::scans`); absent:
+    /// none. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub scans: Option<String>,
+    /// Weight of the scan terms. Absent in older runs: 0.
+    #[serde(default)]
+    pub lambda_scan: f32,
+    /// Weight of the texture-swap term (`TrainArgs::lambda_texture_swap`). Absent in older
+    /// runs: 0. Editable in `run.json` like the learning-rate factors.
+    #[serde(default)]
+    pub lambda_texture_swap: f32,
+}
+
+pub(crate) fn one_view() -> usize {
+    1
+}
+
+impl RunConfig {
+    /// The settings of a fresh run on `ds` (the reference code's values, see
+    /// `../shared/reference/paper-code-facts.md`; EMA half-life scaled to the batch).
+    pub fn new(ds: &Dataset, data: &Path, generator: GeneratorConfig, batch: usize, r1_gamma: f32, seed: u64) -> Self {
+        Self::with_objective(ds, data, generator, batch, r1_gamma, seed, Objective::Adversarial)
+    }
+
+    pub fn with_objective(
+        ds: &Dataset,
+        data: &Path,
+        generator: GeneratorConfig,
+        batch: usize,
+        r1_gamma: f32,
+        seed: u64,
+        objective: Objective,
+    ) -> Self {
+        Self {
+            discriminator: discriminator_config(ds.resolution, &generator),
+            generator,
+            data: data.display().to_string(),
+            resolution: ds.resolution,
+            use_normals: ds.has_normals,
+            batch,
+            // The reconstruction warm-up's dense L1 gradients overshoot at the adversarial rate
+            // (the SDF residual inflated and collapsed whole avatars within 100 steps at 0.002).
+            lr_g: match objective {
+                Objective::Adversarial => 0.002,
+                Objective::Reconstruction => 0.0005,
+            },
+            // Colours only reach the RGB image, so the texture branch cannot inflate or collapse
+            // the surface: it learns at the adversarial rate in the warm-up.
+            lr_texture_mul: match objective {
+                Objective::Adversarial => 1.0,
+                Objective::Reconstruction => 4.0,
+            },
+            // With silhouette gradients reaching the SDF, the adversarial game at the full rate
+            // moves the surface by centimetres per step while D is still near chance, and
+            // small avatars vanish within a few steps; the heads that place the surface learn
+            // at a tenth of the rate there.
+            lr_geometry_head_mul: match objective {
+                Objective::Adversarial => 0.1,
+                Objective::Reconstruction => 1.0,
+            },
+            lr_d: 0.002,
+            r1_gamma,
+            r1_every: 16,
+            r1_directions: 4,
+            lambda_eikonal: 0.001,
+            lambda_cross_entropy: 0.01,
+            ema_kimg: 10.0f32.min(batch as f32 * 10.0 / 32.0),
+            seed,
+            objective,
+            lambda_reconstruction: 0.0,
+            views_per_subject: 1,
+            scans: None,
+            lambda_scan: 0.0,
+            lambda_texture_swap: 0.0,
+        }
+    }
+}
+
+pub(crate) fn one() -> f32 {
+    1.0
+}
+
+fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig {
+    match g.name.as_str() {
+        "paper" => DiscriminatorConfig::new(res, 32768, 512),
+        "demo" => DiscriminatorConfig::new(res, 2048, 64),
+        _ => DiscriminatorConfig::new(res, 512, 32),
+    }
+}
+
+impl RunConfig {
+    /// A fresh run's settings from the flags (defaults where not given), validated.
+    pub fn from_args(a: &TrainArgs, ds: &Dataset) -> Result<Self> {
+        let objective = a.objective.unwrap_or_default();
+        let lambda_reconstruction = a.lambda_reconstruction.unwrap_or(0.0);
+        let lambda_texture_swap = a.lambda_texture_swap.unwrap_or(0.0);
+        let lambda_scan = a.lambda_scan.unwrap_or(1.0);
+        let views = a.views.unwrap_or(1);
+        let reconstruction_terms = objective == Objective::Reconstruction || lambda_reconstruction > 0.0;
+        if lambda_reconstruction != 0.0 && objective != Objective::Adversarial {
+            bail!("--lambda-reconstruction weighs an anchor of adversarial runs; the reconstruction objective is that term alone");
+        }
+        if !(lambda_reconstruction >= 0.0 && lambda_reconstruction.is_finite()) {
+            bail!("--lambda-reconstruction must be a finite weight ≥ 0, got {lambda_reconstruction}");
+        }
+        if views == 0 {
+            bail!("--views must be at least 1");
+        }
+        if views > 1 && !reconstruction_terms {
+            bail!("--views applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
+        if a.scans.is_some() && !reconstruction_terms {
+            bail!("--scans applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
+        if !(lambda_scan >= 0.0 && lambda_scan.is_finite()) {
+            bail!("--lambda-scan must be a finite weight ≥ 0, got {lambda_scan}");
+        }
+        if !(lambda_texture_swap >= 0.0 && lambda_texture_swap.is_finite()) {
+            bail!("--lambda-texture-swap must be a finite weight ≥ 0, got {lambda_texture_swap}");
+        }
+        if lambda_texture_swap > 0.0 && !reconstruction_terms {
+            bail!("--lambda-texture-swap applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
+        let r1_gamma = a.r1_gamma.unwrap_or(10.0);
+        if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
+            bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
+        }
+        let gcfg = GeneratorConfig::preset(a.config_name())
+            .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
+        Ok(RunConfig {
+            lambda_reconstruction,
+            views_per_subject: views,
+            scans: a.scans.as_ref().map(|d| d.display().to_string()),
+            lambda_scan: if a.scans.is_some() { lambda_scan } else { 0.0 },
+            lambda_texture_swap,
+            ..RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective)
+        })
+    }
+
+    /// A continued run's settings, read from `run_path`; flags that differ from them are
+    /// refused, each named.
+    pub fn continued(a: &TrainArgs, run_path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(run_path)
+            .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
+        let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
+        let conflicts = a.resume_conflicts(&rc);
+        if !conflicts.is_empty() {
+            bail!(
+                "{}: a continued run keeps its settings (edit them in {} to change them)",
+                conflicts.join("; "),
+                run_path.display()
+            );
+        }
+        Ok(rc)
+    }
+}

@@ -1,0 +1,138 @@
+//! The training state (`state.safetensors`): G, G_ema, the three discriminators, Adam
+//! moments, step and RNG state. A resumed run continues bit-identically on the same backend.
+
+use std::collections::BTreeMap;
+
+use anyhow::{anyhow, bail, Result};
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
+use getavatar_core::generator::Generator;
+use getavatar_core::network::discriminator::Discriminator;
+use getavatar_core::optim::Adam;
+use getavatar_core::readback::read_f32_now;
+use getavatar_core::rng::Rng;
+
+use super::run_config::{Objective, RunConfig};
+
+const STATE_FORMAT: &str = "getavatar-train-state/1";
+
+/// Everything that changes during training.
+pub struct State {
+    pub g: Generator,
+    pub g_ema: Generator,
+    /// RGB, normal, mask.
+    pub d: Vec<Discriminator>,
+    pub adam_g: Adam,
+    pub adam_d: Vec<Adam>,
+    pub step: u64,
+    pub rng: Rng,
+}
+
+/// G's optimiser: the paper's Adam β = (0, 0.99) for the adversarial game; β₁ = 0.9 (momentum)
+/// for the reconstruction warm-up, whose L1 gradients are noisy per batch but not adversarial.
+pub(crate) fn generator_adam(rc: &RunConfig) -> Adam {
+    match rc.objective {
+        Objective::Adversarial => Adam::new(0.0, 0.99, 1e-8),
+        Objective::Reconstruction => Adam::new(0.9, 0.99, 1e-8),
+    }
+}
+
+impl State {
+    pub fn new(rc: &RunConfig, ad: &Device, plain: &Device) -> Self {
+        let seed = rc.seed;
+        Self {
+            g: Generator::new(&rc.generator, seed, ad),
+            g_ema: Generator::new(&rc.generator, seed, plain),
+            d: [3usize, 3, 1]
+                .iter()
+                .enumerate()
+                .map(|(k, &c)| Discriminator::new(&rc.discriminator, c, seed + 100 + k as u64, ad))
+                .collect(),
+            adam_g: generator_adam(rc),
+            adam_d: (0..3).map(|_| Adam::new(0.0, 0.99, 1e-8)).collect(),
+            step: 0,
+            rng: Rng::new(seed, 0x7a1e),
+        }
+    }
+
+    pub fn save(&self, rc: &RunConfig) -> Result<Vec<u8>> {
+        let mut tensors = Vec::new();
+        let mut put = |prefix: &str, v: Vec<(String, Vec<usize>, Vec<f32>)>| {
+            tensors.extend(v.into_iter().map(|(n, s, d)| (format!("{prefix}{n}"), s, d)));
+        };
+        put("g/", collect_params(&self.g)?);
+        put("g_ema/", collect_params(&self.g_ema)?);
+        for (k, d) in self.d.iter().enumerate() {
+            put(&format!("d{k}/"), collect_params(d)?);
+        }
+        let adams: Vec<(String, &Adam)> = std::iter::once(("adam_g/".to_string(), &self.adam_g))
+            .chain(self.adam_d.iter().enumerate().map(|(k, a)| (format!("adam_d{k}/"), a)))
+            .collect();
+        let mut meta = BTreeMap::new();
+        for (prefix, a) in &adams {
+            for (name, (m, v)) in &a.moments {
+                let vals = |t: &Tensor<1>| read_f32_now(t.clone()).map_err(|e| e.context(format!("{prefix}{name}")));
+                let (mv, vv) = (vals(m)?, vals(v)?);
+                tensors.push((format!("{prefix}{name}/m"), vec![mv.len()], mv));
+                tensors.push((format!("{prefix}{name}/v"), vec![vv.len()], vv));
+            }
+            meta.insert(format!("{prefix}step"), a.step.to_string());
+        }
+        let (s, inc) = self.rng.state();
+        meta.insert("format".into(), STATE_FORMAT.into());
+        meta.insert("step".into(), self.step.to_string());
+        meta.insert("rng_state".into(), s.to_string());
+        meta.insert("rng_inc".into(), inc.to_string());
+        meta.insert("run".into(), serde_json::to_string(rc)?);
+        Ok(write_safetensors(&meta, &tensors)?)
+    }
+
+    pub fn load(bytes: &[u8], rc: &RunConfig, ad: &Device, plain: &Device) -> Result<Self> {
+        let st = parse_safetensors(bytes)?;
+        if st.metadata.get("format").map(String::as_str) != Some(STATE_FORMAT) {
+            bail!("not a training state (format {:?})", st.metadata.get("format"));
+        }
+        let num = |k: &str| -> Result<u64> {
+            st.metadata.get(k).and_then(|v| v.parse().ok()).ok_or_else(|| anyhow!("state metadata lacks `{k}`"))
+        };
+        let mut s = State::new(rc, ad, plain);
+        s.g = load_params(s.g, &st.tensors, "g/", ad)?;
+        s.g_ema = load_params(s.g_ema, &st.tensors, "g_ema/", plain)?;
+        s.d =
+            s.d.into_iter()
+                .enumerate()
+                .map(|(k, d)| load_params(d, &st.tensors, &format!("d{k}/"), ad))
+                .collect::<Result<_, _>>()?;
+        let inner = ad.clone().without_autodiff();
+        let load_adam = |prefix: &str| -> Result<Adam> {
+            let mut a = if prefix == "adam_g/" { generator_adam(rc) } else { Adam::new(0.0, 0.99, 1e-8) };
+            a.step = num(&format!("{prefix}step"))?;
+            for (k, (shape, vals)) in &st.tensors {
+                if let Some(rest) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {
+                    let v = st
+                        .tensors
+                        .get(&format!("{prefix}{rest}/v"))
+                        .ok_or_else(|| anyhow!("state lacks {prefix}{rest}/v"))?;
+                    let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [shape[0]]), &inner);
+                    a.moments.insert(rest.to_string(), (t(vals), t(&v.1)));
+                }
+            }
+            Ok(a)
+        };
+        s.adam_g = load_adam("adam_g/")?;
+        s.adam_d = (0..3).map(|k| load_adam(&format!("adam_d{k}/"))).collect::<Result<_>>()?;
+        s.step = num("step")?;
+        s.rng = Rng::from_state(num("rng_state")?, num("rng_inc")?);
+        Ok(s)
+    }
+}
+
+/// The device of `--backend`.
+pub fn device_for(backend: &str) -> Result<Device> {
+    Ok(match backend {
+        #[allow(deprecated)]
+        "ndarray" => Device::ndarray(),
+        "wgpu" => Device::wgpu_options().init().map_err(|e| anyhow!("no wgpu adapter: {e:?}"))?,
+        other => bail!("unknown --backend `{other}` (ndarray, wgpu)"),
+    })
+}

@@ -1,0 +1,101 @@
+//! What both objectives' steps share: the step's metrics, real images as tensors, latents,
+//! G's Adam update with per-branch rates, and w_avg tracking.
+
+use anyhow::{anyhow, Result};
+use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
+use getavatar_core::camera::to_row_major;
+use getavatar_core::dataset::{Dataset, Label};
+use getavatar_core::generator::{is_geometry_head_param, is_texture_param, Generator};
+use getavatar_core::optim::Adam;
+use getavatar_core::readback::read_f32_now;
+use getavatar_core::rng::Rng;
+use serde::Serialize;
+
+use super::run_config::RunConfig;
+
+/// Losses of one step.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Metrics {
+    pub step: u64,
+    pub kimg: f64,
+    pub loss_g: f32,
+    pub loss_d: f32,
+    pub r1: Option<f32>,
+    pub eikonal: f32,
+    pub cross_entropy: f32,
+    pub triangles: f32,
+    /// The reconstruction L1 (RGB + mask + normal) of the warm-up, or of the anchor of an
+    /// adversarial run with `lambda_reconstruction > 0`; absent otherwise.
+    pub reconstruction: Option<f32>,
+    /// The scan terms (`--scans`): texture L1 and SDF L1; absent without scans.
+    pub scan_texture: Option<f32>,
+    pub scan_sdf: Option<f32>,
+    /// The texture-swap RGB L1 (`lambda_texture_swap > 0`); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub texture_swap: Option<f32>,
+    pub seconds: f64,
+}
+
+/// The value of a one-element tensor.
+pub(crate) fn scalar(t: Tensor<1>) -> Result<f32> {
+    read_f32_now(t)?.first().copied().ok_or_else(|| anyhow!("an empty tensor where a scalar was expected"))
+}
+
+/// Real images as discriminator inputs: `[B, C, R, R]` in [−1, 1] (RGB, normal, mask) and cameras.
+pub(crate) fn load_reals(
+    ds: &Dataset,
+    idx: &[usize],
+    dev: &Device,
+) -> Result<(Tensor<4>, Tensor<4>, Tensor<4>, Tensor<2>)> {
+    let r = ds.resolution;
+    let (mut rgb, mut nrm, mut msk, mut cam) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for &i in idx {
+        let s = ds.load(i)?;
+        // HWC → CHW.
+        for c in 0..3 {
+            rgb.extend((0..r * r).map(|k| s.rgb[3 * k + c] * 2.0 - 1.0));
+        }
+        let n = s.normal.unwrap_or_else(|| vec![0.0; r * r * 3]);
+        for c in 0..3 {
+            nrm.extend((0..r * r).map(|k| n[3 * k + c]));
+        }
+        msk.extend(s.mask.iter().map(|m| m * 2.0 - 1.0));
+        cam.extend_from_slice(&to_row_major(s.label.world_to_camera));
+    }
+    let b = idx.len();
+    let t4 = |v: Vec<f32>, c: usize| Tensor::<4>::from_data(TensorData::new(v, [b, c, r, r]), dev);
+    Ok((t4(rgb, 3), t4(nrm, 3), t4(msk, 1), Tensor::from_data(TensorData::new(cam, [b, 16]), dev)))
+}
+
+pub(crate) fn cameras(labels: &[Label], dev: &Device) -> Tensor<2> {
+    let v: Vec<f32> = labels.iter().flat_map(|l| to_row_major(l.world_to_camera)).collect();
+    Tensor::from_data(TensorData::new(v, [labels.len(), 16]), dev)
+}
+
+pub(crate) fn latents(rng: &mut Rng, b: usize, dim: usize, dev: &Device) -> Tensor<2> {
+    Tensor::from_data(TensorData::new(rng.normals(b * dim), [b, dim]), dev)
+}
+
+/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul` and the
+/// geometry heads at `lr_g · lr_geometry_head_mul`.
+pub(crate) fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
+    let (tex, geo) = (rc.lr_texture_mul, rc.lr_geometry_head_mul);
+    adam.step_scaled(rc.lr_g, g, grads, &|name| {
+        if is_texture_param(name) {
+            tex
+        } else if is_geometry_head_param(name) {
+            geo
+        } else {
+            1.0
+        }
+    })
+}
+
+/// Track both mapping networks' w_avg (decay `beta`) on this step's latents.
+pub(crate) fn track_w_avg(mut g: Generator, zg: Tensor<2>, zt: Tensor<2>, beta: f32) -> Generator {
+    let wg = g.mapping_geo.forward(zg.detach());
+    g.mapping_geo = g.mapping_geo.track_w_avg(wg, beta);
+    let wt = g.mapping_tex.forward(zt.detach());
+    g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta);
+    g
+}
