@@ -182,7 +182,7 @@ fn checkpoints_round_trip_and_reject_other_configs() {
     );
     assert_eq!(va, vb);
     // Another config is refused with a message naming the differing fields.
-    let e = load_generator(&bytes, &GeneratorConfig::demo(), &dev).err().expect("mismatch").to_string();
+    let e = load_generator(&bytes, &GeneratorConfig::demo(), &dev).expect_err("mismatch").to_string();
     assert!(e.contains("tiny") && e.contains("demo") && e.contains("z_dim"), "{e}");
     // Corrupt files are errors.
     assert!(load_generator(&bytes[..bytes.len() / 2], &cfg, &dev).is_err());

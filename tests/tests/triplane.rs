@@ -36,8 +36,8 @@ fn scene(n: usize) -> (Vec<f32>, Vec<f32>) {
             1 => 3.0,  // mostly far outside
             _ => 0.95, // inside
         };
-        for k in 0..3 {
-            q.push(c[k] + 0.5 * REFERENCE_BOX_SIZE * reach * (rng.uniform() * 2.0 - 1.0));
+        for ck in c {
+            q.push(ck + 0.5 * REFERENCE_BOX_SIZE * reach * (rng.uniform() * 2.0 - 1.0));
         }
     }
     (p, q)

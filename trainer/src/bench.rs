@@ -10,7 +10,7 @@ use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use serde::{Deserialize, Serialize};
 
-use crate::train::{device_for, train_step, RunConfig, State};
+use crate::train::{device_for, train_step, RunConfig, State, StepInputs};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator};
@@ -291,16 +291,17 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
     let grids = PosedGridCache::default();
     let scans = Vec::new();
     let mut st = State::new(&rc, &ad, &plain);
-    let (next, first) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+    let inputs = StepInputs { ds: &ds, ctx: &ctx, grids: &grids, scans: &scans, rc: &rc, ad: &ad };
+    let (next, first) = train_step(st, &inputs)?;
     st = next;
     let mut plain_s = Vec::new();
     for _ in 0..steps.max(1) {
-        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+        let (next, m) = train_step(st, &inputs)?;
         st = next;
         plain_s.push(m.seconds);
     }
     st.step = rc.r1_every * (st.step / rc.r1_every + 1);
-    let (_, r1) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+    let (_, r1) = train_step(st, &inputs)?;
     Ok(StepTimings {
         first_step_s: first.seconds,
         step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,

@@ -486,8 +486,8 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         local[joint] = matrix_to_axis_angle(wp.transpose() * wk);
     }
     let mut params = BodyParams::default();
-    for j in 0..NUM_JOINTS {
-        params.pose[j] = local[j].as_vec3();
+    for (p, l) in params.pose.iter_mut().zip(&local) {
+        *p = l.as_vec3();
     }
     let rest: [Vec3; NUM_JOINTS] = std::array::from_fn(|j| jr[j].as_vec3());
     let kin = forward_kinematics(&SMPL_PARENTS, &rest, &params);

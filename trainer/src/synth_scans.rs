@@ -93,13 +93,13 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
 
 /// Build scan `id` and write its four files (smpl.json last, each via a temporary name).
 fn write_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize, dir: &Path) -> Result<()> {
-    let scan = make_scan(model, seed, id, texture_size);
+    let scan = make_scan(model, seed, id, texture_size)?;
     std::fs::create_dir_all(dir)?;
     let put = |name: &str, bytes: &[u8]| -> Result<()> { crate::atomic::write_atomic(&dir.join(name), bytes) };
     put("mesh.obj", write_obj(&scan.mesh).as_bytes())?;
     put("material.mtl", write_mtl("material0", "texture.png").as_bytes())?;
     put("texture.png", &encode_png(scan.texture_size, scan.texture_size, 3, &scan.texture)?)?;
-    put("smpl.json", scan.smpl.to_json().as_bytes())?;
+    put("smpl.json", scan.smpl.to_json()?.as_bytes())?;
     Ok(())
 }
 
@@ -437,7 +437,7 @@ fn skirt(lm: &Landmarks, y_top: f32, y_bottom: f32, flare: f32, rng: &mut Rng, t
 // The scan
 
 /// Build scan `id` of the dataset with `seed` (deterministic).
-pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) -> SynthScan {
+pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) -> Result<SynthScan> {
     let mut rng = Rng::new(seed, hash_str(id));
     // Shape: 10 components; age is kept adult (β_age ≥ −0.3).
     // Components of the open body: 0 gender, 1 weight, 2 muscle, 3 height, 4 proportions,
@@ -459,7 +459,7 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
     // Pose: a library pose plus variation.
     let lib = PoseLibrary::builtin();
     let pose_name = pick(&mut rng, &SCAN_POSES);
-    let mut params: BodyParams = lib.params(pose_name, &betas).expect("built-in pose");
+    let mut params: BodyParams = lib.params(pose_name, &betas)?;
     for (k, r) in params.pose.iter_mut().enumerate().skip(1) {
         let sigma = match k {
             16..=19 => 0.12, // shoulders, elbows
@@ -624,7 +624,7 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
     }
     params.transl = transl;
     let smpl = SmplParams::from_body(&params, scale);
-    SynthScan { mesh, texture: tex, texture_size, smpl }
+    Ok(SynthScan { mesh, texture: tex, texture_size, smpl })
 }
 
 /// Atlas UV of a tile-local UV: 2×2 tiles with a 1 % gutter.
@@ -758,11 +758,11 @@ mod tests {
     #[test]
     fn scans_are_deterministic_textured_and_clothed() {
         let model = BodyModel::default_body().unwrap();
-        let a = make_scan(&model, 3, "0001", 128);
-        let b = make_scan(&model, 3, "0001", 128);
+        let a = make_scan(&model, 3, "0001", 128).unwrap();
+        let b = make_scan(&model, 3, "0001", 128).unwrap();
         assert_eq!(a.mesh.positions, b.mesh.positions);
         assert_eq!(a.texture, b.texture);
-        let c = make_scan(&model, 3, "0002", 128);
+        let c = make_scan(&model, 3, "0002", 128).unwrap();
         assert_ne!(a.mesh.positions.len() + a.texture.len(), 0);
         assert_ne!(a.texture, c.texture, "different ids differ");
         // Garments add geometry on top of the body.

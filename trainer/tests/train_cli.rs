@@ -3,6 +3,8 @@
 //! leaves a loadable checkpoint; transfer learning onto RGB-only data turns the normal
 //! discriminator off.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 

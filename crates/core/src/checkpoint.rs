@@ -20,6 +20,9 @@ use crate::readback::ReadbackError;
 
 pub const FORMAT: &str = "getavatar-generator/1";
 
+/// A tensor as stored: name, shape and row-major values.
+pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
+
 /// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
 pub const MODES_GEO: &str = "latent_modes/geo";
 pub const MODES_TEX: &str = "latent_modes/tex";
@@ -60,7 +63,7 @@ pub fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> Strin
 struct Collect {
     path: Vec<String>,
     seen: BTreeMap<String, usize>,
-    out: Vec<(String, Vec<usize>, Vec<f32>)>,
+    out: Vec<NamedTensor>,
     error: Option<CheckpointError>,
 }
 
@@ -306,7 +309,7 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 
 /// Every float parameter of `module` as (name by module path, shape, values). Native only.
 #[cfg(not(target_arch = "wasm32"))]
-pub fn collect_params<M: Module>(module: &M) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>, CheckpointError> {
+pub fn collect_params<M: Module>(module: &M) -> Result<Vec<NamedTensor>, CheckpointError> {
     let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new(), error: None };
     module.visit(&mut c);
     match c.error {
@@ -341,7 +344,7 @@ pub fn load_params<M: Module>(
 /// match its values is an error.
 pub fn write_safetensors(
     metadata: &BTreeMap<String, String>,
-    tensors: &[(String, Vec<usize>, Vec<f32>)],
+    tensors: &[NamedTensor],
 ) -> Result<Vec<u8>, CheckpointError> {
     let mut header = serde_json::Map::new();
     let meta: serde_json::Map<String, serde_json::Value> =

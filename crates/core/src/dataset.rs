@@ -60,8 +60,8 @@ impl Label {
         }
         Self {
             world_to_camera,
-            global_orient: theta[..3].try_into().expect("3"),
-            body_pose: theta[3..].try_into().expect("69"),
+            global_orient: std::array::from_fn(|i| theta[i]),
+            body_pose: std::array::from_fn(|i| theta[3 + i]),
             betas,
         }
     }
@@ -88,15 +88,16 @@ impl Label {
         if let Some(i) = v.iter().position(|x| !x.is_finite()) {
             return Err(err(format!("number {i} is not finite")));
         }
-        let m = from_row_major(v[..16].try_into().expect("16"));
+        // The length is checked above: the fixed-size copies below cannot go out of range.
+        let m = from_row_major(&std::array::from_fn(|i| v[i]));
         if (m.row(3) - glam::Vec4::W).abs().max_element() > 1e-4 {
             return Err(err(format!("the camera matrix's last row is {:?}, expected [0, 0, 0, 1]", m.row(3))));
         }
         Ok(Self {
             world_to_camera: m,
-            global_orient: v[16..19].try_into().expect("3"),
-            body_pose: v[19..88].try_into().expect("69"),
-            betas: v[88..98].try_into().expect("10"),
+            global_orient: std::array::from_fn(|i| v[16 + i]),
+            body_pose: std::array::from_fn(|i| v[19 + i]),
+            betas: std::array::from_fn(|i| v[88 + i]),
         })
     }
 
@@ -114,7 +115,7 @@ impl Label {
 /// `{"labels": {...}}` with entries sorted by name.
 pub fn labels_to_json(entries: &[(String, Label)]) -> String {
     let map: BTreeMap<&str, Vec<f32>> = entries.iter().map(|(k, l)| (k.as_str(), l.to_floats())).collect();
-    serde_json::to_string(&serde_json::json!({ "labels": map })).expect("plain data serialises")
+    serde_json::json!({ "labels": map }).to_string()
 }
 
 /// Parse a labels file's text (`path` only names it in errors). Entries come back sorted.
@@ -362,8 +363,8 @@ impl Dataset {
                 with_normals += 1;
             }
         }
-        if with_normals != 0 && with_normals != entries.len() {
-            let missing = entries.iter().find(|(n, _)| !root.join(normal_name(n)).is_file()).expect("some missing");
+        let partial = with_normals != 0 && with_normals != entries.len();
+        if let Some(missing) = entries.iter().find(|(n, _)| partial && !root.join(normal_name(n)).is_file()) {
             return Err(DatasetError::Image {
                 path: root.join(normal_name(&missing.0)),
                 msg: format!("missing, but {with_normals} of {} images have normal maps", entries.len()),

@@ -281,8 +281,8 @@ impl SmplParams {
         Ok(p)
     }
 
-    pub fn to_json(&self) -> String {
-        serde_json::to_string_pretty(self).expect("plain data serialises")
+    pub fn to_json(&self) -> Result<String, ScanError> {
+        serde_json::to_string_pretty(self).map_err(|e| ScanError::Smpl(e.to_string()))
     }
 
     pub fn from_body(params: &BodyParams, scale: f32) -> Self {
@@ -499,7 +499,8 @@ pub fn sample_surface(
         total += 0.5 * (b - a).cross(c - a).length() as f64;
         cumulative.push(total);
     }
-    if !(total > 0.0) {
+    // Also catches NaN areas.
+    if total.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return Vec::new();
     }
     (0..n)
@@ -559,11 +560,11 @@ mod tests {
     fn smpl_json_validation_and_frames() {
         let mut p = SmplParams::from_body(&BodyParams::default(), 2.0);
         p.transl = vec![0.0, 1.0, 0.0];
-        let q = SmplParams::from_json(&p.to_json()).unwrap();
+        let q = SmplParams::from_json(&p.to_json().unwrap()).unwrap();
         assert_eq!(q, p);
         assert_eq!(q.scan_to_body(Vec3::new(2.0, 4.0, 0.0)), Vec3::new(1.0, 1.0, 0.0));
         p.body_pose.pop();
-        let e = SmplParams::from_json(&p.to_json()).unwrap_err().to_string();
+        let e = SmplParams::from_json(&p.to_json().unwrap()).unwrap_err().to_string();
         assert!(e.contains("`body_pose` has 68 numbers"), "{e}");
     }
 

@@ -4,31 +4,21 @@
 //! cross-entropy), then w_avg tracking and the EMA of G.
 
 use anyhow::Result;
-use getavatar_core::burn::tensor::{Device, Tensor};
+use getavatar_core::burn::tensor::Tensor;
 use getavatar_core::camera::View;
-use getavatar_core::dataset::{Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::diff::scan_supervision::CanonicalSamples;
-use getavatar_core::generator::BodyContext;
+use getavatar_core::dataset::Label;
+use getavatar_core::diff::avatar::render_avatars;
 use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
 use getavatar_core::optim::ema_update;
 
 use super::reconstruction::subject_reconstruction;
-use super::run_config::RunConfig;
 use super::state::State;
-use super::step::{cameras, generator_update, latents, load_reals, scalar, track_w_avg, Metrics};
+use super::step::{cameras, generator_update, latents, load_reals, scalar, track_w_avg, Metrics, StepInputs};
 
 /// One step of the paper's objective (D phase, lazy R1, G phase, w_avg, EMA), with the
 /// reconstruction anchor where `rc.lambda_reconstruction > 0`.
-pub(crate) fn adversarial_step(
-    mut st: State,
-    ds: &Dataset,
-    ctx: &BodyContext,
-    grids: &PosedGridCache,
-    scans: &[CanonicalSamples],
-    rc: &RunConfig,
-    ad: &Device,
-) -> Result<(State, Metrics)> {
+pub(crate) fn adversarial_step(mut st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
+    let StepInputs { ds, ctx, grids, rc, ad, .. } = *inputs;
     let t0 = std::time::Instant::now();
     let b = rc.batch;
     let real_idx: Vec<usize> = (0..b).map(|_| st.rng.below(ds.len())).collect();
@@ -38,7 +28,6 @@ pub(crate) fn adversarial_step(
     let (real_rgb, real_nrm, real_msk, c_real) = load_reals(ds, &real_idx, ad)?;
     let c_fake = cameras(&fake_labels, ad);
     let res = rc.resolution;
-    let active: Vec<usize> = if rc.use_normals { vec![0, 1, 2] } else { vec![0, 2] };
 
     // One render per step: the D phase sees it detached, the G phase through the renderer
     // (D's update does not change G, so re-rendering would give the same images).
@@ -55,30 +44,19 @@ pub(crate) fn adversarial_step(
     lap("fakes rendered");
     let fake_imgs = [fakes.rgb.clone().detach(), fakes.normal.clone().detach(), fakes.mask.clone().detach()];
     let reals = [real_rgb, real_nrm, real_msk];
-    let mut loss_d: Option<Tensor<1>> = None;
-    let add = |acc: &mut Option<Tensor<1>>, t: Tensor<1>| {
-        *acc = Some(match acc.take() {
-            None => t,
-            Some(a) => a + t,
-        })
-    };
-    for &k in &active {
+    let loss_d = sum_active(rc.use_normals, |k| {
         let lf = st.d[k].forward(fake_imgs[k].clone(), c_fake.clone());
         let lr = st.d[k].forward(reals[k].clone(), c_real.clone());
-        add(&mut loss_d, discriminator_loss(lf, lr));
-    }
-    let loss_d = loss_d.expect("active discriminators");
+        discriminator_loss(lf, lr)
+    });
     let mut metrics = Metrics { loss_d: scalar(loss_d.clone())?, ..Metrics::default() };
     let mut total_d = loss_d;
     if st.step % rc.r1_every == 0 {
-        let mut r1_sum: Option<Tensor<1>> = None;
-        for &k in &active {
-            let d = &st.d[k];
+        let (d, rng) = (&st.d, &mut st.rng);
+        let r1 = sum_active(rc.use_normals, |k| {
             let c = c_real.clone();
-            let r1 = r1_penalty(|x| d.forward(x, c.clone()), reals[k].clone(), rc.r1_directions, 1e-2, &mut st.rng, ad);
-            add(&mut r1_sum, r1.mean());
-        }
-        let r1 = r1_sum.expect("active");
+            r1_penalty(|x| d[k].forward(x, c.clone()), reals[k].clone(), rc.r1_directions, 1e-2, rng, ad).mean()
+        });
         metrics.r1 = Some(scalar(r1.clone())?);
         total_d = total_d + r1 * (rc.r1_gamma / 2.0 * rc.r1_every as f32);
     }
@@ -89,17 +67,13 @@ pub(crate) fn adversarial_step(
     st.d =
         st.d.into_iter()
             .enumerate()
-            .map(|(k, d)| if active.contains(&k) { st.adam_d[k].step(rc.lr_d * ratio, d, &grads) } else { d })
+            .map(|(k, d)| if k != 1 || rc.use_normals { st.adam_d[k].step(rc.lr_d * ratio, d, &grads) } else { d })
             .collect();
     lap("D step");
 
     // G phase: the same fakes against the updated discriminators.
     let imgs = [fakes.rgb, fakes.normal, fakes.mask];
-    let mut loss_g: Option<Tensor<1>> = None;
-    for &k in &active {
-        add(&mut loss_g, generator_loss(st.d[k].forward(imgs[k].clone(), c_fake.clone())));
-    }
-    let loss_g = loss_g.expect("active");
+    let loss_g = sum_active(rc.use_normals, |k| generator_loss(st.d[k].forward(imgs[k].clone(), c_fake.clone())));
     metrics.loss_g = scalar(loss_g.clone())?;
     metrics.eikonal = scalar(fakes.eikonal.clone())?;
     metrics.cross_entropy = scalar(fakes.cross_entropy.clone())?;
@@ -108,7 +82,7 @@ pub(crate) fn adversarial_step(
     if rc.lambda_reconstruction > 0.0 {
         // The anchor: the subjects' views at their fixed latents, with their own eikonal and
         // cross-entropy terms (a second surface is extracted).
-        let r = subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
+        let r = subject_reconstruction(&st.g, &mut st.rng, inputs)?;
         metrics.reconstruction = Some(r.l1);
         (metrics.scan_texture, metrics.scan_sdf) = (r.scan.map(|s| s.0), r.scan.map(|s| s.1));
         total_g = total_g
@@ -129,4 +103,14 @@ pub(crate) fn adversarial_step(
     metrics.kimg = st.step as f64 * b as f64 / 1000.0;
     metrics.seconds = t0.elapsed().as_secs_f64();
     Ok((st, metrics))
+}
+
+/// `term(0) [+ term(1)] + term(2)`: a loss summed over the active discriminators (RGB, the
+/// normal map's where the data has normal maps, mask), in that order.
+fn sum_active(use_normals: bool, mut term: impl FnMut(usize) -> Tensor<1>) -> Tensor<1> {
+    let mut sum = term(0);
+    if use_normals {
+        sum = sum + term(1);
+    }
+    sum + term(2)
 }

@@ -33,35 +33,25 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{load_generator, save_generator_with_modes};
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
-use getavatar_core::diff::scan_supervision::CanonicalSamples;
 use getavatar_core::generator::BodyContext;
 
 pub use args::TrainArgs;
 pub use run_config::{Objective, RunConfig};
 pub use state::{device_for, State};
-pub use step::Metrics;
+pub use step::{Metrics, StepInputs};
 
 use crate::atomic::write_atomic;
 use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
 use snapshots::sample_grid;
 
 /// One training step of the run's objective.
-pub fn train_step(
-    st: State,
-    ds: &Dataset,
-    ctx: &BodyContext,
-    grids: &PosedGridCache,
-    scans: &[CanonicalSamples],
-    rc: &RunConfig,
-    ad: &Device,
-) -> Result<(State, Metrics)> {
-    match rc.objective {
-        Objective::Adversarial => adversarial::adversarial_step(st, ds, ctx, grids, scans, rc, ad),
-        Objective::Reconstruction => reconstruction_step(st, ds, ctx, grids, scans, rc, ad),
+pub fn train_step(st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
+    match inputs.rc.objective {
+        Objective::Adversarial => adversarial::adversarial_step(st, inputs),
+        Objective::Reconstruction => reconstruction_step(st, inputs),
     }
 }
 
@@ -142,7 +132,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         write_atomic(&a.out.join("losses.png"), &crate::plot::loss_plot(&a.out.join("metrics.jsonl"))?)
     };
     while st.step < a.steps {
-        let (next, m) = train_step(st, &ds, &ctx, &grids, &scans, &rc, &ad)?;
+        let inputs = StepInputs { ds: &ds, ctx: &ctx, grids: &grids, scans: &scans, rc: &rc, ad: &ad };
+        let (next, m) = train_step(st, &inputs)?;
         st = next;
         writeln!(log, "{}", serde_json::to_string(&m)?)?;
         bar.set_position(st.step);

@@ -9,7 +9,7 @@ use anyhow::{anyhow, bail, Result};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::camera::View;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatar_views_retextured, FakeViews, PosedGridCache};
+use getavatar_core::diff::avatar::{render_avatar_views_retextured, FakeViews};
 use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
 use getavatar_core::generator::{BodyContext, Generator, LatentModes, ModePairing, Styles};
 use getavatar_core::optim::ema_update;
@@ -17,7 +17,7 @@ use getavatar_core::rng::Rng;
 
 use super::run_config::{Objective, RunConfig, SCAN_POINTS_PER_STEP, SCAN_POOL_POINTS};
 use super::state::State;
-use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics};
+use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics, StepInputs};
 
 /// Subject of every dataset entry (the folder part of its image path) as an index into the
 /// sorted subject names.
@@ -70,13 +70,9 @@ pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &D
 pub(crate) fn subject_reconstruction(
     g: &Generator,
     rng: &mut Rng,
-    ds: &Dataset,
-    ctx: &BodyContext,
-    grids: &PosedGridCache,
-    scans: &[CanonicalSamples],
-    rc: &RunConfig,
-    ad: &Device,
+    inputs: &StepInputs,
 ) -> Result<SubjectReconstruction> {
+    let StepInputs { ds, ctx, grids, scans, rc, ad } = *inputs;
     let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
     let subjects = subject_of_entries(ds);
     // Each drawn view, then further views of its subject under the same body pose and shape
@@ -161,19 +157,12 @@ pub(crate) struct SubjectReconstruction {
 /// One step of the reconstruction warm-up (`Objective::Reconstruction`): the subject
 /// reconstruction L1 plus the eikonal and SDF cross-entropy terms; then w_avg tracking and an
 /// EMA with StyleGAN2-ADA's ramp-up (half-life at most 5 % of the images seen so far).
-pub(crate) fn reconstruction_step(
-    mut st: State,
-    ds: &Dataset,
-    ctx: &BodyContext,
-    grids: &PosedGridCache,
-    scans: &[CanonicalSamples],
-    rc: &RunConfig,
-    ad: &Device,
-) -> Result<(State, Metrics)> {
+pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
+    let rc = inputs.rc;
     let t0 = std::time::Instant::now();
     let b = rc.batch;
     let SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt } =
-        subject_reconstruction(&st.g, &mut st.rng, ds, ctx, grids, scans, rc, ad)?;
+        subject_reconstruction(&st.g, &mut st.rng, inputs)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone())?,
         reconstruction: Some(l1),

@@ -11,7 +11,23 @@ use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 use serde::Serialize;
 
+use getavatar_core::diff::avatar::PosedGridCache;
+use getavatar_core::diff::scan_supervision::CanonicalSamples;
+use getavatar_core::generator::BodyContext;
+
 use super::run_config::RunConfig;
+
+/// What every training step reads: the data, the body, the inverse-skinning cache, the scan
+/// samples (empty without `--scans`), the run's settings and the autodiff device.
+#[derive(Clone, Copy)]
+pub struct StepInputs<'a> {
+    pub ds: &'a Dataset,
+    pub ctx: &'a BodyContext,
+    pub grids: &'a PosedGridCache,
+    pub scans: &'a [CanonicalSamples],
+    pub rc: &'a RunConfig,
+    pub ad: &'a Device,
+}
 
 /// Losses of one step.
 #[derive(Clone, Debug, Default, Serialize)]

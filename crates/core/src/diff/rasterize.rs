@@ -87,16 +87,8 @@ pub fn barycentrics(cov: &Coverage, clip: Tensor<2>, device: &Device) -> Tensor<
 /// `[P, C]`; differentiable in `attr` and in `clip` `[V, 4]`.
 pub fn interpolate(cov: &Coverage, clip: Tensor<2>, attr: Tensor<2>, device: &Device) -> Tensor<2> {
     let b = barycentrics(cov, clip, device);
-    let mut out = None;
-    for k in 0..3 {
-        let a = attr.clone().select(0, index_tensor(&cov.corners[k], device));
-        let term = a * b.clone().narrow(1, k, 1);
-        out = Some(match out {
-            None => term,
-            Some(o) => o + term,
-        });
-    }
-    out.expect("three corners")
+    let corner = |k: usize| attr.clone().select(0, index_tensor(&cov.corners[k], device)) * b.clone().narrow(1, k, 1);
+    corner(0) + corner(1) + corner(2)
 }
 
 /// An image `[H·W, C]`: `values` `[P, C]` at the covered pixels over a constant `background`.

@@ -50,14 +50,12 @@ pub fn sample_triplanes_native(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3
     let opts = GridSampleOptions::new(InterpolateMode::Bilinear)
         .with_padding_mode(GridSamplePaddingMode::Zeros)
         .with_align_corners(false);
-    let sampled: Vec<Tensor<4>> = (0..3)
-        .map(|k| {
-            let plane = planes.clone().narrow(1, k * c, c).reshape([b, c, r, r]);
-            let grid = Tensor::cat(vec![axis(PLANE_AXES[0][k]), axis(PLANE_AXES[1][k])], 2).reshape([b, n, 1, 2]);
-            plane.grid_sample_2d(grid, opts.clone()) // [B, C, N, 1]
-        })
-        .collect();
-    let sum = sampled.into_iter().reduce(|a, s| a + s).expect("three planes");
+    let sampled = |k: usize| {
+        let plane = planes.clone().narrow(1, k * c, c).reshape([b, c, r, r]);
+        let grid = Tensor::cat(vec![axis(PLANE_AXES[0][k]), axis(PLANE_AXES[1][k])], 2).reshape([b, n, 1, 2]);
+        plane.grid_sample_2d(grid, opts.clone()) // [B, C, N, 1]
+    };
+    let sum = sampled(0) + sampled(1) + sampled(2);
     sum.reshape([b, c, n]).swap_dims(1, 2)
 }
 
