@@ -2,7 +2,7 @@
 //! and "zero residual ⇒ the avatar is the posed body".
 
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::geometry::inverse_skinning::canonical_body;
+use getavatar_core::geometry::inverse_skinning::{canonical_body, nearest_rotation};
 use getavatar_core::geometry::template_sdf::central_difference_normal;
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use getavatar_core::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
@@ -381,4 +381,41 @@ fn skipping_far_grid_vertices_keeps_the_band_and_the_surface() {
             );
         }
     }
+}
+
+/// Eq. 4's rotation: Higham's iteration (`nearest_rotation`, glam, runs in the browser) equals
+/// the orthogonal polar factor U·Vᵀ of an SVD (nalgebra) on blended LBS transforms (weighted
+/// means of two rotations, some scaled) and on general matrices with positive determinant.
+#[test]
+fn nearest_rotation_is_the_polar_factor_of_the_svd() {
+    use glam::{Mat3, Quat};
+    let mut rng = getavatar_core::rng::Rng::new(7, 3);
+    let mut worst = 0.0f32;
+    for case in 0..200 {
+        let mut axis = || Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize_or(Vec3::Y);
+        let (a1, a2) = (axis(), axis());
+        let (t1, t2) = (rng.uniform() * 3.0, rng.uniform() * 3.0);
+        let w = rng.uniform();
+        let m = if case % 2 == 0 {
+            let s = 0.8 + 0.4 * rng.uniform();
+            (Mat3::from_quat(Quat::from_axis_angle(a1, t1)) * w
+                + Mat3::from_quat(Quat::from_axis_angle(a2, t2)) * (1.0 - w))
+                * s
+        } else {
+            Mat3::from_cols_array(&std::array::from_fn(|_| rng.normal()))
+        };
+        if m.determinant() < 0.05 {
+            continue;
+        }
+        let r = nearest_rotation(m);
+        let n = nalgebra::Matrix3::from_column_slice(&m.to_cols_array().map(f64::from));
+        let svd = n.svd(true, true);
+        let (u, v_t) = (svd.u.unwrap(), svd.v_t.unwrap());
+        let polar = u * v_t;
+        let expected = Mat3::from_cols_array(&std::array::from_fn(|i| polar.as_slice()[i] as f32));
+        let err = (r - expected).to_cols_array().iter().map(|x| x.abs()).fold(0.0, f32::max);
+        worst = worst.max(err);
+        assert!((r.determinant() - 1.0).abs() < 1e-4, "case {case}: det {}", r.determinant());
+    }
+    assert!(worst < 1e-4, "largest entry difference from the SVD's polar factor: {worst}");
 }

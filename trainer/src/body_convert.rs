@@ -155,52 +155,24 @@ struct Obj {
     groups: BTreeMap<String, Vec<Vec<(usize, usize)>>>,
 }
 
+/// `base.obj` through the one OBJ reader (`core::scan::parse_obj`, which validates every
+/// index), regrouped by `g` name; corners without a texture coordinate use the first.
 fn parse_obj(text: &str) -> Result<Obj> {
-    let mut obj = Obj { v: Vec::new(), vt: Vec::new(), groups: BTreeMap::new() };
-    let mut group = String::from("default");
-    for (ln, line) in text.lines().enumerate() {
-        let mut it = line.split_whitespace();
-        let parse_f = |s: Option<&str>| -> Result<f64> {
-            s.ok_or_else(|| anyhow!("line {}: missing number", ln + 1))?
-                .parse::<f64>()
-                .with_context(|| format!("line {}", ln + 1))
-        };
-        match it.next() {
-            Some("v") => obj.v.push(DVec3::new(parse_f(it.next())?, parse_f(it.next())?, parse_f(it.next())?)),
-            Some("vt") => obj.vt.push([parse_f(it.next())?, parse_f(it.next())?]),
-            Some("g") => group = it.next().unwrap_or("default").to_string(),
-            Some("f") => {
-                let mut poly = Vec::new();
-                for tok in it {
-                    let mut parts = tok.split('/');
-                    let vi: usize = parts
-                        .next()
-                        .unwrap_or("")
-                        .parse()
-                        .with_context(|| format!("line {}: bad face index", ln + 1))?;
-                    let ti: usize = parts.next().filter(|s| !s.is_empty()).map(|s| s.parse()).transpose()?.unwrap_or(0);
-                    if vi == 0 {
-                        bail!("line {}: face index 0", ln + 1);
-                    }
-                    poly.push((vi - 1, ti.saturating_sub(1)));
-                }
-                obj.groups.entry(group.clone()).or_default().push(poly);
-            }
-            _ => {}
-        }
+    let mesh = getavatar_core::scan::parse_obj(text)?;
+    let mut groups: BTreeMap<String, Vec<Vec<(usize, usize)>>> = BTreeMap::new();
+    for f in &mesh.faces {
+        let name = mesh.groups.get(f.group as usize).ok_or_else(|| anyhow!("face in an unknown group"))?;
+        let poly = f.corners.iter().map(|c| (c.v as usize, c.vt.unwrap_or(0) as usize)).collect();
+        groups.entry(name.clone()).or_default().push(poly);
     }
-    // Every face index must name a vertex (and texture coordinate) of the file.
-    for (name, faces) in &obj.groups {
-        for &(vi, ti) in faces.iter().flatten() {
-            if vi >= obj.v.len() {
-                bail!("group {name}: face refers to vertex {} of {}", vi + 1, obj.v.len());
-            }
-            if ti >= obj.vt.len().max(1) {
-                bail!("group {name}: face refers to texture coordinate {} of {}", ti + 1, obj.vt.len());
-            }
-        }
+    if mesh.faces.iter().any(|f| f.corners.iter().any(|c| c.vt.is_none())) && mesh.uvs.is_empty() {
+        bail!("faces without texture coordinates, and the file has none");
     }
-    Ok(obj)
+    Ok(Obj {
+        v: mesh.positions.iter().map(|p| p.as_dvec3()).collect(),
+        vt: mesh.uvs.iter().map(|t| [f64::from(t.x), f64::from(t.y)]).collect(),
+        groups,
+    })
 }
 
 fn read_entry(zip: &mut zip::ZipArchive<std::fs::File>, name: &str) -> Result<Vec<u8>> {

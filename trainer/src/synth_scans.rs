@@ -608,8 +608,12 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
     let transl = Vec3::new(rng.normal() * 0.05, rng.normal() * 0.02, rng.normal() * 0.05);
 
     let tex = bake_texture(&layers, texture_size, &Face { lm: &lm, skin, brow: hair_color * 0.7 });
-    let mut mesh =
-        ObjMesh { materials: vec!["material0".into()], mtllibs: vec!["material.mtl".into()], ..ObjMesh::default() };
+    let mut mesh = ObjMesh {
+        materials: vec!["material0".into()],
+        mtllibs: vec!["material.mtl".into()],
+        groups: vec!["default".into()],
+        ..ObjMesh::default()
+    };
     for (l, _) in &layers {
         let base = mesh.positions.len() as u32;
         for ((p, wv), uv) in l.rest.iter().zip(&l.weights).zip(&l.uv) {
@@ -619,7 +623,7 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
         }
         for f in &l.faces {
             let corners = f.map(|i| Corner { v: base + i, vt: Some(base + i), vn: None });
-            mesh.faces.push(ObjFace { corners, material: 0 });
+            mesh.faces.push(ObjFace { corners, material: 0, group: 0 });
         }
     }
     params.transl = transl;

@@ -35,11 +35,13 @@ pub struct Corner {
     pub vn: Option<u32>,
 }
 
-/// A triangle with its material (index into [`ObjMesh::materials`]).
+/// A triangle with its material (index into [`ObjMesh::materials`]) and group (index into
+/// [`ObjMesh::groups`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ObjFace {
     pub corners: [Corner; 3],
     pub material: u32,
+    pub group: u32,
 }
 
 /// A triangulated OBJ mesh.
@@ -53,6 +55,16 @@ pub struct ObjMesh {
     pub materials: Vec<String>,
     /// `mtllib` file names, as written.
     pub mtllibs: Vec<String>,
+    /// Group names (`g`) in order of first use; faces before any `g` are in "default".
+    pub groups: Vec<String>,
+}
+
+impl ObjMesh {
+    /// The triangles of group `name`.
+    pub fn group_faces<'a>(&'a self, name: &str) -> impl Iterator<Item = &'a ObjFace> + 'a {
+        let index = self.groups.iter().position(|g| g == name).map(|i| i as u32);
+        self.faces.iter().filter(move |f| Some(f.group) == index)
+    }
 }
 
 fn parse_floats<const N: usize>(it: &mut std::str::SplitWhitespace, line: usize) -> Result<[f32; N], ScanError> {
@@ -68,11 +80,12 @@ fn parse_floats<const N: usize>(it: &mut std::str::SplitWhitespace, line: usize)
 }
 
 /// Parse OBJ text: `v` (extra vertex-colour numbers ignored), `vt`, `vn`, `f` (polygons are
-/// fan-triangulated; negative indices count from the end), `usemtl`, `mtllib`. Indices are
-/// validated.
+/// fan-triangulated; negative indices count from the end), `usemtl`, `mtllib`, `g` (the first
+/// name). Indices are validated.
 pub fn parse_obj(text: &str) -> Result<ObjMesh, ScanError> {
     let mut m = ObjMesh::default();
     let mut current: Option<u32> = None;
+    let mut group: Option<u32> = None;
     for (ln, raw) in text.lines().enumerate() {
         let line = ln + 1;
         let l = raw.split('#').next().unwrap_or("").trim();
@@ -93,6 +106,7 @@ pub fn parse_obj(text: &str) -> Result<ObjMesh, ScanError> {
                 current = Some(idx as u32);
             }
             Some("mtllib") => m.mtllibs.push(it.collect::<Vec<_>>().join(" ")),
+            Some("g") => group = Some(group_index(&mut m.groups, it.next().unwrap_or("default"))),
             Some("f") => {
                 let material = match current {
                     Some(c) => c,
@@ -112,8 +126,9 @@ pub fn parse_obj(text: &str) -> Result<ObjMesh, ScanError> {
                 if corners.len() < 3 {
                     return Err(ScanError::Obj { line, msg: format!("face with {} corners", corners.len()) });
                 }
+                let group = *group.get_or_insert_with(|| group_index(&mut m.groups, "default"));
                 for k in 1..corners.len() - 1 {
-                    m.faces.push(ObjFace { corners: [corners[0], corners[k], corners[k + 1]], material });
+                    m.faces.push(ObjFace { corners: [corners[0], corners[k], corners[k + 1]], material, group });
                 }
             }
             _ => {} // o, g, s, l, p and unknown statements carry nothing we render
@@ -123,6 +138,17 @@ pub fn parse_obj(text: &str) -> Result<ObjMesh, ScanError> {
         return Err(ScanError::ObjMesh("no faces".into()));
     }
     Ok(m)
+}
+
+/// Index of group `name`, added when new.
+fn group_index(groups: &mut Vec<String>, name: &str) -> u32 {
+    match groups.iter().position(|g| g == name) {
+        Some(i) => i as u32,
+        None => {
+            groups.push(name.to_string());
+            (groups.len() - 1) as u32
+        }
+    }
 }
 
 fn parse_corner(tok: &str, m: &ObjMesh, line: usize) -> Result<Corner, ScanError> {
@@ -149,7 +175,8 @@ fn parse_corner(tok: &str, m: &ObjMesh, line: usize) -> Result<Corner, ScanError
     Ok(Corner { v, vt, vn })
 }
 
-/// Write an OBJ (one `usemtl` per material run, `v/vt/vn` corners when present).
+/// Write an OBJ (one `g` per group run where there is more than one group, one `usemtl` per
+/// material run, `v/vt/vn` corners when present).
 pub fn write_obj(m: &ObjMesh) -> String {
     use std::fmt::Write;
     let mut s = String::from("# GETAvatar scan\n");
@@ -166,7 +193,14 @@ pub fn write_obj(m: &ObjMesh) -> String {
         let _ = writeln!(s, "vn {:.5} {:.5} {:.5}", n.x, n.y, n.z);
     }
     let mut current = u32::MAX;
+    let mut group = u32::MAX;
     for f in &m.faces {
+        if m.groups.len() > 1 && f.group != group {
+            group = f.group;
+            if let Some(name) = m.groups.get(group as usize) {
+                let _ = writeln!(s, "g {name}");
+            }
+        }
         if f.material != current {
             current = f.material;
             if let Some(name) = m.materials.get(current as usize).filter(|n| !n.is_empty()) {
@@ -538,6 +572,20 @@ mod tests {
         let again = parse_obj(&write_obj(&m)).unwrap();
         assert_eq!(again.faces, m.faces);
         assert_eq!(again.mtllibs, vec!["a.mtl"]);
+    }
+
+    #[test]
+    fn obj_groups_keep_their_faces_through_a_round_trip() {
+        let text =
+            "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\ng body\nf 1 2 3 4\ng helper\nf 2 3 4\ng body\nf 4 1 2\n";
+        let m = parse_obj(text).unwrap();
+        assert_eq!(m.groups, vec!["default", "body", "helper"]);
+        assert_eq!(m.faces.iter().map(|f| f.group).collect::<Vec<_>>(), [0, 1, 1, 2, 1]);
+        let body: Vec<[u32; 3]> = m.group_faces("body").map(|f| f.corners.map(|c| c.v)).collect();
+        assert_eq!(body, [[0, 1, 2], [0, 2, 3], [3, 0, 1]]);
+        assert_eq!(m.group_faces("missing").count(), 0);
+        let again = parse_obj(&write_obj(&m)).unwrap();
+        assert_eq!((again.faces, again.groups), (m.faces, m.groups));
     }
 
     #[test]

@@ -90,13 +90,6 @@ impl KdTree {
         Some(best)
     }
 
-    /// Depth-first search with Arya and Mount's incremental distance: `off` holds, per axis,
-    /// the distance from `q` to the node's cell (0 where `q` lies within its extent), so
-    /// `|off|²` bounds the distance to every point below from beneath. A far child is skipped
-    /// when that bound, not only the distance to its splitting plane, exceeds the best so far;
-    /// queries far from the points (most tet-grid vertices around a body) then visit few
-    /// leaves. The bound is computed with the same operations as the point distances, so
-    /// rounding never makes it exceed a distance it bounds: the result is the exact nearest.
     /// [`KdTree::nearest_from`] restricted to points closer than `radius`: None when there is
     /// none. Far queries prune almost the whole tree, so they cost a few node visits instead of
     /// a search over every leaf as close as the nearest point.
@@ -116,6 +109,13 @@ impl KdTree {
         (best.0 != usize::MAX && best.1 < r2).then_some(best)
     }
 
+    /// Depth-first search with Arya and Mount's incremental distance: `off` holds, per axis,
+    /// the distance from `q` to the node's cell (0 where `q` lies within its extent), so
+    /// `|off|²` bounds the distance to every point below from beneath. A far child is skipped
+    /// when that bound, not only the distance to its splitting plane, exceeds the best so far;
+    /// queries far from the points (most tet-grid vertices around a body) then visit few
+    /// leaves. The bound is computed with the same operations as the point distances, so
+    /// rounding never makes it exceed a distance it bounds: the result is the exact nearest.
     fn search(&self, node: u32, q: Vec3, mut off: Vec3, best: &mut (usize, f32)) {
         match self.nodes[node as usize] {
             Node::Leaf { start, end } => {
