@@ -285,3 +285,47 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let err = load_latent_modes(&patched, &dev).expect_err("unknown pairing").to_string();
     assert!(err.contains("latent_modes/pairing"), "{err}");
 }
+
+/// What identifies a generated mesh: vertex and triangle counts, and Σ (x + 2y + 3z) over its
+/// positions, normals and colours (clamped to [0, 1] as the .glb stores them), in f64.
+fn fingerprint(a: &Avatar) -> (usize, usize, [f64; 3]) {
+    let sum =
+        |v: &mut dyn Iterator<Item = Vec3>| v.map(|p| p.x as f64 + 2.0 * p.y as f64 + 3.0 * p.z as f64).sum::<f64>();
+    let colors = &mut a.colors.iter().map(|c| c.clamp(Vec3::ZERO, Vec3::ONE));
+    let (positions, normals) = (&mut a.mesh.vertices.iter().copied(), &mut a.normals.iter().copied());
+    (a.mesh.vertices.len(), a.mesh.faces.len(), [sum(positions), sum(normals), sum(colors)])
+}
+
+/// The shipped demo checkpoint still loads and generates the same avatars as before the
+/// code-health refactor of issue #26 (field evaluation, normal field and posed grid moved to
+/// their own modules, read-backs as `Result`, safetensors parsing by the crate). The figures
+/// were measured on the .glb of commit e02b26a's `trainer sample --config demo --seed-geo 1
+/// --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training subject).
+#[test]
+fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
+    use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+    use getavatar_core::generator::default_psi;
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors");
+    let bytes = std::fs::read(path).unwrap();
+    let dev = device();
+    let cfg = GeneratorConfig::demo();
+    let g = load_generator(&bytes, &cfg, &dev).unwrap();
+    let modes = load_latent_modes(&bytes, &dev).unwrap();
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let expected: [(&str, (usize, usize, [f64; 3])); 2] = [
+        ("walking", (6224, 12444, [-2548.4932040847852, -224.0772518895028, 21114.74598182086])),
+        ("arms_up", (6364, 12724, [-1556.346129423538, -81.01174340693979, 22093.632529905997])),
+    ];
+    for (pose, want) in expected {
+        let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+        let styles = g.styles_with(zg, zt, default_psi(modes.as_ref()), modes.as_ref());
+        let params = PoseLibrary::builtin().params(pose, &[]).unwrap();
+        let got = fingerprint(&generate_avatar(&g, &ctx, &styles, &params, &dev).unwrap());
+        assert_eq!((got.0, got.1), (want.0, want.1), "{pose}: vertex and triangle counts {got:?}");
+        // Positions and colours are bit-identical; normals differ by float rounding (≤ 3e-7 per
+        // component: the normal field's operations are now shared with training).
+        for ((k, (a, b)), tol) in got.2.iter().zip(want.2).enumerate().zip([1e-6, 1e-3, 1e-6]) {
+            assert!((a - b).abs() < tol, "{pose}: sum {k} is {a}, was {b} ({got:?})");
+        }
+    }
+}

@@ -206,36 +206,14 @@ fn read_target(zip: &mut zip::ZipArchive<std::fs::File>, rel: &str, nv: usize) -
     Ok(out)
 }
 
-/// Solve the dense system `a x = b` (n×n, row-major) by Gaussian elimination with partial pivoting.
-fn solve(mut a: Vec<f64>, mut b: Vec<f64>) -> Result<Vec<f64>> {
+/// Solve the dense system `a x = b` (n×n, row-major): nalgebra's LU with partial pivoting.
+fn solve(a: Vec<f64>, b: Vec<f64>) -> Result<Vec<f64>> {
     let n = b.len();
-    for col in 0..n {
-        let piv = (col..n).max_by(|&i, &j| a[i * n + col].abs().total_cmp(&a[j * n + col].abs())).unwrap_or(col);
-        if a[piv * n + col].abs() < 1e-300 {
-            bail!("singular system");
-        }
-        if piv != col {
-            for k in 0..n {
-                a.swap(col * n + k, piv * n + k);
-            }
-            b.swap(col, piv);
-        }
-        for r in col + 1..n {
-            let f = a[r * n + col] / a[col * n + col];
-            if f != 0.0 {
-                for k in col..n {
-                    a[r * n + k] -= f * a[col * n + k];
-                }
-                b[r] -= f * b[col];
-            }
-        }
-    }
-    let mut x = vec![0.0; n];
-    for r in (0..n).rev() {
-        let s: f64 = (r + 1..n).map(|k| a[r * n + k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r * n + r];
-    }
-    Ok(x)
+    let x = nalgebra::DMatrix::from_row_slice(n, n, &a)
+        .lu()
+        .solve(&nalgebra::DVector::from_vec(b))
+        .ok_or_else(|| anyhow!("singular system"))?;
+    Ok(x.as_slice().to_vec())
 }
 
 /// The shortest rotation taking direction `from` to direction `to` (for opposite directions a
@@ -542,6 +520,15 @@ mod tests {
                 assert!((r.determinant() - 1.0).abs() < 1e-9, "a rotation");
             }
         }
+    }
+
+    #[test]
+    fn solve_returns_the_solution_and_refuses_singular_systems() {
+        let x = solve(vec![2.0, 1.0, 0.0, 1.0, 3.0, 1.0, 0.0, 1.0, 4.0], vec![3.0, 5.0, 5.0]).unwrap();
+        for (got, want) in x.iter().zip([1.0, 1.0, 1.0]) {
+            assert!((got - want).abs() < 1e-12, "{x:?}");
+        }
+        assert!(solve(vec![1.0, 2.0, 2.0, 4.0], vec![1.0, 2.0]).is_err());
     }
 
     #[test]

@@ -39,11 +39,7 @@ impl GetAvatarApp {
             }
             Some(mut job) if job.pixels.is_none() => match viewer.take_canonical() {
                 None => self.texture_job = Some(job),
-                Some(Err(e)) => {
-                    self.texture_failed_epoch = Some(job.epoch);
-                    self.messages
-                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
-                }
+                Some(Err(e)) => job_failed(&mut self.texture_failed_epoch, &mut self.messages, job.epoch, &e),
                 Some(Ok(data)) => {
                     if job.epoch != self.texture_epoch || !wanted {
                         return;
@@ -65,11 +61,7 @@ impl GetAvatarApp {
             },
             Some(job) => match engine.poll_texture() {
                 None => self.texture_job = Some(job),
-                Some(Err(e)) => {
-                    self.texture_failed_epoch = Some(job.epoch);
-                    self.messages
-                        .push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
-                }
+                Some(Err(e)) => job_failed(&mut self.texture_failed_epoch, &mut self.messages, job.epoch, &e),
                 Some(Ok(colors)) => {
                     let Some(pixels) = job.pixels else { return };
                     if job.epoch != self.texture_epoch || !wanted {
@@ -98,4 +90,10 @@ impl GetAvatarApp {
             },
         }
     }
+}
+
+/// A job of frame `epoch` failed with `e`: say so once, and do not retry until the frame changes.
+fn job_failed(failed_epoch: &mut Option<u64>, messages: &mut Vec<String>, epoch: u64, e: &dyn std::fmt::Display) {
+    *failed_epoch = Some(epoch);
+    messages.push(format!("per-pixel texture: {e}; retried when the camera, pose or avatar changes"));
 }
