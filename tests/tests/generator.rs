@@ -286,9 +286,11 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     assert!(err.contains("latent_modes/pairing"), "{err}");
 }
 
+type Fingerprint = (usize, usize, [f64; 3]);
+
 /// What identifies a generated mesh: vertex and triangle counts, and Σ (x + 2y + 3z) over its
 /// positions, normals and colours (clamped to [0, 1] as the .glb stores them), in f64.
-fn fingerprint(a: &Avatar) -> (usize, usize, [f64; 3]) {
+fn fingerprint(a: &Avatar) -> Fingerprint {
     let sum =
         |v: &mut dyn Iterator<Item = Vec3>| v.map(|p| p.x as f64 + 2.0 * p.y as f64 + 3.0 * p.z as f64).sum::<f64>();
     let colors = &mut a.colors.iter().map(|c| c.clamp(Vec3::ZERO, Vec3::ONE));
@@ -312,7 +314,7 @@ fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
     let g = load_generator(&bytes, &cfg, &dev).unwrap();
     let modes = load_latent_modes(&bytes, &dev).unwrap();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
-    let expected: [(&str, (usize, usize, [f64; 3])); 2] = [
+    let expected: [(&str, Fingerprint); 2] = [
         ("walking", (6224, 12444, [-2548.4932040847852, -224.0772518895028, 21114.74598182086])),
         ("arms_up", (6364, 12724, [-1556.346129423538, -81.01174340693979, 22093.632529905997])),
     ];

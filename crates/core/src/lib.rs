@@ -24,11 +24,13 @@
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
+//! | photo → body (product, not in the paper): MediaPipe landmarks → SMPL joints | [`body_fit`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
 //! `docs/conventions.md`. Shared code never blocks, touches files or spawns threads: it takes
 //! bytes in and gives bytes out, so the browser app and the native trainer call it alike.
 
+pub mod body_fit;
 pub mod body_model;
 pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
