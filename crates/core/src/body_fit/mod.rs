@@ -3,5 +3,10 @@
 //!
 //! - [`landmarks`]: MediaPipe Pose's 33 landmarks, their SMPL joints and the detector's
 //!   result object (validated).
+//! - [`limits`]: knees and elbows bend one way (SMPLify's angle prior, directions checked on
+//!   this body).
+//! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 
 pub mod landmarks;
+pub mod limits;
+pub mod metrics;
