@@ -68,9 +68,9 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     let cam = OrbitCamera { yaw: 0.5, pitch: 0.05, ..OrbitCamera::default() };
     let label = Label::new(cam.world_to_camera(), &params);
     let res = 64;
-    let render = || {
+    let render_with = |g: &Generator| {
         render_avatars(
-            &g,
+            g,
             &ctx,
             &g.styles(zg.clone(), zt.clone(), 1.0),
             &[label.view()],
@@ -80,6 +80,7 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
         )
         .unwrap()
     };
+    let render = || render_with(&g);
     let fakes = render();
     assert_eq!(fakes.rgb.dims(), [1, 3, res, res]);
     assert_eq!(fakes.mask.dims(), [1, 1, res, res]);
@@ -162,16 +163,7 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     let dark_fakes = {
         let mut gd = Generator::new(&cfg, 0, &dev);
         gd.decoders.to_rgb.bias = gd.decoders.to_rgb.bias.clone().map(|b| b - DARK_SHIFT);
-        render_avatars(
-            &gd,
-            &ctx,
-            &gd.styles(zg.clone(), zt.clone(), 1.0),
-            &[label.view()],
-            res,
-            &PosedGridCache::default(),
-            &dev,
-        )
-        .unwrap()
+        render_with(&gd)
     };
     let ((dark_bias, dark_n), _, _) = compare(DARK_SHIFT, &values(dark_fakes.rgb), &mask);
     assert!(dark_n > 300, "{dark_n} dark interior channels");

@@ -105,8 +105,11 @@ async fn run() -> Result<(), JsValue> {
     let document = window.document().ok_or("no document")?;
     let canvas: web_sys::HtmlCanvasElement =
         document.get_element_by_id("getavatar_canvas").ok_or("no #getavatar_canvas")?.dyn_into()?;
-    let query = window.location().search().unwrap_or_default();
-    let (actions, errors) = parse_query(&query);
+    // An unreadable URL is reported in the panel; the app starts without its parameters.
+    let (actions, errors) = match window.location().search() {
+        Ok(query) => parse_query(&query),
+        Err(e) => (Vec::new(), vec![format!("cannot read the page's URL parameters: {e:?}")]),
+    };
     let options = eframe::WebOptions { wgpu_options: wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
         .start(

@@ -111,9 +111,14 @@ impl GetAvatarApp {
             }
         };
         let poses = PoseLibrary::builtin();
+        // The built-in library always has "standing"; should it not, say so and start at rest.
+        let params = poses.params("standing", &[]).unwrap_or_else(|e| {
+            messages.push(format!("start pose: {e}"));
+            BodyParams::default()
+        });
         let mut app = Self {
             body,
-            params: poses.params("standing", &[]).unwrap_or_default(),
+            params,
             poses,
             pose_name: "standing".into(),
             camera: OrbitCamera::default(),
