@@ -53,7 +53,7 @@ pub mod network;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod normal_field;
 pub mod npz;
-#[cfg(feature = "train")]
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod optim;
 pub mod pose_library;
 pub mod rasterize;

@@ -7,6 +7,12 @@
 //!   this body).
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod fit;
+pub mod framing;
+pub mod init;
 pub mod landmarks;
 pub mod limits;
 pub mod metrics;
+pub mod surface;
+pub mod synthetic;

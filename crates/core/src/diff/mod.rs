@@ -20,6 +20,7 @@
 
 #[cfg(feature = "train")]
 pub mod avatar;
+pub mod body_model;
 pub mod dmtet;
 pub mod rasterize;
 #[cfg(feature = "train")]

@@ -1,0 +1,749 @@
+//! The body fit: SMPLify-style optimisation (Bogo et al. 2016, in SPIN's staging) of the
+//! global orientation, body pose θ, shape β and camera translation that explain a person's
+//! landmarks and mask seen through the reference camera of a [`Framing`].
+//!
+//! Stages, each with a fresh Adam (SPIN restarts its optimiser per stage):
+//! 1. **torso**: orientation and camera translation from the shoulders and hips;
+//! 2. **body**: everything, all landmarks: Geman–McClure robust reprojection of the joints
+//!    ([`super::landmarks::JOINT_LANDMARKS`]) and surface points ([`super::surface`]),
+//!    SMPLify's angle prior on elbows and knees ([`super::limits`]), L2 priors on θ and β
+//!    (no SMPL GMM is redistributable), and the world landmarks' bone directions (3D limb
+//!    directions, weakly: they decide what a single image cannot, e.g. which arm is in front);
+//! 3. **silhouette** (with a mask): the body's mask rendered by the differentiable
+//!    rasteriser ([`crate::diff::rasterize`]: coverage + antialias, so silhouette edges get
+//!    gradients) against the person mask, squared error, on top of stage 2's terms.
+//!
+//! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
+//! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
+//! back to rasterise, which a browser must await), so callers show progress and can cancel.
+//! At the end the body's turn about the vertical is moved into the camera, so the body
+//! faces +z upright as in the data and the camera orbits it ([`BodyFit::camera`]).
+//!
+//! Units: reprojection residuals are measured in pixels of a 256² crop (NDC × 128), the
+//! weights of [`FitWeights`] are relative to one such squared pixel.
+
+use std::sync::Arc;
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
+use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
+use serde::{Deserialize, Serialize};
+
+use super::framing::{Framing, FramingError};
+use super::init::{camera_axes, camera_translation, pose_from_image, pose_from_world, posed_joints};
+use super::landmarks::{LandmarkError, PoseResult, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS};
+use super::limits::HINGES;
+use super::surface::{surface_landmarks, SurfaceError};
+use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
+use crate::camera::{reference_fov_y, to_row_major};
+use crate::diff::body_model::{joint_index, Skeleton, VertexSet};
+use crate::diff::{matrix, rasterize as diff_raster};
+use crate::optim::Adam;
+use crate::readback::{read_f32, ReadbackError};
+use crate::skinning::{axis_angle_to_matrix, BodyParams};
+
+/// Residuals are in pixels of a crop this wide.
+const UNIT_PX: f32 = 128.0;
+/// Clip planes of the fit's camera, metres.
+const NEAR: f32 = 0.1;
+const FAR: f32 = 100.0;
+
+/// Weights of the fit's terms (relative to one squared pixel of a 256² crop).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitWeights {
+    /// Geman–McClure scale σ, pixels of a 256² crop.
+    pub robust_sigma: f32,
+    /// L2 on the body pose θ₁…θ₂₃ (radians²).
+    pub pose: f32,
+    /// SMPLify's angle prior on elbows and knees.
+    pub hinge: f32,
+    /// L2 on β.
+    pub betas: f32,
+    /// Squared difference of unit bone directions to the world landmarks'.
+    pub bones: f32,
+    /// Squared mask difference summed over the crop, per pixel of a 256² crop.
+    pub silhouette: f32,
+}
+
+impl Default for FitWeights {
+    fn default() -> Self {
+        Self { robust_sigma: 40.0, pose: 0.3, hinge: 1.0, betas: 0.5, bones: 60.0, silhouette: 0.05 }
+    }
+}
+
+/// Settings of the fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitOptions {
+    /// β components fitted (0 keeps the mean shape).
+    pub num_betas: usize,
+    /// Adam steps of the torso, body and silhouette stages.
+    pub iterations: [usize; 3],
+    /// Adam's learning rate (radians, metres and β units per step, roughly).
+    pub learning_rate: f32,
+    /// Side of the silhouette stage's mask, pixels.
+    pub silhouette_size: usize,
+    pub weights: FitWeights,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            num_betas: 10,
+            iterations: [60, 300, 80],
+            learning_rate: 0.02,
+            silhouette_size: 128,
+            weights: FitWeights::default(),
+        }
+    }
+}
+
+/// Why a fit cannot run.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    #[error(transparent)]
+    Landmarks(#[from] LandmarkError),
+    #[error(transparent)]
+    Framing(#[from] FramingError),
+    #[error(transparent)]
+    Surface(#[from] SurfaceError),
+    #[error(transparent)]
+    Readback(#[from] ReadbackError),
+    #[error("the mask has {got} values, the photo {width}×{height} needs {}", width * height)]
+    MaskSize { got: usize, width: usize, height: usize },
+    #[error("too few landmarks to fit: {0}")]
+    TooFew(String),
+}
+
+/// What the fit observes, in the reference camera's NDC of a [`Framing`].
+#[derive(Clone, Debug)]
+pub struct FitInput {
+    pub framing: Framing,
+    /// Per MediaPipe landmark: NDC position and visibility.
+    pub points: Vec<([f32; 2], f32)>,
+    /// MediaPipe's world landmarks in camera axes, if the detector gave them.
+    pub world: Option<Vec<Vec3>>,
+    /// The person mask in the crop, `silhouette_size²`, 0..1.
+    pub mask: Option<Vec<f32>>,
+}
+
+impl FitInput {
+    /// From a detector result on a `width × height` photo and, optionally, its person mask
+    /// (row-major, `width × height`, 0..1).
+    pub fn from_detection(
+        result: &PoseResult,
+        width: usize,
+        height: usize,
+        mask: Option<&[f32]>,
+        model: &BodyModel,
+        options: &FitOptions,
+    ) -> Result<Self, FitError> {
+        result.validate()?;
+        let framing = Framing::from_landmarks(&result.pose_landmarks, width, height, model)?;
+        let points = result
+            .pose_landmarks
+            .iter()
+            .map(|l| (framing.to_ndc([l.x * width as f32, l.y * height as f32]), l.visibility))
+            .collect();
+        let world = result.pose_world_landmarks.as_ref().map(|w| w.iter().map(camera_axes).collect());
+        let mask = match mask {
+            Some(m) if m.len() != width * height => {
+                return Err(FitError::MaskSize { got: m.len(), width, height });
+            }
+            Some(m) => Some(framing.resample_mask(m, options.silhouette_size)),
+            None => None,
+        };
+        Ok(Self { framing, points, world, mask })
+    }
+}
+
+/// The fitted body: pose, shape and camera, with what it was fitted to and how well.
+/// `fit.json` of `trainer fit-pose` and the app's "Download fit".
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BodyFit {
+    /// `getavatar-body-fit/1`.
+    pub format: String,
+    /// θ₀, axis-angle, radians (upright: the turn about the vertical is in the camera).
+    pub global_orient: [f32; 3],
+    /// θ₁…θ₂₃, 69 numbers.
+    pub body_pose: Vec<f32>,
+    pub betas: Vec<f32>,
+    /// World → camera, 16 numbers row-major (the dataset label layout), reference
+    /// intrinsics (`fov_y`) on the square crop of `framing`.
+    pub camera: [f32; 16],
+    /// Vertical field of view, radians.
+    pub fov_y: f32,
+    pub framing: Framing,
+    /// Every landmark: where it was seen, where the fitted body puts it (photo pixels).
+    pub keypoints: Vec<FitKeypoint>,
+    pub residuals: FitResiduals,
+    /// The landmark → joint/vertex table used.
+    pub table: Vec<FitTarget>,
+    /// Landmarks the detector did not see (visibility < 0.5); the fit ignores them.
+    pub missing: Vec<String>,
+    pub options: FitOptions,
+}
+
+pub const BODY_FIT_FORMAT: &str = "getavatar-body-fit/1";
+
+/// One landmark of [`BodyFit::keypoints`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitKeypoint {
+    pub name: String,
+    /// Detected, photo pixels.
+    pub observed: [f32; 2],
+    /// The fitted body's joint or surface point, projected, photo pixels (absent for
+    /// landmarks the fit has no body point for).
+    pub fitted: Option<[f32; 2]>,
+    pub visibility: f32,
+}
+
+/// One row of [`BodyFit::table`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitTarget {
+    pub landmark: String,
+    /// SMPL joint name, for joint landmarks.
+    pub joint: Option<String>,
+    /// Body vertex, for surface landmarks.
+    pub vertex: Option<u32>,
+    pub weight: f32,
+}
+
+/// How well the fit explains what it saw.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitResiduals {
+    /// Visibility-weighted mean distance between detected and fitted keypoints, photo pixels.
+    pub mean_px: f32,
+    /// `mean_px` over the fitted body's height in the photo.
+    pub relative_to_height: f32,
+    /// IoU of the fitted body's mask and the person mask (threshold ½), when there was one.
+    pub mask_iou: Option<f32>,
+    /// Final loss of each stage (`null` for a stage that did not run).
+    pub stage_loss: [Option<f32>; 3],
+}
+
+impl BodyFit {
+    pub fn to_json(&self) -> Result<String, serde_json::Error> {
+        serde_json::to_string_pretty(self)
+    }
+
+    /// The fitted body as body parameters (no translation).
+    pub fn body_params(&self) -> BodyParams {
+        BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas)
+    }
+
+    /// World → camera.
+    pub fn world_to_camera(&self) -> Mat4 {
+        crate::camera::from_row_major(&self.camera)
+    }
+}
+
+/// Progress of one step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitProgress {
+    /// 0 torso, 1 body, 2 silhouette.
+    pub stage: usize,
+    /// Steps done, over all stages, and their total.
+    pub done: usize,
+    pub total: usize,
+    pub loss: f32,
+}
+
+pub const STAGE_NAMES: [&str; 3] = ["torso", "body", "silhouette"];
+
+/// The fitted quantities as a module, so [`Adam`] updates them.
+#[derive(Module, Debug)]
+struct FitParams {
+    orient: Param<Tensor<2>>,
+    body_pose: Param<Tensor<2>>,
+    betas: Param<Tensor<2>>,
+    camera: Param<Tensor<2>>,
+}
+
+/// Observations of one kind of body point (joints or surface vertices) as tensors.
+struct Targets {
+    /// Landmark index per row.
+    landmarks: Vec<usize>,
+    observed: Tensor<2>,
+    /// Weight × visibility, `[N, 1]`; `torso` masks rows for stage 1.
+    weight: Tensor<2>,
+    torso_weight: Tensor<2>,
+    weight_sum: f32,
+    torso_sum: f32,
+}
+
+impl Targets {
+    fn new(rows: &[(usize, f32)], input: &FitInput, device: &Device) -> Self {
+        let n = rows.len();
+        let mut obs = Vec::with_capacity(n * 2);
+        let (mut w, mut tw) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for &(l, weight) in rows {
+            let (p, vis) = input.points[l];
+            obs.extend_from_slice(&p);
+            let c = if vis >= MISSING_VISIBILITY { weight * vis } else { 0.0 };
+            w.push(c);
+            tw.push(if [11, 12, 23, 24].contains(&l) { c } else { 0.0 });
+        }
+        let (weight_sum, torso_sum) = (w.iter().sum(), tw.iter().sum());
+        Self {
+            landmarks: rows.iter().map(|r| r.0).collect(),
+            observed: matrix(obs, n, 2, device),
+            weight: matrix(w, n, 1, device),
+            torso_weight: matrix(tw, n, 1, device),
+            weight_sum,
+            torso_sum,
+        }
+    }
+}
+
+/// Landmarks below this visibility count as not seen.
+pub const MISSING_VISIBILITY: f32 = 0.5;
+
+/// The fit, one Adam step at a time.
+pub struct BodyFitter {
+    model: Arc<BodyModel>,
+    input: FitInput,
+    options: FitOptions,
+    device: Device,
+    skeleton: Skeleton,
+    surface: VertexSet,
+    surface_ids: Vec<u32>,
+    all_vertices: Option<VertexSet>,
+    joints: Targets,
+    joint_ids: Vec<usize>,
+    points: Targets,
+    /// Bones (parent joint, child joint) with their observed world direction and weight.
+    bones: Option<(Vec<usize>, Vec<usize>, Tensor<2>, Tensor<2>)>,
+    params: FitParams,
+    adam: Adam,
+    stage: usize,
+    step_in_stage: usize,
+    done: usize,
+    stage_loss: [Option<f32>; 3],
+}
+
+/// Limb bones of the 3D direction term: (parent joint, child joint, landmarks).
+const BONES: [(usize, usize, usize, usize); 8] = [
+    (16, 18, 11, 13),
+    (18, 20, 13, 15),
+    (17, 19, 12, 14),
+    (19, 21, 14, 16),
+    (1, 4, 23, 25),
+    (4, 7, 25, 27),
+    (2, 5, 24, 26),
+    (5, 8, 26, 28),
+];
+
+impl BodyFitter {
+    /// Prepare the fit on `device` (an autodiff device: `Device::autodiff()`).
+    pub fn new(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<Self, FitError> {
+        if input.points.len() != NUM_LANDMARKS {
+            return Err(FitError::TooFew(format!("{} landmarks, expected {NUM_LANDMARKS}", input.points.len())));
+        }
+        let seen = |l: usize| input.points[l].1 >= MISSING_VISIBILITY;
+        let torso_seen = [11, 12, 23, 24].iter().filter(|l| seen(**l)).count();
+        if torso_seen < 2 {
+            return Err(FitError::TooFew(
+                "fewer than two of the shoulders and hips are visible; the torso cannot be placed".into(),
+            ));
+        }
+        let skeleton = Skeleton::new(&model, options.num_betas, device);
+        let surface_marks = surface_landmarks(&model)?;
+        let surface_ids: Vec<u32> = surface_marks.iter().map(|s| s.vertex).collect();
+        let surface = VertexSet::new(&model, &surface_ids, &skeleton, device);
+        let joint_rows: Vec<(usize, f32)> = JOINT_LANDMARKS.iter().map(|m| (m.landmark, m.weight)).collect();
+        let joint_ids: Vec<usize> = JOINT_LANDMARKS.iter().map(|m| m.joint).collect();
+        let joints = Targets::new(&joint_rows, &input, device);
+        let point_rows: Vec<(usize, f32)> = surface_marks.iter().map(|s| (s.landmark, s.weight)).collect();
+        let points = Targets::new(&point_rows, &input, device);
+
+        // Initial pose and camera.
+        let betas0 = vec![0.0f32; skeleton.num_betas];
+        let init = match &input.world {
+            Some(world) => {
+                let vis: Vec<f32> = input.points.iter().map(|p| p.1).collect();
+                pose_from_world(&model, world, &vis, &betas0)
+            }
+            None => pose_from_image(input.points[11].0, input.points[12].0, &betas0),
+        };
+        let posed = posed_joints(&model, &init);
+        let torso: Vec<(Vec3, ([f32; 2], f32))> = JOINT_LANDMARKS
+            .iter()
+            .filter(|m| [11, 12, 23, 24].contains(&m.landmark) && seen(m.landmark))
+            .map(|m| (posed[m.joint], (input.points[m.landmark].0, 1.0)))
+            .collect();
+        let (tj, to): (Vec<Vec3>, Vec<([f32; 2], f32)>) = torso.into_iter().unzip();
+        let cam = camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::camera::REFERENCE_RADIUS));
+
+        let bones = input.world.as_ref().and_then(|world| {
+            let rows: Vec<_> = BONES.iter().filter(|b| seen(b.2) && seen(b.3)).collect();
+            if rows.is_empty() {
+                return None;
+            }
+            let dirs: Vec<f32> =
+                rows.iter().flat_map(|b| (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO).to_array()).collect();
+            let w: Vec<f32> = rows.iter().map(|b| input.points[b.2].1.min(input.points[b.3].1)).collect();
+            let n = rows.len();
+            Some((
+                rows.iter().map(|b| b.0).collect(),
+                rows.iter().map(|b| b.1).collect(),
+                matrix(dirs, n, 3, device),
+                matrix(w, n, 1, device),
+            ))
+        });
+
+        let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let nb = skeleton.num_betas.max(1);
+        let params = FitParams {
+            orient: Param::from_tensor(matrix(init.pose[0].to_array().to_vec(), 1, 3, device).require_grad()),
+            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, device).require_grad()),
+            betas: Param::from_tensor(matrix(vec![0.0; nb], 1, nb, device).require_grad()),
+            camera: Param::from_tensor(matrix(cam.to_array().to_vec(), 1, 3, device).require_grad()),
+        };
+        Ok(Self {
+            model,
+            input,
+            options,
+            device: device.clone(),
+            skeleton,
+            surface,
+            surface_ids,
+            all_vertices: None,
+            joints,
+            joint_ids,
+            points,
+            bones,
+            params,
+            adam: Adam::new(0.9, 0.999, 1e-8),
+            stage: 0,
+            step_in_stage: 0,
+            done: 0,
+            stage_loss: [None; 3],
+        })
+    }
+
+    /// Steps of all stages (the silhouette stage only with a mask).
+    pub fn total_steps(&self) -> usize {
+        let [a, b, c] = self.options.iterations;
+        a + b + if self.input.mask.is_some() { c } else { 0 }
+    }
+
+    fn stage_len(&self, stage: usize) -> usize {
+        match stage {
+            2 if self.input.mask.is_none() => 0,
+            s => self.options.iterations.get(s).copied().unwrap_or(0),
+        }
+    }
+
+    /// One Adam step; `None` when the fit is complete.
+    pub async fn step(&mut self) -> Result<Option<FitProgress>, FitError> {
+        while self.stage < 3 && self.step_in_stage >= self.stage_len(self.stage) {
+            self.stage += 1;
+            self.step_in_stage = 0;
+            self.adam = Adam::new(0.9, 0.999, 1e-8);
+        }
+        if self.stage >= 3 {
+            return Ok(None);
+        }
+        let loss = self.loss(self.stage).await?;
+        let value = read_f32(loss.clone()).await?.first().copied().unwrap_or(f32::NAN);
+        let grads = loss.backward();
+        let params = std::mem::replace(&mut self.params, placeholder(&self.device));
+        self.params = self.adam.step(self.options.learning_rate, params, &grads);
+        self.stage_loss[self.stage] = Some(value);
+        self.step_in_stage += 1;
+        self.done += 1;
+        Ok(Some(FitProgress { stage: self.stage, done: self.done, total: self.total_steps(), loss: value }))
+    }
+
+    /// θ `[24, 3]` and β of the current parameters; in the torso stage only the orientation
+    /// and camera carry gradients.
+    fn theta(&self, stage: usize) -> (Tensor<2>, Tensor<2>) {
+        let (pose, betas) = if stage == 0 {
+            (self.params.body_pose.val().detach(), self.params.betas.val().detach())
+        } else {
+            (self.params.body_pose.val(), self.params.betas.val())
+        };
+        (Tensor::cat(vec![self.params.orient.val(), pose], 0), betas)
+    }
+
+    /// World points `[N, 3]` → NDC `[N, 2]` through the fit's camera (translation only).
+    fn project(&self, points: Tensor<2>) -> Tensor<2> {
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let c = points + self.params.camera.val();
+        let depth = c.clone().narrow(1, 2, 1).neg().clamp_min(NEAR);
+        c.narrow(1, 0, 2) * f / depth
+    }
+
+    /// Robust reprojection: Σ w·ρ(‖π(X) − x‖²) over rows, ρ Geman–McClure.
+    fn reprojection(&self, ndc: Tensor<2>, t: &Targets, torso_only: bool) -> Tensor<1> {
+        let sigma2 = self.options.weights.robust_sigma.powi(2);
+        let e = (ndc - t.observed.clone()) * UNIT_PX;
+        let e2 = (e.clone() * e).sum_dim(1);
+        let rho = e2.clone() * sigma2 / (e2 + sigma2);
+        let w = if torso_only { t.torso_weight.clone() } else { t.weight.clone() };
+        (rho * w).sum().reshape([1])
+    }
+
+    async fn loss(&mut self, stage: usize) -> Result<Tensor<1>, FitError> {
+        let wts = self.options.weights.clone();
+        let (theta, betas) = self.theta(stage);
+        let posed = self.skeleton.forward(theta, &betas);
+        let dev = self.device.clone();
+        let joints = posed.joints.clone().select(0, joint_index(&self.joint_ids, &dev));
+        let torso = stage == 0;
+        let norm = if torso { self.joints.torso_sum } else { self.joints.weight_sum + self.points.weight_sum };
+        let mut loss = self.reprojection(self.project(joints), &self.joints, torso);
+        if !torso {
+            let surface = self.surface.pose(&posed, &betas, &self.skeleton);
+            loss = loss + self.reprojection(self.project(surface), &self.points, false);
+        }
+        loss = loss / norm.max(1e-6);
+        if torso {
+            return Ok(loss);
+        }
+        // Priors.
+        let pose = self.params.body_pose.val();
+        loss = loss + (pose.clone() * pose.clone()).sum().reshape([1]) * wts.pose;
+        for h in HINGES {
+            let a = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.axis, 1).reshape([1]);
+            let e = (a * -h.bend).exp();
+            loss = loss + e.clone() * e * wts.hinge;
+        }
+        let b = self.params.betas.val();
+        loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;
+        if let Some((from, to, dirs, w)) = &self.bones {
+            let a = posed.joints.clone().select(0, joint_index(from, &dev));
+            let c = posed.joints.clone().select(0, joint_index(to, &dev));
+            let d = c - a;
+            let len = (d.clone() * d.clone()).sum_dim(1).sqrt().clamp_min(1e-6);
+            let diff = d / len - dirs.clone();
+            loss = loss + ((diff.clone() * diff).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.bones;
+        }
+        if stage == 2 {
+            if let Some(mask) = self.input.mask.clone() {
+                loss = loss + self.silhouette(&posed, &betas, &mask).await? * wts.silhouette;
+            }
+        }
+        Ok(loss)
+    }
+
+    /// Σ (rendered mask − person mask)² over the crop, in pixels of a 256² crop.
+    async fn silhouette(
+        &mut self,
+        posed: &crate::diff::body_model::PosedSkeleton,
+        betas: &Tensor<2>,
+        mask: &[f32],
+    ) -> Result<Tensor<1>, FitError> {
+        let size = self.options.silhouette_size;
+        let all = match &self.all_vertices {
+            Some(v) => v.clone(),
+            None => {
+                let v = VertexSet::all(&self.model, &self.skeleton, &self.device);
+                self.all_vertices = Some(v.clone());
+                v
+            }
+        };
+        let verts = all.pose(posed, betas, &self.skeleton);
+        let clip = self.clip(verts);
+        let host = read_f32(clip.clone().detach()).await?;
+        let clip_host: Vec<Vec4> = host.chunks_exact(4).map(Vec4::from_slice).collect();
+        let raster = crate::rasterize::rasterize(&clip_host, &self.model.faces, size, size);
+        let cov = diff_raster::Coverage::new(&raster, &self.model.faces);
+        let pairs = diff_raster::silhouette_pairs(&raster, &clip_host, &self.model.faces);
+        let dev = &self.device;
+        let image = if cov.is_empty() {
+            Tensor::<2>::zeros([size * size, 1], dev)
+        } else {
+            diff_raster::compose(&cov, Tensor::<2>::ones([cov.len(), 1], dev), &[0.0], dev)
+        };
+        let image = diff_raster::antialias(image, &pairs, clip, size, size, dev);
+        let target = matrix(mask.to_vec(), size * size, 1, dev);
+        let d = image - target;
+        let scale = (2.0 * UNIT_PX / size as f32).powi(2);
+        Ok((d.clone() * d).sum().reshape([1]) * scale)
+    }
+
+    /// Clip positions `[N, 4]` of world points through the fit's camera (OpenGL projection).
+    fn clip(&self, world: Tensor<2>) -> Tensor<2> {
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let c = world + self.params.camera.val();
+        let z = c.clone().narrow(1, 2, 1);
+        let a = (FAR + NEAR) / (NEAR - FAR);
+        let b = 2.0 * FAR * NEAR / (NEAR - FAR);
+        Tensor::cat(vec![c.clone().narrow(1, 0, 2) * f, z.clone() * a + b, z.neg()], 1)
+    }
+
+    /// Run every remaining step.
+    pub async fn run(&mut self) -> Result<(), FitError> {
+        while self.step().await?.is_some() {}
+        Ok(())
+    }
+
+    /// The result (after [`BodyFitter::run`], or early, with the current parameters).
+    pub async fn finish(&self) -> Result<BodyFit, FitError> {
+        let orient = read_f32(self.params.orient.val()).await?;
+        let body_pose = read_f32(self.params.body_pose.val()).await?;
+        let betas = read_f32(self.params.betas.val()).await?;
+        let cam = read_f32(self.params.camera.val()).await?;
+        let betas = betas[..self.skeleton.num_betas].to_vec();
+        let mut params = BodyParams::from_split(&orient, &body_pose, &betas);
+        let t = Vec3::from_slice(&cam);
+        let model = &self.model;
+        let posed = crate::skinning::pose_body(model, &params);
+        // World → camera of the fit: translation only.
+        let world_to_camera = Mat4::from_translation(t);
+        let framing = self.input.framing;
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let to_photo = |p: Vec3| {
+            let c = world_to_camera.transform_point3(p);
+            let depth = (-c.z).max(NEAR);
+            framing.to_photo([f * c.x / depth, f * c.y / depth])
+        };
+        let mut fitted: Vec<Option<[f32; 2]>> = vec![None; NUM_LANDMARKS];
+        for m in JOINT_LANDMARKS {
+            fitted[m.landmark] = Some(to_photo(posed.kinematics.posed_joints[m.joint]));
+        }
+        for (l, v) in self.points.landmarks.iter().zip(&self.surface_ids) {
+            fitted[*l] = Some(to_photo(posed.vertices[*v as usize]));
+        }
+        let mut keypoints = Vec::with_capacity(NUM_LANDMARKS);
+        let (mut err, mut wsum) = (0.0f32, 0.0f32);
+        for (l, (ndc, vis)) in self.input.points.iter().enumerate() {
+            let observed = framing.to_photo(*ndc);
+            if let (Some(p), true) = (fitted[l], *vis >= MISSING_VISIBILITY) {
+                err += vis * ((p[0] - observed[0]).powi(2) + (p[1] - observed[1]).powi(2)).sqrt();
+                wsum += vis;
+            }
+            keypoints.push(FitKeypoint {
+                name: LANDMARK_NAMES[l].into(),
+                observed,
+                fitted: fitted[l],
+                visibility: *vis,
+            });
+        }
+        let ys: Vec<f32> = posed.vertices.iter().map(|v| to_photo(*v)[1]).collect();
+        let height =
+            ys.iter().copied().fold(f32::NEG_INFINITY, f32::max) - ys.iter().copied().fold(f32::INFINITY, f32::min);
+        let mean_px = if wsum > 0.0 { err / wsum } else { f32::NAN };
+        let mask_iou = self.input.mask.as_ref().map(|m| {
+            let size = self.options.silhouette_size;
+            let proj = Mat4::perspective_rh_gl(reference_fov_y(), 1.0, NEAR, FAR) * world_to_camera;
+            let fitted = body_mask(&posed.vertices, &model.faces, proj, size);
+            mask_iou(&fitted, m)
+        });
+        // Move the body's turn about the vertical into the camera.
+        let (orient, camera) = upright(params.pose[0], posed.kinematics.rest_joints[0], world_to_camera);
+        params.pose[0] = orient;
+        let table = JOINT_LANDMARKS
+            .iter()
+            .map(|m| FitTarget {
+                landmark: LANDMARK_NAMES[m.landmark].into(),
+                joint: Some(JOINT_NAMES[m.joint].into()),
+                vertex: None,
+                weight: m.weight,
+            })
+            .chain(surface_landmarks(model)?.iter().map(|s| FitTarget {
+                landmark: LANDMARK_NAMES[s.landmark].into(),
+                joint: None,
+                vertex: Some(s.vertex),
+                weight: s.weight,
+            }))
+            .collect();
+        let missing = self
+            .input
+            .points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.1 < MISSING_VISIBILITY)
+            .map(|(l, _)| LANDMARK_NAMES[l].to_string())
+            .collect();
+        let theta = params.theta();
+        Ok(BodyFit {
+            format: BODY_FIT_FORMAT.into(),
+            global_orient: [theta[0], theta[1], theta[2]],
+            body_pose: theta[3..].to_vec(),
+            betas,
+            camera: to_row_major(camera),
+            fov_y: reference_fov_y(),
+            framing,
+            keypoints,
+            residuals: FitResiduals {
+                mean_px,
+                relative_to_height: mean_px / height.max(1.0),
+                mask_iou,
+                stage_loss: self.stage_loss,
+            },
+            table,
+            missing,
+            options: self.options.clone(),
+        })
+    }
+}
+
+/// An empty parameter set to swap in while Adam consumes the real one.
+fn placeholder(device: &Device) -> FitParams {
+    let z = |n, c| Param::from_tensor(Tensor::<2>::zeros([n, c], device));
+    FitParams { orient: z(1, 3), body_pose: z(1, 3), betas: z(1, 1), camera: z(1, 3) }
+}
+
+/// Split a global orientation into a turn about +y (moved into the camera) and an upright
+/// remainder: with `Y` the turn, posed points satisfy `p(Y·R') = Y·p(R') + (I − Y)·j₀`
+/// (SMPL rotates about the root joint `j₀`), so the camera becomes `M · [Y | (I − Y) j₀]`.
+pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) {
+    let r = axis_angle_to_matrix(orient);
+    let fwd = r * Vec3::Z;
+    let yaw = fwd.x.atan2(fwd.z);
+    let y = Mat3::from_rotation_y(yaw);
+    let rest = Quat::from_mat3(&(y.transpose() * r)).normalize().to_scaled_axis();
+    let turn = Mat4::from_translation(root) * Mat4::from_mat3(y) * Mat4::from_translation(-root);
+    (rest, world_to_camera * turn)
+}
+
+/// A body's mask at `size`² through `view_proj` (CPU rasteriser), 0 or 1 per pixel.
+pub fn body_mask(vertices: &[Vec3], faces: &[[u32; 3]], view_proj: Mat4, size: usize) -> Vec<f32> {
+    let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+    let r = crate::rasterize::rasterize(&clip, faces, size, size);
+    r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect()
+}
+
+/// Intersection over union of two masks thresholded at ½ (1 for two empty masks).
+pub fn mask_iou(a: &[f32], b: &[f32]) -> f32 {
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (x, y) in a.iter().zip(b) {
+        let (x, y) = (*x >= 0.5, *y >= 0.5);
+        inter += (x && y) as usize;
+        union += (x || y) as usize;
+    }
+    if union == 0 {
+        1.0
+    } else {
+        inter as f32 / union as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_upright_split_keeps_every_posed_point_in_view() {
+        let model = BodyModel::default_body().unwrap();
+        let mut params = BodyParams::default();
+        params.pose[0] = Vec3::new(0.2, 2.0, -0.1);
+        params.pose[16] = Vec3::new(0.0, 0.0, -1.0);
+        let m = Mat4::from_translation(Vec3::new(0.1, 0.2, -2.4));
+        let before = crate::skinning::pose_body(&model, &params);
+        let (orient, cam) = upright(params.pose[0], before.kinematics.rest_joints[0], m);
+        let mut turned = params.clone();
+        turned.pose[0] = orient;
+        let after = crate::skinning::pose_body(&model, &turned);
+        for (a, b) in before.vertices.iter().zip(&after.vertices).step_by(97) {
+            let (pa, pb) = (m.transform_point3(*a), cam.transform_point3(*b));
+            assert!((pa - pb).length() < 1e-4, "{pa} vs {pb}");
+        }
+        // Upright: the body's forward axis has no sideways component left.
+        let fwd = axis_angle_to_matrix(orient) * Vec3::Z;
+        assert!(fwd.x.abs() < 1e-5 && fwd.z > 0.0, "{fwd}");
+        assert_eq!(mask_iou(&[1.0, 1.0, 0.0, 0.0], &[1.0, 0.0, 1.0, 0.0]), 1.0 / 3.0);
+    }
+}

@@ -1,0 +1,74 @@
+//! Synthetic detections for tests and benchmarks: what a perfect MediaPipe would report for a
+//! posed body photographed by a known camera (reference intrinsics), with Gaussian noise
+//! added: image landmarks at the projected joints and surface points, world landmarks at the
+//! joints in camera axes around the hips (MediaPipe's axes: x right, y down, z away), and
+//! the body's mask. Landmarks the fit has no body point for (hands, mouth, inner/outer
+//! eyes) are reported at the nearest mapped point with visibility 0.
+
+use glam::{Mat4, Vec3};
+
+use super::landmarks::{Landmark, PoseResult, JOINT_LANDMARKS, NUM_LANDMARKS};
+use super::surface::{surface_landmarks, SurfaceError};
+use crate::body_model::BodyModel;
+use crate::camera::{project_to_pixel, reference_fov_y};
+use crate::rasterize::rasterize;
+use crate::rng::Rng;
+use crate::skinning::{pose_body, BodyParams};
+
+/// A synthetic photo's detection and mask.
+#[derive(Clone, Debug)]
+pub struct SyntheticDetection {
+    pub result: PoseResult,
+    /// The body's mask in the photo, row-major `size²`, 0 or 1.
+    pub mask: Vec<f32>,
+    pub size: usize,
+}
+
+/// Detections of `params` seen through `world_to_camera` in a `size`² photo; `pixel_noise`
+/// (pixels) and `world_noise` (metres) are the standard deviations of the added noise.
+pub fn detect(
+    model: &BodyModel,
+    params: &BodyParams,
+    world_to_camera: Mat4,
+    size: usize,
+    pixel_noise: f32,
+    world_noise: f32,
+    rng: &mut Rng,
+) -> Result<SyntheticDetection, SurfaceError> {
+    let posed = pose_body(model, params);
+    let mut points: Vec<Option<Vec3>> = vec![None; NUM_LANDMARKS];
+    for m in JOINT_LANDMARKS {
+        points[m.landmark] = Some(posed.kinematics.posed_joints[m.joint]);
+    }
+    for s in surface_landmarks(model)? {
+        points[s.landmark] = Some(posed.vertices[s.vertex as usize]);
+    }
+    let cam = |p: Vec3| world_to_camera.transform_point3(p);
+    let hips = (cam(posed.kinematics.posed_joints[1]) + cam(posed.kinematics.posed_joints[2])) / 2.0;
+    let mut image = Vec::with_capacity(NUM_LANDMARKS);
+    let mut world = Vec::with_capacity(NUM_LANDMARKS);
+    for p in &points {
+        let (p, seen) = match p {
+            Some(p) => (*p, true),
+            None => (posed.kinematics.posed_joints[0], false),
+        };
+        // Behind the camera: reported at the image centre, not seen.
+        let (px, visibility) = match (project_to_pixel(world_to_camera, p, size), seen) {
+            (Some(px), true) => (px, 1.0),
+            (px, _) => (px.unwrap_or(glam::Vec2::splat(size as f32 / 2.0)), 0.0),
+        };
+        let (nx, ny) = (rng.normal() * pixel_noise, rng.normal() * pixel_noise);
+        image.push(Landmark { x: (px.x + nx) / size as f32, y: (px.y + ny) / size as f32, z: 0.0, visibility });
+        let c = cam(p) - hips + Vec3::new(rng.normal(), rng.normal(), rng.normal()) * world_noise;
+        world.push(Landmark { x: c.x, y: -c.y, z: -c.z, visibility });
+    }
+    let proj = Mat4::perspective_rh_gl(reference_fov_y(), 1.0, 0.1, 100.0) * world_to_camera;
+    let clip: Vec<_> = posed.vertices.iter().map(|v| proj * v.extend(1.0)).collect();
+    let r = rasterize(&clip, &model.faces, size, size);
+    let mask = r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect();
+    Ok(SyntheticDetection {
+        result: PoseResult { pose_landmarks: image, pose_world_landmarks: Some(world) },
+        mask,
+        size,
+    })
+}
