@@ -8,16 +8,17 @@
 use std::sync::Arc;
 
 use getavatar_core::body_fit::fit::{body_mask, mask_iou, BodyFit, BodyFitter, FitInput, FitOptions};
+use getavatar_core::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body_fit::metrics::pa_mpjpe;
-use getavatar_core::body_fit::synthetic::detect;
+use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
 use getavatar_core::burn::tensor::{Tensor, TensorData};
-use getavatar_core::camera::{reference_fov_y, OrbitCamera};
+use getavatar_core::camera::reference_fov_y;
 use getavatar_core::diff::body_model::{rodrigues, Skeleton, VertexSet};
 use getavatar_core::readback::block_on_ready;
 use getavatar_core::rng::Rng;
 use getavatar_core::skinning::{axis_angle_to_matrix, pose_body};
 use getavatar_core::{BodyModel, BodyParams, NUM_JOINTS};
-use glam::{Mat4, Vec3, Vec4};
+use glam::{Mat4, Vec3};
 
 mod common;
 use common::{central_difference, cpu, values};
@@ -126,111 +127,10 @@ fn body_gradients_match_finite_differences() {
     assert!(worst < 5e-3, "worst relative gradient error {worst}");
 }
 
-/// A pose by joint name → axis-angle.
-fn pose(joints: &[(usize, [f32; 3])], orient: [f32; 3], betas: &[f32]) -> BodyParams {
-    let mut p = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
-    p.pose[0] = Vec3::from_array(orient);
-    for (j, r) in joints {
-        p.pose[*j] = Vec3::from_array(*r);
-    }
-    p
-}
-
-/// Poses outside the pose library and `synth-scans`' draws (SMPL joint indices: 1/2 hips,
-/// 4/5 knees, 7/8 ankles, 3/6/9 spine, 15 head, 16/17 shoulders, 18/19 elbows).
-fn test_poses() -> Vec<(&'static str, BodyParams)> {
-    vec![
-        (
-            "squat",
-            pose(
-                &[
-                    (1, [-1.3, 0.0, 0.1]),
-                    (2, [-1.3, 0.0, -0.1]),
-                    (4, [2.0, 0.0, 0.0]),
-                    (5, [2.0, 0.0, 0.0]),
-                    (7, [-0.6, 0.0, 0.0]),
-                    (8, [-0.6, 0.0, 0.0]),
-                    (3, [0.35, 0.0, 0.0]),
-                    (16, [0.0, -1.2, -0.2]),
-                    (17, [0.0, 1.2, 0.2]),
-                ],
-                [0.0, 0.3, 0.0],
-                &[0.8, -0.5],
-            ),
-        ),
-        (
-            "lunge",
-            pose(
-                &[
-                    (1, [-1.2, 0.0, 0.0]),
-                    (4, [1.3, 0.0, 0.0]),
-                    (2, [0.5, 0.0, 0.0]),
-                    (5, [1.2, 0.0, 0.0]),
-                    (16, [0.0, 0.0, -1.2]),
-                    (17, [0.0, 0.0, 1.2]),
-                ],
-                [0.0, -0.5, 0.0],
-                &[-0.6, 0.4, 0.3],
-            ),
-        ),
-        (
-            "kick",
-            pose(
-                &[
-                    (2, [-1.4, 0.0, 0.0]),
-                    (5, [0.2, 0.0, 0.0]),
-                    (4, [0.1, 0.0, 0.0]),
-                    (16, [0.0, 0.0, -0.3]),
-                    (17, [0.0, 0.3, 0.5]),
-                    (3, [-0.2, 0.0, 0.0]),
-                ],
-                [0.0, 1.1, 0.0],
-                &[0.0, 0.0, 1.0],
-            ),
-        ),
-        (
-            "twisted_torso",
-            pose(
-                &[
-                    (3, [0.0, 0.35, 0.0]),
-                    (6, [0.0, 0.3, 0.0]),
-                    (9, [0.0, 0.25, 0.0]),
-                    (16, [0.0, -0.6, -1.0]),
-                    (18, [0.0, -1.0, 0.0]),
-                    (17, [0.0, 0.3, 1.1]),
-                    (15, [0.0, -0.3, 0.0]),
-                    (1, [-0.3, 0.0, 0.0]),
-                ],
-                [0.0, 2.6, 0.0],
-                &[0.5],
-            ),
-        ),
-        (
-            "arms_crossed",
-            pose(
-                &[
-                    (16, [0.0, -1.0, -1.1]),
-                    (18, [0.0, -1.9, 0.0]),
-                    (17, [0.0, 1.0, 1.1]),
-                    (19, [0.0, 1.9, 0.0]),
-                    (1, [0.0, 0.0, 0.15]),
-                    (2, [0.0, 0.0, -0.15]),
-                ],
-                [0.05, -0.2, 0.0],
-                &[-1.0, 0.0, 0.0, 0.5],
-            ),
-        ),
-    ]
-}
-
 /// The fitted body's mask in the photo: the fit's camera on its crop, the crop placed in the
 /// photo by the framing (a 2D similarity of clip space).
 fn fitted_mask_in_photo(model: &BodyModel, fit: &BodyFit, size: usize) -> Vec<f32> {
-    let fr = &fit.framing;
-    let s = fr.side / size as f32;
-    let (ox, oy) = (2.0 * fr.centre[0] / size as f32 - 1.0, 1.0 - 2.0 * fr.centre[1] / size as f32);
-    let crop_to_photo =
-        Mat4::from_cols(Vec4::new(s, 0.0, 0.0, 0.0), Vec4::new(0.0, s, 0.0, 0.0), Vec4::Z, Vec4::new(ox, oy, 0.0, 1.0));
+    let crop_to_photo = fit.framing.crop_to_photo_clip();
     let proj = Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
     let posed = pose_body(model, &fit.body_params());
     body_mask(&posed.vertices, &model.faces, crop_to_photo * proj * fit.world_to_camera(), size)
@@ -241,14 +141,13 @@ fn synthetic_round_trip_recovers_unseen_poses() {
     let model = Arc::new(BodyModel::default_body().unwrap());
     let dev = cpu().autodiff();
     let size = 512;
-    let cameras = [(0.3, 0.05, 2.3), (-0.6, -0.05, 2.6), (1.2, 0.1, 2.2), (0.4, 0.0, 3.0), (0.0, 0.08, 2.4)];
     let mut rng = Rng::new(20, 1);
     let mut report = Vec::new();
-    for ((name, truth), (yaw, pitch, radius)) in test_poses().into_iter().zip(cameras) {
-        let cam = OrbitCamera { yaw, pitch, radius, target: Vec3::new(0.05, -0.25, 0.0), ..OrbitCamera::default() };
+    for ((name, truth), cam) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS.map(|c| c.camera())) {
         let det = detect(&model, &truth, cam.world_to_camera(), size, 2.0, 0.02, &mut rng).unwrap();
         let opts = FitOptions::default();
-        let input = FitInput::from_detection(&det.result, size, size, Some(&det.mask), &model, &opts).unwrap();
+        let mask = SegmentationMask { width: size, height: size, data: det.mask.clone() };
+        let input = FitInput::from_detection(&det.result, size, size, Some(&mask), &model, &opts).unwrap();
         let mut fitter = BodyFitter::new(model.clone(), input, opts, &dev).unwrap();
         let fit = block_on_ready(async {
             fitter.run().await?;

@@ -7,6 +7,7 @@ mod bench;
 mod body_convert;
 mod eval;
 mod fid;
+mod fit_pose;
 mod inception;
 mod plot;
 mod prepare;
@@ -153,6 +154,11 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample(sample::SampleArgs),
+    /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
+    /// mask): the app's photo → body step, scriptable. Writes fit.json.
+    FitPose(fit_pose::FitPoseArgs),
+    /// Time the body fit per stage on synthetic detections of unseen poses, with its accuracy.
+    BenchFit(fit_pose::BenchFitArgs),
 }
 
 fn main() -> Result<()> {
@@ -223,6 +229,8 @@ fn main() -> Result<()> {
             bench::train_case(&data, &config, &backend, batch, steps)?
         }
         Command::Sample(args) => sample::sample(&args)?,
+        Command::FitPose(args) => fit_pose::fit_pose(&args)?,
+        Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
     }
     Ok(())
 }

@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 
 use super::framing::{Framing, FramingError};
 use super::init::{camera_axes, camera_translation, pose_from_image, pose_from_world, posed_joints};
-use super::landmarks::{LandmarkError, PoseResult, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS};
+use super::landmarks::{LandmarkError, PoseResult, SegmentationMask, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS};
 use super::limits::HINGES;
 use super::surface::{surface_landmarks, SurfaceError};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
@@ -108,7 +108,7 @@ pub enum FitError {
     Surface(#[from] SurfaceError),
     #[error(transparent)]
     Readback(#[from] ReadbackError),
-    #[error("the mask has {got} values, the photo {width}×{height} needs {}", width * height)]
+    #[error("the mask has {got} values, its size {width}×{height} needs {}", width * height)]
     MaskSize { got: usize, width: usize, height: usize },
     #[error("too few landmarks to fit: {0}")]
     TooFew(String),
@@ -127,13 +127,14 @@ pub struct FitInput {
 }
 
 impl FitInput {
-    /// From a detector result on a `width × height` photo and, optionally, its person mask
-    /// (row-major, `width × height`, 0..1).
+    /// From a detector result on a `width × height` photo and, optionally, a person mask
+    /// (any resolution, covering the photo); without one, the result's own
+    /// `segmentationMask` is used when it has one.
     pub fn from_detection(
         result: &PoseResult,
         width: usize,
         height: usize,
-        mask: Option<&[f32]>,
+        mask: Option<&SegmentationMask>,
         model: &BodyModel,
         options: &FitOptions,
     ) -> Result<Self, FitError> {
@@ -145,11 +146,11 @@ impl FitInput {
             .map(|l| (framing.to_ndc([l.x * width as f32, l.y * height as f32]), l.visibility))
             .collect();
         let world = result.pose_world_landmarks.as_ref().map(|w| w.iter().map(camera_axes).collect());
-        let mask = match mask {
-            Some(m) if m.len() != width * height => {
-                return Err(FitError::MaskSize { got: m.len(), width, height });
+        let mask = match mask.or(result.segmentation_mask.as_ref()) {
+            Some(m) if m.data.len() != m.width * m.height || m.data.is_empty() => {
+                return Err(FitError::MaskSize { got: m.data.len(), width: m.width, height: m.height });
             }
-            Some(m) => Some(framing.resample_mask(m, options.silhouette_size)),
+            Some(m) => Some(framing.resample_mask(&m.data, m.width, m.height, options.silhouette_size)),
             None => None,
         };
         Ok(Self { framing, points, world, mask })

@@ -50,6 +50,22 @@ impl Framing {
         [self.centre[0] + ndc[0] * h, self.centre[1] - ndc[1] * h]
     }
 
+    /// Clip space of the crop → clip space of the whole photo (a 2D similarity applied
+    /// before the perspective divide), so a body rendered through the fit's camera and this
+    /// matrix lands on the photo.
+    pub fn crop_to_photo_clip(&self) -> glam::Mat4 {
+        use glam::Vec4;
+        let (w, h) = (self.photo_width.max(1) as f32, self.photo_height.max(1) as f32);
+        let (sx, sy) = (self.side / w, self.side / h);
+        let (ox, oy) = (2.0 * self.centre[0] / w - 1.0, 1.0 - 2.0 * self.centre[1] / h);
+        glam::Mat4::from_cols(
+            Vec4::new(sx, 0.0, 0.0, 0.0),
+            Vec4::new(0.0, sy, 0.0, 0.0),
+            Vec4::Z,
+            Vec4::new(ox, oy, 0.0, 1.0),
+        )
+    }
+
     /// The crop of a photo for a person's landmarks (`poseLandmarks`, normalised to the
     /// photo's size) and the body whose proportions define the dataset's framing.
     pub fn from_landmarks(
@@ -91,10 +107,12 @@ impl Framing {
         Ok(Self { photo_width: width, photo_height: height, centre: h, side })
     }
 
-    /// A person mask of the photo (`values`, row-major, `photo_width × photo_height`, 0..1)
-    /// resampled to the crop at `size`² (4×4 samples per pixel, 0 outside the photo).
-    pub fn resample_mask(&self, values: &[f32], size: usize) -> Vec<f32> {
-        let (w, h) = (self.photo_width, self.photo_height);
+    /// A person mask covering the photo (`mask_width × mask_height` values, row-major,
+    /// 0..1; any resolution, stretched over the photo) resampled to the crop at `size`²
+    /// (4×4 samples per pixel, 0 outside the photo).
+    pub fn resample_mask(&self, values: &[f32], mask_width: usize, mask_height: usize, size: usize) -> Vec<f32> {
+        let (w, h) = (mask_width, mask_height);
+        let (kx, ky) = (w as f32 / self.photo_width.max(1) as f32, h as f32 / self.photo_height.max(1) as f32);
         let mut out = vec![0.0f32; size * size];
         const SS: usize = 4;
         for (k, o) in out.iter_mut().enumerate() {
@@ -104,6 +122,7 @@ impl Framing {
                 let u = (x as f32 + (s % SS) as f32 / SS as f32 + 0.5 / SS as f32) / size as f32 * 2.0 - 1.0;
                 let v = 1.0 - (y as f32 + (s / SS) as f32 / SS as f32 + 0.5 / SS as f32) / size as f32 * 2.0;
                 let p = self.to_photo([u, v]);
+                let p = [p[0] * kx, p[1] * ky];
                 if p[0] >= 0.0 && p[1] >= 0.0 && (p[0] as usize) < w && (p[1] as usize) < h {
                     acc += values.get(p[1] as usize * w + p[0] as usize).copied().unwrap_or(0.0);
                 }
@@ -158,6 +177,12 @@ mod tests {
         assert!((back[0] - p[0]).abs() < 1e-3 && (back[1] - p[1]).abs() < 1e-3);
         // Image up is NDC up.
         assert!(fr.to_ndc([500.0, 900.0])[1] > 0.0);
+        // Crop clip space → photo clip space agrees with to_photo.
+        let ndc = [0.3f32, -0.7];
+        let c = fr.crop_to_photo_clip() * glam::Vec4::new(ndc[0] * 2.0, ndc[1] * 2.0, 0.5, 2.0);
+        let px = [(c.x / c.w + 1.0) * 0.5 * w as f32, (1.0 - c.y / c.w) * 0.5 * h as f32];
+        let want = fr.to_photo(ndc);
+        assert!((px[0] - want[0]).abs() < 1e-2 && (px[1] - want[1]).abs() < 1e-2, "{px:?} vs {want:?}");
         // No torso: an error that says so.
         let mut hidden = marks.clone();
         hidden[23].visibility = 0.1;
@@ -172,12 +197,15 @@ mod tests {
         // twice as wide as the photo: the person fills the crop's x ∈ [½, ¾), y ∈ [¼, ¾).
         let fr = Framing { photo_width: 4, photo_height: 2, centre: [2.0, 1.0], side: 8.0 };
         let photo = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0];
-        let m = fr.resample_mask(&photo, 8);
+        let m = fr.resample_mask(&photo, 4, 2, 8);
         for y in 0..8 {
             for x in 0..8 {
                 let want = if (4..6).contains(&x) && (3..5).contains(&y) { 1.0 } else { 0.0 };
                 assert_eq!(m[y * 8 + x], want, "({x}, {y})");
             }
         }
+        // The same mask at twice the photo's resolution resamples the same.
+        let fine: Vec<f32> = (0..16 * 4).map(|k| if k % 8 >= 4 { 1.0 } else { 0.0 }).collect();
+        assert_eq!(fr.resample_mask(&fine, 8, 4, 8), m);
     }
 }

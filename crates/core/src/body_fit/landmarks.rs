@@ -107,6 +107,17 @@ pub struct PoseResult {
     pub pose_landmarks: Vec<Landmark>,
     #[serde(default)]
     pub pose_world_landmarks: Option<Vec<Landmark>>,
+    /// The person mask (`enableSegmentation`), as the app's glue serialises it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub segmentation_mask: Option<SegmentationMask>,
+}
+
+/// A person mask: `width × height` probabilities in [0, 1], row-major from the top left.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SegmentationMask {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<f32>,
 }
 
 /// A detector result that cannot be fitted, naming the field at fault.
@@ -120,6 +131,8 @@ pub enum LandmarkError {
     NotFinite { field: &'static str, index: usize, name: &'static str, what: &'static str },
     #[error("`poseLandmarks[{index}]` ({name}): visibility {value} is outside [0, 1]")]
     Visibility { index: usize, name: &'static str, value: f32 },
+    #[error("`segmentationMask`: {0}")]
+    Mask(String),
 }
 
 impl PoseResult {
@@ -147,6 +160,20 @@ impl PoseResult {
                 if field == "poseLandmarks" && !(0.0..=1.0).contains(&l.visibility) {
                     return Err(LandmarkError::Visibility { index, name, value: l.visibility });
                 }
+            }
+        }
+        if let Some(m) = &self.segmentation_mask {
+            let want = m.width.checked_mul(m.height).filter(|n| *n > 0);
+            if want != Some(m.data.len()) {
+                return Err(LandmarkError::Mask(format!(
+                    "{} values for {}×{} pixels",
+                    m.data.len(),
+                    m.width,
+                    m.height
+                )));
+            }
+            if let Some((i, v)) = m.data.iter().enumerate().find(|(_, v)| !(0.0..=1.0).contains(*v)) {
+                return Err(LandmarkError::Mask(format!("value {v} at index {i} is outside [0, 1]")));
             }
         }
         Ok(())
@@ -229,5 +256,12 @@ mod tests {
         assert!(e.starts_with("not a MediaPipe Pose result"), "{e}");
         let nan = result_json(33, 0.9).replacen(r#""y":0.5"#, r#""y":1e999"#, 1);
         assert!(PoseResult::from_json(&nan).is_err(), "overflowing numbers are refused");
+        let with_mask = |m: &str| result_json(33, 0.9).replacen('{', &format!(r#"{{"segmentationMask":{m},"#), 1);
+        let r = PoseResult::from_json(&with_mask(r#"{"width":2,"height":1,"data":[0.0,1.0]}"#)).unwrap();
+        assert_eq!(r.segmentation_mask.unwrap().data, vec![0.0, 1.0]);
+        let e = PoseResult::from_json(&with_mask(r#"{"width":2,"height":2,"data":[0.0,1.0]}"#)).unwrap_err();
+        assert_eq!(e.to_string(), "`segmentationMask`: 2 values for 2×2 pixels");
+        let e = PoseResult::from_json(&with_mask(r#"{"width":1,"height":1,"data":[2.0]}"#)).unwrap_err();
+        assert!(e.to_string().contains("value 2 at index 0"), "{e}");
     }
 }

@@ -3,14 +3,17 @@
 //! added: image landmarks at the projected joints and surface points, world landmarks at the
 //! joints in camera axes around the hips (MediaPipe's axes: x right, y down, z away), and
 //! the body's mask. Landmarks the fit has no body point for (hands, mouth, inner/outer
-//! eyes) are reported at the nearest mapped point with visibility 0.
+//! eyes) are reported at the pelvis with visibility 0.
+//!
+//! [`unseen_poses`] are poses outside the pose library and `synth-scans`' draws, for the fit's
+//! round-trip test and `trainer bench-fit`.
 
 use glam::{Mat4, Vec3};
 
 use super::landmarks::{Landmark, PoseResult, JOINT_LANDMARKS, NUM_LANDMARKS};
 use super::surface::{surface_landmarks, SurfaceError};
 use crate::body_model::BodyModel;
-use crate::camera::{project_to_pixel, reference_fov_y};
+use crate::camera::{project_to_pixel, reference_fov_y, OrbitCamera};
 use crate::rasterize::rasterize;
 use crate::rng::Rng;
 use crate::skinning::{pose_body, BodyParams};
@@ -67,8 +70,134 @@ pub fn detect(
     let r = rasterize(&clip, &model.faces, size, size);
     let mask = r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect();
     Ok(SyntheticDetection {
-        result: PoseResult { pose_landmarks: image, pose_world_landmarks: Some(world) },
+        result: PoseResult { pose_landmarks: image, pose_world_landmarks: Some(world), segmentation_mask: None },
         mask,
         size,
     })
 }
+
+/// A pose from (SMPL joint index, axis-angle) pairs.
+fn pose(joints: &[(usize, [f32; 3])], orient: [f32; 3], betas: &[f32]) -> BodyParams {
+    let mut p = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
+    p.pose[0] = Vec3::from_array(orient);
+    for (j, r) in joints {
+        p.pose[*j] = Vec3::from_array(*r);
+    }
+    p
+}
+
+/// Poses outside the pose library and `synth-scans`' draws (SMPL joint indices: 1/2 hips,
+/// 4/5 knees, 7/8 ankles, 3/6/9 spine, 15 head, 16/17 shoulders, 18/19 elbows).
+pub fn unseen_poses() -> Vec<(&'static str, BodyParams)> {
+    vec![
+        (
+            "squat",
+            pose(
+                &[
+                    (1, [-1.3, 0.0, 0.1]),
+                    (2, [-1.3, 0.0, -0.1]),
+                    (4, [2.0, 0.0, 0.0]),
+                    (5, [2.0, 0.0, 0.0]),
+                    (7, [-0.6, 0.0, 0.0]),
+                    (8, [-0.6, 0.0, 0.0]),
+                    (3, [0.35, 0.0, 0.0]),
+                    (16, [0.0, -1.2, -0.2]),
+                    (17, [0.0, 1.2, 0.2]),
+                ],
+                [0.0, 0.3, 0.0],
+                &[0.8, -0.5],
+            ),
+        ),
+        (
+            "lunge",
+            pose(
+                &[
+                    (1, [-1.2, 0.0, 0.0]),
+                    (4, [1.3, 0.0, 0.0]),
+                    (2, [0.5, 0.0, 0.0]),
+                    (5, [1.2, 0.0, 0.0]),
+                    (16, [0.0, 0.0, -1.2]),
+                    (17, [0.0, 0.0, 1.2]),
+                ],
+                [0.0, -0.5, 0.0],
+                &[-0.6, 0.4, 0.3],
+            ),
+        ),
+        (
+            "kick",
+            pose(
+                &[
+                    (2, [-1.4, 0.0, 0.0]),
+                    (5, [0.2, 0.0, 0.0]),
+                    (4, [0.1, 0.0, 0.0]),
+                    (16, [0.0, 0.0, -0.3]),
+                    (17, [0.0, 0.3, 0.5]),
+                    (3, [-0.2, 0.0, 0.0]),
+                ],
+                [0.0, 1.1, 0.0],
+                &[0.0, 0.0, 1.0],
+            ),
+        ),
+        (
+            "twisted_torso",
+            pose(
+                &[
+                    (3, [0.0, 0.35, 0.0]),
+                    (6, [0.0, 0.3, 0.0]),
+                    (9, [0.0, 0.25, 0.0]),
+                    (16, [0.0, -0.6, -1.0]),
+                    (18, [0.0, -1.0, 0.0]),
+                    (17, [0.0, 0.3, 1.1]),
+                    (15, [0.0, -0.3, 0.0]),
+                    (1, [-0.3, 0.0, 0.0]),
+                ],
+                [0.0, 2.6, 0.0],
+                &[0.5],
+            ),
+        ),
+        (
+            "arms_crossed",
+            pose(
+                &[
+                    (16, [0.0, -1.0, -1.1]),
+                    (18, [0.0, -1.9, 0.0]),
+                    (17, [0.0, 1.0, 1.1]),
+                    (19, [0.0, 1.9, 0.0]),
+                    (1, [0.0, 0.0, 0.15]),
+                    (2, [0.0, 0.0, -0.15]),
+                ],
+                [0.05, -0.2, 0.0],
+                &[-1.0, 0.0, 0.0, 0.5],
+            ),
+        ),
+    ]
+}
+
+/// One camera per [`unseen_poses`] entry (yaw, pitch in radians, radius in metres), looking
+/// slightly off the body's centre.
+#[derive(Clone, Copy, Debug)]
+pub struct TestCamera {
+    pub yaw: f32,
+    pub pitch: f32,
+    pub radius: f32,
+}
+
+impl TestCamera {
+    pub fn camera(&self) -> OrbitCamera {
+        OrbitCamera {
+            yaw: self.yaw,
+            pitch: self.pitch,
+            radius: self.radius,
+            target: Vec3::new(0.05, -0.25, 0.0),
+            ..OrbitCamera::default()
+        }
+    }
+}
+
+pub const UNSEEN_POSE_CAMERAS: [TestCamera; 5] = [
+    TestCamera { yaw: 0.3, pitch: 0.05, radius: 2.3 },
+    TestCamera { yaw: -0.6, pitch: -0.05, radius: 2.6 },
+    TestCamera { yaw: 1.2, pitch: 0.1, radius: 2.2 },
+    TestCamera { yaw: 0.4, pitch: 0.0, radius: 3.0 },
+    TestCamera { yaw: 0.0, pitch: 0.08, radius: 2.4 },
+];

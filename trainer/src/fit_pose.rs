@@ -1,0 +1,243 @@
+//! `trainer fit-pose`: the app's photo → body fit from MediaPipe Pose's landmarks, scriptable
+//! (`kp.json` is the detector's result object as its JavaScript API returns it), and
+//! `trainer bench-fit`: the fit's time per stage and accuracy on synthetic detections.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_fit::fit::{body_mask, BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
+use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
+use getavatar_core::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::readback::block_on_ready;
+use getavatar_core::rng::Rng;
+use getavatar_core::skinning::pose_body;
+
+/// Photos above this many pixels are refused (the app downscales above 4 MP before detecting).
+pub const MAX_PHOTO_PIXELS: u64 = 40_000_000;
+
+#[derive(clap::Args, Debug)]
+pub struct FitPoseArgs {
+    /// The photo (PNG or JPEG): its size maps the normalised landmarks to pixels.
+    #[arg(long)]
+    pub image: PathBuf,
+    /// MediaPipe Pose's result: `poseLandmarks`, `poseWorldLandmarks`, optional
+    /// `segmentationMask` ({width, height, data}).
+    #[arg(long)]
+    pub keypoints: PathBuf,
+    /// A person mask PNG (grey, or the alpha channel where it has one), any size covering the
+    /// photo; overrides the result's `segmentationMask`.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    #[arg(long, default_value = "fit.json")]
+    pub out: PathBuf,
+    /// Also draw the fitted body and keypoints over the photo into this PNG.
+    #[arg(long)]
+    pub overlay: Option<PathBuf>,
+    /// Adam steps of the torso, body and silhouette stages.
+    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = FitOptions::default().iterations)]
+    pub iterations: Vec<usize>,
+    /// β components to fit (0 keeps the mean shape).
+    #[arg(long, default_value_t = FitOptions::default().num_betas)]
+    pub betas: usize,
+    /// Body model .npz in the SMPL layout (default: the embedded open body).
+    #[arg(long)]
+    pub body: Option<PathBuf>,
+}
+
+fn load_body(path: &Option<PathBuf>) -> Result<BodyModel> {
+    Ok(match path {
+        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("loading the body model {}", p.display()))?,
+        None => BodyModel::default_body()?,
+    })
+}
+
+fn open_image(path: &PathBuf) -> Result<image::DynamicImage> {
+    let reader = image::ImageReader::open(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .with_guessed_format()
+        .with_context(|| format!("reading {}", path.display()))?;
+    let (w, h) = reader.into_dimensions().with_context(|| format!("{} is not a PNG or JPEG image", path.display()))?;
+    if (w as u64) * (h as u64) > MAX_PHOTO_PIXELS {
+        bail!("{} is {w}×{h} pixels, over the {} MP limit", path.display(), MAX_PHOTO_PIXELS / 1_000_000);
+    }
+    image::ImageReader::open(path)?
+        .with_guessed_format()?
+        .decode()
+        .with_context(|| format!("{} is not a readable PNG or JPEG image", path.display()))
+}
+
+fn load_mask(path: &PathBuf) -> Result<SegmentationMask> {
+    let img = open_image(path)?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    let data: Vec<f32> = if img.color().has_alpha() && img.to_rgba8().pixels().any(|p| p[3] < 255) {
+        img.to_rgba8().pixels().map(|p| p[3] as f32 / 255.0).collect()
+    } else {
+        img.to_luma8().pixels().map(|p| p[0] as f32 / 255.0).collect()
+    };
+    Ok(SegmentationMask { width, height, data })
+}
+
+/// Run a fit to the end with a progress bar.
+fn run_fit(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<BodyFit> {
+    let mut fitter = BodyFitter::new(model, input, options, device)?;
+    let bar = crate::progress::bar(fitter.total_steps() as u64, "steps");
+    let fit = block_on_ready(async {
+        while let Some(p) = fitter.step().await? {
+            bar.set_position(p.done as u64);
+            bar.set_message(format!("{} loss {:.3}", STAGE_NAMES[p.stage], p.loss));
+        }
+        fitter.finish().await
+    })?;
+    bar.finish_and_clear();
+    Ok(fit)
+}
+
+pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
+    let photo = open_image(&args.image)?;
+    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    let text =
+        std::fs::read_to_string(&args.keypoints).with_context(|| format!("reading {}", args.keypoints.display()))?;
+    let result = PoseResult::from_json(&text).with_context(|| format!("{}", args.keypoints.display()))?;
+    let mask = args.mask.as_ref().map(load_mask).transpose()?;
+    let model = Arc::new(load_body(&args.body)?);
+    let [a, b, c] = args.iterations[..] else { bail!("--iterations takes three numbers: torso,body,silhouette") };
+    let options = FitOptions { iterations: [a, b, c], num_betas: args.betas, ..FitOptions::default() };
+    let input = FitInput::from_detection(&result, w, h, mask.as_ref(), &model, &options)?;
+    #[allow(deprecated)]
+    let device = Device::ndarray().autodiff();
+    let fit = run_fit(model.clone(), input, options, &device)?;
+    crate::atomic::write_atomic(&args.out, fit.to_json()?.as_bytes())?;
+    let r = &fit.residuals;
+    println!(
+        "wrote {}: mean keypoint error {:.1} px ({:.2} % of the body's height){}{}",
+        args.out.display(),
+        r.mean_px,
+        100.0 * r.relative_to_height,
+        r.mask_iou.map(|i| format!(", mask IoU {i:.3}")).unwrap_or_default(),
+        if fit.missing.is_empty() { String::new() } else { format!("; not seen: {}", fit.missing.join(", ")) }
+    );
+    if let Some(path) = &args.overlay {
+        let png = overlay(&photo.to_rgb8(), &model, &fit)?;
+        crate::atomic::write_atomic(path, &png)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+/// The photo with the fitted body tinted over it, detected keypoints (green) joined to the
+/// fitted ones (red).
+fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<Vec<u8>> {
+    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    let proj = glam::Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
+    let view_proj = fit.framing.crop_to_photo_clip() * proj * fit.world_to_camera();
+    let posed = pose_body(model, &fit.body_params());
+    let clip: Vec<glam::Vec4> = posed.vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+    let raster = getavatar_core::rasterize::rasterize(&clip, &model.faces, w, h);
+    let mut px: Vec<u8> = photo.as_raw().clone();
+    for (k, t) in raster.triangle.iter().enumerate() {
+        if *t >= 0 {
+            for (c, tint) in [60.0f32, 120.0, 255.0].iter().enumerate() {
+                px[k * 3 + c] = (0.55 * px[k * 3 + c] as f32 + 0.45 * tint) as u8;
+            }
+        }
+    }
+    let r = (w.max(h) / 200).max(2) as i64;
+    let mut dot = |p: [f32; 2], colour: [u8; 3]| {
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let (x, y) = (p[0] as i64 + dx, p[1] as i64 + dy);
+                if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
+                    let k = (y as usize * w + x as usize) * 3;
+                    px[k..k + 3].copy_from_slice(&colour);
+                }
+            }
+        }
+    };
+    for kp in fit.keypoints.iter().filter(|k| k.visibility >= 0.5) {
+        if let Some(f) = kp.fitted {
+            for s in 0..=16 {
+                let t = s as f32 / 16.0;
+                let q = [kp.observed[0] + t * (f[0] - kp.observed[0]), kp.observed[1] + t * (f[1] - kp.observed[1])];
+                dot(q, [255, 255, 0]);
+            }
+            dot(f, [230, 30, 30]);
+        }
+        dot(kp.observed, [30, 220, 30]);
+    }
+    Ok(getavatar_core::dataset::encode_png(w, h, 3, &px)?)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct BenchFitArgs {
+    /// ndarray (CPU) or wgpu (native GPU API; lavapipe without a GPU).
+    #[arg(long, default_value = "ndarray")]
+    pub backend: String,
+    /// Photo size of the synthetic detections, pixels.
+    #[arg(long, default_value_t = 512)]
+    pub size: usize,
+}
+
+/// Fit every synthetic unseen pose; print per-stage time per step, total time, PA-MPJPE and
+/// mask IoU, and the ratios of the stages' step times (measured in this run).
+pub fn bench_fit(args: &BenchFitArgs) -> Result<()> {
+    let model = Arc::new(BodyModel::default_body()?);
+    let device = crate::train::device_for(&args.backend)?.autodiff();
+    let options = FitOptions::default();
+    println!(
+        "body fit, backend {}, photo {}², iterations torso/body/silhouette {:?}, silhouette {}²",
+        args.backend, args.size, options.iterations, options.silhouette_size
+    );
+    println!("| pose | torso ms/step | body ms/step | silhouette ms/step | total s | PA-MPJPE mm | IoU |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut rng = Rng::new(20, 1);
+    let mut sums = [0.0f64; 3];
+    for ((name, truth), cam) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS.map(|c| c.camera())) {
+        let det = detect(&model, &truth, cam.world_to_camera(), args.size, 2.0, 0.02, &mut rng)?;
+        let mask = SegmentationMask { width: args.size, height: args.size, data: det.mask.clone() };
+        let input = FitInput::from_detection(&det.result, args.size, args.size, Some(&mask), &model, &options)?;
+        let mut fitter = BodyFitter::new(model.clone(), input, options.clone(), &device)?;
+        let mut per_stage = [(0.0f64, 0usize); 3];
+        let start = Instant::now();
+        let fit = block_on_ready(async {
+            loop {
+                let t = Instant::now();
+                let Some(p) = fitter.step().await? else { break };
+                per_stage[p.stage].0 += t.elapsed().as_secs_f64();
+                per_stage[p.stage].1 += 1;
+            }
+            fitter.finish().await
+        })?;
+        let total = start.elapsed().as_secs_f64();
+        let ms: Vec<f64> = per_stage.iter().map(|(t, n)| 1000.0 * t / (*n).max(1) as f64).collect();
+        for (s, m) in sums.iter_mut().zip(&ms) {
+            *s += m;
+        }
+        let fitted = pose_body(&model, &fit.body_params()).kinematics.posed_joints;
+        let err = pa_mpjpe(&fitted, &pose_body(&model, &truth).kinematics.posed_joints);
+        let iou = {
+            let proj = glam::Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
+            let vp = fit.framing.crop_to_photo_clip() * proj * fit.world_to_camera();
+            let m = body_mask(&pose_body(&model, &fit.body_params()).vertices, &model.faces, vp, args.size);
+            getavatar_core::body_fit::fit::mask_iou(&m, &det.mask)
+        };
+        println!(
+            "| {name} | {:.2} | {:.2} | {:.2} | {total:.2} | {:.1} | {iou:.3} |",
+            ms[0],
+            ms[1],
+            ms[2],
+            err * 1000.0
+        );
+    }
+    println!(
+        "ratios (mean step times): body/torso {:.2}, silhouette/body {:.2}",
+        sums[1] / sums[0].max(1e-9),
+        sums[2] / sums[1].max(1e-9)
+    );
+    Ok(())
+}

@@ -1,0 +1,120 @@
+//! `trainer fit-pose` end to end: a synthetic detection of a body in an unseen pose (kick,
+//! photographed from the side) written as the files a user has (photo PNG, MediaPipe's
+//! result JSON, mask PNG) → fit.json: the fitted body's joints within 60 mm PA-MPJPE of the
+//! truth, the camera, the table and the overlay; and bad input refused with one clear message.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use getavatar_core::body_fit::fit::BodyFit;
+use getavatar_core::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::dataset::{decode_png, encode_png};
+use getavatar_core::rng::Rng;
+use getavatar_core::skinning::pose_body;
+use getavatar_core::BodyModel;
+
+fn trainer(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().expect("run trainer")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("getavatar-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
+    let dir = tmp("fit-pose");
+    let model = BodyModel::default_body().unwrap();
+    let (name, truth) = unseen_poses().into_iter().nth(2).unwrap();
+    assert_eq!(name, "kick");
+    let cam = UNSEEN_POSE_CAMERAS[2].camera();
+    // A non-square photo: the person in a 640 × 512 frame (the detection of a 512² render,
+    // shifted right by 64 px, so framing and normalisation see a wide image).
+    let size = 512;
+    let det = detect(&model, &truth, cam.world_to_camera(), size, 2.0, 0.02, &mut Rng::new(4, 4)).unwrap();
+    let (w, h) = (640usize, 512usize);
+    let mut result = det.result.clone();
+    for l in result.pose_landmarks.iter_mut() {
+        l.x = (l.x * size as f32 + 64.0) / w as f32;
+    }
+    let mut photo = vec![0u8; w * h * 3];
+    let mut mask = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let inside = x >= 64 && x < 64 + size && det.mask[y * size + x - 64] > 0.5;
+            let c = if inside { [205, 170, 150] } else { [40, 45, 60] };
+            photo[(y * w + x) * 3..][..3].copy_from_slice(&c);
+            mask[y * w + x] = if inside { 255 } else { 0 };
+        }
+    }
+    let (photo_p, mask_p, kp_p) = (dir.join("photo.png"), dir.join("mask.png"), dir.join("kp.json"));
+    std::fs::write(&photo_p, encode_png(w, h, 3, &photo).unwrap()).unwrap();
+    std::fs::write(&mask_p, encode_png(w, h, 1, &mask).unwrap()).unwrap();
+    std::fs::write(&kp_p, serde_json::to_string(&result).unwrap()).unwrap();
+    let (out, ov) = (dir.join("fit.json"), dir.join("overlay.png"));
+    let args = ["fit-pose", "--image", s(&photo_p), "--keypoints", s(&kp_p), "--mask", s(&mask_p)];
+    let run = trainer(&[&args[..], &["--out", s(&out), "--overlay", s(&ov)]].concat());
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(run.status.success(), "{}\n{}", stdout, String::from_utf8_lossy(&run.stderr));
+    assert!(stdout.contains("mask IoU"), "{stdout}");
+
+    let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(fit.format, "getavatar-body-fit/1");
+    assert_eq!((fit.body_pose.len(), fit.betas.len(), fit.keypoints.len()), (69, 10, 33));
+    assert_eq!(fit.table.len(), 12 + 9, "12 joint and 9 surface landmarks");
+    assert_eq!((fit.framing.photo_width, fit.framing.photo_height), (w, h));
+    let fitted = pose_body(&model, &fit.body_params()).kinematics.posed_joints;
+    let err = pa_mpjpe(&fitted, &pose_body(&model, &truth).kinematics.posed_joints);
+    assert!(err <= 0.060, "PA-MPJPE {:.1} mm", err * 1000.0);
+    assert!(fit.residuals.mask_iou.unwrap() > 0.9, "{:?}", fit.residuals);
+    assert!(fit.residuals.relative_to_height < 0.02, "{:?}", fit.residuals);
+    // The left wrist's fitted keypoint lies where it was detected (photo pixels).
+    let wrist = fit.keypoints.iter().find(|k| k.name == "left_wrist").unwrap();
+    let f = wrist.fitted.unwrap();
+    assert!((f[0] - wrist.observed[0]).hypot(f[1] - wrist.observed[1]) < 12.0, "{wrist:?}");
+    // The overlay is the photo's size with the body tinted where the mask is.
+    let img = decode_png(&std::fs::read(&ov).unwrap()).unwrap();
+    assert_eq!((img.width, img.height), (w, h));
+    let tinted = (0..w * h).filter(|k| img.pixels[k * img.channels + 2] > 150 && mask[*k] > 0).count();
+    let person = mask.iter().filter(|m| **m > 0).count();
+    assert!(tinted as f32 > 0.8 * person as f32, "{tinted} of {person} person pixels tinted");
+
+    // Bad input: one clear message each, no fit written.
+    let bad = |extra: &[&str], what: &str| {
+        let o = dir.join("bad.json");
+        let run = trainer(&[&["fit-pose", "--out", s(&o)][..], extra].concat());
+        let err = String::from_utf8_lossy(&run.stderr).to_string();
+        assert!(!run.status.success() && err.contains(what), "{extra:?}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(!o.exists());
+    };
+    let junk = dir.join("junk.png");
+    std::fs::write(&junk, [0x13u8, 0x37, 0, 1, 2, 3, 4, 5, 6, 7]).unwrap();
+    bad(&["--image", s(&junk), "--keypoints", s(&kp_p)], "is not a PNG or JPEG image");
+    let empty = dir.join("empty.png");
+    std::fs::write(&empty, []).unwrap();
+    bad(&["--image", s(&empty), "--keypoints", s(&kp_p)], "is not a PNG or JPEG image");
+    let few = dir.join("few.json");
+    let mut r17 = result.clone();
+    r17.pose_landmarks.truncate(17);
+    std::fs::write(&few, serde_json::to_string(&r17).unwrap()).unwrap();
+    bad(&["--image", s(&photo_p), "--keypoints", s(&few)], "`poseLandmarks` has 17 landmarks, expected 33");
+    let headless = dir.join("headless.json");
+    let mut hidden = result.clone();
+    for i in [11, 12, 23, 24] {
+        hidden.pose_landmarks[i].visibility = 0.1;
+    }
+    std::fs::write(&headless, serde_json::to_string(&hidden).unwrap()).unwrap();
+    bad(&["--image", s(&photo_p), "--keypoints", s(&headless)], "no torso found");
+    bad(&["--image", s(&photo_p), "--keypoints", s(&dir.join("missing.json"))], "missing.json");
+}
