@@ -241,3 +241,45 @@ pub fn bench_fit(args: &BenchFitArgs) -> Result<()> {
     );
     Ok(())
 }
+
+/// Yaws (radians, added to each unseen pose's own camera) of the bare-body photos.
+pub const BODY_PHOTO_YAWS: [f32; 2] = [0.0, -0.9];
+
+/// The bare body in every unseen pose, from each of [`BODY_PHOTO_YAWS`]: skin-coloured,
+/// Lambert-shaded (a light from the upper left of the camera plus ambient), white
+/// background, `size`² PNGs named `<pose>_yaw<k>.png`. The input of the real-detector
+/// fixtures (`tools/mediapipe_fixtures.mjs` runs MediaPipe on them).
+pub fn body_photos(out: &std::path::Path, size: usize) -> Result<Vec<PathBuf>> {
+    let model = BodyModel::default_body()?;
+    let mut written = Vec::new();
+    for ((name, params), base) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS) {
+        for (k, dyaw) in BODY_PHOTO_YAWS.iter().enumerate() {
+            let cam = getavatar_core::body_fit::synthetic::TestCamera { yaw: base.yaw + dyaw, ..base }.camera();
+            let png = body_photo(&model, &params, cam, size)?;
+            let path = out.join(format!("{name}_yaw{k}.png"));
+            crate::atomic::write_atomic(&path, &png)?;
+            written.push(path);
+        }
+    }
+    Ok(written)
+}
+
+/// One bare-body photo (PNG bytes).
+pub fn body_photo(
+    model: &BodyModel,
+    params: &getavatar_core::BodyParams,
+    cam: getavatar_core::OrbitCamera,
+    size: usize,
+) -> Result<Vec<u8>> {
+    let posed = pose_body(model, params);
+    let normals = getavatar_core::skinning::vertex_normals(&posed.vertices, &model.faces);
+    let eye = cam.eye();
+    let to_cam = (eye - cam.target).normalize();
+    let light = (to_cam + glam::Vec3::new(-0.4, 0.6, 0.0)).normalize();
+    let skin = glam::Vec3::new(0.62, 0.42, 0.32);
+    let colours: Vec<glam::Vec3> = normals.iter().map(|n| skin * (0.35 + 0.75 * n.dot(light).max(0.0))).collect();
+    let view_proj = cam.projection_gl(1.0) * cam.world_to_camera();
+    let r =
+        getavatar_core::rasterize::render_views(&posed.vertices, &model.faces, &normals, &colours, view_proj, size, 2);
+    Ok(getavatar_core::dataset::encode_png(size, size, 3, &r.rgb)?)
+}

@@ -159,6 +159,15 @@ enum Command {
     FitPose(fit_pose::FitPoseArgs),
     /// Time the body fit per stage on synthetic detections of unseen poses, with its accuracy.
     BenchFit(fit_pose::BenchFitArgs),
+    /// Render the bare body in the unseen test poses from two yaws (PNGs for the real-detector
+    /// fixtures, `tools/mediapipe_fixtures.mjs`).
+    #[command(hide = true)]
+    BodyPhotos {
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 512)]
+        size: usize,
+    },
 }
 
 fn main() -> Result<()> {
@@ -231,6 +240,11 @@ fn main() -> Result<()> {
         Command::Sample(args) => sample::sample(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
+        Command::BodyPhotos { out, size } => {
+            for p in fit_pose::body_photos(&out, size)? {
+                println!("wrote {}", p.display());
+            }
+        }
     }
     Ok(())
 }

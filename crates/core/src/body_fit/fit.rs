@@ -67,7 +67,7 @@ pub struct FitWeights {
 
 impl Default for FitWeights {
     fn default() -> Self {
-        Self { robust_sigma: 40.0, pose: 0.3, hinge: 1.0, betas: 0.5, bones: 60.0, silhouette: 0.05 }
+        Self { robust_sigma: 40.0, pose: 0.3, hinge: 1.0, betas: 0.5, bones: 60.0, silhouette: 0.2 }
     }
 }
 
@@ -280,7 +280,9 @@ impl Targets {
         for &(l, weight) in rows {
             let (p, vis) = input.points[l];
             obs.extend_from_slice(&p);
-            let c = if vis >= MISSING_VISIBILITY { weight * vis } else { 0.0 };
+            // Occluded landmarks still count, by their visibility: the detector's guess for a
+            // hidden arm beats the prior's T-pose arm.
+            let c = weight * vis;
             w.push(c);
             tw.push(if [11, 12, 23, 24].contains(&l) { c } else { 0.0 });
         }
@@ -376,7 +378,7 @@ impl BodyFitter {
         let cam = camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::camera::REFERENCE_RADIUS));
 
         let bones = input.world.as_ref().and_then(|world| {
-            let rows: Vec<_> = BONES.iter().filter(|b| seen(b.2) && seen(b.3)).collect();
+            let rows: Vec<_> = BONES.iter().collect();
             if rows.is_empty() {
                 return None;
             }

@@ -58,7 +58,7 @@ fn rotation_between(a: Vec3, b: Vec3) -> Quat {
 pub fn pose_from_world(model: &BodyModel, world: &[Vec3], visibility: &[f32], betas: &[f32]) -> BodyParams {
     let mut params = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
     let at = |i: usize| world.get(i).copied().unwrap_or(Vec3::ZERO);
-    let seen = |i: usize| visibility.get(i).is_some_and(|v| *v >= 0.3);
+    let seen = |i: usize| visibility.get(i).is_some_and(|v| *v >= 0.05);
     let left = (at(11) - at(12)) + (at(23) - at(24));
     let up = (at(11) + at(12) - at(23) - at(24)) / 2.0;
     params.pose[0] = torso_orientation(left, up);
