@@ -119,7 +119,7 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
         args.out.display(),
         r.mean_px,
         100.0 * r.relative_to_height,
-        r.mask_iou.map(|i| format!(", mask IoU {i:.3}")).unwrap_or_default(),
+        r.mask_iou.map_or(String::new(), |i| format!(", mask IoU {i:.3}")),
         if fit.missing.is_empty() { String::new() } else { format!("; not seen: {}", fit.missing.join(", ")) }
     );
     if let Some(path) = &args.overlay {
