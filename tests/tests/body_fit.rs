@@ -7,9 +7,9 @@
 
 use std::sync::Arc;
 
-use getavatar_core::body_fit::fit::{body_mask, mask_iou, BodyFit, BodyFitter, FitInput, FitOptions};
+use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions};
 use getavatar_core::body_fit::landmarks::SegmentationMask;
-use getavatar_core::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
 use getavatar_core::burn::tensor::{Tensor, TensorData};
 use getavatar_core::camera::reference_fov_y;
@@ -18,7 +18,7 @@ use getavatar_core::readback::block_on_ready;
 use getavatar_core::rng::Rng;
 use getavatar_core::skinning::{axis_angle_to_matrix, pose_body};
 use getavatar_core::{BodyModel, BodyParams, NUM_JOINTS};
-use glam::{Mat4, Vec3};
+use glam::Vec3;
 
 mod common;
 use common::{central_difference, cpu, values};
@@ -130,10 +130,8 @@ fn body_gradients_match_finite_differences() {
 /// The fitted body's mask in the photo: the fit's camera on its crop, the crop placed in the
 /// photo by the framing (a 2D similarity of clip space).
 fn fitted_mask_in_photo(model: &BodyModel, fit: &BodyFit, size: usize) -> Vec<f32> {
-    let crop_to_photo = fit.framing.crop_to_photo_clip();
-    let proj = Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
     let posed = pose_body(model, &fit.body_params());
-    body_mask(&posed.vertices, &model.faces, crop_to_photo * proj * fit.world_to_camera(), size)
+    body_mask(&posed.vertices, &model.faces, fit.photo_view_proj(), size)
 }
 
 #[test]

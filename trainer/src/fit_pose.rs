@@ -7,9 +7,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::fit::{body_mask, BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
+use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
-use getavatar_core::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
@@ -134,8 +134,7 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
 /// fitted ones (red).
 fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<Vec<u8>> {
     let (w, h) = (photo.width() as usize, photo.height() as usize);
-    let proj = glam::Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
-    let view_proj = fit.framing.crop_to_photo_clip() * proj * fit.world_to_camera();
+    let view_proj = fit.photo_view_proj();
     let posed = pose_body(model, &fit.body_params());
     let clip: Vec<glam::Vec4> = posed.vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
     let raster = getavatar_core::rasterize::rasterize(&clip, &model.faces, w, h);
@@ -218,14 +217,9 @@ pub fn bench_fit(args: &BenchFitArgs) -> Result<()> {
         for (s, m) in sums.iter_mut().zip(&ms) {
             *s += m;
         }
-        let fitted = pose_body(&model, &fit.body_params()).kinematics.posed_joints;
-        let err = pa_mpjpe(&fitted, &pose_body(&model, &truth).kinematics.posed_joints);
-        let iou = {
-            let proj = glam::Mat4::perspective_rh_gl(fit.fov_y, 1.0, 0.1, 100.0);
-            let vp = fit.framing.crop_to_photo_clip() * proj * fit.world_to_camera();
-            let m = body_mask(&pose_body(&model, &fit.body_params()).vertices, &model.faces, vp, args.size);
-            getavatar_core::body_fit::fit::mask_iou(&m, &det.mask)
-        };
+        let fitted = pose_body(&model, &fit.body_params());
+        let err = pa_mpjpe(&fitted.kinematics.posed_joints, &pose_body(&model, &truth).kinematics.posed_joints);
+        let iou = mask_iou(&body_mask(&fitted.vertices, &model.faces, fit.photo_view_proj(), args.size), &det.mask);
         println!(
             "| {name} | {:.2} | {:.2} | {:.2} | {total:.2} | {:.1} | {iou:.3} |",
             ms[0],

@@ -31,9 +31,13 @@ use serde::{Deserialize, Serialize};
 
 use super::framing::{Framing, FramingError};
 use super::init::{camera_axes, camera_translation, pose_from_image, pose_from_world, posed_joints};
-use super::landmarks::{LandmarkError, PoseResult, SegmentationMask, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS};
+use super::landmarks::{
+    LandmarkError, PoseResult, SegmentationMask, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS,
+    VISIBLE,
+};
 use super::limits::HINGES;
-use super::surface::{surface_landmarks, SurfaceError};
+use super::metrics::{body_mask, mask_iou};
+use super::surface::{surface_landmarks, SurfaceError, SurfaceLandmark};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::camera::{reference_fov_y, to_row_major};
 use crate::diff::body_model::{joint_index, Skeleton, VertexSet};
@@ -236,6 +240,13 @@ impl BodyFit {
     pub fn world_to_camera(&self) -> Mat4 {
         crate::camera::from_row_major(&self.camera)
     }
+
+    /// World → OpenGL clip space of the whole photo: the fit's camera on its square crop,
+    /// the crop placed in the photo by the framing (for overlays and masks in the photo).
+    pub fn photo_view_proj(&self) -> Mat4 {
+        let proj = Mat4::perspective_rh_gl(self.fov_y, 1.0, NEAR, FAR);
+        self.framing.crop_to_photo_clip() * proj * self.world_to_camera()
+    }
 }
 
 /// Progress of one step.
@@ -262,8 +273,6 @@ struct FitParams {
 
 /// Observations of one kind of body point (joints or surface vertices) as tensors.
 struct Targets {
-    /// Landmark index per row.
-    landmarks: Vec<usize>,
     observed: Tensor<2>,
     /// Weight × visibility, `[N, 1]`; `torso` masks rows for stage 1.
     weight: Tensor<2>,
@@ -284,11 +293,10 @@ impl Targets {
             // hidden arm beats the prior's T-pose arm.
             let c = weight * vis;
             w.push(c);
-            tw.push(if [11, 12, 23, 24].contains(&l) { c } else { 0.0 });
+            tw.push(if TORSO_LANDMARKS.contains(&l) { c } else { 0.0 });
         }
         let (weight_sum, torso_sum) = (w.iter().sum(), tw.iter().sum());
         Self {
-            landmarks: rows.iter().map(|r| r.0).collect(),
             observed: matrix(obs, n, 2, device),
             weight: matrix(w, n, 1, device),
             torso_weight: matrix(tw, n, 1, device),
@@ -298,9 +306,6 @@ impl Targets {
     }
 }
 
-/// Landmarks below this visibility count as not seen.
-pub const MISSING_VISIBILITY: f32 = 0.5;
-
 /// The fit, one Adam step at a time.
 pub struct BodyFitter {
     model: Arc<BodyModel>,
@@ -309,7 +314,7 @@ pub struct BodyFitter {
     device: Device,
     skeleton: Skeleton,
     surface: VertexSet,
-    surface_ids: Vec<u32>,
+    surface_marks: Vec<SurfaceLandmark>,
     all_vertices: Option<VertexSet>,
     joints: Targets,
     joint_ids: Vec<usize>,
@@ -342,8 +347,8 @@ impl BodyFitter {
         if input.points.len() != NUM_LANDMARKS {
             return Err(FitError::TooFew(format!("{} landmarks, expected {NUM_LANDMARKS}", input.points.len())));
         }
-        let seen = |l: usize| input.points[l].1 >= MISSING_VISIBILITY;
-        let torso_seen = [11, 12, 23, 24].iter().filter(|l| seen(**l)).count();
+        let seen = |l: usize| input.points[l].1 >= VISIBLE;
+        let torso_seen = TORSO_LANDMARKS.iter().filter(|l| seen(**l)).count();
         if torso_seen < 2 {
             return Err(FitError::TooFew(
                 "fewer than two of the shoulders and hips are visible; the torso cannot be placed".into(),
@@ -371,7 +376,7 @@ impl BodyFitter {
         let posed = posed_joints(&model, &init);
         let torso: Vec<(Vec3, ([f32; 2], f32))> = JOINT_LANDMARKS
             .iter()
-            .filter(|m| [11, 12, 23, 24].contains(&m.landmark) && seen(m.landmark))
+            .filter(|m| TORSO_LANDMARKS.contains(&m.landmark) && seen(m.landmark))
             .map(|m| (posed[m.joint], (input.points[m.landmark].0, 1.0)))
             .collect();
         let (tj, to): (Vec<Vec3>, Vec<([f32; 2], f32)>) = torso.into_iter().unzip();
@@ -409,7 +414,7 @@ impl BodyFitter {
             device: device.clone(),
             skeleton,
             surface,
-            surface_ids,
+            surface_marks,
             all_vertices: None,
             joints,
             joint_ids,
@@ -450,8 +455,8 @@ impl BodyFitter {
         let loss = self.loss(self.stage).await?;
         let value = read_f32(loss.clone()).await?.first().copied().unwrap_or(f32::NAN);
         let grads = loss.backward();
-        let params = std::mem::replace(&mut self.params, placeholder(&self.device));
-        self.params = self.adam.step(self.options.learning_rate, params, &grads);
+        // A module clone shares its tensors; Adam returns the updated parameters.
+        self.params = self.adam.step(self.options.learning_rate, self.params.clone(), &grads);
         self.stage_loss[self.stage] = Some(value);
         self.step_in_stage += 1;
         self.done += 1;
@@ -606,14 +611,14 @@ impl BodyFitter {
         for m in JOINT_LANDMARKS {
             fitted[m.landmark] = Some(to_photo(posed.kinematics.posed_joints[m.joint]));
         }
-        for (l, v) in self.points.landmarks.iter().zip(&self.surface_ids) {
-            fitted[*l] = Some(to_photo(posed.vertices[*v as usize]));
+        for s in &self.surface_marks {
+            fitted[s.landmark] = Some(to_photo(posed.vertices[s.vertex as usize]));
         }
         let mut keypoints = Vec::with_capacity(NUM_LANDMARKS);
         let (mut err, mut wsum) = (0.0f32, 0.0f32);
         for (l, (ndc, vis)) in self.input.points.iter().enumerate() {
             let observed = framing.to_photo(*ndc);
-            if let (Some(p), true) = (fitted[l], *vis >= MISSING_VISIBILITY) {
+            if let (Some(p), true) = (fitted[l], *vis >= VISIBLE) {
                 err += vis * ((p[0] - observed[0]).powi(2) + (p[1] - observed[1]).powi(2)).sqrt();
                 wsum += vis;
             }
@@ -645,7 +650,7 @@ impl BodyFitter {
                 vertex: None,
                 weight: m.weight,
             })
-            .chain(surface_landmarks(model)?.iter().map(|s| FitTarget {
+            .chain(self.surface_marks.iter().map(|s| FitTarget {
                 landmark: LANDMARK_NAMES[s.landmark].into(),
                 joint: None,
                 vertex: Some(s.vertex),
@@ -657,7 +662,7 @@ impl BodyFitter {
             .points
             .iter()
             .enumerate()
-            .filter(|(_, p)| p.1 < MISSING_VISIBILITY)
+            .filter(|(_, p)| p.1 < VISIBLE)
             .map(|(l, _)| LANDMARK_NAMES[l].to_string())
             .collect();
         let theta = params.theta();
@@ -683,12 +688,6 @@ impl BodyFitter {
     }
 }
 
-/// An empty parameter set to swap in while Adam consumes the real one.
-fn placeholder(device: &Device) -> FitParams {
-    let z = |n, c| Param::from_tensor(Tensor::<2>::zeros([n, c], device));
-    FitParams { orient: z(1, 3), body_pose: z(1, 3), betas: z(1, 1), camera: z(1, 3) }
-}
-
 /// Split a global orientation into a turn about +y (moved into the camera) and an upright
 /// remainder: with `Y` the turn, posed points satisfy `p(Y·R') = Y·p(R') + (I − Y)·j₀`
 /// (SMPL rotates about the root joint `j₀`), so the camera becomes `M · [Y | (I − Y) j₀]`.
@@ -700,28 +699,6 @@ pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) 
     let rest = Quat::from_mat3(&(y.transpose() * r)).normalize().to_scaled_axis();
     let turn = Mat4::from_translation(root) * Mat4::from_mat3(y) * Mat4::from_translation(-root);
     (rest, world_to_camera * turn)
-}
-
-/// A body's mask at `size`² through `view_proj` (CPU rasteriser), 0 or 1 per pixel.
-pub fn body_mask(vertices: &[Vec3], faces: &[[u32; 3]], view_proj: Mat4, size: usize) -> Vec<f32> {
-    let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
-    let r = crate::rasterize::rasterize(&clip, faces, size, size);
-    r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect()
-}
-
-/// Intersection over union of two masks thresholded at ½ (1 for two empty masks).
-pub fn mask_iou(a: &[f32], b: &[f32]) -> f32 {
-    let (mut inter, mut union) = (0usize, 0usize);
-    for (x, y) in a.iter().zip(b) {
-        let (x, y) = (*x >= 0.5, *y >= 0.5);
-        inter += (x && y) as usize;
-        union += (x || y) as usize;
-    }
-    if union == 0 {
-        1.0
-    } else {
-        inter as f32 / union as f32
-    }
 }
 
 #[cfg(test)]

@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::landmarks::Landmark;
+use super::landmarks::{Landmark, VISIBLE};
 use crate::body_model::BodyModel;
 use crate::camera::{reference_fov_y, REFERENCE_RADIUS};
 
@@ -24,9 +24,6 @@ pub struct Framing {
     /// Crop side, photo pixels.
     pub side: f32,
 }
-
-/// Landmarks below this visibility do not frame the photo.
-pub const FRAMING_VISIBILITY: f32 = 0.5;
 
 /// Why a photo cannot be framed.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -78,10 +75,7 @@ impl Framing {
             return Err(FramingError::EmptyPhoto(width, height));
         }
         let px = |i: usize| {
-            landmarks
-                .get(i)
-                .filter(|l| l.visibility >= FRAMING_VISIBILITY)
-                .map(|l| [l.x * width as f32, l.y * height as f32])
+            landmarks.get(i).filter(|l| l.visibility >= VISIBLE).map(|l| [l.x * width as f32, l.y * height as f32])
         };
         let mid = |a: Option<[f32; 2]>, b: Option<[f32; 2]>| match (a, b) {
             (Some(a), Some(b)) => Some([(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0]),

@@ -51,6 +51,13 @@ pub const LANDMARK_NAMES: [&str; NUM_LANDMARKS] = [
     "right_foot_index",
 ];
 
+/// Landmarks at or above this visibility count as seen (framing, the torso check, the
+/// reported residuals and missing landmarks).
+pub const VISIBLE: f32 = 0.5;
+
+/// The torso's landmarks: shoulders and hips.
+pub const TORSO_LANDMARKS: [usize; 4] = [11, 12, 23, 24];
+
 /// A MediaPipe landmark that corresponds to an SMPL joint, and the weight of its reprojection
 /// term in the fit.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]

@@ -3,7 +3,7 @@
 //! true ones before the mean joint distance is taken, so the camera's depth ambiguity and a
 //! global turn do not count).
 
-use glam::{DMat4, DQuat, DVec4, Mat3, Vec3};
+use glam::{DMat4, DQuat, DVec4, Mat3, Mat4, Vec3, Vec4};
 
 /// The similarity transform (scale `s`, rotation `r`, translation `t`) minimising
 /// Σ‖s·r·aᵢ + t − bᵢ‖². The rotation is Horn's closed form (the unit quaternion of the largest
@@ -64,6 +64,28 @@ pub fn pa_mpjpe(fitted: &[Vec3], truth: &[Vec3]) -> f32 {
     let (s, r, t) = procrustes(fitted, truth);
     let n = fitted.len().min(truth.len()).max(1) as f32;
     fitted.iter().zip(truth).map(|(p, q)| (s * (r * *p) + t - *q).length()).sum::<f32>() / n
+}
+
+/// A mesh's mask at `size`² through `view_proj` (CPU rasteriser), 0 or 1 per pixel.
+pub fn body_mask(vertices: &[Vec3], faces: &[[u32; 3]], view_proj: Mat4, size: usize) -> Vec<f32> {
+    let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+    let r = crate::rasterize::rasterize(&clip, faces, size, size);
+    r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect()
+}
+
+/// Intersection over union of two masks thresholded at ½ (1 for two empty masks).
+pub fn mask_iou(a: &[f32], b: &[f32]) -> f32 {
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (x, y) in a.iter().zip(b) {
+        let (x, y) = (*x >= 0.5, *y >= 0.5);
+        inter += (x && y) as usize;
+        union += (x || y) as usize;
+    }
+    if union == 0 {
+        1.0
+    } else {
+        inter as f32 / union as f32
+    }
 }
 
 #[cfg(test)]

@@ -11,10 +11,10 @@
 use glam::{Mat4, Vec3};
 
 use super::landmarks::{Landmark, PoseResult, JOINT_LANDMARKS, NUM_LANDMARKS};
+use super::metrics::body_mask;
 use super::surface::{surface_landmarks, SurfaceError};
 use crate::body_model::BodyModel;
 use crate::camera::{project_to_pixel, reference_fov_y, OrbitCamera};
-use crate::rasterize::rasterize;
 use crate::rng::Rng;
 use crate::skinning::{pose_body, BodyParams};
 
@@ -66,9 +66,7 @@ pub fn detect(
         world.push(Landmark { x: c.x, y: -c.y, z: -c.z, visibility });
     }
     let proj = Mat4::perspective_rh_gl(reference_fov_y(), 1.0, 0.1, 100.0) * world_to_camera;
-    let clip: Vec<_> = posed.vertices.iter().map(|v| proj * v.extend(1.0)).collect();
-    let r = rasterize(&clip, &model.faces, size, size);
-    let mask = r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect();
+    let mask = body_mask(&posed.vertices, &model.faces, proj, size);
     Ok(SyntheticDetection {
         result: PoseResult { pose_landmarks: image, pose_world_landmarks: Some(world), segmentation_mask: None },
         mask,
