@@ -169,3 +169,39 @@ fn synthetic_round_trip_recovers_unseen_poses() {
         assert!((fit.fov_y - reference_fov_y()).abs() < 1e-6);
     }
 }
+
+/// A re-fit from the user's corrected pose (`BodyFitter::start_from`) starts from that pose:
+/// with the torso stage only (which leaves the limbs as they start), the re-fit from the true
+/// limbs ends on them while the first fit keeps the detector-based start's error, and the
+/// stages run again from the first.
+#[test]
+fn refit_starts_from_the_corrected_pose() {
+    let model = Arc::new(BodyModel::default_body().unwrap());
+    let dev = cpu().autodiff();
+    let size = 256;
+    let mut rng = Rng::new(21, 1);
+    let (name, truth) = unseen_poses().into_iter().find(|(n, _)| *n == "arms_crossed").unwrap();
+    let cam = UNSEEN_POSE_CAMERAS[4].camera();
+    let det = detect(&model, &truth, cam.world_to_camera(), size, 2.0, 0.02, &mut rng).unwrap();
+    let opts = FitOptions { iterations: [20, 0, 0], ..FitOptions::default() };
+    let input = FitInput::from_detection(&det.result, size, size, None, &model, &opts).unwrap();
+    let mut fitter = BodyFitter::new(model.clone(), input, opts, &dev).unwrap();
+    let true_joints = pose_body(&model, &truth).kinematics.posed_joints;
+    let error = |fitter: &mut BodyFitter| {
+        let fit = block_on_ready(async {
+            fitter.run().await?;
+            fitter.finish().await
+        })
+        .unwrap();
+        let fitted = pose_body(&model, &fit.body_params()).kinematics.posed_joints;
+        (pa_mpjpe(&fitted, &true_joints), fit)
+    };
+    let (first, _) = error(&mut fitter);
+    let mut corrected = truth.clone();
+    corrected.pose[0] = Vec3::ZERO; // the user corrects limbs, not the turn towards the camera
+    fitter.start_from(&corrected);
+    let (second, fit) = error(&mut fitter);
+    eprintln!("{name}: short fit {:.1} mm, re-fit from the true limbs {:.1} mm", first * 1000.0, second * 1000.0);
+    assert!(second < 0.005 && second < 0.5 * first, "first {first}, re-fit {second}");
+    assert!(fit.residuals.stage_loss[0].is_some());
+}

@@ -373,14 +373,7 @@ impl BodyFitter {
             }
             None => pose_from_image(input.points[11].0, input.points[12].0, &betas0),
         };
-        let posed = posed_joints(&model, &init);
-        let torso: Vec<(Vec3, ([f32; 2], f32))> = JOINT_LANDMARKS
-            .iter()
-            .filter(|m| TORSO_LANDMARKS.contains(&m.landmark) && seen(m.landmark))
-            .map(|m| (posed[m.joint], (input.points[m.landmark].0, 1.0)))
-            .collect();
-        let (tj, to): (Vec<Vec3>, Vec<([f32; 2], f32)>) = torso.into_iter().unzip();
-        let cam = camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::camera::REFERENCE_RADIUS));
+        let cam = initial_camera(&model, &input, &init);
 
         let bones = input.world.as_ref().and_then(|world| {
             let rows: Vec<_> = BONES.iter().collect();
@@ -427,6 +420,28 @@ impl BodyFitter {
             done: 0,
             stage_loss: [None; 3],
         })
+    }
+
+    /// Start again from `start` (the user's corrected pose and shape, e.g. the app's pose
+    /// controls after a first fit): its θ and β become the parameters, the camera is placed
+    /// on the torso again, and the stages run from the first.
+    pub fn start_from(&mut self, start: &BodyParams) {
+        let dev = &self.device;
+        let nb = self.skeleton.num_betas;
+        let mut init = start.clone();
+        init.betas.resize(nb, 0.0);
+        let cam = initial_camera(&self.model, &self.input, &init);
+        let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let mut betas = init.betas.clone();
+        betas.resize(nb.max(1), 0.0);
+        self.params = FitParams {
+            orient: Param::from_tensor(matrix(init.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
+            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, dev).require_grad()),
+            betas: Param::from_tensor(matrix(betas, 1, nb.max(1), dev).require_grad()),
+            camera: Param::from_tensor(matrix(cam.to_array().to_vec(), 1, 3, dev).require_grad()),
+        };
+        self.adam = Adam::new(0.9, 0.999, 1e-8);
+        (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
     }
 
     /// Steps of all stages (the silhouette stage only with a mask).
@@ -686,6 +701,18 @@ impl BodyFitter {
             options: self.options.clone(),
         })
     }
+}
+
+/// The camera translation that puts the visible torso joints of the body in pose `init`
+/// on their landmarks (the reference distance when fewer than two are seen).
+fn initial_camera(model: &BodyModel, input: &FitInput, init: &BodyParams) -> Vec3 {
+    let posed = posed_joints(model, init);
+    let (tj, to): (Vec<Vec3>, Vec<([f32; 2], f32)>) = JOINT_LANDMARKS
+        .iter()
+        .filter(|m| TORSO_LANDMARKS.contains(&m.landmark) && input.points[m.landmark].1 >= VISIBLE)
+        .map(|m| (posed[m.joint], (input.points[m.landmark].0, 1.0)))
+        .unzip();
+    camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::camera::REFERENCE_RADIUS))
 }
 
 /// Split a global orientation into a turn about +y (moved into the camera) and an upright

@@ -68,8 +68,15 @@ pub fn pa_mpjpe(fitted: &[Vec3], truth: &[Vec3]) -> f32 {
 
 /// A mesh's mask at `size`² through `view_proj` (CPU rasteriser), 0 or 1 per pixel.
 pub fn body_mask(vertices: &[Vec3], faces: &[[u32; 3]], view_proj: Mat4, size: usize) -> Vec<f32> {
+    body_mask_rect(vertices, faces, view_proj, size, size)
+}
+
+/// A mesh's mask at `width × height` through `view_proj` (CPU rasteriser), 0 or 1 per
+/// pixel, row-major from the top left (e.g. the fitted body over a photo through
+/// `BodyFit::photo_view_proj`).
+pub fn body_mask_rect(vertices: &[Vec3], faces: &[[u32; 3]], view_proj: Mat4, width: usize, height: usize) -> Vec<f32> {
     let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
-    let r = crate::rasterize::rasterize(&clip, faces, size, size);
+    let r = crate::rasterize::rasterize(&clip, faces, width, height);
     r.triangle.iter().map(|t| if *t >= 0 { 1.0 } else { 0.0 }).collect()
 }
 
