@@ -15,6 +15,8 @@ const MASK_SIDE = 256;
 const MODEL_DIR = 'mediapipe/';
 
 let posePromise = null;
+// The last photo that went to the detector (a canvas), for photoPreview().
+let lastPhoto = null;
 
 function loadScript(src) {
   return new Promise((resolve, reject) => {
@@ -85,6 +87,7 @@ export async function detectPose(bytes) {
   canvas.height = Math.max(1, Math.round(height * k));
   canvas.getContext('2d').drawImage(bitmap, 0, 0, canvas.width, canvas.height);
   bitmap.close();
+  lastPhoto = null;
   let pose;
   try {
     pose = await poseSolution();
@@ -108,5 +111,23 @@ export async function detectPose(bytes) {
   };
   if (out.poseWorldLandmarks.length !== 33) delete out.poseWorldLandmarks;
   if (results.segmentationMask) out.segmentationMask = maskValues(results.segmentationMask);
+  lastPhoto = canvas;
   return JSON.stringify(out);
+}
+
+/**
+ * The last detected photo at most `maxSide` pixels on its long side, for the app to show:
+ * {width, height, data: Uint8Array (RGBA, row-major from the top left)}, or null before any.
+ */
+export function photoPreview(maxSide) {
+  if (!lastPhoto) return null;
+  const k = Math.min(1, maxSide / Math.max(lastPhoto.width, lastPhoto.height));
+  const w = Math.max(1, Math.round(lastPhoto.width * k));
+  const h = Math.max(1, Math.round(lastPhoto.height * k));
+  const c = document.createElement('canvas');
+  c.width = w;
+  c.height = h;
+  const ctx = c.getContext('2d', { willReadFrequently: true });
+  ctx.drawImage(lastPhoto, 0, 0, w, h);
+  return { width: w, height: h, data: new Uint8Array(ctx.getImageData(0, 0, w, h).data.buffer) };
 }

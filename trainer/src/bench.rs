@@ -186,6 +186,7 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
         seed: 7,
         threads,
         texture_size: 256,
+        pose: None,
     })?;
     for &res in &a.resolutions {
         crate::prepare::prepare(&crate::prepare::PrepareArgs {

@@ -115,6 +115,10 @@ enum Command {
         /// Texture atlas size in pixels (power of two).
         #[arg(long, default_value_t = 1024)]
         texture_size: usize,
+        /// Every scan in this pose: a library pose, or an unseen test pose of the body fit
+        /// (squat, lunge, kick, twisted_torso, arms_crossed). Default: drawn library poses.
+        #[arg(long)]
+        pose: Option<String>,
     },
     /// Render scans into a training dataset (reference layout: <subject>/<view>.png RGBA,
     /// <view>_normal.png, dataset.json labels) with the paper's camera protocol.
@@ -189,13 +193,14 @@ fn main() -> Result<()> {
                 r.regressor_fit_mm
             );
         }
-        Command::SynthScans { out, count, seed, threads, texture_size } => {
+        Command::SynthScans { out, count, seed, threads, texture_size, pose } => {
             synth_scans::synth_scans(&synth_scans::SynthArgs {
                 out,
                 count,
                 seed,
                 threads: threads.unwrap_or_else(default_threads),
                 texture_size,
+                pose,
             })?
         }
         Command::Prepare { scans, out, views, res, ss, seed, threads, smpl_dir, limit } => {

@@ -43,6 +43,21 @@ pub struct SynthArgs {
     pub seed: u64,
     pub threads: usize,
     pub texture_size: usize,
+    /// Every scan in this pose (θ of a library pose or of `body_fit::synthetic`'s unseen
+    /// test poses) instead of a drawn library pose.
+    pub pose: Option<String>,
+}
+
+/// θ of a pose by name: a library pose or one of the body fit's unseen test poses.
+pub fn named_pose(name: &str) -> Result<[Vec3; NUM_JOINTS]> {
+    if let Some((_, p)) = getavatar_core::body_fit::synthetic::unseen_poses().into_iter().find(|(n, _)| *n == name) {
+        return Ok(p.pose);
+    }
+    let lib = PoseLibrary::builtin();
+    lib.pose(name).map_err(|e| {
+        let unseen: Vec<&str> = getavatar_core::body_fit::synthetic::unseen_poses().iter().map(|(n, _)| *n).collect();
+        anyhow::anyhow!("--pose: {e}; the unseen test poses are {}", unseen.join(", "))
+    })
 }
 
 pub fn synth_scans(a: &SynthArgs) -> Result<()> {
@@ -52,6 +67,7 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
     if !(64..=8192).contains(&a.texture_size) || !a.texture_size.is_power_of_two() {
         bail!("--texture-size must be a power of two in 64..=8192 (got {})", a.texture_size);
     }
+    let pose = a.pose.as_deref().map(named_pose).transpose()?;
     let model = BodyModel::default_body()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let bar = crate::progress::bar(a.count as u64, "scans");
@@ -68,7 +84,7 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
                     skipped.fetch_add(1, Ordering::Relaxed);
                     Ok(())
                 } else {
-                    write_scan(&model, a.seed, &id, a.texture_size, &dir)
+                    write_scan(&model, a.seed, &id, a.texture_size, pose.as_ref(), &dir)
                 };
                 bar.inc(1);
                 result.err().map(|e| format!("{id}: {e:#}"))
@@ -92,8 +108,15 @@ pub fn synth_scans(a: &SynthArgs) -> Result<()> {
 }
 
 /// Build scan `id` and write its four files (smpl.json last, each via a temporary name).
-fn write_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize, dir: &Path) -> Result<()> {
-    let scan = make_scan(model, seed, id, texture_size)?;
+fn write_scan(
+    model: &BodyModel,
+    seed: u64,
+    id: &str,
+    texture_size: usize,
+    pose: Option<&[Vec3; NUM_JOINTS]>,
+    dir: &Path,
+) -> Result<()> {
+    let scan = make_scan(model, seed, id, texture_size, pose)?;
     std::fs::create_dir_all(dir)?;
     let put = |name: &str, bytes: &[u8]| -> Result<()> { crate::atomic::write_atomic(&dir.join(name), bytes) };
     put("mesh.obj", write_obj(&scan.mesh).as_bytes())?;
@@ -436,8 +459,15 @@ fn skirt(lm: &Landmarks, y_top: f32, y_bottom: f32, flare: f32, rng: &mut Rng, t
 // ---------------------------------------------------------------------------------------
 // The scan
 
-/// Build scan `id` of the dataset with `seed` (deterministic).
-pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) -> Result<SynthScan> {
+/// Build scan `id` of the dataset with `seed` (deterministic); in pose θ = `pose` when given,
+/// else in a drawn library pose with variation.
+pub fn make_scan(
+    model: &BodyModel,
+    seed: u64,
+    id: &str,
+    texture_size: usize,
+    pose: Option<&[Vec3; NUM_JOINTS]>,
+) -> Result<SynthScan> {
     let mut rng = Rng::new(seed, hash_str(id));
     // Shape: 10 components; age is kept adult (β_age ≥ −0.3).
     // Components of the open body: 0 gender, 1 weight, 2 muscle, 3 height, 4 proportions,
@@ -475,6 +505,10 @@ pub fn make_scan(model: &BodyModel, seed: u64, id: &str, texture_size: usize) ->
         params.pose[17] *= k;
     }
     params.pose[0] = Vec3::new(rng.normal() * 0.03, rng.normal() * 0.25, rng.normal() * 0.03);
+
+    if let Some(p) = pose {
+        params.pose = *p;
+    }
 
     // Outfit.
     let upper = pick(&mut rng, &[Upper::TShirt, Upper::TShirt, Upper::LongSleeve, Upper::Tank, Upper::Jacket]);
@@ -762,11 +796,11 @@ mod tests {
     #[test]
     fn scans_are_deterministic_textured_and_clothed() {
         let model = BodyModel::default_body().unwrap();
-        let a = make_scan(&model, 3, "0001", 128).unwrap();
-        let b = make_scan(&model, 3, "0001", 128).unwrap();
+        let a = make_scan(&model, 3, "0001", 128, None).unwrap();
+        let b = make_scan(&model, 3, "0001", 128, None).unwrap();
         assert_eq!(a.mesh.positions, b.mesh.positions);
         assert_eq!(a.texture, b.texture);
-        let c = make_scan(&model, 3, "0002", 128).unwrap();
+        let c = make_scan(&model, 3, "0002", 128, None).unwrap();
         assert_ne!(a.mesh.positions.len() + a.texture.len(), 0);
         assert_ne!(a.texture, c.texture, "different ids differ");
         // Garments add geometry on top of the body.

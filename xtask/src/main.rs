@@ -124,14 +124,15 @@ fn build_web() -> Result<()> {
         .map_err(|e| anyhow::anyhow!("wasm-bindgen: {e}"))?;
     std::fs::copy(root().join("index.html"), dist.join("index.html"))?;
     let www = root().join("www");
-    if www.is_dir() {
-        for entry in std::fs::read_dir(&www)? {
-            let entry = entry?;
-            if entry.file_type()?.is_file() {
-                std::fs::copy(entry.path(), dist.join(entry.file_name()))?;
-            }
+    for entry in std::fs::read_dir(&www).with_context(|| format!("reading {}", www.display()))? {
+        let entry = entry?;
+        let name = entry.file_name();
+        // JS glue only; the npm manifests stay out of dist/.
+        if entry.file_type()?.is_file() && !name.to_string_lossy().starts_with("package") {
+            std::fs::copy(entry.path(), dist.join(&name))?;
         }
     }
+    copy_mediapipe(&dist)?;
     // The trained demo model, fetched by the app at start-up (kept out of the wasm bundle),
     // and `models/manifest.json` saying which models are there (so the app never asks for a
     // missing file).
@@ -147,6 +148,36 @@ fn build_web() -> Result<()> {
     std::fs::write(dist.join("models/manifest.json"), format!("{{{}}}\n", manifest.join(", ")))?;
     let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm")).map(|m| m.len()).unwrap_or(0);
     eprintln!("xtask: dist ready ({:.1} MB wasm)", size as f64 / 1e6);
+    Ok(())
+}
+
+/// MediaPipe Pose's runtime and models from the pinned npm package (`www/package-lock.json`)
+/// into `dist/mediapipe/`, where `www/pose_detect.js` loads them: nothing comes from a CDN.
+/// The heavy landmark model (27 MB) is left out: the app runs the full one.
+fn copy_mediapipe(dist: &Path) -> Result<()> {
+    setup::web_deps()?;
+    let src = root().join("www/node_modules/@mediapipe/pose");
+    let dst = dist.join("mediapipe");
+    std::fs::create_dir_all(&dst)?;
+    let mut bytes = 0;
+    for entry in std::fs::read_dir(&src).with_context(|| format!("reading {} (npm ci in www/)", src.display()))? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let n = name.to_string_lossy();
+        if !entry.file_type()?.is_file()
+            || n == "pose_landmark_heavy.tflite"
+            || n.ends_with(".md")
+            || n.ends_with(".d.ts")
+            || n == "package.json"
+        {
+            continue;
+        }
+        bytes += std::fs::copy(entry.path(), dst.join(&name))?;
+    }
+    if !dst.join("pose.js").is_file() {
+        bail!("{} has no pose.js: is @mediapipe/pose installed?", src.display());
+    }
+    eprintln!("xtask: MediaPipe Pose → {} ({:.1} MB)", dst.display(), bytes as f64 / 1e6);
     Ok(())
 }
 

@@ -116,12 +116,22 @@ pub fn native_test_deps() -> Result<()> {
 /// Chromium plus the Node packages of `tests/e2e` (npm ci from the committed lock file).
 pub fn browser_test_deps() -> Result<()> {
     chromium()?;
-    if quiet(Command::new("node").arg("--version")).is_none() {
+    npm_ci(&crate::root().join("tests/e2e"))
+}
+
+/// The app's browser-side packages (`www/`, e.g. MediaPipe Pose), installed from the lock file.
+pub fn web_deps() -> Result<()> {
+    npm_ci(&crate::root().join("www"))
+}
+
+/// Node and npm (apt where missing), then `npm ci` in `dir` unless its node_modules is
+/// newer than its lock file.
+fn npm_ci(dir: &Path) -> Result<()> {
+    if quiet(Command::new("npm").arg("--version")).is_none() {
         apt_install(&["nodejs", "npm"])?;
     }
-    let e2e = crate::root().join("tests/e2e");
-    let stamp = e2e.join("node_modules/.package-lock.json");
-    let lock = e2e.join("package-lock.json");
+    let stamp = dir.join("node_modules/.package-lock.json");
+    let lock = dir.join("package-lock.json");
     let fresh = match (
         std::fs::metadata(&stamp).and_then(|m| m.modified()),
         std::fs::metadata(&lock).and_then(|m| m.modified()),
@@ -130,7 +140,7 @@ pub fn browser_test_deps() -> Result<()> {
         _ => false,
     };
     if !fresh {
-        run(Command::new("npm").current_dir(&e2e).args(["ci", "--no-audit", "--no-fund"]))?;
+        run(Command::new("npm").current_dir(dir).args(["ci", "--no-audit", "--no-fund"]))?;
     }
     Ok(())
 }
@@ -139,6 +149,7 @@ pub fn browser_test_deps() -> Result<()> {
 pub fn setup(verbose: bool) -> Result<()> {
     let tc = wasm_toolchain()?;
     browser_test_deps()?;
+    web_deps()?;
     if verbose {
         println!("wasm toolchain: {tc:?}; chromium: {}; node packages: tests/e2e/node_modules", chromium()?);
     }

@@ -56,7 +56,9 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// One instruction to the app. JSON form: `{"pose":"walking"}`, `{"joint":"left_elbow",
 /// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
 /// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}`,
-/// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`.
+/// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
+/// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`.
+/// Photo bytes come through `window.getavatar.photo(uint8Array, name)`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged, deny_unknown_fields)]
 pub enum Command {
@@ -94,6 +96,12 @@ pub enum Command {
     Show {
         show: String,
     },
+    Photo {
+        photo: PhotoArgs,
+    },
+    PhotoFit {
+        photo_fit: String,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
@@ -109,6 +117,41 @@ pub struct GenerateArgs {
     pub seed_geo: Option<u64>,
     pub seed_tex: Option<u64>,
     pub psi: Option<f32>,
+}
+
+/// A photo to reconstruct the body from, by URL (relative to the page or absolute).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoArgs {
+    pub url: String,
+    /// Adam steps of the fit's torso, body and silhouette stages (default: the fit's own).
+    pub iterations: Option<[usize; 3]>,
+}
+
+/// Where a photo comes from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PhotoSource {
+    Url(String),
+    /// A file chosen or dropped by the user (or handed over by the JS hook).
+    Bytes {
+        name: String,
+        bytes: Vec<u8>,
+    },
+}
+
+/// Most Adam steps per stage a command may ask for.
+pub const MAX_FIT_ITERATIONS: usize = 5000;
+
+/// What to do with the photo's fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PhotoFitAction {
+    Cancel,
+    /// Fit again, starting from the current pose and shape (after the user corrected joints).
+    Refit,
+    /// Download `fit.json` and `kp.json`.
+    Download,
+    /// Put the photo away.
+    Close,
 }
 
 /// A command validated against the app's vocabulary.
@@ -134,6 +177,12 @@ pub enum Action {
     Retexture(GenerateArgs),
     /// Show the avatar (`true`) or the bare body (`false`).
     ShowAvatar(bool),
+    /// Detect the person in a photo and fit the body to it.
+    Photo {
+        source: PhotoSource,
+        iterations: Option<[usize; 3]>,
+    },
+    PhotoFit(PhotoFitAction),
 }
 
 fn finite(v: f32, what: &str) -> Result<f32, String> {
@@ -186,6 +235,26 @@ impl Command {
                 "body" => Action::ShowAvatar(false),
                 other => return Err(format!("show: `{other}` (avatar, body)")),
             },
+            Command::Photo { photo } => {
+                if photo.url.trim().is_empty() {
+                    return Err("photo: empty url".into());
+                }
+                if let Some(it) = photo.iterations {
+                    if it.iter().any(|n| *n > MAX_FIT_ITERATIONS) || it[0] + it[1] == 0 {
+                        return Err(format!(
+                            "photo: iterations {it:?} (each at most {MAX_FIT_ITERATIONS}, torso + body at least 1)"
+                        ));
+                    }
+                }
+                Action::Photo { source: PhotoSource::Url(photo.url), iterations: photo.iterations }
+            }
+            Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
+                "cancel" => PhotoFitAction::Cancel,
+                "refit" => PhotoFitAction::Refit,
+                "download" => PhotoFitAction::Download,
+                "close" => PhotoFitAction::Close,
+                other => return Err(format!("photo_fit: `{other}` (cancel, refit, download, close)")),
+            }),
         })
     }
 }
@@ -347,8 +416,47 @@ pub struct Status {
     pub texture_images: u64,
     pub texture_pixels: usize,
     pub last_texture_ms: f32,
+    /// The photo → body flow.
+    pub photo: PhotoStatus,
+    /// The photo's rectangle in CSS pixels when it is shown: [x, y, width, height].
+    pub photo_view: [f32; 4],
     /// Messages about rejected commands / parameters (most recent last).
     pub errors: Vec<String>,
+}
+
+/// The photo panel's state (`status().photo`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct PhotoStatus {
+    /// "none", "detecting", "fitting", "fitted", "failed" or "cancelled".
+    pub state: String,
+    /// Where the photo came from (file name or URL).
+    pub name: String,
+    /// The photo's size, pixels.
+    pub width: usize,
+    pub height: usize,
+    /// The last message about the photo (why it failed, which joints are missing, …).
+    pub message: String,
+    /// Body joints the detector did not see (visibility < ½), SMPL names.
+    pub missing_joints: Vec<String>,
+    /// Milliseconds of the detection (decode, MediaPipe, mask read-back).
+    pub detect_ms: f32,
+    /// Fit progress: stage ("torso", "body", "silhouette"), steps done and total, loss.
+    pub stage: String,
+    pub steps_done: usize,
+    pub steps_total: usize,
+    pub loss: f32,
+    /// Milliseconds of the last fit and its steps per second.
+    pub fit_ms: f32,
+    /// Completed fits (re-fits included) and failed photos.
+    pub fits: u64,
+    pub failures: u64,
+    /// The last fit's residuals: mean keypoint distance in photo pixels and over the
+    /// person's height, and the IoU of the fitted body with the person mask.
+    pub mean_px: f32,
+    pub relative_to_height: f32,
+    pub mask_iou: Option<f32>,
+    /// Downloads of fit.json + kp.json.
+    pub fit_downloads: u64,
 }
 
 #[cfg(test)]
@@ -401,6 +509,16 @@ mod tests {
         assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
         assert!(parse_command(r#"{"res":77}"#).is_err());
         assert!(parse_command("nonsense").is_err());
+        assert_eq!(
+            parse_command(r#"{"photo":{"url":"p.png","iterations":[5,10,0]}}"#),
+            Ok(Action::Photo { source: PhotoSource::Url("p.png".into()), iterations: Some([5, 10, 0]) })
+        );
+        assert_eq!(parse_command(r#"{"photo_fit":"refit"}"#), Ok(Action::PhotoFit(PhotoFitAction::Refit)));
+        assert!(parse_command(r#"{"photo":{"url":""}}"#).is_err());
+        assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[0,0,9]}}"#).is_err());
+        assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[1,99999,0]}}"#).is_err());
+        assert!(parse_command(r#"{"photo":{"path":"p.png"}}"#).is_err());
+        assert!(parse_command(r#"{"photo_fit":"again"}"#).is_err());
     }
 
     #[test]

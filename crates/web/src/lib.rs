@@ -8,6 +8,8 @@
 //! - `app` (wasm32): the egui application state and per-frame flow; `app::panels`, `app::texture_job`
 //! - `generate` (wasm32): the generator on burn's wgpu backend sharing egui's WebGPU device
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
+//! - `photo` (wasm32): the photo → body flow's tasks: MediaPipe Pose (`www/pose_detect.js`)
+//!   and the body fit on the shared WebGPU device; the page's file input
 //! - `platform` (wasm32): clock and file downloads
 //! - `web` (wasm32): entry point owning the app, JS automation hook
 
@@ -17,6 +19,8 @@ pub mod automation;
 mod app;
 #[cfg(target_arch = "wasm32")]
 mod generate;
+#[cfg(target_arch = "wasm32")]
+mod photo;
 #[cfg(target_arch = "wasm32")]
 mod platform;
 #[cfg(target_arch = "wasm32")]

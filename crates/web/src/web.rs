@@ -10,7 +10,7 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
 use crate::app::GetAvatarApp;
-use crate::automation::{parse_command, parse_query, Action, Status};
+use crate::automation::{parse_command, parse_query, Action, PhotoSource, Status};
 use crate::platform::now_ms;
 
 thread_local! {
@@ -66,12 +66,28 @@ pub fn getavatar_command(json: &str) -> String {
     let parsed = parse_command(json);
     let err = parsed.as_ref().err().cloned().unwrap_or_default();
     COMMANDS.with(|q| q.borrow_mut().push_back(parsed));
+    request_repaint();
+    err
+}
+
+/// JS: hand the app a photo's bytes (as the file picker does); `name` is shown with it.
+#[wasm_bindgen]
+pub fn getavatar_photo(bytes: Vec<u8>, name: String) {
+    queue_photo(name, bytes);
+}
+
+fn queue_photo(name: String, bytes: Vec<u8>) {
+    let action = Action::Photo { source: PhotoSource::Bytes { name, bytes }, iterations: None };
+    COMMANDS.with(|q| q.borrow_mut().push_back(Ok(action)));
+    request_repaint();
+}
+
+fn request_repaint() {
     CONTEXT.with(|c| {
         if let Some(ctx) = c.borrow().as_ref() {
             ctx.request_repaint();
         }
     });
-    err
 }
 
 /// JS: the app's latest status as JSON (see `automation::Status`).
@@ -110,6 +126,11 @@ async fn run() -> Result<(), JsValue> {
         Ok(query) => parse_query(&query),
         Err(e) => (Vec::new(), vec![format!("cannot read the page's URL parameters: {e:?}")]),
     };
+    // The hidden file input behind "Open photo…"; chosen files queue like the hook's photos.
+    crate::photo::install_file_input(&document, queue_photo, |e| {
+        COMMANDS.with(|q| q.borrow_mut().push_back(Err(e)));
+        request_repaint();
+    })?;
     let options = eframe::WebOptions { wgpu_options: wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
         .start(

@@ -3,9 +3,11 @@
 //! (`web.rs`) owns the app: it hands it automation commands and publishes its status.
 //!
 //! - `panels`: the side panel and the viewport
+//! - `photo_panel`: "Reconstruct from photo" (detection, body fit, overlays, Download fit)
 //! - `texture_job`: the per-pixel texture view's job
 
 mod panels;
+mod photo_panel;
 mod texture_job;
 
 use std::rc::Rc;
@@ -25,6 +27,7 @@ use crate::automation::{Action, GenerateArgs, Status, ViewMode};
 use crate::generate::{GenEngine, TextureField};
 use crate::platform::{download_bytes, now_ms};
 use crate::viewer::{bone_transforms, Vertex, Viewer};
+use photo_panel::PhotoPanel;
 use texture_job::TextureJob;
 
 /// Linear RGB albedo of the untextured body.
@@ -73,6 +76,10 @@ pub struct GetAvatarApp {
     psi_from_user: bool,
     /// Generation requested by a command before egui's context was available.
     queued: Option<(bool, GenerateArgs)>,
+    /// The photo → body flow.
+    photo: PhotoPanel,
+    /// egui's context, for the repaints of background tasks.
+    ctx: Option<egui::Context>,
 }
 
 impl GetAvatarApp {
@@ -147,6 +154,8 @@ impl GetAvatarApp {
             psi: default_psi(None),
             psi_from_user: false,
             queued: None,
+            photo: PhotoPanel::default(),
+            ctx: Some(cc.egui_ctx.clone()),
         };
         for a in startup {
             app.apply(a);
@@ -208,6 +217,7 @@ impl GetAvatarApp {
                 self.mesh_dirty = true;
                 self.avatar_dirty = true;
             }
+            a @ (Action::Photo { .. } | Action::PhotoFit(_)) => self.apply_photo(a),
         }
     }
 
@@ -426,6 +436,9 @@ impl GetAvatarApp {
 
     /// One frame: everything but the automation hook, which the caller drives.
     pub fn frame(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
+        let ctx = ui.ctx().clone();
+        self.take_dropped(&ctx);
+        self.poll_photo(&ctx);
         self.poll_generation();
         self.start_queued(&ui.ctx().clone());
         self.update_gpu(frame);
@@ -436,7 +449,17 @@ impl GetAvatarApp {
         egui::Panel::left("controls").resizable(true).default_size(300.0).show(ui, |ui| {
             egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
         });
-        egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
+        self.status.photo_view = [0.0; 4];
+        egui::CentralPanel::default().show(ui, |ui| {
+            if self.photo.visible && self.photo.has_photo() {
+                ui.columns(2, |cols| {
+                    self.photo_view(&mut cols[0]);
+                    self.viewport(&mut cols[1]);
+                });
+            } else {
+                self.viewport(ui);
+            }
+        });
         // Render changes made by this frame's widgets on the next frame.
         if self.mesh_dirty
             || self.render_dirty

@@ -50,6 +50,8 @@ impl GetAvatarApp {
             ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
         }
         ui.separator();
+        self.photo_section(ui);
+        ui.separator();
 
         ui.strong("Pose");
         let mut chosen = None;

@@ -1,0 +1,496 @@
+//! "Reconstruct from photo": open or drop a photo, MediaPipe finds the person, the body is
+//! fitted to it (progress, Cancel). The photo is shown with the detected keypoints, the
+//! person mask and the fitted body drawn over it through the fit's own camera; the fit
+//! becomes the app's pose and shape, so the pose controls can correct any joint and "Re-fit
+//! from this pose" starts the fit again from there. "Download fit" writes `fit.json` and
+//! `kp.json`, the files of `trainer fit-pose`.
+
+use std::cell::RefCell;
+use std::rc::Rc;
+use std::sync::Arc;
+
+use eframe::egui;
+use egui::{Color32, Pos2, Rect, Stroke};
+
+use getavatar_core::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
+use getavatar_core::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
+use getavatar_core::body_fit::metrics::body_mask_rect;
+use getavatar_core::body_model::JOINT_NAMES;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::skinning::pose_body;
+use getavatar_core::BodyModel;
+
+use super::GetAvatarApp;
+use crate::automation::{Action, PhotoFitAction, PhotoSource};
+use crate::photo::{self, FitRequest, Photo, PhotoEvent, PhotoTask};
+use crate::platform::download_bytes;
+
+/// MediaPipe Pose's skeleton as drawn over the photo (landmark index pairs).
+const CONNECTIONS: [(usize, usize); 20] = [
+    (11, 12),
+    (11, 23),
+    (12, 24),
+    (23, 24),
+    (11, 13),
+    (13, 15),
+    (12, 14),
+    (14, 16),
+    (23, 25),
+    (25, 27),
+    (27, 29),
+    (29, 31),
+    (27, 31),
+    (24, 26),
+    (26, 28),
+    (28, 30),
+    (30, 32),
+    (28, 32),
+    (0, 11),
+    (0, 12),
+];
+
+const PERSON_TINT: [u8; 3] = [70, 150, 255];
+const BODY_TINT: [u8; 3] = [255, 150, 40];
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum TaskKind {
+    Detect,
+    Fit,
+}
+
+/// The photo panel's state.
+pub(super) struct PhotoPanel {
+    task: Option<(TaskKind, PhotoTask)>,
+    /// A photo that waits for the running detection.
+    queued: Option<(PhotoSource, Option<[usize; 3]>)>,
+    /// Iterations asked for with the photo (automation), else the fit's defaults.
+    iterations: Option<[usize; 3]>,
+    photo: Option<Photo>,
+    image: Option<egui::TextureHandle>,
+    person: Option<egui::TextureHandle>,
+    body: Option<egui::TextureHandle>,
+    fit: Option<BodyFit>,
+    /// The body model shared with the fit tasks.
+    model: Option<Arc<BodyModel>>,
+    /// Dropped files once read (or why they could not be).
+    dropped: Rc<RefCell<Vec<Result<(String, Vec<u8>), String>>>>,
+    pub(super) visible: bool,
+    show_mask: bool,
+    show_body: bool,
+    show_keypoints: bool,
+}
+
+impl Default for PhotoPanel {
+    fn default() -> Self {
+        Self {
+            task: None,
+            queued: None,
+            iterations: None,
+            photo: None,
+            image: None,
+            person: None,
+            body: None,
+            fit: None,
+            model: None,
+            dropped: Default::default(),
+            visible: false,
+            show_mask: false,
+            show_body: true,
+            show_keypoints: true,
+        }
+    }
+}
+
+impl PhotoPanel {
+    pub(super) fn has_photo(&self) -> bool {
+        self.photo.is_some()
+    }
+}
+
+/// Resample a mask covering the photo (`mw × mh`) to `w × h` as a tinted translucent image.
+fn tinted(values: &[f32], mw: usize, mh: usize, w: usize, h: usize, tint: [u8; 3], alpha: f32) -> egui::ColorImage {
+    let mut img = egui::ColorImage::new([w, h], vec![Color32::TRANSPARENT; w * h]);
+    for y in 0..h {
+        let my = ((y as f32 + 0.5) / h as f32 * mh as f32) as usize;
+        for x in 0..w {
+            let mx = ((x as f32 + 0.5) / w as f32 * mw as f32) as usize;
+            let v = values.get(my.min(mh - 1) * mw + mx.min(mw - 1)).copied().unwrap_or(0.0).clamp(0.0, 1.0);
+            let a = (v * alpha * 255.0).round() as u8;
+            img.pixels[y * w + x] = Color32::from_rgba_unmultiplied(tint[0], tint[1], tint[2], a);
+        }
+    }
+    img
+}
+
+/// `'0'`/`'1'` per pixel (the masks hook's compact form).
+fn bits(values: &[f32]) -> String {
+    values.iter().map(|v| if *v >= 0.5 { '1' } else { '0' }).collect()
+}
+
+impl GetAvatarApp {
+    /// Apply a photo action (widgets and automation).
+    pub(super) fn apply_photo(&mut self, action: Action) {
+        match action {
+            Action::Photo { source, iterations } => self.open_photo(source, iterations),
+            Action::PhotoFit(PhotoFitAction::Cancel) => match &self.photo.task {
+                Some((_, t)) => t.cancel(),
+                None => self.messages.push("no photo fit is running".into()),
+            },
+            Action::PhotoFit(PhotoFitAction::Refit) => {
+                let start = self.params.clone();
+                self.start_fit(Some(start));
+            }
+            Action::PhotoFit(PhotoFitAction::Download) => self.download_fit(),
+            Action::PhotoFit(PhotoFitAction::Close) => {
+                if let Some((_, t)) = self.photo.task.take() {
+                    t.cancel();
+                }
+                let keep = std::mem::take(&mut self.photo);
+                self.photo.model = keep.model;
+                self.status.photo = Default::default();
+                photo::publish_masks(String::new());
+            }
+            _ => {}
+        }
+    }
+
+    fn open_photo(&mut self, source: PhotoSource, iterations: Option<[usize; 3]>) {
+        match &self.photo.task {
+            // One detection at a time (the detector keeps the last photo for its preview).
+            Some((TaskKind::Detect, _)) => {
+                self.photo.queued = Some((source, iterations));
+                return;
+            }
+            Some((TaskKind::Fit, t)) => t.cancel(),
+            None => {}
+        }
+        let Some(ctx) = self.ctx.clone() else {
+            self.photo.queued = Some((source, iterations));
+            return;
+        };
+        self.status.photo.name = match &source {
+            PhotoSource::Url(u) => u.clone(),
+            PhotoSource::Bytes { name, .. } => name.clone(),
+        };
+        self.status.photo.state = "detecting".into();
+        self.status.photo.message = "looking for the person…".into();
+        self.photo.iterations = iterations;
+        self.photo.task = Some((TaskKind::Detect, photo::detect(source, ctx)));
+    }
+
+    /// Fit the body to the current photo's detection (from `start` for a re-fit).
+    fn start_fit(&mut self, start: Option<getavatar_core::BodyParams>) {
+        let Some(p) = &self.photo.photo else {
+            self.messages.push("open a photo first".into());
+            return;
+        };
+        let (Some(ctx), Some(body)) = (self.ctx.clone(), self.body.as_ref()) else { return };
+        if let Some((_, t)) = self.photo.task.take() {
+            t.cancel();
+        }
+        let model = self.photo.model.get_or_insert_with(|| Arc::new(body.clone())).clone();
+        let mut options = FitOptions::default();
+        if let Some(it) = self.photo.iterations {
+            options.iterations = it;
+        }
+        let req = FitRequest {
+            model,
+            result: p.result.clone(),
+            width: p.width,
+            height: p.height,
+            options,
+            start,
+            device: fit_device(),
+        };
+        self.status.photo.state = "fitting".into();
+        self.status.photo.steps_done = 0;
+        self.photo.task = Some((TaskKind::Fit, photo::fit(req, ctx)));
+    }
+
+    fn fail_photo(&mut self, message: String) {
+        self.status.photo.state = "failed".into();
+        self.status.photo.failures += 1;
+        self.status.photo.message = message.clone();
+        self.messages.push(message);
+    }
+
+    /// Drain the running task's events; start what they lead to.
+    pub(super) fn poll_photo(&mut self, ctx: &egui::Context) {
+        let Some((_, task)) = self.photo.task.clone() else {
+            if let Some((s, it)) = self.photo.queued.take() {
+                self.open_photo(s, it);
+            }
+            return;
+        };
+        for event in task.drain() {
+            match event {
+                PhotoEvent::Progress(p) => {
+                    let s = &mut self.status.photo;
+                    s.stage = STAGE_NAMES.get(p.stage).copied().unwrap_or("").into();
+                    (s.steps_done, s.steps_total, s.loss) = (p.done, p.total, p.loss);
+                }
+                PhotoEvent::Detected(p) => self.photo_detected(*p, ctx),
+                PhotoEvent::Fitted(fit, ms) => self.photo_fitted(*fit, ms, ctx),
+                PhotoEvent::Failed(e) => self.fail_photo(e),
+                PhotoEvent::Cancelled => {
+                    self.status.photo.state = "cancelled".into();
+                    self.status.photo.message = "fit cancelled".into();
+                }
+            }
+        }
+        // A detection that succeeded has started its fit, a new task; the drained one ends here.
+        if task.finished() && self.photo.task.as_ref().is_some_and(|(_, t)| t.same(&task)) {
+            self.photo.task = None;
+        }
+    }
+
+    fn photo_detected(&mut self, p: Photo, ctx: &egui::Context) {
+        let [w, h] = p.preview.size;
+        self.photo.image = Some(ctx.load_texture("photo", p.preview.clone(), egui::TextureOptions::LINEAR));
+        self.photo.person = p.result.segmentation_mask.as_ref().map(|m| {
+            let img = tinted(&m.data, m.width, m.height, w, h, PERSON_TINT, 0.45);
+            ctx.load_texture("person mask", img, egui::TextureOptions::LINEAR)
+        });
+        self.photo.body = None;
+        self.photo.fit = None;
+        self.photo.visible = true;
+        let missing = missing_joints(&p.result);
+        let s = &mut self.status.photo;
+        (s.width, s.height, s.detect_ms) = (p.width, p.height, p.detect_ms as f32);
+        s.missing_joints = missing.clone();
+        s.message = if missing.is_empty() {
+            "person found; fitting the body…".into()
+        } else {
+            format!("only part of the person is visible ({} not seen); fitting the rest…", missing.join(", "))
+        };
+        s.name = p.name.clone();
+        self.photo.photo = Some(p);
+        photo::publish_masks(String::new());
+        self.photo.task = None;
+        self.start_fit(None);
+    }
+
+    fn photo_fitted(&mut self, fit: BodyFit, ms: f64, ctx: &egui::Context) {
+        let (Some(p), Some(body)) = (&self.photo.photo, &self.body) else { return };
+        let [w, h] = p.preview.size;
+        let posed = pose_body(body, &fit.body_params());
+        let mask = body_mask_rect(&posed.vertices, &body.faces, fit.photo_view_proj(), w, h);
+        let img = tinted(&mask, w, h, w, h, BODY_TINT, 0.5);
+        self.photo.body = Some(ctx.load_texture("fitted body", img, egui::TextureOptions::LINEAR));
+        // The masks hook (`window.getavatar.photoMasks()`): the person's and the fitted body's.
+        let person = p.result.segmentation_mask.as_ref().map(|m| {
+            let mut v = vec![0.0; w * h];
+            for (y, row) in v.chunks_exact_mut(w).enumerate() {
+                let my = ((y as f32 + 0.5) / h as f32 * m.height as f32) as usize;
+                for (x, px) in row.iter_mut().enumerate() {
+                    let mx = ((x as f32 + 0.5) / w as f32 * m.width as f32) as usize;
+                    *px = m.data[my.min(m.height - 1) * m.width + mx.min(m.width - 1)];
+                }
+            }
+            bits(&v)
+        });
+        let masks = serde_json::json!({ "width": w, "height": h, "body": bits(&mask), "person": person });
+        photo::publish_masks(masks.to_string());
+        // The fit becomes the app's pose and shape, seen from the photo's side.
+        self.params = fit.body_params();
+        self.pose_name = "photo fit".into();
+        self.mesh_dirty = true;
+        let eye = fit.world_to_camera().inverse().transform_point3(glam::Vec3::ZERO);
+        self.camera.yaw = eye.x.atan2(eye.z);
+        self.camera = self.camera.clamped();
+        self.render_dirty = true;
+        let s = &mut self.status.photo;
+        s.state = "fitted".into();
+        s.fits += 1;
+        s.fit_ms = ms as f32;
+        s.mean_px = fit.residuals.mean_px;
+        s.relative_to_height = fit.residuals.relative_to_height;
+        s.mask_iou = fit.residuals.mask_iou;
+        s.message = format!(
+            "fitted in {:.1} s: keypoints within {:.1} px ({:.1} % of the height){}",
+            ms / 1000.0,
+            fit.residuals.mean_px,
+            fit.residuals.relative_to_height * 100.0,
+            fit.residuals.mask_iou.map(|i| format!(", mask IoU {i:.2}")).unwrap_or_default()
+        );
+        if !s.missing_joints.is_empty() {
+            s.message += &format!("; not seen: {}", s.missing_joints.join(", "));
+        }
+        self.photo.fit = Some(fit);
+    }
+
+    fn download_fit(&mut self) {
+        let (Some(fit), Some(p)) = (&self.photo.fit, &self.photo.photo) else {
+            self.messages.push("no fit to download yet".into());
+            return;
+        };
+        let json = match fit.to_json() {
+            Ok(j) => j,
+            Err(e) => {
+                self.messages.push(format!("fit.json: {e}"));
+                return;
+            }
+        };
+        let r = download_bytes("fit.json", json.as_bytes(), "application/json")
+            .and_then(|()| download_bytes("kp.json", p.json.as_bytes(), "application/json"));
+        match r {
+            Ok(()) => self.status.photo.fit_downloads += 1,
+            Err(e) => self.messages.push(format!("download failed: {e}")),
+        }
+    }
+
+    /// A file dropped on the page becomes the photo (the first, if several): its bytes are
+    /// read asynchronously, then opened like a chosen file.
+    pub(super) fn take_dropped(&mut self, ctx: &egui::Context) {
+        let arrived: Vec<_> = self.photo.dropped.borrow_mut().drain(..).collect();
+        for r in arrived {
+            match r {
+                Ok((name, bytes)) => {
+                    self.apply(Action::Photo { source: PhotoSource::Bytes { name, bytes }, iterations: None })
+                }
+                Err(e) => self.fail_photo(e),
+            }
+        }
+        let Some(file) = ctx.input(|i| i.raw.dropped_files.first().cloned()) else { return };
+        let (slot, repaint) = (self.photo.dropped.clone(), ctx.clone());
+        wasm_bindgen_futures::spawn_local(async move {
+            let name = file.path().display().to_string();
+            let name = if name.is_empty() { "dropped file".to_string() } else { name };
+            let r = file.bytes_async().await.map(|b| (name.clone(), b)).map_err(|e| format!("cannot read {name}: {e}"));
+            slot.borrow_mut().push(r);
+            repaint.request_repaint();
+        });
+    }
+
+    /// The side panel's section.
+    pub(super) fn photo_section(&mut self, ui: &mut egui::Ui) {
+        ui.strong("Reconstruct from photo");
+        ui.horizontal(|ui| {
+            if ui
+                .button("Open photo…")
+                .on_hover_text("PNG, JPEG or WebP of one person; or drop it on the page")
+                .clicked()
+            {
+                if let Err(e) = photo::open_file_picker() {
+                    self.messages.push(format!("cannot open the file chooser: {e}"));
+                }
+            }
+            if self.photo.task.is_some() {
+                ui.spinner();
+                if ui.button("Cancel").clicked() {
+                    self.apply(Action::PhotoFit(PhotoFitAction::Cancel));
+                }
+            }
+        });
+        let s = &self.status.photo;
+        if s.state == "fitting" && s.steps_total > 0 {
+            let frac = s.steps_done as f32 / s.steps_total as f32;
+            ui.add(
+                egui::ProgressBar::new(frac)
+                    .text(format!("{} stage · step {}/{} · loss {:.3}", s.stage, s.steps_done, s.steps_total, s.loss)),
+            );
+        }
+        if !s.message.is_empty() {
+            ui.label(egui::RichText::new(&s.message).small());
+        }
+        if self.photo.photo.is_some() {
+            ui.horizontal_wrapped(|ui| {
+                ui.checkbox(&mut self.photo.visible, "photo");
+                ui.checkbox(&mut self.photo.show_keypoints, "keypoints");
+                ui.checkbox(&mut self.photo.show_mask, "person mask");
+                ui.checkbox(&mut self.photo.show_body, "fitted body");
+            });
+            ui.horizontal(|ui| {
+                let idle = self.photo.task.is_none();
+                if ui
+                    .add_enabled(idle, egui::Button::new("Re-fit from this pose"))
+                    .on_hover_text("correct joints with the pose controls below, then fit again from there")
+                    .clicked()
+                {
+                    self.apply(Action::PhotoFit(PhotoFitAction::Refit));
+                }
+                if ui
+                    .add_enabled(self.photo.fit.is_some(), egui::Button::new("⬇ Download fit"))
+                    .on_hover_text("fit.json (pose, shape, camera, residuals) and kp.json (the detection)")
+                    .clicked()
+                {
+                    self.apply(Action::PhotoFit(PhotoFitAction::Download));
+                }
+                if ui.button("Close").clicked() {
+                    self.apply(Action::PhotoFit(PhotoFitAction::Close));
+                }
+            });
+        } else {
+            ui.label(egui::RichText::new("drop a photo anywhere on the page").small());
+        }
+    }
+
+    /// The photo with its overlays, fitted into `ui`'s space.
+    pub(super) fn photo_view(&mut self, ui: &mut egui::Ui) {
+        let (Some(image), Some(p)) = (&self.photo.image, &self.photo.photo) else { return };
+        let avail = ui.available_rect_before_wrap();
+        let [pw, ph] = p.preview.size;
+        let k = (avail.width() / pw as f32).min(avail.height() / ph as f32);
+        let rect = Rect::from_center_size(avail.center(), egui::vec2(pw as f32 * k, ph as f32 * k));
+        ui.allocate_rect(avail, egui::Sense::hover());
+        self.status.photo_view = [rect.min.x, rect.min.y, rect.width(), rect.height()];
+        let uv = Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0));
+        let painter = ui.painter_at(avail);
+        painter.image(image.id(), rect, uv, Color32::WHITE);
+        if self.photo.show_mask {
+            if let Some(t) = &self.photo.person {
+                painter.image(t.id(), rect, uv, Color32::WHITE);
+            }
+        }
+        if self.photo.show_body {
+            if let Some(t) = &self.photo.body {
+                painter.image(t.id(), rect, uv, Color32::WHITE);
+            }
+        }
+        if !self.photo.show_keypoints {
+            return;
+        }
+        // Photo pixels → screen.
+        let sx = rect.width() / p.width as f32;
+        let sy = rect.height() / p.height as f32;
+        let at = |q: [f32; 2]| Pos2::new(rect.min.x + q[0] * sx, rect.min.y + q[1] * sy);
+        let lm = &p.result.pose_landmarks;
+        let seen = |i: usize| lm[i].visibility >= VISIBLE;
+        let px = |i: usize| at([lm[i].x * p.width as f32, lm[i].y * p.height as f32]);
+        for (a, b) in CONNECTIONS {
+            let c = if seen(a) && seen(b) { Color32::from_rgb(90, 220, 120) } else { Color32::from_gray(150) };
+            painter.line_segment([px(a), px(b)], Stroke::new(2.0, c));
+        }
+        for (i, l) in lm.iter().enumerate() {
+            let c = if l.visibility >= VISIBLE { Color32::from_rgb(60, 200, 90) } else { Color32::from_gray(140) };
+            painter.circle_filled(px(i), 3.5, c);
+        }
+        if let Some(fit) = &self.photo.fit {
+            for kp in &fit.keypoints {
+                if let Some(f) = kp.fitted {
+                    let (o, f) = (at(kp.observed), at(f));
+                    painter.line_segment([o, f], Stroke::new(1.0, Color32::WHITE));
+                    painter.circle_stroke(f, 3.0, Stroke::new(1.5, Color32::from_rgb(255, 150, 40)));
+                }
+            }
+        }
+    }
+}
+
+/// Where the browser runs the fit: NdArray (CPU) with autodiff. Its tensors are small (24
+/// joints, 33 landmarks, one 128² mask), so GPU dispatches and read-backs cost more than the
+/// arithmetic: see docs/benchmarks.md for the measured steps per second of both.
+fn fit_device() -> Device {
+    // The project's CPU backend (as natively); burn 0.22 marks it deprecated in favour of flex.
+    #[allow(deprecated)]
+    Device::ndarray().autodiff()
+}
+
+/// SMPL joints whose landmark the detector did not see.
+fn missing_joints(r: &PoseResult) -> Vec<String> {
+    JOINT_LANDMARKS
+        .iter()
+        .filter(|m| r.pose_landmarks.get(m.landmark).is_none_or(|l| l.visibility < VISIBLE))
+        .map(|m| JOINT_NAMES[m.joint].replace('_', " "))
+        .collect()
+}

@@ -1,0 +1,336 @@
+//! The photo → body flow's browser side (paper Sec. 3.4's inversion starts from it): a photo's
+//! bytes go to MediaPipe Pose (`www/pose_detect.js`, called through wasm-bindgen), its
+//! landmarks and person mask to `getavatar_core::body_fit` (burn with autodiff on the shared
+//! WebGPU device). Both run as async tasks; the fit awaits one Adam step at a time (each ends
+//! in a GPU read-back), so the page stays live, shows progress and can cancel between steps.
+//!
+//! Tasks report through a [`PhotoTask`]'s event queue, which the app drains every frame.
+
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
+use std::rc::Rc;
+use std::sync::Arc;
+
+use eframe::egui;
+use serde::Deserialize;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+use wasm_bindgen_futures::JsFuture;
+
+use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
+use getavatar_core::body_fit::landmarks::PoseResult;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::{BodyModel, BodyParams};
+
+use crate::automation::PhotoSource;
+use crate::platform::now_ms;
+
+#[wasm_bindgen(raw_module = "./pose_detect.js")]
+extern "C" {
+    /// MediaPipe Pose on a photo's bytes: a JSON string (the result, or `{"error": …}`).
+    #[wasm_bindgen(catch, js_name = detectPose)]
+    async fn detect_pose(bytes: &js_sys::Uint8Array) -> Result<JsValue, JsValue>;
+    /// The last detected photo, downscaled: `{width, height, data}` or null.
+    #[wasm_bindgen(catch, js_name = photoPreview)]
+    fn photo_preview(max_side: u32) -> Result<JsValue, JsValue>;
+}
+
+/// Long side of the photo as the app shows it, pixels.
+pub const PREVIEW_SIDE: u32 = 768;
+
+/// A photo the detector found a person in.
+pub struct Photo {
+    /// File name (or URL) it came from.
+    pub name: String,
+    /// Size of the original photo, pixels.
+    pub width: usize,
+    pub height: usize,
+    pub result: PoseResult,
+    /// The detector's result as it returned it (`kp.json` of "Download fit").
+    pub json: String,
+    /// The photo downscaled to at most [`PREVIEW_SIDE`].
+    pub preview: egui::ColorImage,
+    pub detect_ms: f64,
+}
+
+/// What a task reports.
+pub enum PhotoEvent {
+    Detected(Box<Photo>),
+    /// One sentence for the user; the app stays as it was.
+    Failed(String),
+    Progress(FitProgress),
+    /// The fit and its time in milliseconds.
+    Fitted(Box<BodyFit>, f64),
+    Cancelled,
+}
+
+/// A running detection or fit: its events, and the flag that cancels it.
+#[derive(Clone, Default)]
+pub struct PhotoTask {
+    events: Rc<RefCell<VecDeque<PhotoEvent>>>,
+    cancel: Rc<Cell<bool>>,
+    done: Rc<Cell<bool>>,
+}
+
+impl PhotoTask {
+    fn push(&self, e: PhotoEvent, repaint: &egui::Context) {
+        let mut q = self.events.borrow_mut();
+        // Only the latest progress matters.
+        if matches!(e, PhotoEvent::Progress(_)) && matches!(q.back(), Some(PhotoEvent::Progress(_))) {
+            q.pop_back();
+        }
+        if !matches!(e, PhotoEvent::Progress(_)) {
+            self.done.set(true);
+        }
+        q.push_back(e);
+        repaint.request_repaint();
+    }
+
+    /// Events since the last call.
+    pub fn drain(&self) -> Vec<PhotoEvent> {
+        self.events.borrow_mut().drain(..).collect()
+    }
+
+    /// Ask the task to stop at its next step (it reports [`PhotoEvent::Cancelled`]).
+    pub fn cancel(&self) {
+        self.cancel.set(true);
+    }
+
+    /// The same task (not a clone of another's state).
+    pub fn same(&self, other: &PhotoTask) -> bool {
+        Rc::ptr_eq(&self.done, &other.done)
+    }
+
+    /// It has reported its outcome (result, failure or cancellation).
+    pub fn finished(&self) -> bool {
+        self.done.get()
+    }
+}
+
+/// The fields of `pose_detect.js`'s answer that are not MediaPipe's result.
+#[derive(Deserialize)]
+struct DetectorAnswer {
+    error: Option<String>,
+    width: Option<usize>,
+    height: Option<usize>,
+}
+
+/// Detect the person in a photo (PNG, JPEG or WebP; bytes, or a URL fetched first).
+pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
+    let task = PhotoTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let t0 = now_ms();
+        let fetched = match source {
+            PhotoSource::Bytes { name, bytes } => Ok((name, bytes)),
+            PhotoSource::Url(url) => fetch(&url).await.map(|b| (url, b)),
+        };
+        let detected = match fetched {
+            Ok((name, bytes)) => detect_async(&bytes, name, t0).await,
+            Err(e) => Err(format!("cannot fetch the photo: {e}")),
+        };
+        let event = match detected {
+            Ok(p) => PhotoEvent::Detected(Box::new(p)),
+            Err(e) => PhotoEvent::Failed(e),
+        };
+        t.push(event, &repaint);
+    });
+    task
+}
+
+async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, String> {
+    let array = js_sys::Uint8Array::from(bytes);
+    let answer = detect_pose(&array).await.map_err(|e| format!("the person detector failed: {}", js_message(&e)))?;
+    let json = answer.as_string().ok_or("the person detector returned no answer")?;
+    let head: DetectorAnswer =
+        serde_json::from_str(&json).map_err(|e| format!("the person detector's answer is not JSON: {e}"))?;
+    if let Some(e) = head.error {
+        return Err(format!("{name}: {e}"));
+    }
+    let (Some(width), Some(height)) = (head.width, head.height) else {
+        return Err("the person detector's answer has no photo size".into());
+    };
+    let result = PoseResult::from_json(&json).map_err(|e| format!("the person detector's answer: {e}"))?;
+    let preview = preview_image()?;
+    Ok(Photo { name, width, height, result, json, preview, detect_ms: now_ms() - t0 })
+}
+
+/// The last detected photo as an egui image.
+fn preview_image() -> Result<egui::ColorImage, String> {
+    let v = photo_preview(PREVIEW_SIDE).map_err(|e| format!("cannot read the photo back: {}", js_message(&e)))?;
+    let get = |k: &str| js_sys::Reflect::get(&v, &JsValue::from_str(k)).map_err(|e| js_message(&e));
+    let (w, h) = (get("width")?.as_f64(), get("height")?.as_f64());
+    let data: js_sys::Uint8Array =
+        get("data")?.dyn_into().map_err(|_| "the photo's pixels are not a Uint8Array".to_string())?;
+    let (Some(w), Some(h)) = (w, h) else { return Err("the photo's preview has no size".into()) };
+    let (w, h) = (w as usize, h as usize);
+    let rgba = data.to_vec();
+    if rgba.len() != w * h * 4 {
+        return Err(format!("the photo's preview has {} bytes for {w}×{h} pixels", rgba.len()));
+    }
+    Ok(egui::ColorImage::from_rgba_unmultiplied([w, h], &rgba))
+}
+
+/// A JS exception's message.
+pub fn js_message(e: &JsValue) -> String {
+    e.dyn_ref::<js_sys::Error>()
+        .map(|e| String::from(e.message()))
+        .or_else(|| e.as_string())
+        .unwrap_or_else(|| format!("{e:?}"))
+}
+
+/// What a fit needs from the app.
+pub struct FitRequest {
+    pub model: Arc<BodyModel>,
+    pub result: PoseResult,
+    pub width: usize,
+    pub height: usize,
+    pub options: FitOptions,
+    /// Start from this pose and shape (a re-fit after the user corrected joints).
+    pub start: Option<BodyParams>,
+    /// An autodiff device (`Device::autodiff()`).
+    pub device: Device,
+}
+
+/// Fit the body to a detection, one step per await.
+pub fn fit(req: FitRequest, repaint: egui::Context) -> PhotoTask {
+    let task = PhotoTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let t0 = now_ms();
+        let event = match fit_async(req, &t, &repaint).await {
+            Ok(Some(fit)) => PhotoEvent::Fitted(Box::new(fit), now_ms() - t0),
+            Ok(None) => PhotoEvent::Cancelled,
+            Err(e) => PhotoEvent::Failed(format!("the body fit failed: {e}")),
+        };
+        t.push(event, &repaint);
+    });
+    task
+}
+
+async fn fit_async(
+    req: FitRequest,
+    task: &PhotoTask,
+    repaint: &egui::Context,
+) -> Result<Option<BodyFit>, getavatar_core::body_fit::fit::FitError> {
+    let input = FitInput::from_detection(&req.result, req.width, req.height, None, &req.model, &req.options)?;
+    let mut fitter = BodyFitter::new(req.model, input, req.options, &req.device)?;
+    if let Some(start) = &req.start {
+        fitter.start_from(start);
+    }
+    let mut last_yield = now_ms();
+    loop {
+        // On the CPU a step never waits for anything: hand the page a frame every ~100 ms so
+        // it repaints, shows the progress and sees Cancel.
+        if now_ms() - last_yield > 100.0 {
+            yield_to_browser().await;
+            last_yield = now_ms();
+        }
+        if task.cancel.get() {
+            return Ok(None);
+        }
+        match fitter.step().await? {
+            Some(p) => task.push(PhotoEvent::Progress(p), repaint),
+            None => break,
+        }
+    }
+    fitter.finish().await.map(Some)
+}
+
+/// Resolve on the browser's next task (`setTimeout(0)`), letting it render and handle input.
+async fn yield_to_browser() {
+    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
+        if let Some(w) = web_sys::window() {
+            // A failed setTimeout leaves the promise pending: resolve at once instead.
+            if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
+                let _ = resolve.call0(&JsValue::NULL);
+            }
+        } else {
+            let _ = resolve.call0(&JsValue::NULL);
+        }
+    });
+    // The promise only resolves.
+    let _ = JsFuture::from(promise).await;
+}
+
+/// Fetch a URL's bytes (the automation hook's `{"photo": {"url": …}}`).
+pub async fn fetch(url: &str) -> Result<Vec<u8>, String> {
+    let window = web_sys::window().ok_or("no window")?;
+    let resp = JsFuture::from(window.fetch_with_str(url)).await.map_err(|e| format!("{url}: {}", js_message(&e)))?;
+    let resp: web_sys::Response = resp.dyn_into().map_err(|_| "fetch did not return a Response".to_string())?;
+    if !resp.ok() {
+        return Err(format!("{url}: HTTP {}", resp.status()));
+    }
+    let buf = JsFuture::from(resp.array_buffer().map_err(|e| js_message(&e))?)
+        .await
+        .map_err(|e| format!("reading {url}: {}", js_message(&e)))?;
+    Ok(js_sys::Uint8Array::new(&buf).to_vec())
+}
+
+/// The id of the page's hidden file input (made by [`install_file_input`]).
+pub const FILE_INPUT_ID: &str = "getavatar_photo_input";
+
+/// Add the hidden `<input type=file>` behind "Open photo…"; each chosen file's bytes go to
+/// `on_file(name, bytes)`, an unreadable one's error to `on_error`.
+pub fn install_file_input(
+    document: &web_sys::Document,
+    on_file: impl Fn(String, Vec<u8>) + 'static,
+    on_error: impl Fn(String) + 'static,
+) -> Result<(), JsValue> {
+    let input: web_sys::HtmlInputElement = document.create_element("input")?.dyn_into()?;
+    input.set_type("file");
+    input.set_id(FILE_INPUT_ID);
+    input.set_accept("image/png,image/jpeg,image/webp");
+    input.style().set_property("display", "none")?;
+    let on_file = Rc::new(on_file);
+    let on_error = Rc::new(on_error);
+    let target = input.clone();
+    let handler = Closure::<dyn FnMut()>::new(move || {
+        let Some(file) = target.files().and_then(|f| f.get(0)) else { return };
+        // The same file chosen again must fire `change` again.
+        target.set_value("");
+        let (on_file, on_error) = (on_file.clone(), on_error.clone());
+        wasm_bindgen_futures::spawn_local(async move {
+            let name = file.name();
+            match JsFuture::from(file.array_buffer()).await {
+                Ok(buf) => on_file(name, js_sys::Uint8Array::new(&buf).to_vec()),
+                Err(e) => on_error(format!("cannot read {name}: {}", js_message(&e))),
+            }
+        });
+    });
+    input.add_event_listener_with_callback("change", handler.as_ref().unchecked_ref())?;
+    // The input lives as long as the page.
+    handler.forget();
+    document.body().ok_or("no <body>")?.append_child(&input)?;
+    Ok(())
+}
+
+/// Open the browser's file chooser (needs a recent user gesture, e.g. the button's click).
+pub fn open_file_picker() -> Result<(), String> {
+    let document = web_sys::window().and_then(|w| w.document()).ok_or("no document")?;
+    let input: web_sys::HtmlElement = document
+        .get_element_by_id(FILE_INPUT_ID)
+        .ok_or("the page has no file input")?
+        .dyn_into()
+        .map_err(|_| "the file input is not an element".to_string())?;
+    input.click();
+    Ok(())
+}
+
+thread_local! {
+    /// The last fit's masks for `window.getavatar.photoMasks()` (JSON, "" before a fit).
+    static MASKS: RefCell<String> = const { RefCell::new(String::new()) };
+}
+
+/// Set what `window.getavatar.photoMasks()` returns.
+pub fn publish_masks(json: String) {
+    MASKS.with(|m| *m.borrow_mut() = json);
+}
+
+/// JSON `{width, height, body, person}` of the last fit at the photo's preview size: the
+/// fitted body's and the detector's person mask, one `'0'`/`'1'` per pixel from the top left
+/// (`person` is null without a mask); `""` before a fit.
+#[wasm_bindgen]
+pub fn getavatar_photo_masks() -> String {
+    MASKS.with(|m| m.borrow().clone())
+}
