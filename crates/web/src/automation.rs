@@ -11,6 +11,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use getavatar_core::body_fit::options::FitOptions;
 use getavatar_core::body_model::joint_index;
 
 /// What the viewport shows.
@@ -126,6 +127,9 @@ pub struct PhotoArgs {
     pub url: String,
     /// Adam steps of the fit's torso, body and silhouette stages (default: the fit's own).
     pub iterations: Option<[usize; 3]>,
+    /// Fit settings (`body_fit::fit::FitOptions` as JSON, any subset of its fields); merged
+    /// under `iterations`.
+    pub options: Option<serde_json::Value>,
 }
 
 /// Where a photo comes from.
@@ -180,7 +184,7 @@ pub enum Action {
     /// Detect the person in a photo and fit the body to it.
     Photo {
         source: PhotoSource,
-        iterations: Option<[usize; 3]>,
+        options: Option<FitOptions>,
     },
     PhotoFit(PhotoFitAction),
 }
@@ -239,14 +243,30 @@ impl Command {
                 if photo.url.trim().is_empty() {
                     return Err("photo: empty url".into());
                 }
+                let mut options = match photo.options {
+                    Some(v) => {
+                        Some(serde_json::from_value::<FitOptions>(v).map_err(|e| format!("photo: options: {e}"))?)
+                    }
+                    None => None,
+                };
                 if let Some(it) = photo.iterations {
+                    options.get_or_insert_with(FitOptions::default).iterations = it;
+                }
+                if let Some(o) = &options {
+                    let it = o.iterations;
                     if it.iter().any(|n| *n > MAX_FIT_ITERATIONS) || it[0] + it[1] == 0 {
                         return Err(format!(
                             "photo: iterations {it:?} (each at most {MAX_FIT_ITERATIONS}, torso + body at least 1)"
                         ));
                     }
+                    if !(o.learning_rate.is_finite() && o.learning_rate > 0.0)
+                        || !(8..=512).contains(&o.silhouette_size)
+                        || o.num_betas > 16
+                    {
+                        return Err("photo: options: learning_rate > 0, silhouette_size 8..=512, num_betas ≤ 16".into());
+                    }
                 }
-                Action::Photo { source: PhotoSource::Url(photo.url), iterations: photo.iterations }
+                Action::Photo { source: PhotoSource::Url(photo.url), options }
             }
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
@@ -511,7 +531,10 @@ mod tests {
         assert!(parse_command("nonsense").is_err());
         assert_eq!(
             parse_command(r#"{"photo":{"url":"p.png","iterations":[5,10,0]}}"#),
-            Ok(Action::Photo { source: PhotoSource::Url("p.png".into()), iterations: Some([5, 10, 0]) })
+            Ok(Action::Photo {
+                source: PhotoSource::Url("p.png".into()),
+                options: Some(FitOptions { iterations: [5, 10, 0], ..FitOptions::default() })
+            })
         );
         assert_eq!(parse_command(r#"{"photo_fit":"refit"}"#), Ok(Action::PhotoFit(PhotoFitAction::Refit)));
         assert!(parse_command(r#"{"photo":{"url":""}}"#).is_err());
@@ -519,6 +542,15 @@ mod tests {
         assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[1,99999,0]}}"#).is_err());
         assert!(parse_command(r#"{"photo":{"path":"p.png"}}"#).is_err());
         assert!(parse_command(r#"{"photo_fit":"again"}"#).is_err());
+        match parse_command(r#"{"photo":{"url":"p.png","options":{"weights":{"silhouette":0.05}}}}"#) {
+            Ok(Action::Photo { options: Some(o), .. }) => {
+                assert_eq!(o.weights.silhouette, 0.05);
+                assert_eq!(o.iterations, FitOptions::default().iterations);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(parse_command(r#"{"photo":{"url":"p.png","options":{"weights":{"silhouete":1}}}}"#).is_err());
+        assert!(parse_command(r#"{"photo":{"url":"p.png","options":{"learning_rate":-1}}}"#).is_err());
     }
 
     #[test]

@@ -37,6 +37,7 @@ use super::landmarks::{
 };
 use super::limits::HINGES;
 use super::metrics::{body_mask, mask_iou};
+pub use super::options::{FitOptions, FitWeights};
 use super::surface::{surface_landmarks, SurfaceError, SurfaceLandmark};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::camera::{reference_fov_y, to_row_major};
@@ -51,55 +52,6 @@ const UNIT_PX: f32 = 128.0;
 /// Clip planes of the fit's camera, metres.
 const NEAR: f32 = 0.1;
 const FAR: f32 = 100.0;
-
-/// Weights of the fit's terms (relative to one squared pixel of a 256² crop).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitWeights {
-    /// Geman–McClure scale σ, pixels of a 256² crop.
-    pub robust_sigma: f32,
-    /// L2 on the body pose θ₁…θ₂₃ (radians²).
-    pub pose: f32,
-    /// SMPLify's angle prior on elbows and knees.
-    pub hinge: f32,
-    /// L2 on β.
-    pub betas: f32,
-    /// Squared difference of unit bone directions to the world landmarks'.
-    pub bones: f32,
-    /// Squared mask difference summed over the crop, per pixel of a 256² crop.
-    pub silhouette: f32,
-}
-
-impl Default for FitWeights {
-    fn default() -> Self {
-        Self { robust_sigma: 40.0, pose: 0.3, hinge: 1.0, betas: 0.5, bones: 60.0, silhouette: 0.2 }
-    }
-}
-
-/// Settings of the fit.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitOptions {
-    /// β components fitted (0 keeps the mean shape).
-    pub num_betas: usize,
-    /// Adam steps of the torso, body and silhouette stages.
-    pub iterations: [usize; 3],
-    /// Adam's learning rate (radians, metres and β units per step, roughly).
-    pub learning_rate: f32,
-    /// Side of the silhouette stage's mask, pixels.
-    pub silhouette_size: usize,
-    pub weights: FitWeights,
-}
-
-impl Default for FitOptions {
-    fn default() -> Self {
-        Self {
-            num_betas: 10,
-            iterations: [60, 300, 80],
-            learning_rate: 0.02,
-            silhouette_size: 128,
-            weights: FitWeights::default(),
-        }
-    }
-}
 
 /// Why a fit cannot run.
 #[derive(Debug, thiserror::Error)]
@@ -582,8 +534,13 @@ impl BodyFitter {
         let image = diff_raster::antialias(image, &pairs, clip, size, size, dev);
         let target = matrix(mask.to_vec(), size * size, 1, dev);
         let d = image - target;
+        // Body outside the person costs fully; person the body leaves uncovered (clothes,
+        // hair) costs `silhouette_uncovered` of that.
+        let outside = d.clone().clamp_min(0.0);
+        let uncovered = d.clamp_max(0.0);
+        let k = self.options.weights.silhouette_uncovered;
         let scale = (2.0 * UNIT_PX / size as f32).powi(2);
-        Ok((d.clone() * d).sum().reshape([1]) * scale)
+        Ok(((outside.clone() * outside).sum() + (uncovered.clone() * uncovered).sum() * k).reshape([1]) * scale)
     }
 
     /// Clip positions `[N, 4]` of world points through the fit's camera (OpenGL projection).

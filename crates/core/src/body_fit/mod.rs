@@ -6,6 +6,7 @@
 //! - [`limits`]: knees and elbows bend one way (SMPLify's angle prior, directions checked on
 //!   this body).
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
+//! - [`options`]: the fit's settings (term weights, stages).
 
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod fit;
@@ -14,5 +15,6 @@ pub mod init;
 pub mod landmarks;
 pub mod limits;
 pub mod metrics;
+pub mod options;
 pub mod surface;
 pub mod synthetic;

@@ -62,9 +62,9 @@ enum TaskKind {
 pub(super) struct PhotoPanel {
     task: Option<(TaskKind, PhotoTask)>,
     /// A photo that waits for the running detection.
-    queued: Option<(PhotoSource, Option<[usize; 3]>)>,
-    /// Iterations asked for with the photo (automation), else the fit's defaults.
-    iterations: Option<[usize; 3]>,
+    queued: Option<(PhotoSource, Option<FitOptions>)>,
+    /// Fit settings asked for with the photo (automation), else the fit's defaults.
+    options: Option<FitOptions>,
     photo: Option<Photo>,
     image: Option<egui::TextureHandle>,
     person: Option<egui::TextureHandle>,
@@ -85,7 +85,7 @@ impl Default for PhotoPanel {
         Self {
             task: None,
             queued: None,
-            iterations: None,
+            options: None,
             photo: None,
             image: None,
             person: None,
@@ -131,7 +131,7 @@ impl GetAvatarApp {
     /// Apply a photo action (widgets and automation).
     pub(super) fn apply_photo(&mut self, action: Action) {
         match action {
-            Action::Photo { source, iterations } => self.open_photo(source, iterations),
+            Action::Photo { source, options } => self.open_photo(source, options),
             Action::PhotoFit(PhotoFitAction::Cancel) => match &self.photo.task {
                 Some((_, t)) => t.cancel(),
                 None => self.messages.push("no photo fit is running".into()),
@@ -154,18 +154,18 @@ impl GetAvatarApp {
         }
     }
 
-    fn open_photo(&mut self, source: PhotoSource, iterations: Option<[usize; 3]>) {
+    fn open_photo(&mut self, source: PhotoSource, options: Option<FitOptions>) {
         match &self.photo.task {
             // One detection at a time (the detector keeps the last photo for its preview).
             Some((TaskKind::Detect, _)) => {
-                self.photo.queued = Some((source, iterations));
+                self.photo.queued = Some((source, options));
                 return;
             }
             Some((TaskKind::Fit, t)) => t.cancel(),
             None => {}
         }
         let Some(ctx) = self.ctx.clone() else {
-            self.photo.queued = Some((source, iterations));
+            self.photo.queued = Some((source, options));
             return;
         };
         self.status.photo.name = match &source {
@@ -174,7 +174,7 @@ impl GetAvatarApp {
         };
         self.status.photo.state = "detecting".into();
         self.status.photo.message = "looking for the person…".into();
-        self.photo.iterations = iterations;
+        self.photo.options = options;
         self.photo.task = Some((TaskKind::Detect, photo::detect(source, ctx)));
     }
 
@@ -189,10 +189,7 @@ impl GetAvatarApp {
             t.cancel();
         }
         let model = self.photo.model.get_or_insert_with(|| Arc::new(body.clone())).clone();
-        let mut options = FitOptions::default();
-        if let Some(it) = self.photo.iterations {
-            options.iterations = it;
-        }
+        let options = self.photo.options.clone().unwrap_or_default();
         let req = FitRequest {
             model,
             result: p.result.clone(),
@@ -346,7 +343,7 @@ impl GetAvatarApp {
         for r in arrived {
             match r {
                 Ok((name, bytes)) => {
-                    self.apply(Action::Photo { source: PhotoSource::Bytes { name, bytes }, iterations: None })
+                    self.apply(Action::Photo { source: PhotoSource::Bytes { name, bytes }, options: None })
                 }
                 Err(e) => self.fail_photo(e),
             }

@@ -1,0 +1,66 @@
+//! The body fit's settings: term weights, stages, learning rate (plain data, serialised into
+//! `fit.json` and accepted by the app's automation hook; no burn needed).
+
+use serde::{Deserialize, Serialize};
+
+/// Weights of the fit's terms (relative to one squared pixel of a 256² crop).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FitWeights {
+    /// Geman–McClure scale σ, pixels of a 256² crop.
+    pub robust_sigma: f32,
+    /// L2 on the body pose θ₁…θ₂₃ (radians²).
+    pub pose: f32,
+    /// SMPLify's angle prior on elbows and knees.
+    pub hinge: f32,
+    /// L2 on β.
+    pub betas: f32,
+    /// Squared difference of unit bone directions to the world landmarks'.
+    pub bones: f32,
+    /// Squared mask difference summed over the crop, per pixel of a 256² crop.
+    pub silhouette: f32,
+    /// Relative weight of person pixels the body leaves uncovered (clothes and hair widen a
+    /// person beyond the body; body pixels outside the person weigh 1).
+    pub silhouette_uncovered: f32,
+}
+
+impl Default for FitWeights {
+    fn default() -> Self {
+        Self {
+            robust_sigma: 40.0,
+            pose: 0.3,
+            hinge: 1.0,
+            betas: 0.5,
+            bones: 60.0,
+            silhouette: 0.2,
+            silhouette_uncovered: 0.45,
+        }
+    }
+}
+
+/// Settings of the fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FitOptions {
+    /// β components fitted (0 keeps the mean shape).
+    pub num_betas: usize,
+    /// Adam steps of the torso, body and silhouette stages.
+    pub iterations: [usize; 3],
+    /// Adam's learning rate (radians, metres and β units per step, roughly).
+    pub learning_rate: f32,
+    /// Side of the silhouette stage's mask, pixels.
+    pub silhouette_size: usize,
+    pub weights: FitWeights,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            num_betas: 10,
+            iterations: [60, 300, 80],
+            learning_rate: 0.02,
+            silhouette_size: 128,
+            weights: FitWeights::default(),
+        }
+    }
+}
