@@ -11,6 +11,12 @@
 //  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors;
 //  - Generate runs the generator on WebGPU and shows an avatar at the model's default ψ; a new
 //    texture seed changes RGB pixels but not the mask.
+//  - Reconstruct from photo: bad files (empty, random bytes, a 1×1 PNG) each give one message
+//    and change nothing; a clothed synthetic subject in an unseen pose (fixtures/kick_clothed.png,
+//    `trainer synth-scans --pose kick` + `trainer prepare` at 512², over grey), opened through
+//    the page's file input: MediaPipe finds the person, the body is fitted in the browser,
+//    the person mask's IoU with the photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the
+//    person's height; Download fit gives fit.json + kp.json; a re-fit can be cancelled.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -273,6 +279,72 @@ try {
   const jUp = iou(avUp, bodyUp), jStill = iou(avMask, bodyUp);
   check(s.generations === gPose && s.showing === 'avatar' && jUp > 0.6 && jUp > jStill + 0.1,
     `the avatar re-posed to arms_up on the GPU follows the body (IoU ${jUp.toFixed(3)}; unposed ${jStill.toFixed(3)}; frame ${s.last_render_ms.toFixed(1)} ms)`);
+
+  // --- reconstruct from photo ---------------------------------------------------------
+  const photoStatus = async () => (await status()).photo;
+  async function badPhoto(bytes, name, expect) {
+    const before = await photoStatus();
+    const ready = (await status()).renders;
+    await page.evaluate(([b, n]) => window.getavatar.photo(new Uint8Array(b), n), [[...bytes], name]);
+    const p = (await waitFor((s) => s.photo.failures > before.failures, `the message about ${name}`, 120000)).photo;
+    const st = await status();
+    check(p.state === 'failed' && expect.test(p.message) && st.pose === 'arms_up' && st.renders >= ready && st.photo_view[2] === 0,
+      `${name}: one message ("${p.message}"), the app as it was`);
+  }
+  await badPhoto(new Uint8Array(0), 'empty.png', /empty/);
+  const junk = new Uint8Array(4096);
+  for (let k = 0; k < junk.length; k++) junk[k] = (k * 2654435761) >>> 24;
+  await badPhoto(junk, 'junk.jpg', /not an image/);
+  const tiny = new PNG({ width: 1, height: 1 });
+  tiny.data.set([200, 100, 50, 255]);
+  await badPhoto(PNG.sync.write(tiny), 'tiny.png', /too small/);
+
+  // The photo: the render over grey (a photo has no alpha), its alpha kept as the truth.
+  const render = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
+  const photo = new PNG({ width: render.width, height: render.height });
+  for (let k = 0; k < render.data.length; k += 4) {
+    const a = render.data[k + 3] / 255;
+    for (let c = 0; c < 3; c++) photo.data[k + c] = Math.round(render.data[k + c] * a + 120 * (1 - a));
+    photo.data[k + 3] = 255;
+  }
+  const fitsBefore = (await photoStatus()).fits;
+  const tPhoto = Date.now();
+  await page.setInputFiles('#getavatar_photo_input', { name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
+  let p = (await waitFor((s) => s.photo.fits > fitsBefore || (s.photo.state === 'failed' && s.photo.name === 'kick_clothed.png'), 'the photo fit', 300000)).photo;
+  console.log(`photo → body in ${((Date.now() - tPhoto) / 1000).toFixed(1)} s (detection ${(p.detect_ms / 1000).toFixed(1)} s, fit ${(p.fit_ms / 1000).toFixed(1)} s, ${p.steps_total} steps): ${p.message}`);
+  check(p.state === 'fitted' && p.missing_joints.length === 0, `the person is found and fitted (${p.state}: ${p.message})`);
+  check(p.relative_to_height <= 0.03, `keypoint residual ${(100 * p.relative_to_height).toFixed(2)} % of the person's height (≤ 3 %; ${p.mean_px.toFixed(1)} px)`);
+  const masks = await page.evaluate(() => window.getavatar.photoMasks());
+  const alphaIou = (bits) => {
+    let inter = 0, union = 0;
+    for (let y = 0; y < masks.height; y++) for (let x = 0; x < masks.width; x++) {
+      const ax = Math.floor((x + 0.5) / masks.width * render.width), ay = Math.floor((y + 0.5) / masks.height * render.height);
+      const a = render.data[(ay * render.width + ax) * 4 + 3] >= 128, b = bits[y * masks.width + x] === '1';
+      inter += a && b; union += a || b;
+    }
+    return inter / Math.max(1, union);
+  };
+  const personIou = alphaIou(masks.person), bodyIou = alphaIou(masks.body);
+  check(personIou >= 0.8, `the fit's person mask vs the photo's alpha: IoU ${personIou.toFixed(3)} (≥ 0.8)`);
+  check(bodyIou >= 0.7, `the fitted bare body vs the clothed alpha: IoU ${bodyIou.toFixed(3)} (≥ 0.7)`);
+  s = await status();
+  check(s.pose === 'photo fit' && s.photo_view[2] > 100, `the fit is the app's pose, the photo is shown (${s.photo_view.map(Math.round)})`);
+  await page.screenshot({ path: path.join(out, 'photo_fit.png') });
+  const dls = [];
+  const fitFiles = new Promise((resolve) => page.on('download', (d) => { dls.push(d); if (dls.length === 2) resolve(); }));
+  await page.evaluate(() => window.getavatar.command({ photo_fit: 'download' }));
+  await Promise.race([fitFiles, page.waitForTimeout(20000)]);
+  const files = {};
+  for (const d of dls) { const f = path.join(out, d.suggestedFilename()); await d.saveAs(f); files[d.suggestedFilename()] = JSON.parse(fs.readFileSync(f, 'utf8')); }
+  const fj = files['fit.json'], kj = files['kp.json'];
+  check(fj?.format === 'getavatar-body-fit/1' && fj.body_pose.length === 69 && fj.camera.length === 16 && kj?.poseLandmarks?.length === 33,
+    `Download fit: fit.json (${fj?.format}, ${fj?.body_pose?.length} pose numbers) and kp.json (${kj?.poseLandmarks?.length} landmarks)`);
+  // A re-fit from the current pose, cancelled while it runs.
+  await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));
+  await waitFor((s) => s.photo.state === 'fitting' && s.photo.steps_done > 0, 'the re-fit to start', 60000);
+  await page.evaluate(() => window.getavatar.command({ photo_fit: 'cancel' }));
+  p = (await waitFor((s) => s.photo.state !== 'fitting', 'the cancellation', 60000)).photo;
+  check(p.state === 'cancelled' && p.fits === fitsBefore + 1, `a re-fit can be cancelled (${p.state}, ${p.message})`);
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));
