@@ -130,6 +130,9 @@ pub struct PhotoArgs {
     /// Fit settings (`body_fit::fit::FitOptions` as JSON, any subset of its fields); merged
     /// under `iterations`.
     pub options: Option<serde_json::Value>,
+    /// Where the fit runs: "cpu" (burn NdArray, the default) or "webgpu" (burn wgpu on the
+    /// page's WebGPU device; for comparisons: tests/e2e/bench_fit.mjs).
+    pub device: Option<String>,
 }
 
 /// Where a photo comes from.
@@ -185,6 +188,8 @@ pub enum Action {
     Photo {
         source: PhotoSource,
         options: Option<FitOptions>,
+        /// Fit on the WebGPU device instead of the CPU.
+        on_gpu: bool,
     },
     PhotoFit(PhotoFitAction),
 }
@@ -266,7 +271,12 @@ impl Command {
                         return Err("photo: options: learning_rate > 0, silhouette_size 8..=512, num_betas ≤ 16".into());
                     }
                 }
-                Action::Photo { source: PhotoSource::Url(photo.url), options }
+                let on_gpu = match photo.device.as_deref() {
+                    None | Some("cpu") => false,
+                    Some("webgpu") => true,
+                    Some(other) => return Err(format!("photo: device `{other}` (cpu, webgpu)")),
+                };
+                Action::Photo { source: PhotoSource::Url(photo.url), options, on_gpu }
             }
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
@@ -533,7 +543,8 @@ mod tests {
             parse_command(r#"{"photo":{"url":"p.png","iterations":[5,10,0]}}"#),
             Ok(Action::Photo {
                 source: PhotoSource::Url("p.png".into()),
-                options: Some(FitOptions { iterations: [5, 10, 0], ..FitOptions::default() })
+                options: Some(FitOptions { iterations: [5, 10, 0], ..FitOptions::default() }),
+                on_gpu: false,
             })
         );
         assert_eq!(parse_command(r#"{"photo_fit":"refit"}"#), Ok(Action::PhotoFit(PhotoFitAction::Refit)));
@@ -542,6 +553,11 @@ mod tests {
         assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[1,99999,0]}}"#).is_err());
         assert!(parse_command(r#"{"photo":{"path":"p.png"}}"#).is_err());
         assert!(parse_command(r#"{"photo_fit":"again"}"#).is_err());
+        assert!(matches!(
+            parse_command(r#"{"photo":{"url":"p.png","device":"webgpu"}}"#),
+            Ok(Action::Photo { on_gpu: true, options: None, .. })
+        ));
+        assert!(parse_command(r#"{"photo":{"url":"p.png","device":"tpu"}}"#).is_err());
         match parse_command(r#"{"photo":{"url":"p.png","options":{"weights":{"silhouette":0.05}}}}"#) {
             Ok(Action::Photo { options: Some(o), .. }) => {
                 assert_eq!(o.weights.silhouette, 0.05);

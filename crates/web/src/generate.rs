@@ -273,6 +273,11 @@ impl GenEngine {
         self.texture_slot.borrow_mut().take()
     }
 
+    /// burn's device on egui's WebGPU device.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
     pub fn context(&self) -> Option<&BodyContext> {
         self.ctx.as_deref()
     }

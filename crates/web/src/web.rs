@@ -77,7 +77,7 @@ pub fn getavatar_photo(bytes: Vec<u8>, name: String) {
 }
 
 fn queue_photo(name: String, bytes: Vec<u8>) {
-    let action = Action::Photo { source: PhotoSource::Bytes { name, bytes }, options: None };
+    let action = Action::Photo { source: PhotoSource::Bytes { name, bytes }, options: None, on_gpu: false };
     COMMANDS.with(|q| q.borrow_mut().push_back(Ok(action)));
     request_repaint();
 }

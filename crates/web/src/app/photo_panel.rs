@@ -62,9 +62,11 @@ enum TaskKind {
 pub(super) struct PhotoPanel {
     task: Option<(TaskKind, PhotoTask)>,
     /// A photo that waits for the running detection.
-    queued: Option<(PhotoSource, Option<FitOptions>)>,
-    /// Fit settings asked for with the photo (automation), else the fit's defaults.
+    queued: Option<(PhotoSource, Option<FitOptions>, bool)>,
+    /// Fit settings asked for with the photo (automation), else the fit's defaults, and
+    /// whether to fit on the WebGPU device.
     options: Option<FitOptions>,
+    on_gpu: bool,
     photo: Option<Photo>,
     image: Option<egui::TextureHandle>,
     person: Option<egui::TextureHandle>,
@@ -86,6 +88,7 @@ impl Default for PhotoPanel {
             task: None,
             queued: None,
             options: None,
+            on_gpu: false,
             photo: None,
             image: None,
             person: None,
@@ -131,7 +134,7 @@ impl GetAvatarApp {
     /// Apply a photo action (widgets and automation).
     pub(super) fn apply_photo(&mut self, action: Action) {
         match action {
-            Action::Photo { source, options } => self.open_photo(source, options),
+            Action::Photo { source, options, on_gpu } => self.open_photo(source, options, on_gpu),
             Action::PhotoFit(PhotoFitAction::Cancel) => match &self.photo.task {
                 Some((_, t)) => t.cancel(),
                 None => self.messages.push("no photo fit is running".into()),
@@ -154,18 +157,18 @@ impl GetAvatarApp {
         }
     }
 
-    fn open_photo(&mut self, source: PhotoSource, options: Option<FitOptions>) {
+    fn open_photo(&mut self, source: PhotoSource, options: Option<FitOptions>, on_gpu: bool) {
         match &self.photo.task {
             // One detection at a time (the detector keeps the last photo for its preview).
             Some((TaskKind::Detect, _)) => {
-                self.photo.queued = Some((source, options));
+                self.photo.queued = Some((source, options, on_gpu));
                 return;
             }
             Some((TaskKind::Fit, t)) => t.cancel(),
             None => {}
         }
         let Some(ctx) = self.ctx.clone() else {
-            self.photo.queued = Some((source, options));
+            self.photo.queued = Some((source, options, on_gpu));
             return;
         };
         self.status.photo.name = match &source {
@@ -175,6 +178,7 @@ impl GetAvatarApp {
         self.status.photo.state = "detecting".into();
         self.status.photo.message = "looking for the person…".into();
         self.photo.options = options;
+        self.photo.on_gpu = on_gpu;
         self.photo.task = Some((TaskKind::Detect, photo::detect(source, ctx)));
     }
 
@@ -190,15 +194,16 @@ impl GetAvatarApp {
         }
         let model = self.photo.model.get_or_insert_with(|| Arc::new(body.clone())).clone();
         let options = self.photo.options.clone().unwrap_or_default();
-        let req = FitRequest {
-            model,
-            result: p.result.clone(),
-            width: p.width,
-            height: p.height,
-            options,
-            start,
-            device: fit_device(),
+        let device = match (self.photo.on_gpu, self.engine.as_ref()) {
+            (false, _) => fit_device(),
+            (true, Some(e)) => e.device().clone().autodiff(),
+            (true, None) => {
+                self.fail_photo("no WebGPU device for burn: the fit runs on the CPU only".into());
+                return;
+            }
         };
+        let req =
+            FitRequest { model, result: p.result.clone(), width: p.width, height: p.height, options, start, device };
         self.status.photo.state = "fitting".into();
         self.status.photo.steps_done = 0;
         self.photo.task = Some((TaskKind::Fit, photo::fit(req, ctx)));
@@ -214,8 +219,8 @@ impl GetAvatarApp {
     /// Drain the running task's events; start what they lead to.
     pub(super) fn poll_photo(&mut self, ctx: &egui::Context) {
         let Some((_, task)) = self.photo.task.clone() else {
-            if let Some((s, it)) = self.photo.queued.take() {
-                self.open_photo(s, it);
+            if let Some((s, o, g)) = self.photo.queued.take() {
+                self.open_photo(s, o, g);
             }
             return;
         };
@@ -342,9 +347,11 @@ impl GetAvatarApp {
         let arrived: Vec<_> = self.photo.dropped.borrow_mut().drain(..).collect();
         for r in arrived {
             match r {
-                Ok((name, bytes)) => {
-                    self.apply(Action::Photo { source: PhotoSource::Bytes { name, bytes }, options: None })
-                }
+                Ok((name, bytes)) => self.apply(Action::Photo {
+                    source: PhotoSource::Bytes { name, bytes },
+                    options: None,
+                    on_gpu: false,
+                }),
                 Err(e) => self.fail_photo(e),
             }
         }
