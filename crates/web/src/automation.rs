@@ -264,10 +264,11 @@ impl Command {
                             "photo: iterations {it:?} (each at most {MAX_FIT_ITERATIONS}, torso + body at least 1)"
                         ));
                     }
-                    if !(o.learning_rate.is_finite() && o.learning_rate > 0.0)
-                        || !(8..=512).contains(&o.silhouette_size)
-                        || o.num_betas > 16
-                    {
+                    let sane = o.learning_rate.is_finite()
+                        && o.learning_rate > 0.0
+                        && (8..=512).contains(&o.silhouette_size)
+                        && o.num_betas <= 16;
+                    if !sane {
                         return Err("photo: options: learning_rate > 0, silhouette_size 8..=512, num_betas ≤ 16".into());
                     }
                 }

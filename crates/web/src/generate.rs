@@ -69,6 +69,9 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
     Ok((g, modes, bytes.len()))
 }
 
+/// Colours of a texture-field query, or why it failed.
+type TextureColours = Result<Vec<glam::Vec3>, String>;
+
 /// A fetched checkpoint: the generator, its latent modes (if any) and its size in bytes.
 type Shipped = (Generator, Option<LatentModes>, usize);
 
@@ -118,7 +121,7 @@ pub struct GenEngine {
     /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
     weights_slot: Rc<RefCell<Option<Result<Shipped, String>>>>,
     pub weights: Weights,
-    texture_slot: Rc<RefCell<Option<Result<Vec<glam::Vec3>, String>>>>,
+    texture_slot: Rc<RefCell<Option<TextureColours>>>,
     /// A generation asked for while the weights were loading.
     pending: Option<Job>,
     pub busy: bool,

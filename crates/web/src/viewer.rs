@@ -18,7 +18,7 @@ use std::sync::atomic::Ordering;
 use bytemuck::{Pod, Zeroable};
 use eframe::egui;
 use eframe::egui_wgpu::{self, wgpu};
-use glam::{Mat4, Vec3};
+use glam::Mat4;
 
 use crate::automation::ViewMode;
 
@@ -521,18 +521,19 @@ impl Viewer {
         Some(Ok(data))
     }
 
-    /// Draw the current mesh with `view_proj` (world → wgpu clip space) into the
-    /// `res`×`res` target.
+    /// Draw the current mesh seen by `camera` into the `res`×`res` target.
     pub fn render(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         renderer: &mut egui_wgpu::Renderer,
         res: u32,
-        view_proj: Mat4,
-        eye: Vec3,
+        camera: &getavatar_core::OrbitCamera,
         mode: ViewMode,
     ) {
+        // World → wgpu clip space.
+        let view_proj: Mat4 = camera.projection_wgpu(1.0) * camera.world_to_camera();
+        let eye = camera.eye();
         self.ensure_target(device, renderer, res);
         let Some((_, _, color_view, depth_view)) = &self.target else {
             return;

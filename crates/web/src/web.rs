@@ -14,7 +14,7 @@ use crate::automation::{parse_command, parse_query, Action, PhotoSource, Status}
 use crate::platform::now_ms;
 
 thread_local! {
-    static COMMANDS: RefCell<VecDeque<Result<Action, String>>> = RefCell::new(VecDeque::new());
+    static COMMANDS: RefCell<VecDeque<Result<Action, String>>> = const { RefCell::new(VecDeque::new()) };
     static STATUS: RefCell<String> = RefCell::new("{\"ready\":false}".to_string());
     static CONTEXT: RefCell<Option<egui::Context>> = const { RefCell::new(None) };
 }

@@ -30,6 +30,9 @@ use crate::viewer::{bone_transforms, Vertex, Viewer};
 use photo_panel::PhotoPanel;
 use texture_job::TextureJob;
 
+/// Positions, normals, linear colours and triangles of the shown mesh.
+type MeshArrays = (Vec<Vec3>, Vec<Vec3>, Vec<Vec3>, Vec<[u32; 3]>);
+
 /// Linear RGB albedo of the untextured body.
 const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
 
@@ -281,7 +284,7 @@ impl GetAvatarApp {
     }
 
     /// Current mesh to show/export: the re-posed avatar, or the posed body.
-    fn current_mesh(&self) -> Option<(Vec<Vec3>, Vec<Vec3>, Vec<Vec3>, Vec<[u32; 3]>)> {
+    fn current_mesh(&self) -> Option<MeshArrays> {
         let body = self.body.as_ref()?;
         let posed = pose_body(body, &self.params);
         if self.show_avatar {
@@ -399,9 +402,8 @@ impl GetAvatarApp {
             self.mesh_dirty = false;
         }
         let Some(viewer) = self.viewer.as_mut() else { return };
-        let view_proj = self.camera.projection_wgpu(1.0) * self.camera.world_to_camera();
         let mut renderer = rs.renderer.write();
-        viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, view_proj, self.camera.eye(), self.view);
+        viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, &self.camera, self.view);
         self.render_dirty = false;
         self.status.renders += 1;
         self.status.last_render_ms = (now_ms() - t0) as f32;

@@ -58,6 +58,9 @@ enum TaskKind {
     Fit,
 }
 
+/// A dropped file once read: its name and bytes, or why it could not be read.
+type DroppedFile = Result<(String, Vec<u8>), String>;
+
 /// The photo panel's state.
 pub(super) struct PhotoPanel {
     task: Option<(TaskKind, PhotoTask)>,
@@ -75,7 +78,7 @@ pub(super) struct PhotoPanel {
     /// The body model shared with the fit tasks.
     model: Option<Arc<BodyModel>>,
     /// Dropped files once read (or why they could not be).
-    dropped: Rc<RefCell<Vec<Result<(String, Vec<u8>), String>>>>,
+    dropped: Rc<RefCell<Vec<DroppedFile>>>,
     pub(super) visible: bool,
     show_mask: bool,
     show_body: bool,
