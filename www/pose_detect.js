@@ -51,17 +51,22 @@ async function poseSolution() {
 
 const fail = (error) => JSON.stringify({ error });
 
-/** Read a mask image (canvas / ImageBitmap) as person probabilities at ≤ MASK_SIDE. */
-function maskValues(mask) {
-  const k = Math.min(1, MASK_SIDE / Math.max(mask.width, mask.height));
-  const w = Math.max(1, Math.round(mask.width * k));
-  const h = Math.max(1, Math.round(mask.height * k));
+/** An image (canvas / ImageBitmap) drawn at most `maxSide` on its long side: {width, height, rgba}. */
+function pixelsAtMost(image, maxSide) {
+  const k = Math.min(1, maxSide / Math.max(image.width, image.height));
+  const w = Math.max(1, Math.round(image.width * k));
+  const h = Math.max(1, Math.round(image.height * k));
   const c = document.createElement('canvas');
   c.width = w;
   c.height = h;
   const ctx = c.getContext('2d', { willReadFrequently: true });
-  ctx.drawImage(mask, 0, 0, w, h);
-  const rgba = ctx.getImageData(0, 0, w, h).data;
+  ctx.drawImage(image, 0, 0, w, h);
+  return { width: w, height: h, rgba: ctx.getImageData(0, 0, w, h).data };
+}
+
+/** Read a mask image (canvas / ImageBitmap) as person probabilities at ≤ MASK_SIDE. */
+function maskValues(mask) {
+  const { width: w, height: h, rgba } = pixelsAtMost(mask, MASK_SIDE);
   const data = new Array(w * h);
   // The solution's mask carries the probability in red (and alpha on some GPUs): take the larger.
   for (let i = 0; i < w * h; i++) data[i] = Math.max(rgba[4 * i], rgba[4 * i + 3] < 255 ? rgba[4 * i + 3] : 0) / 255;
@@ -121,13 +126,6 @@ export async function detectPose(bytes) {
  */
 export function photoPreview(maxSide) {
   if (!lastPhoto) return null;
-  const k = Math.min(1, maxSide / Math.max(lastPhoto.width, lastPhoto.height));
-  const w = Math.max(1, Math.round(lastPhoto.width * k));
-  const h = Math.max(1, Math.round(lastPhoto.height * k));
-  const c = document.createElement('canvas');
-  c.width = w;
-  c.height = h;
-  const ctx = c.getContext('2d', { willReadFrequently: true });
-  ctx.drawImage(lastPhoto, 0, 0, w, h);
-  return { width: w, height: h, data: new Uint8Array(ctx.getImageData(0, 0, w, h).data.buffer) };
+  const { width, height, rgba } = pixelsAtMost(lastPhoto, maxSide);
+  return { width, height, data: new Uint8Array(rgba.buffer) };
 }
