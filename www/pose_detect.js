@@ -1,10 +1,14 @@
 // Person detection for the photo → body fit (issue #20): MediaPipe Pose (BlazePose GHUM,
 // Apache-2.0, see NOTICE) from the pinned npm package `@mediapipe/pose`, whose runtime and
-// models `cargo xtask build-web` copies into dist/mediapipe/ (nothing is fetched from a CDN).
+// models `cargo xtask build-web` copies into dist/mediapipe/ (nothing is fetched from a CDN),
+// and MediaPipe Selfie Segmentation (`@mediapipe/selfie_segmentation`, Apache-2.0, in
+// dist/mediapipe/selfie_segmentation/), which sees everyone: Pose tracks one person, so with
+// several the largest is cropped out for Pose.
 //
 // detectPose(bytes) → JSON string, one of
 //   {"width", "height", "detectedWidth", "detectedHeight", "poseLandmarks": [33 × {x, y, z, visibility}],
-//    "poseWorldLandmarks": [...], "segmentationMask": {"width", "height", "data": [0..1]}}
+//    "poseWorldLandmarks": [...], "segmentationMask": {"width", "height", "data": [0..1]},
+//    "people": <number of people selfie segmentation sees; with several, the largest is fitted>}
 //   {"error": "<one sentence for the user>"}
 // Landmarks are normalised to the photo (so they hold for the original size, also after the
 // downscale above 4 MP); the mask is at most 256 px on its long side.
@@ -13,6 +17,7 @@ const MAX_PIXELS = 40e6; // refused above this
 const DETECT_PIXELS = 4e6; // downscaled above this before detection
 const MASK_SIDE = 256;
 const MODEL_DIR = 'mediapipe/';
+const SELFIE_DIR = 'mediapipe/selfie_segmentation/';
 
 let posePromise = null;
 // The last photo that went to the detector (a canvas), for photoPreview().
@@ -50,6 +55,77 @@ async function poseSolution() {
 }
 
 const fail = (error) => JSON.stringify({ error });
+
+let selfiePromise = null;
+
+async function selfieSolution() {
+  if (!selfiePromise) {
+    selfiePromise = (async () => {
+      await loadScript(`${SELFIE_DIR}selfie_segmentation.js`);
+      const seg = new window.SelfieSegmentation({ locateFile: (file) => `${SELFIE_DIR}${file}` });
+      seg.setOptions({ modelSelection: 0, selfieMode: false });
+      await seg.initialize();
+      return seg;
+    })();
+    selfiePromise.catch(() => { selfiePromise = null; });
+  }
+  return selfiePromise;
+}
+
+/** One image through a MediaPipe solution (state reset: every photo is a new scene). */
+function runSolution(solution, image) {
+  return new Promise((resolve, reject) => {
+    solution.reset();
+    solution.onResults(resolve);
+    solution.send({ image }).catch(reject);
+  });
+}
+
+/**
+ * The people in a photo: connected regions of selfie segmentation's mask (at ≤ MASK_SIDE),
+ * largest first, as boxes {x, y, w, h, area} in `canvas` pixels; regions under a fifth of
+ * the largest are noise, not people.
+ */
+async function personRegions(canvas) {
+  const seg = await selfieSolution();
+  const results = await runSolution(seg, canvas);
+  const { width: w, height: h, data } = maskValues(results.segmentationMask);
+  const label = new Int32Array(w * h).fill(-1);
+  const regions = [];
+  for (let start = 0; start < w * h; start++) {
+    if (label[start] >= 0 || data[start] < 0.5) continue;
+    const id = regions.length;
+    const r = { x0: w, y0: h, x1: 0, y1: 0, area: 0 };
+    const stack = [start];
+    label[start] = id;
+    while (stack.length) {
+      const i = stack.pop();
+      const x = i % w, y = (i - x) / w;
+      r.area++;
+      r.x0 = Math.min(r.x0, x); r.x1 = Math.max(r.x1, x); r.y0 = Math.min(r.y0, y); r.y1 = Math.max(r.y1, y);
+      for (const [nx, ny] of [[x - 1, y], [x + 1, y], [x, y - 1], [x, y + 1]]) {
+        const j = ny * w + nx;
+        if (nx >= 0 && ny >= 0 && nx < w && ny < h && label[j] < 0 && data[j] >= 0.5) {
+          label[j] = id;
+          stack.push(j);
+        }
+      }
+    }
+    regions.push(r);
+  }
+  regions.sort((a, b) => b.area - a.area);
+  const big = regions.filter((r) => r.area >= 0.2 * (regions[0]?.area ?? 0) && r.area >= 0.002 * w * h);
+  const kx = canvas.width / w, ky = canvas.height / h;
+  return big.map((r) => ({ x: r.x0 * kx, y: r.y0 * ky, w: (r.x1 + 1 - r.x0) * kx, h: (r.y1 + 1 - r.y0) * ky, area: r.area }));
+}
+
+/** A person's box grown by 15 % on every side, clamped to the photo, in whole pixels. */
+function padded(r, width, height) {
+  const px = 0.15 * r.w, py = 0.15 * r.h;
+  const x = Math.max(0, Math.floor(r.x - px)), y = Math.max(0, Math.floor(r.y - py));
+  const x1 = Math.min(width, Math.ceil(r.x + r.w + px)), y1 = Math.min(height, Math.ceil(r.y + r.h + py));
+  return { x, y, w: x1 - x, h: y1 - y };
+}
 
 /** An image (canvas / ImageBitmap) drawn at most `maxSide` on its long side: {width, height, rgba}. */
 function pixelsAtMost(image, maxSide) {
@@ -99,23 +175,59 @@ export async function detectPose(bytes) {
   } catch (e) {
     return fail(`the person detector could not start: ${e.message ?? e}`);
   }
-  const results = await new Promise((resolve, reject) => {
-    pose.onResults(resolve);
-    pose.send({ image: canvas }).catch(reject);
-  }).catch((e) => ({ error: e }));
+  // How many people: the connected regions of selfie segmentation's mask (it segments
+  // everyone; Pose tracks one). With several, Pose runs on a crop around the largest.
+  let people = null;
+  let crop = null;
+  try {
+    const regions = await personRegions(canvas);
+    people = regions.length;
+    if (regions.length > 1) crop = padded(regions[0], canvas.width, canvas.height);
+  } catch (e) {
+    console.warn(`people count unavailable: ${e.message ?? e}`);
+  }
+  let source = canvas;
+  if (crop) {
+    source = document.createElement('canvas');
+    source.width = crop.w;
+    source.height = crop.h;
+    source.getContext('2d').drawImage(canvas, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
+  }
+  const results = await runSolution(pose, source).catch((e) => ({ error: e }));
   if (results.error) return fail(`the person detector failed: ${results.error.message ?? results.error}`);
   if (!results.poseLandmarks || results.poseLandmarks.length !== 33) return fail('no person found in the photo');
-  const plain = (list) => (list ?? []).map((l) => ({ x: l.x, y: l.y, z: l.z, visibility: l.visibility ?? 1 }));
+  // Crop-normalised → photo-normalised coordinates.
+  const [ox, oy, sx, sy] = crop
+    ? [crop.x / canvas.width, crop.y / canvas.height, crop.w / canvas.width, crop.h / canvas.height]
+    : [0, 0, 1, 1];
+  const plain = (list, toPhoto) => (list ?? []).map((l) => ({
+    x: toPhoto ? ox + l.x * sx : l.x,
+    y: toPhoto ? oy + l.y * sy : l.y,
+    z: l.z,
+    visibility: l.visibility ?? 1,
+  }));
   const out = {
     width,
     height,
     detectedWidth: canvas.width,
     detectedHeight: canvas.height,
-    poseLandmarks: plain(results.poseLandmarks),
-    poseWorldLandmarks: plain(results.poseWorldLandmarks),
+    poseLandmarks: plain(results.poseLandmarks, true),
+    poseWorldLandmarks: plain(results.poseWorldLandmarks, false),
   };
+  if (people !== null) out.people = people;
   if (out.poseWorldLandmarks.length !== 33) delete out.poseWorldLandmarks;
-  if (results.segmentationMask) out.segmentationMask = maskValues(results.segmentationMask);
+  if (results.segmentationMask) {
+    let mask = results.segmentationMask;
+    if (crop) {
+      // The crop's mask placed in the whole photo.
+      const full = document.createElement('canvas');
+      full.width = canvas.width;
+      full.height = canvas.height;
+      full.getContext('2d').drawImage(mask, crop.x, crop.y, crop.w, crop.h);
+      mask = full;
+    }
+    out.segmentationMask = maskValues(mask);
+  }
   lastPhoto = canvas;
   return JSON.stringify(out);
 }

@@ -16,7 +16,8 @@
 //    `trainer synth-scans --pose kick` + `trainer prepare` at 512², over grey), opened through
 //    the page's file input: MediaPipe finds the person, the body is fitted in the browser,
 //    the person mask's IoU with the photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the
-//    person's height; Download fit gives fit.json + kp.json; a re-fit can be cancelled.
+//    person's height; Download fit gives fit.json + kp.json; beside a smaller copy of itself,
+//    two people are counted and the larger is fitted; a re-fit can be cancelled.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -312,7 +313,7 @@ try {
   await page.setInputFiles('#getavatar_photo_input', { name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
   let p = (await waitFor((s) => s.photo.fits > fitsBefore || (s.photo.state === 'failed' && s.photo.name === 'kick_clothed.png'), 'the photo fit', 300000)).photo;
   console.log(`photo → body in ${((Date.now() - tPhoto) / 1000).toFixed(1)} s (detection ${(p.detect_ms / 1000).toFixed(1)} s, fit ${(p.fit_ms / 1000).toFixed(1)} s, ${p.steps_total} steps): ${p.message}`);
-  check(p.state === 'fitted' && p.missing_joints.length === 0, `the person is found and fitted (${p.state}: ${p.message})`);
+  check(p.state === 'fitted' && p.missing_joints.length === 0 && p.people === 1, `the person is found (${p.people} in the photo) and fitted (${p.state}: ${p.message})`);
   check(p.relative_to_height <= 0.03, `keypoint residual ${(100 * p.relative_to_height).toFixed(2)} % of the person's height (≤ 3 %; ${p.mean_px.toFixed(1)} px)`);
   const masks = await page.evaluate(() => window.getavatar.photoMasks());
   const alphaIou = (bits) => {
@@ -339,12 +340,33 @@ try {
   const fj = files['fit.json'], kj = files['kp.json'];
   check(fj?.format === 'getavatar-body-fit/1' && fj.body_pose.length === 69 && fj.camera.length === 16 && kj?.poseLandmarks?.length === 33,
     `Download fit: fit.json (${fj?.format}, ${fj?.body_pose?.length} pose numbers) and kp.json (${kj?.poseLandmarks?.length} landmarks)`);
+  // Two people (the photo and a smaller copy beside it): the largest is fitted, and said so.
+  const crowd = new PNG({ width: 2 * photo.width, height: photo.height });
+  for (let k = 0; k < crowd.data.length; k += 4) { crowd.data[k] = crowd.data[k + 1] = crowd.data[k + 2] = 120; crowd.data[k + 3] = 255; }
+  const paste = (scale, ox, oy) => {
+    for (let y = 0; y < Math.floor(render.height * scale); y++) for (let x = 0; x < Math.floor(render.width * scale); x++) {
+      const i = (Math.floor(y / scale) * render.width + Math.floor(x / scale)) * 4, a = render.data[i + 3] / 255;
+      const o = ((oy + y) * crowd.width + ox + x) * 4;
+      for (let c = 0; c < 3; c++) crowd.data[o + c] = Math.round(render.data[i + c] * a + crowd.data[o + c] * (1 - a));
+    }
+  };
+  paste(1, 0, 0);
+  paste(0.6, photo.width + 48, 150);
+  const fitsCrowd = (await photoStatus()).fits;
+  await page.evaluate((b) => window.getavatar.photo(new Uint8Array(b), 'two_people.png'), [...PNG.sync.write(crowd)]);
+  p = (await waitFor((s) => s.photo.fits > fitsCrowd || (s.photo.state === 'failed' && s.photo.name === 'two_people.png'), 'the two-people fit', 300000)).photo;
+  const crowdMasks = await page.evaluate(() => window.getavatar.photoMasks());
+  let left = 0, right = 0;
+  for (let k = 0; k < crowdMasks.body.length; k++) if (crowdMasks.body[k] === '1') { if (k % crowdMasks.width < crowdMasks.width / 2) left++; else right++; }
+  check(p.state === 'fitted' && p.people === 2 && /largest/.test(p.message) && left > 20 * Math.max(1, right),
+    `two people: ${p.people} counted, the largest fitted (${left} body pixels on its side, ${right} on the other; "${p.message}")`);
+
   // A re-fit from the current pose, cancelled while it runs.
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));
   await waitFor((s) => s.photo.state === 'fitting' && s.photo.steps_done > 0, 'the re-fit to start', 60000);
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'cancel' }));
   p = (await waitFor((s) => s.photo.state !== 'fitting', 'the cancellation', 60000)).photo;
-  check(p.state === 'cancelled' && p.fits === fitsBefore + 1, `a re-fit can be cancelled (${p.state}, ${p.message})`);
+  check(p.state === 'cancelled' && p.fits === fitsCrowd + 1, `a re-fit can be cancelled (${p.state}, ${p.message})`);
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));

@@ -151,33 +151,39 @@ fn build_web() -> Result<()> {
     Ok(())
 }
 
-/// MediaPipe Pose's runtime and models from the pinned npm package (`www/package-lock.json`)
-/// into `dist/mediapipe/`, where `www/pose_detect.js` loads them: nothing comes from a CDN.
-/// The heavy landmark model (27 MB) is left out: the app runs the full one.
+/// MediaPipe's runtimes and models from the pinned npm packages (`www/package-lock.json`) into
+/// `dist/mediapipe/` (Pose) and `dist/mediapipe/selfie_segmentation/` (people count), where
+/// `www/pose_detect.js` loads them: nothing comes from a CDN. Pose's heavy landmark model
+/// (27 MB) is left out: the app runs the full one.
 fn copy_mediapipe(dist: &Path) -> Result<()> {
     setup::web_deps()?;
-    let src = root().join("www/node_modules/@mediapipe/pose");
-    let dst = dist.join("mediapipe");
-    std::fs::create_dir_all(&dst)?;
+    let modules = root().join("www/node_modules/@mediapipe");
     let mut bytes = 0;
-    for entry in std::fs::read_dir(&src).with_context(|| format!("reading {} (npm ci in www/)", src.display()))? {
-        let entry = entry?;
-        let name = entry.file_name();
-        let n = name.to_string_lossy();
-        if !entry.file_type()?.is_file()
-            || n == "pose_landmark_heavy.tflite"
-            || n.ends_with(".md")
-            || n.ends_with(".d.ts")
-            || n == "package.json"
-        {
-            continue;
+    for (package, to, main) in [
+        ("pose", dist.join("mediapipe"), "pose.js"),
+        ("selfie_segmentation", dist.join("mediapipe/selfie_segmentation"), "selfie_segmentation.js"),
+    ] {
+        let src = modules.join(package);
+        std::fs::create_dir_all(&to)?;
+        for entry in std::fs::read_dir(&src).with_context(|| format!("reading {} (npm ci in www/)", src.display()))? {
+            let entry = entry?;
+            let name = entry.file_name();
+            let n = name.to_string_lossy();
+            let skip =
+                n == "pose_landmark_heavy.tflite" || n.ends_with(".md") || n.ends_with(".d.ts") || n == "package.json";
+            if entry.file_type()?.is_file() && !skip {
+                bytes += std::fs::copy(entry.path(), to.join(&name))?;
+            }
         }
-        bytes += std::fs::copy(entry.path(), dst.join(&name))?;
+        if !to.join(main).is_file() {
+            bail!("{} has no {main}: is @mediapipe/{package} installed?", src.display());
+        }
     }
-    if !dst.join("pose.js").is_file() {
-        bail!("{} has no pose.js: is @mediapipe/pose installed?", src.display());
-    }
-    eprintln!("xtask: MediaPipe Pose → {} ({:.1} MB)", dst.display(), bytes as f64 / 1e6);
+    eprintln!(
+        "xtask: MediaPipe Pose + Selfie Segmentation → {} ({:.1} MB)",
+        dist.join("mediapipe").display(),
+        bytes as f64 / 1e6
+    );
     Ok(())
 }
 

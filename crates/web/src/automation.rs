@@ -467,6 +467,9 @@ pub struct PhotoStatus {
     pub height: usize,
     /// The last message about the photo (why it failed, which joints are missing, …).
     pub message: String,
+    /// People in the photo (selfie segmentation's regions; null when it could not tell); with
+    /// several, the largest is fitted.
+    pub people: Option<usize>,
     /// Body joints the detector did not see (visibility < ½), SMPL names.
     pub missing_joints: Vec<String>,
     /// Milliseconds of the detection (decode, MediaPipe, mask read-back).

@@ -51,6 +51,9 @@ pub struct Photo {
     /// The photo downscaled to at most [`PREVIEW_SIDE`].
     pub preview: egui::ColorImage,
     pub detect_ms: f64,
+    /// People in the photo (selfie segmentation's regions), when it could tell; with several,
+    /// the detection is the largest one's.
+    pub people: Option<usize>,
 }
 
 /// What a task reports.
@@ -113,6 +116,7 @@ struct DetectorAnswer {
     error: Option<String>,
     width: Option<usize>,
     height: Option<usize>,
+    people: Option<usize>,
 }
 
 /// Detect the person in a photo (PNG, JPEG or WebP; bytes, or a URL fetched first).
@@ -152,7 +156,7 @@ async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, Stri
     };
     let result = PoseResult::from_json(&json).map_err(|e| format!("the person detector's answer: {e}"))?;
     let preview = preview_image()?;
-    Ok(Photo { name, width, height, result, json, preview, detect_ms: now_ms() - t0 })
+    Ok(Photo { name, width, height, result, json, preview, detect_ms: now_ms() - t0, people: head.people })
 }
 
 /// The last detected photo as an egui image.

@@ -263,10 +263,15 @@ impl GetAvatarApp {
         let s = &mut self.status.photo;
         (s.width, s.height, s.detect_ms) = (p.width, p.height, p.detect_ms as f32);
         s.missing_joints = missing.clone();
+        s.people = p.people;
+        let who = match p.people {
+            Some(n) if n > 1 => format!("{n} people in the photo: fitting the largest"),
+            _ => "person found".into(),
+        };
         s.message = if missing.is_empty() {
-            "person found; fitting the body…".into()
+            format!("{who}; fitting the body…")
         } else {
-            format!("only part of the person is visible ({} not seen); fitting the rest…", missing.join(", "))
+            format!("{who}; only part of the person is visible ({} not seen); fitting the rest…", missing.join(", "))
         };
         s.name = p.name.clone();
         self.photo.photo = Some(p);
@@ -320,6 +325,9 @@ impl GetAvatarApp {
         );
         if !s.missing_joints.is_empty() {
             s.message += &format!("; not seen: {}", s.missing_joints.join(", "));
+        }
+        if let Some(n) = s.people.filter(|n| *n > 1) {
+            s.message += &format!("; {n} people in the photo, the largest fitted");
         }
         self.photo.fit = Some(fit);
     }
