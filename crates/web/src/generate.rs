@@ -10,6 +10,7 @@
 use std::cell::RefCell;
 use std::rc::Rc;
 
+use crate::platform::fetch_bytes;
 use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
@@ -21,8 +22,6 @@ use getavatar_core::generator::{
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::rigging::RiggedAvatar;
-use wasm_bindgen::JsCast;
-use wasm_bindgen_futures::JsFuture;
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -76,19 +75,6 @@ type TextureColours = Result<Vec<glam::Vec3>, String>;
 type Shipped = (Generator, Option<LatentModes>, usize);
 
 type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
-
-async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
-    let window = web_sys::window().ok_or("no window")?;
-    let resp = JsFuture::from(window.fetch_with_str(url)).await.map_err(|e| format!("fetch failed: {e:?}"))?;
-    let resp: web_sys::Response = resp.dyn_into().map_err(|_| "fetch did not return a Response".to_string())?;
-    if !resp.ok() {
-        return Err(format!("no model at {url} (HTTP {})", resp.status()));
-    }
-    let buf = JsFuture::from(resp.array_buffer().map_err(|e| format!("{e:?}"))?)
-        .await
-        .map_err(|e| format!("reading {url}: {e:?}"))?;
-    Ok(js_sys::Uint8Array::new(&buf).to_vec())
-}
 
 /// An avatar's texture field: its styles, and its triplanes once computed (a new
 /// generation computes them inside the extraction; they are made again only if the

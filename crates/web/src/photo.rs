@@ -23,7 +23,7 @@ use getavatar_core::burn::tensor::Device;
 use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
-use crate::platform::now_ms;
+use crate::platform::{fetch_bytes, js_message, now_ms};
 
 #[wasm_bindgen(raw_module = "./pose_detect.js")]
 extern "C" {
@@ -127,7 +127,7 @@ pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
         let t0 = now_ms();
         let fetched = match source {
             PhotoSource::Bytes { name, bytes } => Ok((name, bytes)),
-            PhotoSource::Url(url) => fetch(&url).await.map(|b| (url, b)),
+            PhotoSource::Url(url) => fetch_bytes(&url).await.map(|b| (url, b)),
         };
         let detected = match fetched {
             Ok((name, bytes)) => detect_async(&bytes, name, t0).await,
@@ -173,14 +173,6 @@ fn preview_image() -> Result<egui::ColorImage, String> {
         return Err(format!("the photo's preview has {} bytes for {w}×{h} pixels", rgba.len()));
     }
     Ok(egui::ColorImage::from_rgba_unmultiplied([w, h], &rgba))
-}
-
-/// A JS exception's message.
-pub fn js_message(e: &JsValue) -> String {
-    e.dyn_ref::<js_sys::Error>()
-        .map(|e| String::from(e.message()))
-        .or_else(|| e.as_string())
-        .unwrap_or_else(|| format!("{e:?}"))
 }
 
 /// What a fit needs from the app.
@@ -255,20 +247,6 @@ async fn yield_to_browser() {
     });
     // The promise only resolves.
     let _ = JsFuture::from(promise).await;
-}
-
-/// Fetch a URL's bytes (the automation hook's `{"photo": {"url": …}}`).
-pub async fn fetch(url: &str) -> Result<Vec<u8>, String> {
-    let window = web_sys::window().ok_or("no window")?;
-    let resp = JsFuture::from(window.fetch_with_str(url)).await.map_err(|e| format!("{url}: {}", js_message(&e)))?;
-    let resp: web_sys::Response = resp.dyn_into().map_err(|_| "fetch did not return a Response".to_string())?;
-    if !resp.ok() {
-        return Err(format!("{url}: HTTP {}", resp.status()));
-    }
-    let buf = JsFuture::from(resp.array_buffer().map_err(|e| js_message(&e))?)
-        .await
-        .map_err(|e| format!("reading {url}: {}", js_message(&e)))?;
-    Ok(js_sys::Uint8Array::new(&buf).to_vec())
 }
 
 /// The id of the page's hidden file input (made by [`install_file_input`]).

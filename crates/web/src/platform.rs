@@ -1,4 +1,5 @@
-//! Browser services the app needs: a clock and file downloads (web-sys only, no app state).
+//! Browser services the app needs: a clock, fetching URLs, file downloads and JS error
+//! messages (web-sys only, no app state).
 
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
@@ -7,6 +8,30 @@ use wasm_bindgen::JsCast;
 /// performance timer.
 pub fn now_ms() -> f64 {
     web_sys::window().and_then(|w| w.performance()).map(|p| p.now()).unwrap_or(0.0)
+}
+
+/// A JS exception's message (an `Error`'s, a thrown string, or the value's debug form).
+pub fn js_message(e: &JsValue) -> String {
+    e.dyn_ref::<js_sys::Error>()
+        .map(|e| String::from(e.message()))
+        .or_else(|| e.as_string())
+        .unwrap_or_else(|| format!("{e:?}"))
+}
+
+/// Fetch a URL's bytes (relative to the page, or absolute; blob and data URLs too).
+pub async fn fetch_bytes(url: &str) -> Result<Vec<u8>, String> {
+    let window = web_sys::window().ok_or("no window")?;
+    let resp = wasm_bindgen_futures::JsFuture::from(window.fetch_with_str(url))
+        .await
+        .map_err(|e| format!("{url}: {}", js_message(&e)))?;
+    let resp: web_sys::Response = resp.dyn_into().map_err(|_| "fetch did not return a Response".to_string())?;
+    if !resp.ok() {
+        return Err(format!("nothing at {url} (HTTP {})", resp.status()));
+    }
+    let buf = wasm_bindgen_futures::JsFuture::from(resp.array_buffer().map_err(|e| js_message(&e))?)
+        .await
+        .map_err(|e| format!("reading {url}: {}", js_message(&e)))?;
+    Ok(js_sys::Uint8Array::new(&buf).to_vec())
 }
 
 /// Offer `bytes` to the user as a file download.

@@ -82,7 +82,7 @@ pub struct GetAvatarApp {
     /// The photo → body flow.
     photo: PhotoPanel,
     /// egui's context, for the repaints of background tasks.
-    ctx: Option<egui::Context>,
+    ctx: egui::Context,
 }
 
 impl GetAvatarApp {
@@ -158,7 +158,7 @@ impl GetAvatarApp {
             psi_from_user: false,
             queued: None,
             photo: PhotoPanel::default(),
-            ctx: Some(cc.egui_ctx.clone()),
+            ctx: cc.egui_ctx.clone(),
         };
         for a in startup {
             app.apply(a);

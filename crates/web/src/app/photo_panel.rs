@@ -113,19 +113,30 @@ impl PhotoPanel {
     }
 }
 
-/// Resample a mask covering the photo (`mw × mh`) to `w × h` as a tinted translucent image.
-fn tinted(values: &[f32], mw: usize, mh: usize, w: usize, h: usize, tint: [u8; 3], alpha: f32) -> egui::ColorImage {
-    let mut img = egui::ColorImage::new([w, h], vec![Color32::TRANSPARENT; w * h]);
+/// A mask covering the photo (`mw × mh`) resampled to `w × h` (nearest value).
+fn resampled(values: &[f32], mw: usize, mh: usize, w: usize, h: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(w * h);
     for y in 0..h {
-        let my = ((y as f32 + 0.5) / h as f32 * mh as f32) as usize;
+        let my = (((y as f32 + 0.5) / h as f32 * mh as f32) as usize).min(mh.saturating_sub(1));
         for x in 0..w {
-            let mx = ((x as f32 + 0.5) / w as f32 * mw as f32) as usize;
-            let v = values.get(my.min(mh - 1) * mw + mx.min(mw - 1)).copied().unwrap_or(0.0).clamp(0.0, 1.0);
-            let a = (v * alpha * 255.0).round() as u8;
-            img.pixels[y * w + x] = Color32::from_rgba_unmultiplied(tint[0], tint[1], tint[2], a);
+            let mx = (((x as f32 + 0.5) / w as f32 * mw as f32) as usize).min(mw.saturating_sub(1));
+            out.push(values.get(my * mw + mx).copied().unwrap_or(0.0));
         }
     }
-    img
+    out
+}
+
+/// A `w × h` mask (0..1) as a tinted translucent image.
+fn tinted(values: &[f32], w: usize, h: usize, tint: [u8; 3], alpha: f32) -> egui::ColorImage {
+    let pixels = values
+        .iter()
+        .take(w * h)
+        .map(|v| {
+            let a = (v.clamp(0.0, 1.0) * alpha * 255.0).round() as u8;
+            Color32::from_rgba_unmultiplied(tint[0], tint[1], tint[2], a)
+        })
+        .collect();
+    egui::ColorImage::new([w, h], pixels)
 }
 
 /// `'0'`/`'1'` per pixel (the masks hook's compact form).
@@ -170,10 +181,7 @@ impl GetAvatarApp {
             Some((TaskKind::Fit, t)) => t.cancel(),
             None => {}
         }
-        let Some(ctx) = self.ctx.clone() else {
-            self.photo.queued = Some((source, options, on_gpu));
-            return;
-        };
+        let ctx = self.ctx.clone();
         self.status.photo.name = match &source {
             PhotoSource::Url(u) => u.clone(),
             PhotoSource::Bytes { name, .. } => name.clone(),
@@ -191,7 +199,11 @@ impl GetAvatarApp {
             self.messages.push("open a photo first".into());
             return;
         };
-        let (Some(ctx), Some(body)) = (self.ctx.clone(), self.body.as_ref()) else { return };
+        let ctx = self.ctx.clone();
+        let Some(body) = self.body.as_ref() else {
+            self.fail_photo("no body model to fit".into());
+            return;
+        };
         if let Some((_, t)) = self.photo.task.take() {
             t.cancel();
         }
@@ -253,7 +265,7 @@ impl GetAvatarApp {
         let [w, h] = p.preview.size;
         self.photo.image = Some(ctx.load_texture("photo", p.preview.clone(), egui::TextureOptions::LINEAR));
         self.photo.person = p.result.segmentation_mask.as_ref().map(|m| {
-            let img = tinted(&m.data, m.width, m.height, w, h, PERSON_TINT, 0.45);
+            let img = tinted(&resampled(&m.data, m.width, m.height, w, h), w, h, PERSON_TINT, 0.45);
             ctx.load_texture("person mask", img, egui::TextureOptions::LINEAR)
         });
         self.photo.body = None;
@@ -285,20 +297,10 @@ impl GetAvatarApp {
         let [w, h] = p.preview.size;
         let posed = pose_body(body, &fit.body_params());
         let mask = body_mask_rect(&posed.vertices, &body.faces, fit.photo_view_proj(), w, h);
-        let img = tinted(&mask, w, h, w, h, BODY_TINT, 0.5);
+        let img = tinted(&mask, w, h, BODY_TINT, 0.5);
         self.photo.body = Some(ctx.load_texture("fitted body", img, egui::TextureOptions::LINEAR));
         // The masks hook (`window.getavatar.photoMasks()`): the person's and the fitted body's.
-        let person = p.result.segmentation_mask.as_ref().map(|m| {
-            let mut v = vec![0.0; w * h];
-            for (y, row) in v.chunks_exact_mut(w).enumerate() {
-                let my = ((y as f32 + 0.5) / h as f32 * m.height as f32) as usize;
-                for (x, px) in row.iter_mut().enumerate() {
-                    let mx = ((x as f32 + 0.5) / w as f32 * m.width as f32) as usize;
-                    *px = m.data[my.min(m.height - 1) * m.width + mx.min(m.width - 1)];
-                }
-            }
-            bits(&v)
-        });
+        let person = p.result.segmentation_mask.as_ref().map(|m| bits(&resampled(&m.data, m.width, m.height, w, h)));
         let masks = serde_json::json!({ "width": w, "height": h, "body": bits(&mask), "person": person });
         photo::publish_masks(masks.to_string());
         // The fit becomes the app's pose and shape, seen from the photo's side.
