@@ -11,13 +11,14 @@
 //  - the downloaded .glb passes the Khronos glTF-Validator with 0 errors;
 //  - Generate runs the generator on WebGPU and shows an avatar at the model's default ψ; a new
 //    texture seed changes RGB pixels but not the mask.
-//  - Reconstruct from photo: bad files (empty, random bytes, a 1×1 PNG) each give one message
-//    and change nothing; a clothed synthetic subject in an unseen pose (fixtures/kick_clothed.png,
-//    `trainer synth-scans --pose kick` + `trainer prepare` at 512², over grey), opened through
-//    the page's file input: MediaPipe finds the person, the body is fitted in the browser,
-//    the person mask's IoU with the photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the
-//    person's height; Download fit gives fit.json + kp.json; beside a smaller copy of itself,
-//    two people are counted and the larger is fitted; a re-fit can be cancelled.
+//  - Reconstruct from photo: bad files (empty, random bytes, a 1×1 PNG, a 40 MP PNG) each give
+//    one message and change nothing; a clothed synthetic subject in an unseen pose
+//    (fixtures/kick_clothed.png, `trainer synth-scans --pose kick` + `trainer prepare` at 512²,
+//    over grey), opened by clicking "Open photo…" and answering the file chooser: MediaPipe
+//    finds the person, the body is fitted in the browser, the person mask's IoU with the
+//    photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the person's height; Download fit
+//    gives fit.json + kp.json; beside a smaller copy of itself at 4.7 MP, two people are
+//    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -299,6 +300,10 @@ try {
   const tiny = new PNG({ width: 1, height: 1 });
   tiny.data.set([200, 100, 50, 255]);
   await badPhoto(PNG.sync.write(tiny), 'tiny.png', /too small/);
+  // Over 40 MP (8000 × 5001, one colour: a small file that decodes to 160 MB) is refused.
+  const huge = new PNG({ width: 8000, height: 5001 });
+  huge.data.fill(180);
+  await badPhoto(PNG.sync.write(huge), 'huge.png', /40 MP/);
 
   // The photo: the render over grey (a photo has no alpha), its alpha kept as the truth.
   const render = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
@@ -310,7 +315,12 @@ try {
   }
   const fitsBefore = (await photoStatus()).fits;
   const tPhoto = Date.now();
-  await page.setInputFiles('#getavatar_photo_input', { name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
+  // Through the UI: click "Open photo…" in the side panel, answer the browser's file chooser.
+  const [bx, by, bw, bh] = (await status()).open_photo_button;
+  check(bw > 0 && bh > 0 && bx + bw <= 1280 && by + bh <= 800, `the "Open photo…" button is on screen (${[bx, by, bw, bh].map(Math.round)})`);
+  const chooser = page.waitForEvent('filechooser', { timeout: 20000 });
+  await page.mouse.click(bx + bw / 2, by + bh / 2);
+  await (await chooser).setFiles({ name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
   let p = (await waitFor((s) => s.photo.fits > fitsBefore || (s.photo.state === 'failed' && s.photo.name === 'kick_clothed.png'), 'the photo fit', 300000)).photo;
   console.log(`photo → body in ${((Date.now() - tPhoto) / 1000).toFixed(1)} s (detection ${(p.detect_ms / 1000).toFixed(1)} s, fit ${(p.fit_ms / 1000).toFixed(1)} s, ${p.steps_total} steps): ${p.message}`);
   check(p.state === 'fitted' && p.missing_joints.length === 0 && p.people === 1, `the person is found (${p.people} in the photo) and fitted (${p.state}: ${p.message})`);
@@ -340,8 +350,10 @@ try {
   const fj = files['fit.json'], kj = files['kp.json'];
   check(fj?.format === 'getavatar-body-fit/1' && fj.body_pose.length === 69 && fj.camera.length === 16 && kj?.poseLandmarks?.length === 33,
     `Download fit: fit.json (${fj?.format}, ${fj?.body_pose?.length} pose numbers) and kp.json (${kj?.poseLandmarks?.length} landmarks)`);
-  // Two people (the photo and a smaller copy beside it): the largest is fitted, and said so.
-  const crowd = new PNG({ width: 2 * photo.width, height: photo.height });
+  // Two people (the photo and a smaller copy beside it), 4.7 MP: the largest is fitted, and
+  // said so; the detector ran on the photo downscaled to at most 4 MP.
+  const S = 3;
+  const crowd = new PNG({ width: 2 * S * photo.width, height: S * photo.height });
   for (let k = 0; k < crowd.data.length; k += 4) { crowd.data[k] = crowd.data[k + 1] = crowd.data[k + 2] = 120; crowd.data[k + 3] = 255; }
   const paste = (scale, ox, oy) => {
     for (let y = 0; y < Math.floor(render.height * scale); y++) for (let x = 0; x < Math.floor(render.width * scale); x++) {
@@ -350,16 +362,18 @@ try {
       for (let c = 0; c < 3; c++) crowd.data[o + c] = Math.round(render.data[i + c] * a + crowd.data[o + c] * (1 - a));
     }
   };
-  paste(1, 0, 0);
-  paste(0.6, photo.width + 48, 150);
+  paste(S, 0, 0);
+  paste(0.6 * S, S * (photo.width + 48), S * 150);
   const fitsCrowd = (await photoStatus()).fits;
-  await page.evaluate((b) => window.getavatar.photo(new Uint8Array(b), 'two_people.png'), [...PNG.sync.write(crowd)]);
+  await page.setInputFiles('#getavatar_photo_input', { name: 'two_people.png', mimeType: 'image/png', buffer: PNG.sync.write(crowd) });
   p = (await waitFor((s) => s.photo.fits > fitsCrowd || (s.photo.state === 'failed' && s.photo.name === 'two_people.png'), 'the two-people fit', 300000)).photo;
   const crowdMasks = await page.evaluate(() => window.getavatar.photoMasks());
   let left = 0, right = 0;
   for (let k = 0; k < crowdMasks.body.length; k++) if (crowdMasks.body[k] === '1') { if (k % crowdMasks.width < crowdMasks.width / 2) left++; else right++; }
   check(p.state === 'fitted' && p.people === 2 && /largest/.test(p.message) && left > 20 * Math.max(1, right),
     `two people: ${p.people} counted, the largest fitted (${left} body pixels on its side, ${right} on the other; "${p.message}")`);
+  check(p.width === crowd.width && p.detected_width * p.detected_height <= 4e6 && p.detected_width * p.detected_height > 3.9e6,
+    `a ${(crowd.width * crowd.height / 1e6).toFixed(1)} MP photo is detected at ${p.detected_width}×${p.detected_height} (≤ 4 MP)`);
 
   // A re-fit from the current pose, cancelled while it runs.
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));

@@ -451,6 +451,8 @@ pub struct Status {
     pub photo: PhotoStatus,
     /// The photo's rectangle in CSS pixels when it is shown: [x, y, width, height].
     pub photo_view: [f32; 4],
+    /// The "Open photo…" button's rectangle in CSS pixels (for the test that clicks it).
+    pub open_photo_button: [f32; 4],
     /// Messages about rejected commands / parameters (most recent last).
     pub errors: Vec<String>,
 }
@@ -465,6 +467,9 @@ pub struct PhotoStatus {
     /// The photo's size, pixels.
     pub width: usize,
     pub height: usize,
+    /// The size the detector ran at: the photo downscaled to at most 4 MP.
+    pub detected_width: usize,
+    pub detected_height: usize,
     /// The last message about the photo (why it failed, which joints are missing, …).
     pub message: String,
     /// People in the photo (selfie segmentation's regions; null when it could not tell); with

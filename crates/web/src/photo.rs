@@ -45,6 +45,8 @@ pub struct Photo {
     /// Size of the original photo, pixels.
     pub width: usize,
     pub height: usize,
+    /// Size the detector ran at (the photo downscaled to at most 4 MP).
+    pub detected: [usize; 2],
     pub result: PoseResult,
     /// The detector's result as it returned it (`kp.json` of "Download fit").
     pub json: String,
@@ -116,6 +118,10 @@ struct DetectorAnswer {
     error: Option<String>,
     width: Option<usize>,
     height: Option<usize>,
+    #[serde(rename = "detectedWidth")]
+    detected_width: Option<usize>,
+    #[serde(rename = "detectedHeight")]
+    detected_height: Option<usize>,
     people: Option<usize>,
 }
 
@@ -151,12 +157,24 @@ async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, Stri
     if let Some(e) = head.error {
         return Err(format!("{name}: {e}"));
     }
-    let (Some(width), Some(height)) = (head.width, head.height) else {
+    let (Some(width), Some(height), Some(dw), Some(dh)) =
+        (head.width, head.height, head.detected_width, head.detected_height)
+    else {
         return Err("the person detector's answer has no photo size".into());
     };
     let result = PoseResult::from_json(&json).map_err(|e| format!("the person detector's answer: {e}"))?;
     let preview = preview_image()?;
-    Ok(Photo { name, width, height, result, json, preview, detect_ms: now_ms() - t0, people: head.people })
+    Ok(Photo {
+        name,
+        width,
+        height,
+        detected: [dw, dh],
+        result,
+        json,
+        preview,
+        detect_ms: now_ms() - t0,
+        people: head.people,
+    })
 }
 
 /// The last detected photo as an egui image.

@@ -274,6 +274,7 @@ impl GetAvatarApp {
         let missing = missing_joints(&p.result);
         let s = &mut self.status.photo;
         (s.width, s.height, s.detect_ms) = (p.width, p.height, p.detect_ms as f32);
+        [s.detected_width, s.detected_height] = p.detected;
         s.missing_joints = missing.clone();
         s.people = p.people;
         let who = match p.people {
@@ -383,11 +384,11 @@ impl GetAvatarApp {
     pub(super) fn photo_section(&mut self, ui: &mut egui::Ui) {
         ui.strong("Reconstruct from photo");
         ui.horizontal(|ui| {
-            if ui
-                .button("Open photo…")
-                .on_hover_text("PNG, JPEG or WebP of one person; or drop it on the page")
-                .clicked()
-            {
+            let open =
+                ui.button("Open photo…").on_hover_text("PNG, JPEG or WebP of one person; or drop it on the page");
+            let r = open.rect;
+            self.status.open_photo_button = [r.min.x, r.min.y, r.width(), r.height()];
+            if open.clicked() {
                 if let Err(e) = photo::open_file_picker() {
                     self.messages.push(format!("cannot open the file chooser: {e}"));
                 }
