@@ -20,7 +20,8 @@
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
 //! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
-//! | mesh download (.glb)                    | [`gltf_export`] |
+//! | mesh download (.glb): textured, skinned, animated | [`gltf_export`] |
+//! | motion clips (built-in keyframed, SMPL/AMASS .npz) | [`motion`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
@@ -48,6 +49,7 @@ pub mod geometry;
 pub mod gltf_export;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod losses;
+pub mod motion;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod network;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
@@ -63,6 +65,7 @@ pub mod readback;
 pub mod rigging;
 pub mod rng;
 pub mod scan;
+pub mod skin_export;
 pub mod skinning;
 pub mod spatial;
 

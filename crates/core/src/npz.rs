@@ -282,14 +282,33 @@ pub fn write_npy(arr: &NpyArray) -> Vec<u8> {
 
 /// All arrays of an `.npz` archive, by key (file name without `.npy`).
 pub fn read_npz(bytes: &[u8]) -> Result<BTreeMap<String, NpyArray>, NpzError> {
+    read_npz_arrays(bytes, None)
+}
+
+/// Largest array an archive may hold, bytes uncompressed (a zip's sizes are claims: the
+/// reader stops at this many bytes rather than trusting them).
+pub const MAX_NPY_BYTES: u64 = 2 << 30;
+
+/// Read only the arrays named in `keys` (others — strings, objects — are skipped unread);
+/// `None` reads all.
+pub fn read_npz_arrays(bytes: &[u8], keys: Option<&[&str]>) -> Result<BTreeMap<String, NpyArray>, NpzError> {
     let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| NpzError::Zip(e.to_string()))?;
     let mut out = BTreeMap::new();
     for i in 0..zip.len() {
-        let mut file = zip.by_index(i).map_err(|e| NpzError::Zip(e.to_string()))?;
+        let file = zip.by_index(i).map_err(|e| NpzError::Zip(e.to_string()))?;
         let name = file.name().to_string();
         let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
-        let mut buf = Vec::with_capacity(file.size() as usize);
-        file.read_to_end(&mut buf).map_err(|e| arr_err(&key, format!("cannot decompress: {e}")))?;
+        if keys.is_some_and(|k| !k.contains(&key.as_str())) {
+            continue;
+        }
+        let claimed = file.size();
+        let mut buf = Vec::with_capacity(claimed.min(64 << 20) as usize);
+        file.take(MAX_NPY_BYTES + 1)
+            .read_to_end(&mut buf)
+            .map_err(|e| arr_err(&key, format!("cannot decompress: {e}")))?;
+        if buf.len() as u64 > MAX_NPY_BYTES {
+            return Err(arr_err(&key, format!("larger than {} GiB", MAX_NPY_BYTES >> 30)));
+        }
         out.insert(key.clone(), read_npy(&key, &buf)?);
     }
     Ok(out)

@@ -9,7 +9,10 @@ use glam::{Mat3, Mat4};
 use crate::generator::Avatar;
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
-use crate::skinning::PosedBody;
+use crate::gltf_export::{write_glb_full, ExportError, ExportMesh};
+use crate::motion::Motion;
+use crate::skin_export::{motion_clip, smpl_skin};
+use crate::skinning::{pose_body, BodyParams, PosedBody};
 
 /// An avatar extracted in the canonical pose and rigged to the body.
 #[derive(Clone, Debug)]
@@ -54,4 +57,39 @@ pub fn repose_transform(ctx: &BodyContext, posed: &PosedBody, i: usize) -> (Mat4
         Mat3::from_mat4(posed.vertex_transforms[i]) * Mat3::from_mat4(ctx.canonical.vertex_transforms[i]).inverse(),
     );
     (m, r)
+}
+
+impl RiggedAvatar {
+    /// Vertices and normals in the body's rest pose (T-pose, θ = 0) at shape `betas`: the
+    /// bind pose of an animated export (see [`crate::gltf_export`]).
+    pub fn bind_pose(&self, ctx: &BodyContext, betas: &[f32]) -> (Vec<glam::Vec3>, Vec<glam::Vec3>) {
+        let rest = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
+        self.repose(ctx, &pose_body(&ctx.model, &rest))
+    }
+
+    /// The avatar as an animated .glb: bound in the rest pose, showing `params` (pose, shape,
+    /// translation), with one animation per motion. Colours: the texture image `texture`
+    /// (PNG bytes) at `uvs` when given, else the avatar's vertex colours.
+    pub fn animated_glb(
+        &self,
+        ctx: &BodyContext,
+        params: &BodyParams,
+        motions: &[Motion],
+        texture: Option<(&[glam::Vec2], &[u8])>,
+        name: &str,
+    ) -> Result<Vec<u8>, ExportError> {
+        let (positions, normals) = self.bind_pose(ctx, &params.betas);
+        let weights = self.body_vertex.iter().map(|b| &ctx.model.weights[*b as usize]);
+        let skin = smpl_skin(&ctx.model, params, weights);
+        let clips: Vec<_> = motions.iter().map(motion_clip).collect();
+        let mesh = ExportMesh {
+            positions,
+            normals,
+            colors: self.canonical.colors.clone(),
+            uvs: texture.map_or(Vec::new(), |t| t.0.to_vec()),
+            indices: self.canonical.mesh.faces.clone(),
+            name: name.to_string(),
+        };
+        write_glb_full(&mesh, texture.map(|t| t.1), Some(&skin), &clips)
+    }
 }

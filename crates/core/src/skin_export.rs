@@ -1,0 +1,116 @@
+//! The body's skeleton and skin weights as a glTF skin, and motions as glTF clips: what
+//! [`crate::gltf_export::write_glb_full`] needs to write an animatable avatar or body.
+
+use glam::{Quat, Vec3};
+
+use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
+use crate::gltf_export::{write_glb_full, ExportClip, ExportError, ExportMesh, ExportSkin};
+use crate::motion::{Motion, MOTION_FPS};
+use crate::skinning::{pose_body, BodyParams};
+
+/// The 4 largest of a vertex's joint weights, renormalised to sum to 1 (glTF's JOINTS_0 /
+/// WEIGHTS_0). Unused slots name joint 0 with weight 0.
+pub fn top4(weights: &[f32; NUM_JOINTS]) -> ([u8; 4], [f32; 4]) {
+    let mut order: Vec<usize> = (0..NUM_JOINTS).collect();
+    order.sort_by(|a, b| weights[*b].total_cmp(&weights[*a]).then(a.cmp(b)));
+    let mut joints = [0u8; 4];
+    let mut w = [0.0f32; 4];
+    for k in 0..4 {
+        let j = order[k];
+        if weights[j] > 0.0 {
+            joints[k] = j as u8;
+            w[k] = weights[j];
+        }
+    }
+    let s: f32 = w.iter().sum();
+    if s > 0.0 {
+        w = w.map(|x| x / s);
+    } else {
+        w = [1.0, 0.0, 0.0, 0.0];
+    }
+    (joints, w)
+}
+
+/// Axis-angle → unit quaternion.
+pub fn quat(v: Vec3) -> Quat {
+    let a = v.length();
+    if a < 1e-12 {
+        Quat::IDENTITY
+    } else {
+        Quat::from_axis_angle(v / a, a)
+    }
+}
+
+/// The body's skeleton as a glTF skin: rest (bind) joints at shape `params.betas`, the pose
+/// shown `params.pose` / `params.transl`, and per exported vertex the 4 largest weights of
+/// `vertex_weights` (the body's own rows, or for an avatar its rigging body vertex's).
+pub fn smpl_skin<'a>(
+    model: &BodyModel,
+    params: &BodyParams,
+    vertex_weights: impl Iterator<Item = &'a [f32; NUM_JOINTS]>,
+) -> ExportSkin {
+    let rest = model.regress_joints(&model.shaped_vertices(&params.betas));
+    let (joints, weights) = vertex_weights.map(top4).unzip();
+    ExportSkin {
+        names: JOINT_NAMES.iter().map(|n| n.to_string()).collect(),
+        parents: model.parents.to_vec(),
+        rest_joints: rest.to_vec(),
+        pose: params.pose.iter().map(|v| quat(*v)).collect(),
+        translation: params.transl,
+        joints,
+        weights,
+    }
+}
+
+/// A motion as a glTF clip (every joint's rotation and the root translation per frame).
+pub fn motion_clip(motion: &Motion) -> ExportClip {
+    ExportClip {
+        name: motion.name.clone(),
+        fps: MOTION_FPS,
+        rotations: motion.poses.iter().map(|p| p.iter().map(|v| quat(*v)).collect()).collect(),
+        translations: motion.trans.clone(),
+    }
+}
+
+/// The bare body as an animated .glb (bound in the rest pose at `params.betas`, showing
+/// `params`, one animation per motion).
+pub fn animated_body_glb(
+    model: &BodyModel,
+    params: &BodyParams,
+    motions: &[Motion],
+    name: &str,
+) -> Result<Vec<u8>, ExportError> {
+    let rest = pose_body(model, &BodyParams { betas: params.betas.clone(), ..BodyParams::default() });
+    let normals = crate::skinning::vertex_normals(&rest.vertices, &model.faces);
+    let skin = smpl_skin(model, params, model.weights.iter());
+    let clips: Vec<_> = motions.iter().map(motion_clip).collect();
+    let mesh = ExportMesh {
+        positions: rest.vertices,
+        normals,
+        colors: Vec::new(),
+        uvs: Vec::new(),
+        indices: model.faces.clone(),
+        name: name.to_string(),
+    };
+    write_glb_full(&mesh, None, Some(&skin), &clips)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn top4_keeps_the_largest_weights_renormalised() {
+        let mut w = [0.0f32; NUM_JOINTS];
+        (w[3], w[7], w[1], w[9], w[12]) = (0.4, 0.3, 0.15, 0.1, 0.05);
+        let (j, x) = top4(&w);
+        assert_eq!(j, [3, 7, 1, 9]);
+        let s = 0.95;
+        for (a, b) in x.iter().zip([0.4 / s, 0.3 / s, 0.15 / s, 0.1 / s]) {
+            assert!((a - b).abs() < 1e-6, "{x:?}");
+        }
+        let mut one = [0.0f32; NUM_JOINTS];
+        one[5] = 1.0;
+        assert_eq!(top4(&one), ([5, 0, 0, 0], [1.0, 0.0, 0.0, 0.0]));
+    }
+}
