@@ -6,6 +6,7 @@ mod atomic;
 mod bench;
 mod body_convert;
 mod eval;
+mod export;
 mod fid;
 mod fit_pose;
 mod inception;
@@ -158,6 +159,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample(sample::SampleArgs),
+    /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
+    /// joints, with motion clips (built-in walk/turn/wave or SMPL/AMASS .npz) as animations.
+    Export(export::ExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
     /// mask): the app's photo → body step, scriptable. Writes fit.json.
     FitPose(fit_pose::FitPoseArgs),
@@ -243,6 +247,7 @@ fn main() -> Result<()> {
             bench::train_case(&data, &config, &backend, batch, steps)?
         }
         Command::Sample(args) => sample::sample(&args)?,
+        Command::Export(args) => export::export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
         Command::BodyPhotos { out, size } => {

@@ -1,0 +1,168 @@
+//! `trainer export`: an avatar (or the bare body) as an animatable .glb — bound in the rest
+//! pose, 24 SMPL joints, showing the chosen pose, with motion clips as glTF animations — or,
+//! with `--static`, the posed mesh alone. The app's downloads use the same core code
+//! (`RiggedAvatar::animated_glb`, `skin_export`).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_fit::fit::BodyFit;
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::{default_psi, generate_rigged_async, seed_latents, BodyContext};
+use getavatar_core::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::motion::{Motion, BUILTIN_CLIPS};
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::readback::block_on_ready;
+use getavatar_core::skin_export::animated_body_glb;
+use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
+
+use crate::sample::{truncation_modes, GeneratorArgs};
+
+#[derive(clap::Args, Debug)]
+pub struct ExportArgs {
+    #[command(flatten)]
+    pub model: GeneratorArgs,
+    #[arg(long, default_value_t = 0)]
+    pub seed_geo: u64,
+    #[arg(long, default_value_t = 0)]
+    pub seed_tex: u64,
+    /// Truncation ψ (default: the model's, as `sample`).
+    #[arg(long)]
+    pub psi: Option<f32>,
+    /// The pose the file shows (a library pose; the animations start from their own).
+    #[arg(long, default_value = "standing")]
+    pub pose: String,
+    /// Pose and shape from a body fit (`fit.json` of `fit-pose` or the app's "Download fit")
+    /// instead of `--pose`.
+    #[arg(long, conflicts_with = "pose")]
+    pub fit: Option<PathBuf>,
+    /// A motion clip: a built-in name (walk, turn, wave) or an SMPL/AMASS .npz file;
+    /// repeat for several. Each becomes one glTF animation.
+    #[arg(long = "motion", value_name = "CLIP|FILE")]
+    pub motions: Vec<String>,
+    /// The bare body instead of a generated avatar.
+    #[arg(long)]
+    pub body_only: bool,
+    /// A static mesh in the pose shown (no skin, no animations).
+    #[arg(long, conflicts_with = "motions")]
+    pub r#static: bool,
+    /// Body model .npz in the SMPL layout (default: the embedded open body).
+    #[arg(long)]
+    pub body: Option<PathBuf>,
+    #[arg(long, default_value = "avatar.glb")]
+    pub out: PathBuf,
+}
+
+/// A clip by name or file.
+pub fn load_motion(spec: &str) -> Result<Motion> {
+    if BUILTIN_CLIPS.contains(&spec) {
+        return Ok(Motion::builtin(spec)?);
+    }
+    let path = PathBuf::from(spec);
+    if !path.exists() {
+        bail!("--motion {spec}: neither a built-in clip ({}) nor a file", BUILTIN_CLIPS.join(", "));
+    }
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    let name = path.file_stem().map_or_else(|| spec.to_string(), |s| s.to_string_lossy().into_owned());
+    let m = Motion::from_amass_npz(&bytes, &name).with_context(|| format!("motion file {}", path.display()))?;
+    for note in &m.notes {
+        eprintln!("{}: {note}", path.display());
+    }
+    Ok(m)
+}
+
+pub fn export(a: &ExportArgs) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    let model = match &a.body {
+        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("loading body model {}", p.display()))?,
+        None => BodyModel::default_body()?,
+    };
+    let params: BodyParams = match &a.fit {
+        Some(f) => {
+            let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+            let fit: BodyFit =
+                serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", f.display()))?;
+            let mut p = fit.body_params();
+            p.betas.truncate(model.num_betas);
+            p
+        }
+        None => {
+            let lib = PoseLibrary::builtin();
+            lib.params(&a.pose, &[]).with_context(|| {
+                format!("unknown pose `{}`; available: {}", a.pose, lib.names().collect::<Vec<_>>().join(", "))
+            })?
+        }
+    };
+    let motions = a.motions.iter().map(|m| load_motion(m)).collect::<Result<Vec<_>>>()?;
+    let stem = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
+    let (glb, what) = if a.body_only {
+        if a.r#static {
+            let posed = pose_body(&model, &params);
+            let mesh = ExportMesh {
+                normals: vertex_normals(&posed.vertices, &model.faces),
+                positions: posed.vertices,
+                indices: model.faces.clone(),
+                name: stem,
+                ..Default::default()
+            };
+            (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
+        } else {
+            (
+                animated_body_glb(&model, &params, &motions, &stem)?,
+                format!("the body, {} vertices", model.num_vertices()),
+            )
+        }
+    } else {
+        #[allow(deprecated)]
+        let device = Device::ndarray();
+        let (cfg, g, modes) = a.model.load(&device)?;
+        if a.psi.is_some_and(|p| !p.is_finite()) {
+            bail!("--psi must be a number");
+        }
+        let ctx = BodyContext::new(model, &cfg);
+        let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
+        let modes = truncation_modes(&modes, false);
+        let styles = g.styles_with(zg, zt, a.psi.unwrap_or_else(|| default_psi(modes)), modes);
+        let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
+        if rigged.canonical.mesh.faces.is_empty() {
+            bail!("the generator produced an empty surface");
+        }
+        let n = rigged.canonical.mesh.vertices.len();
+        if a.r#static {
+            let (positions, normals) = rigged.repose(&ctx, &pose_body(&ctx.model, &params));
+            let mesh = ExportMesh {
+                positions,
+                normals,
+                colors: rigged.canonical.colors.clone(),
+                indices: rigged.canonical.mesh.faces.clone(),
+                name: stem,
+                ..Default::default()
+            };
+            (write_glb(&mesh)?, format!("avatar {}/{}, static, {n} vertices", a.seed_geo, a.seed_tex))
+        } else {
+            (
+                rigged.animated_glb(&ctx, &params, &motions, None, &stem)?,
+                format!("avatar {}/{}, {n} vertices", a.seed_geo, a.seed_tex),
+            )
+        }
+    };
+    crate::atomic::write_atomic(&a.out, &glb)?;
+    let clips: Vec<String> =
+        motions.iter().map(|m| format!("{} ({} frames, {:.1} s)", m.name, m.len(), m.duration())).collect();
+    println!(
+        "wrote {} ({:.1} MB): {what}; {}; {:.2} s",
+        a.out.display(),
+        glb.len() as f64 / 1e6,
+        if a.r#static {
+            "no skin".to_string()
+        } else if clips.is_empty() {
+            "skinned, no animations".into()
+        } else {
+            format!("skinned, animations: {}", clips.join(", "))
+        },
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
