@@ -318,9 +318,21 @@ try {
   // Through the UI: click "Open photo…" in the side panel, answer the browser's file chooser.
   const [bx, by, bw, bh] = (await status()).open_photo_button;
   check(bw > 0 && bh > 0 && bx + bw <= 1280 && by + bh <= 800, `the "Open photo…" button is on screen (${[bx, by, bw, bh].map(Math.round)})`);
-  const chooser = page.waitForEvent('filechooser', { timeout: 20000 });
-  await page.mouse.click(bx + bw / 2, by + bh / 2);
-  await (await chooser).setFiles({ name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
+  // egui hit-tests a press where the pointer hovered in the previous frame: hover first, then
+  // press and release like a person; a second try if the app was busy with a frame.
+  let chooser = null;
+  for (let attempt = 1; attempt <= 3 && !chooser; attempt++) {
+    const waiting = page.waitForEvent('filechooser', { timeout: 10000 }).catch(() => null);
+    await page.mouse.move(bx + bw / 2, by + bh / 2, { steps: 4 });
+    await page.waitForTimeout(300);
+    await page.mouse.down();
+    await page.waitForTimeout(60);
+    await page.mouse.up();
+    chooser = await waiting;
+    if (!chooser) console.log(`(no file chooser after click ${attempt})`);
+  }
+  check(chooser !== null, 'clicking "Open photo…" opens the browser\'s file chooser');
+  await chooser.setFiles({ name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
   let p = (await waitFor((s) => s.photo.fits > fitsBefore || (s.photo.state === 'failed' && s.photo.name === 'kick_clothed.png'), 'the photo fit', 300000)).photo;
   console.log(`photo → body in ${((Date.now() - tPhoto) / 1000).toFixed(1)} s (detection ${(p.detect_ms / 1000).toFixed(1)} s, fit ${(p.fit_ms / 1000).toFixed(1)} s, ${p.steps_total} steps): ${p.message}`);
   check(p.state === 'fitted' && p.missing_joints.length === 0 && p.people === 1, `the person is found (${p.people} in the photo) and fitted (${p.state}: ${p.message})`);

@@ -52,6 +52,39 @@ pub struct ExportArgs {
     pub body: Option<PathBuf>,
     #[arg(long, default_value = "avatar.glb")]
     pub out: PathBuf,
+    /// Also write, for checking other tools against the project's skinning, the vertex
+    /// positions the project's LBS gives at the first, a middle and the last frame of each
+    /// motion: `{"clips": [{"name", "frames": [{"frame", "time", "positions": [x, y, z, …]}]}]}`.
+    #[arg(long, value_name = "FILE")]
+    pub frames_json: Option<PathBuf>,
+}
+
+/// Frames checked by `--frames-json`.
+fn check_frames(m: &Motion) -> Vec<usize> {
+    let mut f = vec![0, m.len() / 3, m.len() - 1];
+    f.dedup();
+    f
+}
+
+fn frames_json(
+    motions: &[Motion],
+    positions: impl Fn(&BodyParams) -> Vec<glam::Vec3>,
+    betas: &[f32],
+) -> serde_json::Value {
+    let clips: Vec<serde_json::Value> = motions
+        .iter()
+        .map(|m| {
+            let frames: Vec<serde_json::Value> = check_frames(m)
+                .into_iter()
+                .map(|k| {
+                    let p: Vec<f32> = positions(&m.params(k, betas)).iter().flat_map(|v| v.to_array()).collect();
+                    serde_json::json!({ "frame": k, "time": k as f32 / getavatar_core::motion::MOTION_FPS, "positions": p })
+                })
+                .collect();
+            serde_json::json!({ "name": m.name, "frames": frames })
+        })
+        .collect();
+    serde_json::json!({ "clips": clips })
 }
 
 /// A clip by name or file.
@@ -74,6 +107,9 @@ pub fn load_motion(spec: &str) -> Result<Motion> {
 
 pub fn export(a: &ExportArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
+    if a.r#static && a.frames_json.is_some() {
+        bail!("--frames-json needs a skinned export (not --static)");
+    }
     let model = match &a.body {
         Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
             .with_context(|| format!("loading body model {}", p.display()))?,
@@ -97,6 +133,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     };
     let motions = a.motions.iter().map(|m| load_motion(m)).collect::<Result<Vec<_>>>()?;
     let stem = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
+    let mut expected: Option<serde_json::Value> = None;
     let (glb, what) = if a.body_only {
         if a.r#static {
             let posed = pose_body(&model, &params);
@@ -109,6 +146,9 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             };
             (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
         } else {
+            if a.frames_json.is_some() {
+                expected = Some(frames_json(&motions, |p| pose_body(&model, p).vertices, &params.betas));
+            }
             (
                 animated_body_glb(&model, &params, &motions, &stem)?,
                 format!("the body, {} vertices", model.num_vertices()),
@@ -142,6 +182,10 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             };
             (write_glb(&mesh)?, format!("avatar {}/{}, static, {n} vertices", a.seed_geo, a.seed_tex))
         } else {
+            if a.frames_json.is_some() {
+                let at = |p: &BodyParams| rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
+                expected = Some(frames_json(&motions, at, &params.betas));
+            }
             (
                 rigged.animated_glb(&ctx, &params, &motions, None, &stem)?,
                 format!("avatar {}/{}, {n} vertices", a.seed_geo, a.seed_tex),
@@ -149,6 +193,9 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         }
     };
     crate::atomic::write_atomic(&a.out, &glb)?;
+    if let (Some(path), Some(json)) = (&a.frames_json, expected) {
+        crate::atomic::write_atomic(path, json.to_string().as_bytes())?;
+    }
     let clips: Vec<String> =
         motions.iter().map(|m| format!("{} ({} frames, {:.1} s)", m.name, m.len(), m.duration())).collect();
     println!(

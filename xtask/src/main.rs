@@ -205,9 +205,48 @@ fn test(native: bool, browser: bool) -> Result<()> {
             .env("GETAVATAR_URL", format!("http://{}/", server.addr))
             .env("GETAVATAR_OUT", e2e.join("out"));
         run(&mut c)?;
+        export_checks(&e2e)?;
     }
     println!("xtask test: all requested suites passed");
     Ok(())
+}
+
+/// The animatable export (issue #22): `trainer export` writes a static, a skinned and an
+/// animated file; the Khronos validator checks all three and three.js (GLTFLoader +
+/// AnimationMixer in headless Chromium) plays the animated one against the project's LBS.
+fn export_checks(e2e: &Path) -> Result<()> {
+    let out = e2e.join("out/export");
+    std::fs::create_dir_all(&out)?;
+    // The trainer as the workspace's tests build it (same features: no rebuild of burn).
+    run(Command::new(cargo()).current_dir(root()).args(["build", "--workspace"]))?;
+    let trainer = target_dir().join("debug/trainer");
+    let amass = root().join("tests/fixtures/motion/amass_sample.npz");
+    let export =
+        |args: &[&str]| -> Result<()> { run(Command::new(&trainer).current_dir(root()).arg("export").args(args)) };
+    let p = |f: &str| out.join(f).to_string_lossy().into_owned();
+    export(&[
+        "--motion",
+        "walk",
+        "--motion",
+        "wave",
+        "--motion",
+        "turn",
+        "--motion",
+        &amass.to_string_lossy(),
+        "--out",
+        &p("avatar_animated.glb"),
+        "--frames-json",
+        &p("avatar_animated.frames.json"),
+    ])?;
+    export(&["--static", "--pose", "walking", "--out", &p("avatar_posed.glb")])?;
+    export(&["--body-only", "--pose", "T", "--out", &p("body_skinned.glb")])?;
+    run(Command::new("node").current_dir(e2e).args([
+        "three_skinning.e2e.mjs",
+        &p("avatar_animated.glb"),
+        &p("avatar_animated.frames.json"),
+        &p("avatar_posed.glb"),
+        &p("body_skinned.glb"),
+    ]))
 }
 
 fn body_model() -> Result<()> {

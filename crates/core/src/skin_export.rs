@@ -62,14 +62,17 @@ pub fn smpl_skin<'a>(
     }
 }
 
-/// A motion as a glTF clip (every joint's rotation and the root translation per frame).
+/// A motion as a glTF clip (every joint's rotation and the root translation per frame). A
+/// looping motion gets its first frame again at the end, so a viewer's loop (which jumps from
+/// the last key to the first) interpolates across the seam like any other frame.
 pub fn motion_clip(motion: &Motion) -> ExportClip {
-    ExportClip {
-        name: motion.name.clone(),
-        fps: MOTION_FPS,
-        rotations: motion.poses.iter().map(|p| p.iter().map(|v| quat(*v)).collect()).collect(),
-        translations: motion.trans.clone(),
+    let mut rotations: Vec<Vec<Quat>> = motion.poses.iter().map(|p| p.iter().map(|v| quat(*v)).collect()).collect();
+    let mut translations = motion.trans.clone();
+    if motion.looping && !rotations.is_empty() {
+        rotations.push(rotations[0].clone());
+        translations.push(translations[0]);
     }
+    ExportClip { name: motion.name.clone(), fps: MOTION_FPS, rotations, translations }
 }
 
 /// The bare body as an animated .glb (bound in the rest pose at `params.betas`, showing
