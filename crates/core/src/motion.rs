@@ -10,7 +10,7 @@
 //!   (SMPL-H: the first 66 numbers are the 22 body joints; SMPL's two hand joints are set to
 //!   zero), `trans` N×3, `mocap_framerate` (or `mocap_frame_rate`), resampled to
 //!   [`MOTION_FPS`]. AMASS is z-up; the root is turned into this project's y-up world
-//!   (docs/conventions.md) and the clip starts above the origin. The file's `betas` are not
+//!   (docs/conventions.md) and the clip starts at the body's rest position. The file's `betas` are not
 //!   applied: a motion plays on the avatar's own body.
 //!
 //! Limits: at most [`MAX_FRAMES`] frames after resampling (5 minutes; longer files are cut
@@ -180,8 +180,10 @@ impl Motion {
         if arrays.contains_key("betas") {
             notes.push("the file's body shape (betas) is not applied: the motion plays on the avatar's body".into());
         }
-        // Start above the origin (AMASS places people anywhere on its floor).
-        let start = Vec3::new(src_trans[0].x, 0.0, src_trans[0].z);
+        // Start where the body stands at rest (AMASS places people anywhere in its room, and
+        // SMPL's root turns about the origin, not the pelvis: the constant that the z-up → y-up
+        // turn adds to the pelvis drops out with the first frame's translation).
+        let start = src_trans[0];
         for tr in &mut src_trans {
             *tr -= start;
         }
