@@ -19,6 +19,9 @@
 //    photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the person's height; Download fit
 //    gives fit.json + kp.json; beside a smaller copy of itself at 4.7 MP, two people are
 //    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
+//  - Motion: the built-in walk scrubbed to two times changes the mask; playing re-poses every
+//    frame; the AMASS fixture loads as a clip (resampled), a broken .npz gets one message; the
+//    animated .glb (walk + wave) passes the validator with 2 animations and a skin.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -203,7 +206,7 @@ try {
   s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
   await grab('rgb_walking');
   const dl = await download('body_walking.glb');
-  check(dl.suggested.endsWith('.glb'), `download is named ${dl.suggested}`);
+  check(dl.suggested === 'getavatar_body_posed_walking.glb', `download is named after what it holds: ${dl.suggested}`);
   const report = await validator.validateBytes(dl.bytes);
   const iss = report.issues;
   check(iss.numErrors === 0, `glTF-Validator: ${iss.numErrors} errors, ${iss.numWarnings} warnings, ${iss.numInfos} infos`);
@@ -393,6 +396,46 @@ try {
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'cancel' }));
   p = (await waitFor((s) => s.photo.state !== 'fitting', 'the cancellation', 60000)).photo;
   check(p.state === 'cancelled' && p.fits === fitsCrowd + 1, `a re-fit can be cancelled (${p.state}, ${p.message})`);
+
+  // --- motion: built-in clips play on the GPU re-pose; AMASS files; the animated .glb -----
+  await page.evaluate(() => window.getavatar.command({ photo_fit: 'close' }));
+  s = await command({ view: 'mask' }, (s) => s.view === 'mask');
+  check(['walk', 'turn', 'wave'].every((c) => s.motion.clips.includes(c)), `built-in clips: ${s.motion.clips.join(', ')}`);
+  s = await command({ motion: { clip: 'walk', time: 0 } }, (s) => s.motion.clip === 'walk' && s.pose === 'motion walk');
+  const walk0 = maskOf(await grab('motion_walk_0'), (p) => p[0] > 128);
+  s = await command({ motion: { time: 0.55 } }, (s) => Math.abs(s.motion.time - 0.55) < 1e-3);
+  const walk1 = maskOf(await grab('motion_walk_half'), (p) => p[0] > 128);
+  const walkIou = iou(walk0, walk1);
+  check(walkIou < 0.97 && coverage(walk1) > 0.02, `scrubbing the walk moves the ${s.showing} (mask IoU ${walkIou.toFixed(3)} between 0 s and 0.55 s)`);
+  const rendersBefore = s.renders;
+  await command({ motion: { play: true, speed: 1 } }, (s) => s.motion.playing);
+  await page.waitForTimeout(1500);
+  s = await status();
+  check(s.motion.playing && s.renders - rendersBefore >= 5 && s.motion.time !== 0.55,
+    `playing re-poses every frame: ${s.renders - rendersBefore} renders in 1.5 s, now at ${s.motion.time.toFixed(2)} s of ${s.motion.duration.toFixed(2)} s`);
+  s = await command({ motion: { play: false } }, (s) => !s.motion.playing);
+  const amass = fs.readFileSync(new URL('../fixtures/motion/amass_sample.npz', import.meta.url));
+  const loadedBefore = s.motion.files_loaded;
+  await page.evaluate((b) => window.getavatar.motion(new Uint8Array(b), 'amass_sample.npz'), [...amass]);
+  s = await waitFor((s) => s.motion.files_loaded > loadedBefore, 'the motion file');
+  check(s.motion.clip === 'amass_sample' && s.motion.frames === 16 && s.motion.notes.some((n) => /resampled/.test(n)),
+    `an AMASS .npz loads as a clip (${s.motion.clip}, ${s.motion.frames} frames; ${s.motion.notes.join('; ')})`);
+  const errorsBefore = s.errors.length;
+  await page.evaluate(() => window.getavatar.motion(new Uint8Array([1, 2, 3]), 'broken.npz'));
+  s = await waitFor((s) => s.errors.length > errorsBefore, 'the message about broken.npz');
+  check(/broken\.npz/.test(s.errors[s.errors.length - 1]) && s.motion.clip === 'amass_sample',
+    `a bad motion file gets one message and changes nothing ("${s.errors[s.errors.length - 1]}")`);
+  await page.evaluate(() => window.getavatar.command({ motion: { include: ['walk', 'wave'] } }));
+  await waitFor((s) => s.motion.include.join() === 'walk,wave', 'the clips of the animated download');
+  const [adl] = await Promise.all([page.waitForEvent('download'), page.evaluate(() => window.getavatar.command({ download_animated: true }))]);
+  const animFile = path.join(out, adl.suggestedFilename());
+  await adl.saveAs(animFile);
+  const anim = new Uint8Array(fs.readFileSync(animFile));
+  const animRep = await validator.validateBytes(anim);
+  check(animRep.issues.numErrors === 0 && animRep.issues.numWarnings === 0 && animRep.info.animationCount === 2 && animRep.info.hasSkins,
+    `animated .glb ${adl.suggestedFilename()}: ${animRep.issues.numErrors} errors, ${animRep.issues.numWarnings} warnings, ${animRep.info.animationCount} animations, skinned ${animRep.info.hasSkins}`);
+  check(/animated_walk\+wave\.glb$/.test(adl.suggestedFilename()), `the file name says what it holds (${adl.suggestedFilename()})`);
+  await page.screenshot({ path: path.join(out, 'motion.png') });
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));

@@ -58,8 +58,10 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
 /// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}`,
 /// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
-/// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`.
-/// Photo bytes come through `window.getavatar.photo(uint8Array, name)`.
+/// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`,
+/// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
+/// `{"download_animated":true}`. Photo bytes come through `window.getavatar.photo(uint8Array,
+/// name)`, motion files through `window.getavatar.motion(uint8Array, name)`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged, deny_unknown_fields)]
 pub enum Command {
@@ -103,6 +105,12 @@ pub enum Command {
     PhotoFit {
         photo_fit: String,
     },
+    Motion {
+        motion: MotionArgs,
+    },
+    DownloadAnimated {
+        download_animated: bool,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
@@ -134,6 +142,26 @@ pub struct PhotoArgs {
     /// page's WebGPU device; for comparisons: tests/e2e/bench_fit.mjs).
     pub device: Option<String>,
 }
+
+/// Motion playback: choose a clip (a built-in's or a loaded file's name), play or pause,
+/// jump to a time, set the speed and looping, and which clips the animated download holds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionArgs {
+    pub clip: Option<String>,
+    pub play: Option<bool>,
+    /// Seconds from the clip's start.
+    pub time: Option<f32>,
+    /// Playback speed (1 = real time), in (0, 4].
+    pub speed: Option<f32>,
+    #[serde(rename = "loop")]
+    pub looping: Option<bool>,
+    /// Clips the animated download holds (names); default: the one playing.
+    pub include: Option<Vec<String>>,
+}
+
+/// Most playback speed.
+pub const MAX_MOTION_SPEED: f32 = 4.0;
 
 /// Where a photo comes from.
 #[derive(Clone, Debug, PartialEq)]
@@ -192,6 +220,14 @@ pub enum Action {
         on_gpu: bool,
     },
     PhotoFit(PhotoFitAction),
+    Motion(MotionArgs),
+    /// A motion file's bytes (SMPL/AMASS .npz) from the file picker, a drop or the JS hook.
+    MotionFile {
+        name: String,
+        bytes: Vec<u8>,
+    },
+    /// Download the avatar (or body) as a skinned .glb with the chosen clips.
+    DownloadAnimated,
 }
 
 fn finite(v: f32, what: &str) -> Result<f32, String> {
@@ -279,6 +315,20 @@ impl Command {
                 };
                 Action::Photo { source: PhotoSource::Url(photo.url), options, on_gpu }
             }
+            Command::Motion { motion } => {
+                if let Some(t) = motion.time {
+                    if !(t.is_finite() && t >= 0.0) {
+                        return Err(format!("motion: time {t} (seconds ≥ 0)"));
+                    }
+                }
+                if let Some(v) = motion.speed {
+                    if !(v.is_finite() && v > 0.0 && v <= MAX_MOTION_SPEED) {
+                        return Err(format!("motion: speed {v} (0 < speed ≤ {MAX_MOTION_SPEED})"));
+                    }
+                }
+                Action::Motion(motion)
+            }
+            Command::DownloadAnimated { .. } => Action::DownloadAnimated,
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
@@ -451,6 +501,8 @@ pub struct Status {
     pub photo: PhotoStatus,
     /// The photo's rectangle in CSS pixels when it is shown: [x, y, width, height].
     pub photo_view: [f32; 4],
+    /// Motion playback and the animated download.
+    pub motion: MotionStatus,
     /// The "Open photo…" button's rectangle in CSS pixels (for the test that clicks it).
     pub open_photo_button: [f32; 4],
     /// Messages about rejected commands / parameters (most recent last).
@@ -496,6 +548,29 @@ pub struct PhotoStatus {
     pub mask_iou: Option<f32>,
     /// Downloads of fit.json + kp.json.
     pub fit_downloads: u64,
+}
+
+/// Motion playback, for the tests.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct MotionStatus {
+    /// Clips available (built-ins, then loaded files), by name.
+    pub clips: Vec<String>,
+    /// The selected clip ("" for none), whether it plays, where, and its length.
+    pub clip: String,
+    pub playing: bool,
+    pub time: f32,
+    pub duration: f32,
+    pub frames: usize,
+    pub speed: f32,
+    pub looping: bool,
+    /// Clips the animated download holds.
+    pub include: Vec<String>,
+    /// Motion files loaded, and what loading the last one changed (resampled, cut, …).
+    pub files_loaded: u64,
+    pub notes: Vec<String>,
+    /// Animated downloads and the last one's size, bytes.
+    pub animated_downloads: u64,
+    pub last_animated_bytes: usize,
 }
 
 #[cfg(test)]
@@ -562,6 +637,22 @@ mod tests {
         assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[1,99999,0]}}"#).is_err());
         assert!(parse_command(r#"{"photo":{"path":"p.png"}}"#).is_err());
         assert!(parse_command(r#"{"photo_fit":"again"}"#).is_err());
+        let m = parse_command(r#"{"motion":{"clip":"walk","play":true,"time":0.5,"speed":2,"loop":false}}"#);
+        assert_eq!(
+            m,
+            Ok(Action::Motion(MotionArgs {
+                clip: Some("walk".into()),
+                play: Some(true),
+                time: Some(0.5),
+                speed: Some(2.0),
+                looping: Some(false),
+                include: None
+            }))
+        );
+        assert!(parse_command(r#"{"motion":{"speed":0}}"#).is_err());
+        assert!(parse_command(r#"{"motion":{"time":-1}}"#).is_err());
+        assert!(parse_command(r#"{"motion":{"tempo":1}}"#).is_err());
+        assert_eq!(parse_command(r#"{"download_animated":true}"#), Ok(Action::DownloadAnimated));
         assert!(matches!(
             parse_command(r#"{"photo":{"url":"p.png","device":"webgpu"}}"#),
             Ok(Action::Photo { on_gpu: true, options: None, .. })

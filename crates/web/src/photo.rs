@@ -267,56 +267,6 @@ async fn yield_to_browser() {
     let _ = JsFuture::from(promise).await;
 }
 
-/// The id of the page's hidden file input (made by [`install_file_input`]).
-pub const FILE_INPUT_ID: &str = "getavatar_photo_input";
-
-/// Add the hidden `<input type=file>` behind "Open photo…"; each chosen file's bytes go to
-/// `on_file(name, bytes)`, an unreadable one's error to `on_error`.
-pub fn install_file_input(
-    document: &web_sys::Document,
-    on_file: impl Fn(String, Vec<u8>) + 'static,
-    on_error: impl Fn(String) + 'static,
-) -> Result<(), JsValue> {
-    let input: web_sys::HtmlInputElement = document.create_element("input")?.dyn_into()?;
-    input.set_type("file");
-    input.set_id(FILE_INPUT_ID);
-    input.set_accept("image/png,image/jpeg,image/webp");
-    input.style().set_property("display", "none")?;
-    let on_file = Rc::new(on_file);
-    let on_error = Rc::new(on_error);
-    let target = input.clone();
-    let handler = Closure::<dyn FnMut()>::new(move || {
-        let Some(file) = target.files().and_then(|f| f.get(0)) else { return };
-        // The same file chosen again must fire `change` again.
-        target.set_value("");
-        let (on_file, on_error) = (on_file.clone(), on_error.clone());
-        wasm_bindgen_futures::spawn_local(async move {
-            let name = file.name();
-            match JsFuture::from(file.array_buffer()).await {
-                Ok(buf) => on_file(name, js_sys::Uint8Array::new(&buf).to_vec()),
-                Err(e) => on_error(format!("cannot read {name}: {}", js_message(&e))),
-            }
-        });
-    });
-    input.add_event_listener_with_callback("change", handler.as_ref().unchecked_ref())?;
-    // The input lives as long as the page.
-    handler.forget();
-    document.body().ok_or("no <body>")?.append_child(&input)?;
-    Ok(())
-}
-
-/// Open the browser's file chooser (needs a recent user gesture, e.g. the button's click).
-pub fn open_file_picker() -> Result<(), String> {
-    let document = web_sys::window().and_then(|w| w.document()).ok_or("no document")?;
-    let input: web_sys::HtmlElement = document
-        .get_element_by_id(FILE_INPUT_ID)
-        .ok_or("the page has no file input")?
-        .dyn_into()
-        .map_err(|_| "the file input is not an element".to_string())?;
-    input.click();
-    Ok(())
-}
-
 thread_local! {
     /// The last fit's masks for `window.getavatar.photoMasks()` (JSON, "" before a fit).
     static MASKS: RefCell<String> = const { RefCell::new(String::new()) };

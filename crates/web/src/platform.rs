@@ -1,8 +1,11 @@
 //! Browser services the app needs: a clock, fetching URLs, file downloads and JS error
 //! messages (web-sys only, no app state).
 
+use std::rc::Rc;
+
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
+use wasm_bindgen_futures::JsFuture;
 
 /// Milliseconds since the page loaded (`performance.now()`); 0 where the browser has no
 /// performance timer.
@@ -56,5 +59,61 @@ pub fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(), String
     if let Some(w) = web_sys::window() {
         let _ = w.set_timeout_with_callback_and_timeout_and_arguments_0(revoke.unchecked_ref(), 60_000);
     }
+    Ok(())
+}
+
+/// The ids of the page's hidden file inputs (made by [`install_file_input`]): photos and
+/// motion files.
+pub const PHOTO_INPUT_ID: &str = "getavatar_photo_input";
+pub const MOTION_INPUT_ID: &str = "getavatar_motion_input";
+
+/// Add a hidden `<input type=file>` (`id`, accepting `accept`) behind an "Open…" button;
+/// each chosen file's bytes go to `on_file(name, bytes)`, an unreadable one's error to
+/// `on_error`.
+pub fn install_file_input(
+    document: &web_sys::Document,
+    id: &str,
+    accept: &str,
+    on_file: impl Fn(String, Vec<u8>) + 'static,
+    on_error: impl Fn(String) + 'static,
+) -> Result<(), JsValue> {
+    let input: web_sys::HtmlInputElement = document.create_element("input")?.dyn_into()?;
+    input.set_type("file");
+    input.set_id(id);
+    input.set_accept(accept);
+    input.style().set_property("display", "none")?;
+    let on_file = Rc::new(on_file);
+    let on_error = Rc::new(on_error);
+    let target = input.clone();
+    let handler = Closure::<dyn FnMut()>::new(move || {
+        let Some(file) = target.files().and_then(|f| f.get(0)) else { return };
+        // The same file chosen again must fire `change` again.
+        target.set_value("");
+        let (on_file, on_error) = (on_file.clone(), on_error.clone());
+        wasm_bindgen_futures::spawn_local(async move {
+            let name = file.name();
+            match JsFuture::from(file.array_buffer()).await {
+                Ok(buf) => on_file(name, js_sys::Uint8Array::new(&buf).to_vec()),
+                Err(e) => on_error(format!("cannot read {name}: {}", js_message(&e))),
+            }
+        });
+    });
+    input.add_event_listener_with_callback("change", handler.as_ref().unchecked_ref())?;
+    // The input lives as long as the page.
+    handler.forget();
+    document.body().ok_or("no <body>")?.append_child(&input)?;
+    Ok(())
+}
+
+/// Open the browser's file chooser of input `id` (needs a recent user gesture, e.g. the
+/// button's click).
+pub fn open_file_picker(id: &str) -> Result<(), String> {
+    let document = web_sys::window().and_then(|w| w.document()).ok_or("no document")?;
+    let input: web_sys::HtmlElement = document
+        .get_element_by_id(id)
+        .ok_or("the page has no file input")?
+        .dyn_into()
+        .map_err(|_| "the file input is not an element".to_string())?;
+    input.click();
     Ok(())
 }

@@ -82,6 +82,17 @@ fn queue_photo(name: String, bytes: Vec<u8>) {
     request_repaint();
 }
 
+/// JS: hand the app a motion file's bytes (SMPL/AMASS .npz), as "Load motion…" does.
+#[wasm_bindgen]
+pub fn getavatar_motion(bytes: Vec<u8>, name: String) {
+    queue_motion(name, bytes);
+}
+
+fn queue_motion(name: String, bytes: Vec<u8>) {
+    COMMANDS.with(|q| q.borrow_mut().push_back(Ok(Action::MotionFile { name, bytes })));
+    request_repaint();
+}
+
 fn request_repaint() {
     CONTEXT.with(|c| {
         if let Some(ctx) = c.borrow().as_ref() {
@@ -127,10 +138,14 @@ async fn run() -> Result<(), JsValue> {
         Err(e) => (Vec::new(), vec![format!("cannot read the page's URL parameters: {e:?}")]),
     };
     // The hidden file input behind "Open photo…"; chosen files queue like the hook's photos.
-    crate::photo::install_file_input(&document, queue_photo, |e| {
+    let report = |e: String| {
         COMMANDS.with(|q| q.borrow_mut().push_back(Err(e)));
         request_repaint();
-    })?;
+    };
+    let photos = "image/png,image/jpeg,image/webp";
+    crate::platform::install_file_input(&document, crate::platform::PHOTO_INPUT_ID, photos, queue_photo, report)?;
+    // "Load motion…": SMPL/AMASS .npz files.
+    crate::platform::install_file_input(&document, crate::platform::MOTION_INPUT_ID, ".npz", queue_motion, report)?;
     let options = eframe::WebOptions { wgpu_options: wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
         .start(

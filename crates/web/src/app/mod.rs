@@ -5,7 +5,9 @@
 //! - `panels`: the side panel and the viewport
 //! - `photo_panel`: "Reconstruct from photo" (detection, body fit, overlays, Download fit)
 //! - `texture_job`: the per-pixel texture view's job
+//! - `motion_panel`: motion playback (built-in clips, SMPL/AMASS files) and the downloads
 
+mod motion_panel;
 mod panels;
 mod photo_panel;
 mod texture_job;
@@ -27,6 +29,7 @@ use crate::automation::{Action, GenerateArgs, Status, ViewMode};
 use crate::generate::{GenEngine, TextureField};
 use crate::platform::{download_bytes, now_ms};
 use crate::viewer::{bone_transforms, Vertex, Viewer};
+use motion_panel::MotionPlayer;
 use photo_panel::PhotoPanel;
 use texture_job::TextureJob;
 
@@ -81,6 +84,8 @@ pub struct GetAvatarApp {
     queued: Option<(bool, GenerateArgs)>,
     /// The photo → body flow.
     photo: PhotoPanel,
+    /// Motion playback.
+    motion: MotionPlayer,
     /// egui's context, for the repaints of background tasks.
     ctx: egui::Context,
 }
@@ -158,6 +163,7 @@ impl GetAvatarApp {
             psi_from_user: false,
             queued: None,
             photo: PhotoPanel::default(),
+            motion: MotionPlayer::default(),
             ctx: cc.egui_ctx.clone(),
         };
         for a in startup {
@@ -171,6 +177,7 @@ impl GetAvatarApp {
         match action {
             Action::Pose(name) => match self.poses.pose(&name) {
                 Ok(p) => {
+                    self.leave_motion(true);
                     self.params.pose = p;
                     self.pose_name = name;
                     self.mesh_dirty = true;
@@ -178,6 +185,7 @@ impl GetAvatarApp {
                 Err(e) => self.messages.push(e.to_string()),
             },
             Action::Joint(j, v) => {
+                self.leave_motion(false);
                 self.params.pose[j] = Vec3::from_array(v);
                 self.pose_name = "custom".into();
                 self.mesh_dirty = true;
@@ -221,6 +229,9 @@ impl GetAvatarApp {
                 self.avatar_dirty = true;
             }
             a @ (Action::Photo { .. } | Action::PhotoFit(_)) => self.apply_photo(a),
+            Action::Motion(a) => self.apply_motion(a),
+            Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
+            Action::DownloadAnimated => self.download_animated(),
         }
     }
 
@@ -318,7 +329,12 @@ impl GetAvatarApp {
         };
         match write_glb(&mesh) {
             Ok(bytes) => {
-                let name = format!("getavatar_{}.glb", self.pose_name);
+                let what = if self.show_avatar && self.rigged.is_some() {
+                    format!("avatar_{}_{}", self.seed_geo, self.seed_tex)
+                } else {
+                    "body".into()
+                };
+                let name = format!("getavatar_{what}_posed_{}.glb", self.pose_name.replace(' ', "_"));
                 match download_bytes(&name, &bytes, "model/gltf-binary") {
                     Ok(()) => {
                         self.status.downloads += 1;
@@ -433,6 +449,7 @@ impl GetAvatarApp {
         self.status.seed_tex = self.seed_tex;
         self.status.psi = self.psi;
         self.status.showing = if self.show_avatar { "avatar" } else { "body" }.into();
+        self.motion_status();
         &self.status
     }
 
@@ -443,6 +460,7 @@ impl GetAvatarApp {
         self.poll_photo(&ctx);
         self.poll_generation();
         self.start_queued(&ui.ctx().clone());
+        self.advance_motion();
         self.update_gpu(frame);
         if let Some(rs) = frame.wgpu_render_state() {
             let rs = rs.clone();
@@ -466,6 +484,7 @@ impl GetAvatarApp {
         if self.mesh_dirty
             || self.render_dirty
             || self.continuous
+            || self.motion_playing()
             || self.queued.is_some()
             || self.texture_job.is_some()
             || (self.view == ViewMode::Texture

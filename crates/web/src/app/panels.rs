@@ -1,4 +1,4 @@
-//! The side panel (generate, pose, shape, view, download, messages) and the viewport
+//! The side panel (generate, photo, pose, shape, view, motion and downloads, messages) and the viewport
 //! (the rendered image with orbit/zoom input). Widgets turn into [`Action`]s applied by
 //! [`GetAvatarApp::apply`], the same path JS automation commands take.
 
@@ -142,9 +142,7 @@ impl GetAvatarApp {
         ui.label(egui::RichText::new("drag: orbit · wheel: zoom · double-click: reset").small());
 
         ui.separator();
-        if ui.button("⬇ Download .glb").on_hover_text("posed mesh with normals, glTF 2.0 binary").clicked() {
-            self.apply(Action::Download);
-        }
+        self.motion_section(ui);
         if !self.messages.is_empty() {
             ui.separator();
             for m in self.messages.iter().rev().take(5) {

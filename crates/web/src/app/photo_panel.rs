@@ -361,6 +361,10 @@ impl GetAvatarApp {
         let arrived: Vec<_> = self.photo.dropped.borrow_mut().drain(..).collect();
         for r in arrived {
             match r {
+                // Motion files go to the motion player, everything else is a photo.
+                Ok((name, bytes)) if name.to_ascii_lowercase().ends_with(".npz") => {
+                    self.apply(Action::MotionFile { name, bytes })
+                }
                 Ok((name, bytes)) => self.apply(Action::Photo {
                     source: PhotoSource::Bytes { name, bytes },
                     options: None,
@@ -389,7 +393,7 @@ impl GetAvatarApp {
             let r = open.rect;
             self.status.open_photo_button = [r.min.x, r.min.y, r.width(), r.height()];
             if open.clicked() {
-                if let Err(e) = photo::open_file_picker() {
+                if let Err(e) = crate::platform::open_file_picker(crate::platform::PHOTO_INPUT_ID) {
                     self.messages.push(format!("cannot open the file chooser: {e}"));
                 }
             }
