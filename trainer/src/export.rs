@@ -47,6 +47,13 @@ pub struct ExportArgs {
     /// A static mesh in the pose shown (no skin, no animations).
     #[arg(long, conflicts_with = "motions")]
     pub r#static: bool,
+    /// Side of the baked base-colour texture (the body's UV layout transferred to the avatar;
+    /// 0: vertex colours, no texture).
+    #[arg(long, default_value_t = 1024)]
+    pub texture_res: usize,
+    /// Also write OBJ + MTL + PNG beside the .glb (the mesh in the pose shown, textured).
+    #[arg(long)]
+    pub obj: bool,
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
@@ -170,24 +177,49 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             bail!("the generator produced an empty surface");
         }
         let n = rigged.canonical.mesh.vertices.len();
-        if a.r#static {
+        let tb = std::time::Instant::now();
+        let texture = if a.texture_res > 0 {
+            let planes = g.triplanes(&styles);
+            let t = block_on_ready(rigged.bake_texture_async(&g, &planes, &styles, &ctx, a.texture_res, &device))
+                .context("baking the texture")?;
+            eprintln!(
+                "texture {r}²: {} atlas vertices ({} avatar vertices), triangles {} on the body's layout, {} across its seams, {} in their own charts; {:.0} % of the texels covered; {:.2} s",
+                t.atlas.source.len(),
+                n,
+                t.atlas.body_faces,
+                t.atlas.seam_faces,
+                t.atlas.own_chart_faces,
+                100.0 * t.covered as f64 / (t.res * t.res) as f64,
+                tb.elapsed().as_secs_f64(),
+                r = t.res
+            );
+            Some(t)
+        } else {
+            None
+        };
+        if a.obj {
             let (positions, normals) = rigged.repose(&ctx, &pose_body(&ctx.model, &params));
-            let mesh = ExportMesh {
-                positions,
-                normals,
-                colors: rigged.canonical.colors.clone(),
-                indices: rigged.canonical.mesh.faces.clone(),
-                name: stem,
-                ..Default::default()
-            };
-            (write_glb(&mesh)?, format!("avatar {}/{}, static, {n} vertices", a.seed_geo, a.seed_tex))
+            write_obj_files(&a.out, &positions, &normals, &rigged, texture.as_ref())?;
+        }
+        let order: Vec<u32> = match &texture {
+            Some(t) => t.atlas.source.clone(),
+            None => (0..n as u32).collect(),
+        };
+        if a.r#static {
+            (
+                rigged.posed_glb(&ctx, &params, texture.as_ref(), &stem)?,
+                format!("avatar {}/{}, static, {n} vertices", a.seed_geo, a.seed_tex),
+            )
         } else {
             if a.frames_json.is_some() {
-                let at = |p: &BodyParams| rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
+                let at = |p: &BodyParams| {
+                    let v = rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
+                    order.iter().map(|i| v[*i as usize]).collect()
+                };
                 expected = Some(frames_json(&motions, at, &params.betas));
             }
             (
-                rigged.animated_glb(&ctx, &params, &motions, None, &stem)?,
+                rigged.animated_glb(&ctx, &params, &motions, texture.as_ref(), &stem)?,
                 format!("avatar {}/{}, {n} vertices", a.seed_geo, a.seed_tex),
             )
         }
@@ -211,5 +243,55 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         },
         t0.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+/// OBJ + MTL + PNG beside `out` (same stem): the avatar in the pose shown, with the baked
+/// texture (OBJ's v points up: v = 1 − glTF's v), or without UVs when there is none.
+fn write_obj_files(
+    out: &std::path::Path,
+    positions: &[glam::Vec3],
+    normals: &[glam::Vec3],
+    rigged: &getavatar_core::rigging::RiggedAvatar,
+    texture: Option<&getavatar_core::rigging::BakedTexture>,
+) -> Result<()> {
+    use getavatar_core::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh};
+    let stem = out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
+    let dir = out.parent().unwrap_or(std::path::Path::new("."));
+    let (source, uvs, faces): (Vec<u32>, Vec<glam::Vec2>, Vec<[u32; 3]>) = match texture {
+        Some(t) => (
+            t.atlas.source.clone(),
+            t.atlas.uvs.iter().map(|u| glam::Vec2::new(u.x, 1.0 - u.y)).collect(),
+            t.atlas.faces.clone(),
+        ),
+        None => ((0..positions.len() as u32).collect(), Vec::new(), rigged.canonical.mesh.faces.clone()),
+    };
+    let mut m = ObjMesh {
+        positions: source.iter().map(|v| positions[*v as usize]).collect(),
+        normals: source.iter().map(|v| normals[*v as usize]).collect(),
+        uvs,
+        materials: vec!["avatar".into()],
+        groups: vec!["avatar".into()],
+        ..Default::default()
+    };
+    let textured = texture.is_some();
+    m.faces = faces
+        .iter()
+        .map(|f| ObjFace {
+            corners: f.map(|v| Corner { v, vt: textured.then_some(v), vn: Some(v) }),
+            material: 0,
+            group: 0,
+        })
+        .collect();
+    if let Some(t) = texture {
+        m.mtllibs = vec![format!("{stem}.mtl")];
+        crate::atomic::write_atomic(&dir.join(format!("{stem}.png")), &t.png)?;
+        crate::atomic::write_atomic(
+            &dir.join(format!("{stem}.mtl")),
+            write_mtl("avatar", &format!("{stem}.png")).as_bytes(),
+        )?;
+    }
+    crate::atomic::write_atomic(&dir.join(format!("{stem}.obj")), write_obj(&m).as_bytes())?;
+    eprintln!("wrote {}/{stem}.obj{}", dir.display(), if textured { " + .mtl + .png" } else { "" });
     Ok(())
 }

@@ -22,6 +22,7 @@
 //! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
 //! | mesh download (.glb): textured, skinned, animated | [`gltf_export`] |
 //! | motion clips (built-in keyframed, SMPL/AMASS .npz) | [`motion`] |
+//! | texture atlas (the body's UVs transferred, own charts off the body) and the bake | [`uv_atlas`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
@@ -68,6 +69,7 @@ pub mod scan;
 pub mod skin_export;
 pub mod skinning;
 pub mod spatial;
+pub mod uv_atlas;
 
 pub use body_model::{BodyModel, BodyModelError, JOINT_NAMES, NUM_JOINTS};
 /// The burn version the networks are written against, re-exported for callers.

@@ -6,13 +6,17 @@
 
 use glam::{Mat3, Mat4};
 
-use crate::generator::Avatar;
+use crate::generator::{recolor_async, Avatar, Generator, Styles};
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
 use crate::gltf_export::{write_glb_full, ExportError, ExportMesh};
 use crate::motion::Motion;
+use crate::network::synthesis::Triplanes;
+use crate::readback::ReadbackError;
 use crate::skin_export::{motion_clip, smpl_skin};
 use crate::skinning::{pose_body, BodyParams, PosedBody};
+use crate::uv_atlas::{bake_image, texel_points, transfer_body_uvs, AtlasError, BodyUvs, UvAtlas};
+use burn::tensor::Device;
 
 /// An avatar extracted in the canonical pose and rigged to the body.
 #[derive(Clone, Debug)]
@@ -67,29 +71,152 @@ impl RiggedAvatar {
         self.repose(ctx, &pose_body(&ctx.model, &rest))
     }
 
+    /// The mesh to export from per-avatar-vertex `positions` and `normals`: with a baked
+    /// texture, the atlas' vertices (seams split) with their UVs, else the avatar's own with
+    /// its vertex colours; and the avatar vertex each exported vertex copies.
+    fn export_mesh(
+        &self,
+        positions: Vec<glam::Vec3>,
+        normals: Vec<glam::Vec3>,
+        texture: Option<&BakedTexture>,
+        name: &str,
+    ) -> (ExportMesh, Vec<u32>) {
+        match texture {
+            Some(t) => {
+                let src = &t.atlas.source;
+                let mesh = ExportMesh {
+                    positions: src.iter().map(|v| positions[*v as usize]).collect(),
+                    normals: src.iter().map(|v| normals[*v as usize]).collect(),
+                    colors: Vec::new(),
+                    uvs: t.atlas.uvs.clone(),
+                    indices: t.atlas.faces.clone(),
+                    name: name.to_string(),
+                };
+                (mesh, src.clone())
+            }
+            None => {
+                let mesh = ExportMesh {
+                    positions,
+                    normals,
+                    colors: self.canonical.colors.clone(),
+                    uvs: Vec::new(),
+                    indices: self.canonical.mesh.faces.clone(),
+                    name: name.to_string(),
+                };
+                (mesh, (0..self.body_vertex.len() as u32).collect())
+            }
+        }
+    }
+
+    /// The avatar as a static .glb in the pose/shape of `params`, textured when `texture` is
+    /// given.
+    pub fn posed_glb(
+        &self,
+        ctx: &BodyContext,
+        params: &BodyParams,
+        texture: Option<&BakedTexture>,
+        name: &str,
+    ) -> Result<Vec<u8>, ExportError> {
+        let (positions, normals) = self.repose(ctx, &pose_body(&ctx.model, params));
+        let (mesh, _) = self.export_mesh(positions, normals, texture, name);
+        write_glb_full(&mesh, texture.map(|t| t.png.as_slice()), None, &[])
+    }
+
     /// The avatar as an animated .glb: bound in the rest pose, showing `params` (pose, shape,
-    /// translation), with one animation per motion. Colours: the texture image `texture`
-    /// (PNG bytes) at `uvs` when given, else the avatar's vertex colours.
+    /// translation), with one animation per motion; textured when `texture` is given, else
+    /// vertex-coloured.
     pub fn animated_glb(
         &self,
         ctx: &BodyContext,
         params: &BodyParams,
         motions: &[Motion],
-        texture: Option<(&[glam::Vec2], &[u8])>,
+        texture: Option<&BakedTexture>,
         name: &str,
     ) -> Result<Vec<u8>, ExportError> {
         let (positions, normals) = self.bind_pose(ctx, &params.betas);
-        let weights = self.body_vertex.iter().map(|b| &ctx.model.weights[*b as usize]);
+        let (mesh, source) = self.export_mesh(positions, normals, texture, name);
+        let weights = source.iter().map(|v| &ctx.model.weights[self.body_vertex[*v as usize] as usize]);
         let skin = smpl_skin(&ctx.model, params, weights);
         let clips: Vec<_> = motions.iter().map(motion_clip).collect();
-        let mesh = ExportMesh {
-            positions,
-            normals,
-            colors: self.canonical.colors.clone(),
-            uvs: texture.map_or(Vec::new(), |t| t.0.to_vec()),
-            indices: self.canonical.mesh.faces.clone(),
-            name: name.to_string(),
-        };
-        write_glb_full(&mesh, texture.map(|t| t.1), Some(&skin), &clips)
+        write_glb_full(&mesh, texture.map(|t| t.png.as_slice()), Some(&skin), &clips)
+    }
+}
+
+/// An avatar's texture baked into its atlas ([`crate::uv_atlas`]).
+#[derive(Clone, Debug)]
+pub struct BakedTexture {
+    pub atlas: UvAtlas,
+    /// Side of the square image, texels.
+    pub res: usize,
+    /// sRGB 8-bit RGB, row-major from the top left.
+    pub rgb: Vec<u8>,
+    /// The same image as PNG.
+    pub png: Vec<u8>,
+    /// Texels the charts cover.
+    pub covered: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    #[error("texture atlas: {0}")]
+    Atlas(#[from] AtlasError),
+    #[error("texture field: {0}")]
+    Readback(#[from] ReadbackError),
+    #[error("cannot encode the texture PNG: {0}")]
+    Png(String),
+    #[error("texture resolution {0} (64…4096)")]
+    Resolution(usize),
+}
+
+/// Texture-field queries per batch (bounds the decoder's activations).
+const BAKE_BATCH: usize = 65_536;
+
+/// 8-bit RGB as PNG bytes.
+pub fn encode_rgb_png(rgb: &[u8], w: usize, h: usize) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, w as u32, h as u32);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+        let mut wr = enc.write_header().map_err(|e| e.to_string())?;
+        wr.write_image_data(rgb).map_err(|e| e.to_string())?;
+    }
+    Ok(out)
+}
+
+impl RiggedAvatar {
+    /// The atlas of this avatar (the body's UVs transferred, own charts where it leaves the
+    /// body).
+    pub fn atlas(&self, ctx: &BodyContext) -> Result<UvAtlas, AtlasError> {
+        let body = BodyUvs::new(&ctx.canonical.vertices, &ctx.model.faces, &ctx.model.vt, &ctx.model.ft)?;
+        transfer_body_uvs(&self.canonical.mesh.vertices, &self.canonical.mesh.faces, &body)
+    }
+
+    /// Bake the texture field (styles `s`, triplanes `planes`) into a `res²` atlas image: each
+    /// covered texel's canonical point is queried (the paper's per-pixel colour), the rest
+    /// dilated.
+    pub async fn bake_texture_async(
+        &self,
+        g: &Generator,
+        planes: &Triplanes,
+        s: &Styles,
+        ctx: &BodyContext,
+        res: usize,
+        device: &Device,
+    ) -> Result<BakedTexture, BakeError> {
+        if !(64..=4096).contains(&res) {
+            return Err(BakeError::Resolution(res));
+        }
+        let atlas = self.atlas(ctx)?;
+        let canon: Vec<glam::Vec3> = atlas.source.iter().map(|v| self.canonical.mesh.attributes[*v as usize]).collect();
+        let (texels, points) = texel_points(&atlas, &canon, res);
+        let mut colors = Vec::with_capacity(points.len());
+        for chunk in points.chunks(BAKE_BATCH) {
+            colors.extend(recolor_async(g, planes, s, chunk, device).await?);
+        }
+        let rgb = bake_image(res, &texels, &colors);
+        let png = encode_rgb_png(&rgb, res, res).map_err(BakeError::Png)?;
+        Ok(BakedTexture { atlas, res, rgb, png, covered: texels.len() })
     }
 }

@@ -1,0 +1,126 @@
+//! The texture atlas and bake (issue #22) on the shipped demo model: the atlas covers the
+//! avatar (UVs in the unit square, every triangle once), and the baked image sampled at a
+//! vertex's UV is the texture field at the vertex's canonical point (mean |ΔRGB| ≤ 2/255 away
+//! from seams and chart borders).
+
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+use getavatar_core::colour::linear_to_srgb;
+use getavatar_core::generator::{default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::readback::block_on_ready;
+use getavatar_core::uv_atlas::texel_points;
+use getavatar_core::BodyModel;
+use glam::Vec3;
+
+#[test]
+fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
+    #[allow(deprecated)]
+    let dev = Device::ndarray();
+    let cfg = GeneratorConfig::demo();
+    let bytes =
+        std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors")).expect("demo model");
+    let g = load_generator(&bytes, &cfg, &dev).expect("loads");
+    let modes = load_latent_modes(&bytes, &dev).expect("modes");
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let (zg, zt) = seed_latents(&cfg, 1, 3, &dev);
+    let s = g.styles_with(zg, zt, default_psi(modes.as_ref()), modes.as_ref());
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("avatar");
+    let planes = g.triplanes(&s);
+    let res = 512;
+    let baked = block_on_ready(rigged.bake_texture_async(&g, &planes, &s, &ctx, res, &dev)).expect("bake");
+    let atlas = &baked.atlas;
+
+    // The atlas: every avatar triangle once, UVs in the unit square, every vertex used.
+    let n = rigged.canonical.mesh.vertices.len();
+    assert_eq!(atlas.faces.len(), rigged.canonical.mesh.faces.len());
+    assert!(atlas.uvs.iter().all(|u| u.x >= 0.0 && u.y >= 0.0 && u.x <= 1.0 && u.y <= 1.0));
+    let mut seen = vec![0u32; n];
+    for v in &atlas.source {
+        seen[*v as usize] += 1;
+    }
+    assert!(seen.iter().all(|c| *c > 0), "every avatar vertex is in the atlas");
+    assert!(
+        atlas.body_faces > 9 * atlas.faces.len() / 10,
+        "{} of {} triangles on the body's layout",
+        atlas.body_faces,
+        atlas.faces.len()
+    );
+    // Triangle corners keep the avatar's triangles (same vertices, same order).
+    for (a, f) in atlas.faces.iter().zip(&rigged.canonical.mesh.faces) {
+        assert_eq!(a.map(|v| atlas.source[v as usize]), *f);
+    }
+
+    // Texels covered by the charts (not dilation).
+    let canon: Vec<Vec3> = atlas.source.iter().map(|v| rigged.canonical.mesh.attributes[*v as usize]).collect();
+    let (texels, tpoints) = texel_points(atlas, &canon, res);
+    let mut covered = vec![false; res * res];
+    let mut at = vec![Vec3::ZERO; res * res];
+    for (t, p) in texels.iter().zip(&tpoints) {
+        covered[*t as usize] = true;
+        at[*t as usize] = *p;
+    }
+    // Vertices away from seams (not split) whose bilinear footprint is all chart texels.
+    let mut picked = Vec::new();
+    for (k, v) in atlas.source.iter().enumerate() {
+        if seen[*v as usize] != 1 {
+            continue;
+        }
+        let p = atlas.uvs[k] * res as f32 - glam::Vec2::splat(0.5);
+        let (x0, y0) = (p.x.floor() as i64, p.y.floor() as i64);
+        let inside = (0..2).all(|dy| {
+            (0..2).all(|dx| {
+                let (x, y) = (x0 + dx, y0 + dy);
+                x >= 1 && y >= 1 && x < res as i64 - 1 && y < res as i64 - 1 && {
+                    // The texel and its 8 neighbours belong to charts.
+                    (-1..=1).all(|j| (-1..=1).all(|i| covered[((y + j) as usize) * res + (x + i) as usize]))
+                }
+            })
+        });
+        if inside {
+            picked.push(k);
+        }
+    }
+    assert!(picked.len() > n / 2, "{} of {n} vertices away from seams", picked.len());
+    let points: Vec<Vec3> = picked.iter().map(|k| canon[*k]).collect();
+    let truth = block_on_ready(recolor_async(&g, &planes, &s, &points, &dev)).expect("texture field");
+    let texel = |x: usize, y: usize| -> Vec3 {
+        let i = 3 * (y * res + x);
+        Vec3::new(baked.rgb[i] as f32, baked.rgb[i + 1] as f32, baked.rgb[i + 2] as f32)
+    };
+    let mut sum = 0.0f64;
+    let mut worst = 0.0f32;
+    let mut errs = Vec::new();
+    for (k, want) in picked.iter().zip(&truth) {
+        let p = atlas.uvs[*k] * res as f32 - glam::Vec2::splat(0.5);
+        let (x0, y0) = (p.x.floor() as usize, p.y.floor() as usize);
+        let (fx, fy) = (p.x - x0 as f32, p.y - y0 as f32);
+        let got = texel(x0, y0) * (1.0 - fx) * (1.0 - fy)
+            + texel(x0 + 1, y0) * fx * (1.0 - fy)
+            + texel(x0, y0 + 1) * (1.0 - fx) * fy
+            + texel(x0 + 1, y0 + 1) * fx * fy;
+        let want = linear_to_srgb(want.clamp(Vec3::ZERO, Vec3::ONE)) * 255.0;
+        let d = (got - want).abs();
+        sum += ((d.x + d.y + d.z) / 3.0) as f64;
+        errs.push((d.x + d.y + d.z) / 3.0);
+        worst = worst.max(d.max_element());
+    }
+    let mean = sum / picked.len() as f64;
+    // The texel under each vertex holds a point of the vertex's own surface (no other part of
+    // the avatar folded onto it in the atlas).
+    let mut dists: Vec<f32> = picked
+        .iter()
+        .map(|k| {
+            let p = atlas.uvs[*k] * res as f32;
+            at[(p.y as usize) * res + p.x as usize].distance(canon[*k])
+        })
+        .collect();
+    dists.sort_by(f32::total_cmp);
+    let d99 = dists[dists.len() * 99 / 100];
+    assert!(d99 < 0.02, "99 % of the vertices' texels lie within {d99} m of the vertex (< 2 cm)");
+    errs.sort_by(f32::total_cmp);
+    let q = |f: f64| errs[((errs.len() - 1) as f64 * f) as usize];
+    eprintln!("|ΔRGB| quantiles: 50 % {:.2}, 90 % {:.2}, 99 % {:.2} (/255)", q(0.5), q(0.9), q(0.99));
+    eprintln!("bake vs texture field: mean |ΔRGB| {mean:.2}/255, worst {worst:.1}/255 over {} vertices", picked.len());
+    assert!(mean <= 2.0, "mean |ΔRGB| {mean:.2}/255 (≤ 2/255)");
+}
