@@ -31,13 +31,8 @@ fn amass_file_plays_the_same_poses_joint_by_joint() {
     for k in 0..m.len() {
         let src = &theta[2 * k];
         let file_pose: Vec<Vec3> = (0..24).map(|j| Vec3::from_slice(&src[3 * j..3 * j + 3])).collect();
-        for j in 1..24 {
-            assert!(
-                (m.poses[k][j] - file_pose[j]).length() < 1e-5,
-                "frame {k} joint {j}: {} vs {}",
-                m.poses[k][j],
-                file_pose[j]
-            );
+        for (j, (got, want)) in m.poses[k].iter().zip(&file_pose).enumerate().skip(1) {
+            assert!((*got - *want).length() < 1e-5, "frame {k} joint {j}: {got} vs {want}");
         }
         let root = quat(m.poses[k][0]);
         let want = up * quat(file_pose[0]);
@@ -50,10 +45,8 @@ fn amass_file_plays_the_same_poses_joint_by_joint() {
         let mut fp = BodyParams::default();
         fp.pose.copy_from_slice(&file_pose);
         let theirs = pose_body(&model, &fp).kinematics.posed_joints;
-        for j in 0..24 {
-            let a = ours[j] - ours[0];
-            let b = up * (theirs[j] - theirs[0]);
-            worst = worst.max((a - b).length());
+        for (a, b) in ours.iter().zip(&theirs) {
+            worst = worst.max(((*a - ours[0]) - up * (*b - theirs[0])).length());
         }
     }
     assert!(worst < 1e-4, "posed joints differ by {worst} m");

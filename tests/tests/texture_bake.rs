@@ -124,3 +124,78 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     eprintln!("bake vs texture field: mean |ΔRGB| {mean:.2}/255, worst {worst:.1}/255 over {} vertices", picked.len());
     assert!(mean <= 2.0, "mean |ΔRGB| {mean:.2}/255 (≤ 2/255)");
 }
+
+/// Surface far from the body (a skirt-like tube around the hips) gets charts of its own,
+/// outside the body layout, overlapping neither the body's charts nor each other.
+#[test]
+fn surface_off_the_body_gets_its_own_charts() {
+    use getavatar_core::skinning::vertex_normals;
+    use getavatar_core::uv_atlas::{transfer_body_uvs, BodyUvs, BODY_REGION};
+    let cfg = GeneratorConfig::tiny();
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let body = &ctx.canonical;
+    let faces = &ctx.model.faces;
+    // The body itself, 5 mm outwards, and an open tube of radius 0.4 m around the hips (clear of the spread thighs).
+    let normals = vertex_normals(&body.vertices, faces);
+    let mut verts: Vec<Vec3> = body.vertices.iter().zip(&normals).map(|(p, n)| *p + *n * 0.005).collect();
+    let mut tris: Vec<[u32; 3]> = faces.clone();
+    let hips = (body.kinematics.posed_joints[1] + body.kinematics.posed_joints[2]) / 2.0;
+    let (seg, rings) = (48u32, 5u32);
+    let base = verts.len() as u32;
+    for r in 0..rings {
+        for k in 0..seg {
+            let a = k as f32 / seg as f32 * std::f32::consts::TAU;
+            verts.push(hips + Vec3::new(0.4 * a.cos(), -0.05 * r as f32, 0.4 * a.sin()));
+        }
+    }
+    let tube_start = tris.len();
+    for r in 0..rings - 1 {
+        for k in 0..seg {
+            let (i, j) = (base + r * seg + k, base + r * seg + (k + 1) % seg);
+            tris.push([i, i + seg, j]);
+            tris.push([j, i + seg, j + seg]);
+        }
+    }
+    let uvs = BodyUvs::new(&body.vertices, faces, &ctx.model.vt, &ctx.model.ft).unwrap();
+    let atlas = transfer_body_uvs(&verts, &tris, &uvs).unwrap();
+    let tube_faces = tris.len() - tube_start;
+    assert_eq!(atlas.own_chart_faces, tube_faces, "the tube, and only it, in charts of its own");
+    // Most of the body keeps its own layout; the rest (fine features a 5 mm shell folds: eyelids,
+    // lips, between fingers) goes through the centroid's face.
+    assert!(
+        atlas.body_faces > 8 * faces.len() / 10,
+        "{} of {} body triangles on the layout",
+        atlas.body_faces,
+        faces.len()
+    );
+    // Own charts lie outside the body layout's square; all UVs in the unit square.
+    let is_tube = |f: &[u32; 3]| f.iter().all(|v| atlas.source[*v as usize] >= base);
+    for f in &atlas.faces {
+        for v in f {
+            let u = atlas.uvs[*v as usize];
+            assert!(u.x >= 0.0 && u.y >= 0.0 && u.x <= 1.0 && u.y <= 1.0, "{u}");
+            if is_tube(f) {
+                assert!(u.x >= BODY_REGION - 1e-4 || u.y >= BODY_REGION - 1e-4, "tube UV {u} inside the body layout");
+            }
+        }
+    }
+    // No texel claimed by two triangles (rasterised separately per triangle, counted).
+    let res = 512;
+    let mut count = vec![0u16; res * res];
+    let pts: Vec<Vec3> = atlas.source.iter().map(|v| verts[*v as usize]).collect();
+    for f in &atlas.faces {
+        let one = getavatar_core::uv_atlas::UvAtlas {
+            source: atlas.source.clone(),
+            uvs: atlas.uvs.clone(),
+            faces: vec![*f],
+            ..Default::default()
+        };
+        for t in texel_points(&one, &pts, res).0 {
+            count[t as usize] += 1;
+        }
+    }
+    let covered = count.iter().filter(|c| **c > 0).count();
+    let twice = count.iter().filter(|c| **c > 1).count();
+    eprintln!("atlas: {covered} texels covered, {twice} by more than one triangle");
+    assert!(twice * 100 <= covered, "{twice} of {covered} texels overlap (≤ 1 %)");
+}

@@ -361,9 +361,10 @@ fn from_keys(name: &str, keys: &[Key], period: f32, looping: bool) -> Motion {
     }
     // Same hemisphere as the previous key, so slerps take the short way.
     for k in 1..nk {
-        for j in 0..NUM_JOINTS {
-            if table[k][j].dot(table[k - 1][j]) < 0.0 {
-                table[k][j] = -table[k][j];
+        let prev = table[k - 1];
+        for (q, p) in table[k].iter_mut().zip(prev) {
+            if q.dot(p) < 0.0 {
+                *q = -*q;
             }
         }
     }

@@ -115,9 +115,8 @@ pub struct BodyUvs<'a> {
     vertex_faces: Vec<Vec<u32>>,
     /// UV chart of each face (connected components over shared `vt` indices).
     chart: Vec<u32>,
-    /// Median layout scale (atlas units per metre) and its square.
-    scale: f32,
-    scale2: f32,
+    /// Each face's layout scale (atlas units per metre).
+    scale: Vec<f32>,
 }
 
 impl<'a> BodyUvs<'a> {
@@ -153,32 +152,24 @@ impl<'a> BodyUvs<'a> {
             }
         }
         let chart = ft.iter().map(|t| find(&mut parent, t[0])).collect();
-        // The layout's scale, atlas units per metre (median over faces, in the placed
-        // layout): for spotting stretched transfers.
-        let mut scales: Vec<f32> = faces
+        // Each face's layout scale, atlas units per metre (in the placed layout; charts differ:
+        // the head gets more texels per metre than the legs): for spotting stretched transfers.
+        let scale = faces
             .iter()
             .zip(ft)
-            .filter_map(|(f, t)| {
+            .map(|(f, t)| {
                 let [a, b, c] = f.map(|v| vertices[v as usize]);
                 let [p, q, r] = t.map(|v| vt[v as usize] * BODY_REGION);
                 let a3 = (b - a).cross(c - a).length();
                 let a2 = (q - p).perp_dot(r - p).abs();
-                (a3 > 1e-12).then(|| (a2 / a3).sqrt())
+                if a3 > 1e-12 {
+                    (a2 / a3).sqrt()
+                } else {
+                    0.0
+                }
             })
             .collect();
-        scales.sort_by(f32::total_cmp);
-        let scale = scales.get(scales.len() / 2).copied().unwrap_or(1.0);
-        Ok(Self {
-            vertices,
-            faces,
-            vt,
-            ft,
-            tree: KdTree::new(vertices),
-            vertex_faces,
-            chart,
-            scale,
-            scale2: scale * scale,
-        })
+        Ok(Self { vertices, faces, vt, ft, tree: KdTree::new(vertices), vertex_faces, chart, scale })
     }
 
     fn corners(&self, f: usize) -> (Vec3, Vec3, Vec3) {
@@ -191,11 +182,10 @@ impl<'a> BodyUvs<'a> {
         self.vt[t[0] as usize] * bary.x + self.vt[t[1] as usize] * bary.y + self.vt[t[2] as usize] * bary.z
     }
 
-    /// The body face nearest `p` (among the faces around the nearest body vertex and its
-    /// neighbours), the closest point's barycentric weights there, and its distance.
-    pub fn closest(&self, p: Vec3) -> (usize, Vec3, f32) {
-        let Some((v, _)) = self.tree.nearest(p) else { return (0, Vec3::X, f32::INFINITY) };
-        let mut best = (0usize, Vec3::X, f32::INFINITY);
+    /// The faces around the body vertex nearest `p` and its neighbours, each with the closest
+    /// point's barycentric weights and distance.
+    fn candidates(&self, p: Vec3) -> Vec<(usize, Vec3, f32)> {
+        let Some((v, _)) = self.tree.nearest(p) else { return Vec::new() };
         let mut ring: Vec<u32> = self.vertex_faces[v].clone();
         for f in &self.vertex_faces[v] {
             for &u in &self.faces[*f as usize] {
@@ -204,15 +194,49 @@ impl<'a> BodyUvs<'a> {
         }
         ring.sort_unstable();
         ring.dedup();
-        for f in ring {
-            let (a, b, c) = self.corners(f as usize);
-            let bary = closest_barycentric(p, a, b, c);
-            let d = (a * bary.x + b * bary.y + c * bary.z).distance(p);
-            if d < best.2 {
-                best = (f as usize, bary, d);
+        ring.into_iter()
+            .map(|f| {
+                let (a, b, c) = self.corners(f as usize);
+                let bary = closest_barycentric(p, a, b, c);
+                (f as usize, bary, (a * bary.x + b * bary.y + c * bary.z).distance(p))
+            })
+            .collect()
+    }
+
+    /// The body face nearest `p`, the closest point's barycentric weights there, and its
+    /// distance.
+    pub fn closest(&self, p: Vec3) -> (usize, Vec3, f32) {
+        self.candidates(p).into_iter().fold((0, Vec3::X, f32::INFINITY), |best, c| if c.2 < best.2 { c } else { best })
+    }
+
+    /// The UV of `p`'s closest body point as seen from a triangle whose centre maps to `near`:
+    /// where the closest point lies on a UV cut (a body vertex or edge with a UV on each
+    /// side), the side nearer `near` is taken, so a triangle's corners stay on its side of the
+    /// cut. Returns the face, the UV and which of the point's UVs it is (0 off cuts).
+    fn uv_towards(&self, p: Vec3, near: Vec2) -> (usize, Vec2, u8) {
+        let mut cands = self.candidates(p);
+        cands.sort_by_key(|c| c.0);
+        let Some(best) = cands.iter().min_by(|a, b| a.2.total_cmp(&b.2)).copied() else {
+            return (0, Vec2::ZERO, 0);
+        };
+        let point = |c: &(usize, Vec3, f32)| {
+            let (a, b, cc) = self.corners(c.0);
+            a * c.1.x + b * c.1.y + cc * c.1.z
+        };
+        let at = point(&best);
+        // The distinct UVs of the same closest point (in face order: deterministic).
+        let mut sides: Vec<(usize, Vec2)> = Vec::new();
+        for c in cands.iter().filter(|c| point(c).distance(at) < 1e-6) {
+            let uv = self.uv_at(c.0, c.1);
+            if !sides.iter().any(|s| s.1.distance(uv) < 1e-5) {
+                sides.push((c.0, uv));
             }
         }
-        best
+        sides
+            .iter()
+            .enumerate()
+            .min_by(|a, b| a.1 .1.distance_squared(near).total_cmp(&b.1 .1.distance_squared(near)))
+            .map_or((best.0, self.uv_at(best.0, best.1), 0), |(k, s)| (s.0, s.1, k as u8))
     }
 }
 
@@ -223,36 +247,40 @@ pub fn transfer_body_uvs(vertices: &[Vec3], faces: &[[u32; 3]], body: &BodyUvs) 
     }
     // Body layout → top-left BODY_REGION of the square (vt has v up; glTF's v points down).
     let place = |uv: Vec2| Vec2::new(uv.x * BODY_REGION, (1.0 - uv.y) * BODY_REGION);
-    let near: Vec<(usize, Vec3, f32)> = vertices.iter().map(|p| body.closest(*p)).collect();
+    let near: Vec<f32> = vertices.iter().map(|p| body.closest(*p).2).collect();
     let mut atlas = UvAtlas::default();
-    // Shared vertices for triangles inside one body chart: one atlas vertex per avatar vertex.
-    let mut shared: Vec<Option<u32>> = vec![None; vertices.len()];
+    // Shared atlas vertices: one per avatar vertex and UV (a vertex on a body UV cut has one
+    // on each side).
+    let mut shared: std::collections::HashMap<(u32, u8), u32> = std::collections::HashMap::new();
     let mut far = Vec::new();
     for (t, tri) in faces.iter().enumerate() {
         let idx = tri.map(|v| v as usize);
         let centroid = (vertices[idx[0]] + vertices[idx[1]] + vertices[idx[2]]) / 3.0;
-        let (fc, _, dc) = body.closest(centroid);
-        if dc > FAR_FROM_BODY || idx.iter().any(|v| near[*v].2 > FAR_FROM_BODY) {
+        let (fc, bc, dc) = body.closest(centroid);
+        if dc > FAR_FROM_BODY || idx.iter().any(|v| near[*v] > FAR_FROM_BODY) {
             far.push(t);
             continue;
         }
-        let charts = idx.map(|v| body.chart[near[v].0]);
-        let uv = idx.map(|v| place(body.uv_at(near[v].0, near[v].1)));
+        let uv_c = body.uv_at(fc, bc);
+        let corner = idx.map(|v| body.uv_towards(vertices[v], uv_c));
+        let charts = corner.map(|c| body.chart[c.0]);
+        let uv = corner.map(|c| place(c.1));
         let pos = idx.map(|v| vertices[v]);
         // The shared UVs must keep the triangle's shape: not folded over (the placed body
         // layout has negative signed area: v points down) and not stretched across the chart
         // (corners whose closest body points lie apart, e.g. bridging two limbs).
         let uv_area = (uv[1] - uv[0]).perp_dot(uv[2] - uv[0]);
         let area3 = (pos[1] - pos[0]).cross(pos[2] - pos[0]).length();
-        let stretched = uv_area.abs() > 9.0 * body.scale2 * area3 + 1e-9
-            || (0..3)
-                .any(|k| uv[k].distance(uv[(k + 1) % 3]) > 3.0 * body.scale * pos[k].distance(pos[(k + 1) % 3]) + 1e-4);
+        let scale = corner.iter().map(|c| body.scale[c.0]).fold(body.scale[fc], f32::max);
+        let stretched = uv_area.abs() > 9.0 * scale * scale * area3 + 1e-9
+            || (0..3).any(|k| uv[k].distance(uv[(k + 1) % 3]) > 3.0 * scale * pos[k].distance(pos[(k + 1) % 3]) + 1e-4);
         if charts[0] == charts[1] && charts[1] == charts[2] && uv_area < 0.0 && !stretched {
             let mut out = [0u32; 3];
             for (k, v) in idx.iter().enumerate() {
-                out[k] = *shared[*v].get_or_insert_with(|| {
+                let key = (*v as u32, corner[k].2);
+                out[k] = *shared.entry(key).or_insert_with(|| {
                     atlas.source.push(*v as u32);
-                    atlas.uvs.push(place(body.uv_at(near[*v].0, near[*v].1)));
+                    atlas.uvs.push(uv[k]);
                     atlas.source.len() as u32 - 1
                 });
             }
@@ -264,7 +292,9 @@ pub fn transfer_body_uvs(vertices: &[Vec3], faces: &[[u32; 3]], body: &BodyUvs) 
             let base = atlas.source.len() as u32;
             for v in idx {
                 atlas.source.push(v as u32);
-                atlas.uvs.push(place(body.uv_at(fc, plane_barycentric(vertices[v], a, b, c))));
+                let uv = place(body.uv_at(fc, plane_barycentric(vertices[v], a, b, c)));
+                // Extrapolation may leave the layout at its border: kept inside it.
+                atlas.uvs.push(uv.clamp(Vec2::ZERO, Vec2::splat(BODY_REGION)));
             }
             atlas.faces.push([base, base + 1, base + 2]);
             atlas.seam_faces += 1;
