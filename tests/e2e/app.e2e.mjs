@@ -21,7 +21,8 @@
 //    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
 //  - Motion: the built-in walk scrubbed to two times changes the mask; playing re-poses every
 //    frame; the AMASS fixture loads as a clip (resampled), a broken .npz gets one message; the
-//    animated .glb (walk + wave) passes the validator with 2 animations and a skin.
+//    animated .glb (walk + wave) passes the validator with 2 animations and a skin; with the
+//    texture at 256² the avatar is baked once and both downloads carry the image.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -272,6 +273,8 @@ try {
   const avMask2 = maskOf(await grab('mask_avatar_tex3'), (c) => c[0] > 127);
   check(iou(avMask, avMask2) > 0.999, `…but not the mask (IoU ${iou(avMask, avMask2).toFixed(4)})`);
   s = await command({ view: 'rgb' }, (s) => s.view === 'rgb');
+  // Vertex colours here (texture_res 0): the file has the app's vertices one to one.
+  await page.evaluate(() => window.getavatar.command({ texture_res: 0 }));
   const dlA = await download('avatar.glb');
   const repA = await validator.validateBytes(dlA.bytes);
   check(repA.issues.numErrors === 0 && glbPositions(dlA.bytes).count === s.vertices, `avatar .glb: ${repA.issues.numErrors} validator errors, ${glbPositions(dlA.bytes).count} vertices`);
@@ -435,6 +438,25 @@ try {
   check(animRep.issues.numErrors === 0 && animRep.issues.numWarnings === 0 && animRep.info.animationCount === 2 && animRep.info.hasSkins,
     `animated .glb ${adl.suggestedFilename()}: ${animRep.issues.numErrors} errors, ${animRep.issues.numWarnings} warnings, ${animRep.info.animationCount} animations, skinned ${animRep.info.hasSkins}`);
   check(/animated_walk\+wave\.glb$/.test(adl.suggestedFilename()), `the file name says what it holds (${adl.suggestedFilename()})`);
+  // Textured downloads: the avatar's texture baked at 256² (small for SwiftShader), then
+  // the posed and the animated file carry it.
+  await page.evaluate(() => window.getavatar.command({ texture_res: 256 }));
+  const bakesBefore = (await status()).motion.bakes;
+  const [tdl] = await Promise.all([page.waitForEvent('download', { timeout: 240000 }), page.evaluate(() => window.getavatar.command({ download: true }))]);
+  const texFile = path.join(out, tdl.suggestedFilename());
+  await tdl.saveAs(texFile);
+  const tex = new Uint8Array(fs.readFileSync(texFile));
+  const texRep = await validator.validateBytes(tex);
+  s = await status();
+  const texJson = glbPositions(tex).json;
+  check(texRep.issues.numErrors === 0 && texRep.issues.numWarnings === 0 && texRep.info.hasTextures && texJson.images?.length === 1 && s.motion.last_textured && s.motion.bakes === bakesBefore + 1,
+    `posed .glb with a ${s.motion.texture_res}² baked texture (${s.motion.last_bake_ms.toFixed(0)} ms; atlas ${s.motion.atlas_vertices} vertices): ${texRep.issues.numErrors} errors, ${texRep.issues.numWarnings} warnings, ${texJson.images?.length} image`);
+  const [tadl] = await Promise.all([page.waitForEvent('download'), page.evaluate(() => window.getavatar.command({ download_animated: true }))]);
+  const texAnim = new Uint8Array(fs.readFileSync(await tadl.path()));
+  const texAnimRep = await validator.validateBytes(texAnim);
+  s = await status();
+  check(texAnimRep.issues.numErrors === 0 && texAnimRep.info.hasTextures && texAnimRep.info.animationCount === 2 && s.motion.bakes === bakesBefore + 1,
+    `animated .glb reuses the bake (${s.motion.bakes - bakesBefore} bake): textured ${texAnimRep.info.hasTextures}, ${texAnimRep.info.animationCount} animations, ${texAnimRep.issues.numErrors} errors`);
   await page.screenshot({ path: path.join(out, 'motion.png') });
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);

@@ -295,3 +295,76 @@ fn write_obj_files(
     eprintln!("wrote {}/{stem}.obj{}", dir.display(), if textured { " + .mtl + .png" } else { "" });
     Ok(())
 }
+
+#[derive(clap::Args, Debug)]
+pub struct BenchExportArgs {
+    /// Generator configs to time (demo uses the shipped model; others random weights).
+    #[arg(long, default_value = "demo", value_delimiter = ',')]
+    pub configs: Vec<String>,
+    /// Texture sides to bake.
+    #[arg(long, default_value = "1024,2048", value_delimiter = ',')]
+    pub texture_res: Vec<usize>,
+    #[arg(long, default_value_t = 1)]
+    pub seed_geo: u64,
+    #[arg(long, default_value_t = 3)]
+    pub seed_tex: u64,
+}
+
+/// `bench-export`: the export's stages timed one by one (atlas, texel points, texture-field
+/// queries, image + dilation, PNG, glTF writing) and the file sizes, per config and texture
+/// side, on NdArray.
+pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
+    use getavatar_core::generator::recolor_async;
+    use getavatar_core::rigging::encode_rgb_png;
+    use getavatar_core::uv_atlas::{bake_image, texel_points};
+    #[allow(deprecated)]
+    let device = Device::ndarray();
+    let walk = Motion::builtin("walk")?;
+    let params = PoseLibrary::builtin().params("standing", &[])?;
+    println!("| config | texture | vertices (atlas) | atlas s | texels s | field queries s | image s | PNG s | glb write s | total s | animated .glb MB |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for config in &a.configs {
+        let gen = GeneratorArgs { config: config.clone(), checkpoint: None, random: config != "demo" };
+        let (cfg, g, modes) = gen.load(&device)?;
+        let ctx = BodyContext::new(BodyModel::default_body()?, &cfg);
+        let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
+        let modes = truncation_modes(&modes, false);
+        let styles = g.styles_with(zg, zt, default_psi(modes), modes);
+        let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
+        let planes = g.triplanes(&styles);
+        for &res in &a.texture_res {
+            let t = std::time::Instant::now();
+            let atlas = rigged.atlas(&ctx)?;
+            let t_atlas = t.elapsed().as_secs_f64();
+            let t = std::time::Instant::now();
+            let canon: Vec<glam::Vec3> =
+                atlas.source.iter().map(|v| rigged.canonical.mesh.attributes[*v as usize]).collect();
+            let (texels, points) = texel_points(&atlas, &canon, res);
+            let t_texels = t.elapsed().as_secs_f64();
+            let t = std::time::Instant::now();
+            let mut colors = Vec::with_capacity(points.len());
+            for chunk in points.chunks(65_536) {
+                colors.extend(block_on_ready(recolor_async(&g, &planes, &styles, chunk, &device))?);
+            }
+            let t_query = t.elapsed().as_secs_f64();
+            let t = std::time::Instant::now();
+            let rgb = bake_image(res, &texels, &colors);
+            let t_image = t.elapsed().as_secs_f64();
+            let t = std::time::Instant::now();
+            let png = encode_rgb_png(&rgb, res, res).map_err(anyhow::Error::msg)?;
+            let t_png = t.elapsed().as_secs_f64();
+            let baked = getavatar_core::rigging::BakedTexture { atlas, res, rgb, png, covered: texels.len() };
+            let t = std::time::Instant::now();
+            let glb = rigged.animated_glb(&ctx, &params, std::slice::from_ref(&walk), Some(&baked), "bench")?;
+            let t_write = t.elapsed().as_secs_f64();
+            let total = t_atlas + t_texels + t_query + t_image + t_png + t_write;
+            println!(
+                "| {config} | {res}² | {} ({}) | {t_atlas:.2} | {t_texels:.2} | {t_query:.2} | {t_image:.2} | {t_png:.2} | {t_write:.3} | {total:.2} | {:.2} |",
+                rigged.canonical.mesh.vertices.len(),
+                baked.atlas.source.len(),
+                glb.len() as f64 / 1e6
+            );
+        }
+    }
+    Ok(())
+}

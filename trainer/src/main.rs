@@ -162,6 +162,8 @@ enum Command {
     /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
     /// joints, with motion clips (built-in walk/turn/wave or SMPL/AMASS .npz) as animations.
     Export(export::ExportArgs),
+    /// Time the export's stages (atlas, bake, PNG, glTF) and file sizes per config.
+    BenchExport(export::BenchExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
     /// mask): the app's photo → body step, scriptable. Writes fit.json.
     FitPose(fit_pose::FitPoseArgs),
@@ -248,6 +250,7 @@ fn main() -> Result<()> {
         }
         Command::Sample(args) => sample::sample(&args)?,
         Command::Export(args) => export::export(&args)?,
+        Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
         Command::BodyPhotos { out, size } => {

@@ -111,6 +111,9 @@ pub enum Command {
     DownloadAnimated {
         download_animated: bool,
     },
+    TextureRes {
+        texture_res: usize,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
@@ -228,7 +231,12 @@ pub enum Action {
     },
     /// Download the avatar (or body) as a skinned .glb with the chosen clips.
     DownloadAnimated,
+    /// Side of the avatar's baked texture in the downloads (0: vertex colours).
+    TextureRes(usize),
 }
+
+/// Texture sizes offered for the downloads (0: vertex colours, no texture).
+pub const TEXTURE_RESOLUTIONS: [usize; 5] = [0, 256, 512, 1024, 2048];
 
 fn finite(v: f32, what: &str) -> Result<f32, String> {
     if v.is_finite() {
@@ -329,6 +337,14 @@ impl Command {
                 Action::Motion(motion)
             }
             Command::DownloadAnimated { .. } => Action::DownloadAnimated,
+            Command::TextureRes { texture_res } => {
+                if !TEXTURE_RESOLUTIONS.contains(&texture_res) {
+                    return Err(format!(
+                        "texture_res {texture_res} (one of {TEXTURE_RESOLUTIONS:?}; 0 = vertex colours)"
+                    ));
+                }
+                Action::TextureRes(texture_res)
+            }
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
@@ -571,6 +587,16 @@ pub struct MotionStatus {
     /// Animated downloads and the last one's size, bytes.
     pub animated_downloads: u64,
     pub last_animated_bytes: usize,
+    /// The downloads' texture side (0: vertex colours), finished bakes, whether one runs,
+    /// the last one's milliseconds and its atlas (vertices, and triangles in own charts).
+    pub texture_res: usize,
+    pub bakes: u64,
+    pub baking: bool,
+    pub last_bake_ms: f32,
+    pub atlas_vertices: usize,
+    pub atlas_own_chart_faces: usize,
+    /// Whether the last download (posed or animated) carried a texture.
+    pub last_textured: bool,
 }
 
 #[cfg(test)]
@@ -653,6 +679,8 @@ mod tests {
         assert!(parse_command(r#"{"motion":{"time":-1}}"#).is_err());
         assert!(parse_command(r#"{"motion":{"tempo":1}}"#).is_err());
         assert_eq!(parse_command(r#"{"download_animated":true}"#), Ok(Action::DownloadAnimated));
+        assert_eq!(parse_command(r#"{"texture_res":512}"#), Ok(Action::TextureRes(512)));
+        assert!(parse_command(r#"{"texture_res":300}"#).is_err());
         assert!(matches!(
             parse_command(r#"{"photo":{"url":"p.png","device":"webgpu"}}"#),
             Ok(Action::Photo { on_gpu: true, options: None, .. })

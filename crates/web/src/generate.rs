@@ -21,7 +21,7 @@ use getavatar_core::generator::{
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
-use getavatar_core::rigging::RiggedAvatar;
+use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -70,6 +70,8 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
 
 /// Colours of a texture-field query, or why it failed.
 type TextureColours = Result<Vec<glam::Vec3>, String>;
+/// A finished bake and its milliseconds.
+type Bake = Result<(BakedTexture, f64), String>;
 
 /// A fetched checkpoint: the generator, its latent modes (if any) and its size in bytes.
 type Shipped = (Generator, Option<LatentModes>, usize);
@@ -108,6 +110,9 @@ pub struct GenEngine {
     weights_slot: Rc<RefCell<Option<Result<Shipped, String>>>>,
     pub weights: Weights,
     texture_slot: Rc<RefCell<Option<TextureColours>>>,
+    bake_slot: Rc<RefCell<Option<Bake>>>,
+    /// A bake is running.
+    pub baking: bool,
     /// A generation asked for while the weights were loading.
     pending: Option<Job>,
     pub busy: bool,
@@ -149,6 +154,8 @@ impl GenEngine {
             weights_slot,
             weights: Weights::Loading,
             texture_slot: Rc::new(RefCell::new(None)),
+            bake_slot: Rc::new(RefCell::new(None)),
+            baking: false,
             pending: None,
             busy: false,
         })
@@ -260,6 +267,41 @@ impl GenEngine {
     /// Colours of the last [`GenEngine::query_texture`] (or why it failed), once.
     pub fn poll_texture(&mut self) -> Option<Result<Vec<glam::Vec3>, String>> {
         self.texture_slot.borrow_mut().take()
+    }
+
+    /// Bake `rigged`'s texture field (`field`) into a `res²` atlas image for the downloads
+    /// (texture-field queries on the WebGPU device); the result arrives via
+    /// [`GenEngine::poll_bake`].
+    pub fn bake(&mut self, field: Rc<TextureField>, rigged: RiggedAvatar, res: usize, repaint: eframe::egui::Context) {
+        let Some(ctx) = self.ctx.clone() else {
+            *self.bake_slot.borrow_mut() = Some(Err("the body context is not ready".into()));
+            return;
+        };
+        let (g, dev, slot) = (self.generator.clone(), self.device.clone(), self.bake_slot.clone());
+        self.baking = true;
+        wasm_bindgen_futures::spawn_local(async move {
+            let t0 = crate::platform::now_ms();
+            let cached = field.planes.borrow().clone();
+            let planes = cached.unwrap_or_else(|| {
+                let p = g.triplanes(&field.styles);
+                *field.planes.borrow_mut() = Some(p.clone());
+                p
+            });
+            let baked = rigged.bake_texture_async(&g, &planes, &field.styles, &ctx, res, &dev).await;
+            *slot.borrow_mut() = Some(
+                baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}")),
+            );
+            repaint.request_repaint();
+        });
+    }
+
+    /// The last [`GenEngine::bake`]'s texture (or why it failed), once.
+    pub fn poll_bake(&mut self) -> Option<Bake> {
+        let r = self.bake_slot.borrow_mut().take();
+        if r.is_some() {
+            self.baking = false;
+        }
+        r
     }
 
     /// burn's device on egui's WebGPU device.

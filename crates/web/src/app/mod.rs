@@ -86,6 +86,11 @@ pub struct GetAvatarApp {
     photo: PhotoPanel,
     /// Motion playback.
     motion: MotionPlayer,
+    /// The downloads' texture side (0: vertex colours), the shown avatar's bake at it, and a
+    /// download waiting for the bake.
+    texture_res: usize,
+    baked: Option<getavatar_core::rigging::BakedTexture>,
+    pending_download: Option<motion_panel::DownloadKind>,
     /// egui's context, for the repaints of background tasks.
     ctx: egui::Context,
 }
@@ -164,6 +169,9 @@ impl GetAvatarApp {
             queued: None,
             photo: PhotoPanel::default(),
             motion: MotionPlayer::default(),
+            texture_res: 1024,
+            baked: None,
+            pending_download: None,
             ctx: cc.egui_ctx.clone(),
         };
         for a in startup {
@@ -219,7 +227,7 @@ impl GetAvatarApp {
                 self.camera = OrbitCamera::default();
                 self.render_dirty = true;
             }
-            Action::Download => self.download_glb(),
+            Action::Download => self.request_download(motion_panel::DownloadKind::Posed),
             Action::Continuous(c) => self.continuous = c,
             Action::Generate(a) => self.queued = Some((false, a)),
             Action::Retexture(a) => self.queued = Some((true, a)),
@@ -231,7 +239,8 @@ impl GetAvatarApp {
             a @ (Action::Photo { .. } | Action::PhotoFit(_)) => self.apply_photo(a),
             Action::Motion(a) => self.apply_motion(a),
             Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
-            Action::DownloadAnimated => self.download_animated(),
+            Action::DownloadAnimated => self.request_download(motion_panel::DownloadKind::Animated),
+            Action::TextureRes(r) => self.texture_res = r,
         }
     }
 
@@ -281,6 +290,8 @@ impl GetAvatarApp {
                 self.psi = done.psi;
                 self.rigged = Some(done.rigged);
                 self.field = Some(done.field);
+                // The bake belongs to the previous avatar (or texture).
+                self.baked = None;
                 self.show_avatar = true;
                 self.mesh_dirty = true;
                 self.avatar_dirty = true;
@@ -323,11 +334,25 @@ impl GetAvatarApp {
     }
 
     fn download_glb(&mut self) {
-        let Some(mesh) = self.posed_mesh() else {
-            self.messages.push("no body to export".into());
-            return;
+        let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
+            (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
+            _ => None,
         };
-        match write_glb(&mesh) {
+        let bytes = match rig {
+            Some((r, ctx)) => {
+                let name = format!("getavatar_avatar_{}_{}_{}", self.seed_geo, self.seed_tex, self.pose_name);
+                r.posed_glb(ctx, &self.params, self.baked.as_ref(), &name)
+            }
+            None => match self.posed_mesh() {
+                Some(mesh) => write_glb(&mesh),
+                None => {
+                    self.messages.push("no body to export".into());
+                    return;
+                }
+            },
+        };
+        let textured = rig.is_some() && self.baked.is_some();
+        match bytes {
             Ok(bytes) => {
                 let what = if self.show_avatar && self.rigged.is_some() {
                     format!("avatar_{}_{}", self.seed_geo, self.seed_tex)
@@ -339,6 +364,7 @@ impl GetAvatarApp {
                     Ok(()) => {
                         self.status.downloads += 1;
                         self.status.last_glb_bytes = bytes.len();
+                        self.status.motion.last_textured = textured;
                     }
                     Err(e) => self.messages.push(format!("download failed: {e}")),
                 }
@@ -461,6 +487,7 @@ impl GetAvatarApp {
         self.poll_generation();
         self.start_queued(&ui.ctx().clone());
         self.advance_motion();
+        self.poll_bake();
         self.update_gpu(frame);
         if let Some(rs) = frame.wgpu_render_state() {
             let rs = rs.clone();
@@ -485,6 +512,7 @@ impl GetAvatarApp {
             || self.render_dirty
             || self.continuous
             || self.motion_playing()
+            || self.pending_download.is_some()
             || self.queued.is_some()
             || self.texture_job.is_some()
             || (self.view == ViewMode::Texture

@@ -11,8 +11,15 @@ use getavatar_core::motion::{Motion, BUILTIN_CLIPS, MOTION_FPS};
 use getavatar_core::skin_export::animated_body_glb;
 
 use super::GetAvatarApp;
-use crate::automation::{Action, MotionArgs, MAX_MOTION_SPEED};
+use crate::automation::{Action, MotionArgs, MAX_MOTION_SPEED, TEXTURE_RESOLUTIONS};
 use crate::platform::{download_bytes, now_ms, open_file_picker, MOTION_INPUT_ID};
+
+/// What a download button asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum DownloadKind {
+    Posed,
+    Animated,
+}
 
 /// Longest step one frame may advance a clip, seconds (a backgrounded tab does not jump).
 const MAX_STEP_S: f32 = 0.1;
@@ -251,6 +258,27 @@ impl GetAvatarApp {
         }
         ui.separator();
         ui.horizontal(|ui| {
+            ui.label("texture");
+            for r in TEXTURE_RESOLUTIONS {
+                let label = if r == 0 { "colours".to_string() } else { format!("{r}²") };
+                if ui
+                    .selectable_label(self.texture_res == r, label)
+                    .on_hover_text(
+                        "the avatar's baked base-colour texture in the downloads (colours: per-vertex, no texture)",
+                    )
+                    .clicked()
+                {
+                    self.apply(Action::TextureRes(r));
+                }
+            }
+        });
+        if self.pending_download.is_some() {
+            ui.horizontal(|ui| {
+                ui.spinner();
+                ui.label(format!("baking the {}² texture…", self.texture_res));
+            });
+        }
+        ui.horizontal(|ui| {
             if ui.button("⬇ posed .glb").on_hover_text("the mesh in the pose shown, glTF 2.0 binary").clicked() {
                 self.apply(Action::Download);
             }
@@ -270,6 +298,58 @@ impl GetAvatarApp {
         });
     }
 
+    /// A download: the avatar's texture is baked first (at `texture_res`, once per avatar
+    /// and size), then the file is written.
+    pub(super) fn request_download(&mut self, kind: DownloadKind) {
+        let avatar = self.show_avatar && self.rigged.is_some();
+        let stale = self.baked.as_ref().map(|b| b.res) != Some(self.texture_res);
+        if avatar && self.texture_res > 0 && stale {
+            let (Some(engine), Some(field), Some(rigged)) =
+                (self.engine.as_mut(), self.field.clone(), self.rigged.clone())
+            else {
+                self.messages.push("the generator is not available to bake the texture".into());
+                return;
+            };
+            if self.pending_download.is_none() {
+                engine.bake(field, rigged, self.texture_res, self.ctx.clone());
+            }
+            self.pending_download = Some(kind);
+            return;
+        }
+        if !avatar || self.texture_res == 0 {
+            self.baked = None;
+        }
+        match kind {
+            DownloadKind::Posed => self.download_glb(),
+            DownloadKind::Animated => self.download_animated(),
+        }
+    }
+
+    /// A finished bake: keep it and write the download that waited for it.
+    pub(super) fn poll_bake(&mut self) {
+        let Some(engine) = self.engine.as_mut() else { return };
+        self.status.motion.baking = engine.baking;
+        let Some(result) = engine.poll_bake() else { return };
+        self.status.motion.baking = false;
+        match result {
+            Ok((b, ms)) => {
+                let s = &mut self.status.motion;
+                s.bakes += 1;
+                s.last_bake_ms = ms as f32;
+                s.atlas_vertices = b.atlas.source.len();
+                s.atlas_own_chart_faces = b.atlas.own_chart_faces;
+                self.baked = Some(b);
+                if let Some(kind) = self.pending_download.take() {
+                    self.request_download(kind);
+                }
+            }
+            Err(e) => {
+                self.messages.push(e);
+                self.pending_download = None;
+            }
+        }
+    }
+
     /// "animated .glb": the avatar shown (or the bare body) skinned, bound in the rest pose,
     /// showing the current pose, with the chosen clips.
     pub(super) fn download_animated(&mut self) {
@@ -287,11 +367,12 @@ impl GetAvatarApp {
             (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
             _ => None,
         };
+        let textured = rig.is_some() && self.baked.is_some();
         let (what, bytes) = match rig {
             Some((r, ctx)) => {
                 let what = format!("avatar_{}_{}", self.seed_geo, self.seed_tex);
                 let name = format!("getavatar_{what}_{clip_names}");
-                (what, r.animated_glb(ctx, &self.params, &clips, None, &name))
+                (what, r.animated_glb(ctx, &self.params, &clips, self.baked.as_ref(), &name))
             }
             None => {
                 let name = format!("getavatar_body_{clip_names}");
@@ -305,6 +386,7 @@ impl GetAvatarApp {
                     Ok(()) => {
                         self.status.motion.animated_downloads += 1;
                         self.status.motion.last_animated_bytes = bytes.len();
+                        self.status.motion.last_textured = textured;
                     }
                     Err(e) => self.messages.push(format!("download failed: {e}")),
                 }
@@ -328,6 +410,7 @@ impl GetAvatarApp {
         s.include = m.chosen().iter().map(|c| c.name.clone()).collect();
         s.files_loaded = m.files_loaded;
         s.notes = m.notes.clone();
+        s.texture_res = self.texture_res;
     }
 
     pub(super) fn motion_playing(&self) -> bool {
