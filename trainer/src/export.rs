@@ -117,6 +117,9 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     if a.r#static && a.frames_json.is_some() {
         bail!("--frames-json needs a skinned export (not --static)");
     }
+    if a.texture_res != 0 && !(64..=4096).contains(&a.texture_res) {
+        bail!("--texture-res {} (64…4096, or 0 for vertex colours)", a.texture_res);
+    }
     let model = match &a.body {
         Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
             .with_context(|| format!("loading body model {}", p.display()))?,
