@@ -95,6 +95,23 @@ fn bad_motion_files_are_errors_that_say_why() {
     assert_eq!(m.len(), MAX_FRAMES);
     assert!(m.notes.iter().any(|n| n.contains("cut")), "{:?}", m.notes);
     assert!(matches!(Motion::builtin("moonwalk"), Err(MotionError::UnknownClip(_))));
+    // A tiny file claiming 10⁹ frames (and one claiming a shape whose size overflows) errors
+    // at once, allocating nothing.
+    for shape in ["(1000000000, 72)", "(18446744073709551615, 72)"] {
+        let header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
+        let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+        npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        npy.extend_from_slice(header.as_bytes());
+        npy.extend_from_slice(&[0u8; 64]);
+        let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        zip.start_file("poses.npy", zip::write::SimpleFileOptions::default()).unwrap();
+        std::io::Write::write_all(&mut zip, &npy).unwrap();
+        let bytes = zip.finish().unwrap().into_inner();
+        assert!(bytes.len() < 1024, "{} bytes", bytes.len());
+        let t = std::time::Instant::now();
+        let e = Motion::from_amass_npz(&bytes, "claims").unwrap_err();
+        assert!(e.to_string().contains("truncated") && t.elapsed().as_secs_f32() < 1.0, "{e}");
+    }
 }
 
 fn joints(m: &Motion, k: usize) -> [Vec3; 24] {

@@ -35,8 +35,22 @@ fn export_writes_a_textured_animated_avatar_and_refuses_bad_motions() {
     let amass = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/motion/amass_sample.npz");
     let out = dir.join("hero.glb");
     let run = trainer(&[
-        "export", "--seed-geo", "1", "--seed-tex", "3", "--texture-res", "256", "--motion", "walk", "--motion", "wave",
-        "--motion", amass, "--obj", "--out", s(&out),
+        "export",
+        "--seed-geo",
+        "1",
+        "--seed-tex",
+        "3",
+        "--texture-res",
+        "256",
+        "--motion",
+        "walk",
+        "--motion",
+        "wave",
+        "--motion",
+        amass,
+        "--obj",
+        "--out",
+        s(&out),
     ]);
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     let stdout = String::from_utf8_lossy(&run.stdout);

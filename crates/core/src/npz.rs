@@ -168,14 +168,17 @@ pub fn read_npy(key: &str, bytes: &[u8]) -> Result<NpyArray, NpzError> {
         .map(|s| s.trim_end_matches('L').parse::<usize>())
         .collect::<Result<_, _>>()
         .map_err(|_| arr_err(key, format!("bad shape {shape_txt}")))?;
-    let n: usize = shape.iter().product();
+    // The declared shape is checked against the bytes present before anything is allocated
+    // (a tiny file may claim a huge array; the product may overflow).
+    let need = shape.iter().try_fold(size, |acc, d| acc.checked_mul(*d));
     let body = &bytes[hstart + hlen..];
-    if body.len() < n * size {
+    let Some(need) = need.filter(|n| *n <= body.len()) else {
         return Err(arr_err(
             key,
-            format!("data truncated: shape {shape:?} needs {} bytes, file has {}", n * size, body.len()),
+            format!("data truncated: shape {shape:?} needs more bytes than the file's {}", body.len()),
         ));
-    }
+    };
+    let n = need / size;
     let chunk = |i: usize| &body[i * size..(i + 1) * size];
     let mut data = match dtype {
         DType::F32 => NpyData::Float(
