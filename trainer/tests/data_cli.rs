@@ -5,22 +5,13 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
 
 use std::path::Path;
-use std::process::Command;
 
 use getavatar_core::camera::project_to_pixel;
 use getavatar_core::dataset::Dataset;
 use glam::{Vec2, Vec3};
 
-fn trainer(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().expect("run trainer")
-}
-
-fn tmp(name: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("getavatar-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+mod common;
+use common::{tmp, trainer};
 
 /// A small cube (edge `e`) centred at `c` as OBJ text, with UVs and a material.
 fn cube_obj(c: Vec3, e: f32) -> String {

@@ -2,25 +2,12 @@
 //! built-in and AMASS clips, OBJ + MTL + PNG beside it; bad motion files and options are
 //! errors that say why, and nothing is written for them.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
 
 use getavatar_core::motion::Motion;
 
-fn trainer(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().expect("run trainer")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("getavatar-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+mod common;
+use common::{s, tmp, trainer};
 
 /// The JSON chunk of a .glb.
 fn glb_json(bytes: &[u8]) -> serde_json::Value {

@@ -5,8 +5,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::metrics::pa_mpjpe;
@@ -16,20 +15,8 @@ use getavatar_core::rng::Rng;
 use getavatar_core::skinning::pose_body;
 use getavatar_core::BodyModel;
 
-fn trainer(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().expect("run trainer")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("getavatar-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+mod common;
+use common::{s, tmp, trainer};
 
 #[test]
 fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {

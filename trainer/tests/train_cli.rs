@@ -10,9 +10,8 @@ use std::process::Command;
 
 use getavatar_core::checkpoint::parse_safetensors;
 
-fn trainer(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().expect("run trainer")
-}
+mod common;
+use common::trainer;
 
 fn ok(o: std::process::Output) -> String {
     assert!(o.status.success(), "{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));

@@ -80,6 +80,55 @@ pub struct ExportClip {
     pub translations: Vec<Vec3>,
 }
 
+/// Append `bytes` (4-byte aligned) to the binary chunk as one buffer view.
+fn push_view(
+    root: &mut json::Root,
+    bin: &mut Vec<u8>,
+    buffer: json::Index<json::Buffer>,
+    bytes: &[u8],
+    target: Option<json::buffer::Target>,
+) -> json::Index<json::buffer::View> {
+    pad4(bin);
+    let offset = bin.len();
+    bin.extend_from_slice(bytes);
+    root.push(json::buffer::View {
+        buffer,
+        byte_length: USize64::from(bytes.len()),
+        byte_offset: Some(USize64::from(offset)),
+        byte_stride: None,
+        extensions: None,
+        extras: Default::default(),
+        name: None,
+        target: target.map(Valid),
+    })
+}
+
+/// An accessor over a whole tightly packed view.
+fn push_accessor(
+    root: &mut json::Root,
+    view: json::Index<json::buffer::View>,
+    count: usize,
+    ty: json::accessor::Type,
+    ct: json::accessor::ComponentType,
+    min: Option<json::Value>,
+    max: Option<json::Value>,
+) -> json::Index<json::Accessor> {
+    root.push(json::Accessor {
+        buffer_view: Some(view),
+        byte_offset: None,
+        count: USize64::from(count),
+        component_type: Valid(json::accessor::GenericComponentType(ct)),
+        extensions: None,
+        extras: Default::default(),
+        type_: Valid(ty),
+        min,
+        max,
+        name: None,
+        normalized: false,
+        sparse: None,
+    })
+}
+
 fn pad4(buf: &mut Vec<u8>) {
     while buf.len() % 4 != 0 {
         buf.push(0);
@@ -195,7 +244,7 @@ pub fn write_glb_full(
         uri: None,
     });
 
-    // Append one tightly packed attribute view + accessor.
+    // One tightly packed vertex-attribute (or index) view + accessor.
     let push_attr = |root: &mut json::Root,
                      bytes: &[u8],
                      count: usize,
@@ -205,33 +254,8 @@ pub fn write_glb_full(
                      min: Option<json::Value>,
                      max: Option<json::Value>,
                      bin: &mut Vec<u8>| {
-        pad4(bin);
-        let offset = bin.len();
-        bin.extend_from_slice(bytes);
-        let view = root.push(json::buffer::View {
-            buffer,
-            byte_length: USize64::from(bytes.len()),
-            byte_offset: Some(USize64::from(offset)),
-            byte_stride: None,
-            extensions: None,
-            extras: Default::default(),
-            name: None,
-            target: Some(Valid(target)),
-        });
-        root.push(json::Accessor {
-            buffer_view: Some(view),
-            byte_offset: None,
-            count: USize64::from(count),
-            component_type: Valid(json::accessor::GenericComponentType(ct)),
-            extensions: None,
-            extras: Default::default(),
-            type_: Valid(ty),
-            min,
-            max,
-            name: None,
-            normalized: false,
-            sparse: None,
-        })
+        let view = push_view(root, bin, buffer, bytes, Some(target));
+        push_accessor(root, view, count, ty, ct, min, max)
     };
 
     let f32_bytes = |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(f32::to_le_bytes).collect() };
@@ -352,49 +376,12 @@ pub fn write_glb_full(
                      min: Option<json::Value>,
                      max: Option<json::Value>,
                      bin: &mut Vec<u8>| {
-        pad4(bin);
-        let offset = bin.len();
-        bin.extend_from_slice(bytes);
-        let view = root.push(json::buffer::View {
-            buffer,
-            byte_length: USize64::from(bytes.len()),
-            byte_offset: Some(USize64::from(offset)),
-            byte_stride: None,
-            extensions: None,
-            extras: Default::default(),
-            name: None,
-            target: None,
-        });
-        root.push(json::Accessor {
-            buffer_view: Some(view),
-            byte_offset: None,
-            count: USize64::from(count),
-            component_type: Valid(json::accessor::GenericComponentType(CT::F32)),
-            extensions: None,
-            extras: Default::default(),
-            type_: Valid(ty),
-            min,
-            max,
-            name: None,
-            normalized: false,
-            sparse: None,
-        })
+        let view = push_view(root, bin, buffer, bytes, None);
+        push_accessor(root, view, count, ty, CT::F32, min, max)
     };
     let texture = match base_color_png {
         Some(png) => {
-            pad4(&mut bin);
-            let offset = bin.len();
-            bin.extend_from_slice(png);
-            let view = root.push(json::buffer::View {
-                buffer,
-                byte_length: USize64::from(png.len()),
-                byte_offset: Some(USize64::from(offset)),
-                byte_stride: None,
-                extensions: None,
-                extras: Default::default(),
-                name: None,
-                target: None,
-            });
+            let view = push_view(&mut root, &mut bin, buffer, png, None);
             let image = root.push(json::Image {
                 buffer_view: Some(view),
                 mime_type: Some(json::image::MimeType("image/png".into())),
