@@ -108,6 +108,35 @@ fn resume_is_bit_identical_and_outputs_are_complete() {
     // A fresh run never overwrites an existing one.
     let o = trainer(&["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", a.to_str().unwrap()]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--resume"));
+    // A corrupt latest checkpoint: resume says so and continues from the previous one (step
+    // 1 here), bit-identically: a's 1 → 3 equals b's 2 → 3.
+    assert!(a.join("state.prev.safetensors").is_file(), "the checkpoint before the last is kept");
+    let cut = std::fs::read(a.join("state.safetensors")).unwrap();
+    std::fs::write(a.join("state.safetensors"), &cut[..cut.len() / 2]).unwrap();
+    let o = trainer(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--out",
+        a.to_str().unwrap(),
+        "--batch",
+        "2",
+        "--steps",
+        "3",
+        "--snapshot-every",
+        "1",
+        "--resume",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success() && err.contains("resuming from the previous one") && err.contains("(step 1)"), "{err}");
+    train(&data, &b, 3, &["--resume"]);
+    assert_eq!(
+        std::fs::read(a.join("state.safetensors")).unwrap(),
+        std::fs::read(b.join("state.safetensors")).unwrap(),
+        "1 + 2 steps after the fallback == 2 + 1 steps"
+    );
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -12,7 +12,9 @@
 //! `generator.safetensors` (G_ema alone, what `trainer sample` and the app load),
 //! `metrics.jsonl` and `samples_<step>.png` grids (RGB | normal | mask at fixed seeds and
 //! poses). Every file is written to a temporary name and renamed, so a kill at any moment
-//! leaves the previous checkpoint intact.
+//! leaves the previous checkpoint intact. Each snapshot keeps the checkpoint before it as
+//! `state.prev.safetensors`; a resume whose latest checkpoint is unreadable (corrupt, cut
+//! short, missing) says so and continues from that one.
 //!
 //! Modules, along StyleGAN's training loop: `args` (the CLI), `run_config` (`run.json`),
 //! `state` (`state.safetensors`), `step` (what both objectives share), `adversarial` (the
@@ -83,9 +85,27 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         bail!("the run was trained at {}², the dataset has {}² images", rc.resolution, ds.resolution);
     }
     let rc = RunConfig { use_normals: rc.use_normals && ds.has_normals, ..rc };
-    let mut st = if continuing && state_path.exists() {
-        let bytes = std::fs::read(&state_path)?;
-        State::load(&bytes, &rc, &ad, &plain).with_context(|| format!("loading {}", state_path.display()))?
+    let prev_path = a.out.join("state.prev.safetensors");
+    let mut st = if continuing && (state_path.exists() || prev_path.exists()) {
+        let load = |p: &Path| -> Result<State> {
+            let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+            State::load(&bytes, &rc, &ad, &plain).with_context(|| format!("loading {}", p.display()))
+        };
+        match load(&state_path) {
+            Ok(st) => st,
+            Err(latest) if prev_path.exists() => {
+                let st = load(&prev_path).map_err(|prev| {
+                    anyhow::anyhow!("neither checkpoint loads: {latest:#}; the previous one: {prev:#}")
+                })?;
+                eprintln!(
+                    "the latest checkpoint cannot be used ({latest:#}); resuming from the previous one, {} (step {})",
+                    prev_path.display(),
+                    st.step
+                );
+                st
+            }
+            Err(e) => return Err(e),
+        }
     } else {
         let mut st = State::new(&rc, &ad, &plain);
         if let Some(Some(init)) = &a.resume {
@@ -120,7 +140,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
         let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
-        write_atomic(&state_path, &st.save(&rc)?)?;
+        // The last checkpoint becomes the previous one (resume falls back to it when the
+        // latest is unreadable or missing), then the new one is written atomically.
+        let bytes = st.save(&rc)?;
+        if state_path.exists() {
+            std::fs::rename(&state_path, &prev_path)
+                .with_context(|| format!("keeping {} as {}", state_path.display(), prev_path.display()))?;
+        }
+        write_atomic(&state_path, &bytes)?;
         let (png, fit) = sample_grid(st, &ds, &ctx, &grids, &rc, &plain)?;
         write_atomic(&a.out.join(format!("samples_{step:06}.png")), &png)?;
         if let Some(fit) = fit {
