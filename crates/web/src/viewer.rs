@@ -2,11 +2,12 @@
 //! Three outputs, matching the paper's renders: shaded RGB, world-space normal map encoded
 //! (n+1)/2 (background = zero vector, i.e. mid grey) and the foreground mask.
 //!
-//! Re-posing a rigged avatar runs on the GPU (the interactive fast path of the paper's
-//! canonical extraction + LBS): the avatar's canonical vertices are uploaded once with the
-//! index of their nearest body vertex ("bone"), and each pose change uploads only the body's
-//! per-vertex transforms ([`bone_transforms`], 6,890 pairs of matrices), which the vertex
-//! shader applies. This is the GPU twin of `RiggedAvatar::repose` (used for the .glb export).
+//! Re-posing runs on the GPU, for the avatar and the bare body alike, with the skinning of the
+//! downloaded glTF: the mesh is uploaded once per shape in the body's rest pose (the bind
+//! pose) with each vertex's 4 largest joint weights (an avatar vertex takes its rigging body
+//! vertex's), and each pose change uploads only the 24 joint transforms ([`joint_bones`]),
+//! which the vertex shader blends — the cost of a plain draw. It is the project's LBS up to the
+//! top-4 weights (≤ 5 mm, as the exported file).
 //!
 //! The colour target is `Rgba8Unorm` holding display (sRGB-encoded) values, which is what
 //! egui expects of user textures: shading is computed in linear light and encoded in the
@@ -27,20 +28,22 @@ const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// G-buffer of per-pixel canonical coordinates (xyz) and coverage (w).
 const CANON_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 
-/// Vertex layout: position, normal (world space, metres; canonical space when skinned),
-/// linear RGB colour, and the bone (nearest body vertex) whose transform a skinned draw
-/// applies.
+/// Vertex layout: position and normal (world space, metres; the rest pose when skinned),
+/// linear RGB colour, canonical (Da-pose) coordinates for the texture view, and the 4 joints
+/// and weights a skinned draw blends.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 pub struct Vertex {
     pub position: [f32; 3],
     pub normal: [f32; 3],
     pub color: [f32; 3],
-    pub bone: u32,
+    pub canonical: [f32; 3],
+    pub joints: [u32; 4],
+    pub weights: [f32; 4],
 }
 
-/// One bone's transforms: `position` maps a canonical avatar point to the posed one,
-/// `normal` (a rotation, stored in a 4×4) maps its normal.
+/// One joint's transforms: `position` is its skinning transform (rest → posed, SMPL's `A_k`),
+/// `normal` its rotation (stored in a 4×4).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 pub struct Bone {
@@ -48,16 +51,19 @@ pub struct Bone {
     pub normal: [[f32; 4]; 4],
 }
 
-/// The per-body-vertex transforms that re-pose a rigged avatar to `posed`
-/// (`generator::repose_transform`, the maths of `RiggedAvatar::repose`).
-pub fn bone_transforms(
-    ctx: &getavatar_core::generator::BodyContext,
-    posed: &getavatar_core::skinning::PosedBody,
+/// The 24 joint transforms of `params` for a body of `rest_joints` (forward kinematics only:
+/// no per-vertex work on the CPU).
+pub fn joint_bones(
+    parents: &[i32; getavatar_core::NUM_JOINTS],
+    rest_joints: &[glam::Vec3; getavatar_core::NUM_JOINTS],
+    params: &getavatar_core::BodyParams,
 ) -> Vec<Bone> {
-    (0..posed.vertex_transforms.len())
-        .map(|i| {
-            let (m, r) = getavatar_core::rigging::repose_transform(ctx, posed, i);
-            Bone { position: m.to_cols_array_2d(), normal: Mat4::from_mat3(r).to_cols_array_2d() }
+    let kin = getavatar_core::skinning::forward_kinematics(parents, rest_joints, params);
+    kin.skinning
+        .iter()
+        .map(|a| {
+            let r = Mat4::from_mat3(glam::Mat3::from_mat4(*a));
+            Bone { position: a.to_cols_array_2d(), normal: r.to_cols_array_2d() }
         })
         .collect()
 }
@@ -67,7 +73,8 @@ pub fn bone_transforms(
 struct Uniforms {
     view_proj: [[f32; 4]; 4],
     eye: [f32; 4],
-    /// x = mode (0 rgb, 1 normal, 2 mask), y = skinned (1: apply the bone transforms)
+    /// x = mode (0 rgb, 1 normal, 2 mask), y = skinned (1: apply the joint transforms),
+    /// z = the vertices carry canonical coordinates (an avatar: the texture view's G-buffer)
     mode: [u32; 4],
 }
 
@@ -86,18 +93,26 @@ struct VsOut {
 };
 
 @vertex
-fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) color: vec3<f32>, @location(3) bone: u32) -> VsOut {
+fn vs_main(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) color: vec3<f32>,
+           @location(3) canonical: vec3<f32>, @location(4) joints: vec4<u32>, @location(5) weights: vec4<f32>) -> VsOut {
     var o: VsOut;
     var p = position;
     var n = normal;
     if (u.mode.y == 1u) {
-        let b = bones[bone];
-        p = (b.position * vec4<f32>(position, 1.0)).xyz;
-        n = (b.normal * vec4<f32>(normal, 0.0)).xyz;
+        // Linear blend skinning over the 4 joints (paper eq. 1; glTF's skinning).
+        var m = mat4x4<f32>(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
+        var r = mat4x4<f32>(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
+        for (var k = 0u; k < 4u; k = k + 1u) {
+            let b = bones[joints[k]];
+            m = m + b.position * weights[k];
+            r = r + b.normal * weights[k];
+        }
+        p = (m * vec4<f32>(position, 1.0)).xyz;
+        n = (r * vec4<f32>(normal, 0.0)).xyz;
     }
     o.clip = u.view_proj * vec4<f32>(p, 1.0);
-    // A skinned avatar's input vertices are canonical (Da-pose) coordinates.
-    o.canonical = vec4<f32>(position, f32(u.mode.y));
+    // The texture view's G-buffer: each pixel's canonical (Da-pose) coordinate.
+    o.canonical = vec4<f32>(canonical, f32(u.mode.z));
     o.world = p;
     o.normal = n;
     o.color = color;
@@ -159,8 +174,10 @@ pub struct Viewer {
     bind_group: wgpu::BindGroup,
     bones: wgpu::Buffer,
     bone_capacity: u64,
-    /// Whether the current mesh is a rigged avatar re-posed by the bones.
+    /// Whether the current mesh is re-posed by the joint transforms, and whether its vertices
+    /// carry canonical coordinates (an avatar).
     skinned: bool,
+    canonical: bool,
     vertex_buffer: Option<wgpu::Buffer>,
     index_buffer: Option<wgpu::Buffer>,
     index_count: u32,
@@ -186,7 +203,7 @@ fn mesh_pipeline(
     fragment: &str,
     format: wgpu::TextureFormat,
 ) -> wgpu::RenderPipeline {
-    let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3, 3 => Uint32];
+    let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3, 3 => Float32x3, 4 => Uint32x4, 5 => Float32x4];
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some(fragment),
         layout: Some(layout),
@@ -312,6 +329,7 @@ impl Viewer {
             bones,
             bone_capacity,
             skinned: false,
+            canonical: false,
             vertex_buffer: None,
             index_buffer: None,
             index_count: 0,
@@ -351,7 +369,7 @@ impl Viewer {
         })
     }
 
-    /// Upload the bone transforms that re-pose the current (skinned) mesh.
+    /// Upload the 24 joint transforms that re-pose the current (skinned) mesh.
     pub fn set_bones(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, bones: &[Bone]) {
         let bytes: &[u8] = bytemuck::cast_slice(bones);
         if bytes.len() as u64 > self.bone_capacity {
@@ -363,8 +381,9 @@ impl Viewer {
     }
 
     /// Upload a mesh (re-allocating buffers only when it grows). `skinned`: the vertices are
-    /// canonical and each is moved by its bone (see [`Viewer::set_bones`]); otherwise they are
-    /// drawn as given.
+    /// in the rest pose and each is moved by its joints (see [`Viewer::set_bones`]); otherwise
+    /// they are drawn as given. `canonical`: the vertices' canonical coordinates are valid (an
+    /// avatar), so the texture view may query them.
     pub fn set_mesh(
         &mut self,
         device: &wgpu::Device,
@@ -372,8 +391,10 @@ impl Viewer {
         vertices: &[Vertex],
         indices: &[[u32; 3]],
         skinned: bool,
+        canonical: bool,
     ) {
         self.skinned = skinned;
+        self.canonical = canonical;
         let vbytes: &[u8] = bytemuck::cast_slice(vertices);
         let ibytes: &[u8] = bytemuck::cast_slice(indices);
         if self.vertex_buffer.is_none() || (vbytes.len() as u64) > self.vertex_capacity {
@@ -548,7 +569,7 @@ impl Viewer {
                     ViewMode::Mask => 2,
                 },
                 u32::from(self.skinned),
-                0,
+                u32::from(self.canonical),
                 0,
             ],
         };

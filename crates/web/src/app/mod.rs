@@ -28,7 +28,7 @@ use getavatar_core::OrbitCamera;
 use crate::automation::{Action, GenerateArgs, Status, ViewMode};
 use crate::generate::{GenEngine, TextureField};
 use crate::platform::{download_bytes, now_ms};
-use crate::viewer::{bone_transforms, Vertex, Viewer};
+use crate::viewer::{joint_bones, Vertex, Viewer};
 use motion_panel::MotionPlayer;
 use photo_panel::PhotoPanel;
 use texture_job::TextureJob;
@@ -50,8 +50,12 @@ pub struct GetAvatarApp {
     continuous: bool,
     edit_joint: usize,
     viewer: Option<Viewer>,
-    /// Mesh must be re-posed (bones for a rigged avatar, vertices for the body) and uploaded.
+    /// The pose changed: new joint transforms go up (and the mesh, if the shape changed).
     mesh_dirty: bool,
+    /// What the uploaded mesh is (avatar or body, and the shape it is bound at), and that
+    /// shape's rest joints.
+    uploaded: Option<(bool, Vec<f32>)>,
+    rest_joints: [Vec3; getavatar_core::NUM_JOINTS],
     /// The avatar's canonical mesh on the GPU is stale (new avatar, new texture, toggled).
     avatar_dirty: bool,
     /// Viewport must be re-rendered.
@@ -148,6 +152,8 @@ impl GetAvatarApp {
             edit_joint: 16,
             viewer,
             mesh_dirty: true,
+            uploaded: None,
+            rest_joints: [Vec3::ZERO; getavatar_core::NUM_JOINTS],
             avatar_dirty: true,
             render_dirty: true,
             status,
@@ -373,56 +379,74 @@ impl GetAvatarApp {
         }
     }
 
-    /// Upload what the current pose needs: for a rigged avatar only the bone transforms
-    /// (its canonical mesh goes up once per avatar; the GPU re-poses it), for the bare body
-    /// the posed vertices.
+    /// Upload what the current pose needs: the mesh in the rest pose at the current shape
+    /// once per avatar/body and shape (with its top-4 joint weights; an avatar vertex takes
+    /// its rigging body vertex's), then per pose only the 24 joint transforms, which the GPU
+    /// blends (the downloaded glTF's skinning).
     fn upload_mesh(&mut self, rs: &eframe::egui_wgpu::RenderState) {
         let Some(body) = self.body.as_ref() else { return };
-        let posed = pose_body(body, &self.params);
         let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
             (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
             _ => None,
         };
         let Some(viewer) = self.viewer.as_mut() else { return };
-        match rig {
-            Some((r, ctx)) => {
-                if self.avatar_dirty {
+        let key = (rig.is_some(), self.params.betas.clone());
+        if self.avatar_dirty || self.uploaded.as_ref() != Some(&key) {
+            let top4 = |w: &[f32; getavatar_core::NUM_JOINTS]| {
+                let (j, w) = getavatar_core::skin_export::top4(w);
+                (j.map(u32::from), w)
+            };
+            let (verts, faces): (Vec<Vertex>, &[[u32; 3]]) = match rig {
+                Some((r, ctx)) => {
+                    let (positions, normals) = r.bind_pose(ctx, &self.params.betas);
                     let c = &r.canonical;
-                    let verts: Vec<Vertex> = (0..c.mesh.vertices.len())
-                        .map(|i| Vertex {
-                            position: c.mesh.vertices[i].to_array(),
-                            normal: c.normals[i].to_array(),
-                            color: c.colors[i].to_array(),
-                            bone: r.body_vertex[i],
+                    let verts = (0..c.mesh.vertices.len())
+                        .map(|i| {
+                            let (joints, weights) = top4(&body.weights[r.body_vertex[i] as usize]);
+                            Vertex {
+                                position: positions[i].to_array(),
+                                normal: normals[i].to_array(),
+                                color: c.colors[i].to_array(),
+                                canonical: c.mesh.vertices[i].to_array(),
+                                joints,
+                                weights,
+                            }
                         })
                         .collect();
-                    viewer.set_mesh(&rs.device, &rs.queue, &verts, &c.mesh.faces, true);
-                    self.status.vertices = verts.len();
-                    self.status.triangles = c.mesh.faces.len();
-                    self.avatar_dirty = false;
+                    (verts, &c.mesh.faces)
                 }
-                viewer.set_bones(&rs.device, &rs.queue, &bone_transforms(ctx, &posed));
-            }
-            None => {
-                let normals = vertex_normals(&posed.vertices, &body.faces);
-                let verts: Vec<Vertex> = posed
-                    .vertices
-                    .iter()
-                    .zip(&normals)
-                    .map(|(p, n)| Vertex {
-                        position: p.to_array(),
-                        normal: n.to_array(),
-                        color: SKIN.to_array(),
-                        bone: 0,
-                    })
-                    .collect();
-                viewer.set_mesh(&rs.device, &rs.queue, &verts, &body.faces, false);
-                self.status.vertices = verts.len();
-                self.status.triangles = body.faces.len();
-                // The next avatar shown must be uploaded again.
-                self.avatar_dirty = true;
-            }
+                None => {
+                    let rest =
+                        pose_body(body, &BodyParams { betas: self.params.betas.clone(), ..BodyParams::default() });
+                    let normals = vertex_normals(&rest.vertices, &body.faces);
+                    let verts = rest
+                        .vertices
+                        .iter()
+                        .zip(&normals)
+                        .zip(&body.weights)
+                        .map(|((p, n), w)| {
+                            let (joints, weights) = top4(w);
+                            Vertex {
+                                position: p.to_array(),
+                                normal: n.to_array(),
+                                color: SKIN.to_array(),
+                                canonical: [0.0; 3],
+                                joints,
+                                weights,
+                            }
+                        })
+                        .collect();
+                    (verts, &body.faces)
+                }
+            };
+            viewer.set_mesh(&rs.device, &rs.queue, &verts, faces, true, rig.is_some());
+            self.status.vertices = verts.len();
+            self.status.triangles = faces.len();
+            self.rest_joints = body.regress_joints(&body.shaped_vertices(&self.params.betas));
+            self.uploaded = Some(key);
+            self.avatar_dirty = false;
         }
+        viewer.set_bones(&rs.device, &rs.queue, &joint_bones(&body.parents, &self.rest_joints, &self.params));
     }
 
     fn update_gpu(&mut self, frame: &eframe::Frame) {
