@@ -22,7 +22,8 @@
 //  - Motion: the built-in walk scrubbed to two times changes the mask; playing re-poses every
 //    frame; the AMASS fixture loads as a clip (resampled), a broken .npz gets one message; the
 //    animated .glb (walk + wave) passes the validator with 2 animations and a skin; with the
-//    texture at 256² the avatar is baked once and both downloads carry the image.
+//    texture at 256² the avatar is baked once and both downloads carry the image; the median
+//    frame time with the walk playing at 1024², avatar vs bare body, is ≤ 1.5× (#28).
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -416,6 +417,24 @@ try {
   s = await status();
   check(s.motion.playing && s.renders - rendersBefore >= 5 && s.motion.time !== 0.55,
     `playing re-poses every frame: ${s.renders - rendersBefore} renders in 1.5 s, now at ${s.motion.time.toFixed(2)} s of ${s.motion.duration.toFixed(2)} s`);
+  // Re-pose at the cost of a plain draw (#28): median frame time at 1024² while the walk
+  // plays (a new pose every frame) for the bare body and for the avatar.
+  async function medianFrame(show) {
+    await page.evaluate((v) => window.getavatar.command({ show: v }), show);
+    await page.waitForTimeout(1000);
+    const times = [];
+    for (let k = 0; k < 25; k++) {
+      await page.waitForTimeout(120);
+      times.push((await status()).last_render_ms);
+    }
+    times.sort((a, b) => a - b);
+    return times[times.length >> 1];
+  }
+  await command({ res: 1024 }, (s) => s.res === 1024);
+  const bodyMs = await medianFrame('body');
+  const avatarMs = await medianFrame('avatar');
+  console.log(`re-pose per frame at 1024²: body ${bodyMs.toFixed(1)} ms, avatar ${avatarMs.toFixed(1)} ms (ratio ${(avatarMs / bodyMs).toFixed(2)})`);
+  check(avatarMs <= 1.5 * bodyMs + 0.5, `re-posing the avatar every frame costs about a plain draw: ${avatarMs.toFixed(1)} ms vs the body's ${bodyMs.toFixed(1)} ms (≤ 1.5×)`);
   s = await command({ motion: { play: false } }, (s) => !s.motion.playing);
   const amass = fs.readFileSync(new URL('../fixtures/motion/amass_sample.npz', import.meta.url));
   const loadedBefore = s.motion.files_loaded;
