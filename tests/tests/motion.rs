@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::motion::{Motion, MotionError, MAX_FRAMES, MOTION_FPS};
 use getavatar_core::npz::{write_npz, NpyArray};
-use getavatar_core::skin_export::quat;
+use getavatar_core::skinning::axis_angle_to_quat as quat;
 use getavatar_core::skinning::{pose_body, BodyParams};
 use glam::{Quat, Vec3};
 

@@ -21,7 +21,7 @@ use glam::{Quat, Vec3};
 
 use crate::body_model::NUM_JOINTS;
 use crate::npz::{read_npz_arrays, NpyArray, NpzError};
-use crate::skinning::BodyParams;
+use crate::skinning::{axis_angle_to_quat as quat, quat_to_axis_angle as to_axis_angle, BodyParams};
 
 /// Frame rate of every clip, frames per second.
 pub const MOTION_FPS: f32 = 30.0;
@@ -207,26 +207,6 @@ impl Motion {
 /// A 0-d or one-element array's number.
 fn scalar(a: &NpyArray) -> Option<f64> {
     (a.len() == 1).then(|| a.to_f64()[0])
-}
-
-fn quat(v: Vec3) -> Quat {
-    let angle = v.length();
-    if angle < 1e-12 {
-        Quat::IDENTITY
-    } else {
-        Quat::from_axis_angle(v / angle, angle)
-    }
-}
-
-/// Axis-angle of a rotation, angle in [0, π].
-pub fn to_axis_angle(q: Quat) -> Vec3 {
-    let q = if q.w < 0.0 { -q } else { q }.normalize();
-    let (axis, angle) = q.to_axis_angle();
-    if angle.abs() < 1e-9 {
-        Vec3::ZERO
-    } else {
-        axis * angle
-    }
 }
 
 /// Resample poses (slerp) and translations (lerp) from `src_fps` to `dst_fps`, first frame

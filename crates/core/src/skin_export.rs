@@ -1,12 +1,12 @@
 //! The body's skeleton and skin weights as a glTF skin, and motions as glTF clips: what
 //! [`crate::gltf_export::write_glb_full`] needs to write an animatable avatar or body.
 
-use glam::{Quat, Vec3};
+use glam::Quat;
 
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::gltf_export::{write_glb_full, ExportClip, ExportError, ExportMesh, ExportSkin};
 use crate::motion::{Motion, MOTION_FPS};
-use crate::skinning::{pose_body, BodyParams};
+use crate::skinning::{axis_angle_to_quat as quat, pose_body, BodyParams};
 
 /// The 4 largest of a vertex's joint weights, renormalised to sum to 1 (glTF's JOINTS_0 /
 /// WEIGHTS_0). Unused slots name joint 0 with weight 0.
@@ -29,16 +29,6 @@ pub fn top4(weights: &[f32; NUM_JOINTS]) -> ([u8; 4], [f32; 4]) {
         w = [1.0, 0.0, 0.0, 0.0];
     }
     (joints, w)
-}
-
-/// Axis-angle → unit quaternion.
-pub fn quat(v: Vec3) -> Quat {
-    let a = v.length();
-    if a < 1e-12 {
-        Quat::IDENTITY
-    } else {
-        Quat::from_axis_angle(v / a, a)
-    }
 }
 
 /// The body's skeleton as a glTF skin: rest (bind) joints at shape `params.betas`, the pose

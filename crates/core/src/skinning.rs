@@ -4,7 +4,7 @@
 //! θ is SMPL's: 24 axis-angle vectors (radians) in joint-local, world-aligned rest frames;
 //! joint 0 is the global orientation.
 
-use glam::{Mat3, Mat4, Vec3};
+use glam::{Mat3, Mat4, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
 use crate::body_model::{BodyModel, NUM_JOINTS, NUM_POSE_FEATURES};
@@ -60,6 +60,27 @@ pub fn axis_angle_to_matrix(r: Vec3) -> Mat3 {
         return Mat3::IDENTITY;
     }
     Mat3::from_axis_angle(r / angle, angle)
+}
+
+/// Axis-angle (radians) → unit quaternion.
+pub fn axis_angle_to_quat(v: Vec3) -> Quat {
+    let a = v.length();
+    if a < 1e-12 {
+        Quat::IDENTITY
+    } else {
+        Quat::from_axis_angle(v / a, a)
+    }
+}
+
+/// Unit quaternion → axis-angle, angle in [0, π].
+pub fn quat_to_axis_angle(q: Quat) -> Vec3 {
+    let q = if q.w < 0.0 { -q } else { q }.normalize();
+    let (axis, angle) = q.to_axis_angle();
+    if angle.abs() < 1e-9 {
+        Vec3::ZERO
+    } else {
+        axis * angle
+    }
 }
 
 /// Output of [`forward_kinematics`].
