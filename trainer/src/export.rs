@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::generator::{default_psi, generate_rigged_async, seed_latents, BodyContext};
+use getavatar_core::generator::{generate_rigged_async, BodyContext};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::motion::{Motion, BUILTIN_CLIPS};
 use getavatar_core::pose_library::PoseLibrary;
@@ -17,7 +17,7 @@ use getavatar_core::readback::block_on_ready;
 use getavatar_core::skin_export::animated_body_glb;
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 
-use crate::sample::{truncation_modes, GeneratorArgs};
+use crate::sample::{load_body, seed_styles, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
@@ -120,11 +120,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     if a.texture_res != 0 && !(64..=4096).contains(&a.texture_res) {
         bail!("--texture-res {} (64…4096, or 0 for vertex colours)", a.texture_res);
     }
-    let model = match &a.body {
-        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
-            .with_context(|| format!("loading body model {}", p.display()))?,
-        None => BodyModel::default_body()?,
-    };
+    let model = load_body(&a.body)?;
     let params: BodyParams = match &a.fit {
         Some(f) => {
             let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
@@ -172,9 +168,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             bail!("--psi must be a number");
         }
         let ctx = BodyContext::new(model, &cfg);
-        let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-        let modes = truncation_modes(&modes, false);
-        let styles = g.styles_with(zg, zt, a.psi.unwrap_or_else(|| default_psi(modes)), modes);
+        let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, &device);
         let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
         if rigged.canonical.mesh.faces.is_empty() {
             bail!("the generator produced an empty surface");
@@ -330,9 +324,7 @@ pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
         let gen = GeneratorArgs { config: config.clone(), checkpoint: None, random: config != "demo" };
         let (cfg, g, modes) = gen.load(&device)?;
         let ctx = BodyContext::new(BodyModel::default_body()?, &cfg);
-        let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-        let modes = truncation_modes(&modes, false);
-        let styles = g.styles_with(zg, zt, default_psi(modes), modes);
+        let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), None, false, &device);
         let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
         let planes = g.triplanes(&styles);
         for &res in &a.texture_res {

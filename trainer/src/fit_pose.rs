@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::sample::load_body;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
@@ -47,14 +48,6 @@ pub struct FitPoseArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
-}
-
-fn load_body(path: &Option<PathBuf>) -> Result<BodyModel> {
-    Ok(match path {
-        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
-            .with_context(|| format!("loading the body model {}", p.display()))?,
-        None => BodyModel::default_body()?,
-    })
 }
 
 fn open_image(path: &PathBuf) -> Result<image::DynamicImage> {

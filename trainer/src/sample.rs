@@ -10,7 +10,9 @@ use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{load_generator, load_latent_modes};
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
-use getavatar_core::generator::{default_psi, generate_avatar, seed_latents, BodyContext, Generator, LatentModes};
+use getavatar_core::generator::{
+    default_psi, generate_avatar, seed_latents, BodyContext, Generator, LatentModes, Styles,
+};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
@@ -132,6 +134,31 @@ pub fn generator_or_random(
     })
 }
 
+/// The body model in `path` (SMPL-layout .npz), or the embedded open body.
+pub fn load_body(path: &Option<PathBuf>) -> Result<BodyModel> {
+    Ok(match path {
+        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("loading the body model {}", p.display()))?,
+        None => BodyModel::default_body()?,
+    })
+}
+
+/// The styles of the seeds' latents, truncated by ψ (`None`: the model's default) towards
+/// the checkpoint's latent modes (w_avg where it has none or `mean_truncation`).
+pub fn seed_styles(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    modes: &Option<LatentModes>,
+    (seed_geo, seed_tex): (u64, u64),
+    psi: Option<f32>,
+    mean_truncation: bool,
+    device: &Device,
+) -> Styles {
+    let (zg, zt) = seed_latents(cfg, seed_geo, seed_tex, device);
+    let modes = truncation_modes(modes, mean_truncation);
+    g.styles_with(zg, zt, psi.unwrap_or_else(|| default_psi(modes)), modes)
+}
+
 /// The modes to truncate towards: the checkpoint's unless `mean_truncation` (then w_avg).
 pub fn truncation_modes(modes: &Option<LatentModes>, mean_truncation: bool) -> Option<&LatentModes> {
     modes.as_ref().filter(|_| !mean_truncation)
@@ -159,11 +186,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let params = lib.params(&a.pose, &[]).with_context(|| {
         format!("unknown pose `{}`; available: {}", a.pose, lib.names().collect::<Vec<_>>().join(", "))
     })?;
-    let model = match &a.body {
-        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
-            .with_context(|| format!("loading body model {}", p.display()))?,
-        None => BodyModel::default_body()?,
-    };
+    let model = load_body(&a.body)?;
     #[allow(deprecated)]
     let device = Device::ndarray();
     let (cfg, g, modes) = a.model.load(&device)?;
@@ -180,11 +203,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
             })?;
             g.styles_from_w(wg, wt)
         }
-        None => {
-            let (zg, zt) = seed_latents(&cfg, a.seed_geo, a.seed_tex, &device);
-            let modes = truncation_modes(&modes, a.mean_truncation);
-            g.styles_with(zg, zt, a.psi.unwrap_or_else(|| default_psi(modes)), modes)
-        }
+        None => seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, a.mean_truncation, &device),
     };
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device)?;
