@@ -33,8 +33,17 @@ use motion_panel::MotionPlayer;
 use photo_panel::PhotoPanel;
 use texture_job::TextureJob;
 
-/// Positions, normals, linear colours and triangles of the shown mesh.
-type MeshArrays = (Vec<Vec3>, Vec<Vec3>, Vec<Vec3>, Vec<[u32; 3]>);
+/// The avatar shown (when it is, and the generator's body context is ready) with that context.
+fn shown_rig<'a>(
+    rigged: &'a Option<RiggedAvatar>,
+    engine: &'a Option<GenEngine>,
+    show: bool,
+) -> Option<(&'a RiggedAvatar, &'a getavatar_core::generator::BodyContext)> {
+    match (rigged, engine.as_ref().and_then(|e| e.context())) {
+        (Some(r), Some(ctx)) if show => Some((r, ctx)),
+        _ => None,
+    }
+}
 
 /// Linear RGB albedo of the untextured body.
 const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
@@ -311,45 +320,34 @@ impl GetAvatarApp {
         }
     }
 
-    /// Current mesh to show/export: the re-posed avatar, or the posed body.
-    fn current_mesh(&self) -> Option<MeshArrays> {
+    /// The bare body in the current pose, for the posed download.
+    fn posed_body_mesh(&self) -> Option<ExportMesh> {
         let body = self.body.as_ref()?;
         let posed = pose_body(body, &self.params);
-        if self.show_avatar {
-            if let (Some(r), Some(ctx)) = (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
-                let (v, n) = r.repose(ctx, &posed);
-                return Some((v, n, r.canonical.colors.clone(), r.canonical.mesh.faces.clone()));
-            }
-        }
         let normals = vertex_normals(&posed.vertices, &body.faces);
         let n = posed.vertices.len();
-        Some((posed.vertices, normals, vec![SKIN; n], body.faces.clone()))
-    }
-
-    fn posed_mesh(&self) -> Option<ExportMesh> {
-        let (positions, normals, colors, indices) = self.current_mesh()?;
-        let what = if self.show_avatar { format!("avatar_{}_{}", self.seed_geo, self.seed_tex) } else { "body".into() };
         Some(ExportMesh {
-            positions,
+            positions: posed.vertices,
             normals,
-            colors,
+            colors: vec![SKIN; n],
             uvs: Vec::new(),
-            indices,
-            name: format!("getavatar_{what}_{}", self.pose_name),
+            indices: body.faces.clone(),
+            name: format!("getavatar_body_{}", self.pose_name),
         })
     }
 
     fn download_glb(&mut self) {
-        let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
-            (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
-            _ => None,
+        let rig = shown_rig(&self.rigged, &self.engine, self.show_avatar);
+        let what = match rig {
+            Some(_) => format!("avatar_{}_{}", self.seed_geo, self.seed_tex),
+            None => "body".to_string(),
         };
         let bytes = match rig {
             Some((r, ctx)) => {
-                let name = format!("getavatar_avatar_{}_{}_{}", self.seed_geo, self.seed_tex, self.pose_name);
+                let name = format!("getavatar_{what}_{}", self.pose_name);
                 r.posed_glb(ctx, &self.params, self.baked.as_ref(), &name)
             }
-            None => match self.posed_mesh() {
+            None => match self.posed_body_mesh() {
                 Some(mesh) => write_glb(&mesh),
                 None => {
                     self.messages.push("no body to export".into());
@@ -360,11 +358,6 @@ impl GetAvatarApp {
         let textured = rig.is_some() && self.baked.is_some();
         match bytes {
             Ok(bytes) => {
-                let what = if self.show_avatar && self.rigged.is_some() {
-                    format!("avatar_{}_{}", self.seed_geo, self.seed_tex)
-                } else {
-                    "body".into()
-                };
                 let name = format!("getavatar_{what}_posed_{}.glb", self.pose_name.replace(' ', "_"));
                 match download_bytes(&name, &bytes, "model/gltf-binary") {
                     Ok(()) => {
@@ -385,10 +378,7 @@ impl GetAvatarApp {
     /// blends (the downloaded glTF's skinning).
     fn upload_mesh(&mut self, rs: &eframe::egui_wgpu::RenderState) {
         let Some(body) = self.body.as_ref() else { return };
-        let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
-            (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
-            _ => None,
-        };
+        let rig = shown_rig(&self.rigged, &self.engine, self.show_avatar);
         let Some(viewer) = self.viewer.as_mut() else { return };
         let key = (rig.is_some(), self.params.betas.clone());
         if self.avatar_dirty || self.uploaded.as_ref() != Some(&key) {

@@ -363,10 +363,7 @@ impl GetAvatarApp {
         } else {
             clips.iter().map(|m| m.name.as_str()).collect::<Vec<_>>().join("+")
         };
-        let rig = match (&self.rigged, self.engine.as_ref().and_then(|e| e.context())) {
-            (Some(r), Some(ctx)) if self.show_avatar => Some((r, ctx)),
-            _ => None,
-        };
+        let rig = super::shown_rig(&self.rigged, &self.engine, self.show_avatar);
         let textured = rig.is_some() && self.baked.is_some();
         let (what, bytes) = match rig {
             Some((r, ctx)) => {
