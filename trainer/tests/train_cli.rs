@@ -51,7 +51,8 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-fn train(data: &Path, out: &Path, steps: u64, extra: &[&str]) -> String {
+/// A tiny training run (batch 2, a snapshot every step unless `extra` says otherwise).
+fn train_output(data: &Path, out: &Path, steps: u64, extra: &[&str]) -> std::process::Output {
     let s = steps.to_string();
     let args = [
         "train",
@@ -67,7 +68,11 @@ fn train(data: &Path, out: &Path, steps: u64, extra: &[&str]) -> String {
         &s,
     ];
     let snapshot: &[&str] = if extra.contains(&"--snapshot-every") { &[] } else { &["--snapshot-every", "1"] };
-    ok(trainer(&[&args[..], snapshot, extra].concat()))
+    trainer(&[&args[..], snapshot, extra].concat())
+}
+
+fn train(data: &Path, out: &Path, steps: u64, extra: &[&str]) -> String {
+    ok(train_output(data, out, steps, extra))
 }
 
 #[test]
@@ -113,22 +118,7 @@ fn resume_is_bit_identical_and_outputs_are_complete() {
     assert!(a.join("state.prev.safetensors").is_file(), "the checkpoint before the last is kept");
     let cut = std::fs::read(a.join("state.safetensors")).unwrap();
     std::fs::write(a.join("state.safetensors"), &cut[..cut.len() / 2]).unwrap();
-    let o = trainer(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--config",
-        "tiny",
-        "--out",
-        a.to_str().unwrap(),
-        "--batch",
-        "2",
-        "--steps",
-        "3",
-        "--snapshot-every",
-        "1",
-        "--resume",
-    ]);
+    let o = train_output(&data, &a, 3, &["--resume"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success() && err.contains("resuming from the previous one") && err.contains("(step 1)"), "{err}");
     train(&data, &b, 3, &["--resume"]);
