@@ -26,6 +26,7 @@
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
+//! | Sec. 5.4 single-image reconstruction: W+ inversion, pivotal tuning (feature `train`) | `inversion` |
 //! | photo → body (product, not in the paper): MediaPipe landmarks → SMPL joints | [`body_fit`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
@@ -48,6 +49,8 @@ pub mod fields;
 pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
+#[cfg(feature = "train")]
+pub mod inversion;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod losses;
 pub mod motion;

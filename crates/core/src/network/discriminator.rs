@@ -164,6 +164,19 @@ impl Discriminator {
         }
     }
 
+    /// The image's features after the input layer and after each residual block (resolutions
+    /// R, R/2, …, 4): the multi-scale features of the inversion's perceptual term (Deep
+    /// Generative Prior's `DiscriminatorLoss`), without the camera-conditioned head.
+    pub fn features(&self, img: Tensor<4>) -> Vec<Tensor<4>> {
+        let mut x = self.from_image.forward(img);
+        let mut out = vec![x.clone()];
+        for b in &self.blocks {
+            x = b.forward(x);
+            out.push(x.clone());
+        }
+        out
+    }
+
     /// Logits `[B, 1]` of images `[B, C, R, R]` (values in [−1, 1]) under cameras `c` `[B, 16]`.
     pub fn forward(&self, img: Tensor<4>, c: Tensor<2>) -> Tensor<2> {
         let mut x = self.from_image.forward(img);

@@ -34,6 +34,16 @@ impl MappingNetwork {
         x
     }
 
+    /// Width of the latent z.
+    pub fn z_dim(&self) -> usize {
+        self.layers.first().map_or(0, |l| l.weight.dims()[1])
+    }
+
+    /// w_avg as a `[1, w_dim]` row (no gradients).
+    pub fn w_avg_tensor(&self) -> Tensor<2> {
+        self.w_avg.val().detach().unsqueeze_dim::<2>(0)
+    }
+
     /// Track the running mean: `w_avg ← β·w_avg + (1 − β)·mean_batch(w)` (no gradients).
     pub fn track_w_avg(mut self, w: Tensor<2>, beta: f32) -> Self {
         let mean = w.detach().mean_dim(0).reshape([self.w_avg.dims()[0]]);
