@@ -50,7 +50,7 @@ pub struct FitPoseArgs {
     pub body: Option<PathBuf>,
 }
 
-fn open_image(path: &PathBuf) -> Result<image::DynamicImage> {
+pub(crate) fn open_image(path: &std::path::Path) -> Result<image::DynamicImage> {
     let reader = image::ImageReader::open(path)
         .with_context(|| format!("reading {}", path.display()))?
         .with_guessed_format()
@@ -65,7 +65,7 @@ fn open_image(path: &PathBuf) -> Result<image::DynamicImage> {
         .with_context(|| format!("{} is not a readable PNG or JPEG image", path.display()))
 }
 
-fn load_mask(path: &PathBuf) -> Result<SegmentationMask> {
+pub(crate) fn load_mask(path: &std::path::Path) -> Result<SegmentationMask> {
     let img = open_image(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     let data: Vec<f32> = if img.color().has_alpha() && img.to_rgba8().pixels().any(|p| p[3] < 255) {
@@ -97,7 +97,7 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     let text =
         std::fs::read_to_string(&args.keypoints).with_context(|| format!("reading {}", args.keypoints.display()))?;
     let result = PoseResult::from_json(&text).with_context(|| format!("{}", args.keypoints.display()))?;
-    let mask = args.mask.as_ref().map(load_mask).transpose()?;
+    let mask = args.mask.as_deref().map(load_mask).transpose()?;
     let model = Arc::new(load_body(&args.body)?);
     let [a, b, c] = args.iterations[..] else { bail!("--iterations takes three numbers: torso,body,silhouette") };
     let options = FitOptions { iterations: [a, b, c], num_betas: args.betas, ..FitOptions::default() };

@@ -10,6 +10,7 @@ mod export;
 mod fid;
 mod fit_pose;
 mod inception;
+mod invert;
 mod plot;
 mod prepare;
 mod progress;
@@ -162,6 +163,10 @@ enum Command {
     /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
     /// joints, with motion clips (built-in walk/turn/wave or SMPL/AMASS .npz) as animations.
     Export(export::ExportArgs),
+    /// Reconstruct an avatar from one image (paper Sec. 5.4): W+ inversion of the latent codes
+    /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned
+    /// generator and codes, and metrics go to --out.
+    Invert(invert::InvertArgs),
     /// Time the export's stages (atlas, bake, PNG, glTF) and file sizes per config.
     BenchExport(export::BenchExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
@@ -250,6 +255,7 @@ fn main() -> Result<()> {
         }
         Command::Sample(args) => sample::sample(&args)?,
         Command::Export(args) => export::export(&args)?,
+        Command::Invert(args) => invert::invert(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,

@@ -122,6 +122,53 @@ pub fn save_generator_with_modes(
     write_safetensors(&meta, &tensors)
 }
 
+/// Tensor names of an inverted avatar's codes (W+, `[1, n, w_dim]` per branch), saved with
+/// the pivotally tuned generator ([`save_inverted`]).
+pub const INVERTED_GEO: &str = "inversion/w_geo";
+pub const INVERTED_TEX: &str = "inversion/w_tex";
+
+/// An inverted avatar as one file: the (tuned) generator `g` of `cfg` and its codes `s`.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn save_inverted(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    s: &crate::generator::Styles,
+    extra: &BTreeMap<String, String>,
+) -> Result<Vec<u8>, CheckpointError> {
+    let mut meta = extra.clone();
+    meta.insert("format".into(), FORMAT.into());
+    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
+    let mut tensors = collect_params(g)?;
+    for (name, t) in [(INVERTED_GEO, &s.geo), (INVERTED_TEX, &s.tex)] {
+        tensors.push((name.to_string(), t.dims().to_vec(), read_f32_now(t.clone()).map_err(|e| e.context(name))?));
+    }
+    write_safetensors(&meta, &tensors)
+}
+
+/// The generator and codes of an inverted avatar ([`save_inverted`]); the codes must match the
+/// generator's style counts.
+pub fn load_inverted(
+    bytes: &[u8],
+    requested: &GeneratorConfig,
+    device: &Device,
+) -> Result<(Generator, crate::generator::Styles), CheckpointError> {
+    let st = parse_safetensors(bytes)?;
+    let g = generator_of(&st, requested, device)?;
+    let (ng, nt) = g.num_ws();
+    let code = |name: &str, n: usize| -> Result<Tensor<3>, CheckpointError> {
+        let (shape, data) =
+            st.tensors.get(name).ok_or_else(|| fmt_err(format!("{name} missing: not an inverted avatar")))?;
+        if shape[..] != [1, n, requested.w_dim] {
+            return Err(fmt_err(format!(
+                "{name} has shape {shape:?}, the generator needs [1, {n}, {}]",
+                requested.w_dim
+            )));
+        }
+        Ok(Tensor::from_data(TensorData::new(data.clone(), [1, n, requested.w_dim]), device))
+    };
+    Ok((g, crate::generator::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? }))
+}
+
 /// The latent modes a generator checkpoint carries (None for checkpoints without them).
 /// Both branches must be present, `[K, w_dim]` with the same K ≥ 1 and the config's w_dim.
 pub fn load_latent_modes(bytes: &[u8], device: &Device) -> Result<Option<LatentModes>, CheckpointError> {
@@ -300,7 +347,8 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     if let Some(e) = l.error {
         return Err(e);
     }
-    let modes = st.tensors.keys().filter(|k| k.as_str() == MODES_GEO || k.as_str() == MODES_TEX).count();
+    let modes =
+        st.tensors.keys().filter(|k| [MODES_GEO, MODES_TEX, INVERTED_GEO, INVERTED_TEX].contains(&k.as_str())).count();
     if l.used + modes != st.tensors.len() {
         return Err(fmt_err(format!("{} tensors in the file, {} used by the model", st.tensors.len(), l.used)));
     }

@@ -105,23 +105,45 @@ impl Framing {
     /// 0..1; any resolution, stretched over the photo) resampled to the crop at `size`²
     /// (4×4 samples per pixel, 0 outside the photo).
     pub fn resample_mask(&self, values: &[f32], mask_width: usize, mask_height: usize, size: usize) -> Vec<f32> {
-        let (w, h) = (mask_width, mask_height);
+        self.resample(values, mask_width, mask_height, 1, size, &[0.0])
+    }
+
+    /// An image covering the photo (`width × height` pixels of `channels` values, row-major;
+    /// any resolution, stretched over the photo) resampled to the crop at `size`² (4×4 samples
+    /// per pixel, `outside` where the crop leaves the photo): the photo as the inversion's
+    /// camera sees it.
+    pub fn resample(
+        &self,
+        values: &[f32],
+        width: usize,
+        height: usize,
+        channels: usize,
+        size: usize,
+        outside: &[f32],
+    ) -> Vec<f32> {
+        let (w, h, c) = (width, height, channels.max(1));
         let (kx, ky) = (w as f32 / self.photo_width.max(1) as f32, h as f32 / self.photo_height.max(1) as f32);
-        let mut out = vec![0.0f32; size * size];
+        let mut out = vec![0.0f32; size * size * c];
         const SS: usize = 4;
-        for (k, o) in out.iter_mut().enumerate() {
+        for (k, o) in out.chunks_exact_mut(c).enumerate() {
             let (x, y) = (k % size, k / size);
-            let mut acc = 0.0;
             for s in 0..SS * SS {
                 let u = (x as f32 + (s % SS) as f32 / SS as f32 + 0.5 / SS as f32) / size as f32 * 2.0 - 1.0;
                 let v = 1.0 - (y as f32 + (s / SS) as f32 / SS as f32 + 0.5 / SS as f32) / size as f32 * 2.0;
                 let p = self.to_photo([u, v]);
                 let p = [p[0] * kx, p[1] * ky];
-                if p[0] >= 0.0 && p[1] >= 0.0 && (p[0] as usize) < w && (p[1] as usize) < h {
-                    acc += values.get(p[1] as usize * w + p[0] as usize).copied().unwrap_or(0.0);
+                let inside = p[0] >= 0.0 && p[1] >= 0.0 && (p[0] as usize) < w && (p[1] as usize) < h;
+                for (ch, o) in o.iter_mut().enumerate() {
+                    *o += if inside {
+                        values.get((p[1] as usize * w + p[0] as usize) * c + ch).copied().unwrap_or(0.0)
+                    } else {
+                        outside.get(ch).copied().unwrap_or(0.0)
+                    };
                 }
             }
-            *o = acc / (SS * SS) as f32;
+            for o in o.iter_mut() {
+                *o /= (SS * SS) as f32;
+            }
         }
         out
     }

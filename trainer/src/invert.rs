@@ -1,0 +1,458 @@
+//! `trainer invert`: single-image reconstruction (paper Sec. 5.4, `getavatar_core::inversion`)
+//! of a photo with its body fit (`--image --fit`), or of a dataset image with its true camera
+//! and pose (`--data --entry`, which measures the inversion alone).
+//!
+//! DIR receives: `input.png` (the target as the inversion sees it, and its mask),
+//! `input_view.png` (RGBA render at the input camera and resolution, alpha = the avatar's
+//! mask), `comparison.png` (input | render | overlay), `back_view.png` (the opposite camera),
+//! `pose_<name>.png` (three other poses, front camera), `avatar.glb` (skinned, textured, the
+//! input's pose shown, the built-in `walk` clip), `inverted.safetensors` (the tuned generator
+//! and the codes: `trainer sample --inverted DIR` reloads it), `steps.jsonl` (every step's
+//! terms) and `metrics.json` (mask IoU and masked PSNR at the input camera after W+ and after
+//! PTI, the back view's IoU against the subject's own scan with `--scans`, timings).
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_fit::fit::BodyFit;
+use getavatar_core::body_fit::landmarks::PoseResult;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::camera::{reference_fov_y, OrbitCamera, View};
+use getavatar_core::checkpoint::{load_params, parse_safetensors, save_inverted};
+use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
+use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
+use getavatar_core::inversion::{
+    choose_start, mask_iou, masked_psnr, render_images, start_candidates, InversionOptions, InversionTarget, Inverter,
+    Phase,
+};
+use getavatar_core::motion::Motion;
+use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
+use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::rasterize::render_views_textured;
+use getavatar_core::readback::block_on_ready;
+use getavatar_core::scan::RenderableScan;
+use glam::{Mat4, Vec3};
+use serde::Serialize;
+
+use crate::atomic::write_atomic;
+use crate::fit_pose::{load_mask, open_image};
+use crate::sample::{load_body, write_png, GeneratorArgs};
+
+#[derive(clap::Args, Debug)]
+pub struct InvertArgs {
+    #[command(flatten)]
+    pub model: GeneratorArgs,
+    /// A photo (PNG or JPEG) to reconstruct; needs `--fit` and a person mask (`--mask`, or
+    /// `--keypoints` with MediaPipe's `segmentationMask`).
+    #[arg(long, requires = "fit", conflicts_with = "data")]
+    pub image: Option<PathBuf>,
+    /// The photo's body fit (`trainer fit-pose` or the app's "Download fit").
+    #[arg(long)]
+    pub fit: Option<PathBuf>,
+    /// Person mask PNG covering the photo (grey, or the alpha channel where it has one).
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    /// MediaPipe Pose's result JSON with a `segmentationMask` (used when there is no `--mask`).
+    #[arg(long)]
+    pub keypoints: Option<PathBuf>,
+    /// A prepared dataset: invert one of its images at its true camera and pose.
+    #[arg(long, requires = "entry")]
+    pub data: Option<PathBuf>,
+    /// The dataset entry, e.g. `0003/005.png`.
+    #[arg(long)]
+    pub entry: Option<String>,
+    /// The dataset's scans (`synth-scans` output): the subject's own back view is rendered
+    /// from its scan and compared with the avatar's (mask IoU in metrics.json).
+    #[arg(long, requires = "data")]
+    pub scans: Option<PathBuf>,
+    /// fast (60 W+ + 60 PTI steps) or full (200 + 350, the references' counts).
+    #[arg(long, default_value = "full")]
+    pub preset: String,
+    /// W+ steps (overrides the preset).
+    #[arg(long)]
+    pub steps: Option<usize>,
+    /// PTI steps (overrides the preset; 0 = W+ only).
+    #[arg(long)]
+    pub pti_steps: Option<usize>,
+    /// The inversion's options as JSON (`InversionOptions`; fields not given keep the preset's).
+    #[arg(long)]
+    pub options: Option<String>,
+    /// Render size of a photo's crop (a dataset image keeps its own size).
+    #[arg(long, default_value_t = 256)]
+    pub res: usize,
+    /// The .glb's texture side (64…4096).
+    #[arg(long, default_value_t = 512)]
+    pub texture_res: usize,
+    /// A trained RGB discriminator for the perceptual term: a training state
+    /// (`RUN/state.safetensors`, its `d0`) or a discriminator file; without one the term is off.
+    #[arg(long)]
+    pub discriminator: Option<PathBuf>,
+    /// Body model .npz in the SMPL layout (default: the embedded open body).
+    #[arg(long)]
+    pub body: Option<PathBuf>,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// What `metrics.json` holds.
+#[derive(Serialize)]
+struct InvertMetrics {
+    source: String,
+    res: usize,
+    options: InversionOptions,
+    start: String,
+    start_losses: Vec<(String, f32)>,
+    perceptual: bool,
+    /// At the input camera: after W+ and after PTI.
+    after_w: ViewMetrics,
+    after_pti: Option<ViewMetrics>,
+    /// Mask IoU at the opposite camera vs the subject's scan (with `--scans`).
+    back_view_iou: Option<f32>,
+    seconds_start: f64,
+    seconds_per_w_step: f64,
+    seconds_per_pti_step: Option<f64>,
+    seconds_total: f64,
+}
+
+#[derive(Serialize, Clone, Copy)]
+struct ViewMetrics {
+    mask_iou: f32,
+    psnr_db: f32,
+}
+
+/// The target, a name for it, and (with `--scans`) the subject's scan for the back view.
+type Loaded = (InversionTarget, String, Option<(getavatar_core::scan::Scan, RenderableScan)>);
+
+fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) -> Result<Loaded> {
+    if let (Some(data), Some(entry)) = (&a.data, &a.entry) {
+        let ds = Dataset::open(data)?;
+        let i = ds.entries.iter().position(|(p, _)| p == entry).with_context(|| {
+            let some: Vec<&str> = ds.entries.iter().take(3).map(|(p, _)| p.as_str()).collect();
+            format!("{} has no entry `{entry}` (entries look like {})", data.display(), some.join(", "))
+        })?;
+        let s = ds.load(i)?;
+        let mut view = s.label.view();
+        view.body.betas.truncate(model.num_betas);
+        let scan = match &a.scans {
+            Some(dir) => {
+                let subject = entry.rsplit_once('/').map_or("", |(d, _)| d);
+                let scans = find_scans(dir)?;
+                let (_, obj) = scans
+                    .iter()
+                    .find(|(n, _)| n == subject)
+                    .with_context(|| format!("{} has no scan of subject `{subject}`", dir.display()))?;
+                let scan = load_scan(obj)?;
+                let smpl = load_body_fit(subject, obj, None)?;
+                let prepared = RenderableScan::new(&scan, &smpl);
+                Some((scan, prepared))
+            }
+            None => None,
+        };
+        return Ok((
+            InversionTarget { view, res: s.size, rgb: s.rgb, mask: s.mask },
+            format!("{} {entry}", data.display()),
+            scan,
+        ));
+    }
+    let (Some(image), Some(fit)) = (&a.image, &a.fit) else {
+        bail!("give a photo (--image PHOTO --fit fit.json) or a dataset image (--data DIR --entry NAME)");
+    };
+    if !(16..=1024).contains(&a.res) {
+        bail!("--res must be between 16 and 1024 (got {})", a.res);
+    }
+    let text = std::fs::read_to_string(fit).with_context(|| format!("reading {}", fit.display()))?;
+    let fit: BodyFit = serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", fit.display()))?;
+    if (fit.fov_y - reference_fov_y()).abs() > 1e-3 {
+        bail!("the fit's field of view {:.4} rad is not the reference camera's {:.4}", fit.fov_y, reference_fov_y());
+    }
+    let photo = open_image(image)?;
+    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    if (w, h) != (fit.framing.photo_width, fit.framing.photo_height) {
+        bail!(
+            "{} is {w}×{h} pixels but the fit was made on a {}×{} photo",
+            image.display(),
+            fit.framing.photo_width,
+            fit.framing.photo_height
+        );
+    }
+    let mask = match (&a.mask, &a.keypoints) {
+        (Some(m), _) => load_mask(m)?,
+        (None, Some(k)) => {
+            let text = std::fs::read_to_string(k).with_context(|| format!("reading {}", k.display()))?;
+            PoseResult::from_json(&text)
+                .with_context(|| format!("{}", k.display()))?
+                .segmentation_mask
+                .with_context(|| format!("{} has no segmentationMask: give --mask", k.display()))?
+        }
+        (None, None) => bail!("a photo needs a person mask: --mask PNG, or --keypoints with a segmentationMask"),
+    };
+    let rgb: Vec<f32> = photo.to_rgb8().as_raw().iter().map(|v| *v as f32 / 255.0).collect();
+    let rgb = fit.framing.resample(&rgb, w, h, 3, a.res, &[1.0, 1.0, 1.0]);
+    let mask = fit.framing.resample_mask(&mask.data, mask.width, mask.height, a.res);
+    let mut body = fit.body_params();
+    body.betas.truncate(model.num_betas);
+    let view = View { world_to_camera: fit.world_to_camera(), body };
+    Ok((InversionTarget { view, res: a.res, rgb, mask }, image.display().to_string(), None))
+}
+
+/// The RGB discriminator of a training state (`d0/…`, its run's config) or of a file written
+/// with `discriminator` metadata.
+fn load_discriminator(path: &Path, device: &Device) -> Result<Discriminator> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let st = parse_safetensors(&bytes).with_context(|| format!("{} is not a safetensors file", path.display()))?;
+    let cfg: DiscriminatorConfig = if let Some(run) = st.metadata.get("run") {
+        let v: serde_json::Value = serde_json::from_str(run)?;
+        serde_json::from_value(v["discriminator"].clone())
+            .with_context(|| format!("{}: the run's discriminator config", path.display()))?
+    } else if let Some(c) = st.metadata.get("discriminator") {
+        serde_json::from_str(c).with_context(|| format!("{}: the discriminator config", path.display()))?
+    } else {
+        bail!("{} is neither a training state nor a discriminator file", path.display());
+    };
+    let d = Discriminator::new(&cfg, 3, 0, device);
+    load_params(d, &st.tensors, "d0/", device)
+        .with_context(|| format!("loading the RGB discriminator of {}", path.display()))
+}
+
+/// RGBA bytes of a render (alpha = its mask).
+fn rgba(rgb: &[f32], mask: &[f32]) -> Vec<u8> {
+    mask.iter()
+        .enumerate()
+        .flat_map(|(k, m)| {
+            let c = |i: usize| (rgb[3 * k + i].clamp(0.0, 1.0) * 255.0).round() as u8;
+            [c(0), c(1), c(2), (m.clamp(0.0, 1.0) * 255.0).round() as u8]
+        })
+        .collect()
+}
+
+fn to_u8(v: &[f32]) -> Vec<u8> {
+    v.iter().map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
+}
+
+/// Input | render | overlay (render over the input where the avatar is, tinted outside the
+/// person mask), side by side.
+fn comparison(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> Vec<u8> {
+    let r = t.res;
+    let mut out = vec![0u8; r * 3 * r * 3];
+    for y in 0..r {
+        for x in 0..r {
+            let k = y * r + x;
+            for c in 0..3 {
+                let inp = t.rgb[3 * k + c] * (0.35 + 0.65 * t.mask[k]);
+                let over = mask[k] * rgb[3 * k + c] + (1.0 - mask[k]) * inp;
+                for (panel, v) in [t.rgb[3 * k + c], rgb[3 * k + c], over].into_iter().enumerate() {
+                    out[(y * 3 * r + panel * r + x) * 3 + c] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The camera opposite `w2c` about the body's vertical axis (x = z = 0).
+fn opposite(w2c: Mat4) -> Mat4 {
+    w2c * Mat4::from_rotation_y(std::f32::consts::PI)
+}
+
+fn view_metrics(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> ViewMetrics {
+    ViewMetrics { mask_iou: mask_iou(mask, &t.mask), psnr_db: masked_psnr(rgb, &t.rgb, &t.mask) }
+}
+
+fn render_at(
+    g: &Generator,
+    ctx: &BodyContext,
+    s: &Styles,
+    view: &View,
+    res: usize,
+    dev: &Device,
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    let f = render_avatars(g, ctx, s, std::slice::from_ref(view), res, &PosedGridCache::new(2), dev)?;
+    Ok(render_images(&f)?)
+}
+
+pub fn invert(a: &InvertArgs) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    let mut opts =
+        InversionOptions::preset(&a.preset).with_context(|| format!("unknown --preset `{}` (fast, full)", a.preset))?;
+    if let Some(json) = &a.options {
+        let mut v = serde_json::to_value(&opts)?;
+        let over: serde_json::Value = serde_json::from_str(json).context("--options is not JSON")?;
+        let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
+            bail!("--options must be a JSON object")
+        };
+        for (k, x) in over {
+            if !base.contains_key(k) {
+                bail!("--options: unknown field `{k}`");
+            }
+            base.insert(k.clone(), x.clone());
+        }
+        opts = serde_json::from_value(v).context("--options")?;
+    }
+    if let Some(n) = a.steps {
+        opts.steps = n;
+    }
+    if let Some(n) = a.pti_steps {
+        opts.pti_steps = n;
+    }
+    if opts.steps + opts.pti_steps == 0 {
+        bail!("nothing to do: --steps and --pti-steps are both 0");
+    }
+    if !(64..=4096).contains(&a.texture_res) {
+        bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
+    }
+    let model = load_body(&a.body)?;
+    let (target, source, scan) = load_target(a, &model)?;
+    target.validate()?;
+    #[allow(deprecated)]
+    let dev = Device::ndarray().autodiff();
+    let (cfg, g, modes) = a.model.load(&dev)?;
+    let disc = a.discriminator.as_deref().map(|p| load_discriminator(p, &dev)).transpose()?;
+    if disc.is_none() {
+        eprintln!("no --discriminator: the perceptual term is off");
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let ctx = BodyContext::new(model, &cfg);
+    write_png(&a.out.join("input.png"), &rgba(&target.rgb, &target.mask), target.res, 4)?;
+
+    // The start: the latent mode (or w_avg) that explains the image best.
+    let ts = std::time::Instant::now();
+    let cands = start_candidates(&g, modes.as_ref());
+    let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev)?;
+    let seconds_start = ts.elapsed().as_secs_f64();
+    eprintln!(
+        "start: {} (loss {:.4}; {} candidates, {:.1} s)",
+        cands[best].name,
+        losses[best],
+        cands.len(),
+        seconds_start
+    );
+    let start_losses = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
+
+    let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &cands[best].styles, opts.clone(), &dev)?;
+    let perceptual = inv.has_perceptual();
+    let (_, all) = inv.progress();
+    let bar = crate::progress::bar(all as u64, "steps");
+    let mut log = std::io::BufWriter::new(
+        std::fs::File::create(a.out.join("steps.jsonl"))
+            .with_context(|| format!("creating {}/steps.jsonl", a.out.display()))?,
+    );
+    let (mut after_w, mut t_w, mut t_pti) = (None, None, None);
+    let tw = std::time::Instant::now();
+    let mut tp = None;
+    loop {
+        if after_w.is_none() && inv.phase() != Phase::Latent {
+            // The W+ result, before tuning.
+            t_w = Some(tw.elapsed().as_secs_f64() / opts.steps.max(1) as f64);
+            let (rgb, mask) = render_images(&inv.render()?)?;
+            let m = view_metrics(&target, &rgb, &mask);
+            eprintln!("after W+: mask IoU {:.3}, masked PSNR {:.2} dB", m.mask_iou, m.psnr_db);
+            write_png(&a.out.join("input_view_w.png"), &rgba(&rgb, &mask), target.res, 4)?;
+            after_w = Some(m);
+            tp = Some(std::time::Instant::now());
+        }
+        let Some(r) = inv.step()? else { break };
+        writeln!(log, "{}", serde_json::to_string(&r)?)?;
+        let (done, _) = inv.progress();
+        bar.set_position(done as u64);
+        bar.set_message(format!(
+            "{} loss {:.4} IoU {:.3}",
+            if r.phase == Phase::Latent { "W+" } else { "PTI" },
+            r.terms.total,
+            r.terms.mask_iou
+        ));
+    }
+    log.flush()?;
+    bar.finish_and_clear();
+    if let Some(tp) = tp.filter(|_| opts.pti_steps > 0) {
+        t_pti = Some(tp.elapsed().as_secs_f64() / opts.pti_steps as f64);
+    }
+    let styles = inv.styles();
+    let g = inv.generator().clone();
+
+    // Renders: the input camera (RGBA at the input's resolution), the opposite camera, poses.
+    let (rgb, mask) = render_at(&g, &ctx, &styles, &target.view, target.res, &dev)?;
+    let final_m = view_metrics(&target, &rgb, &mask);
+    write_png(&a.out.join("input_view.png"), &rgba(&rgb, &mask), target.res, 4)?;
+    let r = target.res;
+    let png = getavatar_core::dataset::encode_png(3 * r, r, 3, &comparison(&target, &rgb, &mask))?;
+    write_atomic(&a.out.join("comparison.png"), &png)?;
+    let back = View { world_to_camera: opposite(target.view.world_to_camera), body: target.view.body.clone() };
+    let (brgb, bmask) = render_at(&g, &ctx, &styles, &back, r, &dev)?;
+    write_png(&a.out.join("back_view.png"), &rgba(&brgb, &bmask), r, 4)?;
+    let back_view_iou = match &scan {
+        Some((scan, prepared)) => {
+            let vp = OrbitCamera::default().projection_gl(1.0) * back.world_to_camera;
+            let albedo =
+                |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
+            let truth = render_views_textured(
+                &prepared.vertices,
+                &prepared.triangles,
+                &prepared.normals,
+                &prepared.attributes,
+                vp,
+                r,
+                2,
+                albedo,
+            )
+            .unwrap_or_else(|never| match never {});
+            let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
+            write_png(&a.out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
+            Some(mask_iou(&bmask, &tm))
+        }
+        None => None,
+    };
+    let lib = PoseLibrary::builtin();
+    let front = OrbitCamera::default();
+    for name in ["walking", "arms_up", "sitting"] {
+        let mut body = lib.params(name, &target.view.body.betas)?;
+        body.betas = target.view.body.betas.clone();
+        let v = View { world_to_camera: front.world_to_camera(), body };
+        let (prgb, pmask) = render_at(&g, &ctx, &styles, &v, r, &dev)?;
+        write_png(&a.out.join(format!("pose_{name}.png")), &rgba(&prgb, &pmask), r, 4)?;
+    }
+
+    // The animatable avatar and the reloadable result.
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &dev))?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        bail!("the inverted generator produced an empty surface");
+    }
+    let planes = g.triplanes(&styles);
+    let tex = block_on_ready(rigged.bake_texture_async(&g, &planes, &styles, &ctx, a.texture_res, &dev))
+        .context("baking the texture")?;
+    let walk = Motion::builtin("walk")?;
+    let glb = rigged.animated_glb(&ctx, &target.view.body, &[walk], Some(&tex), "inverted avatar")?;
+    write_atomic(&a.out.join("avatar.glb"), &glb)?;
+    let mut extra = BTreeMap::new();
+    extra.insert("inversion/source".into(), source.clone());
+    extra.insert("inversion/options".into(), serde_json::to_string(&opts)?);
+    write_atomic(&a.out.join("inverted.safetensors"), &save_inverted(&g, &cfg, &styles, &extra)?)?;
+
+    let metrics = InvertMetrics {
+        source,
+        res: r,
+        options: opts.clone(),
+        start: cands[best].name.clone(),
+        start_losses,
+        perceptual,
+        after_w: after_w.unwrap_or(final_m),
+        after_pti: (opts.pti_steps > 0).then_some(final_m),
+        back_view_iou,
+        seconds_start,
+        seconds_per_w_step: t_w.unwrap_or(0.0),
+        seconds_per_pti_step: t_pti,
+        seconds_total: t0.elapsed().as_secs_f64(),
+    };
+    write_atomic(&a.out.join("metrics.json"), serde_json::to_string_pretty(&metrics)?.as_bytes())?;
+    println!(
+        "wrote {}: mask IoU {:.3}, masked PSNR {:.2} dB at the input camera{}; {:.0} s",
+        a.out.display(),
+        final_m.mask_iou,
+        final_m.psnr_db,
+        back_view_iou.map_or(String::new(), |i| format!(", back view IoU {i:.3}")),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
