@@ -80,9 +80,10 @@ pub struct InvertArgs {
     /// The inversion's options as JSON (`InversionOptions`; fields not given keep the preset's).
     #[arg(long)]
     pub options: Option<String>,
-    /// Render size of a photo's crop (a dataset image keeps its own size).
-    #[arg(long, default_value_t = 256)]
-    pub res: usize,
+    /// Render size: a photo's crop (default 256), or a dataset image box-filtered down to it
+    /// (a divisor of its size; default: its own size).
+    #[arg(long)]
+    pub res: Option<usize>,
     /// The .glb's texture side (64…4096).
     #[arg(long, default_value_t = 512)]
     pub texture_res: usize,
@@ -151,17 +152,23 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
             }
             None => None,
         };
-        return Ok((
-            InversionTarget { view, res: s.size, rgb: s.rgb, mask: s.mask },
-            format!("{} {entry}", data.display()),
-            scan,
-        ));
+        let (res, rgb, mask) = match a.res {
+            Some(r) if r != s.size => {
+                if r == 0 || s.size % r != 0 {
+                    bail!("--res {r} must divide the dataset's image size {}", s.size);
+                }
+                (r, box_down(&s.rgb, s.size, 3, r), box_down(&s.mask, s.size, 1, r))
+            }
+            _ => (s.size, s.rgb, s.mask),
+        };
+        return Ok((InversionTarget { view, res, rgb, mask }, format!("{} {entry}", data.display()), scan));
     }
     let (Some(image), Some(fit)) = (&a.image, &a.fit) else {
         bail!("give a photo (--image PHOTO --fit fit.json) or a dataset image (--data DIR --entry NAME)");
     };
-    if !(16..=1024).contains(&a.res) {
-        bail!("--res must be between 16 and 1024 (got {})", a.res);
+    let res = a.res.unwrap_or(256);
+    if !(16..=1024).contains(&res) {
+        bail!("--res must be between 16 and 1024 (got {res})");
     }
     let text = std::fs::read_to_string(fit).with_context(|| format!("reading {}", fit.display()))?;
     let fit: BodyFit = serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", fit.display()))?;
@@ -190,12 +197,27 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
         (None, None) => bail!("a photo needs a person mask: --mask PNG, or --keypoints with a segmentationMask"),
     };
     let rgb: Vec<f32> = photo.to_rgb8().as_raw().iter().map(|v| *v as f32 / 255.0).collect();
-    let rgb = fit.framing.resample(&rgb, w, h, 3, a.res, &[1.0, 1.0, 1.0]);
-    let mask = fit.framing.resample_mask(&mask.data, mask.width, mask.height, a.res);
+    let rgb = fit.framing.resample(&rgb, w, h, 3, res, &[1.0, 1.0, 1.0]);
+    let mask = fit.framing.resample_mask(&mask.data, mask.width, mask.height, res);
     let mut body = fit.body_params();
     body.betas.truncate(model.num_betas);
     let view = View { world_to_camera: fit.world_to_camera(), body };
-    Ok((InversionTarget { view, res: a.res, rgb, mask }, image.display().to_string(), None))
+    Ok((InversionTarget { view, res, rgb, mask }, image.display().to_string(), None))
+}
+
+/// A square image of `size`² pixels × `c` channels box-filtered to `r`² (`r` divides `size`).
+fn box_down(v: &[f32], size: usize, c: usize, r: usize) -> Vec<f32> {
+    let k = size / r;
+    let mut out = vec![0.0f32; r * r * c];
+    for y in 0..size {
+        for x in 0..size {
+            for ch in 0..c {
+                out[((y / k) * r + x / k) * c + ch] += v[(y * size + x) * c + ch];
+            }
+        }
+    }
+    out.iter_mut().for_each(|o| *o /= (k * k) as f32);
+    out
 }
 
 /// The RGB discriminator of a training state (`d0/…`, its run's config) or of a file written

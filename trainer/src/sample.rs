@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+use getavatar_core::checkpoint::{load_generator, load_inverted, load_latent_modes};
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
 use getavatar_core::generator::{
@@ -41,6 +41,11 @@ pub struct SampleArgs {
     /// latent modes (reconstruction and anchored runs); ψ and the seeds are then unused.
     #[arg(long, value_name = "K[,M]")]
     pub subject: Option<String>,
+    /// An inverted avatar (`trainer invert`'s output directory, or its
+    /// `inverted.safetensors`): its tuned generator and codes; seeds, ψ and --checkpoint are
+    /// then unused.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["subject", "checkpoint"])]
+    pub inverted: Option<PathBuf>,
     /// Named pose (T, A, Da, standing, walking, sitting, one_leg, arms_up).
     #[arg(long, default_value = "standing")]
     pub pose: String,
@@ -189,11 +194,23 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let model = load_body(&a.body)?;
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let (cfg, g, modes) = a.model.load(&device)?;
+    let (cfg, mut g, modes) = a.model.load(&device)?;
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
-    let styles = match &a.subject {
-        Some(spec) => {
+    let inverted = match &a.inverted {
+        Some(p) => {
+            let file = if p.is_dir() { p.join("inverted.safetensors") } else { p.clone() };
+            let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let (tuned, s) = load_inverted(&bytes, &cfg, &device)
+                .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
+            g = tuned;
+            Some(s)
+        }
+        None => None,
+    };
+    let styles = match (&a.subject, inverted) {
+        (_, Some(s)) => s,
+        (Some(spec), None) => {
             let (k, m) = parse_subject(spec)?;
             let Some(modes) = &modes else {
                 bail!("--subject needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
@@ -203,7 +220,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
             })?;
             g.styles_from_w(wg, wt)
         }
-        None => seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, a.mean_truncation, &device),
+        (None, None) => seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, a.mean_truncation, &device),
     };
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device)?;

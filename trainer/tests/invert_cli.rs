@@ -1,0 +1,118 @@
+//! `trainer invert` end to end on a dataset image (tiny generator, a few steps): every output
+//! is written and readable, the metrics are consistent with the renders, `trainer sample
+//! --inverted` reloads the result, and bad input is refused with a reason.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+use common::{s, tmp, trainer};
+
+fn png_size(path: &std::path::Path) -> (u32, u32, png::ColorType) {
+    let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let r = d.read_info().unwrap();
+    let i = r.info();
+    (i.width, i.height, i.color_type)
+}
+
+#[test]
+fn invert_a_dataset_image_writes_a_reloadable_avatar() {
+    let root = tmp("invert");
+    let (scans, data, out) = (root.join("scans"), root.join("data"), root.join("inv"));
+    let ok = |o: std::process::Output| {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    ok(trainer(&["synth-scans", "--out", s(&scans), "--count", "1", "--seed", "1", "--texture-size", "128"]));
+    ok(trainer(&["prepare", "--scans", s(&scans), "--out", s(&data), "--views", "2", "--res", "64"]));
+    let base = ["invert", "--config", "tiny", "--random-weights", "--data", s(&data)];
+    let o = ok(trainer(
+        &[
+            &base[..],
+            &["--entry", "0000/000.png", "--scans", s(&scans), "--steps", "4", "--pti-steps", "2"],
+            &["--texture-res", "64", "--out", s(&out)],
+        ]
+        .concat(),
+    ));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("mask IoU"), "{stdout}");
+    for f in [
+        "input.png",
+        "input_view.png",
+        "input_view_w.png",
+        "comparison.png",
+        "back_view.png",
+        "back_view_truth.png",
+        "pose_walking.png",
+        "pose_arms_up.png",
+        "pose_sitting.png",
+        "avatar.glb",
+        "inverted.safetensors",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    // The input view is RGBA at the input's resolution; the comparison is three panels.
+    assert_eq!(png_size(&out.join("input_view.png")), (64, 64, png::ColorType::Rgba));
+    assert_eq!(png_size(&out.join("comparison.png")).0, 192);
+    let steps = std::fs::read_to_string(out.join("steps.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = steps.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 6);
+    assert_eq!(lines.iter().filter(|l| l["phase"] == "latent").count(), 4);
+    assert_eq!(lines.iter().filter(|l| l["phase"] == "pivotal").count(), 2);
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    let iou = m["after_pti"]["mask_iou"].as_f64().unwrap();
+    assert!((0.3..=1.0).contains(&iou), "{m}");
+    let back = m["back_view_iou"].as_f64().unwrap();
+    assert!((0.3..=1.0).contains(&back), "{m}");
+    assert!(m["after_w"]["psnr_db"].as_f64().unwrap() > 5.0);
+    assert_eq!(m["perceptual"], false);
+    // The final IoU is the input view's own: recompute it from the PNGs (alpha vs mask).
+    let read_alpha = |p: &std::path::Path| -> Vec<f32> {
+        let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+        let mut r = d.read_info().unwrap();
+        let mut buf = vec![0; r.output_buffer_size()];
+        r.next_frame(&mut buf).unwrap();
+        buf.chunks_exact(4).map(|c| c[3] as f32 / 255.0).collect()
+    };
+    let (a, b) = (read_alpha(&out.join("input_view.png")), read_alpha(&out.join("input.png")));
+    let (mut i, mut u) = (0, 0);
+    for (x, y) in a.iter().zip(&b) {
+        i += (*x >= 0.5 && *y >= 0.5) as usize;
+        u += (*x >= 0.5 || *y >= 0.5) as usize;
+    }
+    assert!((i as f64 / u as f64 - iou).abs() < 0.02, "IoU from PNGs {} vs metrics {iou}", i as f64 / u as f64);
+    // The .glb is a skinned, animated glTF.
+    let glb = std::fs::read(out.join("avatar.glb")).unwrap();
+    assert_eq!(&glb[..4], b"glTF");
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    assert_eq!(json["skins"][0]["joints"].as_array().unwrap().len(), 24);
+    assert_eq!(json["animations"][0]["name"], "walk");
+    assert_eq!(json["images"].as_array().unwrap().len(), 1);
+    // `sample --inverted` reloads the tuned generator and codes.
+    let smp = root.join("sample");
+    ok(trainer(&["sample", "--config", "tiny", "--inverted", s(&out), "--res", "64", "--out", s(&smp)]));
+    assert!(smp.join("rgb.png").is_file());
+    let o = trainer(&["sample", "--config", "demo", "--inverted", s(&out), "--out", s(&smp)]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("tiny"), "{}", String::from_utf8_lossy(&o.stderr));
+
+    // Bad input, each refused with its reason.
+    let err = |args: &[&str]| {
+        let o = trainer(args);
+        assert!(!o.status.success(), "{args:?} succeeded");
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let e = err(&[&base[..], &["--entry", "9999/000.png", "--out", s(&out)]].concat());
+    assert!(e.contains("no entry `9999/000.png`") && e.contains("0000/000.png"), "{e}");
+    let e =
+        err(&[&base[..], &["--entry", "0000/000.png", "--steps", "0", "--pti-steps", "0", "--out", s(&out)]].concat());
+    assert!(e.contains("nothing to do"), "{e}");
+    let e = err(&[&base[..], &["--entry", "0000/000.png", "--options", "{\"stepz\": 3}", "--out", s(&out)]].concat());
+    assert!(e.contains("unknown field `stepz`"), "{e}");
+    let e = err(&[&base[..], &["--entry", "0000/000.png", "--preset", "slow", "--out", s(&out)]].concat());
+    assert!(e.contains("unknown --preset"), "{e}");
+    let photo = data.join("0000/000.png");
+    let e = err(&["invert", "--image", s(&photo), "--out", s(&out)]);
+    assert!(e.contains("--fit"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
+}
