@@ -21,6 +21,7 @@ use getavatar_core::body_fit::landmarks::PoseResult;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::{reference_fov_y, OrbitCamera, View};
 use getavatar_core::checkpoint::{load_params, parse_safetensors, save_inverted};
+use getavatar_core::colour::srgb_to_linear;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
@@ -30,10 +31,13 @@ use getavatar_core::inversion::{
 };
 use getavatar_core::motion::Motion;
 use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
+use getavatar_core::photo_projection::PhotoProjection;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views_textured;
 use getavatar_core::readback::block_on_ready;
+use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
 use getavatar_core::scan::RenderableScan;
+use getavatar_core::skinning::{pose_body, BodyParams};
 use glam::{Mat4, Vec3};
 use serde::Serialize;
 
@@ -91,6 +95,11 @@ pub struct InvertArgs {
     /// (`RUN/state.safetensors`, its `d0`) or a discriminator file; without one the term is off.
     #[arg(long)]
     pub discriminator: Option<PathBuf>,
+    /// Leave the photo's colours off the .glb's texture (by default they are projected onto
+    /// the surface the photo sees and blended with the generated texture at grazing angles
+    /// and on the hidden side).
+    #[arg(long)]
+    pub no_projection: bool,
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
@@ -110,6 +119,10 @@ struct InvertMetrics {
     /// At the input camera: after W+ and after PTI.
     after_w: ViewMetrics,
     after_pti: Option<ViewMetrics>,
+    /// The exported avatar (baked texture, skinned mesh) rendered at the input camera,
+    /// without and with the photo's colours projected on.
+    baked: ViewMetrics,
+    projected: ViewMetrics,
     /// Mask IoU at the opposite camera vs the subject's scan (with `--scans`).
     back_view_iou: Option<f32>,
     seconds_start: f64,
@@ -272,6 +285,44 @@ fn comparison(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> Vec<u8> {
         }
     }
     out
+}
+
+/// The exported avatar (the rigged mesh posed by `body`, its baked texture) rendered through
+/// `view_proj` at `res`²: sRGB in [0, 1] and the mask.
+fn render_baked(
+    rigged: &RiggedAvatar,
+    ctx: &BodyContext,
+    tex: &BakedTexture,
+    body: &BodyParams,
+    view_proj: Mat4,
+    res: usize,
+) -> (Vec<f32>, Vec<f32>) {
+    let (pos, nrm) = rigged.repose(ctx, &pose_body(&ctx.model, body));
+    let at = |v: &[Vec3]| -> Vec<Vec3> { tex.atlas.source.iter().map(|i| v[*i as usize]).collect() };
+    let uv: Vec<Vec3> = tex.atlas.uvs.iter().map(|u| u.extend(0.0)).collect();
+    let t = tex.res as f32;
+    let texel = |x: i64, y: i64| {
+        let (x, y) = (x.clamp(0, tex.res as i64 - 1) as usize, y.clamp(0, tex.res as i64 - 1) as usize);
+        let k = 3 * (y * tex.res + x);
+        Vec3::new(tex.rgb[k] as f32, tex.rgb[k + 1] as f32, tex.rgb[k + 2] as f32) / 255.0
+    };
+    let sample = |uvs: &[Vec3]| {
+        Ok::<_, std::convert::Infallible>(
+            uvs.iter()
+                .map(|u| {
+                    let q = glam::Vec2::new(u.x * t - 0.5, u.y * t - 0.5);
+                    let (x0, y0) = (q.x.floor() as i64, q.y.floor() as i64);
+                    let (fx, fy) = (q.x - x0 as f32, q.y - y0 as f32);
+                    let top = texel(x0, y0).lerp(texel(x0 + 1, y0), fx);
+                    let bottom = texel(x0, y0 + 1).lerp(texel(x0 + 1, y0 + 1), fx);
+                    srgb_to_linear(top.lerp(bottom, fy))
+                })
+                .collect(),
+        )
+    };
+    let v = render_views_textured(&at(&pos), &tex.atlas.faces, &at(&nrm), &uv, view_proj, res, 2, sample)
+        .unwrap_or_else(|never| match never {});
+    (v.rgb.iter().map(|c| *c as f32 / 255.0).collect(), v.mask.iter().map(|m| *m as f32 / 255.0).collect())
 }
 
 /// The camera opposite `w2c` about the body's vertical axis (x = z = 0).
@@ -442,8 +493,35 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         bail!("the inverted generator produced an empty surface");
     }
     let planes = g.triplanes(&styles);
-    let tex = block_on_ready(rigged.bake_texture_async(&g, &planes, &styles, &ctx, a.texture_res, &dev))
-        .context("baking the texture")?;
+    let bake = |photo| {
+        block_on_ready(rigged.bake_texture_photo_async(&g, &planes, &styles, &ctx, a.texture_res, photo, &dev))
+            .context("baking the texture")
+    };
+    let body = &target.view.body;
+    let proj = OrbitCamera::default().projection_gl(1.0);
+    let (posed, _) = rigged.repose(&ctx, &pose_body(&ctx.model, body));
+    let projection = PhotoProjection::new(
+        target.view.world_to_camera,
+        proj,
+        r,
+        &target.rgb,
+        &target.mask,
+        &posed,
+        &rigged.canonical.mesh.faces,
+    );
+    let plain = bake(None)?;
+    let projected = bake(Some((&projection, body)))?;
+    let vp = proj * target.view.world_to_camera;
+    let (prgb, pmask) = render_baked(&rigged, &ctx, &plain, body, vp, r);
+    let baked_m = view_metrics(&target, &prgb, &pmask);
+    let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r);
+    let projected_m = view_metrics(&target, &prgb, &pmask);
+    write_png(&a.out.join("input_view_projected.png"), &rgba(&prgb, &pmask), r, 4)?;
+    eprintln!(
+        "exported avatar at the input camera: masked PSNR {:.2} dB, {:.2} dB with the photo projected",
+        baked_m.psnr_db, projected_m.psnr_db
+    );
+    let tex = if a.no_projection { plain } else { projected };
     let walk = Motion::builtin("walk")?;
     let glb = rigged.animated_glb(&ctx, &target.view.body, &[walk], Some(&tex), "inverted avatar")?;
     write_atomic(&a.out.join("avatar.glb"), &glb)?;
@@ -461,6 +539,8 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         perceptual,
         after_w: after_w.unwrap_or(final_m),
         after_pti: (opts.pti_steps > 0).then_some(final_m),
+        baked: baked_m,
+        projected: projected_m,
         back_view_iou,
         seconds_start,
         seconds_per_w_step: t_w.unwrap_or(0.0),

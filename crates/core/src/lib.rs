@@ -27,6 +27,7 @@
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
 //! | Sec. 5.4 single-image reconstruction: W+ inversion, pivotal tuning (feature `train`) | `inversion` |
+//! | the photo's colours projected onto the reconstruction (product) | [`photo_projection`] |
 //! | photo → body (product, not in the paper): MediaPipe landmarks → SMPL joints | [`body_fit`] |
 //!
 //! Conventions (metres, y up, camera looks down −Z, (n+1)/2 normal maps, Da-pose) are in
@@ -61,6 +62,7 @@ pub mod normal_field;
 pub mod npz;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod optim;
+pub mod photo_projection;
 pub mod pose_library;
 pub mod rasterize;
 #[cfg(any(feature = "generator", feature = "wgpu"))]

@@ -205,6 +205,23 @@ impl RiggedAvatar {
         res: usize,
         device: &Device,
     ) -> Result<BakedTexture, BakeError> {
+        self.bake_texture_photo_async(g, planes, s, ctx, res, None, device).await
+    }
+
+    /// [`RiggedAvatar::bake_texture_async`] with a photo's colours projected on
+    /// ([`crate::photo_projection`]): each texel's surface point, posed in the body pose
+    /// `photo.1` the photo shows, blends in what the photo sees there.
+    #[allow(clippy::too_many_arguments)]
+    pub async fn bake_texture_photo_async(
+        &self,
+        g: &Generator,
+        planes: &Triplanes,
+        s: &Styles,
+        ctx: &BodyContext,
+        res: usize,
+        photo: Option<(&crate::photo_projection::PhotoProjection, &BodyParams)>,
+        device: &Device,
+    ) -> Result<BakedTexture, BakeError> {
         if !(64..=4096).contains(&res) {
             return Err(BakeError::Resolution(res));
         }
@@ -214,6 +231,15 @@ impl RiggedAvatar {
         let mut colors = Vec::with_capacity(points.len());
         for chunk in points.chunks(BAKE_BATCH) {
             colors.extend(recolor_async(g, planes, s, chunk, device).await?);
+        }
+        if let Some((projection, params)) = photo {
+            let (pos, nrm) = self.repose(ctx, &pose_body(&ctx.model, params));
+            let per_atlas =
+                |v: &[glam::Vec3]| -> Vec<glam::Vec3> { atlas.source.iter().map(|i| v[*i as usize]).collect() };
+            let (_, posed) = texel_points(&atlas, &per_atlas(&pos), res);
+            let (_, normals) = texel_points(&atlas, &per_atlas(&nrm), res);
+            let normals: Vec<glam::Vec3> = normals.iter().map(|n| n.normalize_or_zero()).collect();
+            projection.blend(&posed, &normals, &mut colors);
         }
         let rgb = bake_image(res, &texels, &colors);
         let png = encode_rgb_png(&rgb, res, res).map_err(BakeError::Png)?;

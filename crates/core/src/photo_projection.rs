@@ -1,0 +1,212 @@
+//! The photo's colours projected onto the reconstructed avatar (#21; beyond the paper, on by
+//! default): users of single-image methods ask above all for a sharp front and a plausible
+//! back. Each surface point of the avatar, posed as in the photo, that the photo's camera sees
+//! (depth test against the avatar's own depth buffer) takes the photo's colour there; the
+//! weight falls to 0 at grazing angles (`cos θ` between the normal and the direction to the
+//! camera from [`GRAZING`] to [`FACING`]) and near the person mask's border (the mask eroded
+//! by one pixel), so the generated texture shows at the silhouette and on the hidden side.
+//!
+//! Colours are linear RGB (the texture field's); the photo is sRGB and decoded here.
+
+use glam::{Mat4, Vec2, Vec3, Vec4};
+
+use crate::colour::srgb_to_linear;
+use crate::rasterize::rasterize;
+
+/// `cos θ` below which the photo has no weight, and above which it has full weight.
+pub const GRAZING: f32 = 0.2;
+pub const FACING: f32 = 0.55;
+/// A point is visible when it lies at most this far (metres, along the view axis) behind the
+/// depth buffer's surface.
+pub const DEPTH_TOLERANCE: f32 = 0.015;
+
+/// A photo ready to be projected: the camera, the image and the avatar's depth buffer.
+pub struct PhotoProjection {
+    res: usize,
+    view: Mat4,
+    view_proj: Mat4,
+    /// sRGB in [0, 1], `res²·3`.
+    rgb: Vec<f32>,
+    /// The person mask eroded by one pixel (min over 3×3), `res²`.
+    mask: Vec<f32>,
+    /// View-space depth (−z, metres) of the avatar per pixel; +∞ where uncovered.
+    depth: Vec<f32>,
+}
+
+impl PhotoProjection {
+    /// A photo (`rgb` sRGB `res²·3`, `mask` `res²`, both in [0, 1]) seen through `world_to_camera`
+    /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it.
+    pub fn new(
+        world_to_camera: Mat4,
+        proj: Mat4,
+        res: usize,
+        rgb: &[f32],
+        mask: &[f32],
+        vertices: &[Vec3],
+        faces: &[[u32; 3]],
+    ) -> Self {
+        let view_proj = proj * world_to_camera;
+        let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+        let r = rasterize(&clip, faces, res, res);
+        let inv_proj = proj.inverse();
+        let depth = (0..res * res)
+            .map(|k| {
+                if r.triangle[k] < 0 {
+                    return f32::INFINITY;
+                }
+                let (x, y) = (k % res, k / res);
+                let ndc = Vec4::new(
+                    (x as f32 + 0.5) / res as f32 * 2.0 - 1.0,
+                    1.0 - (y as f32 + 0.5) / res as f32 * 2.0,
+                    r.depth[k],
+                    1.0,
+                );
+                let v = inv_proj * ndc;
+                -v.z / v.w
+            })
+            .collect();
+        let mut eroded = vec![0.0f32; res * res];
+        for y in 0..res {
+            for x in 0..res {
+                let mut m = f32::INFINITY;
+                for dy in -1i64..=1 {
+                    for dx in -1i64..=1 {
+                        let (u, v) = (x as i64 + dx, y as i64 + dy);
+                        let val = if u < 0 || v < 0 || u >= res as i64 || v >= res as i64 {
+                            0.0
+                        } else {
+                            mask.get(v as usize * res + u as usize).copied().unwrap_or(0.0)
+                        };
+                        m = m.min(val);
+                    }
+                }
+                eroded[y * res + x] = m;
+            }
+        }
+        Self { res, view: world_to_camera, view_proj, rgb: rgb.to_vec(), mask: eroded, depth }
+    }
+
+    /// The photo's linear colour at posed point `p` with unit normal `n`, and its weight in
+    /// [0, 1] (0: hidden, outside the person, or grazing).
+    pub fn sample(&self, p: Vec3, n: Vec3) -> (Vec3, f32) {
+        let none = (Vec3::ZERO, 0.0);
+        let pv = self.view.transform_point3(p);
+        if pv.z >= 0.0 {
+            return none;
+        }
+        let to_cam = (-pv).normalize_or_zero();
+        let nv = self.view.transform_vector3(n).normalize_or_zero();
+        let cos = nv.dot(to_cam);
+        let facing = ((cos - GRAZING) / (FACING - GRAZING)).clamp(0.0, 1.0);
+        let facing = facing * facing * (3.0 - 2.0 * facing);
+        if facing <= 0.0 {
+            return none;
+        }
+        let c = self.view_proj * p.extend(1.0);
+        let ndc = Vec2::new(c.x / c.w, c.y / c.w);
+        let r = self.res as f32;
+        let px = Vec2::new((ndc.x + 1.0) * 0.5 * r, (1.0 - ndc.y) * 0.5 * r);
+        if px.x < 0.0 || px.y < 0.0 || px.x >= r || px.y >= r {
+            return none;
+        }
+        let k = px.y as usize * self.res + px.x as usize;
+        // Visible: not behind the avatar's nearest surface at this pixel.
+        if -pv.z > self.depth[k] + DEPTH_TOLERANCE {
+            return none;
+        }
+        let w = facing * self.mask[k].clamp(0.0, 1.0);
+        if w <= 0.0 {
+            return none;
+        }
+        (srgb_to_linear(self.bilinear(px)), w)
+    }
+
+    /// The photo's sRGB colour at pixel position `px` (pixel centres at +0.5), bilinear.
+    fn bilinear(&self, px: Vec2) -> Vec3 {
+        let r = self.res as i64;
+        let q = px - Vec2::splat(0.5);
+        let (x0, y0) = (q.x.floor() as i64, q.y.floor() as i64);
+        let (fx, fy) = (q.x - x0 as f32, q.y - y0 as f32);
+        let at = |x: i64, y: i64| {
+            let (x, y) = (x.clamp(0, r - 1) as usize, y.clamp(0, r - 1) as usize);
+            let k = 3 * (y * self.res + x);
+            Vec3::new(self.rgb[k], self.rgb[k + 1], self.rgb[k + 2])
+        };
+        let top = at(x0, y0).lerp(at(x0 + 1, y0), fx);
+        let bottom = at(x0, y0 + 1).lerp(at(x0 + 1, y0 + 1), fx);
+        top.lerp(bottom, fy)
+    }
+
+    /// Blend the photo into `colors` (linear) at posed `points` with `normals`.
+    pub fn blend(&self, points: &[Vec3], normals: &[Vec3], colors: &mut [Vec3]) {
+        for ((p, n), c) in points.iter().zip(normals).zip(colors.iter_mut()) {
+            let (photo, w) = self.sample(*p, *n);
+            if w > 0.0 {
+                *c = c.lerp(photo, w);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::OrbitCamera;
+
+    /// A unit quad facing +z at z = 0 and a second one behind it at z = −0.5.
+    fn quads() -> (Vec<Vec3>, Vec<[u32; 3]>) {
+        let mut v = Vec::new();
+        let mut f = Vec::new();
+        for z in [0.0f32, -0.5] {
+            let b = v.len() as u32;
+            v.extend([
+                Vec3::new(-0.5, 0.5, z),
+                Vec3::new(0.5, 0.5, z),
+                Vec3::new(0.5, 1.5, z),
+                Vec3::new(-0.5, 1.5, z),
+            ]);
+            f.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
+        }
+        (v, f)
+    }
+
+    #[test]
+    fn visible_facing_points_take_the_photo_hidden_and_grazing_ones_do_not() {
+        let cam = OrbitCamera { target: Vec3::new(0.0, 1.0, 0.0), ..OrbitCamera::default() };
+        let res = 64;
+        // Left half red, right half blue (sRGB), everyone inside the mask.
+        let rgb: Vec<f32> =
+            (0..res * res).flat_map(|k| if k % res < res / 2 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] }).collect();
+        let mask = vec![1.0; res * res];
+        let (v, f) = quads();
+        let p = PhotoProjection::new(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        let n = Vec3::Z;
+        let (c, w) = p.sample(Vec3::new(-0.2, 1.0, 0.0), n);
+        assert!((w - 1.0).abs() < 1e-6 && (c - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3, "{c} {w}");
+        let (c, w) = p.sample(Vec3::new(0.2, 1.0, 0.0), n);
+        assert!(w > 0.99 && (c - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-3, "{c} {w}");
+        // Behind the front quad: hidden.
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, -0.5), n).1, 0.0);
+        // Facing away, or at a grazing angle: no weight; half-way: partial.
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, 0.0), -Vec3::Z).1, 0.0);
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.1).normalize()).1, 0.0);
+        let half = p.sample(Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.927, 0.0, 0.375)).1;
+        assert!(half > 0.0 && half < 1.0, "{half}");
+        // Outside the person mask: no weight.
+        let p = PhotoProjection::new(
+            cam.world_to_camera(),
+            cam.projection_gl(1.0),
+            res,
+            &rgb,
+            &vec![0.0; res * res],
+            &v,
+            &f,
+        );
+        assert_eq!(p.sample(Vec3::new(-0.2, 1.0, 0.0), n).1, 0.0);
+        // Blending keeps the generated colour where the weight is 0.
+        let mut cols = vec![Vec3::splat(0.5); 2];
+        let p = PhotoProjection::new(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        p.blend(&[Vec3::new(-0.2, 1.0, 0.0), Vec3::new(-0.2, 1.0, -0.5)], &[n, n], &mut cols);
+        assert!((cols[0] - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3 && cols[1] == Vec3::splat(0.5), "{cols:?}");
+    }
+}
