@@ -38,6 +38,7 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
         "input.png",
         "input_view.png",
         "input_view_w.png",
+        "input_view_projected.png",
         "comparison.png",
         "back_view.png",
         "back_view_truth.png",
@@ -65,6 +66,9 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
     assert!((0.3..=1.0).contains(&back), "{m}");
     assert!(m["after_w"]["psnr_db"].as_f64().unwrap() > 5.0);
     assert_eq!(m["perceptual"], false);
+    // The photo projected onto the exported avatar brings it closer to the photo.
+    let (baked, projected) = (m["baked"]["psnr_db"].as_f64().unwrap(), m["projected"]["psnr_db"].as_f64().unwrap());
+    assert!(projected > baked, "projection: {baked} → {projected} dB");
     // The final IoU is the input view's own: recompute it from the PNGs (alpha vs mask).
     let read_alpha = |p: &std::path::Path| -> Vec<f32> {
         let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
