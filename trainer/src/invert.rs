@@ -428,6 +428,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         }
         let Some(r) = inv.step()? else { break };
         writeln!(log, "{}", serde_json::to_string(&r)?)?;
+        log.flush()?; // every step on disk: a killed run leaves its log
         let (done, _) = inv.progress();
         bar.set_position(done as u64);
         bar.set_message(format!(

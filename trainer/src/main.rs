@@ -17,6 +17,7 @@ mod progress;
 mod sample;
 mod synth_scans;
 mod train;
+mod train_discriminator;
 
 use std::path::PathBuf;
 
@@ -163,6 +164,9 @@ enum Command {
     /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
     /// joints, with motion clips (built-in walk/turn/wave or SMPL/AMASS .npz) as animations.
     Export(export::ExportArgs),
+    /// Train the RGB discriminator of a frozen generator against its training data (the
+    /// inversion's perceptual term uses its features); resumes from --out.
+    TrainDiscriminator(train_discriminator::TrainDiscriminatorArgs),
     /// Reconstruct an avatar from one image (paper Sec. 5.4): W+ inversion of the latent codes
     /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned
     /// generator and codes, and metrics go to --out.
@@ -256,6 +260,7 @@ fn main() -> Result<()> {
         Command::Sample(args) => sample::sample(&args)?,
         Command::Export(args) => export::export(&args)?,
         Command::Invert(args) => invert::invert(&args)?,
+        Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,

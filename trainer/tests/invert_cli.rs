@@ -120,3 +120,90 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
     assert!(e.contains("--fit"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+#[test]
+fn a_trained_discriminator_resumes_and_gives_the_inversion_its_perceptual_term() {
+    let root = tmp("invert-d");
+    let (scans, data, d, out) = (root.join("scans"), root.join("data"), root.join("d"), root.join("inv"));
+    let ok = |o: std::process::Output| {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    ok(trainer(&["synth-scans", "--out", s(&scans), "--count", "1", "--seed", "2", "--texture-size", "128"]));
+    ok(trainer(&["prepare", "--scans", s(&scans), "--out", s(&data), "--views", "2", "--res", "32"]));
+    let train = |steps: &str| {
+        ok(trainer(&[
+            "train-discriminator",
+            "--config",
+            "tiny",
+            "--random-weights",
+            "--data",
+            s(&data),
+            "--out",
+            s(&d),
+            "--steps",
+            steps,
+            "--batch",
+            "2",
+            "--snapshot-every",
+            "2",
+        ]))
+    };
+    train("3");
+    let log = std::fs::read_to_string(d.join("metrics.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 3);
+    // Lazy R1 on the first step (every 16), not on the second.
+    let l: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(l[0]["r1"].as_f64().unwrap() >= 0.0 && l[1]["r1"].is_null(), "{log}");
+    let o = train("4");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("resuming from"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_to_string(d.join("metrics.jsonl")).unwrap().lines().count(), 4);
+    ok(trainer(&[
+        "invert",
+        "--config",
+        "tiny",
+        "--random-weights",
+        "--data",
+        s(&data),
+        "--entry",
+        "0000/000.png",
+        "--steps",
+        "2",
+        "--pti-steps",
+        "1",
+        "--texture-res",
+        "64",
+        "--discriminator",
+        s(&d.join("discriminator.safetensors")),
+        "--out",
+        s(&out),
+    ]));
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(m["perceptual"], true);
+    let steps = std::fs::read_to_string(out.join("steps.jsonl")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(steps.lines().next().unwrap()).unwrap();
+    assert!(first["terms"]["perceptual"].as_f64().unwrap() > 0.0, "{first}");
+    // Not a discriminator: refused with the reason.
+    let o = trainer(&[
+        "invert",
+        "--config",
+        "tiny",
+        "--random-weights",
+        "--data",
+        s(&data),
+        "--entry",
+        "0000/000.png",
+        "--discriminator",
+        s(&out.join("inverted.safetensors")),
+        "--out",
+        s(&out),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("neither a training state nor a discriminator"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}

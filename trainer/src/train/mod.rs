@@ -41,8 +41,10 @@ use getavatar_core::diff::avatar::PosedGridCache;
 use getavatar_core::generator::BodyContext;
 
 pub use args::TrainArgs;
+pub(crate) use run_config::discriminator_config;
 pub use run_config::{Objective, RunConfig};
 pub use state::{device_for, State};
+pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 
 use crate::atomic::write_atomic;

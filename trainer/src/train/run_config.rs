@@ -152,7 +152,7 @@ pub(crate) fn one() -> f32 {
     1.0
 }
 
-fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig {
+pub(crate) fn discriminator_config(res: usize, g: &GeneratorConfig) -> DiscriminatorConfig {
     match g.name.as_str() {
         "paper" => DiscriminatorConfig::new(res, 32768, 512),
         "demo" => DiscriminatorConfig::new(res, 2048, 64),
