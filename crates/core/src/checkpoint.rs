@@ -99,6 +99,19 @@ pub fn save_generator(
     save_generator_with_modes(g, cfg, None, extra)
 }
 
+/// A generator file's metadata (`extra`, the format, the config) and parameters.
+#[cfg(not(target_arch = "wasm32"))]
+fn generator_entries(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    extra: &BTreeMap<String, String>,
+) -> Result<(BTreeMap<String, String>, Vec<NamedTensor>), CheckpointError> {
+    let mut meta = extra.clone();
+    meta.insert("format".into(), FORMAT.into());
+    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
+    Ok((meta, collect_params(g)?))
+}
+
 /// [`save_generator`] plus the latent modes for multi-modal truncation ([`MODES_GEO`],
 /// [`MODES_TEX`]).
 #[cfg(not(target_arch = "wasm32"))]
@@ -108,10 +121,7 @@ pub fn save_generator_with_modes(
     modes: Option<&LatentModes>,
     extra: &BTreeMap<String, String>,
 ) -> Result<Vec<u8>, CheckpointError> {
-    let mut meta = extra.clone();
-    meta.insert("format".into(), FORMAT.into());
-    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
-    let mut tensors = collect_params(g)?;
+    let (mut meta, mut tensors) = generator_entries(g, cfg, extra)?;
     if let Some(m) = modes {
         meta.insert(MODES_PAIRING.into(), m.pairing.as_str().into());
         for (name, t) in [(MODES_GEO, &m.geo), (MODES_TEX, &m.tex)] {
@@ -135,10 +145,7 @@ pub fn save_inverted(
     s: &crate::generator::Styles,
     extra: &BTreeMap<String, String>,
 ) -> Result<Vec<u8>, CheckpointError> {
-    let mut meta = extra.clone();
-    meta.insert("format".into(), FORMAT.into());
-    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
-    let mut tensors = collect_params(g)?;
+    let (meta, mut tensors) = generator_entries(g, cfg, extra)?;
     for (name, t) in [(INVERTED_GEO, &s.geo), (INVERTED_TEX, &s.tex)] {
         tensors.push((name.to_string(), t.dims().to_vec(), read_f32_now(t.clone()).map_err(|e| e.context(name))?));
     }

@@ -354,16 +354,13 @@ impl<'a> Inverter<'a> {
 
     /// Render the current avatar at the target's camera.
     pub fn render(&self) -> Result<FakeViews, InversionError> {
-        let s = self.styles();
-        Ok(render_avatars(
-            &self.g,
-            self.ctx,
-            &s,
-            std::slice::from_ref(&self.target.view),
-            self.target.res,
-            &self.grids,
-            &self.device,
-        )?)
+        self.render_with(&self.g, &self.styles())
+    }
+
+    /// Generator `g`'s avatar of styles `s` at the target's camera and pose.
+    fn render_with(&self, g: &Generator, s: &Styles) -> Result<FakeViews, InversionError> {
+        let view = std::slice::from_ref(&self.target.view);
+        Ok(render_avatars(g, self.ctx, s, view, self.target.res, &self.grids, &self.device)?)
     }
 
     /// The image terms of `f` (weighted total, unweighted parts).
@@ -412,15 +409,7 @@ impl<'a> Inverter<'a> {
     fn latent_step(&mut self) -> Result<StepReport, InversionError> {
         let o = self.opts.clone();
         let s = self.codes.styles();
-        let f = render_avatars(
-            &self.g,
-            self.ctx,
-            &s,
-            std::slice::from_ref(&self.target.view),
-            self.target.res,
-            &self.grids,
-            &self.device,
-        )?;
+        let f = self.render_with(&self.g, &s)?;
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
@@ -441,8 +430,7 @@ impl<'a> Inverter<'a> {
     fn pivotal_step(&mut self) -> Result<StepReport, InversionError> {
         let o = self.opts.clone();
         let s = self.styles();
-        let view = vec![self.target.view.clone()];
-        let f = render_avatars(&self.g, self.ctx, &s, &view, self.target.res, &self.grids, &self.device)?;
+        let f = self.render_with(&self.g, &s)?;
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
@@ -450,8 +438,8 @@ impl<'a> Inverter<'a> {
         total = total + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
         if o.locality_every > 0 && o.locality_weight > 0.0 && self.step % o.locality_every == 0 {
             let wr = self.locality_codes(&s);
-            let orig = render_avatars(&self.g0, self.ctx, &wr, &view, self.target.res, &self.grids, &self.device)?;
-            let tuned = render_avatars(&self.g, self.ctx, &wr, &view, self.target.res, &self.grids, &self.device)?;
+            let orig = self.render_with(&self.g0, &wr)?;
+            let tuned = self.render_with(&self.g, &wr)?;
             // L2 + perceptual between the tuned and the original generator's renders, over the
             // whole image (both share the renderer's white background).
             let mut reg = (tuned.rgb.clone() - orig.rgb.clone().detach()).powf_scalar(2.0).mean()
