@@ -19,7 +19,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::landmarks::PoseResult;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::{reference_fov_y, OrbitCamera, View};
+use getavatar_core::camera::{OrbitCamera, View};
 use getavatar_core::checkpoint::{load_params, parse_safetensors, save_inverted};
 use getavatar_core::colour::srgb_to_linear;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
@@ -176,18 +176,16 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
         };
         return Ok((InversionTarget { view, res, rgb, mask }, format!("{} {entry}", data.display()), scan));
     }
-    let (Some(image), Some(fit)) = (&a.image, &a.fit) else {
+    let (Some(image), Some(fit_path)) = (&a.image, &a.fit) else {
         bail!("give a photo (--image PHOTO --fit fit.json) or a dataset image (--data DIR --entry NAME)");
     };
     let res = a.res.unwrap_or(256);
     if !(16..=1024).contains(&res) {
         bail!("--res must be between 16 and 1024 (got {res})");
     }
-    let text = std::fs::read_to_string(fit).with_context(|| format!("reading {}", fit.display()))?;
-    let fit: BodyFit = serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", fit.display()))?;
-    if (fit.fov_y - reference_fov_y()).abs() > 1e-3 {
-        bail!("the fit's field of view {:.4} rad is not the reference camera's {:.4}", fit.fov_y, reference_fov_y());
-    }
+    let text = std::fs::read_to_string(fit_path).with_context(|| format!("reading {}", fit_path.display()))?;
+    let fit: BodyFit =
+        serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", fit_path.display()))?;
     let photo = open_image(image)?;
     let (w, h) = (photo.width() as usize, photo.height() as usize);
     if (w, h) != (fit.framing.photo_width, fit.framing.photo_height) {
@@ -210,12 +208,9 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
         (None, None) => bail!("a photo needs a person mask: --mask PNG, or --keypoints with a segmentationMask"),
     };
     let rgb: Vec<f32> = photo.to_rgb8().as_raw().iter().map(|v| *v as f32 / 255.0).collect();
-    let rgb = fit.framing.resample(&rgb, w, h, 3, res, &[1.0, 1.0, 1.0]);
-    let mask = fit.framing.resample_mask(&mask.data, mask.width, mask.height, res);
-    let mut body = fit.body_params();
-    body.betas.truncate(model.num_betas);
-    let view = View { world_to_camera: fit.world_to_camera(), body };
-    Ok((InversionTarget { view, res, rgb, mask }, image.display().to_string(), None))
+    let target = InversionTarget::from_photo(&fit, &rgb, w, h, &mask, res, model.num_betas)
+        .with_context(|| format!("{} with {}", image.display(), fit_path.display()))?;
+    Ok((target, image.display().to_string(), None))
 }
 
 /// A square image of `size`² pixels × `c` channels box-filtered to `r`² (`r` divides `size`).

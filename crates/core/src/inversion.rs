@@ -29,19 +29,23 @@
 //! both images composed on white with the person mask. Without a discriminator the term is
 //! off and the report says so.
 //!
-//! Native only for now (the renderer reads back synchronously); the step API is what a
-//! browser task will await.
+//! The same code runs natively and in the browser: every read-back is awaited
+//! ([`Inverter::step_async`]); natively [`Inverter::step`] runs it to completion at once.
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
-use crate::camera::View;
-use crate::diff::avatar::{render_avatars, FakeViews, PosedGridCache};
+use crate::body_fit::fit::BodyFit;
+use crate::body_fit::landmarks::SegmentationMask;
+use crate::camera::{reference_fov_y, View};
+use crate::diff::avatar::{render_avatars_async, FakeViews, PosedGridCache};
 use crate::generator::{BodyContext, Generator, LatentModes, Styles};
 use crate::network::discriminator::Discriminator;
 use crate::optim::Adam;
-use crate::readback::{read_f32_now, ReadbackError};
+#[cfg(not(target_arch = "wasm32"))]
+use crate::readback::block_on_ready;
+use crate::readback::{read_f32, ReadbackError};
 use crate::rng::Rng;
 
 /// What an inversion explains: one image at a known camera and body pose.
@@ -70,6 +74,10 @@ pub enum InversionError {
     EmptyMask,
     #[error("the generator's surface is empty at the photo's camera and pose")]
     EmptySurface,
+    #[error("the fit's field of view {0:.4} rad is not the reference camera's {1:.4}")]
+    FieldOfView(f32, f32),
+    #[error("the photo has {got} values, {width}×{height} RGB needs {want}")]
+    PhotoSize { got: usize, want: usize, width: usize, height: usize },
     #[error("the loss became {0} at step {1}")]
     NotFinite(f32, usize),
     #[error(transparent)]
@@ -77,6 +85,39 @@ pub enum InversionError {
 }
 
 impl InversionTarget {
+    /// A photo as the inversion sees it through its body fit: the photo (`width × height`
+    /// sRGB in [0, 1], row-major RGB; any resolution, e.g. a preview, as long as it covers the
+    /// photo the fit was made on) and the person mask (any resolution, covering the photo)
+    /// resampled into the fit's crop at `res`² (white, and no person, outside the photo); the
+    /// fit's camera, pose and shape (the first `num_betas` shape coefficients).
+    pub fn from_photo(
+        fit: &BodyFit,
+        rgb: &[f32],
+        width: usize,
+        height: usize,
+        mask: &SegmentationMask,
+        res: usize,
+        num_betas: usize,
+    ) -> Result<Self, InversionError> {
+        if (fit.fov_y - reference_fov_y()).abs() > 1e-3 {
+            return Err(InversionError::FieldOfView(fit.fov_y, reference_fov_y()));
+        }
+        if rgb.len() != width * height * 3 || width == 0 || height == 0 {
+            return Err(InversionError::PhotoSize { got: rgb.len(), want: width * height * 3, width, height });
+        }
+        if mask.data.len() != mask.width * mask.height || mask.data.is_empty() {
+            let want = mask.width * mask.height;
+            return Err(InversionError::Size { what: "person mask", got: mask.data.len(), want, res: mask.width });
+        }
+        let rgb = fit.framing.resample(rgb, width, height, 3, res, &[1.0, 1.0, 1.0]);
+        let mask = fit.framing.resample_mask(&mask.data, mask.width, mask.height, res);
+        let mut body = fit.body_params();
+        body.betas.truncate(num_betas);
+        let t = Self { view: View { world_to_camera: fit.world_to_camera(), body }, res, rgb, mask };
+        t.validate()?;
+        Ok(t)
+    }
+
     pub fn validate(&self) -> Result<(), InversionError> {
         let r = self.res;
         if r < 16 {
@@ -353,18 +394,24 @@ impl<'a> Inverter<'a> {
     }
 
     /// Render the current avatar at the target's camera.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn render(&self) -> Result<FakeViews, InversionError> {
-        self.render_with(&self.g, &self.styles())
+        block_on_ready(self.render_async())
+    }
+
+    /// [`Inverter::render`], awaiting its read-backs.
+    pub async fn render_async(&self) -> Result<FakeViews, InversionError> {
+        self.render_with(&self.g, &self.styles()).await
     }
 
     /// Generator `g`'s avatar of styles `s` at the target's camera and pose.
-    fn render_with(&self, g: &Generator, s: &Styles) -> Result<FakeViews, InversionError> {
+    async fn render_with(&self, g: &Generator, s: &Styles) -> Result<FakeViews, InversionError> {
         let view = std::slice::from_ref(&self.target.view);
-        Ok(render_avatars(g, self.ctx, s, view, self.target.res, &self.grids, &self.device)?)
+        Ok(render_avatars_async(g, self.ctx, s, view, self.target.res, &self.grids, &self.device).await?)
     }
 
     /// The image terms of `f` (weighted total, unweighted parts).
-    fn image_terms(&self, f: &FakeViews) -> Result<(Tensor<1>, Terms), InversionError> {
+    async fn image_terms(&self, f: &FakeViews) -> Result<(Tensor<1>, Terms), InversionError> {
         let o = &self.opts;
         let (rgb, m, msum) = (self.t.rgb.clone(), self.t.mask.clone(), self.t.mask_sum);
         let d = (f.rgb.clone() - rgb.clone()) * 0.5; // in [0, 1] units
@@ -384,41 +431,47 @@ impl<'a> Inverter<'a> {
                 .map(|(a, b)| (a - b.detach()).abs().mean())
                 .reduce(|a, b| a + b)
                 .unwrap_or_else(|| Tensor::zeros([1], &self.device));
-            perceptual = Some(scalar(p.clone())?);
+            perceptual = Some(scalar(p.clone()).await?);
             total = total + p * o.perceptual;
         }
         let terms = Terms {
-            rgb_l1: scalar(l1)?,
-            rgb_mse: scalar(mse)?,
-            silhouette: scalar(sil)?,
+            rgb_l1: scalar(l1).await?,
+            rgb_mse: scalar(mse).await?,
+            silhouette: scalar(sil).await?,
             perceptual,
             ..Terms::default()
         };
         Ok((total, terms))
     }
 
-    /// One step of the current phase; `None` once both phases are done.
+    /// One step of the current phase; `None` once both phases are done. Native: runs at once.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn step(&mut self) -> Result<Option<StepReport>, InversionError> {
+        block_on_ready(self.step_async())
+    }
+
+    /// [`Inverter::step`], awaiting its read-backs (the browser's GPU).
+    pub async fn step_async(&mut self) -> Result<Option<StepReport>, InversionError> {
         match self.phase {
             Phase::Done => Ok(None),
-            Phase::Latent => self.latent_step().map(Some),
-            Phase::Pivotal => self.pivotal_step().map(Some),
+            Phase::Latent => self.latent_step().await.map(Some),
+            Phase::Pivotal => self.pivotal_step().await.map(Some),
         }
     }
 
-    fn latent_step(&mut self) -> Result<StepReport, InversionError> {
+    async fn latent_step(&mut self) -> Result<StepReport, InversionError> {
         let o = self.opts.clone();
         let s = self.codes.styles();
-        let f = self.render_with(&self.g, &s)?;
+        let f = self.render_with(&self.g, &s).await?;
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
-        let (mut total, mut terms) = self.image_terms(&f)?;
+        let (mut total, mut terms) = self.image_terms(&f).await?;
         let reg = (s.geo - self.w0.geo.clone()).powf_scalar(2.0).mean()
             + (s.tex - self.w0.tex.clone()).powf_scalar(2.0).mean();
-        terms.latent_reg = scalar(reg.clone())?;
+        terms.latent_reg = scalar(reg.clone()).await?;
         total = total + reg * o.latent_reg + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
-        self.finish_terms(&mut terms, &f, &total)?;
+        self.finish_terms(&mut terms, &f, &total).await?;
         let lr = lr_schedule(o.lr, self.step, o.steps, o.warmup, o.rampdown);
         let grads = total.backward();
         self.codes = self.adam_w.step(lr, self.codes.clone(), &grads);
@@ -427,19 +480,19 @@ impl<'a> Inverter<'a> {
         Ok(report)
     }
 
-    fn pivotal_step(&mut self) -> Result<StepReport, InversionError> {
+    async fn pivotal_step(&mut self) -> Result<StepReport, InversionError> {
         let o = self.opts.clone();
         let s = self.styles();
-        let f = self.render_with(&self.g, &s)?;
+        let f = self.render_with(&self.g, &s).await?;
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
-        let (mut total, mut terms) = self.image_terms(&f)?;
+        let (mut total, mut terms) = self.image_terms(&f).await?;
         total = total + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
         if o.locality_every > 0 && o.locality_weight > 0.0 && self.step % o.locality_every == 0 {
-            let wr = self.locality_codes(&s);
-            let orig = self.render_with(&self.g0, &wr)?;
-            let tuned = self.render_with(&self.g, &wr)?;
+            let wr = self.locality_codes(&s).await?;
+            let orig = self.render_with(&self.g0, &wr).await?;
+            let tuned = self.render_with(&self.g, &wr).await?;
             // L2 + perceptual between the tuned and the original generator's renders, over the
             // whole image (both share the renderer's white background).
             let mut reg = (tuned.rgb.clone() - orig.rgb.clone().detach()).powf_scalar(2.0).mean()
@@ -451,10 +504,10 @@ impl<'a> Inverter<'a> {
                     reg = reg + (a - b.detach()).abs().mean();
                 }
             }
-            terms.locality = Some(scalar(reg.clone())?);
+            terms.locality = Some(scalar(reg.clone()).await?);
             total = total + reg * o.locality_weight;
         }
-        self.finish_terms(&mut terms, &f, &total)?;
+        self.finish_terms(&mut terms, &f, &total).await?;
         let lr = o.pti_lr;
         let grads = total.backward();
         // The synthesis backbone and decoders; the mapping networks get no gradient (the codes
@@ -467,36 +520,28 @@ impl<'a> Inverter<'a> {
     }
 
     /// PTI's locality codes: per branch, a random code pulled to within α of the pivot.
-    fn locality_codes(&mut self, pivot: &Styles) -> Styles {
+    async fn locality_codes(&mut self, pivot: &Styles) -> Result<Styles, InversionError> {
         let z_dim = self.g.mapping_geo.z_dim();
         let z =
             |rng: &mut Rng, dev: &Device| Tensor::<2>::from_data(TensorData::new(rng.normals(z_dim), [1, z_dim]), dev);
         let zg = z(&mut self.rng, &self.device);
         let zt = z(&mut self.rng, &self.device);
         let wz = self.g0.styles(zg, zt, 1.0);
-        let pull = |p: &Tensor<3>, w: Tensor<3>, alpha: f32| -> Tensor<3> {
-            let d = w - p.clone();
-            let dist = read_f32_now(d.clone().powf_scalar(2.0).sum().sqrt())
-                .ok()
-                .and_then(|v| v.first().copied())
-                .unwrap_or(0.0);
-            let k = if dist > alpha { alpha / dist } else { 1.0 };
-            (p.clone() + d * k).detach()
-        };
-        Styles {
-            geo: pull(&pivot.geo, wz.geo, self.opts.locality_alpha),
-            tex: pull(&pivot.tex, wz.tex, self.opts.locality_alpha),
-        }
+        let alpha = self.opts.locality_alpha;
+        Ok(Styles {
+            geo: pull_within(&pivot.geo, wz.geo, alpha).await?,
+            tex: pull_within(&pivot.tex, wz.tex, alpha).await?,
+        })
     }
 
-    fn finish_terms(&self, terms: &mut Terms, f: &FakeViews, total: &Tensor<1>) -> Result<(), InversionError> {
-        terms.eikonal = scalar(f.eikonal.clone())?;
-        terms.cross_entropy = scalar(f.cross_entropy.clone())?;
-        terms.total = scalar(total.clone())?;
+    async fn finish_terms(&self, terms: &mut Terms, f: &FakeViews, total: &Tensor<1>) -> Result<(), InversionError> {
+        terms.eikonal = scalar(f.eikonal.clone()).await?;
+        terms.cross_entropy = scalar(f.cross_entropy.clone()).await?;
+        terms.total = scalar(total.clone()).await?;
         if !terms.total.is_finite() {
             return Err(InversionError::NotFinite(terms.total, self.step));
         }
-        let mask: Vec<f32> = read_f32_now(f.mask.clone())?.iter().map(|m| (m + 1.0) * 0.5).collect();
+        let mask: Vec<f32> = read_f32(f.mask.clone()).await?.iter().map(|m| (m + 1.0) * 0.5).collect();
         terms.mask_iou = mask_iou(&mask, &self.target.mask);
         Ok(())
     }
@@ -517,8 +562,16 @@ impl<'a> Inverter<'a> {
     }
 }
 
-fn scalar(t: Tensor<1>) -> Result<f32, InversionError> {
-    Ok(read_f32_now(t)?.first().copied().unwrap_or(f32::NAN))
+/// `w` moved towards `pivot` to within distance `alpha` (PTI's locality codes), detached.
+async fn pull_within(pivot: &Tensor<3>, w: Tensor<3>, alpha: f32) -> Result<Tensor<3>, InversionError> {
+    let d = w - pivot.clone();
+    let dist = scalar(d.clone().powf_scalar(2.0).sum().sqrt()).await?;
+    let k = if dist > alpha { alpha / dist } else { 1.0 };
+    Ok((pivot.clone() + d * k).detach())
+}
+
+async fn scalar(t: Tensor<1>) -> Result<f32, InversionError> {
+    Ok(read_f32(t).await?.first().copied().unwrap_or(f32::NAN))
 }
 
 /// Intersection over union of two masks thresholded at ½ (1 for two empty masks).
@@ -571,7 +624,19 @@ pub fn start_candidates(g: &Generator, modes: Option<&LatentModes>) -> Vec<Start
 
 /// The start whose render at the target's camera has the lowest image loss (RGB L1 + MSE +
 /// silhouette), with each candidate's loss. Renders without gradients.
+#[cfg(not(target_arch = "wasm32"))]
 pub fn choose_start(
+    g: &Generator,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    candidates: &[StartCandidate],
+    device: &Device,
+) -> Result<(usize, Vec<f32>), InversionError> {
+    block_on_ready(choose_start_async(g, ctx, target, candidates, device))
+}
+
+/// [`choose_start`], awaiting its read-backs.
+pub async fn choose_start_async(
     g: &Generator,
     ctx: &BodyContext,
     target: &InversionTarget,
@@ -583,9 +648,10 @@ pub fn choose_start(
     let mut losses = Vec::new();
     for c in candidates {
         let s = Styles { geo: c.styles.geo.clone().detach(), tex: c.styles.tex.clone().detach() };
-        let f = render_avatars(g, ctx, &s, std::slice::from_ref(&target.view), target.res, &grids, device)?;
-        let rgb: Vec<f32> = read_f32_now(f.rgb)?;
-        let mask: Vec<f32> = read_f32_now(f.mask)?;
+        let view = std::slice::from_ref(&target.view);
+        let f = render_avatars_async(g, ctx, &s, view, target.res, &grids, device).await?;
+        let rgb: Vec<f32> = read_f32(f.rgb).await?;
+        let mask: Vec<f32> = read_f32(f.mask).await?;
         losses.push(image_loss_cpu(target, &rgb, &mask));
     }
     let best = losses.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
@@ -613,16 +679,22 @@ fn image_loss_cpu(t: &InversionTarget, rgb_chw: &[f32], mask: &[f32]) -> f32 {
 }
 
 /// A render as HWC sRGB in [0, 1] and a mask in [0, 1] (the first image of `f`).
+#[cfg(not(target_arch = "wasm32"))]
 pub fn render_images(f: &FakeViews) -> Result<(Vec<f32>, Vec<f32>), ReadbackError> {
+    block_on_ready(render_images_async(f))
+}
+
+/// [`render_images`], awaiting its read-backs.
+pub async fn render_images_async(f: &FakeViews) -> Result<(Vec<f32>, Vec<f32>), ReadbackError> {
     let [_, _, h, w] = f.rgb.dims();
     let n = h * w;
-    let chw = read_f32_now(f.rgb.clone().narrow(0, 0, 1))?;
+    let chw = read_f32(f.rgb.clone().narrow(0, 0, 1)).await?;
     let rgb = (0..n)
         .flat_map(|k| (0..3).map(move |c| (c, k)))
         .map(|(c, k)| ((chw[c * n + k] + 1.0) * 0.5).clamp(0.0, 1.0))
         .collect();
     let mask =
-        read_f32_now(f.mask.clone().narrow(0, 0, 1))?.iter().map(|m| ((m + 1.0) * 0.5).clamp(0.0, 1.0)).collect();
+        read_f32(f.mask.clone().narrow(0, 0, 1)).await?.iter().map(|m| ((m + 1.0) * 0.5).clamp(0.0, 1.0)).collect();
     Ok((rgb, mask))
 }
 

@@ -26,7 +26,7 @@
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
 //! | seeded randomness, identical on every platform | [`rng`] |
 //! | colour encoding (exact sRGB curve, scalar and tensor) | [`colour`] |
-//! | Sec. 5.4 single-image reconstruction: W+ inversion, pivotal tuning (feature `train`) | `inversion` |
+//! | Sec. 5.4 single-image reconstruction: W+ inversion, pivotal tuning (feature `autodiff`; native and browser) | `inversion` |
 //! | the photo's colours projected onto the reconstruction (product) | [`photo_projection`] |
 //! | photo → body (product, not in the paper): MediaPipe landmarks → SMPL joints | [`body_fit`] |
 //!
@@ -50,7 +50,7 @@ pub mod fields;
 pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
-#[cfg(feature = "train")]
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod inversion;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod losses;

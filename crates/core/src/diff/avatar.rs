@@ -30,7 +30,9 @@ use crate::losses::{eikonal_loss, sdf_cross_entropy};
 use crate::network::synthesis::Triplanes;
 use crate::normal_field::{posed_normals, sdf_gradient};
 use crate::rasterize::rasterize;
-use crate::readback::{block_on_ready, read_f32_now, ReadbackError};
+#[cfg(not(target_arch = "wasm32"))]
+use crate::readback::block_on_ready;
+use crate::readback::{read_f32, ReadbackError};
 use crate::skinning::{pose_body, BodyParams};
 
 /// Rendered fakes and regularisers of a batch.
@@ -116,7 +118,7 @@ fn to_nchw(img: Tensor<2>, res: usize) -> Tensor<4> {
 
 /// Render the generated avatars of `styles` (batch B) under `views` (B entries: camera and body
 /// pose) at `res`², with posed grids from `grids`. Native: reads intermediate values back
-/// synchronously.
+/// synchronously ([`render_avatars_async`] is the browser's).
 #[cfg(not(target_arch = "wasm32"))]
 pub fn render_avatars(
     g: &Generator,
@@ -127,8 +129,21 @@ pub fn render_avatars(
     grids: &PosedGridCache,
     device: &Device,
 ) -> Result<FakeViews, ReadbackError> {
+    block_on_ready(render_avatars_async(g, ctx, styles, views, res, grids, device))
+}
+
+/// [`render_avatars`] on any platform: the read-backs it needs are awaited.
+pub async fn render_avatars_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    views: &[View],
+    res: usize,
+    grids: &PosedGridCache,
+    device: &Device,
+) -> Result<FakeViews, ReadbackError> {
     let views: Vec<Vec<View>> = views.iter().map(|v| vec![v.clone()]).collect();
-    render_avatar_views(g, ctx, styles, &views, res, grids, device)
+    render_avatar_views_async(g, ctx, styles, None, &views, res, grids, device).await
 }
 
 /// Render avatar b of `styles` (batch B) under each view of `views[b]` at `res`²: one surface
@@ -167,17 +182,35 @@ pub fn render_avatar_views_retextured(
     grids: &PosedGridCache,
     device: &Device,
 ) -> Result<FakeViews, ReadbackError> {
+    block_on_ready(render_avatar_views_async(g, ctx, styles, retexture, views, res, grids, device))
+}
+
+/// [`render_avatar_views_retextured`] on any platform: the read-backs (band fields, clip-space
+/// positions, pixel coordinates) are awaited, so the browser's GPU is never blocked on.
+#[allow(clippy::too_many_arguments)]
+pub async fn render_avatar_views_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    retexture: Option<&Styles>,
+    views: &[Vec<View>],
+    res: usize,
+    grids: &PosedGridCache,
+    device: &Device,
+) -> Result<FakeViews, ReadbackError> {
     let proj = OrbitCamera::default().projection_gl(1.0);
     let n = ctx.grid.vertices.len();
     let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
     let mut triangles = Vec::new();
     let mut retextured = Vec::new();
-    let prof = std::env::var_os("GETAVATAR_PROFILE").is_some();
-    let t0 = std::time::Instant::now();
-    let lap = |what: &str| {
-        if prof {
-            eprintln!("    {:>8.3} s  render: {what}", t0.elapsed().as_secs_f64());
+    // Stage timings on stderr with GETAVATAR_PROFILE set (native only: no clock on wasm32).
+    #[cfg(not(target_arch = "wasm32"))]
+    let t0 = std::env::var_os("GETAVATAR_PROFILE").is_some().then(std::time::Instant::now);
+    let lap = |_what: &str| {
+        #[cfg(not(target_arch = "wasm32"))]
+        if let Some(t0) = t0 {
+            eprintln!("    {:>8.3} s  render: {_what}", t0.elapsed().as_secs_f64());
         }
     };
     for (b, cams) in views.iter().enumerate() {
@@ -204,7 +237,7 @@ pub fn render_avatar_views_retextured(
             let planes_c =
                 Triplanes { geometry: planes.geometry.clone().detach(), texture: planes.texture.clone().detach() };
             let s_c = Styles { geo: s.geo.clone().detach(), tex: s.tex.clone().detach() };
-            block_on_ready(band_fields(g, &planes_c, &s_c, band_pts, &grid.band, n))?
+            band_fields(g, &planes_c, &s_c, band_pts, &grid.band, n).await?
         };
         let sdf_v = fields.sdf(&grid.template, &ctx.boundary);
         let pos_v = fields.positions(&ctx.grid.vertices);
@@ -280,7 +313,7 @@ pub fn render_avatar_views_retextured(
             let vp = proj * view.world_to_camera;
             let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
             let clip = Tensor::cat(vec![verts.clone(), Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
-            let clip_v: Vec<Vec4> = read_f32_now(clip.clone())?.chunks_exact(4).map(Vec4::from_slice).collect();
+            let clip_v: Vec<Vec4> = read_f32(clip.clone()).await?.chunks_exact(4).map(Vec4::from_slice).collect();
             let r = rasterize(&clip_v, &mesh.faces, res, res);
             let cov = Coverage::new(&r, &mesh.faces);
             if cov.is_empty() {
@@ -311,7 +344,7 @@ pub fn render_avatar_views_retextured(
             lap("texture field");
             // Normal field (eq. 4): ∇(template + residual) at each pixel's canonical point,
             // rotated to posed space by the interpolated skinning rotation.
-            let pc: Vec<Vec3> = read_f32_now(pix_canon.clone())?.chunks_exact(3).map(Vec3::from_slice).collect();
+            let pc: Vec<Vec3> = read_f32(pix_canon.clone()).await?.chunks_exact(3).map(Vec3::from_slice).collect();
             let grad = sdf_gradient(g, &planes, &s, &ctx.template, pix_canon, &pc, device);
             eik.push(eikonal_loss(grad.clone()));
             let rpix = interpolate(&cov, clip.clone().detach(), rot.clone(), device).reshape([p, 3, 3]);

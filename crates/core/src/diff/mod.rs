@@ -10,7 +10,7 @@
 //!   ([`dmtet::surface_points`]), perspective-correct barycentrics from clip-space positions
 //!   ([`rasterize::interpolate`]), and silhouette-edge blending ([`rasterize::antialias`]).
 //!
-//! [`avatar`] (feature `train`) puts them together: generated avatars rendered to RGB, normal
+//! [`avatar`] (feature `autodiff`, native and wasm32) puts them together: generated avatars rendered to RGB, normal
 //! and mask images under dataset labels, with the geometry regularisers;
 //! [`scan_supervision`] (feature `train`, not in the paper) the reconstruction warm-up's
 //! canonical-space texture and SDF terms from the training scans.
@@ -18,7 +18,7 @@
 //! The functions are backend-agnostic (`Tensor<D>` on any `Device`); gradients need a device
 //! with autodiff (`Device::autodiff()`, feature `train`).
 
-#[cfg(feature = "train")]
+#[cfg(feature = "autodiff")]
 pub mod avatar;
 pub mod body_model;
 pub mod dmtet;

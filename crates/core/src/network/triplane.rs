@@ -24,7 +24,7 @@ const PLANE_AXES: [[i64; 3]; 2] = [[0, 1, 0], [1, 2, 2]];
 /// the row-table lookup when gradients are recorded, the native kernel otherwise (on the
 /// inner backend for untracked tensors of an autodiff device); the values are the same.
 pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
-    #[cfg(feature = "train")]
+    #[cfg(feature = "autodiff")]
     if planes.is_autodiff() || points.is_autodiff() {
         if planes.is_tracked() || points.is_tracked() {
             return sample_triplanes_rows(planes, points);
