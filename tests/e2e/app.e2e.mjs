@@ -19,6 +19,9 @@
 //    photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the person's height; Download fit
 //    gives fit.json + kp.json; beside a smaller copy of itself at 4.7 MP, two people are
 //    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
+//  - Reconstruct (#21): a short reconstruction of the fitted photo on WebGPU lowers the loss,
+//    gives an avatar whose mask overlaps the photo's person (IoU ≥ 0.6 at the photo's camera),
+//    makes no network request and no console error; Cancel keeps the avatar.
 //  - Motion: the built-in walk scrubbed to two times changes the mask; playing re-poses every
 //    frame; the AMASS fixture loads as a clip (resampled), a broken .npz gets one message; the
 //    animated .glb (walk + wave) passes the validator with 2 animations and a skin; with the
@@ -369,6 +372,37 @@ try {
   const fj = files['fit.json'], kj = files['kp.json'];
   check(fj?.format === 'getavatar-body-fit/1' && fj.body_pose.length === 69 && fj.camera.length === 16 && kj?.poseLandmarks?.length === 33,
     `Download fit: fit.json (${fj?.format}, ${fj?.body_pose?.length} pose numbers) and kp.json (${kj?.poseLandmarks?.length} landmarks)`);
+  // --- reconstruct the avatar from the fitted photo (#21) ---------------------------------
+  // A short run on SwiftShader (≈ 1 min per step here): 3 W+ + 1 PTI steps at 64² from w_avg
+  // (the search over the model's 16 subjects costs a render each), a preview after every
+  // step. The photo never leaves the page: no request at all while it runs.
+  const requests = [];
+  const onRequest = (r) => requests.push(r.url());
+  page.on('request', onRequest);
+  const tRec = Date.now();
+  const recErr = await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 3, pti_steps: 1, res: 64, preview_every: 1, start: 'average' } }));
+  check(recErr === '' || recErr == null, `the reconstruct command is accepted (${recErr})`);
+  let rec = (await waitFor((s) => ['done', 'failed', 'cancelled'].includes(s.reconstruct.state), 'the reconstruction', 900000)).reconstruct;
+  page.off('request', onRequest);
+  console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s; losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
+  check(rec.state === 'done' && rec.losses.length === 4 && rec.previews >= 3, `the reconstruction finishes: ${rec.losses.length} steps, ${rec.previews} previews (${rec.state}: ${rec.message})`);
+  check(rec.losses[2] < rec.losses[0], `the loss falls over the W+ steps (${rec.losses[0]?.toFixed(4)} → ${rec.losses[2]?.toFixed(4)})`);
+  check(rec.mask_iou >= 0.6, `the reconstructed avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.6)`);
+  check(requests.length === 0, `no network request during the reconstruction (${requests.length}: ${requests.slice(0, 3).join(', ')})`);
+  s = await waitFor((s) => s.renders > 0 && s.showing === 'avatar', 'the reconstructed avatar on screen');
+  check(s.showing === 'avatar' && s.avatar_vertices > 1000 && consoleErrors.length === 0,
+    `the reconstruction is the shown avatar (${s.avatar_vertices} vertices), no console errors (${consoleErrors.length})`);
+  await page.screenshot({ path: path.join(out, 'reconstruction.png') });
+  // Cancel: a second run stopped after its first step leaves the avatar as it was.
+  const vertsBefore = s.avatar_vertices, doneBefore = rec.done;
+  await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 40, pti_steps: 0, res: 64, start: 'average' } }));
+  await waitFor((s) => s.reconstruct.steps_done >= 1 || s.reconstruct.state === 'failed', 'the second reconstruction to start', 600000);
+  await page.evaluate(() => window.getavatar.command({ reconstruct_cancel: true }));
+  rec = (await waitFor((s) => s.reconstruct.state !== 'latent' && s.reconstruct.state !== 'starting', 'the cancellation', 300000)).reconstruct;
+  s = await status();
+  check(rec.state === 'cancelled' && rec.done === doneBefore && s.avatar_vertices === vertsBefore && s.showing === 'avatar',
+    `Cancel stops a reconstruction and keeps the avatar (${rec.state}, ${s.avatar_vertices} vertices)`);
+
   // Two people (the photo and a smaller copy beside it), 4.7 MP: the largest is fitted, and
   // said so; the detector ran on the photo downscaled to at most 4 MP.
   const S = 3;

@@ -20,17 +20,17 @@ use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::landmarks::PoseResult;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::{OrbitCamera, View};
-use getavatar_core::checkpoint::{load_params, parse_safetensors, save_inverted};
+use getavatar_core::checkpoint::{self, save_inverted};
 use getavatar_core::colour::srgb_to_linear;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
 use getavatar_core::inversion::{
-    choose_start, mask_iou, masked_psnr, render_images, start_candidates, InversionOptions, InversionTarget, Inverter,
-    Phase,
+    choose_start, comparison_image, mask_iou, masked_psnr, render_images, start_candidates, InversionOptions,
+    InversionTarget, Inverter, Phase,
 };
 use getavatar_core::motion::Motion;
-use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
+use getavatar_core::network::discriminator::Discriminator;
 use getavatar_core::photo_projection::PhotoProjection;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views_textured;
@@ -43,7 +43,7 @@ use serde::Serialize;
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
-use crate::sample::{load_body, write_png, GeneratorArgs};
+use crate::sample::{load_body, shipped_discriminator, write_png, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct InvertArgs {
@@ -92,9 +92,13 @@ pub struct InvertArgs {
     #[arg(long, default_value_t = 512)]
     pub texture_res: usize,
     /// A trained RGB discriminator for the perceptual term: a training state
-    /// (`RUN/state.safetensors`, its `d0`) or a discriminator file; without one the term is off.
-    #[arg(long)]
+    /// (`RUN/state.safetensors`, its `d0`) or a discriminator file (default: the shipped
+    /// demo model's, with the shipped demo model).
+    #[arg(long, conflicts_with = "no_perceptual")]
     pub discriminator: Option<PathBuf>,
+    /// Leave the perceptual term off.
+    #[arg(long)]
+    pub no_perceptual: bool,
     /// Leave the photo's colours off the .glb's texture (by default they are projected onto
     /// the surface the photo sees and blended with the generated texture at grazing angles
     /// and on the hidden side).
@@ -229,21 +233,10 @@ fn box_down(v: &[f32], size: usize, c: usize, r: usize) -> Vec<f32> {
 }
 
 /// The RGB discriminator of a training state (`d0/…`, its run's config) or of a file written
-/// with `discriminator` metadata.
+/// by `trainer train-discriminator`.
 fn load_discriminator(path: &Path, device: &Device) -> Result<Discriminator> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let st = parse_safetensors(&bytes).with_context(|| format!("{} is not a safetensors file", path.display()))?;
-    let cfg: DiscriminatorConfig = if let Some(run) = st.metadata.get("run") {
-        let v: serde_json::Value = serde_json::from_str(run)?;
-        serde_json::from_value(v["discriminator"].clone())
-            .with_context(|| format!("{}: the run's discriminator config", path.display()))?
-    } else if let Some(c) = st.metadata.get("discriminator") {
-        serde_json::from_str(c).with_context(|| format!("{}: the discriminator config", path.display()))?
-    } else {
-        bail!("{} is neither a training state nor a discriminator file", path.display());
-    };
-    let d = Discriminator::new(&cfg, 3, 0, device);
-    load_params(d, &st.tensors, "d0/", device)
+    checkpoint::load_discriminator(&bytes, device)
         .with_context(|| format!("loading the RGB discriminator of {}", path.display()))
 }
 
@@ -260,26 +253,6 @@ fn rgba(rgb: &[f32], mask: &[f32]) -> Vec<u8> {
 
 fn to_u8(v: &[f32]) -> Vec<u8> {
     v.iter().map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
-}
-
-/// Input | render | overlay (render over the input where the avatar is, tinted outside the
-/// person mask), side by side.
-fn comparison(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> Vec<u8> {
-    let r = t.res;
-    let mut out = vec![0u8; r * 3 * r * 3];
-    for y in 0..r {
-        for x in 0..r {
-            let k = y * r + x;
-            for c in 0..3 {
-                let inp = t.rgb[3 * k + c] * (0.35 + 0.65 * t.mask[k]);
-                let over = mask[k] * rgb[3 * k + c] + (1.0 - mask[k]) * inp;
-                for (panel, v) in [t.rgb[3 * k + c], rgb[3 * k + c], over].into_iter().enumerate() {
-                    out[(y * 3 * r + panel * r + x) * 3 + c] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-                }
-            }
-        }
-    }
-    out
 }
 
 /// The exported avatar (the rigged mesh posed by `body`, its baked texture) rendered through
@@ -377,9 +350,17 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     #[allow(deprecated)]
     let dev = Device::ndarray().autodiff();
     let (cfg, g, modes) = a.model.load(&dev)?;
-    let disc = a.discriminator.as_deref().map(|p| load_discriminator(p, &dev)).transpose()?;
-    if disc.is_none() {
-        eprintln!("no --discriminator: the perceptual term is off");
+    // The shipped discriminator goes with the shipped generator only.
+    let shipped_g = a.model.checkpoint.is_none() && !a.model.random;
+    let d_path = match (&a.discriminator, a.no_perceptual) {
+        (_, true) => None,
+        (Some(p), _) => Some(p.clone()),
+        (None, false) => shipped_g.then(|| shipped_discriminator(&cfg)).flatten(),
+    };
+    let disc = d_path.as_deref().map(|p| load_discriminator(p, &dev)).transpose()?;
+    match (&disc, &d_path) {
+        (Some(_), Some(p)) => eprintln!("perceptual term: the features of {}", p.display()),
+        _ => eprintln!("no discriminator: the perceptual term is off"),
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let ctx = BodyContext::new(model, &cfg);
@@ -446,7 +427,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let final_m = view_metrics(&target, &rgb, &mask);
     write_png(&a.out.join("input_view.png"), &rgba(&rgb, &mask), target.res, 4)?;
     let r = target.res;
-    let png = getavatar_core::dataset::encode_png(3 * r, r, 3, &comparison(&target, &rgb, &mask))?;
+    let png = getavatar_core::dataset::encode_png(3 * r, r, 3, &comparison_image(&target, &rgb, &mask))?;
     write_atomic(&a.out.join("comparison.png"), &png)?;
     let back = View { world_to_camera: opposite(target.view.world_to_camera), body: target.view.body.clone() };
     let (brgb, bmask) = render_at(&g, &ctx, &styles, &back, r, &dev)?;

@@ -69,16 +69,25 @@ pub fn write_png(path: &Path, data: &[u8], size: usize, channels: usize) -> Resu
 
 /// Where the shipped demo model lives (see `assets/models/MODEL_CARD.md`).
 pub const SHIPPED_DEMO_MODEL: &str = "assets/models/demo.safetensors";
+/// Where its RGB discriminator lives (the inversion's perceptual term).
+pub const SHIPPED_DEMO_DISCRIMINATOR: &str = "assets/models/demo_d_rgb.safetensors";
 
 /// The shipped demo model, if this is the `demo` config and the file is there (looked up in
 /// the working directory, then in the source tree this binary was built from).
 pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_MODEL)
+}
+
+/// The shipped demo model's RGB discriminator, found like [`shipped_model`].
+pub fn shipped_discriminator(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_DISCRIMINATOR)
+}
+
+fn shipped_file(cfg: &GeneratorConfig, rel: &str) -> Option<PathBuf> {
     if cfg.name != "demo" {
         return None;
     }
-    [PathBuf::from(SHIPPED_DEMO_MODEL), Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(SHIPPED_DEMO_MODEL)]
-        .into_iter()
-        .find(|p| p.is_file())
+    [PathBuf::from(rel), Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rel)].into_iter().find(|p| p.is_file())
 }
 
 /// Which generator a command runs: `--config`, `--checkpoint`, `--random-weights` (shared by

@@ -136,14 +136,17 @@ fn build_web() -> Result<()> {
     // The trained demo model, fetched by the app at start-up (kept out of the wasm bundle),
     // and `models/manifest.json` saying which models are there (so the app never asks for a
     // missing file).
+    // The demo model's RGB discriminator (the reconstruction's perceptual term) goes with it.
     let models = root().join("assets/models");
     std::fs::create_dir_all(dist.join("models"))?;
     let mut manifest = Vec::new();
-    if models.join("demo.safetensors").is_file() {
-        std::fs::copy(models.join("demo.safetensors"), dist.join("models/demo.safetensors"))?;
-        manifest.push("\"demo\": \"demo.safetensors\"");
-    } else {
-        let _ = std::fs::remove_file(dist.join("models/demo.safetensors"));
+    for (key, file) in [("demo", "demo.safetensors"), ("demo_d", "demo_d_rgb.safetensors")] {
+        if models.join(file).is_file() {
+            std::fs::copy(models.join(file), dist.join("models").join(file))?;
+            manifest.push(format!("\"{key}\": \"{file}\""));
+        } else {
+            let _ = std::fs::remove_file(dist.join("models").join(file));
+        }
     }
     std::fs::write(dist.join("models/manifest.json"), format!("{{{}}}\n", manifest.join(", ")))?;
     let size = std::fs::metadata(dist.join("getavatar_web_bg.wasm")).map(|m| m.len()).unwrap_or(0);

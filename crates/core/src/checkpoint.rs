@@ -176,6 +176,30 @@ pub fn load_inverted(
     Ok((g, crate::generator::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? }))
 }
 
+/// The RGB discriminator (`d0/…`) of a training state (its config in the `run` metadata) or
+/// of a discriminator file (`trainer train-discriminator`: the config in `discriminator`): the
+/// inversion's perceptual term uses its features.
+pub fn load_discriminator(
+    bytes: &[u8],
+    device: &Device,
+) -> Result<crate::network::discriminator::Discriminator, CheckpointError> {
+    use crate::network::discriminator::{Discriminator, DiscriminatorConfig};
+    let st = parse_safetensors(bytes)?;
+    let cfg: DiscriminatorConfig = if let Some(run) = st.metadata.get("run") {
+        let v: serde_json::Value = serde_json::from_str(run).map_err(|e| fmt_err(format!("the run metadata: {e}")))?;
+        serde_json::from_value(v["discriminator"].clone())
+            .map_err(|e| fmt_err(format!("the run's discriminator config: {e}")))?
+    } else if let Some(c) = st.metadata.get("discriminator") {
+        serde_json::from_str(c).map_err(|e| fmt_err(format!("the discriminator config: {e}")))?
+    } else {
+        return Err(fmt_err("neither a training state nor a discriminator file"));
+    };
+    if !(cfg.resolution.is_power_of_two() && (8..=4096).contains(&cfg.resolution)) {
+        return Err(fmt_err(format!("discriminator resolution {} is not a power of two in 8..=4096", cfg.resolution)));
+    }
+    load_params(Discriminator::new(&cfg, 3, 0, device), &st.tensors, "d0/", device)
+}
+
 /// The latent modes a generator checkpoint carries (None for checkpoints without them).
 /// Both branches must be present, `[K, w_dim]` with the same K ≥ 1 and the config's w_dim.
 pub fn load_latent_modes(bytes: &[u8], device: &Device) -> Result<Option<LatentModes>, CheckpointError> {

@@ -275,6 +275,18 @@ pub struct StepReport {
     pub terms: Terms,
 }
 
+/// A step's terms as tensors (`[1]` each), before their one read-back.
+struct TermTensors {
+    rgb_l1: Tensor<1>,
+    rgb_mse: Tensor<1>,
+    silhouette: Tensor<1>,
+    perceptual: Option<Tensor<1>>,
+    eikonal: Tensor<1>,
+    cross_entropy: Tensor<1>,
+    latent_reg: Option<Tensor<1>>,
+    locality: Option<Tensor<1>>,
+}
+
 /// The target as tensors: RGB `[1, 3, R, R]` in [−1, 1], mask `[1, 1, R, R]` in [0, 1].
 struct TargetTensors {
     rgb: Tensor<4>,
@@ -301,6 +313,8 @@ pub struct Inverter<'a> {
     step: usize,
     grids: PosedGridCache,
     rng: Rng,
+    /// The last step's render at the target's camera (RGB, mask; detached): the previews.
+    last: Option<(Tensor<4>, Tensor<4>)>,
 }
 
 impl<'a> Inverter<'a> {
@@ -349,6 +363,7 @@ impl<'a> Inverter<'a> {
             step: 0,
             grids: PosedGridCache::new(4),
             rng: Rng::new(opts.seed, 0x1771),
+            last: None,
             opts,
             device: device.clone(),
         })
@@ -404,14 +419,24 @@ impl<'a> Inverter<'a> {
         self.render_with(&self.g, &self.styles()).await
     }
 
+    /// The last step's render (before its update) as HWC sRGB and mask in [0, 1]: a preview
+    /// that costs a read-back, not a render. `None` before the first step.
+    pub async fn last_images_async(&self) -> Result<Option<(Vec<f32>, Vec<f32>)>, ReadbackError> {
+        match &self.last {
+            Some((rgb, mask)) => Ok(Some(images_async(rgb.clone(), mask.clone()).await?)),
+            None => Ok(None),
+        }
+    }
+
     /// Generator `g`'s avatar of styles `s` at the target's camera and pose.
     async fn render_with(&self, g: &Generator, s: &Styles) -> Result<FakeViews, InversionError> {
         let view = std::slice::from_ref(&self.target.view);
         Ok(render_avatars_async(g, self.ctx, s, view, self.target.res, &self.grids, &self.device).await?)
     }
 
-    /// The image terms of `f` (weighted total, unweighted parts).
-    async fn image_terms(&self, f: &FakeViews) -> Result<(Tensor<1>, Terms), InversionError> {
+    /// The image terms of `f`: the weighted total and the unweighted parts (tensors, read
+    /// back together at the end of the step).
+    fn image_terms(&self, f: &FakeViews) -> (Tensor<1>, TermTensors) {
         let o = &self.opts;
         let (rgb, m, msum) = (self.t.rgb.clone(), self.t.mask.clone(), self.t.mask_sum);
         let d = (f.rgb.clone() - rgb.clone()) * 0.5; // in [0, 1] units
@@ -431,17 +456,21 @@ impl<'a> Inverter<'a> {
                 .map(|(a, b)| (a - b.detach()).abs().mean())
                 .reduce(|a, b| a + b)
                 .unwrap_or_else(|| Tensor::zeros([1], &self.device));
-            perceptual = Some(scalar(p.clone()).await?);
-            total = total + p * o.perceptual;
+            total = total + p.clone() * o.perceptual;
+            perceptual = Some(p);
         }
-        let terms = Terms {
-            rgb_l1: scalar(l1).await?,
-            rgb_mse: scalar(mse).await?,
-            silhouette: scalar(sil).await?,
+        total = total + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
+        let parts = TermTensors {
+            rgb_l1: l1,
+            rgb_mse: mse,
+            silhouette: sil,
             perceptual,
-            ..Terms::default()
+            eikonal: f.eikonal.clone(),
+            cross_entropy: f.cross_entropy.clone(),
+            latent_reg: None,
+            locality: None,
         };
-        Ok((total, terms))
+        (total, parts)
     }
 
     /// One step of the current phase; `None` once both phases are done. Native: runs at once.
@@ -466,12 +495,12 @@ impl<'a> Inverter<'a> {
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
-        let (mut total, mut terms) = self.image_terms(&f).await?;
+        let (mut total, mut parts) = self.image_terms(&f);
         let reg = (s.geo - self.w0.geo.clone()).powf_scalar(2.0).mean()
             + (s.tex - self.w0.tex.clone()).powf_scalar(2.0).mean();
-        terms.latent_reg = scalar(reg.clone()).await?;
-        total = total + reg * o.latent_reg + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
-        self.finish_terms(&mut terms, &f, &total).await?;
+        total = total + reg.clone() * o.latent_reg;
+        parts.latent_reg = Some(reg);
+        let terms = self.read_terms(parts, &f, &total).await?;
         let lr = lr_schedule(o.lr, self.step, o.steps, o.warmup, o.rampdown);
         let grads = total.backward();
         self.codes = self.adam_w.step(lr, self.codes.clone(), &grads);
@@ -487,8 +516,7 @@ impl<'a> Inverter<'a> {
         if f.triangles.iter().all(|&t| t == 0) {
             return Err(InversionError::EmptySurface);
         }
-        let (mut total, mut terms) = self.image_terms(&f).await?;
-        total = total + f.eikonal.clone() * o.eikonal + f.cross_entropy.clone() * o.cross_entropy;
+        let (mut total, mut parts) = self.image_terms(&f);
         if o.locality_every > 0 && o.locality_weight > 0.0 && self.step % o.locality_every == 0 {
             let wr = self.locality_codes(&s).await?;
             let orig = self.render_with(&self.g0, &wr).await?;
@@ -504,10 +532,10 @@ impl<'a> Inverter<'a> {
                     reg = reg + (a - b.detach()).abs().mean();
                 }
             }
-            terms.locality = Some(scalar(reg.clone()).await?);
-            total = total + reg * o.locality_weight;
+            total = total + reg.clone() * o.locality_weight;
+            parts.locality = Some(reg);
         }
-        self.finish_terms(&mut terms, &f, &total).await?;
+        let terms = self.read_terms(parts, &f, &total).await?;
         let lr = o.pti_lr;
         let grads = total.backward();
         // The synthesis backbone and decoders; the mapping networks get no gradient (the codes
@@ -534,16 +562,37 @@ impl<'a> Inverter<'a> {
         })
     }
 
-    async fn finish_terms(&self, terms: &mut Terms, f: &FakeViews, total: &Tensor<1>) -> Result<(), InversionError> {
-        terms.eikonal = scalar(f.eikonal.clone()).await?;
-        terms.cross_entropy = scalar(f.cross_entropy.clone()).await?;
-        terms.total = scalar(total.clone()).await?;
+    /// The step's terms and mask IoU, read back in one transfer (each read-back is a GPU
+    /// round trip in the browser); keeps the render for the previews.
+    async fn read_terms(&mut self, p: TermTensors, f: &FakeViews, total: &Tensor<1>) -> Result<Terms, InversionError> {
+        let optional = [&p.perceptual, &p.latent_reg, &p.locality];
+        let mut parts = vec![total.clone(), p.rgb_l1, p.rgb_mse, p.silhouette, p.eikonal, p.cross_entropy];
+        parts.extend(optional.iter().filter_map(|t| (*t).clone()));
+        let k = parts.len();
+        let n = self.target.res * self.target.res;
+        parts.push(f.mask.clone().narrow(0, 0, 1).reshape([n]));
+        let v = read_f32(Tensor::cat(parts.into_iter().map(|t| t.detach()).collect(), 0)).await?;
+        let mut opt = v[6..k].iter().copied();
+        let mut next = |t: &Option<Tensor<1>>| t.as_ref().and_then(|_| opt.next());
+        let (perceptual, latent_reg, locality) = (next(optional[0]), next(optional[1]), next(optional[2]));
+        let mask: Vec<f32> = v[k..].iter().map(|m| (m + 1.0) * 0.5).collect();
+        let terms = Terms {
+            total: v[0],
+            rgb_l1: v[1],
+            rgb_mse: v[2],
+            silhouette: v[3],
+            eikonal: v[4],
+            cross_entropy: v[5],
+            perceptual,
+            latent_reg: latent_reg.unwrap_or(0.0),
+            locality,
+            mask_iou: mask_iou(&mask, &self.target.mask),
+        };
         if !terms.total.is_finite() {
             return Err(InversionError::NotFinite(terms.total, self.step));
         }
-        let mask: Vec<f32> = read_f32(f.mask.clone()).await?.iter().map(|m| (m + 1.0) * 0.5).collect();
-        terms.mask_iou = mask_iou(&mask, &self.target.mask);
-        Ok(())
+        self.last = Some((f.rgb.clone().detach(), f.mask.clone().detach()));
+        Ok(terms)
     }
 
     fn advance(&mut self) {
@@ -686,16 +735,44 @@ pub fn render_images(f: &FakeViews) -> Result<(Vec<f32>, Vec<f32>), ReadbackErro
 
 /// [`render_images`], awaiting its read-backs.
 pub async fn render_images_async(f: &FakeViews) -> Result<(Vec<f32>, Vec<f32>), ReadbackError> {
-    let [_, _, h, w] = f.rgb.dims();
+    images_async(f.rgb.clone(), f.mask.clone()).await
+}
+
+/// The first image of an RGB `[B, 3, H, W]` and a mask `[B, 1, H, W]` batch (both in [−1, 1])
+/// as HWC sRGB and mask in [0, 1].
+async fn images_async(rgb: Tensor<4>, mask: Tensor<4>) -> Result<(Vec<f32>, Vec<f32>), ReadbackError> {
+    let [_, _, h, w] = rgb.dims();
     let n = h * w;
-    let chw = read_f32(f.rgb.clone().narrow(0, 0, 1)).await?;
+    let chw = read_f32(rgb.narrow(0, 0, 1)).await?;
     let rgb = (0..n)
         .flat_map(|k| (0..3).map(move |c| (c, k)))
         .map(|(c, k)| ((chw[c * n + k] + 1.0) * 0.5).clamp(0.0, 1.0))
         .collect();
-    let mask =
-        read_f32(f.mask.clone().narrow(0, 0, 1)).await?.iter().map(|m| ((m + 1.0) * 0.5).clamp(0.0, 1.0)).collect();
+    let mask = read_f32(mask.narrow(0, 0, 1)).await?.iter().map(|m| ((m + 1.0) * 0.5).clamp(0.0, 1.0)).collect();
     Ok((rgb, mask))
+}
+
+/// Input | render | overlay side by side (RGB8, `3·res × res`): the render over the input
+/// where the avatar is, the input dimmed outside the person mask. `rgb`, `mask`: the render
+/// as HWC sRGB and mask in [0, 1] at the target's resolution.
+pub fn comparison_image(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> Vec<u8> {
+    let r = t.res;
+    let mut out = vec![0u8; r * 3 * r * 3];
+    for y in 0..r {
+        for x in 0..r {
+            let k = y * r + x;
+            let m = mask.get(k).copied().unwrap_or(0.0);
+            for c in 0..3 {
+                let (inp, ren) = (t.rgb[3 * k + c], rgb.get(3 * k + c).copied().unwrap_or(1.0));
+                let dimmed = inp * (0.35 + 0.65 * t.mask[k]);
+                let over = m * ren + (1.0 - m) * dimmed;
+                for (panel, v) in [inp, ren, over].into_iter().enumerate() {
+                    out[(y * 3 * r + panel * r + x) * 3 + c] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
+        }
+    }
+    out
 }
 
 /// Which parameters PTI tunes: all but the mapping networks.

@@ -60,7 +60,9 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
 /// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`,
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
-/// `{"download_animated":true}`. Photo bytes come through `window.getavatar.photo(uint8Array,
+/// `{"download_animated":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
+/// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
+/// `{"reconstruct_cancel":true}`. Photo bytes come through `window.getavatar.photo(uint8Array,
 /// name)`, motion files through `window.getavatar.motion(uint8Array, name)`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged, deny_unknown_fields)]
@@ -114,6 +116,12 @@ pub enum Command {
     TextureRes {
         texture_res: usize,
     },
+    Reconstruct {
+        reconstruct: ReconstructArgs,
+    },
+    ReconstructCancel {
+        reconstruct_cancel: bool,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
@@ -144,6 +152,91 @@ pub struct PhotoArgs {
     /// Where the fit runs: "cpu" (burn NdArray, the default) or "webgpu" (burn wgpu on the
     /// page's WebGPU device; for comparisons: tests/e2e/bench_fit.mjs).
     pub device: Option<String>,
+}
+
+/// A reconstruction from the fitted photo: the quality preset (`fast`: 60 W+ + 60 PTI steps,
+/// `full`: 200 + 350) and overrides.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReconstructArgs {
+    pub preset: Option<String>,
+    /// W+ and PTI steps (override the preset's).
+    pub steps: Option<usize>,
+    pub pti_steps: Option<usize>,
+    /// Side of the square render the photo is compared with, pixels (32…256; default 128).
+    pub res: Option<usize>,
+    /// A preview every this many steps (default 5; 0 = only the final one).
+    pub preview_every: Option<usize>,
+    /// Use the shipped discriminator's perceptual term where it ships (default true).
+    pub perceptual: Option<bool>,
+    /// Project the photo's colours onto the result (default true).
+    pub projection: Option<bool>,
+    /// Where the codes start: `best` (default: the model's subject, or the average, whose
+    /// render explains the photo best; one render each) or `average` (w_avg, no search).
+    pub start: Option<String>,
+}
+
+/// Most steps per phase a reconstruction may ask for.
+pub const MAX_RECONSTRUCT_STEPS: usize = 2000;
+/// The reconstruction's render sizes.
+pub const RECONSTRUCT_RES: std::ops::RangeInclusive<usize> = 32..=256;
+/// Its default render size and preview interval.
+pub const DEFAULT_RECONSTRUCT_RES: usize = 128;
+pub const DEFAULT_PREVIEW_EVERY: usize = 5;
+
+/// The quality presets (`getavatar_core::inversion::InversionOptions::preset`).
+pub const RECONSTRUCT_PRESETS: [&str; 2] = ["fast", "full"];
+
+/// A validated reconstruction request.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Reconstruction {
+    pub preset: String,
+    /// Steps per phase when not the preset's.
+    pub steps: Option<usize>,
+    pub pti_steps: Option<usize>,
+    pub perceptual: bool,
+    pub res: usize,
+    pub preview_every: usize,
+    pub projection: bool,
+    /// Search the model's subjects for the start (else w_avg).
+    pub search_start: bool,
+}
+
+impl ReconstructArgs {
+    /// The request, or what is wrong with it.
+    pub fn validate(self) -> Result<Reconstruction, String> {
+        let preset = self.preset.unwrap_or_else(|| "fast".into());
+        if !RECONSTRUCT_PRESETS.contains(&preset.as_str()) {
+            return Err(format!("reconstruct: preset `{preset}` (fast, full)"));
+        }
+        for n in [self.steps, self.pti_steps].into_iter().flatten() {
+            if n > MAX_RECONSTRUCT_STEPS {
+                return Err(format!("reconstruct: at most {MAX_RECONSTRUCT_STEPS} steps per phase"));
+            }
+        }
+        if self.steps == Some(0) && self.pti_steps == Some(0) {
+            return Err("reconstruct: steps and pti_steps are both 0".into());
+        }
+        let search_start = match self.start.as_deref() {
+            None | Some("best") => true,
+            Some("average") => false,
+            Some(other) => return Err(format!("reconstruct: start `{other}` (best, average)")),
+        };
+        let res = self.res.unwrap_or(DEFAULT_RECONSTRUCT_RES);
+        if !RECONSTRUCT_RES.contains(&res) {
+            return Err(format!("reconstruct: res {res} (32…256)"));
+        }
+        Ok(Reconstruction {
+            preset,
+            steps: self.steps,
+            pti_steps: self.pti_steps,
+            perceptual: self.perceptual.unwrap_or(true),
+            res,
+            preview_every: self.preview_every.unwrap_or(DEFAULT_PREVIEW_EVERY),
+            projection: self.projection.unwrap_or(true),
+            search_start,
+        })
+    }
 }
 
 /// Motion playback: choose a clip (a built-in's or a loaded file's name), play or pause,
@@ -233,6 +326,10 @@ pub enum Action {
     DownloadAnimated,
     /// Side of the avatar's baked texture in the downloads (0: vertex colours).
     TextureRes(usize),
+    /// Reconstruct an avatar from the fitted photo.
+    Reconstruct(Reconstruction),
+    /// Stop the running reconstruction (the avatar stays as it was).
+    ReconstructCancel,
 }
 
 /// Texture sizes offered for the downloads (0: vertex colours, no texture).
@@ -345,6 +442,8 @@ impl Command {
                 }
                 Action::TextureRes(texture_res)
             }
+            Command::Reconstruct { reconstruct } => Action::Reconstruct(reconstruct.validate()?),
+            Command::ReconstructCancel { .. } => Action::ReconstructCancel,
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
@@ -519,6 +618,8 @@ pub struct Status {
     pub photo_view: [f32; 4],
     /// Motion playback and the animated download.
     pub motion: MotionStatus,
+    /// The reconstruction from the photo.
+    pub reconstruct: ReconstructStatus,
     /// The "Open photo…" button's rectangle in CSS pixels (for the test that clicks it).
     pub open_photo_button: [f32; 4],
     /// Messages about rejected commands / parameters (most recent last).
@@ -564,6 +665,48 @@ pub struct PhotoStatus {
     pub mask_iou: Option<f32>,
     /// Downloads of fit.json + kp.json.
     pub fit_downloads: u64,
+}
+
+/// The reconstruction's state (`status().reconstruct`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ReconstructStatus {
+    /// "none", "starting", "latent" (W+), "pivotal" (PTI), "finishing", "done", "failed" or
+    /// "cancelled".
+    pub state: String,
+    pub message: String,
+    /// The preset's or the request's steps: done in both phases, and in all.
+    pub steps_done: usize,
+    pub steps_total: usize,
+    /// The render size the photo is compared at.
+    pub res: usize,
+    /// The start (latent mode or w_avg) and of how many candidates.
+    pub start: String,
+    pub candidates: usize,
+    /// Whether the perceptual term (the shipped discriminator's features) is on.
+    pub perceptual: bool,
+    /// Every step's weighted loss, in order (this run's).
+    pub losses: Vec<f32>,
+    /// The last step's mask IoU with the person mask.
+    pub step_mask_iou: f32,
+    /// Milliseconds per step so far (all, W+ steps, PTI steps), and the estimated seconds left.
+    pub ms_per_step: f32,
+    pub ms_per_latent_step: f32,
+    pub ms_per_pivotal_step: f32,
+    pub eta_s: f32,
+    /// Milliseconds to load the model and choose the start, and of the finish (final render,
+    /// extraction, rigging, the photo's projection).
+    pub start_ms: f32,
+    pub finish_ms: f32,
+    /// Previews shown, and the steps done at the latest.
+    pub previews: u64,
+    pub preview_step: usize,
+    /// The finished result at the photo's camera: mask IoU with the person mask and masked
+    /// PSNR (dB); and its total milliseconds.
+    pub mask_iou: f32,
+    pub psnr_db: f32,
+    pub total_ms: f32,
+    /// Completed reconstructions.
+    pub done: u64,
 }
 
 /// Motion playback, for the tests.
@@ -618,6 +761,47 @@ mod tests {
         assert_eq!(a[3], Action::Res(1024));
         assert_eq!(a[4], Action::Betas(vec![1.0, -0.5]));
         assert_eq!(a[5], Action::Joint(18, [0.0, -1.2, 0.0]));
+    }
+
+    #[test]
+    fn reconstruct_commands_are_validated() {
+        let r = parse_command(r#"{"reconstruct":{}}"#);
+        assert_eq!(
+            r,
+            Ok(Action::Reconstruct(Reconstruction {
+                preset: "fast".into(),
+                steps: None,
+                pti_steps: None,
+                perceptual: true,
+                res: DEFAULT_RECONSTRUCT_RES,
+                preview_every: DEFAULT_PREVIEW_EVERY,
+                projection: true,
+                search_start: true,
+            }))
+        );
+        let r =
+            parse_command(r#"{"reconstruct":{"preset":"full","steps":3,"pti_steps":0,"res":64,"perceptual":false}}"#);
+        match r {
+            Ok(Action::Reconstruct(r)) => {
+                assert_eq!(
+                    (r.preset.as_str(), r.steps, r.pti_steps, r.res, r.perceptual),
+                    ("full", Some(3), Some(0), 64, false)
+                )
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(parse_command(r#"{"reconstruct_cancel":true}"#), Ok(Action::ReconstructCancel));
+        for bad in [
+            r#"{"reconstruct":{"preset":"best"}}"#,
+            r#"{"reconstruct":{"res":8}}"#,
+            r#"{"reconstruct":{"res":512}}"#,
+            r#"{"reconstruct":{"steps":0,"pti_steps":0}}"#,
+            r#"{"reconstruct":{"steps":99999}}"#,
+            r#"{"reconstruct":{"lr":1}}"#,
+            r#"{"reconstruct":{"start":"mode 3"}}"#,
+        ] {
+            assert!(parse_command(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -21,12 +21,17 @@ use getavatar_core::generator::{
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
+use getavatar_core::photo_projection::PhotoProjection;
 use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
+use getavatar_core::BodyParams;
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
-/// Which models the build ships (`{"demo": "demo.safetensors"}` or `{}`), written by xtask.
+/// Which models the build ships (`{"demo": "demo.safetensors", "demo_d": "demo_d_rgb.safetensors"}`,
+/// or fewer), written by xtask.
 pub const MANIFEST_URL: &str = "models/manifest.json";
+/// The demo model's RGB discriminator (the reconstruction's perceptual term), when it ships.
+pub const DISCRIMINATOR_URL: &str = "models/demo_d_rgb.safetensors";
 
 /// Which weights the generator has.
 #[derive(Clone, Debug, PartialEq)]
@@ -55,7 +60,9 @@ impl Weights {
     }
 }
 
-/// The shipped demo model, if the build lists one, loaded onto `device`.
+/// The shipped demo model, if the build lists one, loaded onto `device`, with its bytes (the
+/// reconstruction loads them again onto the autodiff device) and, where it ships, the bytes of
+/// its RGB discriminator (or why they are missing).
 async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped, String> {
     let manifest: serde_json::Value =
         serde_json::from_slice(&fetch_bytes(MANIFEST_URL).await?).map_err(|e| format!("{MANIFEST_URL}: {e}"))?;
@@ -65,7 +72,11 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
     let bytes = fetch_bytes(MODEL_URL).await?;
     let (g, modes) = load_generator_and_modes(&bytes, cfg, device)
         .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
-    Ok((g, modes, bytes.len()))
+    let disc = match manifest.get("demo_d") {
+        Some(_) => fetch_bytes(DISCRIMINATOR_URL).await.map(Rc::new),
+        None => Err("no discriminator ships with this build".into()),
+    };
+    Ok(Shipped { generator: g, modes, bytes: Rc::new(bytes), discriminator: disc })
 }
 
 /// Colours of a texture-field query, or why it failed.
@@ -73,17 +84,47 @@ type TextureColours = Result<Vec<glam::Vec3>, String>;
 /// A finished bake and its milliseconds.
 type Bake = Result<(BakedTexture, f64), String>;
 
-/// A fetched checkpoint: the generator, its latent modes (if any) and its size in bytes.
-type Shipped = (Generator, Option<LatentModes>, usize);
+/// A fetched checkpoint: the generator, its latent modes (if any), its bytes, and the
+/// discriminator's bytes (or why there are none).
+struct Shipped {
+    generator: Generator,
+    modes: Option<LatentModes>,
+    bytes: Rc<Vec<u8>>,
+    discriminator: Result<Rc<Vec<u8>>, String>,
+}
 
 type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
 
-/// An avatar's texture field: its styles, and its triplanes once computed (a new
-/// generation computes them inside the extraction; they are made again only if the
-/// per-pixel texture view asks).
+/// An avatar's texture field: its generator (the engine's, or a reconstruction's tuned one),
+/// styles, and triplanes once computed (a new generation computes them inside the
+/// extraction; they are made again only if the per-pixel texture view asks); and for a
+/// reconstruction the photo's projection, which the bake blends in.
 pub struct TextureField {
+    generator: Rc<Generator>,
     styles: Styles,
     planes: RefCell<Option<Triplanes>>,
+    projection: Option<Rc<(PhotoProjection, BodyParams)>>,
+}
+
+impl TextureField {
+    /// A reconstruction's field: its tuned generator and codes, and the photo's projection.
+    pub fn reconstructed(
+        generator: Rc<Generator>,
+        styles: Styles,
+        projection: Option<Rc<(PhotoProjection, BodyParams)>>,
+    ) -> Self {
+        Self { generator, styles, planes: RefCell::new(None), projection }
+    }
+
+    /// The triplanes, computed on first use.
+    fn planes(&self) -> Triplanes {
+        let cached = self.planes.borrow().clone();
+        cached.unwrap_or_else(|| {
+            let p = self.generator.triplanes(&self.styles);
+            *self.planes.borrow_mut() = Some(p.clone());
+            p
+        })
+    }
 }
 
 /// Outcome of a background generation.
@@ -104,6 +145,9 @@ pub struct GenEngine {
     generator: Rc<Generator>,
     /// The checkpoint's latent modes: ψ truncates towards the nearest one instead of w_avg.
     modes: Rc<Option<LatentModes>>,
+    /// The checkpoint's bytes (None: random weights) and its discriminator's (or why none).
+    checkpoint: Option<Rc<Vec<u8>>>,
+    discriminator: Result<Rc<Vec<u8>>, String>,
     ctx: Option<Rc<BodyContext>>,
     slot: Rc<RefCell<Option<Result<Finished, String>>>>,
     /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
@@ -149,6 +193,8 @@ impl GenEngine {
             cfg,
             generator,
             modes: Rc::new(None),
+            checkpoint: None,
+            discriminator: Err("the model is loading".into()),
             ctx: None,
             slot: Rc::new(RefCell::new(None)),
             weights_slot,
@@ -179,14 +225,7 @@ impl GenEngine {
             self.busy = true;
             return;
         }
-        let ctx = match &self.ctx {
-            Some(c) => c.clone(),
-            None => {
-                let c = Rc::new(BodyContext::new(body.clone(), &self.cfg));
-                self.ctx = Some(c.clone());
-                c
-            }
-        };
+        let ctx = self.body_context(body);
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
         let modes = self.modes.clone();
@@ -212,7 +251,8 @@ impl GenEngine {
                     Err("the generator produced an empty surface".to_string())
                 }
                 Ok((rigged, planes)) => {
-                    let field = Rc::new(TextureField { styles, planes: RefCell::new(planes) });
+                    let field =
+                        Rc::new(TextureField { generator: g, styles, planes: RefCell::new(planes), projection: None });
                     Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, seeds, psi })
                 }
             };
@@ -227,13 +267,19 @@ impl GenEngine {
         let fetched = self.weights_slot.borrow_mut().take();
         if let Some(w) = fetched {
             self.weights = match w {
-                Ok((g, modes, n)) => {
-                    self.generator = Rc::new(g);
-                    let k = modes.as_ref().map_or(0, LatentModes::count);
-                    self.modes = Rc::new(modes);
+                Ok(shipped) => {
+                    self.generator = Rc::new(shipped.generator);
+                    let k = shipped.modes.as_ref().map_or(0, LatentModes::count);
+                    self.modes = Rc::new(shipped.modes);
+                    let n = shipped.bytes.len();
+                    self.checkpoint = Some(shipped.bytes);
+                    self.discriminator = shipped.discriminator;
                     Weights::Trained(n, k)
                 }
-                Err(e) => Weights::Random(e),
+                Err(e) => {
+                    self.discriminator = Err("no trained model ships with this build".into());
+                    Weights::Random(e)
+                }
             };
             if let Some((seeds, psi, keep, repaint)) = self.pending.take() {
                 self.busy = false;
@@ -250,15 +296,10 @@ impl GenEngine {
     /// Query the texture field of `field` at canonical points (the per-pixel RGB of the
     /// paper's renderer); the colours arrive via [`GenEngine::poll_texture`].
     pub fn query_texture(&mut self, field: Rc<TextureField>, points: Vec<glam::Vec3>, repaint: eframe::egui::Context) {
-        let (g, dev, slot) = (self.generator.clone(), self.device.clone(), self.texture_slot.clone());
+        let (dev, slot) = (self.device.clone(), self.texture_slot.clone());
         wasm_bindgen_futures::spawn_local(async move {
-            let cached = field.planes.borrow().clone();
-            let planes = cached.unwrap_or_else(|| {
-                let p = g.triplanes(&field.styles);
-                *field.planes.borrow_mut() = Some(p.clone());
-                p
-            });
-            let colors = recolor_async(&g, &planes, &field.styles, &points, &dev).await;
+            let planes = field.planes();
+            let colors = recolor_async(&field.generator, &planes, &field.styles, &points, &dev).await;
             *slot.borrow_mut() = Some(colors.map_err(|e| format!("texture query failed: {e}")));
             repaint.request_repaint();
         });
@@ -277,17 +318,14 @@ impl GenEngine {
             *self.bake_slot.borrow_mut() = Some(Err("the body context is not ready".into()));
             return;
         };
-        let (g, dev, slot) = (self.generator.clone(), self.device.clone(), self.bake_slot.clone());
+        let (dev, slot) = (self.device.clone(), self.bake_slot.clone());
         self.baking = true;
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
-            let cached = field.planes.borrow().clone();
-            let planes = cached.unwrap_or_else(|| {
-                let p = g.triplanes(&field.styles);
-                *field.planes.borrow_mut() = Some(p.clone());
-                p
-            });
-            let baked = rigged.bake_texture_async(&g, &planes, &field.styles, &ctx, res, &dev).await;
+            let planes = field.planes();
+            let photo = field.projection.as_deref().map(|(p, body)| (p, body));
+            let g = &field.generator;
+            let baked = rigged.bake_texture_photo_async(g, &planes, &field.styles, &ctx, res, photo, &dev).await;
             *slot.borrow_mut() = Some(
                 baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}")),
             );
@@ -311,5 +349,29 @@ impl GenEngine {
 
     pub fn context(&self) -> Option<&BodyContext> {
         self.ctx.as_deref()
+    }
+
+    /// The body context (made on first use).
+    pub fn body_context(&mut self, body: &BodyModel) -> Rc<BodyContext> {
+        match &self.ctx {
+            Some(c) => c.clone(),
+            None => {
+                let c = Rc::new(BodyContext::new(body.clone(), &self.cfg));
+                self.ctx = Some(c.clone());
+                c
+            }
+        }
+    }
+
+    /// What a reconstruction loads: the checkpoint's bytes (None: random weights; an error
+    /// while they load), the discriminator's bytes or why there are none, and the config.
+    #[allow(clippy::type_complexity)]
+    pub fn model_files(&self) -> Result<(Option<Rc<Vec<u8>>>, Result<Rc<Vec<u8>>, String>, GeneratorConfig), String> {
+        match &self.weights {
+            Weights::Loading => Err("the model is still loading".into()),
+            Weights::Trained(..) | Weights::Random(_) => {
+                Ok((self.checkpoint.clone(), self.discriminator.clone(), self.cfg.clone()))
+            }
+        }
     }
 }

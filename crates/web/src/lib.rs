@@ -10,6 +10,9 @@
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
 //! - `photo` (wasm32): the photo → body flow's tasks: MediaPipe Pose (`www/pose_detect.js`)
 //!   and the body fit on the shared WebGPU device; the page's file input
+//! - `reconstruct` (wasm32): single-image reconstruction (latent inversion + pivotal tuning on
+//!   the shared WebGPU device) from the photo and its body fit
+//! - `task` (wasm32): background tasks' event queues, Cancel, yielding to the browser
 //! - `platform` (wasm32): clock and file downloads
 //! - `web` (wasm32): entry point owning the app, JS automation hook
 
@@ -23,6 +26,10 @@ mod generate;
 mod photo;
 #[cfg(target_arch = "wasm32")]
 mod platform;
+#[cfg(target_arch = "wasm32")]
+mod reconstruct;
+#[cfg(target_arch = "wasm32")]
+mod task;
 #[cfg(target_arch = "wasm32")]
 mod viewer;
 #[cfg(target_arch = "wasm32")]

@@ -4,18 +4,16 @@
 //! WebGPU device). Both run as async tasks; the fit awaits one Adam step at a time (each ends
 //! in a GPU read-back), so the page stays live, shows progress and can cancel between steps.
 //!
-//! Tasks report through a [`PhotoTask`]'s event queue, which the app drains every frame.
+//! Tasks report through a [`PhotoTask`]'s event queue (`crate::task`), which the app drains
+//! every frame.
 
-use std::cell::{Cell, RefCell};
-use std::collections::VecDeque;
-use std::rc::Rc;
+use std::cell::RefCell;
 use std::sync::Arc;
 
 use eframe::egui;
 use serde::Deserialize;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
-use wasm_bindgen_futures::JsFuture;
 
 use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
 use getavatar_core::body_fit::landmarks::PoseResult;
@@ -24,6 +22,7 @@ use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
 use crate::platform::{fetch_bytes, js_message, now_ms};
+use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
 
 #[wasm_bindgen(raw_module = "./pose_detect.js")]
 extern "C" {
@@ -69,48 +68,17 @@ pub enum PhotoEvent {
     Cancelled,
 }
 
-/// A running detection or fit: its events, and the flag that cancels it.
-#[derive(Clone, Default)]
-pub struct PhotoTask {
-    events: Rc<RefCell<VecDeque<PhotoEvent>>>,
-    cancel: Rc<Cell<bool>>,
-    done: Rc<Cell<bool>>,
+impl TaskEvent for PhotoEvent {
+    fn kind(&self) -> EventKind {
+        match self {
+            PhotoEvent::Progress(_) => EventKind::Latest,
+            _ => EventKind::Outcome,
+        }
+    }
 }
 
-impl PhotoTask {
-    fn push(&self, e: PhotoEvent, repaint: &egui::Context) {
-        let mut q = self.events.borrow_mut();
-        // Only the latest progress matters.
-        if matches!(e, PhotoEvent::Progress(_)) && matches!(q.back(), Some(PhotoEvent::Progress(_))) {
-            q.pop_back();
-        }
-        if !matches!(e, PhotoEvent::Progress(_)) {
-            self.done.set(true);
-        }
-        q.push_back(e);
-        repaint.request_repaint();
-    }
-
-    /// Events since the last call.
-    pub fn drain(&self) -> Vec<PhotoEvent> {
-        self.events.borrow_mut().drain(..).collect()
-    }
-
-    /// Ask the task to stop at its next step (it reports [`PhotoEvent::Cancelled`]).
-    pub fn cancel(&self) {
-        self.cancel.set(true);
-    }
-
-    /// The same task (not a clone of another's state).
-    pub fn same(&self, other: &PhotoTask) -> bool {
-        Rc::ptr_eq(&self.done, &other.done)
-    }
-
-    /// It has reported its outcome (result, failure or cancellation).
-    pub fn finished(&self) -> bool {
-        self.done.get()
-    }
-}
+/// A running detection or fit.
+pub type PhotoTask = Task<PhotoEvent>;
 
 /// The fields of `pose_detect.js`'s answer that are not MediaPipe's result.
 #[derive(Deserialize)]
@@ -240,7 +208,7 @@ async fn fit_async(
             yield_to_browser().await;
             last_yield = now_ms();
         }
-        if task.cancel.get() {
+        if task.cancelled() {
             return Ok(None);
         }
         match fitter.step().await? {
@@ -249,22 +217,6 @@ async fn fit_async(
         }
     }
     fitter.finish().await.map(Some)
-}
-
-/// Resolve on the browser's next task (`setTimeout(0)`), letting it render and handle input.
-async fn yield_to_browser() {
-    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
-        if let Some(w) = web_sys::window() {
-            // A failed setTimeout leaves the promise pending: resolve at once instead.
-            if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
-                let _ = resolve.call0(&JsValue::NULL);
-            }
-        } else {
-            let _ = resolve.call0(&JsValue::NULL);
-        }
-    });
-    // The promise only resolves.
-    let _ = JsFuture::from(promise).await;
 }
 
 thread_local! {

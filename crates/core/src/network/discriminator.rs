@@ -126,6 +126,8 @@ pub struct Discriminator {
     pub mapping: Vec<FullyConnected>,
     pub mbstd_group: usize,
     pub cmap_dim: usize,
+    /// The input resolution it was built for.
+    pub resolution: usize,
 }
 
 impl Discriminator {
@@ -161,13 +163,23 @@ impl Discriminator {
             mapping,
             mbstd_group: cfg.mbstd_group,
             cmap_dim: cfg.cmap_dim,
+            resolution: cfg.resolution,
         }
     }
 
     /// The image's features after the input layer and after each residual block (resolutions
     /// R, R/2, …, 4): the multi-scale features of the inversion's perceptual term (Deep
-    /// Generative Prior's `DiscriminatorLoss`), without the camera-conditioned head.
+    /// Generative Prior's `DiscriminatorLoss`), without the camera-conditioned head. An image
+    /// larger than the discriminator's resolution by an integer factor is box-filtered down to
+    /// it first, so the features are those of the scales it was trained at.
     pub fn features(&self, img: Tensor<4>) -> Vec<Tensor<4>> {
+        let size = img.dims()[3];
+        let img = if size > self.resolution && size % self.resolution == 0 {
+            let k = size / self.resolution;
+            avg_pool2d(img, AvgPoolOptions::new([k, k]))
+        } else {
+            img
+        };
         let mut x = self.from_image.forward(img);
         let mut out = vec![x.clone()];
         for b in &self.blocks {

@@ -6,10 +6,13 @@
 //! - `photo_panel`: "Reconstruct from photo" (detection, body fit, overlays, Download fit)
 //! - `texture_job`: the per-pixel texture view's job
 //! - `motion_panel`: motion playback (built-in clips, SMPL/AMASS files) and the downloads
+//! - `reconstruct_panel`: "Reconstruct avatar" from the fitted photo (preset, progress,
+//!   preview, Cancel)
 
 mod motion_panel;
 mod panels;
 mod photo_panel;
+mod reconstruct_panel;
 mod texture_job;
 
 use std::rc::Rc;
@@ -31,6 +34,7 @@ use crate::platform::{download_bytes, now_ms};
 use crate::viewer::{joint_bones, Vertex, Viewer};
 use motion_panel::MotionPlayer;
 use photo_panel::PhotoPanel;
+use reconstruct_panel::ReconstructPanel;
 use texture_job::TextureJob;
 
 /// The avatar shown (when it is, and the generator's body context is ready) with that context.
@@ -97,6 +101,10 @@ pub struct GetAvatarApp {
     queued: Option<(bool, GenerateArgs)>,
     /// The photo → body flow.
     photo: PhotoPanel,
+    /// The reconstruction from the fitted photo.
+    recon: ReconstructPanel,
+    /// The shown avatar's name in downloads (`avatar_<geo>_<tex>` or `reconstruction`).
+    avatar_name: String,
     /// Motion playback.
     motion: MotionPlayer,
     /// The downloads' texture side (0: vertex colours), the shown avatar's bake at it, and a
@@ -183,6 +191,8 @@ impl GetAvatarApp {
             psi_from_user: false,
             queued: None,
             photo: PhotoPanel::default(),
+            recon: ReconstructPanel::default(),
+            avatar_name: "avatar".into(),
             motion: MotionPlayer::default(),
             texture_res: 1024,
             baked: None,
@@ -252,6 +262,7 @@ impl GetAvatarApp {
                 self.avatar_dirty = true;
             }
             a @ (Action::Photo { .. } | Action::PhotoFit(_)) => self.apply_photo(a),
+            a @ (Action::Reconstruct(_) | Action::ReconstructCancel) => self.apply_reconstruct(a),
             Action::Motion(a) => self.apply_motion(a),
             Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
             Action::DownloadAnimated => self.request_download(motion_panel::DownloadKind::Animated),
@@ -302,6 +313,7 @@ impl GetAvatarApp {
                 self.status.last_generation_ms = done.millis as f32;
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
                 (self.seed_geo, self.seed_tex) = done.seeds;
+                self.avatar_name = format!("avatar_{}_{}", done.seeds.0, done.seeds.1);
                 self.psi = done.psi;
                 self.rigged = Some(done.rigged);
                 self.field = Some(done.field);
@@ -339,7 +351,7 @@ impl GetAvatarApp {
     fn download_glb(&mut self) {
         let rig = shown_rig(&self.rigged, &self.engine, self.show_avatar);
         let what = match rig {
-            Some(_) => format!("avatar_{}_{}", self.seed_geo, self.seed_tex),
+            Some(_) => self.avatar_name.clone(),
             None => "body".to_string(),
         };
         let bytes = match rig {
@@ -498,6 +510,7 @@ impl GetAvatarApp {
         let ctx = ui.ctx().clone();
         self.take_dropped(&ctx);
         self.poll_photo(&ctx);
+        self.poll_reconstruct(&ctx);
         self.poll_generation();
         self.start_queued(&ui.ctx().clone());
         self.advance_motion();

@@ -367,7 +367,7 @@ impl GetAvatarApp {
         let textured = rig.is_some() && self.baked.is_some();
         let (what, bytes) = match rig {
             Some((r, ctx)) => {
-                let what = format!("avatar_{}_{}", self.seed_geo, self.seed_tex);
+                let what = self.avatar_name.clone();
                 let name = format!("getavatar_{what}_{clip_names}");
                 (what, r.animated_glb(ctx, &self.params, &clips, self.baked.as_ref(), &name))
             }

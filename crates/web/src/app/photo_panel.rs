@@ -111,6 +111,16 @@ impl PhotoPanel {
     pub(super) fn has_photo(&self) -> bool {
         self.photo.is_some()
     }
+
+    /// A detection or fit is running.
+    pub(super) fn busy(&self) -> bool {
+        self.task.is_some()
+    }
+
+    /// The detected photo and its body fit, once both exist.
+    pub(super) fn fitted(&self) -> Option<(&Photo, &BodyFit)> {
+        Some((self.photo.as_ref()?, self.fit.as_ref()?))
+    }
 }
 
 /// A mask covering the photo (`mw × mh`) resampled to `w × h` (nearest value).
@@ -162,6 +172,7 @@ impl GetAvatarApp {
                 if let Some((_, t)) = self.photo.task.take() {
                     t.cancel();
                 }
+                self.recon.cancel();
                 let keep = std::mem::take(&mut self.photo);
                 self.photo.model = keep.model;
                 self.status.photo = Default::default();
@@ -442,6 +453,7 @@ impl GetAvatarApp {
                     self.apply(Action::PhotoFit(PhotoFitAction::Close));
                 }
             });
+            self.reconstruct_section(ui);
         } else {
             ui.label(egui::RichText::new("drop a photo anywhere on the page").small());
         }

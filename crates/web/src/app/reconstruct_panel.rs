@@ -1,0 +1,310 @@
+//! "Reconstruct avatar": after the photo's body fit, the avatar is reconstructed from the
+//! photo (`crate::reconstruct`) with a quality preset, a progress bar (phase, step, loss,
+//! ETA), a live preview (photo | current render | overlay, at the inversion's camera) and
+//! Cancel, which leaves the shown avatar as it was. The result replaces the shown avatar: the
+//! pose and camera controls, motion playback and the downloads work on it right away.
+
+use std::rc::Rc;
+
+use eframe::egui;
+
+use getavatar_core::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
+
+use super::GetAvatarApp;
+use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, RECONSTRUCT_PRESETS};
+use crate::generate::TextureField;
+use crate::reconstruct::{reconstruct, ReconstructEvent, ReconstructRequest, ReconstructTask};
+
+/// Side of the photo crop that the colour projection samples, pixels.
+const PROJECTION_RES: usize = 512;
+
+/// The reconstruction's state in the app.
+pub(super) struct ReconstructPanel {
+    task: Option<ReconstructTask>,
+    /// What the running (or last) reconstruction explains: the photo at its camera.
+    target: Option<InversionTarget>,
+    /// Photo | render | overlay of the latest preview.
+    preview: Option<egui::TextureHandle>,
+    /// The quality preset the button uses.
+    preset: String,
+    /// W+ steps done and their milliseconds (the phases' step times).
+    latent: (usize, f64),
+}
+
+impl Default for ReconstructPanel {
+    fn default() -> Self {
+        Self { task: None, target: None, preview: None, preset: "fast".into(), latent: (0, 0.0) }
+    }
+}
+
+impl ReconstructPanel {
+    pub(super) fn running(&self) -> bool {
+        self.task.is_some()
+    }
+
+    /// Stop the running reconstruction (it reports its cancellation).
+    pub(super) fn cancel(&self) -> bool {
+        match &self.task {
+            Some(t) => {
+                t.cancel();
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+impl GetAvatarApp {
+    pub(super) fn apply_reconstruct(&mut self, action: Action) {
+        match action {
+            Action::Reconstruct(r) => self.start_reconstruct(r),
+            Action::ReconstructCancel if !self.recon.cancel() => {
+                self.messages.push("no reconstruction is running".into());
+            }
+            _ => {}
+        }
+    }
+
+    fn fail_reconstruct(&mut self, message: String) {
+        let s = &mut self.status.reconstruct;
+        s.state = "failed".into();
+        s.message = message.clone();
+        self.messages.push(message);
+    }
+
+    fn start_reconstruct(&mut self, r: Reconstruction) {
+        if self.recon.running() {
+            self.messages.push("a reconstruction is running: cancel it first".into());
+            return;
+        }
+        let Some((p, fit)) = self.photo.fitted() else {
+            self.fail_reconstruct("open a photo and let the body fit finish first".into());
+            return;
+        };
+        let Some(mask) = p.result.segmentation_mask.clone() else {
+            self.fail_reconstruct("the detector found no person mask in this photo: a reconstruction needs one".into());
+            return;
+        };
+        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else {
+            self.fail_reconstruct("the generator is not available (no WebGPU device for burn)".into());
+            return;
+        };
+        let (checkpoint, discriminator, cfg) = match engine.model_files() {
+            Ok(f) => f,
+            Err(e) => {
+                self.fail_reconstruct(format!("cannot reconstruct yet: {e}"));
+                return;
+            }
+        };
+        let ctx = engine.body_context(body);
+        let device = engine.device().clone().autodiff();
+        // The photo as the app holds it (downscaled to at most 768 pixels), which covers the
+        // photo the fit was made on.
+        let [w, h] = p.preview.size;
+        let rgb: Vec<f32> =
+            p.preview.pixels.iter().flat_map(|c| [c.r(), c.g(), c.b()]).map(|v| v as f32 / 255.0).collect();
+        let crop = |res| InversionTarget::from_photo(fit, &rgb, w, h, &mask, res, body.num_betas);
+        let target = match crop(r.res) {
+            Ok(t) => t,
+            Err(e) => {
+                self.fail_reconstruct(format!("the photo cannot be reconstructed: {e}"));
+                return;
+            }
+        };
+        let projection = if r.projection { crop(PROJECTION_RES).ok() } else { None };
+        let mut options = InversionOptions::preset(&r.preset).unwrap_or_default();
+        if let Some(n) = r.steps {
+            options.steps = n;
+        }
+        if let Some(n) = r.pti_steps {
+            options.pti_steps = n;
+        }
+        let mut note = String::new();
+        let discriminator = match (r.perceptual, discriminator) {
+            (true, Ok(d)) => Some(d),
+            (true, Err(why)) => {
+                note = format!(" (perceptual term off: {why})");
+                None
+            }
+            (false, _) => None,
+        };
+        if discriminator.is_none() {
+            options.perceptual = 0.0;
+        }
+        let s = &mut self.status.reconstruct;
+        *s = ReconstructStatus {
+            state: "starting".into(),
+            message: if r.search_start {
+                format!("choosing the start among the model's subjects…{note}")
+            } else {
+                format!("starting from the average…{note}")
+            },
+            steps_total: options.steps + options.pti_steps,
+            res: r.res,
+            done: s.done,
+            ..ReconstructStatus::default()
+        };
+        let req = ReconstructRequest {
+            checkpoint,
+            discriminator,
+            cfg,
+            ctx,
+            target: target.clone(),
+            projection,
+            options,
+            preview_every: r.preview_every,
+            search_start: r.search_start,
+            device,
+        };
+        self.recon.target = Some(target);
+        self.recon.preview = None;
+        self.recon.latent = (0, 0.0);
+        self.recon.task = Some(reconstruct(req, self.ctx.clone()));
+    }
+
+    /// Drain the reconstruction's events; install its result.
+    pub(super) fn poll_reconstruct(&mut self, ctx: &egui::Context) {
+        let Some(task) = self.recon.task.clone() else { return };
+        for event in task.drain() {
+            match event {
+                ReconstructEvent::Started { start, candidates, perceptual, millis } => {
+                    let s = &mut self.status.reconstruct;
+                    s.message = format!(
+                        "starting from {start} (best of {candidates}); perceptual term {}",
+                        if perceptual { "on" } else { "off" }
+                    );
+                    (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
+                    s.start_ms = millis as f32;
+                    s.state = "latent".into();
+                }
+                ReconstructEvent::Step(p) => {
+                    let s = &mut self.status.reconstruct;
+                    s.losses.push(p.report.terms.total);
+                    s.step_mask_iou = p.report.terms.mask_iou;
+                    (s.steps_done, s.steps_total) = (p.done, p.total);
+                    s.ms_per_step = (p.elapsed_ms / p.done.max(1) as f64) as f32;
+                    if p.report.phase == Phase::Latent {
+                        self.recon.latent = (p.done, p.elapsed_ms);
+                        s.ms_per_latent_step = s.ms_per_step;
+                    } else {
+                        let (n, ms) = self.recon.latent;
+                        s.ms_per_pivotal_step = ((p.elapsed_ms - ms) / (p.done - n).max(1) as f64) as f32;
+                    }
+                    s.eta_s = s.ms_per_step * (p.total - p.done.min(p.total)) as f32 / 1000.0;
+                    s.state = match p.report.phase {
+                        Phase::Latent => "latent",
+                        Phase::Pivotal => "pivotal",
+                        Phase::Done => "finishing",
+                    }
+                    .into();
+                    if p.done >= p.total {
+                        s.state = "finishing".into();
+                        s.message = "extracting, rigging and colouring the avatar…".into();
+                    }
+                }
+                ReconstructEvent::Preview(pv) => {
+                    let Some(t) = &self.recon.target else { continue };
+                    let bytes = comparison_image(t, &pv.rgb, &pv.mask);
+                    let img = egui::ColorImage::from_rgb([3 * t.res, t.res], &bytes);
+                    self.recon.preview =
+                        Some(ctx.load_texture("reconstruction preview", img, egui::TextureOptions::LINEAR));
+                    self.status.reconstruct.previews += 1;
+                    self.status.reconstruct.preview_step = pv.done;
+                }
+                ReconstructEvent::Finished(r) => {
+                    self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
+                    self.rigged = Some(r.rigged);
+                    self.field = Some(Rc::new(TextureField::reconstructed(r.generator, r.styles, r.projection)));
+                    // The bake belongs to the previous avatar.
+                    self.baked = None;
+                    self.show_avatar = true;
+                    self.mesh_dirty = true;
+                    self.avatar_dirty = true;
+                    self.avatar_name = "reconstruction".into();
+                    let s = &mut self.status.reconstruct;
+                    s.state = "done".into();
+                    (s.mask_iou, s.psnr_db, s.total_ms) = (r.mask_iou, r.psnr_db, r.millis as f32);
+                    s.finish_ms = r.finish_ms as f32;
+                    s.done += 1;
+                    s.eta_s = 0.0;
+                    s.message = format!(
+                        "reconstructed in {:.0} s: mask IoU {:.2}, masked PSNR {:.1} dB at the photo's camera",
+                        r.millis / 1000.0,
+                        r.mask_iou,
+                        r.psnr_db
+                    );
+                }
+                ReconstructEvent::Failed(e) => self.fail_reconstruct(e),
+                ReconstructEvent::Cancelled => {
+                    let s = &mut self.status.reconstruct;
+                    s.state = "cancelled".into();
+                    s.message = "cancelled: the avatar is as it was".into();
+                }
+            }
+        }
+        if task.finished() && self.recon.task.as_ref().is_some_and(|t| t.same(&task)) {
+            self.recon.task = None;
+        }
+    }
+
+    /// The reconstruction's part of the photo section (once the body is fitted).
+    pub(super) fn reconstruct_section(&mut self, ui: &mut egui::Ui) {
+        ui.separator();
+        ui.strong("Reconstruct avatar");
+        let ready = self.photo.fitted().is_some() && !self.photo.busy();
+        ui.horizontal(|ui| {
+            ui.label("quality");
+            for p in RECONSTRUCT_PRESETS {
+                ui.radio_value(&mut self.recon.preset, p.to_string(), p);
+            }
+        });
+        ui.horizontal(|ui| {
+            let running = self.recon.running();
+            let go = ui
+                .add_enabled(ready && !running, egui::Button::new("Reconstruct"))
+                .on_hover_text("fast: 60 + 60 steps; full: 200 latent + 350 tuning steps (the references' counts)");
+            if go.clicked() {
+                let args = ReconstructArgs { preset: Some(self.recon.preset.clone()), ..Default::default() };
+                match args.validate() {
+                    Ok(r) => self.apply(Action::Reconstruct(r)),
+                    Err(e) => self.messages.push(e),
+                }
+            }
+            if running {
+                ui.spinner();
+                if ui.button("Cancel").on_hover_text("stop; the avatar stays as it was").clicked() {
+                    self.apply(Action::ReconstructCancel);
+                }
+            }
+        });
+        let s = &self.status.reconstruct;
+        if self.recon.running() && s.steps_total > 0 {
+            let phase = if s.state == "pivotal" { "tuning" } else { "latent" };
+            let loss = s.losses.last().copied().unwrap_or(f32::NAN);
+            let text = if s.steps_done == 0 {
+                "choosing the start…".to_string()
+            } else {
+                format!("{phase} · step {}/{} · loss {loss:.3} · ETA {}", s.steps_done, s.steps_total, eta(s.eta_s))
+            };
+            ui.add(egui::ProgressBar::new(s.steps_done as f32 / s.steps_total as f32).text(text));
+        }
+        if !s.message.is_empty() {
+            ui.label(egui::RichText::new(&s.message).small());
+        }
+        if let Some(t) = &self.recon.preview {
+            let w = ui.available_width().min(3.0 * 128.0);
+            ui.image((t.id(), egui::vec2(w, w / 3.0)));
+            ui.label(egui::RichText::new("photo · render · overlay").small());
+        }
+    }
+}
+
+/// Seconds as "1 min 20 s" / "12 s".
+fn eta(s: f32) -> String {
+    let s = s.max(0.0).round() as u64;
+    if s >= 60 {
+        format!("{} min {:02} s", s / 60, s % 60)
+    } else {
+        format!("{s} s")
+    }
+}

@@ -1,0 +1,108 @@
+//! Background tasks of the app (photo detection, body fit, reconstruction): async futures on
+//! the page's event loop that report through an event queue the app drains every frame, and
+//! stop at their next step when asked to (Cancel).
+
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
+use std::rc::Rc;
+
+use eframe::egui;
+use wasm_bindgen::JsValue;
+use wasm_bindgen_futures::JsFuture;
+
+/// How the event queue treats an event.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub enum EventKind {
+    /// Only the newest matters (progress, previews): it replaces the queue's last event when
+    /// that is of this kind too.
+    Latest,
+    /// Kept, in order (a step's report).
+    Log,
+    /// The task's outcome (result, failure, cancellation): the task is finished.
+    Outcome,
+}
+
+/// An event a task reports.
+pub trait TaskEvent {
+    fn kind(&self) -> EventKind;
+}
+
+/// A running task: its events, and the flag that cancels it.
+pub struct Task<E> {
+    events: Rc<RefCell<VecDeque<E>>>,
+    cancel: Rc<Cell<bool>>,
+    done: Rc<Cell<bool>>,
+}
+
+impl<E> Clone for Task<E> {
+    fn clone(&self) -> Self {
+        Self { events: self.events.clone(), cancel: self.cancel.clone(), done: self.done.clone() }
+    }
+}
+
+impl<E> Default for Task<E> {
+    fn default() -> Self {
+        Self { events: Default::default(), cancel: Default::default(), done: Default::default() }
+    }
+}
+
+impl<E: TaskEvent> Task<E> {
+    /// Report `e` and ask for a repaint, so the app sees it on its next frame.
+    pub fn push(&self, e: E, repaint: &egui::Context) {
+        let mut q = self.events.borrow_mut();
+        match e.kind() {
+            EventKind::Latest => {
+                if q.back().is_some_and(|b| b.kind() == EventKind::Latest) {
+                    q.pop_back();
+                }
+            }
+            EventKind::Log => {}
+            EventKind::Outcome => self.done.set(true),
+        }
+        q.push_back(e);
+        repaint.request_repaint();
+    }
+}
+
+impl<E> Task<E> {
+    /// Events since the last call.
+    pub fn drain(&self) -> Vec<E> {
+        self.events.borrow_mut().drain(..).collect()
+    }
+
+    /// Ask the task to stop at its next step (it reports its cancellation).
+    pub fn cancel(&self) {
+        self.cancel.set(true);
+    }
+
+    /// Cancel was asked for.
+    pub fn cancelled(&self) -> bool {
+        self.cancel.get()
+    }
+
+    /// The same task (not a clone of another's state).
+    pub fn same(&self, other: &Task<E>) -> bool {
+        Rc::ptr_eq(&self.done, &other.done)
+    }
+
+    /// It has reported its outcome (result, failure or cancellation).
+    pub fn finished(&self) -> bool {
+        self.done.get()
+    }
+}
+
+/// Resolve on the browser's next task (`setTimeout(0)`), letting it render and handle input.
+pub async fn yield_to_browser() {
+    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
+        if let Some(w) = web_sys::window() {
+            // A failed setTimeout leaves the promise pending: resolve at once instead.
+            if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
+                let _ = resolve.call0(&JsValue::NULL);
+            }
+        } else {
+            let _ = resolve.call0(&JsValue::NULL);
+        }
+    });
+    // The promise only resolves.
+    let _ = JsFuture::from(promise).await;
+}
