@@ -48,7 +48,7 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     let cands = start_candidates(&g, None);
     assert_eq!(cands.len(), 1);
     let start = cands[0].styles.clone();
-    let opts = InversionOptions { steps: 60, pti_steps: 8, lr: 0.03, locality_every: 2, ..InversionOptions::default() };
+    let opts = InversionOptions { steps: 80, pti_steps: 8, lr: 0.03, locality_every: 2, ..InversionOptions::default() };
     let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
 
     let mut latent = Vec::new();
@@ -70,7 +70,7 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
             Phase::Done => unreachable!(),
         }
     }
-    assert_eq!((latent.len(), pivotal.len()), (60, 8));
+    assert_eq!((latent.len(), pivotal.len()), (80, 8));
     let total: Vec<f32> = latent.iter().map(|t| t.total).collect();
     eprintln!("W+ losses: {total:?}");
     eprintln!("PTI losses: {:?}", pivotal.iter().map(|t| t.total).collect::<Vec<_>>());

@@ -209,13 +209,19 @@ impl InversionOptions {
     }
 }
 
+/// Fewest steps of the learning-rate warm-up (with `warmup > 0`).
+pub const MIN_WARMUP_STEPS: f32 = 10.0;
+
 /// StyleGAN2 projector's learning-rate schedule at `step` of `steps`: linear warm-up over the
-/// first `warmup` fraction, cosine ramp-down over the last `rampdown` fraction.
+/// first `warmup` fraction, but at least [`MIN_WARMUP_STEPS`] steps (Adam's first steps move
+/// every coordinate by about the learning rate whatever the gradient's size: at full rate they
+/// throw a short run's codes off), cosine ramp-down over the last `rampdown` fraction.
 pub fn lr_schedule(lr: f32, step: usize, steps: usize, warmup: f32, rampdown: f32) -> f32 {
     let t = (step as f32 + 0.5) / steps.max(1) as f32;
     let down = if rampdown > 0.0 { ((1.0 - t) / rampdown).min(1.0) } else { 1.0 };
     let down = 0.5 - 0.5 * (down * std::f32::consts::PI).cos();
-    let up = if warmup > 0.0 { (t / warmup).min(1.0) } else { 1.0 };
+    let warm_steps = (warmup * steps as f32).max(MIN_WARMUP_STEPS);
+    let up = if warmup > 0.0 { ((step as f32 + 0.5) / warm_steps).min(1.0) } else { 1.0 };
     lr * down * up
 }
 
@@ -791,6 +797,9 @@ mod tests {
         assert!(f(4) < f(9) && f(9) < 0.1 + 1e-6);
         assert!((f(50) - 0.1).abs() < 1e-6 && (f(140) - 0.1).abs() < 1e-6);
         assert!(f(170) < 0.1 && f(199) < 0.001 && f(199) > 0.0, "{} {}", f(170), f(199));
+        // A short run warms up over 10 steps all the same: its first step is small.
+        let short = |s| lr_schedule(0.1, s, 3, 0.05, 0.25);
+        assert!(short(0) < 0.006 && short(1) > short(0) && short(1) < 0.02, "{} {}", short(0), short(1));
     }
 
     #[test]
