@@ -396,9 +396,10 @@ try {
   // Cancel: a second run stopped after its first step leaves the avatar as it was.
   const vertsBefore = s.avatar_vertices, doneBefore = rec.done;
   await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 40, pti_steps: 0, res: 64, start: 'average' } }));
-  await waitFor((s) => s.reconstruct.steps_done >= 1 || s.reconstruct.state === 'failed', 'the second reconstruction to start', 600000);
+  // (The second run is the one with 40 steps: the status still holds the first run's until the app takes the command.)
+  await waitFor((s) => s.reconstruct.steps_total === 40 && (s.reconstruct.steps_done >= 1 || s.reconstruct.state === 'failed'), 'the second reconstruction to start', 600000);
   await page.evaluate(() => window.getavatar.command({ reconstruct_cancel: true }));
-  rec = (await waitFor((s) => s.reconstruct.state !== 'latent' && s.reconstruct.state !== 'starting', 'the cancellation', 300000)).reconstruct;
+  rec = (await waitFor((s) => s.reconstruct.steps_total === 40 && ['cancelled', 'done', 'failed'].includes(s.reconstruct.state), 'the cancellation', 300000)).reconstruct;
   s = await status();
   check(rec.state === 'cancelled' && rec.done === doneBefore && s.avatar_vertices === vertsBefore && s.showing === 'avatar',
     `Cancel stops a reconstruction and keeps the avatar (${rec.state}, ${s.avatar_vertices} vertices)`);

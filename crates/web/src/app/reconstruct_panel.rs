@@ -112,7 +112,10 @@ impl GetAvatarApp {
             }
         };
         let projection = if r.projection { crop(PROJECTION_RES).ok() } else { None };
-        let mut options = InversionOptions::preset(&r.preset).unwrap_or_default();
+        let Some(mut options) = InversionOptions::preset(&r.preset) else {
+            self.fail_reconstruct(format!("unknown quality preset `{}` (fast, full)", r.preset));
+            return;
+        };
         if let Some(n) = r.steps {
             options.steps = n;
         }
