@@ -17,7 +17,7 @@ use getavatar_core::readback::block_on_ready;
 use getavatar_core::skin_export::animated_body_glb;
 use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
 
-use crate::sample::{load_body, seed_styles, GeneratorArgs};
+use crate::sample::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
@@ -31,8 +31,9 @@ pub struct ExportArgs {
     #[arg(long)]
     pub psi: Option<f32>,
     /// The pose the file shows (a library pose; the animations start from their own).
-    #[arg(long, default_value = "standing")]
-    pub pose: String,
+    /// Default: `standing`; with `--inverted`, the pose of the photo it was made from.
+    #[arg(long)]
+    pub pose: Option<String>,
     /// Pose and shape from a body fit (`fit.json` of `fit-pose` or the app's "Download fit")
     /// instead of `--pose`.
     #[arg(long, conflicts_with = "pose")]
@@ -44,6 +45,15 @@ pub struct ExportArgs {
     /// The bare body instead of a generated avatar.
     #[arg(long)]
     pub body_only: bool,
+    /// An inverted avatar (`trainer invert`'s output directory or its
+    /// `inverted.safetensors`): its tuned generator and codes (the seeds, ψ and --checkpoint
+    /// are then unused), its body shape, and its texture with the photo's colours projected
+    /// again (where the file keeps the photo).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["checkpoint", "body_only", "random"])]
+    pub inverted: Option<PathBuf>,
+    /// With --inverted: the generated texture alone, without the photo's colours.
+    #[arg(long, requires = "inverted")]
+    pub no_projection: bool,
     /// A static mesh in the pose shown (no skin, no animations).
     #[arg(long, conflicts_with = "motions")]
     pub r#static: bool,
@@ -64,6 +74,14 @@ pub struct ExportArgs {
     /// motion: `{"clips": [{"name", "frames": [{"frame", "time", "positions": [x, y, z, …]}]}]}`.
     #[arg(long, value_name = "FILE")]
     pub frames_json: Option<PathBuf>,
+}
+
+/// The avatar a file holds, in words.
+fn what_avatar(a: &ExportArgs) -> String {
+    match &a.inverted {
+        Some(p) => format!("inverted avatar {}", p.display()),
+        None => format!("avatar {}/{}", a.seed_geo, a.seed_tex),
+    }
 }
 
 /// Frames checked by `--frames-json`.
@@ -114,15 +132,26 @@ pub fn load_motion(spec: &str) -> Result<Motion> {
 
 pub fn export(a: &ExportArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
-    if a.r#static && a.frames_json.is_some() {
-        bail!("--frames-json needs a skinned export (not --static)");
-    }
     if a.texture_res != 0 && !(64..=4096).contains(&a.texture_res) {
         bail!("--texture-res {} (64…4096, or 0 for vertex colours)", a.texture_res);
     }
     let model = load_body(&a.body)?;
-    let params: BodyParams = match &a.fit {
-        Some(f) => {
+    if a.r#static && a.frames_json.is_some() {
+        bail!("--frames-json needs a skinned export (not --static)");
+    }
+    #[allow(deprecated)]
+    let device = Device::ndarray();
+    // An inverted avatar: its generator, codes, and the photo it was made from.
+    let inverted = match &a.inverted {
+        Some(p) => {
+            let cfg = a.model.config()?;
+            Some((load_inverted_file(p, &cfg, &device)?, cfg))
+        }
+        None => None,
+    };
+    let photo = inverted.as_ref().and_then(|(inv, _)| inv.photo.clone());
+    let params: BodyParams = match (&a.fit, &a.pose, &photo) {
+        (Some(f), _, _) => {
             let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
             let fit: BodyFit =
                 serde_json::from_str(&text).with_context(|| format!("{} is not a fit.json", f.display()))?;
@@ -130,11 +159,19 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             p.betas.truncate(model.num_betas);
             p
         }
-        None => {
+        // The photo's pose and shape.
+        (None, None, Some(photo)) => photo.view.body.clone(),
+        (None, pose, _) => {
+            let pose = pose.as_deref().unwrap_or("standing");
             let lib = PoseLibrary::builtin();
-            lib.params(&a.pose, &[]).with_context(|| {
-                format!("unknown pose `{}`; available: {}", a.pose, lib.names().collect::<Vec<_>>().join(", "))
-            })?
+            let mut p = lib.params(pose, &[]).with_context(|| {
+                format!("unknown pose `{pose}`; available: {}", lib.names().collect::<Vec<_>>().join(", "))
+            })?;
+            // An inverted avatar keeps the body shape of its photo.
+            if let Some(photo) = &photo {
+                p.betas = photo.view.body.betas.clone();
+            }
+            p
         }
     };
     let motions = a.motions.iter().map(|m| load_motion(m)).collect::<Result<Vec<_>>>()?;
@@ -161,14 +198,18 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             )
         }
     } else {
-        #[allow(deprecated)]
-        let device = Device::ndarray();
-        let (cfg, g, modes) = a.model.load(&device)?;
-        if a.psi.is_some_and(|p| !p.is_finite()) {
-            bail!("--psi must be a number");
-        }
+        let (cfg, g, styles) = match inverted {
+            Some((inv, cfg)) => (cfg, inv.generator, inv.styles),
+            None => {
+                let (cfg, g, modes) = a.model.load(&device)?;
+                if a.psi.is_some_and(|p| !p.is_finite()) {
+                    bail!("--psi must be a number");
+                }
+                let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, &device);
+                (cfg, g, styles)
+            }
+        };
         let ctx = BodyContext::new(model, &cfg);
-        let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, &device);
         let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
         if rigged.canonical.mesh.faces.is_empty() {
             bail!("the generator produced an empty surface");
@@ -177,8 +218,23 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         let tb = std::time::Instant::now();
         let texture = if a.texture_res > 0 {
             let planes = g.triplanes(&styles);
-            let t = block_on_ready(rigged.bake_texture_async(&g, &planes, &styles, &ctx, a.texture_res, &device))
-                .context("baking the texture")?;
+            let projection = match (&photo, a.no_projection) {
+                (Some(p), false) => Some((rigged.photo_projection(&ctx, p), &p.view.body)),
+                _ => None,
+            };
+            let bake = rigged.bake_texture_photo_async(
+                &g,
+                &planes,
+                &styles,
+                &ctx,
+                a.texture_res,
+                projection.as_ref().map(|(p, b)| (p, *b)),
+                &device,
+            );
+            let t = block_on_ready(bake).context("baking the texture")?;
+            if projection.is_some() {
+                eprintln!("the photo's colours projected onto the texture (--no-projection leaves them off)");
+            }
             eprintln!(
                 "texture {r}²: {} atlas vertices ({} avatar vertices), triangles {} on the body's layout, {} across its seams, {} in their own charts; {:.0} % of the texels covered; {:.2} s",
                 t.atlas.source.len(),
@@ -205,7 +261,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         if a.r#static {
             (
                 rigged.posed_glb(&ctx, &params, texture.as_ref(), &stem)?,
-                format!("avatar {}/{}, static, {n} vertices", a.seed_geo, a.seed_tex),
+                format!("{}, static, {n} vertices", what_avatar(a)),
             )
         } else {
             if a.frames_json.is_some() {
@@ -217,7 +273,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             }
             (
                 rigged.animated_glb(&ctx, &params, &motions, texture.as_ref(), &stem)?,
-                format!("avatar {}/{}, {n} vertices", a.seed_geo, a.seed_tex),
+                format!("{}, {n} vertices", what_avatar(a)),
             )
         }
     };

@@ -31,7 +31,6 @@ use getavatar_core::inversion::{
 };
 use getavatar_core::motion::Motion;
 use getavatar_core::network::discriminator::Discriminator;
-use getavatar_core::photo_projection::PhotoProjection;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::render_views_textured;
 use getavatar_core::readback::block_on_ready;
@@ -475,20 +474,11 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
             .context("baking the texture")
     };
     let body = &target.view.body;
-    let proj = OrbitCamera::default().projection_gl(1.0);
-    let (posed, _) = rigged.repose(&ctx, &pose_body(&ctx.model, body));
-    let projection = PhotoProjection::new(
-        target.view.world_to_camera,
-        proj,
-        r,
-        &target.rgb,
-        &target.mask,
-        &posed,
-        &rigged.canonical.mesh.faces,
-    );
+    let photo = target.source_photo();
+    let projection = rigged.photo_projection(&ctx, &photo);
     let plain = bake(None)?;
     let projected = bake(Some((&projection, body)))?;
-    let vp = proj * target.view.world_to_camera;
+    let vp = OrbitCamera::default().projection_gl(1.0) * target.view.world_to_camera;
     let (prgb, pmask) = render_baked(&rigged, &ctx, &plain, body, vp, r);
     let baked_m = view_metrics(&target, &prgb, &pmask);
     let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r);
@@ -505,7 +495,10 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let mut extra = BTreeMap::new();
     extra.insert("inversion/source".into(), source.clone());
     extra.insert("inversion/options".into(), serde_json::to_string(&opts)?);
-    write_atomic(&a.out.join("inverted.safetensors"), &save_inverted(&g, &cfg, &styles, &extra)?)?;
+    write_atomic(
+        &a.out.join("inverted.safetensors"),
+        &save_inverted(&g, &cfg, &styles, (!a.no_projection).then_some(&photo), &extra)?,
+    )?;
 
     let metrics = InvertMetrics {
         source,

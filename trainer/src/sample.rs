@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::{load_generator, load_inverted, load_latent_modes};
+use getavatar_core::checkpoint::{load_generator, load_inverted, load_latent_modes, InvertedAvatar};
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
 use getavatar_core::generator::{
@@ -109,11 +109,25 @@ pub struct GeneratorArgs {
 impl GeneratorArgs {
     /// The config preset, the generator (see [`generator_or_random`]) and its latent modes.
     pub fn load(&self, device: &Device) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
-        let cfg = GeneratorConfig::preset(&self.config)
-            .with_context(|| format!("unknown --config `{}` (paper, demo, tiny)", self.config))?;
+        let cfg = self.config()?;
         let (g, modes) = generator_or_random(self.checkpoint.as_deref(), self.random, &cfg, device)?;
         Ok((cfg, g, modes))
     }
+}
+
+impl GeneratorArgs {
+    /// The config preset alone.
+    pub fn config(&self) -> Result<GeneratorConfig> {
+        GeneratorConfig::preset(&self.config)
+            .with_context(|| format!("unknown --config `{}` (paper, demo, tiny)", self.config))
+    }
+}
+
+/// An inverted avatar: `trainer invert`'s output directory or its `inverted.safetensors`.
+pub fn load_inverted_file(path: &Path, cfg: &GeneratorConfig, device: &Device) -> Result<InvertedAvatar> {
+    let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
+    let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    load_inverted(&bytes, cfg, device).with_context(|| format!("loading the inverted avatar {}", file.display()))
 }
 
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
@@ -203,20 +217,20 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let model = load_body(&a.body)?;
     #[allow(deprecated)]
     let device = Device::ndarray();
-    let (cfg, mut g, modes) = a.model.load(&device)?;
+    // An inverted avatar brings its own (tuned) generator and codes.
+    let (cfg, g, modes, inverted) = match &a.inverted {
+        Some(p) => {
+            let cfg = a.model.config()?;
+            let inv = load_inverted_file(p, &cfg, &device)?;
+            (cfg, inv.generator, None, Some(inv.styles))
+        }
+        None => {
+            let (cfg, g, modes) = a.model.load(&device)?;
+            (cfg, g, modes, None)
+        }
+    };
     let t0 = std::time::Instant::now();
     let ctx = BodyContext::new(model, &cfg);
-    let inverted = match &a.inverted {
-        Some(p) => {
-            let file = if p.is_dir() { p.join("inverted.safetensors") } else { p.clone() };
-            let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let (tuned, s) = load_inverted(&bytes, &cfg, &device)
-                .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
-            g = tuned;
-            Some(s)
-        }
-        None => None,
-    };
     let styles = match (&a.subject, inverted) {
         (_, Some(s)) => s,
         (Some(spec), None) => {

@@ -13,6 +13,17 @@ fn png_size(path: &std::path::Path) -> (u32, u32, png::ColorType) {
     (i.width, i.height, i.color_type)
 }
 
+/// The bytes of a .glb's first image (its base-colour PNG).
+fn glb_image(glb: &[u8]) -> Vec<u8> {
+    assert_eq!(&glb[..4], b"glTF");
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bin = &glb[20 + json_len + 8..];
+    let view = &json["bufferViews"][json["images"][0]["bufferView"].as_u64().unwrap() as usize];
+    let (off, len) = (view["byteOffset"].as_u64().unwrap_or(0) as usize, view["byteLength"].as_u64().unwrap() as usize);
+    bin[off..off + len].to_vec()
+}
+
 #[test]
 fn invert_a_dataset_image_writes_a_reloadable_avatar() {
     let root = tmp("invert");
@@ -99,6 +110,22 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
     let o = trainer(&["sample", "--config", "demo", "--inverted", s(&out), "--out", s(&smp)]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("tiny"), "{}", String::from_utf8_lossy(&o.stderr));
+    // `export --inverted` reloads it with the photo it was made from: shown in the photo's
+    // pose by default, its texture is the one `invert` baked (the photo projected again),
+    // byte for byte; without the projection it is another image.
+    let (exp, plain) = (root.join("exported.glb"), root.join("plain.glb"));
+    let args = ["export", "--config", "tiny", "--inverted", s(&out), "--texture-res", "64"];
+    let o = ok(trainer(&[&args[..], &["--motion", "walk", "--out", s(&exp)]].concat()));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("inverted avatar"), "{}", String::from_utf8_lossy(&o.stdout));
+    ok(trainer(&[&args[..], &["--no-projection", "--out", s(&plain)]].concat()));
+    let image = |p: &std::path::Path| glb_image(&std::fs::read(p).unwrap());
+    let invert_tex = image(&out.join("avatar.glb"));
+    assert_eq!(&invert_tex[..4], b"\x89PNG");
+    assert!(image(&exp) == invert_tex, "export --inverted baked another texture than invert");
+    assert!(image(&plain) != invert_tex, "--no-projection changed nothing");
+    let o = trainer(&["export", "--config", "tiny", "--inverted", s(&root.join("nowhere")), "--out", s(&plain)]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("nowhere") && !e.contains("panicked"), "{e}");
 
     // Bad input, each refused with its reason.
     let err = |args: &[&str]| {

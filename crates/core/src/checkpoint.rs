@@ -14,6 +14,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::generator::{Generator, LatentModes, ModePairing};
 use crate::network::GeneratorConfig;
+use crate::photo_projection::SourcePhoto;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::readback::read_f32_now;
 use crate::readback::ReadbackError;
@@ -136,32 +137,99 @@ pub fn save_generator_with_modes(
 /// the pivotally tuned generator ([`save_inverted`]).
 pub const INVERTED_GEO: &str = "inversion/w_geo";
 pub const INVERTED_TEX: &str = "inversion/w_tex";
+/// The photo it was made from (optional): metadata `inversion/photo` (JSON: `world_to_camera`
+/// as 16 column-major numbers, `body`, `res`) and tensors `[res, res, 3]` sRGB / `[res, res]`
+/// mask in [0, 1].
+pub const INVERTED_PHOTO: &str = "inversion/photo";
+pub const INVERTED_PHOTO_RGB: &str = "inversion/photo_rgb";
+pub const INVERTED_PHOTO_MASK: &str = "inversion/photo_mask";
 
-/// An inverted avatar as one file: the (tuned) generator `g` of `cfg` and its codes `s`.
+/// An inverted avatar (`trainer invert`'s `inverted.safetensors`, the app's "Save
+/// reconstruction"): the tuned generator, its codes and, where kept, the photo it was made
+/// from (so its bakes project the photo's colours again).
+pub struct InvertedAvatar {
+    pub generator: Generator,
+    pub styles: crate::generator::Styles,
+    pub photo: Option<SourcePhoto>,
+}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct PhotoMeta {
+    world_to_camera: [f32; 16],
+    body: crate::skinning::BodyParams,
+    res: usize,
+}
+
+/// The file's metadata and the entries beyond the generator's (codes and photo).
+fn inverted_entries(
+    codes: [(Vec<usize>, Vec<f32>); 2],
+    photo: Option<&SourcePhoto>,
+    meta: &mut BTreeMap<String, String>,
+    tensors: &mut Vec<NamedTensor>,
+) -> Result<(), CheckpointError> {
+    for (name, (shape, data)) in [INVERTED_GEO, INVERTED_TEX].into_iter().zip(codes) {
+        tensors.push((name.to_string(), shape, data));
+    }
+    if let Some(p) = photo {
+        p.validate().map_err(fmt_err)?;
+        let m = PhotoMeta {
+            world_to_camera: p.view.world_to_camera.to_cols_array(),
+            body: p.view.body.clone(),
+            res: p.res,
+        };
+        meta.insert(INVERTED_PHOTO.into(), serde_json::to_string(&m).map_err(|e| fmt_err(format!("photo: {e}")))?);
+        tensors.push((INVERTED_PHOTO_RGB.into(), vec![p.res, p.res, 3], p.rgb.clone()));
+        tensors.push((INVERTED_PHOTO_MASK.into(), vec![p.res, p.res], p.mask.clone()));
+    }
+    Ok(())
+}
+
+/// An inverted avatar as one file: the (tuned) generator `g` of `cfg`, its codes `s` and the
+/// photo it was made from. Native (synchronous read-backs); the browser uses
+/// [`save_inverted_async`].
 #[cfg(not(target_arch = "wasm32"))]
 pub fn save_inverted(
     g: &Generator,
     cfg: &GeneratorConfig,
     s: &crate::generator::Styles,
+    photo: Option<&SourcePhoto>,
     extra: &BTreeMap<String, String>,
 ) -> Result<Vec<u8>, CheckpointError> {
-    let (meta, mut tensors) = generator_entries(g, cfg, extra)?;
+    crate::readback::block_on_ready(save_inverted_async(g, cfg, s, photo, extra))
+}
+
+/// [`save_inverted`] with awaited read-backs (the browser's WebGPU device).
+pub async fn save_inverted_async(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    s: &crate::generator::Styles,
+    photo: Option<&SourcePhoto>,
+    extra: &BTreeMap<String, String>,
+) -> Result<Vec<u8>, CheckpointError> {
+    let mut meta = extra.clone();
+    meta.insert("format".into(), FORMAT.into());
+    meta.insert("config".into(), serde_json::to_string(cfg).map_err(|e| fmt_err(format!("config: {e}")))?);
+    let mut tensors = collect_params_async(g).await?;
+    let mut codes = Vec::new();
     for (name, t) in [(INVERTED_GEO, &s.geo), (INVERTED_TEX, &s.tex)] {
-        tensors.push((name.to_string(), t.dims().to_vec(), read_f32_now(t.clone()).map_err(|e| e.context(name))?));
+        let data = crate::readback::read_f32(t.clone()).await.map_err(|e| e.context(name))?;
+        codes.push((t.dims().to_vec(), data));
     }
+    let codes: [(Vec<usize>, Vec<f32>); 2] = codes.try_into().map_err(|_| fmt_err("two code tensors"))?;
+    inverted_entries(codes, photo, &mut meta, &mut tensors)?;
     write_safetensors(&meta, &tensors)
 }
 
-/// The generator and codes of an inverted avatar ([`save_inverted`]); the codes must match the
-/// generator's style counts.
+/// The generator, codes and photo of an inverted avatar ([`save_inverted`]); the codes must
+/// match the generator's style counts, the photo its own size.
 pub fn load_inverted(
     bytes: &[u8],
     requested: &GeneratorConfig,
     device: &Device,
-) -> Result<(Generator, crate::generator::Styles), CheckpointError> {
+) -> Result<InvertedAvatar, CheckpointError> {
     let st = parse_safetensors(bytes)?;
-    let g = generator_of(&st, requested, device)?;
-    let (ng, nt) = g.num_ws();
+    let generator = generator_of(&st, requested, device)?;
+    let (ng, nt) = generator.num_ws();
     let code = |name: &str, n: usize| -> Result<Tensor<3>, CheckpointError> {
         let (shape, data) =
             st.tensors.get(name).ok_or_else(|| fmt_err(format!("{name} missing: not an inverted avatar")))?;
@@ -173,7 +241,37 @@ pub fn load_inverted(
         }
         Ok(Tensor::from_data(TensorData::new(data.clone(), [1, n, requested.w_dim]), device))
     };
-    Ok((g, crate::generator::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? }))
+    let styles = crate::generator::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? };
+    let photo = match st.metadata.get(INVERTED_PHOTO) {
+        None => None,
+        Some(text) => {
+            let m: PhotoMeta =
+                serde_json::from_str(text).map_err(|e| fmt_err(format!("{INVERTED_PHOTO} metadata: {e}")))?;
+            let get = |name: &str, shape: &[usize]| -> Result<Vec<f32>, CheckpointError> {
+                let (s, d) = st.tensors.get(name).ok_or_else(|| fmt_err(format!("{name} missing")))?;
+                if s[..] != shape[..] {
+                    return Err(fmt_err(format!("{name} has shape {s:?}, expected {shape:?}")));
+                }
+                Ok(d.clone())
+            };
+            let res = m.res;
+            if !(16..=4096).contains(&res) {
+                return Err(fmt_err(format!("{INVERTED_PHOTO}: crop of {res} pixels (16…4096)")));
+            }
+            let p = SourcePhoto {
+                view: crate::camera::View {
+                    world_to_camera: glam::Mat4::from_cols_array(&m.world_to_camera),
+                    body: m.body,
+                },
+                res,
+                rgb: get(INVERTED_PHOTO_RGB, &[res, res, 3])?,
+                mask: get(INVERTED_PHOTO_MASK, &[res, res])?,
+            };
+            p.validate().map_err(|e| fmt_err(format!("{INVERTED_PHOTO}: {e}")))?;
+            Some(p)
+        }
+    };
+    Ok(InvertedAvatar { generator, styles, photo })
 }
 
 /// The RGB discriminator (`d0/…`) of a training state (its config in the `run` metadata) or
@@ -378,8 +476,14 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     if let Some(e) = l.error {
         return Err(e);
     }
-    let modes =
-        st.tensors.keys().filter(|k| [MODES_GEO, MODES_TEX, INVERTED_GEO, INVERTED_TEX].contains(&k.as_str())).count();
+    let modes = st
+        .tensors
+        .keys()
+        .filter(|k| {
+            [MODES_GEO, MODES_TEX, INVERTED_GEO, INVERTED_TEX, INVERTED_PHOTO_RGB, INVERTED_PHOTO_MASK]
+                .contains(&k.as_str())
+        })
+        .count();
     if l.used + modes != st.tensors.len() {
         return Err(fmt_err(format!("{} tensors in the file, {} used by the model", st.tensors.len(), l.used)));
     }
@@ -395,6 +499,39 @@ pub fn collect_params<M: Module>(module: &M) -> Result<Vec<NamedTensor>, Checkpo
         Some(e) => Err(e),
         None => Ok(c.out),
     }
+}
+
+/// [`collect_params`] with awaited read-backs (every platform; the browser's device).
+pub async fn collect_params_async<M: Module>(module: &M) -> Result<Vec<NamedTensor>, CheckpointError> {
+    /// The parameters flattened (the visitor cannot await), read back afterwards.
+    struct Flat {
+        path: Vec<String>,
+        seen: BTreeMap<String, usize>,
+        out: Vec<(String, Vec<usize>, Tensor<1>)>,
+    }
+    impl burn::module::ModuleVisitor for Flat {
+        fn enter_module(&mut self, name: &str, _container_type: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container_type: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let tensor = param.val();
+            let shape = tensor.dims().to_vec();
+            let n = shape.iter().product::<usize>();
+            self.out.push((unique_name(&self.path, &mut self.seen), shape, tensor.reshape([n])));
+        }
+    }
+    let mut f = Flat { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
+    module.visit(&mut f);
+    let mut out = Vec::with_capacity(f.out.len());
+    for (name, shape, t) in f.out {
+        let data =
+            crate::readback::read_f32(t).await.map_err(|e| CheckpointError::Readback(e.context(name.clone())))?;
+        out.push((name, shape, data));
+    }
+    Ok(out)
 }
 
 /// Replace `module`'s parameters with the tensors named `prefix + name` (all must be present
@@ -512,5 +649,59 @@ mod tests {
         }
         // A tensor whose shape does not match its values is refused, not written.
         assert!(write_safetensors(&meta, &[("c".into(), vec![4], vec![1.0])]).is_err());
+    }
+
+    /// An inverted avatar's file keeps the generator, the codes and the photo exactly; a
+    /// photo whose stored size or values do not fit is refused with the reason.
+    #[test]
+    fn inverted_avatars_round_trip_with_their_photo() {
+        #[allow(deprecated)]
+        let dev = Device::ndarray();
+        let cfg = GeneratorConfig::tiny();
+        let g = Generator::new(&cfg, 3, &dev);
+        let (ng, nt) = g.num_ws();
+        let codes = |n: usize, o: f32| {
+            let v: Vec<f32> = (0..n * cfg.w_dim).map(|k| (k as f32 * 0.37 + o).sin()).collect();
+            Tensor::<3>::from_data(TensorData::new(v, [1, n, cfg.w_dim]), &dev)
+        };
+        let s = crate::generator::Styles { geo: codes(ng, 0.0), tex: codes(nt, 1.0) };
+        let res = 16;
+        let mut body = crate::skinning::BodyParams { betas: vec![0.3, -0.2, 0.1], ..Default::default() };
+        body.pose[16].z = -1.1;
+        body.transl.y = 0.05;
+        let photo = SourcePhoto {
+            view: crate::camera::View {
+                world_to_camera: crate::camera::OrbitCamera { yaw: 0.4, ..Default::default() }.world_to_camera(),
+                body,
+            },
+            res,
+            rgb: (0..res * res * 3).map(|k| (k % 7) as f32 / 6.0).collect(),
+            mask: (0..res * res).map(|k| (k % 3 == 0) as u8 as f32).collect(),
+        };
+        let extra = BTreeMap::new();
+        let bytes = save_inverted(&g, &cfg, &s, Some(&photo), &extra).unwrap();
+        let inv = load_inverted(&bytes, &cfg, &dev).unwrap();
+        assert_eq!(inv.photo.as_ref(), Some(&photo));
+        let read = |t: &Tensor<3>| read_f32_now(t.clone()).unwrap();
+        assert_eq!(read(&inv.styles.geo), read(&s.geo));
+        assert_eq!(read(&inv.styles.tex), read(&s.tex));
+        assert_eq!(collect_params(&inv.generator).unwrap(), collect_params(&g).unwrap());
+        // Without a photo: none comes back.
+        let bare = save_inverted(&g, &cfg, &s, None, &extra).unwrap();
+        assert!(load_inverted(&bare, &cfg, &dev).unwrap().photo.is_none());
+        // A photo mask of the wrong size, or a colour outside [0, 1]: refused.
+        let mut st = parse_safetensors(&bytes).unwrap();
+        let mut tensors: Vec<NamedTensor> =
+            st.tensors.iter().map(|(k, (sh, d))| (k.clone(), sh.clone(), d.clone())).collect();
+        for t in tensors.iter_mut().filter(|t| t.0 == INVERTED_PHOTO_MASK) {
+            *t = (t.0.clone(), vec![res, res - 1], vec![0.5; res * (res - 1)]);
+        }
+        let e = load_inverted(&write_safetensors(&st.metadata, &tensors).unwrap(), &cfg, &dev).err().unwrap();
+        assert!(e.to_string().contains("photo_mask has shape [16, 15]"), "{e}");
+        st.tensors.get_mut(INVERTED_PHOTO_RGB).unwrap().1[5] = 3.0;
+        let tensors: Vec<NamedTensor> =
+            st.tensors.iter().map(|(k, (sh, d))| (k.clone(), sh.clone(), d.clone())).collect();
+        let e = load_inverted(&write_safetensors(&st.metadata, &tensors).unwrap(), &cfg, &dev).err().unwrap();
+        assert!(e.to_string().contains("outside [0, 1]"), "{e}");
     }
 }

@@ -118,6 +118,16 @@ impl InversionTarget {
         Ok(t)
     }
 
+    /// The photo as the reconstructed avatar keeps it (its later bakes project it again).
+    pub fn source_photo(&self) -> crate::photo_projection::SourcePhoto {
+        crate::photo_projection::SourcePhoto {
+            view: self.view.clone(),
+            res: self.res,
+            rgb: self.rgb.clone(),
+            mask: self.mask.clone(),
+        }
+    }
+
     pub fn validate(&self) -> Result<(), InversionError> {
         let r = self.res;
         if r < 16 {

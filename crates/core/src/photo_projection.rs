@@ -10,6 +10,7 @@
 
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
+use crate::camera::{OrbitCamera, View};
 use crate::colour::srgb_to_linear;
 use crate::rasterize::rasterize;
 
@@ -19,6 +20,50 @@ pub const FACING: f32 = 0.55;
 /// A point is visible when it lies at most this far (metres, along the view axis) behind the
 /// depth buffer's surface.
 pub const DEPTH_TOLERANCE: f32 = 0.015;
+
+/// The photo a reconstruction was made from, kept with the inverted avatar (its file,
+/// `checkpoint::save_inverted`) so that every later bake of that avatar — `trainer export
+/// --inverted`, the app opening the file — projects the same colours: the camera and body pose
+/// of the photo's crop at the reference projection, and the crop itself.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SourcePhoto {
+    pub view: View,
+    /// Side of the square crop, pixels.
+    pub res: usize,
+    /// sRGB in [0, 1], `res²·3`, row-major from the top.
+    pub rgb: Vec<f32>,
+    /// Person mask in [0, 1], `res²`.
+    pub mask: Vec<f32>,
+}
+
+impl SourcePhoto {
+    /// Sizes and values checked (a file may hold anything): one sentence on failure.
+    pub fn validate(&self) -> Result<(), String> {
+        let r = self.res;
+        if !(16..=4096).contains(&r) {
+            return Err(format!("the photo crop is {r} pixels wide (16…4096)"));
+        }
+        for (what, v, c) in [("colours", &self.rgb, 3), ("mask", &self.mask, 1)] {
+            if v.len() != r * r * c {
+                return Err(format!("the photo's {what} hold {} values, {r}² needs {}", v.len(), r * r * c));
+            }
+            if v.iter().any(|x| !x.is_finite() || !(0.0..=1.0).contains(x)) {
+                return Err(format!("the photo's {what} hold a value outside [0, 1]"));
+            }
+        }
+        if !self.view.world_to_camera.is_finite() || self.view.world_to_camera.determinant().abs() < 1e-12 {
+            return Err("the photo's camera is not a finite, invertible transform".into());
+        }
+        Ok(())
+    }
+
+    /// The projection of this photo onto a surface (`vertices`, `faces`) posed as the photo
+    /// shows it, through the reference camera's projection.
+    pub fn projection(&self, vertices: &[Vec3], faces: &[[u32; 3]]) -> PhotoProjection {
+        let proj = OrbitCamera::default().projection_gl(1.0);
+        PhotoProjection::new(self.view.world_to_camera, proj, self.res, &self.rgb, &self.mask, vertices, faces)
+    }
+}
 
 /// A photo ready to be projected: the camera, the image and the avatar's depth buffer.
 pub struct PhotoProjection {

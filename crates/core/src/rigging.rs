@@ -12,6 +12,7 @@ use crate::geometry::BodyContext;
 use crate::gltf_export::{write_glb_full, ExportError, ExportMesh};
 use crate::motion::Motion;
 use crate::network::synthesis::Triplanes;
+use crate::photo_projection::{PhotoProjection, SourcePhoto};
 use crate::readback::ReadbackError;
 use crate::skin_export::{motion_clip, smpl_skin};
 use crate::skinning::{pose_body, BodyParams, PosedBody};
@@ -193,6 +194,21 @@ impl RiggedAvatar {
         transfer_body_uvs(&self.canonical.mesh.vertices, &self.canonical.mesh.faces, &body)
     }
 
+    /// The projection of `photo` (the photo a reconstruction was made from) onto this avatar
+    /// posed as the photo shows it; bakes take it with `photo.view.body`.
+    pub fn photo_projection(&self, ctx: &BodyContext, photo: &SourcePhoto) -> PhotoProjection {
+        let (posed, _) = self.repose(ctx, &pose_body(&ctx.model, &photo.view.body));
+        photo.projection(&posed, &self.canonical.mesh.faces)
+    }
+
+    /// Blend a photo's projection (made by [`RiggedAvatar::photo_projection`] for the pose
+    /// `body`) into the canonical vertex colours, so that a viewport showing vertex colours
+    /// shows what the baked texture will.
+    pub fn blend_photo_colors(&mut self, ctx: &BodyContext, projection: &PhotoProjection, body: &BodyParams) {
+        let (posed, normals) = self.repose(ctx, &pose_body(&ctx.model, body));
+        projection.blend(&posed, &normals, &mut self.canonical.colors);
+    }
+
     /// Bake the texture field (styles `s`, triplanes `planes`) into a `res²` atlas image: each
     /// covered texel's canonical point is queried (the paper's per-pixel colour), the rest
     /// dilated.
@@ -219,7 +235,7 @@ impl RiggedAvatar {
         s: &Styles,
         ctx: &BodyContext,
         res: usize,
-        photo: Option<(&crate::photo_projection::PhotoProjection, &BodyParams)>,
+        photo: Option<(&PhotoProjection, &BodyParams)>,
         device: &Device,
     ) -> Result<BakedTexture, BakeError> {
         if !(64..=4096).contains(&res) {
