@@ -62,7 +62,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
 /// `{"download_animated":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
 /// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
-/// `{"reconstruct_cancel":true}`. Photo bytes come through `window.getavatar.photo(uint8Array,
+/// `{"reconstruct_cancel":true}`, `{"save_reconstruction":true}`,
+/// `{"open_reconstruction":{"url":"inverted.safetensors"}}`. Photo bytes come through `window.getavatar.photo(uint8Array,
 /// name)`, motion files through `window.getavatar.motion(uint8Array, name)`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged, deny_unknown_fields)]
@@ -122,12 +123,25 @@ pub enum Command {
     ReconstructCancel {
         reconstruct_cancel: bool,
     },
+    SaveReconstruction {
+        save_reconstruction: bool,
+    },
+    OpenReconstruction {
+        open_reconstruction: FileArgs,
+    },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
         yaw: Option<f32>,
         pitch: Option<f32>,
         radius: Option<f32>,
     },
+}
+
+/// A file by URL (relative to the page or absolute).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileArgs {
+    pub url: String,
 }
 
 /// Seeds and truncation of a generation request (unset = keep the current value).
@@ -330,6 +344,10 @@ pub enum Action {
     Reconstruct(Reconstruction),
     /// Stop the running reconstruction (the avatar stays as it was).
     ReconstructCancel,
+    /// Download the shown reconstruction as one file (tuned generator, codes, photo).
+    SaveReconstruction,
+    /// Open a saved reconstruction (the app's or `trainer invert`'s `inverted.safetensors`).
+    OpenReconstruction(PhotoSource),
 }
 
 /// Texture sizes offered for the downloads (0: vertex colours, no texture).
@@ -444,6 +462,13 @@ impl Command {
             }
             Command::Reconstruct { reconstruct } => Action::Reconstruct(reconstruct.validate()?),
             Command::ReconstructCancel { .. } => Action::ReconstructCancel,
+            Command::SaveReconstruction { .. } => Action::SaveReconstruction,
+            Command::OpenReconstruction { open_reconstruction } => {
+                if open_reconstruction.url.trim().is_empty() {
+                    return Err("open_reconstruction: empty url".into());
+                }
+                Action::OpenReconstruction(PhotoSource::Url(open_reconstruction.url))
+            }
             Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
@@ -707,6 +732,13 @@ pub struct ReconstructStatus {
     pub total_ms: f32,
     /// Completed reconstructions.
     pub done: u64,
+    /// Reconstructions opened from files, and saved ("Save reconstruction"; the last file's
+    /// size in bytes).
+    pub opened: u64,
+    pub saved: u64,
+    pub saved_bytes: usize,
+    /// Whether the shown reconstruction keeps its photo (projected onto its texture).
+    pub has_photo: bool,
 }
 
 /// Motion playback, for the tests.
@@ -791,6 +823,13 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert_eq!(parse_command(r#"{"reconstruct_cancel":true}"#), Ok(Action::ReconstructCancel));
+        assert_eq!(parse_command(r#"{"save_reconstruction":true}"#), Ok(Action::SaveReconstruction));
+        assert_eq!(
+            parse_command(r#"{"open_reconstruction":{"url":"inv.safetensors"}}"#),
+            Ok(Action::OpenReconstruction(PhotoSource::Url("inv.safetensors".into())))
+        );
+        assert!(parse_command(r#"{"open_reconstruction":{"url":" "}}"#).is_err());
+        assert!(parse_command(r#"{"open_reconstruction":{"path":"x"}}"#).is_err());
         for bad in [
             r#"{"reconstruct":{"preset":"best"}}"#,
             r#"{"reconstruct":{"res":8}}"#,

@@ -15,15 +15,14 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::load_generator_and_modes;
+use getavatar_core::checkpoint::{load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
     default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
-use getavatar_core::photo_projection::PhotoProjection;
+use getavatar_core::photo_projection::{PhotoProjection, SourcePhoto};
 use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
-use getavatar_core::BodyParams;
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -103,17 +102,36 @@ pub struct TextureField {
     generator: Rc<Generator>,
     styles: Styles,
     planes: RefCell<Option<Triplanes>>,
-    projection: Option<Rc<(PhotoProjection, BodyParams)>>,
+    /// A reconstruction's: the photo it was made from and its projection onto the avatar.
+    projection: Option<Rc<Projected>>,
+    /// A reconstruction's field (its own tuned generator), which "Save reconstruction" keeps.
+    reconstructed: bool,
+}
+
+/// A photo projected onto a reconstructed avatar.
+pub struct Projected {
+    pub photo: SourcePhoto,
+    pub projection: PhotoProjection,
 }
 
 impl TextureField {
     /// A reconstruction's field: its tuned generator and codes, and the photo's projection.
-    pub fn reconstructed(
-        generator: Rc<Generator>,
-        styles: Styles,
-        projection: Option<Rc<(PhotoProjection, BodyParams)>>,
-    ) -> Self {
-        Self { generator, styles, planes: RefCell::new(None), projection }
+    pub fn reconstructed(generator: Rc<Generator>, styles: Styles, projection: Option<Rc<Projected>>) -> Self {
+        Self { generator, styles, planes: RefCell::new(None), projection, reconstructed: true }
+    }
+
+    /// Whether this is a reconstruction's field.
+    pub fn is_reconstruction(&self) -> bool {
+        self.reconstructed
+    }
+
+    /// The reconstruction as one file (`trainer invert`'s `inverted.safetensors` format: the
+    /// tuned generator, the codes and the photo), for "Save reconstruction".
+    pub async fn save_async(&self, cfg: &GeneratorConfig) -> Result<Vec<u8>, String> {
+        let mut extra = std::collections::BTreeMap::new();
+        extra.insert("inversion/source".into(), "the GETAvatar web app".into());
+        let photo = self.projection.as_ref().map(|p| &p.photo);
+        save_inverted_async(&self.generator, cfg, &self.styles, photo, &extra).await.map_err(|e| e.to_string())
     }
 
     /// The triplanes, computed on first use.
@@ -251,8 +269,13 @@ impl GenEngine {
                     Err("the generator produced an empty surface".to_string())
                 }
                 Ok((rigged, planes)) => {
-                    let field =
-                        Rc::new(TextureField { generator: g, styles, planes: RefCell::new(planes), projection: None });
+                    let field = Rc::new(TextureField {
+                        generator: g,
+                        styles,
+                        planes: RefCell::new(planes),
+                        projection: None,
+                        reconstructed: false,
+                    });
                     Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, seeds, psi })
                 }
             };
@@ -323,7 +346,7 @@ impl GenEngine {
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
             let planes = field.planes();
-            let photo = field.projection.as_deref().map(|(p, body)| (p, body));
+            let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
             let g = &field.generator;
             let baked = rigged.bake_texture_photo_async(g, &planes, &field.styles, &ctx, res, photo, &dev).await;
             *slot.borrow_mut() = Some(

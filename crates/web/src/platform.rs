@@ -66,6 +66,7 @@ pub fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(), String
 /// motion files.
 pub const PHOTO_INPUT_ID: &str = "getavatar_photo_input";
 pub const MOTION_INPUT_ID: &str = "getavatar_motion_input";
+pub const RECONSTRUCTION_INPUT_ID: &str = "getavatar_reconstruction_input";
 
 /// Add a hidden `<input type=file>` (`id`, accepting `accept`) behind an "Open…" button;
 /// each chosen file's bytes go to `on_file(name, bytes)`, an unreadable one's error to

@@ -17,19 +17,19 @@ use eframe::egui;
 use getavatar_core::burn::module::Module;
 
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::{load_discriminator, load_generator_and_modes};
+use getavatar_core::checkpoint::{load_discriminator, load_generator_and_modes, load_inverted};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
 use getavatar_core::inversion::{
     choose_start_async, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
     InversionTarget, Inverter, Phase, StepReport,
 };
 use getavatar_core::network::GeneratorConfig;
-use getavatar_core::photo_projection::PhotoProjection;
+use getavatar_core::photo_projection::SourcePhoto;
 use getavatar_core::rigging::RiggedAvatar;
-use getavatar_core::skinning::pose_body;
 
-use crate::platform::now_ms;
+use crate::automation::PhotoSource;
+use crate::generate::{Projected, TextureField};
+use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
 
 /// What a reconstruction needs from the app.
@@ -78,11 +78,13 @@ pub struct Reconstructed {
     pub styles: Styles,
     /// Rigged to the body, vertex colours with the photo projected on.
     pub rigged: RiggedAvatar,
-    /// The photo's projection and the body pose it shows, for the bake.
-    pub projection: Option<Rc<(PhotoProjection, getavatar_core::BodyParams)>>,
-    /// At the photo's camera: the avatar's mask IoU with the person mask, masked PSNR (dB).
-    pub mask_iou: f32,
-    pub psnr_db: f32,
+    /// The photo and its projection onto the avatar, for the bake and "Save reconstruction".
+    pub projection: Option<Rc<Projected>>,
+    /// At the photo's camera: the avatar's mask IoU with the person mask, masked PSNR (dB)
+    /// (None for a reconstruction opened from its file).
+    pub fit: Option<(f32, f32)>,
+    /// The file it was opened from (None: reconstructed here).
+    pub opened: Option<String>,
     /// Milliseconds in all, and of the finish (final render, extraction, rigging, projection).
     pub millis: f64,
     pub finish_ms: f64,
@@ -101,6 +103,8 @@ pub enum ReconstructEvent {
     Step(Box<Progress>),
     Preview(Box<Preview>),
     Finished(Box<Reconstructed>),
+    /// The reconstruction as a file ("Save reconstruction").
+    Saved(Vec<u8>),
     /// One sentence for the user; the app stays as it was.
     Failed(String),
     Cancelled,
@@ -215,23 +219,91 @@ async fn run(
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
-    let projection = req.projection.as_ref().map(|p| {
-        let (posed, normals) = rigged.repose(ctx, &pose_body(&ctx.model, &p.view.body));
-        let proj = OrbitCamera::default().projection_gl(1.0);
-        let faces = &rigged.canonical.mesh.faces;
-        let projection = PhotoProjection::new(p.view.world_to_camera, proj, p.res, &p.rgb, &p.mask, &posed, faces);
-        // The viewport's vertex colours show what the download's texture will.
-        projection.blend(&posed, &normals, &mut rigged.canonical.colors);
-        Rc::new((projection, p.view.body.clone()))
-    });
+    let projection = req.projection.as_ref().map(|p| project(&mut rigged, ctx, p.source_photo()));
     Ok(Some(Reconstructed {
         generator: Rc::new(g),
         styles,
         rigged,
         projection,
-        mask_iou: iou,
-        psnr_db: psnr,
+        fit: Some((iou, psnr)),
+        opened: None,
         millis: 0.0,
         finish_ms: now_ms() - t_finish,
     }))
+}
+
+/// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
+/// colours show what the download's texture will.
+fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
+    let projection = rigged.photo_projection(ctx, &photo);
+    rigged.blend_photo_colors(ctx, &projection, &photo.view.body);
+    Rc::new(Projected { photo, projection })
+}
+
+/// Open a saved reconstruction (`trainer invert`'s `inverted.safetensors` or the app's "Save
+/// reconstruction"): its tuned generator and codes on `device`, extracted, rigged, and the
+/// photo it was made from projected on again. Reported as a [`ReconstructEvent::Finished`]
+/// with `opened` set, or [`ReconstructEvent::Failed`] with the reason.
+pub fn open(
+    source: PhotoSource,
+    cfg: GeneratorConfig,
+    ctx: Rc<BodyContext>,
+    device: Device,
+    repaint: egui::Context,
+) -> ReconstructTask {
+    let task = ReconstructTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let t0 = now_ms();
+        let opened = async {
+            let (name, bytes) = match source {
+                PhotoSource::Bytes { name, bytes } => (name, bytes),
+                PhotoSource::Url(url) => {
+                    let b = fetch_bytes(&url).await.map_err(|e| format!("cannot fetch {url}: {e}"))?;
+                    (url, b)
+                }
+            };
+            let inv = load_inverted(&bytes, &cfg, &device)
+                .map_err(|e| format!("{name} is not a reconstruction of this model: {e}"))?;
+            drop(bytes);
+            yield_to_browser().await;
+            let mut rigged =
+                generate_rigged_async(&inv.generator, &ctx, &inv.styles, &device).await.map_err(|e| e.to_string())?;
+            if rigged.canonical.mesh.faces.is_empty() {
+                return Err(format!("{name}: the reconstruction's generator produced an empty surface"));
+            }
+            let projection = inv.photo.map(|p| project(&mut rigged, &ctx, p));
+            Ok::<_, String>(Reconstructed {
+                generator: Rc::new(inv.generator),
+                styles: inv.styles,
+                rigged,
+                projection,
+                fit: None,
+                opened: Some(name.clone()),
+                millis: now_ms() - t0,
+                finish_ms: 0.0,
+            })
+        };
+        let event = match opened.await {
+            Ok(r) => ReconstructEvent::Finished(Box::new(r)),
+            Err(e) => ReconstructEvent::Failed(format!("cannot open the reconstruction: {e}")),
+        };
+        t.push(event, &repaint);
+    });
+    task
+}
+
+/// Save the shown reconstruction (`field`) as one file; reported as
+/// [`ReconstructEvent::Saved`] or [`ReconstructEvent::Failed`].
+pub fn save(field: Rc<TextureField>, cfg: GeneratorConfig, repaint: egui::Context) -> ReconstructTask {
+    let task = ReconstructTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let event = match field.save_async(&cfg).await {
+            Ok(bytes) => ReconstructEvent::Saved(bytes),
+            Err(e) => ReconstructEvent::Failed(format!("cannot save the reconstruction: {e}")),
+        };
+        t.push(event, &repaint);
+    });
+    task
 }

@@ -93,6 +93,12 @@ fn queue_motion(name: String, bytes: Vec<u8>) {
     request_repaint();
 }
 
+fn queue_reconstruction(name: String, bytes: Vec<u8>) {
+    let action = Action::OpenReconstruction(PhotoSource::Bytes { name, bytes });
+    COMMANDS.with(|q| q.borrow_mut().push_back(Ok(action)));
+    request_repaint();
+}
+
 fn request_repaint() {
     CONTEXT.with(|c| {
         if let Some(ctx) = c.borrow().as_ref() {
@@ -146,6 +152,9 @@ async fn run() -> Result<(), JsValue> {
     crate::platform::install_file_input(&document, crate::platform::PHOTO_INPUT_ID, photos, queue_photo, report)?;
     // "Load motion…": SMPL/AMASS .npz files.
     crate::platform::install_file_input(&document, crate::platform::MOTION_INPUT_ID, ".npz", queue_motion, report)?;
+    // "Open reconstruction…": a saved reconstruction (.safetensors).
+    let recon = crate::platform::RECONSTRUCTION_INPUT_ID;
+    crate::platform::install_file_input(&document, recon, ".safetensors", queue_reconstruction, report)?;
     let options = eframe::WebOptions { wgpu_options: wgpu_options(), ..Default::default() };
     eframe::WebRunner::new()
         .start(

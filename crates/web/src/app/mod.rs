@@ -262,7 +262,10 @@ impl GetAvatarApp {
                 self.avatar_dirty = true;
             }
             a @ (Action::Photo { .. } | Action::PhotoFit(_)) => self.apply_photo(a),
-            a @ (Action::Reconstruct(_) | Action::ReconstructCancel) => self.apply_reconstruct(a),
+            a @ (Action::Reconstruct(_)
+            | Action::ReconstructCancel
+            | Action::SaveReconstruction
+            | Action::OpenReconstruction(_)) => self.apply_reconstruct(a),
             Action::Motion(a) => self.apply_motion(a),
             Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
             Action::DownloadAnimated => self.request_download(motion_panel::DownloadKind::Animated),

@@ -372,9 +372,13 @@ impl GetAvatarApp {
         let arrived: Vec<_> = self.photo.dropped.borrow_mut().drain(..).collect();
         for r in arrived {
             match r {
-                // Motion files go to the motion player, everything else is a photo.
+                // Motion files go to the motion player, reconstructions to the avatar, the rest is a photo.
                 Ok((name, bytes)) if name.to_ascii_lowercase().ends_with(".npz") => {
                     self.apply(Action::MotionFile { name, bytes })
+                }
+                // Saved reconstructions open as the avatar.
+                Ok((name, bytes)) if name.to_ascii_lowercase().ends_with(".safetensors") => {
+                    self.apply(Action::OpenReconstruction(PhotoSource::Bytes { name, bytes }))
                 }
                 Ok((name, bytes)) => self.apply(Action::Photo {
                     source: PhotoSource::Bytes { name, bytes },
@@ -457,6 +461,7 @@ impl GetAvatarApp {
         } else {
             ui.label(egui::RichText::new("drop a photo anywhere on the page").small());
         }
+        self.reconstruction_files(ui, self.photo.photo.is_none());
     }
 
     /// The photo with its overlays, fitted into `ui`'s space.

@@ -13,7 +13,8 @@ use getavatar_core::inversion::{comparison_image, InversionOptions, InversionTar
 use super::GetAvatarApp;
 use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, RECONSTRUCT_PRESETS};
 use crate::generate::TextureField;
-use crate::reconstruct::{reconstruct, ReconstructEvent, ReconstructRequest, ReconstructTask};
+use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
+use crate::reconstruct::{open, reconstruct, save, ReconstructEvent, ReconstructRequest, ReconstructTask};
 
 /// Side of the photo crop that the colour projection samples, pixels.
 const PROJECTION_RES: usize = 512;
@@ -61,8 +62,61 @@ impl GetAvatarApp {
             Action::ReconstructCancel if !self.recon.cancel() => {
                 self.messages.push("no reconstruction is running".into());
             }
+            Action::SaveReconstruction => self.save_reconstruction(),
+            Action::OpenReconstruction(source) => self.open_reconstruction(source),
             _ => {}
         }
+    }
+
+    /// Download the shown reconstruction as one file (the tuned generator, its codes and the
+    /// photo): `trainer export --inverted` and "Open reconstruction…" take it.
+    fn save_reconstruction(&mut self) {
+        if self.recon.running() {
+            self.messages.push("a reconstruction is running: wait for it or cancel it first".into());
+            return;
+        }
+        let Some(field) = self.field.clone().filter(|f| f.is_reconstruction()) else {
+            self.messages.push("the shown avatar is not a reconstruction: reconstruct one from a photo first".into());
+            return;
+        };
+        let Some(engine) = self.engine.as_ref() else {
+            self.messages.push("the generator is not available (no WebGPU device for burn)".into());
+            return;
+        };
+        let cfg = match engine.model_files() {
+            Ok((_, _, cfg)) => cfg,
+            Err(e) => {
+                self.messages.push(format!("cannot save yet: {e}"));
+                return;
+            }
+        };
+        self.status.reconstruct.message = "saving the reconstruction…".into();
+        self.recon.task = Some(save(field, cfg, self.ctx.clone()));
+    }
+
+    /// Open a saved reconstruction as the shown avatar (the previous one stays if it fails).
+    fn open_reconstruction(&mut self, source: crate::automation::PhotoSource) {
+        if self.recon.running() {
+            self.messages.push("a reconstruction is running: wait for it or cancel it first".into());
+            return;
+        }
+        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else {
+            self.fail_reconstruct("the generator is not available (no WebGPU device for burn)".into());
+            return;
+        };
+        let cfg = match engine.model_files() {
+            Ok((_, _, cfg)) => cfg,
+            Err(e) => {
+                self.fail_reconstruct(format!("cannot open a reconstruction yet: {e}"));
+                return;
+            }
+        };
+        let ctx = engine.body_context(body);
+        let device = engine.device().clone();
+        let s = &mut self.status.reconstruct;
+        s.state = "opening".into();
+        s.message = "opening the reconstruction…".into();
+        self.recon.task = Some(open(source, cfg, ctx, device, self.ctx.clone()));
     }
 
     fn fail_reconstruct(&mut self, message: String) {
@@ -145,6 +199,10 @@ impl GetAvatarApp {
             steps_total: options.steps + options.pti_steps,
             res: r.res,
             done: s.done,
+            opened: s.opened,
+            saved: s.saved,
+            saved_bytes: s.saved_bytes,
+            has_photo: s.has_photo,
             ..ReconstructStatus::default()
         };
         let req = ReconstructRequest {
@@ -217,6 +275,7 @@ impl GetAvatarApp {
                 ReconstructEvent::Finished(r) => {
                     self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
                     self.rigged = Some(r.rigged);
+                    let has_photo = r.projection.is_some();
                     self.field = Some(Rc::new(TextureField::reconstructed(r.generator, r.styles, r.projection)));
                     // The bake belongs to the previous avatar.
                     self.baked = None;
@@ -226,16 +285,39 @@ impl GetAvatarApp {
                     self.avatar_name = "reconstruction".into();
                     let s = &mut self.status.reconstruct;
                     s.state = "done".into();
-                    (s.mask_iou, s.psnr_db, s.total_ms) = (r.mask_iou, r.psnr_db, r.millis as f32);
-                    s.finish_ms = r.finish_ms as f32;
-                    s.done += 1;
+                    s.has_photo = has_photo;
                     s.eta_s = 0.0;
-                    s.message = format!(
-                        "reconstructed in {:.0} s: mask IoU {:.2}, masked PSNR {:.1} dB at the photo's camera",
-                        r.millis / 1000.0,
-                        r.mask_iou,
-                        r.psnr_db
-                    );
+                    match (&r.opened, r.fit) {
+                        (Some(name), _) => {
+                            s.opened += 1;
+                            s.message = format!(
+                                "opened {name} in {:.0} s{}",
+                                r.millis / 1000.0,
+                                if has_photo { ", with its photo projected on" } else { " (it keeps no photo)" }
+                            );
+                        }
+                        (None, fit) => {
+                            let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
+                            (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, r.millis as f32);
+                            s.finish_ms = r.finish_ms as f32;
+                            s.done += 1;
+                            s.message = format!(
+                                "reconstructed in {:.0} s: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera",
+                                r.millis / 1000.0,
+                            );
+                        }
+                    }
+                }
+                ReconstructEvent::Saved(bytes) => {
+                    let name = format!("getavatar_{}.safetensors", self.avatar_name);
+                    match download_bytes(&name, &bytes, "application/octet-stream") {
+                        Ok(()) => {
+                            let s = &mut self.status.reconstruct;
+                            (s.saved, s.saved_bytes) = (s.saved + 1, bytes.len());
+                            s.message = format!("saved {name} ({:.1} MB)", bytes.len() as f64 / 1e6);
+                        }
+                        Err(e) => self.messages.push(format!("download failed: {e}")),
+                    }
                 }
                 ReconstructEvent::Failed(e) => self.fail_reconstruct(e),
                 ReconstructEvent::Cancelled => {
@@ -298,6 +380,38 @@ impl GetAvatarApp {
             let w = ui.available_width().min(3.0 * 128.0);
             ui.image((t.id(), egui::vec2(w, w / 3.0)));
             ui.label(egui::RichText::new("photo · render · overlay").small());
+        }
+    }
+}
+
+impl GetAvatarApp {
+    /// "Open reconstruction…" and "Save reconstruction" (the reconstruction's own file); with
+    /// `show_message`, the reconstruction's message too (the photo section shows it otherwise).
+    pub(super) fn reconstruction_files(&mut self, ui: &mut egui::Ui, show_message: bool) {
+        let idle = !self.recon.running();
+        let saveable = idle && self.field.as_ref().is_some_and(|f| f.is_reconstruction());
+        ui.horizontal(|ui| {
+            let open = ui
+                .add_enabled(idle, egui::Button::new("Open reconstruction…"))
+                .on_hover_text("a saved reconstruction (.safetensors, also `trainer invert`'s inverted.safetensors)");
+            if open.clicked() {
+                if let Err(e) = open_file_picker(RECONSTRUCTION_INPUT_ID) {
+                    self.messages.push(format!("cannot open the file chooser: {e}"));
+                }
+            }
+            if ui
+                .add_enabled(saveable, egui::Button::new("⬇ Save reconstruction"))
+                .on_hover_text(
+                    "the tuned generator, its codes and the photo: reopen it here, or `trainer export --inverted`",
+                )
+                .clicked()
+            {
+                self.apply(Action::SaveReconstruction);
+            }
+        });
+        let s = &self.status.reconstruct;
+        if show_message && !s.message.is_empty() {
+            ui.label(egui::RichText::new(&s.message).small());
         }
     }
 }
