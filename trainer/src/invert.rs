@@ -21,7 +21,6 @@ use getavatar_core::body_fit::landmarks::PoseResult;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::{OrbitCamera, View};
 use getavatar_core::checkpoint::{self, save_inverted};
-use getavatar_core::colour::srgb_to_linear;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
@@ -32,7 +31,7 @@ use getavatar_core::inversion::{
 use getavatar_core::motion::Motion;
 use getavatar_core::network::discriminator::Discriminator;
 use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::render_views_textured;
+use getavatar_core::rasterize::{render_views_textured, Texture};
 use getavatar_core::readback::block_on_ready;
 use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
 use getavatar_core::scan::RenderableScan;
@@ -263,33 +262,18 @@ fn render_baked(
     body: &BodyParams,
     view_proj: Mat4,
     res: usize,
-) -> (Vec<f32>, Vec<f32>) {
+) -> Result<(Vec<f32>, Vec<f32>)> {
     let (pos, nrm) = rigged.repose(ctx, &pose_body(&ctx.model, body));
     let at = |v: &[Vec3]| -> Vec<Vec3> { tex.atlas.source.iter().map(|i| v[*i as usize]).collect() };
     let uv: Vec<Vec3> = tex.atlas.uvs.iter().map(|u| u.extend(0.0)).collect();
-    let t = tex.res as f32;
-    let texel = |x: i64, y: i64| {
-        let (x, y) = (x.clamp(0, tex.res as i64 - 1) as usize, y.clamp(0, tex.res as i64 - 1) as usize);
-        let k = 3 * (y * tex.res + x);
-        Vec3::new(tex.rgb[k] as f32, tex.rgb[k + 1] as f32, tex.rgb[k + 2] as f32) / 255.0
-    };
+    // The baked image as the renderer's texture (glTF's v points down, the lookup's up).
+    let image = Texture::from_srgb8(tex.res, tex.res, 3, &tex.rgb).context("the baked texture is not res² RGB")?;
     let sample = |uvs: &[Vec3]| {
-        Ok::<_, std::convert::Infallible>(
-            uvs.iter()
-                .map(|u| {
-                    let q = glam::Vec2::new(u.x * t - 0.5, u.y * t - 0.5);
-                    let (x0, y0) = (q.x.floor() as i64, q.y.floor() as i64);
-                    let (fx, fy) = (q.x - x0 as f32, q.y - y0 as f32);
-                    let top = texel(x0, y0).lerp(texel(x0 + 1, y0), fx);
-                    let bottom = texel(x0, y0 + 1).lerp(texel(x0 + 1, y0 + 1), fx);
-                    srgb_to_linear(top.lerp(bottom, fy))
-                })
-                .collect(),
-        )
+        Ok::<_, std::convert::Infallible>(uvs.iter().map(|u| image.sample(glam::Vec2::new(u.x, 1.0 - u.y))).collect())
     };
     let v = render_views_textured(&at(&pos), &tex.atlas.faces, &at(&nrm), &uv, view_proj, res, 2, sample)
         .unwrap_or_else(|never| match never {});
-    (v.rgb.iter().map(|c| *c as f32 / 255.0).collect(), v.mask.iter().map(|m| *m as f32 / 255.0).collect())
+    Ok((v.rgb.iter().map(|c| *c as f32 / 255.0).collect(), v.mask.iter().map(|m| *m as f32 / 255.0).collect()))
 }
 
 /// The camera opposite `w2c` about the body's vertical axis (x = z = 0).
@@ -479,9 +463,9 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let plain = bake(None)?;
     let projected = bake(Some((&projection, body)))?;
     let vp = OrbitCamera::default().projection_gl(1.0) * target.view.world_to_camera;
-    let (prgb, pmask) = render_baked(&rigged, &ctx, &plain, body, vp, r);
+    let (prgb, pmask) = render_baked(&rigged, &ctx, &plain, body, vp, r)?;
     let baked_m = view_metrics(&target, &prgb, &pmask);
-    let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r);
+    let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r)?;
     let projected_m = view_metrics(&target, &prgb, &pmask);
     write_png(&a.out.join("input_view_projected.png"), &rgba(&prgb, &pmask), r, 4)?;
     eprintln!(

@@ -185,26 +185,10 @@ fn a_trained_discriminator_resumes_and_gives_the_inversion_its_perceptual_term()
     let o = train("4");
     assert!(String::from_utf8_lossy(&o.stderr).contains("resuming from"), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(std::fs::read_to_string(d.join("metrics.jsonl")).unwrap().lines().count(), 4);
-    ok(trainer(&[
-        "invert",
-        "--config",
-        "tiny",
-        "--random-weights",
-        "--data",
-        s(&data),
-        "--entry",
-        "0000/000.png",
-        "--steps",
-        "2",
-        "--pti-steps",
-        "1",
-        "--texture-res",
-        "64",
-        "--discriminator",
-        s(&d.join("discriminator.safetensors")),
-        "--out",
-        s(&out),
-    ]));
+    let invert = ["invert", "--config", "tiny", "--random-weights", "--data", s(&data), "--entry", "0000/000.png"];
+    let quick = ["--steps", "2", "--pti-steps", "1", "--texture-res", "64", "--out", s(&out)];
+    let d_file = d.join("discriminator.safetensors");
+    ok(trainer(&[&invert[..], &quick, &["--discriminator", s(&d_file)]].concat()));
     let m: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(m["perceptual"], true);
@@ -212,20 +196,7 @@ fn a_trained_discriminator_resumes_and_gives_the_inversion_its_perceptual_term()
     let first: serde_json::Value = serde_json::from_str(steps.lines().next().unwrap()).unwrap();
     assert!(first["terms"]["perceptual"].as_f64().unwrap() > 0.0, "{first}");
     // Not a discriminator: refused with the reason.
-    let o = trainer(&[
-        "invert",
-        "--config",
-        "tiny",
-        "--random-weights",
-        "--data",
-        s(&data),
-        "--entry",
-        "0000/000.png",
-        "--discriminator",
-        s(&out.join("inverted.safetensors")),
-        "--out",
-        s(&out),
-    ]);
+    let o = trainer(&[&invert[..], &quick, &["--discriminator", s(&out.join("inverted.safetensors"))]].concat());
     assert!(!o.status.success());
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("neither a training state nor a discriminator"),

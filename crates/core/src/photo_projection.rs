@@ -12,7 +12,7 @@ use glam::{Mat4, Vec2, Vec3, Vec4};
 
 use crate::camera::{OrbitCamera, View};
 use crate::colour::srgb_to_linear;
-use crate::rasterize::rasterize;
+use crate::rasterize::{rasterize, Texture};
 
 /// `cos θ` below which the photo has no weight, and above which it has full weight.
 pub const GRAZING: f32 = 0.2;
@@ -70,8 +70,8 @@ pub struct PhotoProjection {
     res: usize,
     view: Mat4,
     view_proj: Mat4,
-    /// sRGB in [0, 1], `res²·3`.
-    rgb: Vec<f32>,
+    /// The photo, linear-light (bilinear lookups).
+    photo: Texture,
     /// The person mask eroded by one pixel (min over 3×3), `res²`.
     mask: Vec<f32>,
     /// View-space depth (−z, metres) of the avatar per pixel; +∞ where uncovered.
@@ -128,7 +128,9 @@ impl PhotoProjection {
                 eroded[y * res + x] = m;
             }
         }
-        Self { res, view: world_to_camera, view_proj, rgb: rgb.to_vec(), mask: eroded, depth }
+        let texels = rgb.chunks_exact(3).map(|c| srgb_to_linear(Vec3::new(c[0], c[1], c[2]))).collect();
+        let photo = Texture { width: res, height: res, texels };
+        Self { res, view: world_to_camera, view_proj, photo, mask: eroded, depth }
     }
 
     /// The photo's linear colour at posed point `p` with unit normal `n`, and its weight in
@@ -163,23 +165,8 @@ impl PhotoProjection {
         if w <= 0.0 {
             return none;
         }
-        (srgb_to_linear(self.bilinear(px)), w)
-    }
-
-    /// The photo's sRGB colour at pixel position `px` (pixel centres at +0.5), bilinear.
-    fn bilinear(&self, px: Vec2) -> Vec3 {
-        let r = self.res as i64;
-        let q = px - Vec2::splat(0.5);
-        let (x0, y0) = (q.x.floor() as i64, q.y.floor() as i64);
-        let (fx, fy) = (q.x - x0 as f32, q.y - y0 as f32);
-        let at = |x: i64, y: i64| {
-            let (x, y) = (x.clamp(0, r - 1) as usize, y.clamp(0, r - 1) as usize);
-            let k = 3 * (y * self.res + x);
-            Vec3::new(self.rgb[k], self.rgb[k + 1], self.rgb[k + 2])
-        };
-        let top = at(x0, y0).lerp(at(x0 + 1, y0), fx);
-        let bottom = at(x0, y0 + 1).lerp(at(x0 + 1, y0 + 1), fx);
-        top.lerp(bottom, fy)
+        // The texture lookup's v points up from the image's bottom row.
+        (self.photo.sample(Vec2::new(px.x / r, 1.0 - px.y / r)), w)
     }
 
     /// Blend the photo into `colors` (linear) at posed `points` with `normals`.
