@@ -60,35 +60,6 @@ pub fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> Strin
     }
 }
 
-#[cfg(not(target_arch = "wasm32"))]
-struct Collect {
-    path: Vec<String>,
-    seen: BTreeMap<String, usize>,
-    out: Vec<NamedTensor>,
-    error: Option<CheckpointError>,
-}
-
-#[cfg(not(target_arch = "wasm32"))]
-impl burn::module::ModuleVisitor for Collect {
-    fn enter_module(&mut self, name: &str, _container_type: &str) {
-        self.path.push(name.to_string());
-    }
-    fn exit_module(&mut self, _name: &str, _container_type: &str) {
-        self.path.pop();
-    }
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        let tensor = param.val();
-        let name = unique_name(&self.path, &mut self.seen);
-        let shape = tensor.dims().to_vec();
-        match read_f32_now(tensor) {
-            Ok(data) => self.out.push((name, shape, data)),
-            Err(e) => {
-                self.error.get_or_insert(CheckpointError::Readback(e.context(name)));
-            }
-        }
-    }
-}
-
 /// Serialise generator `g` (built with `cfg`) to safetensors bytes. Native only: it reads
 /// parameters back synchronously.
 #[cfg(not(target_arch = "wasm32"))]
@@ -493,12 +464,7 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 /// Every float parameter of `module` as (name by module path, shape, values). Native only.
 #[cfg(not(target_arch = "wasm32"))]
 pub fn collect_params<M: Module>(module: &M) -> Result<Vec<NamedTensor>, CheckpointError> {
-    let mut c = Collect { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new(), error: None };
-    module.visit(&mut c);
-    match c.error {
-        Some(e) => Err(e),
-        None => Ok(c.out),
-    }
+    crate::readback::block_on_ready(collect_params_async(module))
 }
 
 /// [`collect_params`] with awaited read-backs (every platform; the browser's device).
