@@ -18,9 +18,6 @@ use getavatar_core::readback::block_on_ready;
 use getavatar_core::rng::Rng;
 use getavatar_core::skinning::pose_body;
 
-/// Photos above this many pixels are refused (the app downscales above 4 MP before detecting).
-pub const MAX_PHOTO_PIXELS: u64 = 40_000_000;
-
 #[derive(clap::Args, Debug)]
 pub struct FitPoseArgs {
     /// The photo (PNG or JPEG): its size maps the normalised landmarks to pixels.
@@ -51,18 +48,8 @@ pub struct FitPoseArgs {
 }
 
 pub(crate) fn open_image(path: &std::path::Path) -> Result<image::DynamicImage> {
-    let reader = image::ImageReader::open(path)
-        .with_context(|| format!("reading {}", path.display()))?
-        .with_guessed_format()
-        .with_context(|| format!("reading {}", path.display()))?;
-    let (w, h) = reader.into_dimensions().with_context(|| format!("{} is not a PNG or JPEG image", path.display()))?;
-    if (w as u64) * (h as u64) > MAX_PHOTO_PIXELS {
-        bail!("{} is {w}×{h} pixels, over the {} MP limit", path.display(), MAX_PHOTO_PIXELS / 1_000_000);
-    }
-    image::ImageReader::open(path)?
-        .with_guessed_format()?
-        .decode()
-        .with_context(|| format!("{} is not a readable PNG or JPEG image", path.display()))
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    getavatar_core::dataset::decode_photo(&bytes).map_err(|e| anyhow::anyhow!("{} {e}", path.display()))
 }
 
 pub(crate) fn load_mask(path: &std::path::Path) -> Result<SegmentationMask> {

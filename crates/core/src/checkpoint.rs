@@ -266,6 +266,17 @@ pub fn load_discriminator(
     if !(cfg.resolution.is_power_of_two() && (8..=4096).contains(&cfg.resolution)) {
         return Err(fmt_err(format!("discriminator resolution {} is not a power of two in 8..=4096", cfg.resolution)));
     }
+    // Nothing is allocated for a network the file cannot hold.
+    let held: usize = st.tensors.iter().filter(|(k, _)| k.starts_with("d0/")).map(|(_, (_, v))| v.len()).sum();
+    match cfg.num_params(3) {
+        Some(need) if need <= held => {}
+        need => {
+            return Err(fmt_err(format!(
+                "the discriminator config needs {} numbers, the file holds {held}",
+                need.map_or("more than 2⁶⁴".to_string(), |n| n.to_string())
+            )))
+        }
+    }
     load_params(Discriminator::new(&cfg, 3, 0, device), &st.tensors, "d0/", device)
 }
 
@@ -596,6 +607,31 @@ mod tests {
         lie.extend_from_slice(b"{}");
         assert!(parse_safetensors(&lie).is_err());
         assert!(parse_safetensors(&[1, 2, 3]).is_err());
+    }
+
+    /// The size check before building a discriminator counts exactly what `new` allocates,
+    /// and a small file whose config claims a huge network is refused at once.
+    #[test]
+    fn discriminator_configs_are_checked_against_the_file() {
+        use crate::network::discriminator::{Discriminator, DiscriminatorConfig};
+        #[allow(deprecated)]
+        let dev = Device::ndarray();
+        for cfg in [DiscriminatorConfig::new(8, 64, 8), DiscriminatorConfig::new(64, 2048, 64)] {
+            let d = Discriminator::new(&cfg, 3, 0, &dev);
+            assert_eq!(cfg.num_params(3), Some(d.num_params()), "{cfg:?}");
+        }
+        let huge = DiscriminatorConfig { c_dim: usize::MAX / 2, ..DiscriminatorConfig::new(8, 64, 8) };
+        assert_eq!(huge.num_params(3), None);
+        let meta: BTreeMap<String, String> = [(
+            "discriminator".to_string(),
+            r#"{"resolution":4096,"channel_base":1048576,"channel_max":65536,"c_dim":16,"cmap_dim":64,"mapping_layers":2,"mbstd_group":4}"#.to_string(),
+        )]
+        .into();
+        let bytes = write_safetensors(&meta, &[("d0/x".into(), vec![2], vec![0.0; 2])]).unwrap();
+        let t0 = std::time::Instant::now();
+        let err = load_discriminator(&bytes, &dev).err().unwrap().to_string();
+        assert!(err.contains("the file holds 2"), "{err}");
+        assert!(t0.elapsed().as_secs_f32() < 1.0);
     }
 
     #[test]

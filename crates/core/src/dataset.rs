@@ -219,6 +219,33 @@ pub fn decode_png(bytes: &[u8]) -> Result<Image8, String> {
     Ok(Image8 { width: info.width as usize, height: info.height as usize, channels, pixels: buf })
 }
 
+pub use crate::body_fit::framing::MAX_PHOTO_PIXELS;
+
+/// Decode a photo (PNG or JPEG, the format guessed from its bytes). Its size is read from the
+/// header and checked against [`MAX_PHOTO_PIXELS`] before any pixel buffer is allocated, and
+/// the decoder's own allocations are capped, so a small file claiming a huge image is refused
+/// at once. Errors read after the file's name ("photo.png is not a PNG or JPEG image (…)").
+pub fn decode_photo(bytes: &[u8]) -> Result<image::DynamicImage, String> {
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| format!("cannot be read ({e})"))
+    };
+    let (w, h) = reader()?.into_dimensions().map_err(|e| format!("is not a PNG or JPEG image ({e})"))?;
+    if w == 0 || h == 0 {
+        return Err(format!("is empty ({w}×{h} pixels)"));
+    }
+    if (w as u64) * (h as u64) > MAX_PHOTO_PIXELS {
+        return Err(format!("is {w}×{h} pixels, over the {} MP limit", MAX_PHOTO_PIXELS / 1_000_000));
+    }
+    let mut r = reader()?;
+    let mut limits = image::Limits::default();
+    // 16-bit RGBA of the largest accepted photo, plus the decoder's scratch.
+    limits.max_alloc = Some(MAX_PHOTO_PIXELS * 8 + (64 << 20));
+    r.limits(limits);
+    r.decode().map_err(|e| format!("is not a readable PNG or JPEG image ({e})"))
+}
+
 /// One training example.
 #[derive(Clone, Debug)]
 pub struct Sample {

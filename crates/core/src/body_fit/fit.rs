@@ -29,7 +29,7 @@ use burn::tensor::{Device, Tensor};
 use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
-use super::framing::{Framing, FramingError};
+use super::framing::{Framing, FramingError, MAX_PHOTO_PIXELS};
 use super::init::{camera_axes, camera_translation, pose_from_image, pose_from_world, posed_joints};
 use super::landmarks::{
     LandmarkError, PoseResult, SegmentationMask, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS,
@@ -181,6 +181,57 @@ pub struct FitResiduals {
 impl BodyFit {
     pub fn to_json(&self) -> Result<String, serde_json::Error> {
         serde_json::to_string_pretty(self)
+    }
+
+    /// Parse and check a fit.json: its format, 69 pose numbers, at most 300 betas, finite
+    /// numbers, a field of view in (0, π), an invertible camera, and a framing of a non-empty
+    /// photo of at most 40 MP with a positive crop side (what the inversion and the export
+    /// compute with).
+    pub fn from_json(text: &str) -> Result<Self, String> {
+        let fit: BodyFit = serde_json::from_str(text).map_err(|e| e.to_string())?;
+        fit.validate()?;
+        Ok(fit)
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.format != BODY_FIT_FORMAT {
+            return Err(format!("`format` is {:?}, expected {BODY_FIT_FORMAT:?}", self.format));
+        }
+        if self.body_pose.len() != (NUM_JOINTS - 1) * 3 {
+            return Err(format!("`body_pose` has {} numbers, expected {}", self.body_pose.len(), (NUM_JOINTS - 1) * 3));
+        }
+        if self.betas.len() > 300 {
+            return Err(format!("`betas` has {} numbers (at most 300)", self.betas.len()));
+        }
+        let numbers = [
+            ("global_orient", &self.global_orient[..]),
+            ("body_pose", &self.body_pose[..]),
+            ("betas", &self.betas[..]),
+            ("camera", &self.camera[..]),
+            ("fov_y", &[self.fov_y][..]),
+            ("framing.centre", &self.framing.centre[..]),
+            ("framing.side", &[self.framing.side][..]),
+        ];
+        for (name, v) in numbers {
+            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+                return Err(format!("`{name}[{i}]` is not a finite number"));
+            }
+        }
+        if !(self.fov_y > 0.0 && self.fov_y < std::f32::consts::PI) {
+            return Err(format!("`fov_y` {} is not in (0, π)", self.fov_y));
+        }
+        let det = self.world_to_camera().determinant();
+        if !det.is_finite() || det.abs() < 1e-6 {
+            return Err("`camera` is not an invertible matrix".into());
+        }
+        let (w, h) = (self.framing.photo_width, self.framing.photo_height);
+        if w == 0 || h == 0 || (w as u64) * (h as u64) > MAX_PHOTO_PIXELS {
+            return Err(format!("`framing` is of a {w}×{h} photo (1 pixel … {} MP)", MAX_PHOTO_PIXELS / 1_000_000));
+        }
+        if self.framing.side <= 0.0 {
+            return Err(format!("`framing.side` {} is not positive", self.framing.side));
+        }
+        Ok(())
     }
 
     /// The fitted body as body parameters (no translation).

@@ -12,6 +12,9 @@ use super::landmarks::{Landmark, VISIBLE};
 use crate::body_model::BodyModel;
 use crate::camera::{reference_fov_y, REFERENCE_RADIUS};
 
+/// Photos above this many pixels are refused (the app downscales above 4 MP before detecting).
+pub const MAX_PHOTO_PIXELS: u64 = 40_000_000;
+
 /// A square crop of a photo: its centre and side in photo pixels (x right, y down, pixel
 /// centres at +0.5). It may extend past the photo's border (padding).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

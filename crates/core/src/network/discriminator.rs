@@ -40,6 +40,38 @@ impl DiscriminatorConfig {
     pub fn channels(&self, res: usize) -> usize {
         (self.channel_base / res).clamp(1, self.channel_max)
     }
+
+    /// How many numbers [`Discriminator::new`] allocates for this config (None on overflow):
+    /// loaders compare it with what a file holds before building anything, so a config
+    /// claiming a huge network in a small file is refused.
+    pub fn num_params(&self, in_channels: usize) -> Option<usize> {
+        let conv = |cin: usize, cout: usize, k: usize, bias: bool| {
+            cin.checked_mul(cout)?.checked_mul(k * k)?.checked_add(if bias { cout } else { 0 })
+        };
+        let fc = |d_in: usize, d_out: usize| d_in.checked_mul(d_out)?.checked_add(d_out);
+        if !self.resolution.is_power_of_two() || self.resolution < 8 {
+            return None;
+        }
+        let mut n = conv(in_channels, self.channels(self.resolution), 1, true)?;
+        let mut res = self.resolution;
+        while res > 4 {
+            let (cin, cout) = (self.channels(res), self.channels(res / 2));
+            for part in [conv(cin, cin, 3, true)?, conv(cin, cout, 3, true)?, conv(cin, cout, 1, false)?] {
+                n = n.checked_add(part)?;
+            }
+            res /= 2;
+        }
+        let c4 = self.channels(4);
+        let mut d = self.c_dim;
+        for _ in 0..self.mapping_layers.max(1) {
+            n = n.checked_add(fc(d, self.cmap_dim)?)?;
+            d = self.cmap_dim;
+        }
+        for part in [conv(c4 + 1, c4, 3, true)?, fc(c4.checked_mul(16)?, c4)?, fc(c4, self.cmap_dim)?] {
+            n = n.checked_add(part)?;
+        }
+        Some(n)
+    }
 }
 
 fn down2(x: Tensor<4>) -> Tensor<4> {
