@@ -209,34 +209,127 @@ fn tiny_trains_twenty_steps() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// A full disk while checkpointing (here a file-size limit, `ulimit -f`, with SIGXFSZ
+/// ignored so the write fails with EFBIG as on a full disk): the run stops with an error that
+/// names the file and the cause, the previous checkpoint stays intact and loadable, and a
+/// resume once there is room again ends bit-identical to an undisturbed run.
 #[test]
-fn sigkill_during_training_leaves_a_loadable_checkpoint() {
+fn a_full_disk_while_checkpointing_is_an_error_and_keeps_the_last_checkpoint() {
+    let root = tmp("full");
+    let data = dataset(&root);
+    let (reference, out) = (root.join("reference"), root.join("run"));
+    train(&data, &reference, 2, &[]);
+    train(&data, &out, 1, &[]);
+    let state = out.join("state.safetensors");
+    let before = std::fs::read(&state).unwrap();
+    // Room for the logs and plots, not for a checkpoint (KiB; the tiny state is larger).
+    let limit_kib = 64;
+    assert!(before.len() > limit_kib * 1024 * 2, "the tiny checkpoint is {} bytes", before.len());
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg(format!("trap '' XFSZ; ulimit -f {limit_kib}; exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_trainer"))
+        .args(["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()])
+        .args(["--batch", "2", "--steps", "2", "--snapshot-every", "1", "--resume"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "the write beyond the limit must fail the run: {err}");
+    assert!(err.contains(".safetensors") && err.contains("File too large"), "{err}");
+    assert_eq!(std::fs::read(&state).unwrap(), before, "the last checkpoint is untouched");
+    assert_eq!(parse_safetensors(&before).unwrap().metadata["step"], "1");
+    train(&data, &out, 2, &["--resume"]);
+    assert_eq!(
+        std::fs::read(reference.join("state.safetensors")).unwrap(),
+        std::fs::read(&state).unwrap(),
+        "resumed after the failed write == undisturbed"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// SIGKILL at 20 seeded random moments of a tiny run (during start-up, steps, and the
+/// checkpoint, sample-grid and plot writes): after every kill a complete checkpoint loads
+/// (the latest, or the one before it when the kill fell between the two renames), and every
+/// chain of kills and resumes ends bit-identical to an undisturbed run of the same steps (a
+/// chain ends when a resumed run reaches the last step before its kill).
+#[test]
+fn sigkill_at_random_moments_resumes_bit_identically() {
+    const STEPS: u64 = 6;
+    const KILLS: usize = 20;
     let root = tmp("kill");
     let data = dataset(&root);
+    let reference = root.join("reference");
+    train(&data, &reference, STEPS, &[]);
     let out = root.join("run");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args(["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()])
-        .args(["--batch", "2", "--steps", "1000", "--snapshot-every", "1"])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    // Wait for the first checkpoint, then kill at a few different moments of later writes.
-    let state = out.join("state.safetensors");
-    let t0 = std::time::Instant::now();
-    while !state.exists() && t0.elapsed().as_secs() < 120 {
-        std::thread::sleep(std::time::Duration::from_millis(20));
+    let steps = STEPS.to_string();
+    let args = |resume: bool| {
+        let mut v = vec!["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", out.to_str().unwrap()];
+        v.extend(["--batch", "2", "--steps", &steps, "--snapshot-every", "1"]);
+        if resume {
+            v.push("--resume");
+        }
+        v.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    // Kill moments: a fixed-seed LCG over 0.2 … 3.5 s after each start.
+    let mut rng = 0x2545_f491_4f6c_dd1du64;
+    let mut delay = || {
+        rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        std::time::Duration::from_millis(200 + (rng >> 33) % 3300)
+    };
+    let (state, prev) = (out.join("state.safetensors"), out.join("state.prev.safetensors"));
+    let step_of = |p: &Path| -> Option<u64> {
+        let st = parse_safetensors(&std::fs::read(p).ok()?).ok()?;
+        st.metadata["step"].parse().ok()
+    };
+    let (mut kills, mut chains) = (0, 0);
+    while kills < KILLS {
+        let resume = out.join("run.json").exists();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_trainer"))
+            .args(args(resume))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let wait = delay();
+        std::thread::sleep(wait);
+        if let Some(status) = child.try_wait().unwrap() {
+            // The run reached its end before this kill: this chain of kills and resumes is
+            // complete, and must equal the undisturbed run; start another from scratch.
+            assert!(status.success(), "a resumed run failed");
+            assert_eq!(std::fs::read(reference.join("state.safetensors")).unwrap(), std::fs::read(&state).unwrap());
+            chains += 1;
+            std::fs::remove_dir_all(&out).unwrap();
+            continue;
+        }
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        kills += 1;
+        // A complete checkpoint is always there once the first one was written: the latest
+        // or, if the kill fell between renaming it away and writing the new one, the previous.
+        let latest = step_of(&state);
+        eprintln!("kill {kills} after {wait:?}: latest checkpoint step {latest:?}, previous {:?}", step_of(&prev));
+        if state.exists() {
+            assert!(latest.is_some(), "kill {kills}: state.safetensors is torn");
+        } else if prev.exists() {
+            assert!(step_of(&prev).is_some(), "kill {kills}: state.prev.safetensors is torn");
+        }
+        let generator = out.join("generator.safetensors");
+        if generator.exists() {
+            assert!(step_of(&generator).is_some(), "kill {kills}: generator.safetensors is torn");
+        }
     }
-    std::thread::sleep(std::time::Duration::from_millis(700));
-    child.kill().unwrap(); // SIGKILL
-    child.wait().unwrap();
-    let bytes = std::fs::read(&state).expect("a checkpoint exists");
-    let st = parse_safetensors(&bytes).expect("the latest checkpoint is complete");
-    let step: u64 = st.metadata["step"].parse().unwrap();
-    assert!(step >= 1);
-    // And the run continues from it.
-    let text = train(&data, &out, step + 1, &["--resume"]);
-    assert!(text.contains("trained 1 steps"), "{text}");
+    let text = train(&data, &out, STEPS, &["--resume"]);
+    assert!(text.contains("trained"), "{text}");
+    eprintln!("{KILLS} kills over {} chains of kills and resumes, each equal to the undisturbed run", chains + 1);
+    assert_eq!(
+        std::fs::read(reference.join("state.safetensors")).unwrap(),
+        std::fs::read(&state).unwrap(),
+        "{KILLS} kills and resumes == one undisturbed run of {STEPS} steps"
+    );
+    assert_eq!(
+        std::fs::read(reference.join("generator.safetensors")).unwrap(),
+        std::fs::read(out.join("generator.safetensors")).unwrap()
+    );
     let _ = std::fs::remove_dir_all(&root);
 }
 

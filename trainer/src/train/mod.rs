@@ -47,7 +47,7 @@ pub use state::{device_for, State};
 pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 
-use crate::atomic::write_atomic;
+use crate::atomic::{write_atomic, write_atomic_keeping_previous};
 use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
 use snapshots::sample_grid;
 
@@ -142,14 +142,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
         let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
-        // The last checkpoint becomes the previous one (resume falls back to it when the
-        // latest is unreadable or missing), then the new one is written atomically.
-        let bytes = st.save(&rc)?;
-        if state_path.exists() {
-            std::fs::rename(&state_path, &prev_path)
-                .with_context(|| format!("keeping {} as {}", state_path.display(), prev_path.display()))?;
-        }
-        write_atomic(&state_path, &bytes)?;
+        // The new checkpoint is written, then the last one becomes the previous one (resume
+        // falls back to it when the latest is unreadable or missing).
+        write_atomic_keeping_previous(&state_path, &prev_path, &st.save(&rc)?)?;
         let (png, fit) = sample_grid(st, &ds, &ctx, &grids, &rc, &plain)?;
         write_atomic(&a.out.join(format!("samples_{step:06}.png")), &png)?;
         if let Some(fit) = fit {
