@@ -59,6 +59,18 @@ const browser = await chromium.launch({
 });
 const context = await browser.newContext({ viewport: { width: 1280, height: 800 }, deviceScaleFactor: 1, acceptDownloads: true });
 const page = await context.newPage();
+// Every GPU device the page creates, so the device-loss check can destroy it (#23).
+await page.addInitScript(() => {
+  window.__gpuDevices = [];
+  if (navigator.gpu) {
+    const requestDevice = GPUAdapter.prototype.requestDevice;
+    GPUAdapter.prototype.requestDevice = async function (...args) {
+      const d = await requestDevice.apply(this, args);
+      window.__gpuDevices.push(d);
+      return d;
+    };
+  }
+});
 const consoleErrors = [];
 page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
 page.on('pageerror', (e) => consoleErrors.push(`pageerror: ${e.message}`));
@@ -545,11 +557,25 @@ try {
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));
+  await page.screenshot({ path: path.join(out, 'app.png') });
+
+  // GPU device loss (#23), last since it ends the app: the page says so over the canvas and
+  // offers a reload instead of a frozen canvas.
+  const devices = await page.evaluate(() => { window.__gpuDevices.forEach((d) => d.destroy()); return window.__gpuDevices.length; });
+  const box = await page.waitForSelector('#fatal', { state: 'visible', timeout: 30000 });
+  const said = await box.innerText();
+  const covers = await page.evaluate(() => {
+    const r = document.getElementById('fatal').getBoundingClientRect();
+    return r.width >= window.innerWidth && r.height >= window.innerHeight;
+  });
+  check(devices === 1 && /GPU device was lost/.test(said) && /Reload/.test(said) && covers,
+    `a destroyed GPU device (${devices}) gets a message over the whole canvas with a Reload button ("${said.split('\n')[0]}")`);
+  await page.screenshot({ path: path.join(out, 'device_lost.png') });
 } catch (e) {
   console.log(`FAIL ${e.stack ?? e}`);
   failures++;
 } finally {
-  await page.screenshot({ path: path.join(out, 'app.png') }).catch(() => {});
+  if (failures) await page.screenshot({ path: path.join(out, 'failure.png') }).catch(() => {});
   await browser.close();
 }
 console.log(failures ? `browser e2e: ${failures} check(s) failed` : 'browser e2e: all checks passed');

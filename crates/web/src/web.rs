@@ -116,6 +116,13 @@ pub fn getavatar_status() -> String {
 /// Entry point, called by `index.html` after the module loads.
 #[wasm_bindgen(start)]
 pub fn start() {
+    // With panic = abort a panic stops the app for good: say so over the canvas (the page's
+    // `getavatarFatal`, which offers a reload) and in the console, never a frozen canvas.
+    std::panic::set_hook(Box::new(|info| {
+        let msg = format!("The app stopped: {info}");
+        web_sys::console::error_1(&JsValue::from_str(&msg));
+        show_fatal(&msg);
+    }));
     console_log("getavatar: starting");
     wasm_bindgen_futures::spawn_local(async {
         if let Err(e) = run().await {
@@ -127,6 +134,17 @@ pub fn start() {
             }
         }
     });
+}
+
+/// The page's message over the canvas for what the app cannot recover from
+/// (`window.getavatarFatal` in index.html: the message and a Reload button).
+fn show_fatal(msg: &str) {
+    let Some(window) = web_sys::window() else { return };
+    if let Ok(f) = js_sys::Reflect::get(&window, &JsValue::from_str("getavatarFatal")) {
+        if let Some(f) = f.dyn_ref::<js_sys::Function>() {
+            let _ = f.call1(&JsValue::NULL, &JsValue::from_str(msg));
+        }
+    }
 }
 
 fn console_log(msg: &str) {
