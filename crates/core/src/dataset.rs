@@ -206,6 +206,12 @@ pub fn decode_png(bytes: &[u8]) -> Result<Image8, String> {
     let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
     dec.set_transformations(png::Transformations::normalize_to_color8());
     let mut reader = dec.read_info().map_err(|e| format!("not a PNG: {e}"))?;
+    // The header's size is checked before the pixel buffer is allocated (a 100-byte file may
+    // claim 1026 × 771 million pixels: found by the `photo` fuzz target).
+    let (w, h) = (reader.info().width as u64, reader.info().height as u64);
+    if w * h > MAX_PHOTO_PIXELS {
+        return Err(format!("a {w}×{h} PNG is over the {} MP limit", MAX_PHOTO_PIXELS / 1_000_000));
+    }
     let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).map_err(|e| format!("corrupt PNG: {e}"))?;
     buf.truncate(info.buffer_size());
@@ -510,6 +516,15 @@ mod tests {
         assert_eq!((img.width, img.height, img.channels), (3, 2, 4));
         assert_eq!(img.pixels, px);
         assert!(decode_png(b"not a png").unwrap_err().contains("not a PNG"));
+        // A tiny file whose header claims 1026 × 771 million pixels (the `photo` fuzz target's
+        // find, rewritten with valid checksums: fuzzing builds of the png crate skip them) is
+        // refused before anything is allocated.
+        let crash = include_bytes!("../../../fuzz/regressions/photo/png-header-claims-2-TB-valid-crc");
+        assert!(decode_png(crash).unwrap_err().contains("over the 40 MP limit"));
+        assert!(decode_photo(crash).unwrap_err().contains("over the 40 MP limit"));
+        let ok = decode_photo(&encode_png(3, 2, 4, &px).unwrap()).unwrap();
+        assert_eq!((ok.width(), ok.height()), (3, 2));
+        assert!(decode_photo(b"").unwrap_err().contains("is not a PNG or JPEG image"));
         assert_eq!(normal_name("a/001.png"), "a/001_normal.png");
     }
 }
