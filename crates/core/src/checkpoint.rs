@@ -263,9 +263,7 @@ pub fn load_discriminator(
     } else {
         return Err(fmt_err("neither a training state nor a discriminator file"));
     };
-    if !(cfg.resolution.is_power_of_two() && (8..=4096).contains(&cfg.resolution)) {
-        return Err(fmt_err(format!("discriminator resolution {} is not a power of two in 8..=4096", cfg.resolution)));
-    }
+    cfg.validate().map_err(|e| fmt_err(format!("the discriminator config: {e}")))?;
     // Nothing is allocated for a network the file cannot hold.
     let held: usize = st.tensors.iter().filter(|(k, _)| k.starts_with("d0/")).map(|(_, (_, v))| v.len()).sum();
     match cfg.num_params(3) {
@@ -622,6 +620,10 @@ mod tests {
         }
         let huge = DiscriminatorConfig { c_dim: usize::MAX / 2, ..DiscriminatorConfig::new(8, 64, 8) };
         assert_eq!(huge.num_params(3), None);
+        // The `checkpoint` fuzz target's find: channel_max 0 panicked in clamp(1, 0).
+        let crash = include_bytes!("../../../fuzz/regressions/checkpoint/discriminator-channel-max-0");
+        let err = load_discriminator(crash, &dev).err().unwrap().to_string();
+        assert!(err.contains("channel_max 0 is outside 1..="), "{err}");
         let meta: BTreeMap<String, String> = [(
             "discriminator".to_string(),
             r#"{"resolution":4096,"channel_base":1048576,"channel_max":65536,"c_dim":16,"cmap_dim":64,"mapping_layers":2,"mbstd_group":4}"#.to_string(),

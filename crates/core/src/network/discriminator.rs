@@ -38,7 +38,30 @@ impl DiscriminatorConfig {
     }
 
     pub fn channels(&self, res: usize) -> usize {
-        (self.channel_base / res).clamp(1, self.channel_max)
+        (self.channel_base / res.max(1)).clamp(1, self.channel_max.max(1))
+    }
+
+    /// A config read from a file: a power-of-two resolution in 8…4096, at least one channel,
+    /// label and projection sizes in 1…1024, at most 16 mapping layers, a group size in
+    /// 1…64 (a `channel_max` of 0 once reached `clamp(1, 0)`: the `checkpoint` fuzz target).
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.resolution.is_power_of_two() && (8..=4096).contains(&self.resolution)) {
+            return Err(format!("resolution {} is not a power of two in 8..=4096", self.resolution));
+        }
+        let checks = [
+            ("channel_base", self.channel_base, 1, usize::MAX),
+            ("channel_max", self.channel_max, 1, usize::MAX),
+            ("c_dim", self.c_dim, 1, 1024),
+            ("cmap_dim", self.cmap_dim, 1, 1024),
+            ("mapping_layers", self.mapping_layers, 0, 16),
+            ("mbstd_group", self.mbstd_group, 1, 64),
+        ];
+        for (name, v, lo, hi) in checks {
+            if !(lo..=hi).contains(&v) {
+                return Err(format!("{name} {v} is outside {lo}..={hi}"));
+            }
+        }
+        Ok(())
     }
 
     /// How many numbers [`Discriminator::new`] allocates for this config (None on overflow):
