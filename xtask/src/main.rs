@@ -208,6 +208,14 @@ fn test(native: bool, browser: bool) -> Result<()> {
             .env("GETAVATAR_URL", format!("http://{}/", server.addr))
             .env("GETAVATAR_OUT", e2e.join("out"));
         run(&mut c)?;
+        // The random-action soak (#23): 300 seeded actions after a warm-up, no panic, no
+        // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
+        let mut c = Command::new("node");
+        c.current_dir(&e2e)
+            .args(["soak.e2e.mjs", "300", "1"])
+            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
+            .env("GETAVATAR_OUT", e2e.join("out"));
+        run(&mut c)?;
         export_checks(&e2e)?;
     }
     println!("xtask test: all requested suites passed");

@@ -647,8 +647,10 @@ pub struct Status {
     pub reconstruct: ReconstructStatus,
     /// The "Open photo…" button's rectangle in CSS pixels (for the test that clicks it).
     pub open_photo_button: [f32; 4],
-    /// Messages about rejected commands / parameters (most recent last).
+    /// Messages about rejected commands / parameters (the last 50, most recent last).
     pub errors: Vec<String>,
+    /// How many messages there were in all.
+    pub errors_total: u64,
 }
 
 /// The photo panel's state (`status().photo`).
@@ -871,6 +873,9 @@ mod tests {
         assert!(parse_command(r#"{"generate":{"psi":7}}"#).is_err());
         assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
         assert!(parse_command(r#"{"res":77}"#).is_err());
+        // An unknown key is refused (not swallowed by the all-optional camera command), and
+        // says what it was: the soak test's marker.
+        assert!(parse_command(r#"{"soak_marker":7}"#).unwrap_err().contains(r#"{"soak_marker":7}"#));
         assert!(parse_command("nonsense").is_err());
         assert_eq!(
             parse_command(r#"{"photo":{"url":"p.png","iterations":[5,10,0]}}"#),

@@ -52,6 +52,9 @@ fn shown_rig<'a>(
 /// Linear RGB albedo of the untextured body.
 const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
 
+/// Messages the app keeps (the status's `errors`).
+const KEPT_MESSAGES: usize = 50;
+
 pub struct GetAvatarApp {
     body: Option<BodyModel>,
     poses: PoseLibrary,
@@ -76,6 +79,8 @@ pub struct GetAvatarApp {
     status: Status,
     frame_times: std::collections::VecDeque<f64>,
     messages: Vec<String>,
+    /// Messages dropped from the front of `messages` (it keeps the last [`KEPT_MESSAGES`]).
+    dropped_messages: u64,
     /// The generator on the shared WebGPU device (None if it could not start).
     engine: Option<GenEngine>,
     rigged: Option<RiggedAvatar>,
@@ -176,6 +181,7 @@ impl GetAvatarApp {
             status,
             frame_times: Default::default(),
             messages,
+            dropped_messages: 0,
             engine,
             rigged: None,
             field: None,
@@ -498,7 +504,15 @@ impl GetAvatarApp {
         self.status.yaw_deg = self.camera.yaw.to_degrees();
         self.status.pitch_deg = self.camera.pitch.to_degrees();
         self.status.radius = self.camera.radius;
+        // An app left open for hours keeps the last messages only: the panel shows five,
+        // the status the last KEPT_MESSAGES and how many there were in all.
+        if self.messages.len() > KEPT_MESSAGES {
+            let extra = self.messages.len() - KEPT_MESSAGES;
+            self.messages.drain(..extra);
+            self.dropped_messages += extra as u64;
+        }
         self.status.errors = self.messages.clone();
+        self.status.errors_total = self.dropped_messages + self.messages.len() as u64;
         self.status.ready = self.status.renders > 0;
         self.status.seed_geo = self.seed_geo;
         self.status.seed_tex = self.seed_tex;
