@@ -18,9 +18,12 @@ use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::scan::{self, SmplParams};
 use getavatar_core::skinning::pose_body;
 
+/// A target's body: arbitrary bytes in, nothing out (a panic is the finding).
+pub type Body = fn(&[u8]);
+
 /// Every target: its name (the corpus directory `fuzz/corpus/NAME`, the binary
 /// `fuzz/fuzz_targets/NAME.rs`) and its body.
-pub const TARGETS: &[(&str, fn(&[u8]))] = &[
+pub const TARGETS: &[(&str, Body)] = &[
     ("npz", npz_archive),
     ("body_model", body_model),
     ("motion", motion),
@@ -53,8 +56,7 @@ pub fn npz_archive(data: &[u8]) {
 /// A body model `.npz` (SMPL layout), then posed and shaped with it.
 pub fn body_model(data: &[u8]) {
     if let Ok(model) = BodyModel::from_npz_bytes(data) {
-        let mut params = getavatar_core::BodyParams::default();
-        params.betas = vec![0.5; model.num_betas];
+        let mut params = getavatar_core::BodyParams { betas: vec![0.5; model.num_betas], ..Default::default() };
         params.pose[1].z = 0.5;
         let _ = pose_body(&model, &params);
     }
