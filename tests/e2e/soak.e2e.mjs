@@ -114,7 +114,7 @@ const page = await context.newPage();
 await page.addInitScript(() => {
   window.__soak = { buffers: 0, bufferBytes: 0, longTasks: [] };
   new PerformanceObserver((list) => {
-    for (const e of list.getEntries()) window.__soak.longTasks.push(e.duration);
+    for (const e of list.getEntries()) window.__soak.longTasks.push([e.startTime, e.duration]);
   }).observe({ type: 'longtask', buffered: true });
   if (window.GPUDevice) {
     const create = GPUDevice.prototype.createBuffer;
@@ -175,8 +175,10 @@ try {
   let peak = { heap: 0, wasm: 0, buffers: 0, bufferBytes: 0 };
   let marker = 0;
   const t0 = Date.now();
+  const spans = []; // [kind, page time at the action's start]
   for (let i = 0; i < actions.length; i++) {
     const a = actions[i];
+    spans.push([a.kind, await page.evaluate(() => performance.now())]);
     counts[a.kind] = (counts[a.kind] ?? 0) + 1;
     if (a.cmd) await page.evaluate((c) => window.getavatar.command(c), a.cmd);
     else if (a.raw !== undefined) await page.evaluate((r) => window.getavatar.commandJson(r), a.raw);
@@ -207,7 +209,16 @@ try {
   console.log(`actions per kind: ${JSON.stringify(counts)}`);
   console.log(`end: ${JSON.stringify(end)}; peak: ${JSON.stringify(peak)}; ${s.errors_total} messages in all, ${s.generations} generations`);
   const long = await page.evaluate(() => window.__soak.longTasks);
-  console.log(`long tasks: ${long.length} over 50 ms, longest ${[...long].sort((a, b) => b - a).slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);
+  const durations = long.map(([, d]) => d).sort((a, b) => b - a);
+  console.log(`long tasks: ${long.length} over 50 ms, longest ${durations.slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);
+  // Which actions they fell in (the last action started before each task): longest per kind.
+  const byKind = {};
+  for (const [start, d] of long) {
+    let k = 'before the first action';
+    for (const [kind, t] of spans) if (t <= start) k = kind;
+    byKind[k] = [Math.max(byKind[k]?.[0] ?? 0, d), (byKind[k]?.[1] ?? 0) + 1];
+  }
+  console.log(`long tasks by the action they fell in (longest ms, count): ${Object.entries(byKind).sort((a, b) => b[1][0] - a[1][0]).map(([k, [m, n]]) => `${k} ${m.toFixed(0)} (${n})`).join(', ')}`);
   check(true, `${WARMUP} warm-up + ${N} seeded random actions (seed ${SEED}) answered, no panic`);
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   check(end.heap <= 1.2 * warm.heap + 4e6, `JS heap ${(end.heap / 1e6).toFixed(1)} MB at the end vs ${(warm.heap / 1e6).toFixed(1)} MB after the warm-up (≤ 1.2× + 4 MB)`);
