@@ -118,7 +118,9 @@ fn build_web() -> Result<()> {
         .web(true)?
         .typescript(false)
         .omit_default_module_path(false)
-        .remove_name_section(true)
+        // GETAVATAR_KEEP_NAMES=1 keeps the function names (1.5 MB more), so a browser CPU
+        // profile of the app names Rust functions (docs/reliability.md, long tasks).
+        .remove_name_section(std::env::var_os("GETAVATAR_KEEP_NAMES").is_none())
         .remove_producers_section(true)
         .generate(&dist)
         .map_err(|e| anyhow::anyhow!("wasm-bindgen: {e}"))?;

@@ -113,9 +113,21 @@ pub fn getavatar_status() -> String {
     STATUS.with(|s| s.borrow().clone())
 }
 
+extern "C" {
+    /// The static constructors (cubecl registers its IR dialects with `inventory`), which
+    /// wasm-ld synthesises.
+    fn __wasm_call_ctors();
+}
+
 /// Entry point, called by `index.html` after the module loads.
 #[wasm_bindgen(start)]
 pub fn start() {
+    // Run the static constructors once, here. Without an explicit call, wasm-ld treats the
+    // module as a "command" and wraps EVERY export in a call to them, so each call from JS
+    // (a frame, a promise callback of a GPU read-back, the status) re-ran all of cubecl's
+    // registrations: most of the main thread's time in a browser CPU profile of a retexture.
+    // SAFETY: called once, first, before any code that reads what they register.
+    unsafe { __wasm_call_ctors() };
     // With panic = abort a panic stops the app for good: say so over the canvas (the page's
     // `getavatarFatal`, which offers a reload) and in the console, never a frozen canvas.
     std::panic::set_hook(Box::new(|info| {
