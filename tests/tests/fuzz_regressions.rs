@@ -24,7 +24,10 @@ fn every_kept_fuzz_input_parses_without_panicking() {
         let corpus = files(&root.join("corpus").join(name));
         let crashes = files(&root.join("regressions").join(name));
         // Every target has its seeds: a lost corpus directory fails here, not silently.
-        assert!(corpus.iter().any(|p| p.file_name().unwrap().to_string_lossy().starts_with("seed-")), "{name}: no seeds");
+        assert!(
+            corpus.iter().any(|p| p.file_name().unwrap().to_string_lossy().starts_with("seed-")),
+            "{name}: no seeds"
+        );
         let t0 = Instant::now();
         for path in corpus.iter().chain(&crashes) {
             let bytes = match std::fs::read(path) {
@@ -49,8 +52,10 @@ fn every_kept_fuzz_input_parses_without_panicking() {
 fn targets_corpora_and_binaries_agree() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz");
     let names: Vec<&str> = TARGETS.iter().map(|(n, _)| *n).collect();
-    let mut dirs: Vec<String> =
-        files_and_dirs(&root.join("corpus")).into_iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    let mut dirs: Vec<String> = files_and_dirs(&root.join("corpus"))
+        .into_iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
     dirs.sort();
     let mut bins: Vec<String> = files(&root.join("fuzz_targets"))
         .into_iter()

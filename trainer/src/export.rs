@@ -153,7 +153,8 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     let params: BodyParams = match (&a.fit, &a.pose, &photo) {
         (Some(f), _, _) => {
             let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
-            let fit = BodyFit::from_json(&text).map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", f.display()))?;
+            let fit = BodyFit::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", f.display()))?;
             let mut p = fit.body_params();
             p.betas.truncate(model.num_betas);
             p

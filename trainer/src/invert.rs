@@ -190,7 +190,8 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
         bail!("--res must be between 16 and 1024 (got {res})");
     }
     let text = std::fs::read_to_string(fit_path).with_context(|| format!("reading {}", fit_path.display()))?;
-    let fit = BodyFit::from_json(&text).map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", fit_path.display()))?;
+    let fit = BodyFit::from_json(&text)
+        .map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", fit_path.display()))?;
     let photo = open_image(image)?;
     let (w, h) = (photo.width() as usize, photo.height() as usize);
     if (w, h) != (fit.framing.photo_width, fit.framing.photo_height) {
