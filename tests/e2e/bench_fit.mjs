@@ -9,39 +9,17 @@
 // Headless Chromium runs WebGPU on SwiftShader (a CPU); on a real GPU the WebGPU figure is
 // the one to re-measure.
 
-import { chromium } from 'playwright-core';
-import { PNG } from 'pngjs';
-import fs from 'node:fs';
+import { appStatus, greyPhoto, launchChromium } from './browser.mjs';
 
 const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
 const iterations = (process.argv[2] ?? '5,5,3').split(',').map(Number);
-const browser = await chromium.launch({
-  executablePath: process.env.GETAVATAR_CHROMIUM ?? '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--enable-unsafe-webgpu', '--use-angle=swiftshader', '--enable-features=Vulkan',
-    '--use-vulkan=swiftshader', '--disable-quic'],
-});
+const browser = await launchChromium();
 const page = await (await browser.newContext({ viewport: { width: 1280, height: 800 } })).newPage();
-const status = () => page.evaluate(() => (window.getavatar ? window.getavatar.status() : null)).catch(() => null);
-async function waitFor(pred, what, timeout = 900000) {
-  const t0 = Date.now();
-  for (;;) {
-    const s = await status();
-    if (s && pred(s)) return s;
-    if (Date.now() - t0 > timeout) throw new Error(`timed out waiting for ${what}`);
-    await page.waitForTimeout(250);
-  }
-}
+const { status, waitFor } = appStatus(page, { timeoutMs: 900000 });
 await page.goto(url);
 const st = await waitFor((s) => s.ready, 'the app');
 // The e2e photo over grey, as a blob URL the app fetches.
-const render = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
-for (let k = 0; k < render.data.length; k += 4) {
-  const a = render.data[k + 3] / 255;
-  for (let c = 0; c < 3; c++) render.data[k + c] = Math.round(render.data[k + c] * a + 120 * (1 - a));
-  render.data[k + 3] = 255;
-}
-const bytes = [...PNG.sync.write(render)];
+const bytes = [...greyPhoto()];
 async function fit(device, its) {
   const before = (await status()).photo.fits;
   const err = await page.evaluate(([b, device, its]) => window.getavatar.command({

@@ -10,8 +10,7 @@
 // Headless Chromium runs WebGPU on SwiftShader (a CPU); on a real GPU the figures are the
 // ones to re-measure. GETAVATAR_OUT (default out/) receives a screenshot per size.
 
-import { chromium } from 'playwright-core';
-import { PNG } from 'pngjs';
+import { appStatus, greyPhoto, launchChromium } from './browser.mjs';
 import fs from 'node:fs';
 import path from 'node:path';
 
@@ -21,34 +20,14 @@ fs.mkdirSync(out, { recursive: true });
 const sizes = (process.argv[2] ?? '64,128').split(',').map(Number);
 const steps = Number(process.argv[3] ?? 4);
 const ptiSteps = Number(process.argv[4] ?? 3);
-const browser = await chromium.launch({
-  executablePath: process.env.GETAVATAR_CHROMIUM ?? '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--enable-unsafe-webgpu', '--use-angle=swiftshader', '--enable-features=Vulkan',
-    '--use-vulkan=swiftshader', '--disable-quic'],
-});
+const browser = await launchChromium();
 const page = await (await browser.newContext({ viewport: { width: 1280, height: 800 } })).newPage();
 page.on('console', (m) => { if (m.type() === 'error') console.log(`console error: ${m.text()}`); });
-const status = () => page.evaluate(() => (window.getavatar ? window.getavatar.status() : null)).catch(() => null);
-async function waitFor(pred, what, timeout = 1800000) {
-  const t0 = Date.now();
-  for (;;) {
-    const s = await status();
-    if (s && pred(s)) return s;
-    if (Date.now() - t0 > timeout) throw new Error(`timed out waiting for ${what}: ${JSON.stringify(s?.reconstruct)}`);
-    await page.waitForTimeout(250);
-  }
-}
+const { status, waitFor } = appStatus(page);
 await page.goto(url);
 const st = await waitFor((s) => s.ready && !/loading/.test(s.model), 'the app and its model');
 // The e2e photo over grey, as a blob URL the app fetches.
-const render = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
-for (let k = 0; k < render.data.length; k += 4) {
-  const a = render.data[k + 3] / 255;
-  for (let c = 0; c < 3; c++) render.data[k + c] = Math.round(render.data[k + c] * a + 120 * (1 - a));
-  render.data[k + 3] = 255;
-}
-const bytes = [...PNG.sync.write(render)];
+const bytes = [...greyPhoto()];
 const err = await page.evaluate((b) => window.getavatar.command({
   photo: { url: URL.createObjectURL(new Blob([new Uint8Array(b)], { type: 'image/png' })) },
 }), bytes);

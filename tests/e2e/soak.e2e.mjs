@@ -17,7 +17,7 @@
 // GETAVATAR_URL (default http://127.0.0.1:8080/), GETAVATAR_CHROMIUM and GETAVATAR_OUT as
 // for app.e2e.mjs.
 
-import { chromium } from 'playwright-core';
+import { appStatus, launchChromium } from './browser.mjs';
 import fs from 'node:fs';
 import path from 'node:path';
 
@@ -103,12 +103,7 @@ const actions = [...warmup, ...Array.from({ length: N }, () => {
 })];
 const WARMUP = warmup.length;
 
-const browser = await chromium.launch({
-  executablePath: process.env.GETAVATAR_CHROMIUM ?? '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--enable-unsafe-webgpu', '--use-angle=swiftshader', '--enable-features=Vulkan',
-    '--use-vulkan=swiftshader', '--disable-quic', '--enable-precise-memory-info'],
-});
+const browser = await launchChromium(['--enable-precise-memory-info']);
 const context = await browser.newContext({ viewport: { width: 1280, height: 800 }, acceptDownloads: true });
 const page = await context.newPage();
 await page.addInitScript(() => {
@@ -141,20 +136,11 @@ page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text(
 page.on('pageerror', (e) => consoleErrors.push(`pageerror: ${e.message}`));
 page.on('download', (d) => d.cancel().catch(() => {}));
 
-const status = () => page.evaluate(() => (window.getavatar ? window.getavatar.status() : null));
-async function waitFor(pred, what, timeout = 600000) {
-  const t0 = Date.now();
-  for (;;) {
-    const s = await status().catch(() => null);
-    if (s && pred(s)) return s;
-    if (Date.now() - t0 > timeout) {
-      throw new Error(`timed out waiting for ${what}; status: ${JSON.stringify(s && {
-        generating: s.generating, photo: s.photo.state, showing: s.showing, renders: s.renders, fps: s.fps, errors: s.errors.slice(-3),
-      })}`);
-    }
-    await page.waitForTimeout(100);
-  }
-}
+const { status, waitFor: poll } = appStatus(page, { intervalMs: 100, timeoutMs: 600000 });
+// On a timeout, what the app was doing.
+const waitFor = (pred, what, timeout) => poll(pred, what, timeout, (s) => JSON.stringify(s && {
+  generating: s.generating, photo: s.photo.state, showing: s.showing, renders: s.renders, fps: s.fps, errors: s.errors.slice(-3),
+}));
 const memory = () => page.evaluate(() => ({
   heap: performance.memory?.usedJSHeapSize ?? 0,
   wasm: window.getavatar.wasmMemoryBytes?.() ?? 0,
