@@ -419,3 +419,55 @@ fn nearest_rotation_is_the_polar_factor_of_the_svd() {
     }
     assert!(worst < 1e-4, "largest entry difference from the SVD's polar factor: {worst}");
 }
+
+/// A pause that is pending once, as a browser's next task would be.
+struct PendingOnce(bool);
+
+impl std::future::Future for PendingOnce {
+    type Output = ();
+    fn poll(mut self: std::pin::Pin<&mut Self>, cx: &mut std::task::Context<'_>) -> std::task::Poll<()> {
+        if std::mem::replace(&mut self.0, true) {
+            std::task::Poll::Ready(())
+        } else {
+            cx.waker().wake_by_ref();
+            std::task::Poll::Pending
+        }
+    }
+}
+
+/// Poll `fut` to its end as an event loop would; the output and how often it was pending.
+fn drive<F: std::future::Future>(fut: F) -> (F::Output, usize) {
+    let mut fut = std::pin::pin!(fut);
+    let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+    let mut pending = 0;
+    loop {
+        match fut.as_mut().poll(&mut cx) {
+            std::task::Poll::Ready(v) => return (v, pending),
+            std::task::Poll::Pending => pending += 1,
+        }
+    }
+}
+
+#[test]
+fn sliced_template_sdf_gives_the_thread_back_and_the_same_values() {
+    use getavatar_core::cooperative::{install, uninstall, Pause};
+    use std::rc::Rc;
+    let model = body();
+    let cano = canonical_body(&model);
+    let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
+    let reference = TemplateSdf::from_mesh(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3);
+    // A host that takes the thread back at every checkpoint (the browser's hook decides by
+    // time; pausing always is the strictest case).
+    install(Rc::new(|| Some(Box::pin(PendingOnce(false)) as Pause)));
+    let (sliced, pauses) =
+        drive(TemplateSdf::from_mesh_async(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3));
+    // The synchronous form ignores the hook (nothing could resume it).
+    let blocking = TemplateSdf::from_mesh(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3);
+    uninstall();
+    assert_eq!(sliced.values, reference.values);
+    assert_eq!(blocking.values, reference.values);
+    // Faces in slices of 256 (four passes over them), the chamfer sweeps slice by slice (2 × 64),
+    // the parity fill per grid line (3 × 64).
+    let faces = model.faces.len() / 256;
+    assert!(pauses >= 4 * faces + 2 * 64 + 3 * 64, "{pauses} pauses for {} faces", model.faces.len());
+}

@@ -12,6 +12,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
 use crate::body_model::BodyModel;
+use crate::cooperative::checkpoint;
 use crate::fields::{band_fields, points_tensor};
 use crate::geometry::{marching_tets, InverseSkinning, PosedGrid, TriMesh};
 use crate::network::decoders::Decoders;
@@ -157,6 +158,11 @@ impl BodyContext {
     pub fn new(model: BodyModel, cfg: &GeneratorConfig) -> Self {
         Self::with_resolution(model, cfg.template_res, cfg.tet_res)
     }
+
+    /// [`BodyContext::new`] with checkpoints (`cooperative`), for the browser.
+    pub async fn new_async(model: BodyModel, cfg: &GeneratorConfig) -> Self {
+        Self::with_resolution_async(model, cfg.template_res, cfg.tet_res).await
+    }
 }
 
 /// A generated, posed, coloured avatar mesh.
@@ -197,14 +203,19 @@ pub async fn generate_avatar_async(
     params: &BodyParams,
     device: &Device,
 ) -> Result<Avatar, ReadbackError> {
+    // Checkpoints between the stages (`cooperative`): in the browser each is a slice of the
+    // UI thread's time.
     let planes = g.triplanes(s);
+    checkpoint().await;
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-    let PosedGrid { canonical: canon, template, band } = PosedGrid::new(ctx, &inv);
+    checkpoint().await;
+    let PosedGrid { canonical: canon, template, band } = PosedGrid::new_async(ctx, &inv).await;
     let band_points: Vec<Vec3> = band.iter().map(|&i| canon[i as usize]).collect();
     let fields = band_fields(g, &planes, s, points_tensor(&band_points, device), &band, canon.len()).await?;
     let sdf = fields.sdf(&template, &ctx.boundary);
     let positions = fields.positions(&ctx.grid.vertices);
+    checkpoint().await;
     // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
     // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
     // seen and would only pollute the exported mesh.
@@ -212,6 +223,7 @@ pub async fn generate_avatar_async(
     if mesh.vertices.is_empty() {
         return Ok(Avatar { mesh, normals: Vec::new(), colors: Vec::new() });
     }
+    checkpoint().await;
     // Normal field (eq. 4) at each vertex's canonical coordinate.
     let grad = read_f32(normal_field::sdf_gradient(
         g,
@@ -260,5 +272,6 @@ pub async fn generate_rigged_async(
 ) -> Result<RiggedAvatar, ReadbackError> {
     let params = BodyParams { pose: crate::pose_library::da_pose(), ..Default::default() };
     let a = generate_avatar_async(g, ctx, s, &params, device).await?;
+    checkpoint().await;
     Ok(RiggedAvatar::new(a, ctx))
 }

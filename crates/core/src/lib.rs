@@ -40,6 +40,7 @@ pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod checkpoint;
 pub mod colour;
+pub mod cooperative;
 #[cfg(feature = "dataset")]
 pub mod dataset;
 #[cfg(any(feature = "generator", feature = "wgpu"))]

@@ -56,6 +56,8 @@ pub fn read_f32_now<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, ReadbackEr
 /// the `async` pipelines that the browser awaits run natively without an executor.
 #[cfg(not(target_arch = "wasm32"))]
 pub fn block_on_ready<F: std::future::Future>(fut: F) -> F::Output {
+    // Checkpoints do not pause in here (`cooperative`): nothing would resume them.
+    let _scope = crate::cooperative::BlockingScope::enter();
     let mut fut = std::pin::pin!(fut);
     let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
     loop {

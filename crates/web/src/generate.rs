@@ -94,6 +94,10 @@ struct Shipped {
 
 type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
 
+/// What the engine prepares at start: the shipped checkpoint (or why none) and the body's
+/// context (None without a body model).
+type Loaded = (Result<Shipped, String>, Option<Rc<BodyContext>>);
+
 /// An avatar's texture field: its generator (the engine's, or a reconstruction's tuned one),
 /// styles, and triplanes once computed (a new generation computes them inside the
 /// extraction; they are made again only if the per-pixel texture view asks); and for a
@@ -168,8 +172,8 @@ pub struct GenEngine {
     discriminator: Result<Rc<Vec<u8>>, String>,
     ctx: Option<Rc<BodyContext>>,
     slot: Rc<RefCell<Option<Result<Finished, String>>>>,
-    /// The fetched checkpoint, parsed (taken by [`GenEngine::poll`]).
-    weights_slot: Rc<RefCell<Option<Result<Shipped, String>>>>,
+    /// The fetched checkpoint, parsed, and the body context (taken by [`GenEngine::poll`]).
+    weights_slot: Rc<RefCell<Option<Loaded>>>,
     pub weights: Weights,
     texture_slot: Rc<RefCell<Option<TextureColours>>>,
     bake_slot: Rc<RefCell<Option<Bake>>>,
@@ -182,8 +186,13 @@ pub struct GenEngine {
 
 impl GenEngine {
     /// Register egui's wgpu device with burn, build the `demo` generator and start fetching
-    /// its trained weights.
-    pub fn new(rs: &egui_wgpu::RenderState, repaint: eframe::egui::Context) -> Result<Self, String> {
+    /// its trained weights and preparing `body`'s context (its template SDF: a second of work
+    /// done in slices, `core::cooperative`); generations asked for before both are ready wait.
+    pub fn new(
+        rs: &egui_wgpu::RenderState,
+        body: Option<BodyModel>,
+        repaint: eframe::egui::Context,
+    ) -> Result<Self, String> {
         let setup = WgpuSetup {
             instance: rs.instance.clone(),
             adapter: rs.adapter.clone(),
@@ -202,7 +211,11 @@ impl GenEngine {
             let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
             wasm_bindgen_futures::spawn_local(async move {
                 let loaded = load_shipped(&cfg, &device).await;
-                *slot.borrow_mut() = Some(loaded);
+                let ctx = match body {
+                    Some(b) => Some(Rc::new(BodyContext::new_async(b, &cfg).await)),
+                    None => None,
+                };
+                *slot.borrow_mut() = Some((loaded, ctx));
                 repaint.request_repaint();
             });
         }
@@ -229,7 +242,6 @@ impl GenEngine {
     /// [`GenEngine::poll`].
     pub fn start(
         &mut self,
-        body: &BodyModel,
         seeds: (u64, u64),
         psi: Option<f32>,
         keep: Option<RiggedAvatar>,
@@ -243,7 +255,10 @@ impl GenEngine {
             self.busy = true;
             return;
         }
-        let ctx = self.body_context(body);
+        let Some(ctx) = self.ctx.clone() else {
+            *self.slot.borrow_mut() = Some(Err("no body model: nothing to generate on".into()));
+            return;
+        };
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
         let modes = self.modes.clone();
@@ -286,9 +301,10 @@ impl GenEngine {
 
     /// The finished generation, if any (once). Also installs fetched weights and starts a
     /// generation that waited for them.
-    pub fn poll(&mut self, body: &BodyModel) -> Option<Result<Finished, String>> {
+    pub fn poll(&mut self) -> Option<Result<Finished, String>> {
         let fetched = self.weights_slot.borrow_mut().take();
-        if let Some(w) = fetched {
+        if let Some((w, ctx)) = fetched {
+            self.ctx = ctx;
             self.weights = match w {
                 Ok(shipped) => {
                     self.generator = Rc::new(shipped.generator);
@@ -306,7 +322,7 @@ impl GenEngine {
             };
             if let Some((seeds, psi, keep, repaint)) = self.pending.take() {
                 self.busy = false;
-                self.start(body, seeds, psi, keep, repaint);
+                self.start(seeds, psi, keep, repaint);
             }
         }
         let r = self.slot.borrow_mut().take();
@@ -374,15 +390,13 @@ impl GenEngine {
         self.ctx.as_deref()
     }
 
-    /// The body context (made on first use).
-    pub fn body_context(&mut self, body: &BodyModel) -> Rc<BodyContext> {
-        match &self.ctx {
-            Some(c) => c.clone(),
-            None => {
-                let c = Rc::new(BodyContext::new(body.clone(), &self.cfg));
-                self.ctx = Some(c.clone());
-                c
-            }
+    /// The body context (prepared with the weights; an error while they load or without a
+    /// body model).
+    pub fn body_context(&self) -> Result<Rc<BodyContext>, String> {
+        match (&self.weights, &self.ctx) {
+            (Weights::Loading, _) => Err("the model is still loading".into()),
+            (_, Some(c)) => Ok(c.clone()),
+            (_, None) => Err("no body model is loaded".into()),
         }
     }
 

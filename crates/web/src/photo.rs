@@ -22,7 +22,7 @@ use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
 use crate::platform::{fetch_bytes, js_message, now_ms};
-use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
+use crate::task::{checkpoint, EventKind, Task, TaskEvent};
 
 #[wasm_bindgen(raw_module = "./pose_detect.js")]
 extern "C" {
@@ -200,14 +200,10 @@ async fn fit_async(
     if let Some(start) = &req.start {
         fitter.start_from(start);
     }
-    let mut last_yield = now_ms();
     loop {
-        // On the CPU a step never waits for anything: hand the page a frame every ~100 ms so
-        // it repaints, shows the progress and sees Cancel.
-        if now_ms() - last_yield > 100.0 {
-            yield_to_browser().await;
-            last_yield = now_ms();
-        }
+        // On the CPU a step never waits for anything: give the page the thread back once the
+        // slice is over (`task::SLICE_MS`), so it repaints, shows the progress and sees Cancel.
+        checkpoint().await;
         if task.cancelled() {
             return Ok(None);
         }

@@ -128,6 +128,8 @@ pub fn start() {
     // registrations: most of the main thread's time in a browser CPU profile of a retexture.
     // SAFETY: called once, first, before any code that reads what they register.
     unsafe { __wasm_call_ctors() };
+    // Long CPU stages of core run in slices between frames (issue #23: no task over 100 ms).
+    crate::task::install_time_slicing();
     // With panic = abort a panic stops the app for good: say so over the canvas (the page's
     // `getavatarFatal`, which offers a reload) and in the console, never a frozen canvas.
     std::panic::set_hook(Box::new(|info| {

@@ -10,6 +10,7 @@ use super::inverse_skinning::{canonical_body, InverseSkinning, UNWARP_SLACK};
 use super::template_sdf::TemplateSdf;
 use super::tet_grid::{TetGrid, REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::body_model::BodyModel;
+use crate::cooperative::{checkpoint, run_blocking};
 use crate::skinning::PosedBody;
 
 /// Bound of the generator's SDF residual on top of the template SDF, metres: loose dresses,
@@ -32,10 +33,18 @@ impl BodyContext {
     /// The context of `model` for a template SDF of `template_res`³ cells and a tet grid of
     /// `tet_res`³ cubes (a generator config's `template_res` and `tet_res`).
     pub fn with_resolution(model: BodyModel, template_res: usize, tet_res: usize) -> Self {
+        run_blocking(Self::with_resolution_async(model, template_res, tet_res))
+    }
+
+    /// [`BodyContext::with_resolution`] with checkpoints (the template SDF is about a second
+    /// of work in the browser).
+    pub async fn with_resolution_async(model: BodyModel, template_res: usize, tet_res: usize) -> Self {
         let canonical = canonical_body(&model);
         let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
         let template =
-            TemplateSdf::from_mesh(&canonical.vertices, &model.faces, template_res, min, REFERENCE_BOX_SIZE, 3);
+            TemplateSdf::from_mesh_async(&canonical.vertices, &model.faces, template_res, min, REFERENCE_BOX_SIZE, 3)
+                .await;
+        checkpoint().await;
         let grid = TetGrid::reference(tet_res);
         let boundary = grid.boundary_flags();
         Self { model, canonical, template, grid, boundary }
@@ -79,6 +88,10 @@ pub fn far_from_body(ctx: &BodyContext) -> f32 {
     ctx.field_reach() + UNWARP_SLACK + ctx.grid_edge()
 }
 
+/// Grid vertices un-warped between two checkpoints in the browser (~1 ms of work).
+#[cfg(target_arch = "wasm32")]
+const VERTICES_PER_SLICE: usize = 512;
+
 /// The tet grid under one body pose (paper eq. 2): each posed-space grid vertex carried to
 /// canonical space by SMPL-guided inverse skinning, and the template SDF there.
 pub struct PosedGrid {
@@ -97,6 +110,16 @@ impl PosedGrid {
 
     /// [`PosedGrid::new`] with the far-vertex distance `far` (`f32::INFINITY`: un-warp all).
     pub fn with_far(ctx: &BodyContext, inv: &InverseSkinning, far: f32) -> Self {
+        run_blocking(Self::with_far_async(ctx, inv, far))
+    }
+
+    /// [`PosedGrid::new`] for any host: natively split over the CPU cores as a whole; in the
+    /// browser in slices with a [`checkpoint`] after each (the grid is ~0.8 s of work there).
+    pub async fn new_async(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
+        Self::with_far_async(ctx, inv, far_from_body(ctx)).await
+    }
+
+    async fn with_far_async(ctx: &BodyContext, inv: &InverseSkinning, far: f32) -> Self {
         let verts = &ctx.grid.vertices;
         let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk, far) };
         #[cfg(not(target_arch = "wasm32"))]
@@ -114,7 +137,11 @@ impl PosedGrid {
             })
         };
         #[cfg(target_arch = "wasm32")]
-        let mapped = map(verts);
+        let mapped = {
+            let mut all = Vec::with_capacity(verts.len());
+            crate::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |_, c| all.extend(map(c))).await;
+            all
+        };
         let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
         let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
         let band = field_band(ctx, &template, &guarded);

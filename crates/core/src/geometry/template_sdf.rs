@@ -12,6 +12,11 @@
 
 use glam::Vec3;
 
+use crate::cooperative::{checkpoint, run_blocking};
+
+/// Faces between two checkpoints (a few milliseconds of work in wasm).
+const FACES_PER_SLICE: usize = 256;
+
 /// Value of points outside the grid box (empty space).
 pub const OUTSIDE_VALUE: f32 = 10.0;
 
@@ -63,6 +68,19 @@ impl TemplateSdf {
     /// Build from a closed, outward-oriented triangle mesh on a `res³` grid spanning the cube
     /// with minimum corner `min` and edge `size`.
     pub fn from_mesh(vertices: &[Vec3], faces: &[[u32; 3]], res: usize, min: Vec3, size: f32, band: usize) -> Self {
+        run_blocking(Self::from_mesh_async(vertices, faces, res, min, size, band))
+    }
+
+    /// [`TemplateSdf::from_mesh`] in slices, with a [`checkpoint`] after each (a 128³ grid is a
+    /// second of work in the browser).
+    pub async fn from_mesh_async(
+        vertices: &[Vec3],
+        faces: &[[u32; 3]],
+        res: usize,
+        min: Vec3,
+        size: f32,
+        band: usize,
+    ) -> Self {
         let res = res.max(2);
         let cell = size / (res - 1) as f32;
         let n = res;
@@ -70,7 +88,10 @@ impl TemplateSdf {
         let limit = band.max(1) as f32 * cell;
         let mut dist = vec![limit; n * n * n];
         let to_grid = |p: Vec3| (p - min) / cell;
-        for f in faces {
+        for (fi, f) in faces.iter().enumerate() {
+            if fi % FACES_PER_SLICE == FACES_PER_SLICE - 1 {
+                checkpoint().await;
+            }
             let [a, b, c] = f.map(|i| vertices[i as usize]);
             let lo = (to_grid(a.min(b).min(c)) - Vec3::splat(band as f32)).floor().max(Vec3::ZERO);
             let hi = (to_grid(a.max(b).max(c)) + Vec3::splat(band as f32)).ceil().min(Vec3::splat((n - 1) as f32));
@@ -90,8 +111,11 @@ impl TemplateSdf {
                 }
             }
         }
-        chamfer_fill(&mut dist, n, cell, limit);
-        let votes = [0usize, 1, 2].map(|axis| parity_inside(vertices, faces, n, min, cell, axis));
+        chamfer_fill(&mut dist, n, cell, limit).await;
+        let mut votes = Vec::with_capacity(3);
+        for axis in 0..3 {
+            votes.push(parity_inside(vertices, faces, n, min, cell, axis).await);
+        }
         let values = (0..n * n * n)
             .map(|q| {
                 let inside = votes.iter().filter(|v| v[q]).count() >= 2;
@@ -134,8 +158,9 @@ impl TemplateSdf {
 }
 
 /// Extend distances beyond the narrow band (values ≥ `limit`) with a two-pass 3-D chamfer
-/// transform: forward and backward raster sweeps over half of the 26-neighbourhood each.
-fn chamfer_fill(dist: &mut [f32], n: usize, cell: f32, limit: f32) {
+/// transform: forward and backward raster sweeps over half of the 26-neighbourhood each
+/// (a checkpoint after every slice of the grid).
+async fn chamfer_fill(dist: &mut [f32], n: usize, cell: f32, limit: f32) {
     for d in dist.iter_mut() {
         if *d >= limit {
             *d = f32::INFINITY;
@@ -171,9 +196,16 @@ fn chamfer_fill(dist: &mut [f32], n: usize, cell: f32, limit: f32) {
             dist[q as usize] = best;
         }
     };
-    let total = (n * n * n) as i64;
-    sweep(dist, &fwd, &mut (0..total));
-    sweep(dist, &bwd, &mut (0..total).rev());
+    // Slice by slice along z: forward in raster order, backward in reverse.
+    let slice = n_i * n_i;
+    for k in 0..n_i {
+        sweep(dist, &fwd, &mut (k * slice..(k + 1) * slice));
+        checkpoint().await;
+    }
+    for k in (0..n_i).rev() {
+        sweep(dist, &bwd, &mut (k * slice..(k + 1) * slice).rev());
+        checkpoint().await;
+    }
     for d in dist.iter_mut() {
         if !d.is_finite() {
             *d = limit;
@@ -192,12 +224,22 @@ pub fn central_difference_normal(f: impl Fn(Vec3) -> f32, p: Vec3, h: f32) -> Ve
 }
 
 /// Inside flags of all grid points from the parity of surface crossings along rays parallel
-/// to `axis`, cast from below each grid line.
-fn parity_inside(vertices: &[Vec3], faces: &[[u32; 3]], n: usize, min: Vec3, cell: f32, axis: usize) -> Vec<bool> {
+/// to `axis`, cast from below each grid line (checkpoints between slices of the work).
+async fn parity_inside(
+    vertices: &[Vec3],
+    faces: &[[u32; 3]],
+    n: usize,
+    min: Vec3,
+    cell: f32,
+    axis: usize,
+) -> Vec<bool> {
     let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
     // Crossing coordinates (along `axis`) per grid line (iu, iv).
     let mut hits: Vec<Vec<f32>> = vec![Vec::new(); n * n];
-    for f in faces {
+    for (fi, f) in faces.iter().enumerate() {
+        if fi % FACES_PER_SLICE == FACES_PER_SLICE - 1 {
+            checkpoint().await;
+        }
         let p = f.map(|i| vertices[i as usize]);
         let pu = p.map(|q| (q[u] - min[u]) / cell);
         let pv = p.map(|q| (q[v] - min[v]) / cell);
@@ -237,6 +279,7 @@ fn parity_inside(vertices: &[Vec3], faces: &[[u32; 3]], n: usize, min: Vec3, cel
     }
     let mut inside = vec![false; n * n * n];
     for iu in 0..n {
+        checkpoint().await;
         for iv in 0..n {
             let h = &mut hits[iu + n * iv];
             h.sort_by(f32::total_cmp);

@@ -125,10 +125,17 @@ impl GetAvatarApp {
     pub fn new(cc: &eframe::CreationContext<'_>, startup: Vec<Action>, startup_errors: Vec<String>) -> Self {
         let mut status = Status::default();
         let mut messages = startup_errors;
+        let body = match BodyModel::default_body() {
+            Ok(b) => Some(b),
+            Err(e) => {
+                messages.push(format!("cannot load the embedded body model: {e}"));
+                None
+            }
+        };
         let mut engine = None;
         let viewer = match &cc.wgpu_render_state {
             Some(rs) => {
-                match GenEngine::new(rs, cc.egui_ctx.clone()) {
+                match GenEngine::new(rs, body.clone(), cc.egui_ctx.clone()) {
                     Ok(e) => engine = Some(e),
                     Err(e) => messages.push(e),
                 }
@@ -146,13 +153,6 @@ impl GetAvatarApp {
             }
             None => {
                 messages.push("no wgpu render state: WebGPU is unavailable in this browser".into());
-                None
-            }
-        };
-        let body = match BodyModel::default_body() {
-            Ok(b) => Some(b),
-            Err(e) => {
-                messages.push(format!("cannot load the embedded body model: {e}"));
                 None
             }
         };
@@ -282,7 +282,7 @@ impl GetAvatarApp {
     /// Start a queued generation (needs egui's context for the repaint callback).
     fn start_queued(&mut self, ctx: &egui::Context) {
         let Some((texture_only, a)) = self.queued.take() else { return };
-        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else {
+        let Some(engine) = self.engine.as_mut() else {
             self.messages.push("the generator is not available (no WebGPU device for burn)".into());
             return;
         };
@@ -308,12 +308,12 @@ impl GetAvatarApp {
         // Until the user sets ψ, the loaded model's default applies (0 for a checkpoint with
         // latent modes: its training subjects, `generator::default_psi`).
         let psi = self.psi_from_user.then_some(self.psi);
-        engine.start(body, (self.seed_geo, self.seed_tex), psi, keep, ctx.clone());
+        engine.start((self.seed_geo, self.seed_tex), psi, keep, ctx.clone());
     }
 
     fn poll_generation(&mut self) {
-        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else { return };
-        let polled = engine.poll(body);
+        let Some(engine) = self.engine.as_mut() else { return };
+        let polled = engine.poll();
         self.status.generating = engine.busy;
         self.status.model = engine.weights.describe();
         match polled {

@@ -100,7 +100,7 @@ impl GetAvatarApp {
             self.messages.push("a reconstruction is running: wait for it or cancel it first".into());
             return;
         }
-        let (Some(engine), Some(body)) = (self.engine.as_mut(), self.body.as_ref()) else {
+        let Some(engine) = self.engine.as_mut() else {
             self.fail_reconstruct("the generator is not available (no WebGPU device for burn)".into());
             return;
         };
@@ -111,7 +111,13 @@ impl GetAvatarApp {
                 return;
             }
         };
-        let ctx = engine.body_context(body);
+        let ctx = match engine.body_context() {
+            Ok(c) => c,
+            Err(e) => {
+                self.fail_reconstruct(format!("cannot open a reconstruction yet: {e}"));
+                return;
+            }
+        };
         let device = engine.device().clone();
         let s = &mut self.status.reconstruct;
         s.state = "opening".into();
@@ -150,7 +156,13 @@ impl GetAvatarApp {
                 return;
             }
         };
-        let ctx = engine.body_context(body);
+        let ctx = match engine.body_context() {
+            Ok(c) => c,
+            Err(e) => {
+                self.fail_reconstruct(format!("cannot reconstruct yet: {e}"));
+                return;
+            }
+        };
         let device = engine.device().clone().autodiff();
         // The photo as the app holds it (downscaled to at most 768 pixels), which covers the
         // photo the fit was made on.
