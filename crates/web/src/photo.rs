@@ -26,12 +26,14 @@ use crate::task::{checkpoint, EventKind, Task, TaskEvent};
 
 #[wasm_bindgen(raw_module = "./pose_detect.js")]
 extern "C" {
-    /// MediaPipe Pose on a photo's bytes: a JSON string (the result, or `{"error": …}`).
+    /// MediaPipe Pose on a photo's bytes, in a worker: a JSON string (the result, or
+    /// `{"error": …}`); the photo is kept for [`photo_preview`] at most `preview_side` pixels
+    /// on its long side.
     #[wasm_bindgen(catch, js_name = detectPose)]
-    async fn detect_pose(bytes: &js_sys::Uint8Array) -> Result<JsValue, JsValue>;
+    async fn detect_pose(bytes: &js_sys::Uint8Array, preview_side: u32) -> Result<JsValue, JsValue>;
     /// The last detected photo, downscaled: `{width, height, data}` or null.
     #[wasm_bindgen(catch, js_name = photoPreview)]
-    fn photo_preview(max_side: u32) -> Result<JsValue, JsValue>;
+    fn photo_preview() -> Result<JsValue, JsValue>;
 }
 
 /// Long side of the photo as the app shows it, pixels.
@@ -118,7 +120,9 @@ pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
 
 async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, String> {
     let array = js_sys::Uint8Array::from(bytes);
-    let answer = detect_pose(&array).await.map_err(|e| format!("the person detector failed: {}", js_message(&e)))?;
+    let answer = detect_pose(&array, PREVIEW_SIDE)
+        .await
+        .map_err(|e| format!("the person detector failed: {}", js_message(&e)))?;
     let json = answer.as_string().ok_or("the person detector returned no answer")?;
     let head: DetectorAnswer =
         serde_json::from_str(&json).map_err(|e| format!("the person detector's answer is not JSON: {e}"))?;
@@ -147,7 +151,7 @@ async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, Stri
 
 /// The last detected photo as an egui image.
 fn preview_image() -> Result<egui::ColorImage, String> {
-    let v = photo_preview(PREVIEW_SIDE).map_err(|e| format!("cannot read the photo back: {}", js_message(&e)))?;
+    let v = photo_preview().map_err(|e| format!("cannot read the photo back: {}", js_message(&e)))?;
     let get = |k: &str| js_sys::Reflect::get(&v, &JsValue::from_str(k)).map_err(|e| js_message(&e));
     let (w, h) = (get("width")?.as_f64(), get("height")?.as_f64());
     let data: js_sys::Uint8Array =

@@ -22,6 +22,7 @@
 //! Units: reprojection residuals are measured in pixels of a 256² crop (NDC × 128), the
 //! weights of [`FitWeights`] are relative to one such squared pixel.
 
+use crate::cooperative::checkpoint;
 use std::sync::Arc;
 
 use burn::module::{Module, Param};
@@ -470,9 +471,13 @@ impl BodyFitter {
         if self.stage >= 3 {
             return Ok(None);
         }
+        // Checkpoints (`cooperative`) between the parts of a step: a silhouette step is ~100 ms
+        // of work in the browser, whose UI thread it runs on.
         let loss = self.loss(self.stage).await?;
         let value = read_f32(loss.clone()).await?.first().copied().unwrap_or(f32::NAN);
+        checkpoint().await;
         let grads = loss.backward();
+        checkpoint().await;
         // A module clone shares its tensors; Adam returns the updated parameters.
         self.params = self.adam.step(self.options.learning_rate, self.params.clone(), &grads);
         self.stage_loss[self.stage] = Some(value);
@@ -522,6 +527,7 @@ impl BodyFitter {
         if !torso {
             let surface = self.surface.pose(&posed, &betas, &self.skeleton);
             loss = loss + self.reprojection(self.project(surface), &self.points, false);
+            checkpoint().await;
         }
         loss = loss / norm.max(1e-6);
         if torso {
@@ -572,10 +578,13 @@ impl BodyFitter {
         let verts = all.pose(posed, betas, &self.skeleton);
         let clip = self.clip(verts);
         let host = read_f32(clip.clone().detach()).await?;
+        checkpoint().await;
         let clip_host: Vec<Vec4> = host.chunks_exact(4).map(Vec4::from_slice).collect();
         let raster = crate::rasterize::rasterize(&clip_host, &self.model.faces, size, size);
         let cov = diff_raster::Coverage::new(&raster, &self.model.faces);
+        checkpoint().await;
         let pairs = diff_raster::silhouette_pairs(&raster, &clip_host, &self.model.faces);
+        checkpoint().await;
         let dev = &self.device;
         let image = if cov.is_empty() {
             Tensor::<2>::zeros([size * size, 1], dev)

@@ -568,3 +568,12 @@ impl GetAvatarApp {
         }
     }
 }
+
+/// A busy indicator that redraws three times a second. egui's spinner asks for a frame every
+/// frame, which on a software GPU takes the GPU time the background job it stands for needs
+/// (MediaPipe's WebGL in the detector's worker shares the GPU process with the page).
+pub(crate) fn busy_indicator(ui: &mut egui::Ui) {
+    let phase = (ui.input(|i| i.time) * 3.0) as usize % 3;
+    ui.label(["●○○", "○●○", "○○●"][phase]);
+    ui.ctx().request_repaint_after(std::time::Duration::from_millis(333));
+}

@@ -274,7 +274,7 @@ impl GetAvatarApp {
         });
         if self.pending_download.is_some() {
             ui.horizontal(|ui| {
-                ui.spinner();
+                super::busy_indicator(ui);
                 ui.label(format!("baking the {}² texture…", self.texture_res));
             });
         }

@@ -39,7 +39,7 @@ impl GetAvatarApp {
                 self.apply(Action::Retexture(GenerateArgs::default()));
             }
             if busy {
-                ui.spinner();
+                super::busy_indicator(ui);
             }
         });
         if self.rigged.is_some() {

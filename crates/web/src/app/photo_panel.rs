@@ -413,7 +413,7 @@ impl GetAvatarApp {
                 }
             }
             if self.photo.task.is_some() {
-                ui.spinner();
+                super::busy_indicator(ui);
                 if ui.button("Cancel").clicked() {
                     self.apply(Action::PhotoFit(PhotoFitAction::Cancel));
                 }

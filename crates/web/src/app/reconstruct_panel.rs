@@ -368,7 +368,7 @@ impl GetAvatarApp {
                 }
             }
             if running {
-                ui.spinner();
+                super::busy_indicator(ui);
                 if ui.button("Cancel").on_hover_text("stop; the avatar stays as it was").clicked() {
                     self.apply(Action::ReconstructCancel);
                 }
