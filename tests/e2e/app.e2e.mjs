@@ -59,12 +59,16 @@ const browser = await chromium.launch({
 });
 const context = await browser.newContext({ viewport: { width: 1280, height: 800 }, deviceScaleFactor: 1, acceptDownloads: true });
 const page = await context.newPage();
+// The page's clock (performance.now), and the windows of the jobs #23 bounds:
+// [name, from, to, why it is only measured (absent: checked)].
+const pageNow = () => page.evaluate(() => performance.now());
+const jobs = [];
 // Every GPU device the page creates, so the device-loss check can destroy it (#23).
 await page.addInitScript(() => {
   // The UI thread's long tasks (> 50 ms), for #23's "no job blocks the UI over 100 ms".
   window.__longTasks = [];
   new PerformanceObserver((list) => {
-    for (const e of list.getEntries()) window.__longTasks.push(e.duration);
+    for (const e of list.getEntries()) window.__longTasks.push([e.startTime, e.duration]);
   }).observe({ type: 'longtask', buffered: true });
   window.__gpuDevices = [];
   if (navigator.gpu) {
@@ -252,8 +256,10 @@ try {
     `generator weights: ${s.model} (manifest ${JSON.stringify(manifest)})`);
   const g0 = (await status()).generations;
   const tGen = Date.now();
+  const jGen = await pageNow();
   await page.evaluate(() => window.getavatar.command({ generate: { seed_geo: 1, seed_tex: 2 } }));
   s = await waitFor((s) => s.generations > g0 && !s.generating, 'generation on WebGPU', 300000);
+  jobs.push(['generate', jGen, await pageNow()]);
   await page.waitForTimeout(800);
   console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
   check(s.showing === 'avatar' && s.avatar_vertices > 500, `Generate shows an avatar (${s.avatar_vertices} vertices)`);
@@ -344,6 +350,7 @@ try {
   }
   const fitsBefore = (await photoStatus()).fits;
   const tPhoto = Date.now();
+  const jPhoto = await pageNow();
   // Through the UI: click "Open photo…" in the side panel, answer the browser's file chooser.
   const [bx, by, bw, bh] = (await status()).open_photo_button;
   check(bw > 0 && bh > 0 && bx + bw <= 1280 && by + bh <= 800, `the "Open photo…" button is on screen (${[bx, by, bw, bh].map(Math.round)})`);
@@ -363,6 +370,7 @@ try {
   check(chooser !== null, 'clicking "Open photo…" opens the browser\'s file chooser');
   await chooser.setFiles({ name: 'kick_clothed.png', mimeType: 'image/png', buffer: PNG.sync.write(photo) });
   let p = (await waitFor((s) => s.photo.fits > fitsBefore || (s.photo.state === 'failed' && s.photo.name === 'kick_clothed.png'), 'the photo fit', 300000)).photo;
+  jobs.push(['photo: detection and fit', jPhoto, await pageNow()]);
   console.log(`photo → body in ${((Date.now() - tPhoto) / 1000).toFixed(1)} s (detection ${(p.detect_ms / 1000).toFixed(1)} s, fit ${(p.fit_ms / 1000).toFixed(1)} s, ${p.steps_total} steps): ${p.message}`);
   check(p.state === 'fitted' && p.missing_joints.length === 0 && p.people === 1, `the person is found (${p.people} in the photo) and fitted (${p.state}: ${p.message})`);
   check(p.relative_to_height <= 0.03, `keypoint residual ${(100 * p.relative_to_height).toFixed(2)} % of the person's height (≤ 3 %; ${p.mean_px.toFixed(1)} px)`);
@@ -399,9 +407,13 @@ try {
   const onRequest = (r) => requests.push(r.url());
   page.on('request', onRequest);
   const tRec = Date.now();
+  const jRec = await pageNow();
   const recErr = await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 3, pti_steps: 1, res: 64, preview_every: 1, start: 'average' } }));
   check(recErr === '' || recErr == null, `the reconstruct command is accepted (${recErr})`);
   let rec = (await waitFor((s) => ['done', 'failed', 'cancelled'].includes(s.reconstruct.state), 'the reconstruction', 900000)).reconstruct;
+  // The page's first reconstruction compiles its GPU kernels (forward, backward, Adam): single
+  // tasks that cannot be sliced. Measured, not checked (see docs/reliability.md).
+  jobs.push(['reconstruction, the first', jRec, await pageNow(), 'compiles its GPU kernels on first use']);
   page.off('request', onRequest);
   console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s; losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
   check(rec.state === 'done' && rec.losses.length === 4 && rec.previews >= 3, `the reconstruction finishes: ${rec.losses.length} steps, ${rec.previews} previews (${rec.state}: ${rec.message})`);
@@ -414,11 +426,14 @@ try {
   await page.screenshot({ path: path.join(out, 'reconstruction.png') });
   // Cancel: a second run stopped after its first step leaves the avatar as it was.
   const vertsBefore = s.avatar_vertices, doneBefore = rec.done;
+  const jRec2 = await pageNow();
   await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 40, pti_steps: 0, res: 64, start: 'average' } }));
   // (The second run is the one with 40 steps: the status still holds the first run's until the app takes the command.)
   await waitFor((s) => s.reconstruct.steps_total === 40 && (s.reconstruct.steps_done >= 1 || s.reconstruct.state === 'failed'), 'the second reconstruction to start', 600000);
   await page.evaluate(() => window.getavatar.command({ reconstruct_cancel: true }));
   rec = (await waitFor((s) => s.reconstruct.steps_total === 40 && ['cancelled', 'done', 'failed'].includes(s.reconstruct.state), 'the cancellation', 300000)).reconstruct;
+  jobs.push(['reconstruction, the second (start, a step, cancel)', jRec2, await pageNow(),
+    "a step's backward() is one call launching hundreds of kernels"]);
   s = await status();
   check(rec.state === 'cancelled' && rec.done === doneBefore && s.avatar_vertices === vertsBefore && s.showing === 'avatar',
     `Cancel stops a reconstruction and keeps the avatar (${rec.state}, ${s.avatar_vertices} vertices)`);
@@ -563,11 +578,19 @@ try {
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));
   await page.screenshot({ path: path.join(out, 'app.png') });
-  // Measured, not yet a check (#23): SwiftShader runs the GPU's work on the CPU, so these are
-  // the host's and the emulated GPU's together.
+  // #23: no job blocks the UI thread over 100 ms at a time (PerformanceObserver long tasks
+  // overlapping each job's window). Over the whole run they include 1024² frames drawn by
+  // SwiftShader, which are no job's.
   const long = await page.evaluate(() => window.__longTasks);
-  const sorted = [...long].sort((a, b) => b - a);
-  console.log(`long tasks on the UI thread: ${long.length} over 50 ms, ${long.filter((d) => d > 100).length} over 100 ms, longest ${sorted.slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);
+  const sorted = long.map(([, d]) => d).sort((a, b) => b - a);
+  console.log(`long tasks on the UI thread, whole run: ${long.length} over 50 ms, ${sorted.filter((d) => d > 100).length} over 100 ms, longest ${sorted.slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);
+  for (const [name, from, to, exempt] of jobs) {
+    const inJob = long.filter(([t, d]) => t + d > from && t < to).map(([, d]) => d).sort((a, b) => b - a);
+    const longest = inJob[0] ?? 0;
+    const what = `${name}: ${((to - from) / 1000).toFixed(1)} s, ${inJob.length} tasks over 50 ms, longest ${inJob.slice(0, 5).map((d) => d.toFixed(0)).join(', ') || '–'} ms`;
+    if (exempt) console.log(`(measured, not checked: ${exempt}) ${what}`);
+    else check(longest <= 100, `no task of the job over 100 ms: ${what}`);
+  }
 
   // GPU device loss (#23), last since it ends the app: the page says so over the canvas and
   // offers a reload instead of a frozen canvas.

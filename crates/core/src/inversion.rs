@@ -42,6 +42,7 @@ use crate::camera::{reference_fov_y, View};
 use crate::diff::avatar::{render_avatars_async, FakeViews, PosedGridCache};
 use crate::generator::{BodyContext, Generator, LatentModes, Styles};
 use crate::network::discriminator::Discriminator;
+use crate::cooperative::checkpoint;
 use crate::optim::Adam;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::readback::block_on_ready;
@@ -518,7 +519,11 @@ impl<'a> Inverter<'a> {
         parts.latent_reg = Some(reg);
         let terms = self.read_terms(parts, &f, &total).await?;
         let lr = lr_schedule(o.lr, self.step, o.steps, o.warmup, o.rampdown);
+        // Checkpoints (`cooperative`) around the backward pass: in the browser a step's parts
+        // are separate slices of the UI thread.
+        checkpoint().await;
         let grads = total.backward();
+        checkpoint().await;
         self.codes = self.adam_w.step(lr, self.codes.clone(), &grads);
         let report = StepReport { phase: Phase::Latent, step: self.step, lr, terms };
         self.advance();
@@ -553,7 +558,9 @@ impl<'a> Inverter<'a> {
         }
         let terms = self.read_terms(parts, &f, &total).await?;
         let lr = o.pti_lr;
+        checkpoint().await;
         let grads = total.backward();
+        checkpoint().await;
         // The synthesis backbone and decoders; the mapping networks get no gradient (the codes
         // are W+), so they stay as they are.
         self.g =

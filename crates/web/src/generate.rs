@@ -78,6 +78,18 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
     Ok(Shipped { generator: g, modes, bytes: Rc::new(bytes), discriminator: disc })
 }
 
+/// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
+/// compiles it (cubecl → WGSL → the browser's shader compiler), single tasks of up to ~0.8 s on
+/// this project's software-GPU test machine that cannot be sliced. Done here, no generation the
+/// user asks for pays them (issue #23). A failure only means the first generation compiles.
+async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, device: &Device) {
+    let (zg, zt) = seed_latents(cfg, 0, 0, device);
+    let styles = shipped.generator.styles_with(zg, zt, default_psi(shipped.modes.as_ref()), shipped.modes.as_ref());
+    if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
+        web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
+    }
+}
+
 /// Colours of a texture-field query, or why it failed.
 type TextureColours = Result<Vec<glam::Vec3>, String>;
 /// A finished bake and its milliseconds.
@@ -215,6 +227,9 @@ impl GenEngine {
                     Some(b) => Some(Rc::new(BodyContext::new_async(b, &cfg).await)),
                     None => None,
                 };
+                if let (Ok(shipped), Some(ctx)) = (&loaded, &ctx) {
+                    warm_up(shipped, ctx, &cfg, &device).await;
+                }
                 *slot.borrow_mut() = Some((loaded, ctx));
                 repaint.request_repaint();
             });

@@ -42,8 +42,9 @@ pub struct ReconstructRequest {
     pub ctx: Rc<BodyContext>,
     /// The photo at the fit's camera, at the inversion's resolution.
     pub target: InversionTarget,
-    /// The same photo at a higher resolution for the colour projection (None: off).
-    pub projection: Option<InversionTarget>,
+    /// The same photo at a higher resolution for the colour projection (None: off), made
+    /// when the finish needs it (a large resample: its own slice of the UI thread).
+    pub projection: Option<Box<dyn FnOnce() -> Option<InversionTarget>>>,
     pub options: InversionOptions,
     /// A preview every this many steps (0: only the final one).
     pub preview_every: usize,
@@ -148,10 +149,13 @@ async fn run(
 ) -> Result<Option<Reconstructed>, String> {
     let t0 = now_ms();
     let dev = &req.device;
+    // Not in the frame that asked (it resampled the photo): loading the model is a slice too.
+    yield_to_browser().await;
     let (g, modes) = match &req.checkpoint {
         Some(bytes) => load_generator_and_modes(bytes, &req.cfg, dev).map_err(|e| format!("the model: {e}"))?,
         None => (Generator::new(&req.cfg, 0, dev), None),
     };
+    yield_to_browser().await;
     let disc = match &req.discriminator {
         Some(bytes) => Some(load_discriminator(bytes, dev).map_err(|e| format!("the discriminator: {e}"))?),
         None => None,
@@ -219,7 +223,15 @@ async fn run(
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
-    let projection = req.projection.as_ref().map(|p| project(&mut rigged, ctx, p.source_photo()));
+    let projection = match req.projection {
+        Some(crop) => {
+            yield_to_browser().await;
+            let photo = crop();
+            yield_to_browser().await;
+            photo.map(|p| project(&mut rigged, ctx, p.source_photo()))
+        }
+        None => None,
+    };
     Ok(Some(Reconstructed {
         generator: Rc::new(g),
         styles,

@@ -80,6 +80,11 @@ impl PosedGridCache {
 
     /// The posed grid of `body` (pose, shape and translation), computed on first use.
     pub fn get(&self, ctx: &BodyContext, body: &BodyParams, inv: &InverseSkinning) -> Arc<PosedGrid> {
+        crate::cooperative::run_blocking(self.get_async(ctx, body, inv))
+    }
+
+    /// [`PosedGridCache::get`] with the grid computed in slices (`cooperative`) in the browser.
+    pub async fn get_async(&self, ctx: &BodyContext, body: &BodyParams, inv: &InverseSkinning) -> Arc<PosedGrid> {
         let key: Vec<u32> = body
             .pose
             .iter()
@@ -91,7 +96,7 @@ impl PosedGridCache {
         if let Some(g) = self.map.lock().ok().and_then(|m| m.get(&key).cloned()) {
             return g;
         }
-        let g = Arc::new(PosedGrid::new(ctx, inv));
+        let g = Arc::new(PosedGrid::new_async(ctx, inv).await);
         if let Ok(mut m) = self.map.lock() {
             if m.len() >= self.capacity {
                 m.clear();
@@ -222,13 +227,15 @@ pub async fn render_avatar_views_async(
             (g.triplanes(&r), r)
         });
         lap("triplanes");
+        crate::cooperative::checkpoint().await;
         // Inverse skinning of the posed-space grid (eq. 2).
         let posed = pose_body(&ctx.model, &first.body);
         let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
-        let grid = grids.get(ctx, &first.body, &inv);
+        let grid = grids.get_async(ctx, &first.body, &inv).await;
         let canon = &grid.canonical;
         let canon_t = vec3_tensor(canon, device);
         lap("posed grid");
+        crate::cooperative::checkpoint().await;
         // Pass 1, values only: the fields on the whole band decide the topology.
         let fields = if grid.band.is_empty() {
             GridFields::zeros(n)
@@ -242,9 +249,11 @@ pub async fn render_avatar_views_async(
         let sdf_v = fields.sdf(&grid.template, &ctx.boundary);
         let pos_v = fields.positions(&ctx.grid.vertices);
         lap("band fields (values)");
+        crate::cooperative::checkpoint().await;
         let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
         triangles.extend(cams.iter().map(|_| mesh.faces.len()));
         lap("marching tets");
+        crate::cooperative::checkpoint().await;
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
             for _ in cams {
@@ -290,6 +299,7 @@ pub async fn render_avatar_views_async(
             positions = positions.select_assign(0, idx, d_o, IndexingUpdateOp::Add);
         }
         lap("surface fields (gradients)");
+        crate::cooperative::checkpoint().await;
         let (ia, ib) = (index_tensor(&edges.a, device), index_tensor(&edges.b, device));
         ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
         let verts = surface_points(&edges, positions, sdf.clone(), device);
@@ -307,6 +317,7 @@ pub async fn render_avatar_views_async(
         let rot = matrix(rot, nv, 9, device);
         let ones = Tensor::<2>::ones([nv, 1], device);
         lap("surface");
+        crate::cooperative::checkpoint().await;
 
         for view in cams {
             // Camera and rasterisation.
@@ -328,6 +339,7 @@ pub async fn render_avatar_views_async(
                 continue;
             }
             lap("rasterize");
+            crate::cooperative::checkpoint().await;
             let p = cov.len();
             let pix_canon = interpolate(&cov, clip.clone(), vcanon.clone(), device); // [P, 3]
 
@@ -342,6 +354,8 @@ pub async fn render_avatar_views_async(
             }
 
             lap("texture field");
+
+            crate::cooperative::checkpoint().await;
             // Normal field (eq. 4): ∇(template + residual) at each pixel's canonical point,
             // rotated to posed space by the interpolated skinning rotation.
             let pc: Vec<Vec3> = read_f32(pix_canon.clone()).await?.chunks_exact(3).map(Vec3::from_slice).collect();
@@ -352,10 +366,13 @@ pub async fn render_avatar_views_async(
             let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
 
             lap("normal field");
+
+            crate::cooperative::checkpoint().await;
             // Mask with silhouette gradients.
             let cover = compose(&cov, interpolate(&cov, clip.clone(), ones.clone(), device), &[0.0], device);
             let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
             lap("antialiased mask");
+            crate::cooperative::checkpoint().await;
             rgbs.push(to_nchw(rgb, res));
             normals.push(to_nchw(normal, res));
             masks.push(to_nchw(mask * 2.0 - 1.0, res));

@@ -177,7 +177,15 @@ impl GetAvatarApp {
                 return;
             }
         };
-        let projection = if r.projection { crop(PROJECTION_RES).ok() } else { None };
+        // The projection's crop is made when the finish needs it (a 512² resample).
+        let projection: Option<Box<dyn FnOnce() -> Option<InversionTarget>>> = if r.projection {
+            let (fit, mask, num_betas) = (fit.clone(), mask.clone(), body.num_betas);
+            Some(Box::new(move || {
+                InversionTarget::from_photo(&fit, &rgb, w, h, &mask, PROJECTION_RES, num_betas).ok()
+            }))
+        } else {
+            None
+        };
         let Some(mut options) = InversionOptions::preset(&r.preset) else {
             self.fail_reconstruct(format!("unknown quality preset `{}` (fast, full)", r.preset));
             return;
