@@ -39,10 +39,10 @@ use serde::{Deserialize, Serialize};
 use crate::body_fit::fit::BodyFit;
 use crate::body_fit::landmarks::SegmentationMask;
 use crate::camera::{reference_fov_y, View};
+use crate::cooperative::checkpoint;
 use crate::diff::avatar::{render_avatars_async, FakeViews, PosedGridCache};
 use crate::generator::{BodyContext, Generator, LatentModes, Styles};
 use crate::network::discriminator::Discriminator;
-use crate::cooperative::checkpoint;
 use crate::optim::Adam;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::readback::block_on_ready;

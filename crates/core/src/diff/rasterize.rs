@@ -141,7 +141,8 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
         let s = t.map(|v| scr[v as usize]);
         (s[1] - s[0]).perp_dot(s[2] - s[0])
     };
-    let mut edge_use: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+    // A closed mesh has 3/2 edges per triangle: no rehashing on the way.
+    let mut edge_use: HashMap<(u32, u32), Vec<u32>> = HashMap::with_capacity(tris.len() * 3 / 2 + 16);
     for (ti, t) in tris.iter().enumerate() {
         for (i, j) in [(0, 1), (1, 2), (2, 0)] {
             edge_use.entry((t[i].min(t[j]), t[i].max(t[j]))).or_default().push(ti as u32);

@@ -180,9 +180,7 @@ impl GetAvatarApp {
         // The projection's crop is made when the finish needs it (a 512² resample).
         let projection: Option<Box<dyn FnOnce() -> Option<InversionTarget>>> = if r.projection {
             let (fit, mask, num_betas) = (fit.clone(), mask.clone(), body.num_betas);
-            Some(Box::new(move || {
-                InversionTarget::from_photo(&fit, &rgb, w, h, &mask, PROJECTION_RES, num_betas).ok()
-            }))
+            Some(Box::new(move || InversionTarget::from_photo(&fit, &rgb, w, h, &mask, PROJECTION_RES, num_betas).ok()))
         } else {
             None
         };
