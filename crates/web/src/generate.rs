@@ -281,8 +281,11 @@ impl GenEngine {
         let psi = psi.unwrap_or_else(|| default_psi(modes.as_ref().as_ref()));
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
+            // Not in the frame that asked: the mapping network's launches are a slice of their own.
+            crate::task::yield_to_browser().await;
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
+            crate::task::checkpoint().await;
             let generated = match keep {
                 Some(mut r) => {
                     let planes = g.triplanes(&styles);

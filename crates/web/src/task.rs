@@ -7,7 +7,7 @@ use std::collections::VecDeque;
 use std::rc::Rc;
 
 use eframe::egui;
-use wasm_bindgen::{JsCast, JsValue};
+use wasm_bindgen::JsValue;
 use wasm_bindgen_futures::JsFuture;
 
 /// How the event queue treats an event.
@@ -91,37 +91,28 @@ impl<E> Task<E> {
     }
 }
 
-/// Resolve on the browser's next task, letting it render and handle input: `scheduler.yield()`
-/// where the browser has it (no delay, the continuation keeps its place), else `setTimeout(0)`
-/// (which browsers clamp to 4 ms when nested).
+/// Resolve on the browser's next task (`setTimeout(0)`, which browsers clamp to 4 ms when
+/// nested), letting it render and handle input. Not `scheduler.yield()`: its continuations run
+/// ahead of the page's other tasks, so a long job starved the frames that carry Cancel.
 pub async fn yield_to_browser() {
-    let promise = scheduler_yield().unwrap_or_else(|| {
-        js_sys::Promise::new(&mut |resolve, _reject| {
-            if let Some(w) = web_sys::window() {
-                // A failed setTimeout leaves the promise pending: resolve at once instead.
-                if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
-                    let _ = resolve.call0(&JsValue::NULL);
-                }
-            } else {
+    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
+        if let Some(w) = web_sys::window() {
+            // A failed setTimeout leaves the promise pending: resolve at once instead.
+            if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
                 let _ = resolve.call0(&JsValue::NULL);
             }
-        })
+        } else {
+            let _ = resolve.call0(&JsValue::NULL);
+        }
     });
     // The promise only resolves.
     let _ = JsFuture::from(promise).await;
 }
 
-/// `globalThis.scheduler.yield()`, if the browser has it.
-fn scheduler_yield() -> Option<js_sys::Promise> {
-    let scheduler = js_sys::Reflect::get(&js_sys::global(), &JsValue::from_str("scheduler")).ok()?;
-    let f: js_sys::Function = js_sys::Reflect::get(&scheduler, &JsValue::from_str("yield")).ok()?.dyn_into().ok()?;
-    f.call0(&scheduler).ok()?.dyn_into().ok()
-}
-
 /// How long, in milliseconds, a background stage keeps the UI thread before giving it back at
 /// its next checkpoint. Issue #23 bounds a task at 100 ms: a task is this plus the stretch to
 /// the next checkpoint (up to ~60 ms on the test machine: a fit step's silhouette edges).
-pub const SLICE_MS: f64 = 20.0;
+pub const SLICE_MS: f64 = 10.0;
 
 thread_local! {
     /// When the last paused stage resumed: no task that runs a stage started before it.
