@@ -81,10 +81,9 @@ pub fn run_blocking<F: Future>(fut: F) -> F::Output {
 
 /// Call `each` on consecutive chunks of `items` (at most `chunk` long), with a [`checkpoint`]
 /// after each: the usual shape of a sliced loop.
-pub async fn for_chunks<T>(items: &[T], chunk: usize, mut each: impl FnMut(usize, &[T])) {
-    let chunk = chunk.max(1);
-    for (k, c) in items.chunks(chunk).enumerate() {
-        each(k * chunk, c);
+pub async fn for_chunks<T>(items: &[T], chunk: usize, mut each: impl FnMut(&[T])) {
+    for c in items.chunks(chunk.max(1)) {
+        each(c);
         checkpoint().await;
     }
 }
@@ -139,7 +138,7 @@ pub(crate) mod tests {
     fn checkpoints_pause_only_under_a_hook_and_never_inside_run_blocking() {
         let sum = || async {
             let mut s = 0u64;
-            for_chunks(&(0..1000u64).collect::<Vec<_>>(), 100, |_, c| s += c.iter().sum::<u64>()).await;
+            for_chunks(&(0..1000u64).collect::<Vec<_>>(), 100, |c| s += c.iter().sum::<u64>()).await;
             s
         };
         // No hook: never pending.

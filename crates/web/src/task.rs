@@ -119,11 +119,9 @@ thread_local! {
     static SLICE_START: Cell<f64> = const { Cell::new(f64::NEG_INFINITY) };
 }
 
-/// Give the thread back if the current slice is over (for the app's own loops, e.g. the fit's
-/// steps); what [`install_time_slicing`] makes core's checkpoints do.
-pub async fn checkpoint() {
-    getavatar_core::cooperative::checkpoint().await;
-}
+/// Give the thread back if the current slice is over: core's checkpoint, which the app's own
+/// loops (the fit's steps) use too, under the hook of [`install_time_slicing`].
+pub use getavatar_core::cooperative::checkpoint;
 
 /// Make core's checkpoints (`getavatar_core::cooperative`) yield to the browser once a slice
 /// has run [`SLICE_MS`]: the template SDF, the posed grid, generation and the fits then run

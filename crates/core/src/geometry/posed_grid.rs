@@ -139,7 +139,7 @@ impl PosedGrid {
         #[cfg(target_arch = "wasm32")]
         let mapped = {
             let mut all = Vec::with_capacity(verts.len());
-            crate::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |_, c| all.extend(map(c))).await;
+            crate::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |c| all.extend(map(c))).await;
             all
         };
         let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();

@@ -298,3 +298,35 @@ async fn parity_inside(
     }
     inside
 }
+
+#[cfg(all(test, feature = "embedded-body"))]
+mod tests {
+    use super::*;
+    use crate::body_model::BodyModel;
+    use crate::cooperative::tests::{drive, pause_always};
+    use crate::cooperative::uninstall;
+    use crate::geometry::inverse_skinning::canonical_body;
+    use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+
+    #[test]
+    fn sliced_template_sdf_gives_the_thread_back_and_the_same_values() {
+        let model = BodyModel::default_body().expect("body");
+        let cano = canonical_body(&model);
+        let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
+        let build = || TemplateSdf::from_mesh_async(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3);
+        let reference = TemplateSdf::from_mesh(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3);
+        // A host that takes the thread back at every checkpoint (the browser's hook decides by
+        // time; pausing always is the strictest case).
+        let _pauses = pause_always();
+        let (sliced, pauses) = drive(build());
+        // The synchronous form ignores the hook (nothing could resume it).
+        let blocking = TemplateSdf::from_mesh(&cano.vertices, &model.faces, 64, min, REFERENCE_BOX_SIZE, 3);
+        uninstall();
+        assert_eq!(sliced.values, reference.values);
+        assert_eq!(blocking.values, reference.values);
+        // Faces in slices of 256 (four passes over them), the chamfer sweeps slice by slice
+        // (2 × 64), the parity fill per grid line (3 × 64).
+        let faces = model.faces.len() / 256;
+        assert!(pauses >= 4 * faces + 2 * 64 + 3 * 64, "{pauses} pauses for {} faces", model.faces.len());
+    }
+}
