@@ -109,10 +109,12 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
 /// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`) on the
 /// bare body in the unseen poses from two yaws → `trainer fit-pose` with the detector's mask,
-/// PA-MPJPE against the pose that was rendered. Issue #20 asks ≤ 60 mm for every case; at
-/// 2026-11-24 eight of ten meet it and two do not (lunge and crossed arms from the second yaw,
-/// where one arm is hidden: 71 and 119 mm), so this guards the median (≤ 60 mm) and every case
-/// (≤ 130 mm) until the fit handles hidden limbs.
+/// PA-MPJPE against the pose that was rendered. Issue #20 asks ≤ 60 mm for every case. At
+/// 2026-11-25 nine of ten meet it (25–59 mm). The tenth, arms crossed seen from the side, is a
+/// detector error the fit can only partly undo: MediaPipe gives the hand it sees (the left,
+/// on the right shoulder) the right wrist's label. The fit's two-labelling hypothesis swaps
+/// the hands back (asserted below) and brings it from 107 to 75 mm; the rest is the hidden
+/// right arm. So this guards nine of ten ≤ 60 mm and every case ≤ 90 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     let dir = tmp("fit-mediapipe");
@@ -148,6 +150,13 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
             let err = pa_mpjpe(&fitted, &pose_body(&model, &truth).kinematics.posed_joints);
             worst = worst.max(err);
             errors.push(err);
+            // Only a fit whose wrists disagree on visibility may swap the hands; the side view
+            // of crossed arms must.
+            if stem == "arms_crossed_yaw1" {
+                assert_eq!(fit.relabelled.first().map(String::as_str), Some("left_wrist↔right_wrist"), "{stem}");
+            }
+            let wrists_seen = [15, 16].map(|l| fit.keypoints[l].visibility >= 0.5);
+            assert!(fit.relabelled.is_empty() || wrists_seen[0] != wrists_seen[1], "{stem}: {:?}", fit.relabelled);
             if std::env::var("FIT_DEBUG").is_ok() {
                 let tj = pose_body(&model, &truth).kinematics.posed_joints;
                 let (sc, r, t) = getavatar_core::body_fit::metrics::procrustes(&fitted, &tj);
@@ -174,7 +183,6 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
         }
     }
     eprintln!("{}", report.join("\n"));
-    errors.sort_by(f32::total_cmp);
-    let median = (errors[errors.len() / 2 - 1] + errors[errors.len() / 2]) / 2.0;
-    assert!(median <= 0.060 && worst <= 0.130, "median {median}, worst {worst}\n{}", report.join("\n"));
+    let within = errors.iter().filter(|e| **e <= 0.060).count();
+    assert!(within >= 9 && worst <= 0.090, "{within} of 10 within 60 mm, worst {worst}\n{}", report.join("\n"));
 }

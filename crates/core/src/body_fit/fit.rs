@@ -7,11 +7,17 @@
 //! 2. **body**: everything, all landmarks: Geman–McClure robust reprojection of the joints
 //!    ([`super::landmarks::JOINT_LANDMARKS`]) and surface points ([`super::surface`]),
 //!    SMPLify's angle prior on elbows and knees ([`super::limits`]), L2 priors on θ and β
-//!    (no SMPL GMM is redistributable), and the world landmarks' bone directions (3D limb
-//!    directions, weakly: they decide what a single image cannot, e.g. which arm is in front);
+//!    (no SMPL GMM is redistributable), the world landmarks' bone directions (3D limb
+//!    directions, weakly: they decide what a single image cannot, e.g. which arm is in front),
+//!    and a symmetry prior for hidden limbs (a joint whose bone the detector did not see is
+//!    pulled towards the mirror image of its seen counterpart's rotation);
 //! 3. **silhouette** (with a mask): the body's mask rendered by the differentiable
 //!    rasteriser ([`crate::diff::rasterize`]: coverage + antialias, so silhouette edges get
 //!    gradients) against the person mask, squared error, on top of stage 2's terms.
+//!
+//! When exactly one wrist is seen, the detector may have given the seen hand the hidden
+//! one's label (crossed arms from the side): both labellings are fitted through stage 2 and
+//! the one with the lower loss goes on ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
 //!
 //! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
 //! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
@@ -83,7 +89,30 @@ pub struct FitInput {
     pub mask: Option<Vec<f32>>,
 }
 
+/// The landmarks of the hands, as (left, right) pairs: wrist, pinky, index, thumb.
+pub const HAND_SWAP: [(usize, usize); 4] = [(15, 16), (17, 18), (19, 20), (21, 22)];
+
 impl FitInput {
+    /// Whether the detector's hand sides are in doubt: one wrist hidden, the other seen.
+    /// A hand that crosses the body (arms folded, a hand on the far shoulder) seen from the
+    /// side is often given the hidden hand's label.
+    pub fn hands_in_doubt(&self) -> bool {
+        let seen = |l: usize| self.points[l].1 >= VISIBLE;
+        self.points.len() == NUM_LANDMARKS && seen(15) != seen(16)
+    }
+
+    /// The same observations with the hands' sides swapped ([`HAND_SWAP`]).
+    pub fn with_hands_swapped(&self) -> Self {
+        let mut out = self.clone();
+        for (a, b) in HAND_SWAP {
+            out.points.swap(a, b);
+            if let Some(w) = out.world.as_mut() {
+                w.swap(a, b);
+            }
+        }
+        out
+    }
+
     /// From a detector result on a `width × height` photo and, optionally, a person mask
     /// (any resolution, covering the photo); without one, the result's own
     /// `segmentationMask` is used when it has one.
@@ -138,6 +167,11 @@ pub struct BodyFit {
     pub table: Vec<FitTarget>,
     /// Landmarks the detector did not see (visibility < 0.5); the fit ignores them.
     pub missing: Vec<String>,
+    /// Landmarks the fit took with their sides swapped (`"left_wrist↔right_wrist"`, …):
+    /// the detector's labels of a hidden hand and a seen one, when swapping them explained
+    /// the photo better ([`HAND_SWAP`]). `keypoints` report the swapped labels.
+    #[serde(default)]
+    pub relabelled: Vec<String>,
     pub options: FitOptions,
 }
 
@@ -325,12 +359,20 @@ pub struct BodyFitter {
     points: Targets,
     /// Bones (parent joint, child joint) with their observed world direction and weight.
     bones: Option<(Vec<usize>, Vec<usize>, Tensor<2>, Tensor<2>)>,
+    /// Hidden limb joints (rows of θ₁…θ₂₃), their seen counterparts' rows and the term's
+    /// weight per row ([`MIRROR_JOINTS`]).
+    symmetry: Option<(Tensor<1, burn::tensor::Int>, Tensor<1, burn::tensor::Int>, Tensor<2>)>,
     params: FitParams,
     adam: Adam,
     stage: usize,
     step_in_stage: usize,
     done: usize,
     stage_loss: [Option<f32>; 3],
+    /// The fit of the other hand labelling ([`FitInput::hands_in_doubt`]), stepped alongside
+    /// through the torso and body stages; the one with the lower body-stage loss goes on.
+    alternative: Option<Box<BodyFitter>>,
+    /// This fit's input has the hands swapped.
+    hands_swapped: bool,
 }
 
 /// Limb bones of the 3D direction term: (parent joint, child joint, landmarks).
@@ -345,9 +387,54 @@ const BONES: [(usize, usize, usize, usize); 8] = [
     (5, 8, 26, 28),
 ];
 
+/// Limb joints with a left/right counterpart, each with the landmark at the far end of the
+/// bone it turns (its visibility says whether the joint's rotation was seen): (joint,
+/// landmark, counterpart joint, counterpart landmark).
+const MIRROR_JOINTS: [(usize, usize, usize, usize); 8] = [
+    (16, 13, 17, 14),
+    (18, 15, 19, 16),
+    (17, 14, 16, 13),
+    (19, 16, 18, 15),
+    (1, 25, 2, 26),
+    (4, 27, 5, 28),
+    (2, 26, 1, 25),
+    (5, 28, 4, 27),
+];
+
+/// The symmetry term's rows: a joint whose bone the detector did not see (visibility below
+/// [`VISIBLE`]) whose counterpart's it did, weighted by how hidden and how seen.
+fn mirror_rows(visibility: impl Fn(usize) -> f32) -> Vec<(usize, usize, f32)> {
+    MIRROR_JOINTS
+        .iter()
+        .filter_map(|&(j, l, cj, cl)| {
+            let hidden = (1.0 - visibility(l) / VISIBLE).clamp(0.0, 1.0);
+            let seen = ((visibility(cl) - VISIBLE) / (1.0 - VISIBLE)).clamp(0.0, 1.0);
+            (hidden * seen > 0.0).then_some((j, cj, hidden * seen))
+        })
+        .collect()
+}
+
 impl BodyFitter {
     /// Prepare the fit on `device` (an autodiff device: `Device::autodiff()`).
+    ///
+    /// When the detector's hand sides are in doubt ([`FitInput::hands_in_doubt`]) both
+    /// labellings are fitted through the body stage (twice the work there) and the one whose
+    /// body-stage loss is lower goes on to the silhouette stage, as SMPLify fits both
+    /// orientations of an ambiguous torso and keeps the better.
     pub fn new(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<Self, FitError> {
+        let alternative = if input.hands_in_doubt() {
+            let mut alt = Self::single(model.clone(), input.with_hands_swapped(), options.clone(), device)?;
+            alt.hands_swapped = true;
+            Some(Box::new(alt))
+        } else {
+            None
+        };
+        let mut fitter = Self::single(model, input, options, device)?;
+        fitter.alternative = alternative;
+        Ok(fitter)
+    }
+
+    fn single(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<Self, FitError> {
         if input.points.len() != NUM_LANDMARKS {
             return Err(FitError::TooFew(format!("{} landmarks, expected {NUM_LANDMARKS}", input.points.len())));
         }
@@ -396,6 +483,15 @@ impl BodyFitter {
             ))
         });
 
+        let rows = mirror_rows(|l| input.points[l].1);
+        let symmetry = (!rows.is_empty()).then(|| {
+            (
+                joint_index(&rows.iter().map(|r| r.0 - 1).collect::<Vec<_>>(), device),
+                joint_index(&rows.iter().map(|r| r.1 - 1).collect::<Vec<_>>(), device),
+                matrix(rows.iter().map(|r| r.2).collect(), rows.len(), 1, device),
+            )
+        });
+
         let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
         let nb = skeleton.num_betas.max(1);
         let params = FitParams {
@@ -417,12 +513,15 @@ impl BodyFitter {
             joint_ids,
             points,
             bones,
+            symmetry,
             params,
             adam: Adam::new(0.9, 0.999, 1e-8),
             stage: 0,
             step_in_stage: 0,
             done: 0,
             stage_loss: [None; 3],
+            alternative: None,
+            hands_swapped: false,
         })
     }
 
@@ -446,6 +545,8 @@ impl BodyFitter {
         };
         self.adam = Adam::new(0.9, 0.999, 1e-8);
         (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
+        // The user's corrected pose says which arm is which.
+        self.alternative = None;
     }
 
     /// Steps of all stages (the silhouette stage only with a mask).
@@ -467,6 +568,9 @@ impl BodyFitter {
             self.stage += 1;
             self.step_in_stage = 0;
             self.adam = Adam::new(0.9, 0.999, 1e-8);
+            if self.stage == 2 {
+                self.keep_better_hypothesis();
+            }
         }
         if self.stage >= 3 {
             return Ok(None);
@@ -483,7 +587,25 @@ impl BodyFitter {
         self.stage_loss[self.stage] = Some(value);
         self.step_in_stage += 1;
         self.done += 1;
+        if let (Some(alt), true) = (self.alternative.as_mut(), self.stage < 2) {
+            // Boxed: an async fn cannot await itself unboxed. The alternative has none of its own.
+            Box::pin(alt.step()).await?;
+        }
         Ok(Some(FitProgress { stage: self.stage, done: self.done, total: self.total_steps(), loss: value }))
+    }
+
+    /// At the end of the body stage: go on with the hand labelling whose body-stage loss
+    /// (reprojection, priors and bone directions) is lower.
+    fn keep_better_hypothesis(&mut self) {
+        // The alternative took a step with every step of this fit, so its body stage is done.
+        let Some(mut alt) = self.alternative.take() else { return };
+        let (mine, other) = (self.stage_loss[1].unwrap_or(f32::INFINITY), alt.stage_loss[1].unwrap_or(f32::INFINITY));
+        if other < mine {
+            let (stage, step_in_stage, done) = (self.stage, self.step_in_stage, self.done);
+            std::mem::swap(self, &mut *alt);
+            (self.stage, self.step_in_stage, self.done) = (stage, step_in_stage, done);
+            self.adam = Adam::new(0.9, 0.999, 1e-8);
+        }
     }
 
     /// θ `[24, 3]` and β of the current parameters; in the torso stage only the orientation
@@ -550,6 +672,14 @@ impl BodyFitter {
             let len = (d.clone() * d.clone()).sum_dim(1).sqrt().clamp_min(1e-6);
             let diff = d / len - dirs.clone();
             loss = loss + ((diff.clone() * diff).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.bones;
+        }
+        if let (Some((hidden, seen, w)), true) = (&self.symmetry, wts.symmetry > 0.0) {
+            // The counterpart is detached: the seen limb is not pulled towards the hidden one.
+            // Mirroring in the body's sagittal plane negates an axis-angle's y and z.
+            let flip = matrix(vec![1.0, -1.0, -1.0], 1, 3, &dev);
+            let target = pose.clone().select(0, seen.clone()).detach() * flip;
+            let d = pose.clone().select(0, hidden.clone()) - target;
+            loss = loss + ((d.clone() * d).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.symmetry;
         }
         if stage == 2 {
             if let Some(mask) = self.input.mask.clone() {
@@ -715,6 +845,11 @@ impl BodyFitter {
             },
             table,
             missing,
+            relabelled: if self.hands_swapped {
+                HAND_SWAP.iter().map(|(a, b)| format!("{}↔{}", LANDMARK_NAMES[*a], LANDMARK_NAMES[*b])).collect()
+            } else {
+                Vec::new()
+            },
             options: self.options.clone(),
         })
     }
@@ -769,5 +904,77 @@ mod tests {
         let fwd = axis_angle_to_matrix(orient) * Vec3::Z;
         assert!(fwd.x.abs() < 1e-5 && fwd.z > 0.0, "{fwd}");
         assert_eq!(mask_iou(&[1.0, 1.0, 0.0, 0.0], &[1.0, 0.0, 1.0, 0.0]), 1.0 / 3.0);
+    }
+
+    /// The symmetry term's target: an axis-angle with y and z negated turns the counterpart
+    /// limb into the mirror image (x negated) of the original, bone by bone.
+    #[test]
+    fn negating_y_and_z_mirrors_a_limb_in_the_sagittal_plane() {
+        let model = BodyModel::default_body().unwrap();
+        let mut params = BodyParams::default();
+        let flip = |v: Vec3| Vec3::new(v.x, -v.y, -v.z);
+        for (j, r) in [
+            (16, Vec3::new(0.4, -0.9, -1.1)),
+            (18, Vec3::new(0.1, -1.5, 0.2)),
+            (1, Vec3::new(-0.9, 0.3, 0.7)),
+            (4, Vec3::new(1.2, 0.1, 0.0)),
+        ] {
+            params.pose[j] = r;
+        }
+        for (j, c) in [(16, 17), (18, 19), (1, 2), (4, 5)] {
+            params.pose[c] = flip(params.pose[j]);
+        }
+        let p = crate::skinning::pose_body(&model, &params).kinematics.posed_joints;
+        for (a, b, ca, cb) in [(16, 18, 17, 19), (18, 20, 19, 21), (1, 4, 2, 5), (4, 7, 5, 8)] {
+            let (u, v) = ((p[b] - p[a]).normalize(), (p[cb] - p[ca]).normalize());
+            let mirrored = Vec3::new(-v.x, v.y, v.z);
+            assert!(u.angle_between(mirrored) < 2f32.to_radians(), "{a}→{b}: {u} vs mirrored {mirrored}");
+            // The bone has a sideways part for the mirror to flip.
+            assert!(u.x.abs() > 0.15, "{a}→{b}: {u}");
+        }
+    }
+
+    #[test]
+    fn hidden_limbs_get_mirror_rows_and_hand_doubt_swaps_both_hands() {
+        let mut vis = [1.0f32; NUM_LANDMARKS];
+        assert!(mirror_rows(|l| vis[l]).is_empty(), "every limb seen: no prior");
+        vis[13] = 0.1; // left elbow hidden: the left shoulder's rotation mirrors the right's
+        vis[15] = 0.3; // left wrist half hidden: the left elbow's, less
+        let rows = mirror_rows(|l| vis[l]);
+        assert_eq!(rows.len(), 2);
+        assert_eq!((rows[0].0, rows[0].1), (16, 17));
+        assert!((rows[0].2 - 0.8).abs() < 1e-6 && (rows[1].2 - 0.4).abs() < 1e-6, "{rows:?}");
+        vis[14] = 0.2; // both elbows hidden: nothing to mirror from
+        assert!(mirror_rows(|l| vis[l]).iter().all(|r| r.0 != 16 && r.0 != 17));
+
+        let framing = Framing::from_landmarks(
+            &(0..NUM_LANDMARKS)
+                .map(|i| super::super::landmarks::Landmark {
+                    x: 0.5,
+                    y: 0.1 + 0.8 * i as f32 / 33.0,
+                    z: 0.0,
+                    visibility: 1.0,
+                })
+                .collect::<Vec<_>>(),
+            512,
+            512,
+            &BodyModel::default_body().unwrap(),
+        )
+        .unwrap();
+        vis[16] = 0.2;
+        let points: Vec<([f32; 2], f32)> = (0..NUM_LANDMARKS).map(|i| ([i as f32, 0.0], vis[i])).collect();
+        let world = Some((0..NUM_LANDMARKS).map(|i| Vec3::splat(i as f32)).collect());
+        let input = FitInput { framing, points, world, mask: None };
+        assert!(!input.hands_in_doubt(), "both wrists hidden");
+        let mut input = input;
+        input.points[16].1 = 0.9;
+        assert!(input.hands_in_doubt());
+        let swapped = input.with_hands_swapped();
+        for (a, b) in HAND_SWAP {
+            assert_eq!((swapped.points[a], swapped.points[b]), (input.points[b], input.points[a]));
+            let w = swapped.world.as_ref().unwrap();
+            assert_eq!((w[a].x, w[b].x), (b as f32, a as f32));
+        }
+        assert_eq!(swapped.points[13], input.points[13], "elbows keep their labels");
     }
 }

@@ -17,6 +17,9 @@ pub struct FitWeights {
     pub betas: f32,
     /// Squared difference of unit bone directions to the world landmarks'.
     pub bones: f32,
+    /// Squared difference (radians²) of a hidden limb's joint rotations to the mirror image
+    /// of its seen counterpart's, scaled by how hidden the one and how seen the other is.
+    pub symmetry: f32,
     /// Squared mask difference summed over the crop, per pixel of a 256² crop.
     pub silhouette: f32,
     /// Relative weight of person pixels the body leaves uncovered (clothes and hair widen a
@@ -28,10 +31,11 @@ impl Default for FitWeights {
     fn default() -> Self {
         Self {
             robust_sigma: 40.0,
-            pose: 0.3,
+            pose: 0.6,
             hinge: 1.0,
             betas: 0.5,
-            bones: 60.0,
+            bones: 25.0,
+            symmetry: 20.0,
             silhouette: 0.2,
             silhouette_uncovered: 0.45,
         }

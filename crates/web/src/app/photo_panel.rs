@@ -343,6 +343,9 @@ impl GetAvatarApp {
         if let Some(n) = s.people.filter(|n| *n > 1) {
             s.message += &format!("; {n} people in the photo, the largest fitted");
         }
+        if !fit.relabelled.is_empty() {
+            s.message += "; the detector's left and right hands were swapped back";
+        }
         self.photo.fit = Some(fit);
     }
 
