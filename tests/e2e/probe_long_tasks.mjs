@@ -6,7 +6,8 @@
 //                                     # first keeps wasm function names in the profiles)
 //   cd tests/e2e && PHASES=generate,photo,reconstruct,generate2 [PROFILE=1] node probe_long_tasks.mjs
 //
-// Phases: generate*, photo, reconstruct* (3 W+ + 1 PTI steps at 64²), download. With PROFILE set,
+// Phases: generate*, photo, reconstruct* (3 W+ + 1 PTI steps at 64²), download*, betas* (a new shape),
+// texres* (256² texture for the downloads), show* (the avatar). With PROFILE set,
 // each phase's CPU profile (Chrome's .cpuprofile) and its long tasks ([start, duration] in
 // page time, `pt0` = the profile's start) go to out/long_tasks/ (GETAVATAR_URL as for app.e2e.mjs).
 import { launchChromium, appStatus, greyPhoto } from './browser.mjs';
@@ -58,8 +59,17 @@ for (const w of which) {
     await phase(w, () => cmd({ reconstruct: { steps: 3, pti_steps: 1, res: 64, preview_every: 1, start: 'average' } }), (s) => s.reconstruct.done > before || ['failed', 'cancelled'].includes(s.reconstruct.state));
     const r = (await status()).reconstruct;
     console.log(r.state, r.message, r.ms_per_latent_step, r.ms_per_pivotal_step);
-  } else if (w === 'download') {
-    await phase('download', () => cmd({ download: true }));
+  } else if (w.startsWith('download')) {
+    const before = (await status()).downloads;
+    await phase(w, () => cmd({ download: true }), (s) => s.downloads > before);
+  } else if (w.startsWith('texres')) {
+    await phase(w, () => cmd({ texture_res: 256 }));
+  } else if (w.startsWith('show')) {
+    await phase(w, () => cmd({ show: 'avatar' }));
+  } else if (w.startsWith('hugebetas')) {
+    await phase(w, () => cmd({ betas: [3.4e38, -1e6, 7] }));
+  } else if (w.startsWith('betas')) {
+    await phase(w, () => cmd({ betas: [1.5 - which.indexOf(w) * 0.3, -1, 0.5] }));
   }
   if (prof) { const { profile } = await prof.send('Profiler.stop'); fs.writeFileSync(new URL(`${w}${which.indexOf(w)}.cpuprofile`, outDir), JSON.stringify(profile)); fs.writeFileSync(new URL(`${w}${which.indexOf(w)}.lt.json`, outDir), JSON.stringify({ pt0, lt: globalThis.__lastLt })); }
 }

@@ -6,6 +6,7 @@
 
 use glam::{Mat3, Mat4};
 
+use crate::cooperative::checkpoint;
 use crate::generator::{recolor_async, Avatar, Generator, Styles};
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
@@ -16,7 +17,7 @@ use crate::photo_projection::{PhotoProjection, SourcePhoto};
 use crate::readback::ReadbackError;
 use crate::skin_export::{motion_clip, smpl_skin};
 use crate::skinning::{pose_body, BodyParams, PosedBody};
-use crate::uv_atlas::{bake_image, texel_points, transfer_body_uvs, AtlasError, BodyUvs, UvAtlas};
+use crate::uv_atlas::{bake_image_async, texel_points, transfer_body_uvs_async, AtlasError, BodyUvs, UvAtlas};
 use burn::tensor::Device;
 
 /// An avatar extracted in the canonical pose and rigged to the body.
@@ -169,8 +170,39 @@ pub enum BakeError {
     Resolution(usize),
 }
 
-/// Texture-field queries per batch (bounds the decoder's activations).
-const BAKE_BATCH: usize = 65_536;
+/// Texture-field queries per batch (bounds the decoder's activations). Every batch of a bake
+/// has exactly this many points, the last padded: the GPU then compiles one set of kernels for
+/// every bake, which the app compiles while the model loads ([`warm_bake_kernels`]). A new
+/// shape compiles new matmul kernels: single tasks of 0.2–0.4 s in the browser.
+pub const BAKE_BATCH: usize = 16_384;
+
+/// Texture-field colours at `points`, in batches of [`BAKE_BATCH`] (the last padded).
+async fn bake_queries(
+    g: &Generator,
+    planes: &Triplanes,
+    s: &Styles,
+    points: &[glam::Vec3],
+    device: &Device,
+) -> Result<Vec<glam::Vec3>, ReadbackError> {
+    let mut colors = Vec::with_capacity(points.len());
+    for chunk in points.chunks(BAKE_BATCH) {
+        let mut batch = chunk.to_vec();
+        batch.resize(BAKE_BATCH, chunk[0]);
+        let c = recolor_async(g, planes, s, &batch, device).await?;
+        colors.extend_from_slice(&c[..chunk.len()]);
+    }
+    Ok(colors)
+}
+
+/// Compile the bake's kernels: one batch of texture-field queries, its colours dropped.
+pub async fn warm_bake_kernels(
+    g: &Generator,
+    planes: &Triplanes,
+    s: &Styles,
+    device: &Device,
+) -> Result<(), ReadbackError> {
+    recolor_async(g, planes, s, &vec![glam::Vec3::ZERO; BAKE_BATCH], device).await.map(|_| ())
+}
 
 /// 8-bit RGB as PNG bytes.
 pub fn encode_rgb_png(rgb: &[u8], w: usize, h: usize) -> Result<Vec<u8>, String> {
@@ -190,8 +222,14 @@ impl RiggedAvatar {
     /// The atlas of this avatar (the body's UVs transferred, own charts where it leaves the
     /// body).
     pub fn atlas(&self, ctx: &BodyContext) -> Result<UvAtlas, AtlasError> {
+        crate::cooperative::run_blocking(self.atlas_async(ctx))
+    }
+
+    /// [`RiggedAvatar::atlas`] in slices ([`crate::cooperative`]), for the browser.
+    pub async fn atlas_async(&self, ctx: &BodyContext) -> Result<UvAtlas, AtlasError> {
         let body = BodyUvs::new(&ctx.canonical.vertices, &ctx.model.faces, &ctx.model.vt, &ctx.model.ft)?;
-        transfer_body_uvs(&self.canonical.mesh.vertices, &self.canonical.mesh.faces, &body)
+        checkpoint().await;
+        transfer_body_uvs_async(&self.canonical.mesh.vertices, &self.canonical.mesh.faces, &body).await
     }
 
     /// The projection of `photo` (the photo a reconstruction was made from) onto this avatar
@@ -241,13 +279,11 @@ impl RiggedAvatar {
         if !(64..=4096).contains(&res) {
             return Err(BakeError::Resolution(res));
         }
-        let atlas = self.atlas(ctx)?;
+        let atlas = self.atlas_async(ctx).await?;
         let canon: Vec<glam::Vec3> = atlas.source.iter().map(|v| self.canonical.mesh.attributes[*v as usize]).collect();
         let (texels, points) = texel_points(&atlas, &canon, res);
-        let mut colors = Vec::with_capacity(points.len());
-        for chunk in points.chunks(BAKE_BATCH) {
-            colors.extend(recolor_async(g, planes, s, chunk, device).await?);
-        }
+        checkpoint().await;
+        let mut colors = bake_queries(g, planes, s, &points, device).await?;
         if let Some((projection, params)) = photo {
             let (pos, nrm) = self.repose(ctx, &pose_body(&ctx.model, params));
             let per_atlas =
@@ -255,9 +291,11 @@ impl RiggedAvatar {
             let (_, posed) = texel_points(&atlas, &per_atlas(&pos), res);
             let (_, normals) = texel_points(&atlas, &per_atlas(&nrm), res);
             let normals: Vec<glam::Vec3> = normals.iter().map(|n| n.normalize_or_zero()).collect();
+            checkpoint().await;
             projection.blend(&posed, &normals, &mut colors);
+            checkpoint().await;
         }
-        let rgb = bake_image(res, &texels, &colors);
+        let rgb = bake_image_async(res, &texels, &colors).await;
         let png = encode_rgb_png(&rgb, res, res).map_err(BakeError::Png)?;
         Ok(BakedTexture { atlas, res, rgb, png, covered: texels.len() })
     }

@@ -242,18 +242,36 @@ impl<'a> BodyUvs<'a> {
 
 /// The atlas of an avatar mesh (canonical vertices, triangles) from the body's layout.
 pub fn transfer_body_uvs(vertices: &[Vec3], faces: &[[u32; 3]], body: &BodyUvs) -> Result<UvAtlas, AtlasError> {
+    crate::cooperative::run_blocking(transfer_body_uvs_async(vertices, faces, body))
+}
+
+/// Closest-point queries between [`crate::cooperative::checkpoint`]s of the sliced transfer.
+const TRANSFER_SLICE: usize = 512;
+
+/// [`transfer_body_uvs`] in slices of [`TRANSFER_SLICE`] closest-point queries (a few
+/// milliseconds each in the browser, whose UI thread runs the bake), the same result.
+pub async fn transfer_body_uvs_async(
+    vertices: &[Vec3],
+    faces: &[[u32; 3]],
+    body: &BodyUvs<'_>,
+) -> Result<UvAtlas, AtlasError> {
     if faces.is_empty() {
         return Err(AtlasError::Empty);
     }
     // Body layout → top-left BODY_REGION of the square (vt has v up; glTF's v points down).
     let place = |uv: Vec2| Vec2::new(uv.x * BODY_REGION, (1.0 - uv.y) * BODY_REGION);
-    let near: Vec<f32> = vertices.iter().map(|p| body.closest(*p).2).collect();
+    let mut near: Vec<f32> = Vec::with_capacity(vertices.len());
+    crate::cooperative::for_chunks(vertices, TRANSFER_SLICE, |c| near.extend(c.iter().map(|p| body.closest(*p).2)))
+        .await;
     let mut atlas = UvAtlas::default();
     // Shared atlas vertices: one per avatar vertex and UV (a vertex on a body UV cut has one
     // on each side).
     let mut shared: std::collections::HashMap<(u32, u8), u32> = std::collections::HashMap::new();
     let mut far = Vec::new();
     for (t, tri) in faces.iter().enumerate() {
+        if t % TRANSFER_SLICE == TRANSFER_SLICE - 1 {
+            crate::cooperative::checkpoint().await;
+        }
         let idx = tri.map(|v| v as usize);
         let centroid = (vertices[idx[0]] + vertices[idx[1]] + vertices[idx[2]]) / 3.0;
         let (fc, bc, dc) = body.closest(centroid);
@@ -492,6 +510,13 @@ pub fn texel_points(atlas: &UvAtlas, attribute: &[Vec3], res: usize) -> (Vec<u32
 /// (linear RGB per covered texel of [`texel_points`]) encoded, then [`DILATE_TEXELS`] rings
 /// of empty texels filled with the mean of their filled 8-neighbours.
 pub fn bake_image(res: usize, texels: &[u32], colors: &[Vec3]) -> Vec<u8> {
+    crate::cooperative::run_blocking(bake_image_async(res, texels, colors))
+}
+
+/// [`bake_image`] with a [`crate::cooperative::checkpoint`] after each dilation ring (a
+/// 1024² ring is ≈ 50 ms in the browser) and every 64 rows of the sRGB encoding, the same
+/// image.
+pub async fn bake_image_async(res: usize, texels: &[u32], colors: &[Vec3]) -> Vec<u8> {
     let mut rgb = vec![Vec3::ZERO; res * res];
     let mut filled = vec![false; res * res];
     for (k, c) in texels.iter().zip(colors) {
@@ -532,11 +557,50 @@ pub fn bake_image(res: usize, texels: &[u32], colors: &[Vec3]) -> Vec<u8> {
             rgb[k] = c;
             filled[k] = true;
         }
+        crate::cooperative::checkpoint().await;
     }
-    rgb.iter()
-        .flat_map(|c| {
+    // sRGB encoding: three `powf` per texel, ≈ 0.1 s for 1024² in the browser, in slices.
+    let mut out = Vec::with_capacity(rgb.len() * 3);
+    for rows in rgb.chunks(res * 64) {
+        out.extend(rows.iter().flat_map(|c| {
             let s = crate::colour::linear_to_srgb(c.clamp(Vec3::ZERO, Vec3::ONE));
             [s.x, s.y, s.z].map(|x| (x * 255.0).round().clamp(0.0, 255.0) as u8)
-        })
-        .collect()
+        }));
+        crate::cooperative::checkpoint().await;
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body_model::BodyModel;
+    use crate::cooperative::tests::{drive, pause_always};
+
+    /// The browser's sliced transfer and bake pause between slices and give the same atlas
+    /// and image as the blocking ones, bit for bit.
+    #[test]
+    fn sliced_transfer_and_bake_give_the_thread_back_and_the_same_result() {
+        let model = BodyModel::default_body().unwrap();
+        let body = BodyUvs::new(&model.v_template, &model.faces, &model.vt, &model.ft).unwrap();
+        // An "avatar": the body 2 % wider, so every query has a real distance to find.
+        let avatar: Vec<Vec3> = model.v_template.iter().map(|v| Vec3::new(v.x * 1.02, v.y, v.z * 1.02)).collect();
+        let reference = transfer_body_uvs(&avatar, &model.faces, &body).unwrap();
+        let _pauses = pause_always();
+        let (sliced, pauses) = drive(transfer_body_uvs_async(&avatar, &model.faces, &body));
+        let sliced = sliced.unwrap();
+        assert_eq!((&sliced.source, &sliced.faces), (&reference.source, &reference.faces));
+        assert!(sliced.uvs.iter().zip(&reference.uvs).all(|(a, b)| a.to_array() == b.to_array()));
+        let queries = avatar.len() / TRANSFER_SLICE + model.faces.len() / TRANSFER_SLICE;
+        assert!(pauses >= queries, "{pauses} pauses for {queries} slices");
+
+        // Bake: a 64² image with one lit texel dilates ring by ring, one pause per ring.
+        let colors = [Vec3::new(1.0, 0.5, 0.25)];
+        let (image, pauses) = drive(bake_image_async(64, &[64 * 32 + 32], &colors));
+        drop(_pauses);
+        assert_eq!(image, bake_image(64, &[64 * 32 + 32], &colors));
+        assert_eq!(pauses, DILATE_TEXELS + 1, "a pause per ring and per 64 rows");
+        let lit = image.chunks_exact(3).filter(|p| p[0] == 255).count();
+        assert_eq!(lit, (2 * DILATE_TEXELS + 1).pow(2), "a square of rings around the texel");
+    }
 }

@@ -22,7 +22,7 @@ use getavatar_core::generator::{
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::photo_projection::{PhotoProjection, SourcePhoto};
-use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
+use getavatar_core::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -87,6 +87,11 @@ async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, de
     let styles = shipped.generator.styles_with(zg, zt, default_psi(shipped.modes.as_ref()), shipped.modes.as_ref());
     if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
         web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
+    }
+    // The texture bake's batch shape (the downloads' first bake compiled 0.2–0.4 s tasks).
+    let planes = shipped.generator.triplanes(&styles);
+    if let Err(e) = warm_bake_kernels(&shipped.generator, &planes, &styles, device).await {
+        web_sys::console::warn_1(&format!("warming the bake's kernels up failed: {e}").into());
     }
 }
 
