@@ -7,7 +7,7 @@
 //   cd tests/e2e && PHASES=generate,photo,reconstruct,generate2 [PROFILE=1] node probe_long_tasks.mjs
 //
 // Phases: generate*, photo, reconstruct* (3 W+ + 1 PTI steps at 64²), download*, betas* (a new shape),
-// texres* (256² texture for the downloads), show* (the avatar). With PROFILE set,
+// texres* (256² texture for the downloads), show* (the avatar), cmdN (the N-th of CMDS='{…}|{…}'). With PROFILE set,
 // each phase's CPU profile (Chrome's .cpuprofile) and its long tasks ([start, duration] in
 // page time, `pt0` = the profile's start) go to out/long_tasks/ (GETAVATAR_URL as for app.e2e.mjs).
 import { launchChromium, appStatus, greyPhoto } from './browser.mjs';
@@ -66,6 +66,9 @@ for (const w of which) {
     await phase(w, () => cmd({ texture_res: 256 }));
   } else if (w.startsWith('show')) {
     await phase(w, () => cmd({ show: 'avatar' }));
+  } else if (/^cmd\d+$/.test(w)) {
+    // CMDS='{"betas":[1,2]}|{"show":"body"}': phase cmd0 sends the first, cmd1 the second, …
+    await phase(w, () => cmd(JSON.parse(process.env.CMDS.split('|')[Number(w.slice(3))])));
   } else if (w.startsWith('hugebetas')) {
     await phase(w, () => cmd({ betas: [3.4e38, -1e6, 7] }));
   } else if (w.startsWith('betas')) {

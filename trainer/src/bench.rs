@@ -53,6 +53,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         "fast/pose s",
         "ratio"
     );
+    let mut stage_tables = Vec::new();
     for name in configs {
         let cfg = GeneratorConfig::preset(name).with_context(|| format!("unknown config `{name}`"))?;
         let ((ctx, g), setup) = secs(|| (BodyContext::new(model.clone(), &cfg), Generator::new(&cfg, 0, &device)));
@@ -101,6 +102,15 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let (_, r512) = secs(|| render_views(&m.vertices, &m.faces, &avatar.normals, &avatar.colors, vp, 512, 1));
         let (_, r1024) = secs(|| render_views(&m.vertices, &m.faces, &avatar.normals, &avatar.colors, vp, 1024, 1));
         let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &device))?;
+        // The app's new identity (canonical generation + rigging) by stage, kernels warm.
+        getavatar_core::profile::start(clock_ms);
+        getavatar_core::profile::stage("mapping");
+        let (zg, zt) = seed_latents(&cfg, 3, 4, &device);
+        let s2 = g.styles(zg, zt, 0.7);
+        let profiled = block_on_ready(generate_rigged_async(&g, &ctx, &s2, &device));
+        let stages = getavatar_core::profile::finish().context("the stage recording was lost")?;
+        profiled?;
+        stage_tables.push((name.clone(), stages));
         let (_, fast_total) = secs(|| {
             for _ in 0..repeats {
                 for p in &params {
@@ -130,7 +140,17 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU);");
     println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
+    for (name, stages) in stage_tables {
+        println!("\nnew identity (canonical generation + rigging, seeds 3/4), `{name}`, {backend}: host ms, waits on read-backs, read-backs");
+        print!("{}", stages.table());
+    }
     Ok(())
+}
+
+/// Milliseconds since the first call (the stage recorder's clock).
+fn clock_ms() -> f64 {
+    static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0
 }
 
 /// What `trainer bench-train` measures.

@@ -46,7 +46,9 @@ pub async fn checkpoint() {
     // The hook is cloned out first: it may be replaced while the pause is awaited.
     let hook = HOOK.with(|h| h.borrow().clone());
     if let Some(pause) = hook.and_then(|h| h()) {
+        let since = crate::profile::now();
         pause.await;
+        crate::profile::yield_done(since);
     }
 }
 

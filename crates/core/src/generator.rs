@@ -22,6 +22,7 @@ use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
 use crate::network::GeneratorConfig;
 use crate::normal_field;
+use crate::profile;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::readback::block_on_ready;
 use crate::readback::{read_f32, ReadbackError};
@@ -205,25 +206,41 @@ pub async fn generate_avatar_async(
 ) -> Result<Avatar, ReadbackError> {
     // Checkpoints between the stages (`cooperative`): in the browser each is a slice of the
     // UI thread's time.
+    // Stage marks for `profile` (no-ops unless a caller records).
+    profile::stage("synthesis");
     let planes = g.triplanes(s);
     checkpoint().await;
+    profile::stage("posed grid");
     let posed = pose_body(&ctx.model, params);
     let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
     checkpoint().await;
-    let PosedGrid { canonical: canon, template, band } = PosedGrid::new_async(ctx, &inv).await;
+    // A new identity is generated in the canonical pose, whose grid is the same every time.
+    let canonical = params.pose == crate::pose_library::da_pose()
+        && params.betas.iter().all(|b| *b == 0.0)
+        && params.transl == Vec3::ZERO;
+    let posed_grid;
+    let PosedGrid { canonical: canon, template, band } = if canonical {
+        ctx.canonical_grid_async(&inv).await
+    } else {
+        posed_grid = PosedGrid::new_async(ctx, &inv).await;
+        &posed_grid
+    };
+    profile::stage("grid decode");
     let band_points: Vec<Vec3> = band.iter().map(|&i| canon[i as usize]).collect();
-    let fields = band_fields(g, &planes, s, points_tensor(&band_points, device), &band, canon.len()).await?;
-    let sdf = fields.sdf(&template, &ctx.boundary);
+    let fields = band_fields(g, &planes, s, points_tensor(&band_points, device), band, canon.len()).await?;
+    let sdf = fields.sdf(template, &ctx.boundary);
     let positions = fields.positions(&ctx.grid.vertices);
     checkpoint().await;
+    profile::stage("DMTet");
     // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
     // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
     // seen and would only pollute the exported mesh.
-    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, &canon).without_cavities();
+    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, canon).without_cavities();
     if mesh.vertices.is_empty() {
         return Ok(Avatar { mesh, normals: Vec::new(), colors: Vec::new() });
     }
     checkpoint().await;
+    profile::stage("normals");
     // Normal field (eq. 4) at each vertex's canonical coordinate.
     let grad = read_f32(normal_field::sdf_gradient(
         g,
@@ -244,6 +261,7 @@ pub async fn generate_avatar_async(
             normal_field::posed_normal(inv.rotation(body_vertex), Vec3::from_slice(grad))
         })
         .collect();
+    profile::stage("colours");
     let colors = recolor_async(g, &planes, s, &mesh.attributes, device).await?;
     Ok(Avatar { mesh, normals, colors })
 }
@@ -273,5 +291,6 @@ pub async fn generate_rigged_async(
     let params = BodyParams { pose: crate::pose_library::da_pose(), ..Default::default() };
     let a = generate_avatar_async(g, ctx, s, &params, device).await?;
     checkpoint().await;
+    profile::stage("rigging");
     Ok(RiggedAvatar::new(a, ctx))
 }

@@ -65,6 +65,7 @@ pub mod npz;
 pub mod optim;
 pub mod photo_projection;
 pub mod pose_library;
+pub mod profile;
 pub mod rasterize;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod readback;

@@ -38,10 +38,12 @@ pub fn f32_values<E: Display>(data: Result<TensorData, E>, shape: &[usize]) -> R
 /// A tensor's values, row-major, on any platform (awaits the GPU in the browser).
 pub async fn read_f32<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, ReadbackError> {
     let shape = t.dims();
+    let since = crate::profile::now();
     #[cfg(target_arch = "wasm32")]
     let data = t.into_data_async().await;
     #[cfg(not(target_arch = "wasm32"))]
     let data = t.try_into_data();
+    crate::profile::readback_done(since);
     f32_values(data, &shape)
 }
 
@@ -49,7 +51,10 @@ pub async fn read_f32<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, Readback
 #[cfg(not(target_arch = "wasm32"))]
 pub fn read_f32_now<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, ReadbackError> {
     let shape = t.dims();
-    f32_values(t.try_into_data(), &shape)
+    let since = crate::profile::now();
+    let data = t.try_into_data();
+    crate::profile::readback_done(since);
+    f32_values(data, &shape)
 }
 
 /// Run a future whose awaits all complete immediately (native read-backs are synchronous), so

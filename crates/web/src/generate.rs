@@ -22,6 +22,7 @@ use getavatar_core::generator::{
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::photo_projection::{PhotoProjection, SourcePhoto};
+use getavatar_core::profile;
 use getavatar_core::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
 
 /// Where the page finds the trained demo model (relative to the page).
@@ -172,6 +173,8 @@ pub struct Finished {
     /// This avatar's texture field, for per-pixel queries.
     pub field: Rc<TextureField>,
     pub millis: f64,
+    /// Its stages: host milliseconds, waits on the GPU, read-backs (`core::profile`).
+    pub stages: Option<getavatar_core::profile::StageProfile>,
     /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
     /// The truncation ψ it was generated with.
@@ -288,12 +291,16 @@ impl GenEngine {
             let t0 = crate::platform::now_ms();
             // Not in the frame that asked: the mapping network's launches are a slice of their own.
             crate::task::yield_to_browser().await;
+            profile::start(crate::platform::now_ms);
+            profile::stage("mapping");
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
             crate::task::checkpoint().await;
             let generated = match keep {
                 Some(mut r) => {
+                    profile::stage("synthesis");
                     let planes = g.triplanes(&styles);
+                    profile::stage("colours");
                     recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await.map(|colors| {
                         r.canonical.colors = colors;
                         (r, Some(planes))
@@ -301,6 +308,7 @@ impl GenEngine {
                 }
                 None => generate_rigged_async(&g, &ctx, &styles, &dev).await.map(|r| (r, None)),
             };
+            let stages = profile::finish();
             let result = match generated {
                 Err(e) => Err(format!("generation failed: {e}")),
                 Ok((rigged, _)) if rigged.canonical.mesh.faces.is_empty() => {
@@ -314,7 +322,7 @@ impl GenEngine {
                         projection: None,
                         reconstructed: false,
                     });
-                    Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, seeds, psi })
+                    Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, stages, seeds, psi })
                 }
             };
             *slot.borrow_mut() = Some(result);

@@ -27,9 +27,24 @@ pub struct BodyContext {
     pub grid: TetGrid,
     /// Whether each grid vertex lies on the box boundary.
     pub boundary: Vec<bool>,
+    /// The grid under the canonical body itself (Da-pose, β = 0), made on first use: every
+    /// new identity is generated there, and its inverse skinning is the same each time
+    /// ([`BodyContext::canonical_grid_async`]).
+    canonical_grid: std::sync::OnceLock<PosedGrid>,
 }
 
 impl BodyContext {
+    /// The grid under the canonical body ([`PosedGrid::new_async`] with `inv`, which must be
+    /// the canonical pose's inverse skinning), computed once and kept.
+    pub async fn canonical_grid_async(&self, inv: &InverseSkinning) -> &PosedGrid {
+        if let Some(grid) = self.canonical_grid.get() {
+            return grid;
+        }
+        let grid = PosedGrid::new_async(self, inv).await;
+        // Another task may have filled it meanwhile: the same values, either is kept.
+        self.canonical_grid.get_or_init(|| grid)
+    }
+
     /// The context of `model` for a template SDF of `template_res`³ cells and a tet grid of
     /// `tet_res`³ cubes (a generator config's `template_res` and `tet_res`).
     pub fn with_resolution(model: BodyModel, template_res: usize, tet_res: usize) -> Self {
@@ -47,7 +62,7 @@ impl BodyContext {
         checkpoint().await;
         let grid = TetGrid::reference(tet_res);
         let boundary = grid.boundary_flags();
-        Self { model, canonical, template, grid, boundary }
+        Self { model, canonical, template, grid, boundary, canonical_grid: std::sync::OnceLock::new() }
     }
 
     /// Longest tet edge of the grid.
@@ -146,5 +161,26 @@ impl PosedGrid {
         let (canonical, template): (Vec<Vec3>, Vec<f32>) = mapped.into_iter().map(|(c, t, _)| (c, t)).unzip();
         let band = field_band(ctx, &template, &guarded);
         Self { canonical, template, band }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cooperative::run_blocking;
+
+    /// The kept canonical grid is the one [`PosedGrid::new`] makes for the canonical body, and
+    /// it is made once.
+    #[test]
+    fn the_canonical_grid_is_computed_once_and_equals_a_fresh_one() {
+        let ctx = BodyContext::with_resolution(BodyModel::default_body().unwrap(), 24, 16);
+        let inv = InverseSkinning::new(&ctx.model, &ctx.canonical, &ctx.canonical);
+        let fresh = PosedGrid::new(&ctx, &inv);
+        let kept = run_blocking(ctx.canonical_grid_async(&inv));
+        assert!(!kept.band.is_empty());
+        assert_eq!((&kept.band, &kept.template), (&fresh.band, &fresh.template));
+        assert!(kept.canonical.iter().zip(&fresh.canonical).all(|(a, b)| a.to_array() == b.to_array()));
+        let again = run_blocking(ctx.canonical_grid_async(&inv));
+        assert!(std::ptr::eq(kept, again), "the second call reuses the first's grid");
     }
 }

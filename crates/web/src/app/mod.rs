@@ -71,6 +71,8 @@ pub struct GetAvatarApp {
     /// What the uploaded mesh is (avatar or body, and the shape it is bound at), and that
     /// shape's rest joints.
     uploaded: Option<(bool, Vec<f32>)>,
+    /// A new avatar's upload is timed into `status.last_generation_stages`.
+    time_upload: bool,
     rest_joints: [Vec3; getavatar_core::NUM_JOINTS],
     /// The avatar's canonical mesh on the GPU is stale (new avatar, new texture, toggled).
     avatar_dirty: bool,
@@ -175,6 +177,7 @@ impl GetAvatarApp {
             viewer,
             mesh_dirty: true,
             uploaded: None,
+            time_upload: false,
             rest_joints: [Vec3::ZERO; getavatar_core::NUM_JOINTS],
             avatar_dirty: true,
             render_dirty: true,
@@ -320,6 +323,8 @@ impl GetAvatarApp {
             Some(Ok(done)) => {
                 self.status.generations += 1;
                 self.status.last_generation_ms = done.millis as f32;
+                self.status.last_generation_stages = done.stages;
+                self.time_upload = true;
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
                 (self.seed_geo, self.seed_tex) = done.seeds;
                 self.avatar_name = format!("avatar_{}_{}", done.seeds.0, done.seeds.1);
@@ -403,6 +408,7 @@ impl GetAvatarApp {
         let Some(viewer) = self.viewer.as_mut() else { return };
         let key = (rig.is_some(), self.params.betas.clone());
         if self.avatar_dirty || self.uploaded.as_ref() != Some(&key) {
+            let t0 = now_ms();
             let top4 = |w: &[f32; getavatar_core::NUM_JOINTS]| {
                 let (j, w) = getavatar_core::skin_export::top4(w);
                 (j.map(u32::from), w)
@@ -456,6 +462,16 @@ impl GetAvatarApp {
             self.rest_joints = body.regress_joints(&body.shaped_vertices(&self.params.betas));
             self.uploaded = Some(key);
             self.avatar_dirty = false;
+            if std::mem::take(&mut self.time_upload) && rig.is_some() {
+                if let Some(p) = self.status.last_generation_stages.as_mut() {
+                    let host_ms = now_ms() - t0;
+                    p.stages.push(getavatar_core::profile::StageTime {
+                        stage: "upload".into(),
+                        host_ms,
+                        ..Default::default()
+                    });
+                }
+            }
         }
         viewer.set_bones(&rs.device, &rs.queue, &joint_bones(&body.parents, &self.rest_joints, &self.params));
     }

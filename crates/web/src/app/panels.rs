@@ -48,6 +48,15 @@ impl GetAvatarApp {
                 self.apply(Action::ShowAvatar(show));
             }
             ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
+            if let Some(p) = &self.status.last_generation_stages {
+                ui.label(format!(
+                    "host {:.0} ms · GPU waits {:.0} ms · {} read-backs",
+                    p.host_ms(),
+                    p.gpu_wait_ms(),
+                    p.readbacks()
+                ))
+                .on_hover_text(p.table());
+            }
         }
         ui.separator();
         self.photo_section(ui);

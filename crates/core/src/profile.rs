@@ -1,0 +1,187 @@
+//! Stage timings of a generation (issue #28): per stage, the milliseconds of our own code on
+//! the CPU or in wasm (`host_ms`), the milliseconds spent awaiting GPU→CPU read-backs
+//! (`gpu_wait_ms`), the read-backs themselves, and in the browser the time given back to the
+//! page between slices ([`crate::cooperative`], `yield_ms`: neither host nor GPU work of ours).
+//!
+//! Recording is per thread and off unless [`start`] was called: a caller starts it with its
+//! clock (natively `std::time::Instant`, in the browser `performance.now()`; this crate has no
+//! clock of its own on wasm32), marks each stage with [`stage`] before its work, and takes the
+//! table with [`finish`]. [`crate::readback::read_f32`] and [`crate::cooperative::checkpoint`]
+//! report their waits to it.
+//!
+//! burn queues GPU work lazily, so a stage's GPU time shows up as the wait of the stage whose
+//! read-back forces it (the triplanes' synthesis is waited for in the grid decode's read-back).
+//! On one thread, work of another task that overlaps a recording (a texture bake running
+//! while a generation does) is counted in it.
+
+use std::cell::RefCell;
+
+use serde::{Deserialize, Serialize};
+
+/// Milliseconds since some fixed instant.
+pub type Clock = fn() -> f64;
+
+/// One stage's times.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageTime {
+    pub stage: String,
+    /// Wall time minus GPU waits and yields.
+    pub host_ms: f64,
+    pub gpu_wait_ms: f64,
+    pub yield_ms: f64,
+    /// GPU→CPU read-backs awaited.
+    pub readbacks: u32,
+}
+
+/// The stages of one recording, in order.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageProfile {
+    pub stages: Vec<StageTime>,
+}
+
+impl StageProfile {
+    pub fn host_ms(&self) -> f64 {
+        self.stages.iter().map(|s| s.host_ms).sum()
+    }
+
+    pub fn gpu_wait_ms(&self) -> f64 {
+        self.stages.iter().map(|s| s.gpu_wait_ms).sum()
+    }
+
+    pub fn readbacks(&self) -> u32 {
+        self.stages.iter().map(|s| s.readbacks).sum()
+    }
+
+    /// A Markdown table: stage, host ms, GPU wait ms, read-backs, and the totals.
+    pub fn table(&self) -> String {
+        let mut out = String::from("| stage | host ms | GPU wait ms | read-backs |\n|---|---|---|---|\n");
+        for s in &self.stages {
+            out += &format!("| {} | {:.1} | {:.1} | {} |\n", s.stage, s.host_ms, s.gpu_wait_ms, s.readbacks);
+        }
+        out += &format!("| total | {:.1} | {:.1} | {} |\n", self.host_ms(), self.gpu_wait_ms(), self.readbacks());
+        out
+    }
+}
+
+struct Recorder {
+    clock: Clock,
+    /// The open stage and when it began.
+    current: Option<(StageTime, f64)>,
+    done: Vec<StageTime>,
+}
+
+impl Recorder {
+    fn close(&mut self) {
+        if let Some((mut s, t0)) = self.current.take() {
+            let wall = (self.clock)() - t0;
+            s.host_ms = (wall - s.gpu_wait_ms - s.yield_ms).max(0.0);
+            self.done.push(s);
+        }
+    }
+}
+
+thread_local! {
+    static RECORDER: RefCell<Option<Recorder>> = const { RefCell::new(None) };
+}
+
+/// Start recording on this thread (a recording already running is dropped).
+pub fn start(clock: Clock) {
+    RECORDER.with(|r| *r.borrow_mut() = Some(Recorder { clock, current: None, done: Vec::new() }));
+}
+
+/// End the open stage and begin `name` (no-op when not recording).
+pub fn stage(name: &str) {
+    RECORDER.with(|r| {
+        if let Some(rec) = r.borrow_mut().as_mut() {
+            rec.close();
+            let t0 = (rec.clock)();
+            rec.current = Some((StageTime { stage: name.to_string(), ..StageTime::default() }, t0));
+        }
+    });
+}
+
+/// End the recording; `None` when none was running.
+pub fn finish() -> Option<StageProfile> {
+    RECORDER.with(|r| {
+        r.borrow_mut().take().map(|mut rec| {
+            rec.close();
+            StageProfile { stages: rec.done }
+        })
+    })
+}
+
+/// The recording's clock, when recording.
+pub(crate) fn now() -> Option<f64> {
+    RECORDER.with(|r| r.borrow().as_ref().map(|rec| (rec.clock)()))
+}
+
+fn add(f: impl FnOnce(&mut StageTime)) {
+    RECORDER.with(|r| {
+        if let Some((s, _)) = r.borrow_mut().as_mut().and_then(|rec| rec.current.as_mut()) {
+            f(s);
+        }
+    });
+}
+
+/// A read-back that began at `since` (from [`now`]) has completed.
+pub(crate) fn readback_done(since: Option<f64>) {
+    if let (Some(t0), Some(t1)) = (since, now()) {
+        add(|s| {
+            s.gpu_wait_ms += t1 - t0;
+            s.readbacks += 1;
+        });
+    }
+}
+
+/// A pause that began at `since` has resumed.
+pub(crate) fn yield_done(since: Option<f64>) {
+    if let (Some(t0), Some(t1)) = (since, now()) {
+        add(|s| s.yield_ms += t1 - t0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::cell::Cell;
+
+    thread_local! {
+        static T: Cell<f64> = const { Cell::new(0.0) };
+    }
+    fn fake_clock() -> f64 {
+        T.with(Cell::get)
+    }
+    fn advance(ms: f64) {
+        T.with(|t| t.set(t.get() + ms));
+    }
+
+    #[test]
+    fn stages_split_wall_time_into_host_gpu_waits_and_yields() {
+        assert!(finish().is_none(), "nothing recorded unless started");
+        stage("ignored");
+        readback_done(Some(0.0));
+        start(fake_clock);
+        stage("a");
+        advance(3.0);
+        let t = now();
+        advance(5.0); // a read-back
+        readback_done(t);
+        advance(2.0);
+        stage("b");
+        let t = now();
+        advance(4.0); // a yield
+        yield_done(t);
+        advance(1.0);
+        let t = now();
+        advance(6.0);
+        readback_done(t);
+        let p = finish().unwrap();
+        assert_eq!(p.stages.len(), 2);
+        let (a, b) = (&p.stages[0], &p.stages[1]);
+        assert_eq!((a.stage.as_str(), a.host_ms, a.gpu_wait_ms, a.yield_ms, a.readbacks), ("a", 5.0, 5.0, 0.0, 1));
+        assert_eq!((b.stage.as_str(), b.host_ms, b.gpu_wait_ms, b.yield_ms, b.readbacks), ("b", 1.0, 6.0, 4.0, 1));
+        assert_eq!((p.host_ms(), p.gpu_wait_ms(), p.readbacks()), (6.0, 11.0, 2));
+        assert!(p.table().contains("| total | 6.0 | 11.0 | 2 |"), "{}", p.table());
+        assert!(finish().is_none(), "finish ends the recording");
+    }
+}
