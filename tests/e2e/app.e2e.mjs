@@ -263,12 +263,12 @@ try {
   await page.waitForTimeout(800);
   console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
   // Issue #28's stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
-  const st = s.last_generation_stages?.stages ?? [];
-  console.log('generation by stage (ms):\n' + st.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}`).join('\n'));
-  const names = st.map((x) => x.stage).join(',');
-  const sum = st.reduce((a, x) => a + x.host_ms + x.gpu_wait_ms + x.yield_ms, 0);
+  const stageRows = s.last_generation_stages?.stages ?? [];
+  console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}`).join('\n'));
+  const names = stageRows.map((x) => x.stage).join(',');
+  const sum = stageRows.reduce((a, x) => a + x.host_ms + x.gpu_wait_ms + x.yield_ms, 0);
   check(names === 'mapping,synthesis,posed grid,grid decode,DMTet,normals,colours,rigging,upload'
-    && st.reduce((a, x) => a + x.readbacks, 0) >= 2 && sum <= s.last_generation_ms + 100,
+    && stageRows.reduce((a, x) => a + x.readbacks, 0) >= 2 && sum <= s.last_generation_ms + 100,
     `the generation's stage breakdown covers its stages (${names}; ${sum.toFixed(0)} ms of ${s.last_generation_ms.toFixed(0)})`);
   check(s.showing === 'avatar' && s.avatar_vertices > 500, `Generate shows an avatar (${s.avatar_vertices} vertices)`);
   // ψ was not set, so the model's default applies: 0 (its training subjects) for a checkpoint
