@@ -50,10 +50,11 @@ impl GetAvatarApp {
             ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
             if let Some(p) = &self.status.last_generation_stages {
                 ui.label(format!(
-                    "host {:.0} ms · GPU waits {:.0} ms · {} read-backs",
+                    "host {:.0} ms · GPU waits {:.0} ms · {} read-back{}",
                     p.host_ms(),
                     p.gpu_wait_ms(),
-                    p.readbacks()
+                    p.readbacks(),
+                    if p.readbacks() == 1 { "" } else { "s" }
                 ))
                 .on_hover_text(p.table());
             }
