@@ -360,7 +360,7 @@ pub struct BodyFitter {
     /// Bones (parent joint, child joint) with their observed world direction and weight.
     bones: Option<(Vec<usize>, Vec<usize>, Tensor<2>, Tensor<2>)>,
     /// Hidden limb joints (rows of θ₁…θ₂₃), their seen counterparts' rows and the term's
-    /// weight per row ([`MIRROR_JOINTS`]).
+    /// weight per row ([`mirror_rows`]).
     symmetry: Option<(Tensor<1, burn::tensor::Int>, Tensor<1, burn::tensor::Int>, Tensor<2>)>,
     params: FitParams,
     adam: Adam,
@@ -375,7 +375,8 @@ pub struct BodyFitter {
     hands_swapped: bool,
 }
 
-/// Limb bones of the 3D direction term: (parent joint, child joint, landmarks).
+/// Limb bones of the 3D direction term: (parent joint, child joint, landmarks). Ordered so
+/// that bone `i ^ 2` is bone `i`'s left/right counterpart (the symmetry term's pairing).
 const BONES: [(usize, usize, usize, usize); 8] = [
     (16, 18, 11, 13),
     (18, 20, 13, 15),
@@ -387,26 +388,15 @@ const BONES: [(usize, usize, usize, usize); 8] = [
     (5, 8, 26, 28),
 ];
 
-/// Limb joints with a left/right counterpart, each with the landmark at the far end of the
-/// bone it turns (its visibility says whether the joint's rotation was seen): (joint,
-/// landmark, counterpart joint, counterpart landmark).
-const MIRROR_JOINTS: [(usize, usize, usize, usize); 8] = [
-    (16, 13, 17, 14),
-    (18, 15, 19, 16),
-    (17, 14, 16, 13),
-    (19, 16, 18, 15),
-    (1, 25, 2, 26),
-    (4, 27, 5, 28),
-    (2, 26, 1, 25),
-    (5, 28, 4, 27),
-];
-
-/// The symmetry term's rows: a joint whose bone the detector did not see (visibility below
-/// [`VISIBLE`]) whose counterpart's it did, weighted by how hidden and how seen.
+/// The symmetry term's rows (joint, counterpart joint, weight): the parent joint of a bone
+/// whose far-end landmark the detector did not see (visibility below [`VISIBLE`]) while it
+/// saw its counterpart's ([`BONES`]`[i ^ 2]`), weighted by how hidden and how seen.
 fn mirror_rows(visibility: impl Fn(usize) -> f32) -> Vec<(usize, usize, f32)> {
-    MIRROR_JOINTS
+    BONES
         .iter()
-        .filter_map(|&(j, l, cj, cl)| {
+        .enumerate()
+        .filter_map(|(i, &(j, _, _, l))| {
+            let (cj, _, _, cl) = BONES[i ^ 2];
             let hidden = (1.0 - visibility(l) / VISIBLE).clamp(0.0, 1.0);
             let seen = ((visibility(cl) - VISIBLE) / (1.0 - VISIBLE)).clamp(0.0, 1.0);
             (hidden * seen > 0.0).then_some((j, cj, hidden * seen))
