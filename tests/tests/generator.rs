@@ -156,6 +156,40 @@ fn fast_repose_path_matches_the_exact_path() {
     assert!(d1.max(d2) < 2.0 * cell, "fast and exact paths differ by {} m", d1.max(d2));
 }
 
+/// Issue #28: a new identity (canonical generation and rigging) reads back from the device
+/// twice: the geometry fields of the grid's band, then the mesh vertices' normals and colours
+/// together. The stage profile counts every read-back (`readback::read_f32`).
+#[test]
+fn a_new_identity_reads_back_from_the_device_twice() {
+    use getavatar_core::profile;
+    let cfg = GeneratorConfig::tiny();
+    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &cfg);
+    let dev = device();
+    let g = Generator::new(&cfg, 0, &dev);
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let s = g.styles(zg, zt, 0.7);
+    static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    profile::start(|| T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0);
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
+    let stages = profile::finish().expect("recorded");
+    let names: Vec<&str> = stages.stages.iter().map(|s| s.stage.as_str()).collect();
+    assert_eq!(names, ["synthesis", "posed grid", "grid decode", "DMTet", "normals & colours", "rigging"]);
+    let per_stage: Vec<u32> = stages.stages.iter().map(|s| s.readbacks).collect();
+    assert_eq!(per_stage, [0, 0, 1, 0, 1, 0], "{stages:?}");
+    assert!(rigged.canonical.mesh.vertices.len() > 500);
+    // The folded read-back gives each vertex its own colour and normal.
+    let colors = block_on_ready(getavatar_core::generator::recolor_async(
+        &g,
+        &g.triplanes(&s),
+        &s,
+        &rigged.canonical.mesh.attributes,
+        &dev,
+    ))
+    .expect("colours read back");
+    assert_eq!(colors, rigged.canonical.colors);
+    assert!(rigged.canonical.normals.iter().all(|n| (n.length() - 1.0).abs() < 1e-4));
+}
+
 #[test]
 fn checkpoints_round_trip_and_reject_other_configs() {
     use getavatar_core::checkpoint::{load_generator, parse_safetensors, save_generator};

@@ -71,11 +71,12 @@ pub async fn band_fields(
         return Ok(f);
     }
     let (r, o) = g.geometry_fields(planes, s, band_points);
-    let (r, o) = (read_f32(r.detach()).await?, read_f32(o.detach()).await?);
-    for (k, &i) in band.iter().enumerate() {
+    // One read-back for both fields: rows of (residual, offset x, y, z).
+    let both = read_f32(Tensor::cat(vec![r.unsqueeze_dim::<3>(2), o], 2).detach()).await?;
+    for (&i, row) in band.iter().zip(both.chunks_exact(4)) {
         let i = i as usize;
-        f.residual[i] = r[k];
-        f.offset[3 * i..3 * i + 3].copy_from_slice(&o[3 * k..3 * k + 3]);
+        f.residual[i] = row[0];
+        f.offset[3 * i..3 * i + 3].copy_from_slice(&row[1..4]);
     }
     Ok(f)
 }

@@ -240,29 +240,32 @@ pub async fn generate_avatar_async(
         return Ok(Avatar { mesh, normals: Vec::new(), colors: Vec::new() });
     }
     checkpoint().await;
-    profile::stage("normals");
-    // Normal field (eq. 4) at each vertex's canonical coordinate.
-    let grad = read_f32(normal_field::sdf_gradient(
+    profile::stage("normals & colours");
+    // Normal field (eq. 4) and texture field at each vertex's canonical coordinate, read back
+    // together (one GPU→CPU transfer): rows of (∇SDF x, y, z, r, g, b).
+    let n = mesh.attributes.len();
+    let points = points_tensor(&mesh.attributes, device);
+    let grad = normal_field::sdf_gradient(
         g,
         &planes,
         s,
         &ctx.template,
-        points_tensor(&mesh.attributes, device).reshape([mesh.attributes.len(), 3]),
+        points.clone().reshape([n, 3]),
         &mesh.attributes,
         device,
-    ))
-    .await?;
+    );
+    let rgb = g.texture_field(&planes, s, points).reshape([n, 3]);
+    let both = read_f32(Tensor::cat(vec![grad, rgb], 1)).await?;
     let normals = mesh
         .vertices
         .iter()
-        .zip(grad.chunks_exact(3))
-        .map(|(v, grad)| {
+        .zip(both.chunks_exact(6))
+        .map(|(v, row)| {
             let (_, body_vertex) = inv.to_canonical(*v);
-            normal_field::posed_normal(inv.rotation(body_vertex), Vec3::from_slice(grad))
+            normal_field::posed_normal(inv.rotation(body_vertex), Vec3::from_slice(&row[..3]))
         })
         .collect();
-    profile::stage("colours");
-    let colors = recolor_async(g, &planes, s, &mesh.attributes, device).await?;
+    let colors = both.chunks_exact(6).map(|row| Vec3::from_slice(&row[3..])).collect();
     Ok(Avatar { mesh, normals, colors })
 }
 
