@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::train::{device_for, train_step, RunConfig, State, StepInputs};
 use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::module::Module;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator};
 use getavatar_core::geometry::{InverseSkinning, PosedGrid};
@@ -110,7 +111,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let profiled = block_on_ready(generate_rigged_async(&g, &ctx, &s2, &device));
         let stages = getavatar_core::profile::finish().context("the stage recording was lost")?;
         profiled?;
-        stage_tables.push((name.clone(), stages));
+        stage_tables.push((name.clone(), stages, g.num_params()));
         let (_, fast_total) = secs(|| {
             for _ in 0..repeats {
                 for p in &params {
@@ -140,8 +141,9 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU);");
     println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
-    for (name, stages) in stage_tables {
-        println!("\nnew identity (canonical generation + rigging, seeds 3/4), `{name}`, {backend}: host ms, waits on read-backs, read-backs");
+    for (name, stages, num_params) in stage_tables {
+        println!("\n`{name}`: the generator has {num_params} parameters ({:.1} MB as f32)", num_params as f64 * 4e-6);
+        println!("new identity (canonical generation + rigging, seeds 3/4), `{name}`, {backend}: host ms, waits on read-backs, read-backs");
         print!("{}", stages.table());
     }
     Ok(())
