@@ -6,7 +6,9 @@
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::diff::dmtet::{surface_points, EdgeIndex};
-use getavatar_core::diff::rasterize::{antialias, compose, interpolate, silhouette_pairs, Coverage};
+use getavatar_core::diff::rasterize::{
+    antialias, compose, interpolate, silhouette_pairs, silhouette_pairs_of, Coverage, MeshEdges,
+};
 use getavatar_core::geometry::{marching_tets, TetGrid};
 use getavatar_core::rasterize::{interpolate as cpu_interpolate, rasterize};
 use getavatar_core::rng::Rng;
@@ -165,6 +167,70 @@ fn silhouette_gradient_equals_the_area_change_of_the_mask() {
     assert!((d_dsx / height_px - 1.0).abs() < 0.05, "d(mask area)/dx {d_dsx} vs edge height {height_px} px");
     let d_left: f32 = [0usize, 3].iter().map(|&i| g[4 * i] * 2.0 * clip[i].w / SIZE as f32).sum();
     assert!((d_left / height_px + 1.0).abs() < 0.05, "left edge {d_left}");
+}
+
+#[test]
+fn mesh_edges_list_each_edge_once_with_its_triangles() {
+    // A closed tetrahedron: 6 edges, each used by 2 faces; plus one dangling triangle sharing
+    // the edge (0, 1), which then has 3 users, and two edges of its own with 1.
+    let tris = [[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0], [1, 0, 4]];
+    let e = MeshEdges::new(&tris);
+    let got: Vec<((u32, u32), Vec<u32>)> =
+        e.ends.iter().enumerate().map(|(k, &ab)| (ab, e.owners(k).to_vec())).collect();
+    let want = vec![
+        ((0, 1), vec![0, 1, 4]),
+        ((0, 2), vec![0, 3]),
+        ((0, 3), vec![1, 3]),
+        ((0, 4), vec![4]),
+        ((1, 2), vec![0, 2]),
+        ((1, 3), vec![1, 2]),
+        ((1, 4), vec![4]),
+        ((2, 3), vec![2, 3]),
+    ];
+    assert_eq!(got, want);
+    // The pairs found with the edges given beforehand are the ones found without.
+    let (v, quads, _) = scene();
+    let vp = view_proj();
+    let clip: Vec<Vec4> = v.iter().map(|p| vp * p.extend(1.0)).collect();
+    let r = rasterize(&clip, &quads, SIZE, SIZE);
+    let (a, b) = (silhouette_pairs(&r, &clip, &quads), silhouette_pairs_of(&r, &clip, &quads, &MeshEdges::new(&quads)));
+    assert!(!a.target.is_empty());
+    assert_eq!((a.target, a.source, a.edge, a.sign), (b.target, b.source, b.edge, b.sign));
+}
+
+#[test]
+fn antialias_through_the_compacted_edge_vertices_gives_the_same_mask_and_gradients() {
+    // The fit poses only the silhouette edges' vertices with a gradient (`compact`): the
+    // mask and the gradients of those vertices must equal antialiasing with all of them.
+    let dev = cpu().autodiff();
+    let (v, tris, _) = scene();
+    let vp = view_proj();
+    let clip: Vec<Vec4> = v.iter().map(|p| vp * p.extend(1.0)).collect();
+    let flat: Vec<f32> = clip.iter().flat_map(|c| c.to_array()).collect();
+    let r = rasterize(&clip, &tris, SIZE, SIZE);
+    let cov = Coverage::new(&r, &tris);
+    let pairs = silhouette_pairs(&r, &clip, &tris);
+    let (ids, local) = pairs.compact();
+    assert!(ids.len() >= 4 && ids.len() < clip.len() + 1 && ids.windows(2).all(|w| w[0] < w[1]), "{ids:?}");
+    let weights = tensor2(&(0..SIZE * SIZE).map(|k| ((k * 7) % 11) as f32).collect::<Vec<_>>(), SIZE * SIZE, 1, &dev);
+    let mask_of = |clip_t: Tensor<2>, p| {
+        let base = compose(&cov, Tensor::<2>::ones([cov.len(), 1], &dev), &[0.0], &dev);
+        antialias(base, p, clip_t, SIZE, SIZE, &dev)
+    };
+    let full = tensor2(&flat, clip.len(), 4, &dev).require_grad();
+    let sub_rows: Vec<f32> = ids.iter().flat_map(|&i| clip[i as usize].to_array()).collect();
+    let sub = tensor2(&sub_rows, ids.len(), 4, &dev).require_grad();
+    let (m_full, m_sub) = (mask_of(full.clone(), &pairs), mask_of(sub.clone(), &local));
+    assert_eq!(values(m_full.clone()), values(m_sub.clone()));
+    let g_full = values(full.grad(&(m_full * weights.clone()).sum().backward()).unwrap());
+    let g_sub = values(sub.grad(&(m_sub * weights).sum().backward()).unwrap());
+    for (k, &i) in ids.iter().enumerate() {
+        assert_eq!(g_sub[k * 4..k * 4 + 4], g_full[i as usize * 4..i as usize * 4 + 4], "vertex {i}");
+    }
+    // The vertices left out get no gradient from the mask.
+    for i in (0..clip.len() as u32).filter(|i| !ids.contains(i)) {
+        assert!(g_full[i as usize * 4..i as usize * 4 + 4].iter().all(|g| *g == 0.0), "vertex {i}");
+    }
 }
 
 #[test]

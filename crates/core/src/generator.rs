@@ -122,6 +122,12 @@ impl Generator {
         self.synthesis.forward(s.geo.clone().narrow(1, 0, ng - 2), s.tex.clone().narrow(1, 0, nt - 3))
     }
 
+    /// [`Generator::triplanes`] with a checkpoint after each synthesis block (the browser).
+    pub async fn triplanes_async(&self, s: &Styles) -> Triplanes {
+        let (ng, nt) = self.num_ws();
+        self.synthesis.forward_async(s.geo.clone().narrow(1, 0, ng - 2), s.tex.clone().narrow(1, 0, nt - 3)).await
+    }
+
     fn w(ws: &Tensor<3>, i: usize) -> Tensor<2> {
         let [b, _, d] = ws.dims();
         ws.clone().narrow(1, i, 1).reshape([b, d])
@@ -208,7 +214,7 @@ pub async fn generate_avatar_async(
     // UI thread's time.
     // Stage marks for `profile` (no-ops unless a caller records).
     profile::stage("synthesis");
-    let planes = g.triplanes(s);
+    let planes = g.triplanes_async(s).await;
     checkpoint().await;
     profile::stage("posed grid");
     let posed = pose_body(&ctx.model, params);

@@ -90,7 +90,7 @@ async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, de
         web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
     }
     // The texture bake's batch shape (the downloads' first bake compiled 0.2–0.4 s tasks).
-    let planes = shipped.generator.triplanes(&styles);
+    let planes = shipped.generator.triplanes_async(&styles).await;
     if let Err(e) = warm_bake_kernels(&shipped.generator, &planes, &styles, device).await {
         web_sys::console::warn_1(&format!("warming the bake's kernels up failed: {e}").into());
     }
@@ -299,7 +299,7 @@ impl GenEngine {
             let generated = match keep {
                 Some(mut r) => {
                     profile::stage("synthesis");
-                    let planes = g.triplanes(&styles);
+                    let planes = g.triplanes_async(&styles).await;
                     profile::stage("colours");
                     recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await.map(|colors| {
                         r.canonical.colors = colors;

@@ -204,6 +204,20 @@ impl VertexSet {
         Self::new(model, &ids, skeleton, device)
     }
 
+    /// The vertices `ids` (indices into this set) as a set of their own.
+    pub fn select(&self, ids: &[u32]) -> Self {
+        let device = self.template.device();
+        let idx = index_tensor(ids, &device);
+        let [nb, n3] = self.shape_dirs.dims();
+        let n = ids.len();
+        Self {
+            template: self.template.clone().select(0, idx.clone()),
+            shape_dirs: self.shape_dirs.clone().reshape([nb, n3 / 3, 3]).select(1, idx.clone()).reshape([nb, 3 * n]),
+            weights: self.weights.clone().select(0, idx),
+            len: n,
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.len
     }
@@ -221,9 +235,13 @@ impl VertexSet {
             self.template.clone() + betas.clone().matmul(self.shape_dirs.clone()).reshape([n, 3])
         };
         let t = self.weights.clone().matmul(posed.transforms.clone()).reshape([n, 3, 4]);
-        let r = t.clone().narrow(2, 0, 3);
-        let trans = t.narrow(2, 3, 1).reshape([n, 3]);
-        r.matmul(rest.reshape([n, 3, 1])).reshape([n, 3]) + trans
+        // Each row of the blended [R | t] times the homogeneous rest point, as a broadcast
+        // product summed over the last axis: one pass over N·12 values, where a batched
+        // 3×4 · 4×1 matmul is N small products (thousands of matmul calls on NdArray, the fit's
+        // longest stretch in the browser with all vertices).
+        let ones = Tensor::<2>::ones([n, 1], &rest.device());
+        let homogeneous = Tensor::cat(vec![rest, ones], 1).reshape([n, 1, 4]);
+        (t * homogeneous).sum_dim(2).reshape([n, 3])
     }
 }
 

@@ -9,8 +9,6 @@
 //!
 //! [`rasterize`]: crate::rasterize::rasterize
 
-use std::collections::HashMap;
-
 use burn::tensor::{Device, IndexingUpdateOp, Tensor};
 use glam::{Vec2, Vec4};
 
@@ -119,8 +117,97 @@ pub struct SilhouettePairs {
     pub sign: Vec<f32>,
 }
 
+impl SilhouettePairs {
+    /// The vertices the pairs' edges use (sorted, once each) and the pairs with their edge
+    /// ends renumbered into that list: [`antialias`] only differentiates through those
+    /// vertices, so a caller can pose just them (a fit's silhouette: ~2k of the body's 6890).
+    pub fn compact(&self) -> (Vec<u32>, SilhouettePairs) {
+        let mut ids: Vec<u32> = self.edge[0].iter().chain(&self.edge[1]).copied().collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let local = |v: &u32| ids.binary_search(v).map_or(0, |k| k as u32);
+        let edge = [self.edge[0].iter().map(local).collect(), self.edge[1].iter().map(local).collect()];
+        (ids.clone(), SilhouettePairs { edge, ..self.clone() })
+    }
+}
+
 fn screen(c: Vec4, w: usize, h: usize) -> Vec2 {
     Vec2::new((c.x / c.w + 1.0) * 0.5 * w as f32, (1.0 - c.y / c.w) * 0.5 * h as f32)
+}
+
+/// The edges of a triangle mesh and the triangles using each, found once per topology (a fit's
+/// body mesh keeps its faces over hundreds of steps): sorted by their end vertices, with the
+/// users in one flat list (`owner[start[e]..start[e + 1]]`).
+#[derive(Clone, Debug)]
+pub struct MeshEdges {
+    /// End points `(a, b)`, `a < b`, of each edge, sorted.
+    pub ends: Vec<(u32, u32)>,
+    start: Vec<u32>,
+    owner: Vec<u32>,
+    /// The number of vertices the faces refer to (one past the largest id).
+    vertices: usize,
+}
+
+impl MeshEdges {
+    pub fn new(tris: &[[u32; 3]]) -> Self {
+        // Sorting packed (edge, triangle) keys: no hashing, deterministic, a few ms at 30k faces.
+        let mut keys: Vec<(u64, u32)> = Vec::with_capacity(tris.len() * 3);
+        let mut vertices = 0;
+        for (ti, t) in tris.iter().enumerate() {
+            for (i, j) in [(0, 1), (1, 2), (2, 0)] {
+                let (a, b) = (t[i].min(t[j]), t[i].max(t[j]));
+                keys.push(((u64::from(a) << 32) | u64::from(b), ti as u32));
+                vertices = vertices.max(b as usize + 1);
+            }
+        }
+        keys.sort_unstable();
+        let mut e = MeshEdges { ends: Vec::new(), start: Vec::new(), owner: Vec::with_capacity(keys.len()), vertices };
+        for (k, (key, ti)) in keys.iter().enumerate() {
+            if k == 0 || keys[k - 1].0 != *key {
+                e.ends.push(((key >> 32) as u32, *key as u32));
+                e.start.push(e.owner.len() as u32);
+            }
+            e.owner.push(*ti);
+        }
+        e.start.push(e.owner.len() as u32);
+        e
+    }
+
+    /// The triangles using edge `e` (an index into [`MeshEdges::ends`]).
+    pub fn owners(&self, e: usize) -> &[u32] {
+        &self.owner[self.start[e] as usize..self.start[e + 1] as usize]
+    }
+}
+
+/// Items grouped by a bucket index in one flat list (compressed rows): built by counting, then
+/// filling, so tens of thousands of buckets cost two allocations, not one each.
+struct Buckets<T> {
+    start: Vec<u32>,
+    items: Vec<T>,
+}
+
+impl<T: Copy + Default> Buckets<T> {
+    /// `entries` yields (bucket, item) pairs; it is called twice (count, then fill).
+    fn build<I: Iterator<Item = (usize, T)>>(buckets: usize, entries: impl Fn() -> I) -> Self {
+        let mut start = vec![0u32; buckets + 1];
+        for (b, _) in entries() {
+            start[b + 1] += 1;
+        }
+        for b in 0..buckets {
+            start[b + 1] += start[b];
+        }
+        let mut fill = start.clone();
+        let mut items = vec![T::default(); start[buckets] as usize];
+        for (b, item) in entries() {
+            items[fill[b] as usize] = item;
+            fill[b] += 1;
+        }
+        Buckets { start, items }
+    }
+
+    fn get(&self, b: usize) -> &[T] {
+        self.start.get(b + 1).map_or(&[], |&end| &self.items[self.start[b] as usize..end as usize])
+    }
 }
 
 /// For each horizontally or vertically adjacent pixel pair covered by different triangles
@@ -131,6 +218,12 @@ fn screen(c: Vec4, w: usize, h: usize) -> Vec2 {
 /// pixel) miss, any silhouette edge is tried, so meshes with sub-pixel triangles (DMTet at
 /// the training resolution) get their silhouette gradients too.
 pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> SilhouettePairs {
+    silhouette_pairs_of(r, clip, tris, &MeshEdges::new(tris))
+}
+
+/// [`silhouette_pairs`] with the mesh's edges found beforehand (`edges` must be
+/// `MeshEdges::new(tris)`): what a loop over one topology calls each step.
+pub fn silhouette_pairs_of(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]], edges: &MeshEdges) -> SilhouettePairs {
     let (w, h) = (r.width, r.height);
     let mut out = SilhouettePairs::default();
     // Silhouette edges (nvdiffrast's topology test): used by one triangle, by more than two,
@@ -141,46 +234,37 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
         let s = t.map(|v| scr[v as usize]);
         (s[1] - s[0]).perp_dot(s[2] - s[0])
     };
-    // A closed mesh has 3/2 edges per triangle: no rehashing on the way.
-    let mut edge_use: HashMap<(u32, u32), Vec<u32>> = HashMap::with_capacity(tris.len() * 3 / 2 + 16);
-    for (ti, t) in tris.iter().enumerate() {
-        for (i, j) in [(0, 1), (1, 2), (2, 0)] {
-            edge_use.entry((t[i].min(t[j]), t[i].max(t[j]))).or_default().push(ti as u32);
-        }
-    }
-    // (a, b, owner) per silhouette edge, indexed by end vertex (nvdiffrast's candidates: the
-    // edges at the corners of the triangle seen at the nearer pixel) and registered in every
-    // pixel cell its screen-space bounding box touches. Marching-tets meshes have triangles
-    // smaller than a pixel, so the silhouette edge crossing a pixel pair rarely touches the
-    // triangle seen at the nearer pixel's centre; the cell index finds it anyway.
-    let mut by_vertex: HashMap<u32, Vec<(u32, u32, u32)>> = HashMap::new();
-    let mut by_cell: Vec<Vec<(u32, u32, u32)>> = vec![Vec::new(); w * h];
-    for (&(a, b), owners) in &edge_use {
+    // (a, b, owner) per silhouette edge and owner.
+    let mut sil: Vec<(u32, u32, u32)> = Vec::new();
+    for (e, &(a, b)) in edges.ends.iter().enumerate() {
+        let owners = edges.owners(e);
         let silhouette = owners.len() != 2 || {
             let (f0, f1) = (facing(&tris[owners[0] as usize]), facing(&tris[owners[1] as usize]));
             (f0 > 0.0) != (f1 > 0.0)
         };
-        if !silhouette {
-            continue;
-        }
-        for &o in owners {
-            by_vertex.entry(a).or_default().push((a, b, o));
-            by_vertex.entry(b).or_default().push((a, b, o));
-        }
-        let (sa, sb) = (scr[a as usize], scr[b as usize]);
-        let (lo, hi) = (sa.min(sb), sa.max(sb));
-        if !(lo.is_finite() && hi.is_finite()) || hi.x < 0.0 || hi.y < 0.0 || lo.x >= w as f32 || lo.y >= h as f32 {
-            continue;
-        }
-        let cell = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
-        for y in cell(lo.y, h)..=cell(hi.y, h) {
-            for x in cell(lo.x, w)..=cell(hi.x, w) {
-                for &o in owners {
-                    by_cell[y * w + x].push((a, b, o));
-                }
-            }
+        if silhouette {
+            sil.extend(owners.iter().map(|&o| (a, b, o)));
         }
     }
+    // The silhouette edges indexed by end vertex (nvdiffrast's candidates: the edges at the
+    // corners of the triangle seen at the nearer pixel) and registered in every pixel cell
+    // their screen-space bounding box touches. Marching-tets meshes have triangles smaller
+    // than a pixel, so the silhouette edge crossing a pixel pair rarely touches the triangle
+    // seen at the nearer pixel's centre; the cell index finds it anyway.
+    let by_vertex = Buckets::build(edges.vertices.max(clip.len()), || {
+        sil.iter().flat_map(|&s| [(s.0 as usize, s), (s.1 as usize, s)])
+    });
+    let cells = |&(a, b, o): &(u32, u32, u32)| {
+        let (sa, sb) = (scr[a as usize], scr[b as usize]);
+        let (lo, hi) = (sa.min(sb), sa.max(sb));
+        let off =
+            !(lo.is_finite() && hi.is_finite()) || hi.x < 0.0 || hi.y < 0.0 || lo.x >= w as f32 || lo.y >= h as f32;
+        let cell = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
+        let (ys, xs) =
+            if off { (1..=0, 1..=0) } else { (cell(lo.y, h)..=cell(hi.y, h), cell(lo.x, w)..=cell(hi.x, w)) };
+        ys.flat_map(move |y| xs.clone().map(move |x| (y * w + x, (a, b, o))))
+    };
+    let by_cell = Buckets::build(w * h, || sil.iter().flat_map(cells));
     let centre = |k: usize| Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
     // `horizontal`: a and b are left/right neighbours. As in nvdiffrast, an edge is handled by
     // horizontal pairs when it is closer to vertical and by vertical pairs otherwise, so each
@@ -230,7 +314,7 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
         };
         let mut best: Option<(f32, u32, u32)> = None;
         for v in tf {
-            for &(i, j, owner) in by_vertex.get(&v).map(Vec::as_slice).unwrap_or(&[]) {
+            for &(i, j, owner) in by_vertex.get(v as usize) {
                 if let Some((t, _)) = crossing(i, j, owner) {
                     if best.is_none_or(|(bt, bi, bj)| (t, i, j) < (bt, bi, bj)) {
                         best = Some((t, i, j));
@@ -246,7 +330,7 @@ pub fn silhouette_pairs(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]]) -> Silhoue
                 c[0] * (1.0 - u - v) + c[1] * u + c[2] * v
             };
             let mut near: Option<(f32, f32, u32, u32)> = None;
-            for &(i, j, owner) in by_cell[f].iter().chain(&by_cell[o]) {
+            for &(i, j, owner) in by_cell.get(f).iter().chain(by_cell.get(o)) {
                 let Some((t, s)) = crossing(i, j, owner) else { continue };
                 if !(-1e-4..=1.0 + 1e-4).contains(&s) {
                     continue; // the crossing must lie on the edge segment itself

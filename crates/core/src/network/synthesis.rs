@@ -104,40 +104,69 @@ impl TriplaneSynthesis {
     /// `ws_geo`: `[B, num_ws_geo, w_dim]`, `ws_tex`: `[B, num_ws_tex, w_dim]` (W+; repeat one w
     /// for the usual W space).
     pub fn forward(&self, ws_geo: Tensor<3>, ws_tex: Tensor<3>) -> Triplanes {
+        let mut state = SynthesisState::default();
+        for block in &self.blocks {
+            state.run(block, &ws_geo, &ws_tex);
+        }
+        state.finish()
+    }
+
+    /// [`TriplaneSynthesis::forward`] with a checkpoint (`cooperative`) after each block: in
+    /// the browser, launching a whole backbone's kernels at once held the UI thread ~100 ms.
+    pub async fn forward_async(&self, ws_geo: Tensor<3>, ws_tex: Tensor<3>) -> Triplanes {
+        let mut state = SynthesisState::default();
+        for block in &self.blocks {
+            state.run(block, &ws_geo, &ws_tex);
+            crate::cooperative::checkpoint().await;
+        }
+        state.finish()
+    }
+}
+
+/// The backbone's running state between blocks: features, the two accumulated skip outputs,
+/// and how many w codes each branch has consumed.
+#[derive(Default)]
+struct SynthesisState {
+    x: Option<Tensor<4>>,
+    geo: Option<Tensor<4>>,
+    tex: Option<Tensor<4>>,
+    gi: usize,
+    ti: usize,
+}
+
+impl SynthesisState {
+    fn run(&mut self, block: &SynthesisBlock, ws_geo: &Tensor<3>, ws_tex: &Tensor<3>) {
         let [b, _, w_dim] = ws_geo.dims();
         let pick = |ws: &Tensor<3>, i: usize| ws.clone().narrow(1, i, 1).reshape([b, w_dim]);
-        let (mut gi, mut ti) = (0, 0);
-        let mut x: Option<Tensor<4>> = None;
-        let mut geo: Option<Tensor<4>> = None;
-        let mut tex: Option<Tensor<4>> = None;
-        for block in &self.blocks {
-            let mut h = match (&block.constant, x.take()) {
-                (Some(c), _) => {
-                    let [ch, r, _] = c.dims();
-                    c.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r])
-                }
-                (None, Some(prev)) => upsample2(prev),
-                (None, None) => unreachable_input(),
-            };
-            for conv in &block.convs {
-                h = conv.forward(h, pick(&ws_geo, gi));
-                gi += 1;
+        let mut h = match (&block.constant, self.x.take()) {
+            (Some(c), _) => {
+                let [ch, r, _] = c.dims();
+                c.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r])
             }
-            let g = block.to_geometry.forward(h.clone(), pick(&ws_geo, gi));
-            gi += 1;
-            let t = block.to_texture.forward(h.clone(), pick(&ws_tex, ti));
-            ti += 1;
-            geo = Some(match geo.take() {
-                Some(prev) => upsample2(prev) + g,
-                None => g,
-            });
-            tex = Some(match tex.take() {
-                Some(prev) => upsample2(prev) + t,
-                None => t,
-            });
-            x = Some(h);
+            (None, Some(prev)) => upsample2(prev),
+            (None, None) => unreachable_input(),
+        };
+        for conv in &block.convs {
+            h = conv.forward(h, pick(ws_geo, self.gi));
+            self.gi += 1;
         }
-        match (geo, tex) {
+        let g = block.to_geometry.forward(h.clone(), pick(ws_geo, self.gi));
+        self.gi += 1;
+        let t = block.to_texture.forward(h.clone(), pick(ws_tex, self.ti));
+        self.ti += 1;
+        self.geo = Some(match self.geo.take() {
+            Some(prev) => upsample2(prev) + g,
+            None => g,
+        });
+        self.tex = Some(match self.tex.take() {
+            Some(prev) => upsample2(prev) + t,
+            None => t,
+        });
+        self.x = Some(h);
+    }
+
+    fn finish(self) -> Triplanes {
+        match (self.geo, self.tex) {
             (Some(geometry), Some(texture)) => Triplanes { geometry, texture },
             _ => unreachable_input(),
         }
