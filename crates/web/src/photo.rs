@@ -17,7 +17,9 @@ use wasm_bindgen::JsCast;
 
 use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
 use getavatar_core::body_fit::landmarks::PoseResult;
+use getavatar_core::body_fit::metrics::body_mask_rect;
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::skinning::pose_body;
 use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
@@ -65,8 +67,8 @@ pub enum PhotoEvent {
     /// One sentence for the user; the app stays as it was.
     Failed(String),
     Progress(FitProgress),
-    /// The fit and its time in milliseconds.
-    Fitted(Box<BodyFit>, f64),
+    /// The fit, its time and its overlay.
+    Fitted(Box<FittedView>),
     Cancelled,
 }
 
@@ -176,6 +178,70 @@ pub struct FitRequest {
     pub start: Option<BodyParams>,
     /// An autodiff device (`Device::autodiff()`).
     pub device: Device,
+    /// The size of the photo's preview, which the overlay covers.
+    pub preview: [usize; 2],
+}
+
+/// A finished fit as the photo view shows it, made in the fit's task rather than in the frame
+/// that receives it (posing and rasterizing the body there held the UI thread ~50 ms).
+pub struct FittedView {
+    pub fit: BodyFit,
+    /// The fit's time in milliseconds.
+    pub millis: f64,
+    /// The fitted body's silhouette over the preview, tinted.
+    pub body_image: egui::ColorImage,
+    /// `window.getavatar.photoMasks()`'s JSON: the fitted body's and the person's masks.
+    pub masks_json: String,
+}
+
+pub(crate) const BODY_TINT: [u8; 3] = [255, 150, 40];
+
+/// The fitted body's tinted silhouette and the masks hook's JSON at the preview's size.
+async fn overlay(
+    fit: &BodyFit,
+    model: &BodyModel,
+    result: &PoseResult,
+    [w, h]: [usize; 2],
+) -> (egui::ColorImage, String) {
+    let posed = pose_body(model, &fit.body_params());
+    checkpoint().await;
+    let mask = body_mask_rect(&posed.vertices, &model.faces, fit.photo_view_proj(), w, h);
+    checkpoint().await;
+    let image = tinted(&mask, w, h, BODY_TINT, 0.5);
+    let person = result.segmentation_mask.as_ref().map(|m| bits(&resampled(&m.data, m.width, m.height, w, h)));
+    let masks = serde_json::json!({ "width": w, "height": h, "body": bits(&mask), "person": person });
+    (image, masks.to_string())
+}
+
+/// A mask covering the photo (`mw × mh`) resampled to `w × h` (nearest value).
+pub(crate) fn resampled(values: &[f32], mw: usize, mh: usize, w: usize, h: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(w * h);
+    for y in 0..h {
+        let my = (((y as f32 + 0.5) / h as f32 * mh as f32) as usize).min(mh.saturating_sub(1));
+        for x in 0..w {
+            let mx = (((x as f32 + 0.5) / w as f32 * mw as f32) as usize).min(mw.saturating_sub(1));
+            out.push(values.get(my * mw + mx).copied().unwrap_or(0.0));
+        }
+    }
+    out
+}
+
+/// A `w × h` mask (0..1) as a tinted translucent image.
+pub(crate) fn tinted(values: &[f32], w: usize, h: usize, tint: [u8; 3], alpha: f32) -> egui::ColorImage {
+    let pixels = values
+        .iter()
+        .take(w * h)
+        .map(|v| {
+            let a = (v.clamp(0.0, 1.0) * alpha * 255.0).round() as u8;
+            egui::Color32::from_rgba_unmultiplied(tint[0], tint[1], tint[2], a)
+        })
+        .collect();
+    egui::ColorImage::new([w, h], pixels)
+}
+
+/// `'0'`/`'1'` per pixel (the masks hook's compact form).
+fn bits(values: &[f32]) -> String {
+    values.iter().map(|v| if *v >= 0.5 { '1' } else { '0' }).collect()
 }
 
 /// Fit the body to a detection, one step per await.
@@ -185,7 +251,10 @@ pub fn fit(req: FitRequest, repaint: egui::Context) -> PhotoTask {
     wasm_bindgen_futures::spawn_local(async move {
         let t0 = now_ms();
         let event = match fit_async(req, &t, &repaint).await {
-            Ok(Some(fit)) => PhotoEvent::Fitted(Box::new(fit), now_ms() - t0),
+            Ok(Some((fit, overlay))) => {
+                let (body_image, masks_json) = overlay;
+                PhotoEvent::Fitted(Box::new(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
+            }
             Ok(None) => PhotoEvent::Cancelled,
             Err(e) => PhotoEvent::Failed(format!("the body fit failed: {e}")),
         };
@@ -198,8 +267,13 @@ async fn fit_async(
     req: FitRequest,
     task: &PhotoTask,
     repaint: &egui::Context,
-) -> Result<Option<BodyFit>, getavatar_core::body_fit::fit::FitError> {
+) -> Result<Option<(BodyFit, (egui::ColorImage, String))>, getavatar_core::body_fit::fit::FitError> {
+    let (model, result, preview) = (req.model.clone(), req.result.clone(), req.preview);
+    // Not in the frame that asked (its own work is a task already), and a slice each for the
+    // input and the fitter (~30 ms each on the test machine).
+    crate::task::yield_to_browser().await;
     let input = FitInput::from_detection(&req.result, req.width, req.height, None, &req.model, &req.options)?;
+    checkpoint().await;
     let mut fitter = BodyFitter::new(req.model, input, req.options, &req.device)?;
     if let Some(start) = &req.start {
         fitter.start_from(start);
@@ -216,7 +290,10 @@ async fn fit_async(
             None => break,
         }
     }
-    fitter.finish().await.map(Some)
+    let fit = fitter.finish().await?;
+    checkpoint().await;
+    let view = overlay(&fit, &model, &result, preview).await;
+    Ok(Some((fit, view)))
 }
 
 thread_local! {

@@ -16,6 +16,7 @@ mod reconstruct_panel;
 mod texture_job;
 
 use std::rc::Rc;
+use std::sync::Arc;
 
 use eframe::egui;
 use glam::Vec3;
@@ -56,7 +57,9 @@ const SKIN: Vec3 = Vec3::new(0.62, 0.42, 0.32);
 const KEPT_MESSAGES: usize = 50;
 
 pub struct GetAvatarApp {
-    body: Option<BodyModel>,
+    /// Shared (`Arc`): a fit takes it without copying its 25 MB of shape directions, a
+    /// copy that held the UI thread ~50 ms.
+    body: Option<Arc<BodyModel>>,
     poses: PoseLibrary,
     params: BodyParams,
     pose_name: String,
@@ -128,7 +131,7 @@ impl GetAvatarApp {
         let mut status = Status::default();
         let mut messages = startup_errors;
         let body = match BodyModel::default_body() {
-            Ok(b) => Some(b),
+            Ok(b) => Some(Arc::new(b)),
             Err(e) => {
                 messages.push(format!("cannot load the embedded body model: {e}"));
                 None
@@ -137,7 +140,7 @@ impl GetAvatarApp {
         let mut engine = None;
         let viewer = match &cc.wgpu_render_state {
             Some(rs) => {
-                match GenEngine::new(rs, body.clone(), cc.egui_ctx.clone()) {
+                match GenEngine::new(rs, body.as_deref().cloned(), cc.egui_ctx.clone()) {
                     Ok(e) => engine = Some(e),
                     Err(e) => messages.push(e),
                 }

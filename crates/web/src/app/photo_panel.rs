@@ -14,15 +14,13 @@ use egui::{Color32, Pos2, Rect, Stroke};
 
 use getavatar_core::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
-use getavatar_core::body_fit::metrics::body_mask_rect;
 use getavatar_core::body_model::JOINT_NAMES;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::skinning::pose_body;
 use getavatar_core::BodyModel;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, PhotoFitAction, PhotoSource};
-use crate::photo::{self, FitRequest, Photo, PhotoEvent, PhotoTask};
+use crate::photo::{self, resampled, tinted, FitRequest, FittedView, Photo, PhotoEvent, PhotoTask};
 use crate::platform::download_bytes;
 
 /// MediaPipe Pose's skeleton as drawn over the photo (landmark index pairs).
@@ -50,7 +48,6 @@ const CONNECTIONS: [(usize, usize); 20] = [
 ];
 
 const PERSON_TINT: [u8; 3] = [70, 150, 255];
-const BODY_TINT: [u8; 3] = [255, 150, 40];
 
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum TaskKind {
@@ -75,6 +72,9 @@ pub(super) struct PhotoPanel {
     person: Option<egui::TextureHandle>,
     body: Option<egui::TextureHandle>,
     fit: Option<BodyFit>,
+    /// A fit whose overlay is shown, applied to the app's pose and shape on the next frame
+    /// (with its time in ms): re-binding the avatar to a new shape is a frame's work of its own.
+    to_apply: Option<(BodyFit, f64)>,
     /// The body model shared with the fit tasks.
     model: Option<Arc<BodyModel>>,
     /// Dropped files once read (or why they could not be).
@@ -97,6 +97,7 @@ impl Default for PhotoPanel {
             person: None,
             body: None,
             fit: None,
+            to_apply: None,
             model: None,
             dropped: Default::default(),
             visible: false,
@@ -121,37 +122,6 @@ impl PhotoPanel {
     pub(super) fn fitted(&self) -> Option<(&Photo, &BodyFit)> {
         Some((self.photo.as_ref()?, self.fit.as_ref()?))
     }
-}
-
-/// A mask covering the photo (`mw × mh`) resampled to `w × h` (nearest value).
-fn resampled(values: &[f32], mw: usize, mh: usize, w: usize, h: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity(w * h);
-    for y in 0..h {
-        let my = (((y as f32 + 0.5) / h as f32 * mh as f32) as usize).min(mh.saturating_sub(1));
-        for x in 0..w {
-            let mx = (((x as f32 + 0.5) / w as f32 * mw as f32) as usize).min(mw.saturating_sub(1));
-            out.push(values.get(my * mw + mx).copied().unwrap_or(0.0));
-        }
-    }
-    out
-}
-
-/// A `w × h` mask (0..1) as a tinted translucent image.
-fn tinted(values: &[f32], w: usize, h: usize, tint: [u8; 3], alpha: f32) -> egui::ColorImage {
-    let pixels = values
-        .iter()
-        .take(w * h)
-        .map(|v| {
-            let a = (v.clamp(0.0, 1.0) * alpha * 255.0).round() as u8;
-            Color32::from_rgba_unmultiplied(tint[0], tint[1], tint[2], a)
-        })
-        .collect();
-    egui::ColorImage::new([w, h], pixels)
-}
-
-/// `'0'`/`'1'` per pixel (the masks hook's compact form).
-fn bits(values: &[f32]) -> String {
-    values.iter().map(|v| if *v >= 0.5 { '1' } else { '0' }).collect()
 }
 
 impl GetAvatarApp {
@@ -218,7 +188,7 @@ impl GetAvatarApp {
         if let Some((_, t)) = self.photo.task.take() {
             t.cancel();
         }
-        let model = self.photo.model.get_or_insert_with(|| Arc::new(body.clone())).clone();
+        let model = self.photo.model.get_or_insert_with(|| body.clone()).clone();
         let options = self.photo.options.clone().unwrap_or_default();
         let device = match (self.photo.on_gpu, self.engine.as_ref()) {
             (false, _) => fit_device(),
@@ -228,8 +198,16 @@ impl GetAvatarApp {
                 return;
             }
         };
-        let req =
-            FitRequest { model, result: p.result.clone(), width: p.width, height: p.height, options, start, device };
+        let req = FitRequest {
+            model,
+            result: p.result.clone(),
+            width: p.width,
+            height: p.height,
+            options,
+            start,
+            device,
+            preview: p.preview.size,
+        };
         self.status.photo.state = "fitting".into();
         self.status.photo.steps_done = 0;
         self.photo.task = Some((TaskKind::Fit, photo::fit(req, ctx)));
@@ -244,6 +222,9 @@ impl GetAvatarApp {
 
     /// Drain the running task's events; start what they lead to.
     pub(super) fn poll_photo(&mut self, ctx: &egui::Context) {
+        if let Some((fit, ms)) = self.photo.to_apply.take() {
+            self.apply_fit(fit, ms);
+        }
         let Some((_, task)) = self.photo.task.clone() else {
             if let Some((s, o, g)) = self.photo.queued.take() {
                 self.open_photo(s, o, g);
@@ -258,7 +239,7 @@ impl GetAvatarApp {
                     (s.steps_done, s.steps_total, s.loss) = (p.done, p.total, p.loss);
                 }
                 PhotoEvent::Detected(p) => self.photo_detected(*p, ctx),
-                PhotoEvent::Fitted(fit, ms) => self.photo_fitted(*fit, ms, ctx),
+                PhotoEvent::Fitted(view) => self.photo_fitted(*view, ctx),
                 PhotoEvent::Failed(e) => self.fail_photo(e),
                 PhotoEvent::Cancelled => {
                     self.status.photo.state = "cancelled".into();
@@ -304,18 +285,17 @@ impl GetAvatarApp {
         self.start_fit(None);
     }
 
-    fn photo_fitted(&mut self, fit: BodyFit, ms: f64, ctx: &egui::Context) {
-        let (Some(p), Some(body)) = (&self.photo.photo, &self.body) else { return };
-        let [w, h] = p.preview.size;
-        let posed = pose_body(body, &fit.body_params());
-        let mask = body_mask_rect(&posed.vertices, &body.faces, fit.photo_view_proj(), w, h);
-        let img = tinted(&mask, w, h, BODY_TINT, 0.5);
-        self.photo.body = Some(ctx.load_texture("fitted body", img, egui::TextureOptions::LINEAR));
+    /// A finished fit: its overlay now (made in the fit's task), the rest on the next frame.
+    fn photo_fitted(&mut self, view: FittedView, ctx: &egui::Context) {
+        self.photo.body = Some(ctx.load_texture("fitted body", view.body_image, egui::TextureOptions::LINEAR));
         // The masks hook (`window.getavatar.photoMasks()`): the person's and the fitted body's.
-        let person = p.result.segmentation_mask.as_ref().map(|m| bits(&resampled(&m.data, m.width, m.height, w, h)));
-        let masks = serde_json::json!({ "width": w, "height": h, "body": bits(&mask), "person": person });
-        photo::publish_masks(masks.to_string());
-        // The fit becomes the app's pose and shape, seen from the photo's side.
+        photo::publish_masks(view.masks_json);
+        self.photo.to_apply = Some((view.fit, view.millis));
+        ctx.request_repaint();
+    }
+
+    /// The fit becomes the app's pose and shape, seen from the photo's side.
+    fn apply_fit(&mut self, fit: BodyFit, ms: f64) {
         self.params = fit.body_params();
         self.pose_name = "photo fit".into();
         self.mesh_dirty = true;
