@@ -55,6 +55,23 @@ pub fn points_tensor(points: &[Vec3], device: &Device) -> Tensor<3> {
     Tensor::from_data(TensorData::new(flat, [1, points.len(), 3]), device)
 }
 
+/// Point batches that vary from avatar to avatar (a pose's band of grid vertices, a mesh's
+/// vertices) are padded to a multiple of this before the networks see them. The GPU kernels'
+/// compiled variants depend on a batch's size class (vector widths and bounds checks that
+/// divide it), so a new vertex count could compile new kernels at a generation the user asked
+/// for: a 0.5 s task in the browser. Multiples of 256 fall in the classes the warm-up compiled.
+pub const POINT_ALIGN: usize = 256;
+
+/// `points` padded to a multiple of [`POINT_ALIGN`] with copies of the first (values at the
+/// padding are computed and ignored).
+pub fn aligned_points(points: &[Vec3]) -> Vec<Vec3> {
+    let mut out = points.to_vec();
+    if let Some(&first) = points.first() {
+        out.resize(points.len().div_ceil(POINT_ALIGN) * POINT_ALIGN, first);
+    }
+    out
+}
+
 /// The geometry fields of styles `s` (batch 1) on a grid of `n` vertices: evaluated at the
 /// canonical points `band_points` (`[1, |band|, 3]`, those of the grid vertices `band`), zero
 /// elsewhere. Values only (nothing here is differentiated).
@@ -79,4 +96,21 @@ pub async fn band_fields(
         f.offset[3 * i..3 * i + 3].copy_from_slice(&row[1..4]);
     }
     Ok(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn aligned_points_pad_to_a_multiple_with_the_first_point() {
+        let p = |n: usize| (0..n).map(|i| Vec3::new(i as f32, 1.0, 2.0)).collect::<Vec<_>>();
+        assert!(aligned_points(&[]).is_empty());
+        for (n, want) in [(1, 256), (255, 256), (256, 256), (257, 512), (6348, 6400)] {
+            let a = aligned_points(&p(n));
+            assert_eq!(a.len(), want, "{n} points");
+            assert_eq!(a[..n], p(n)[..], "the points themselves are kept");
+            assert!(a[n..].iter().all(|q| *q == Vec3::new(0.0, 1.0, 2.0)), "padding is the first point");
+        }
+    }
 }

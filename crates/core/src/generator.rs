@@ -13,7 +13,7 @@ use glam::Vec3;
 
 use crate::body_model::BodyModel;
 use crate::cooperative::checkpoint;
-use crate::fields::{band_fields, points_tensor};
+use crate::fields::{aligned_points, band_fields, points_tensor};
 use crate::geometry::{marching_tets, InverseSkinning, PosedGrid, TriMesh};
 use crate::network::decoders::Decoders;
 use crate::network::init::{latent, Rng};
@@ -233,6 +233,8 @@ pub async fn generate_avatar_async(
     };
     profile::stage("grid decode");
     let band_points: Vec<Vec3> = band.iter().map(|&i| canon[i as usize]).collect();
+    // Padded (`POINT_ALIGN`): `band_fields` reads the rows of `band` only.
+    let band_points = aligned_points(&band_points);
     let fields = band_fields(g, &planes, s, points_tensor(&band_points, device), band, canon.len()).await?;
     let sdf = fields.sdf(template, &ctx.boundary);
     let positions = fields.positions(&ctx.grid.vertices);
@@ -249,17 +251,12 @@ pub async fn generate_avatar_async(
     profile::stage("normals & colours");
     // Normal field (eq. 4) and texture field at each vertex's canonical coordinate, read back
     // together (one GPU→CPU transfer): rows of (∇SDF x, y, z, r, g, b).
-    let n = mesh.attributes.len();
-    let points = points_tensor(&mesh.attributes, device);
-    let grad = normal_field::sdf_gradient(
-        g,
-        &planes,
-        s,
-        &ctx.template,
-        points.clone().reshape([n, 3]),
-        &mesh.attributes,
-        device,
-    );
+    // Padded (`POINT_ALIGN`); the rows past the mesh's vertices are dropped by the zips below.
+    let canonical = aligned_points(&mesh.attributes);
+    let n = canonical.len();
+    let points = points_tensor(&canonical, device);
+    let grad =
+        normal_field::sdf_gradient(g, &planes, s, &ctx.template, points.clone().reshape([n, 3]), &canonical, device);
     let rgb = g.texture_field(&planes, s, points).reshape([n, 3]);
     let both = read_f32(Tensor::cat(vec![grad, rgb], 1)).await?;
     let normals = mesh
@@ -271,7 +268,7 @@ pub async fn generate_avatar_async(
             normal_field::posed_normal(inv.rotation(body_vertex), Vec3::from_slice(&row[..3]))
         })
         .collect();
-    let colors = both.chunks_exact(6).map(|row| Vec3::from_slice(&row[3..])).collect();
+    let colors = both.chunks_exact(6).take(mesh.vertices.len()).map(|row| Vec3::from_slice(&row[3..])).collect();
     Ok(Avatar { mesh, normals, colors })
 }
 
@@ -286,8 +283,9 @@ pub async fn recolor_async(
     if canonical.is_empty() {
         return Ok(Vec::new());
     }
-    let rgb = read_f32(g.texture_field(planes, s, points_tensor(canonical, device))).await?;
-    Ok(rgb.chunks_exact(3).map(Vec3::from_slice).collect())
+    // Padded (`POINT_ALIGN`), as the generation's colours are: the same kernels.
+    let rgb = read_f32(g.texture_field(planes, s, points_tensor(&aligned_points(canonical), device))).await?;
+    Ok(rgb.chunks_exact(3).take(canonical.len()).map(Vec3::from_slice).collect())
 }
 
 /// Generate in the canonical pose and rig (the fast path's one-off cost).

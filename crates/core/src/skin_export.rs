@@ -11,8 +11,16 @@ use crate::skinning::{axis_angle_to_quat as quat, pose_body, BodyParams};
 /// The 4 largest of a vertex's joint weights, renormalised to sum to 1 (glTF's JOINTS_0 /
 /// WEIGHTS_0). Unused slots name joint 0 with weight 0.
 pub fn top4(weights: &[f32; NUM_JOINTS]) -> ([u8; 4], [f32; 4]) {
-    let mut order: Vec<usize> = (0..NUM_JOINTS).collect();
-    order.sort_by(|a, b| weights[*b].total_cmp(&weights[*a]).then(a.cmp(b)));
+    // The 4 largest by insertion (larger first, ties to the lower joint): no sort of all 24
+    // per vertex, which an avatar's upload does for ~10k vertices in a frame.
+    let mut order = [usize::MAX; 4];
+    for j in 0..NUM_JOINTS {
+        let beats = |k: usize| order[k] == usize::MAX || weights[j].total_cmp(&weights[order[k]]).is_gt();
+        if let Some(k) = (0..4).find(|&k| beats(k)) {
+            order.copy_within(k..3, k + 1);
+            order[k] = j;
+        }
+    }
     let mut joints = [0u8; 4];
     let mut w = [0.0f32; 4];
     for k in 0..4 {
@@ -105,5 +113,18 @@ mod tests {
         let mut one = [0.0f32; NUM_JOINTS];
         one[5] = 1.0;
         assert_eq!(top4(&one), ([5, 0, 0, 0], [1.0, 0.0, 0.0, 0.0]));
+    }
+
+    #[test]
+    fn top4_picks_what_sorting_all_weights_picks_ties_included() {
+        let mut rng = crate::rng::Rng::new(4, 4);
+        for case in 0..2000 {
+            // Few distinct values, many ties and zeros.
+            let w: [f32; NUM_JOINTS] = std::array::from_fn(|_| (rng.uniform() * 4.0).floor() / 8.0);
+            let mut order: Vec<usize> = (0..NUM_JOINTS).collect();
+            order.sort_by(|a, b| w[*b].total_cmp(&w[*a]).then(a.cmp(b)));
+            let want: Vec<u8> = order[..4].iter().map(|&j| if w[j] > 0.0 { j as u8 } else { 0 }).collect();
+            assert_eq!(top4(&w).0.to_vec(), want, "case {case}: {w:?}");
+        }
     }
 }
