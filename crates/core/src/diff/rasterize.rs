@@ -261,7 +261,7 @@ pub fn silhouette_pairs_of(r: &Raster, clip: &[Vec4], tris: &[[u32; 3]], edges: 
             !(lo.is_finite() && hi.is_finite()) || hi.x < 0.0 || hi.y < 0.0 || lo.x >= w as f32 || lo.y >= h as f32;
         let cell = |v: f32, n: usize| (v.max(0.0) as usize).min(n - 1);
         let (ys, xs) =
-            if off { (1..=0, 1..=0) } else { (cell(lo.y, h)..=cell(hi.y, h), cell(lo.x, w)..=cell(hi.x, w)) };
+            if off { (0..0, 0..0) } else { (cell(lo.y, h)..cell(hi.y, h) + 1, cell(lo.x, w)..cell(hi.x, w) + 1) };
         ys.flat_map(move |y| xs.clone().map(move |x| (y * w + x, (a, b, o))))
     };
     let by_cell = Buckets::build(w * h, || sil.iter().flat_map(cells));
