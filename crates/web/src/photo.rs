@@ -249,12 +249,8 @@ pub fn fit(req: FitRequest, repaint: egui::Context) -> PhotoTask {
     let task = PhotoTask::default();
     let t = task.clone();
     wasm_bindgen_futures::spawn_local(async move {
-        let t0 = now_ms();
         let event = match fit_async(req, &t, &repaint).await {
-            Ok(Some((fit, overlay))) => {
-                let (body_image, masks_json) = overlay;
-                PhotoEvent::Fitted(Box::new(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
-            }
+            Ok(Some(view)) => PhotoEvent::Fitted(Box::new(view)),
             Ok(None) => PhotoEvent::Cancelled,
             Err(e) => PhotoEvent::Failed(format!("the body fit failed: {e}")),
         };
@@ -267,8 +263,9 @@ async fn fit_async(
     req: FitRequest,
     task: &PhotoTask,
     repaint: &egui::Context,
-) -> Result<Option<(BodyFit, (egui::ColorImage, String))>, getavatar_core::body_fit::fit::FitError> {
-    let (model, result, preview) = (req.model.clone(), req.result.clone(), req.preview);
+) -> Result<Option<FittedView>, getavatar_core::body_fit::fit::FitError> {
+    let t0 = now_ms();
+    let model = req.model.clone();
     // Not in the frame that asked (its own work is a task already), and a slice each for the
     // input and the fitter (~30 ms each on the test machine).
     crate::task::yield_to_browser().await;
@@ -292,8 +289,8 @@ async fn fit_async(
     }
     let fit = fitter.finish().await?;
     checkpoint().await;
-    let view = overlay(&fit, &model, &result, preview).await;
-    Ok(Some((fit, view)))
+    let (body_image, masks_json) = overlay(&fit, &model, &req.result, req.preview).await;
+    Ok(Some(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
 }
 
 thread_local! {

@@ -355,7 +355,7 @@ pub struct BodyFitter {
     surface_marks: Vec<SurfaceLandmark>,
     all_vertices: Option<VertexSet>,
     /// The body mesh's edges, for the silhouette's pixel pairs (the faces never change).
-    edges: Option<Arc<diff_raster::MeshEdges>>,
+    edges: Option<diff_raster::MeshEdges>,
     joints: Targets,
     joint_ids: Vec<usize>,
     points: Targets,
@@ -713,7 +713,7 @@ impl BodyFitter {
         let raster = crate::rasterize::rasterize(&clip_host, &self.model.faces, size, size);
         let cov = diff_raster::Coverage::new(&raster, &self.model.faces);
         checkpoint().await;
-        let edges = self.edges.get_or_insert_with(|| Arc::new(diff_raster::MeshEdges::new(&self.model.faces)));
+        let edges = self.edges.get_or_insert_with(|| diff_raster::MeshEdges::new(&self.model.faces));
         let pairs = diff_raster::silhouette_pairs_of(&raster, &clip_host, &self.model.faces, edges);
         checkpoint().await;
         let dev = &self.device;

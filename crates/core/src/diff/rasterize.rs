@@ -127,7 +127,7 @@ impl SilhouettePairs {
         ids.dedup();
         let local = |v: &u32| ids.binary_search(v).map_or(0, |k| k as u32);
         let edge = [self.edge[0].iter().map(local).collect(), self.edge[1].iter().map(local).collect()];
-        (ids.clone(), SilhouettePairs { edge, ..self.clone() })
+        (ids, SilhouettePairs { edge, ..self.clone() })
     }
 }
 

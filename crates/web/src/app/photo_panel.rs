@@ -7,7 +7,6 @@
 
 use std::cell::RefCell;
 use std::rc::Rc;
-use std::sync::Arc;
 
 use eframe::egui;
 use egui::{Color32, Pos2, Rect, Stroke};
@@ -16,7 +15,6 @@ use getavatar_core::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
 use getavatar_core::body_model::JOINT_NAMES;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::BodyModel;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, PhotoFitAction, PhotoSource};
@@ -75,8 +73,6 @@ pub(super) struct PhotoPanel {
     /// A fit whose overlay is shown, applied to the app's pose and shape on the next frame
     /// (with its time in ms): re-binding the avatar to a new shape is a frame's work of its own.
     to_apply: Option<(BodyFit, f64)>,
-    /// The body model shared with the fit tasks.
-    model: Option<Arc<BodyModel>>,
     /// Dropped files once read (or why they could not be).
     dropped: Rc<RefCell<Vec<DroppedFile>>>,
     pub(super) visible: bool,
@@ -98,7 +94,6 @@ impl Default for PhotoPanel {
             body: None,
             fit: None,
             to_apply: None,
-            model: None,
             dropped: Default::default(),
             visible: false,
             show_mask: false,
@@ -143,8 +138,7 @@ impl GetAvatarApp {
                     t.cancel();
                 }
                 self.recon.cancel();
-                let keep = std::mem::take(&mut self.photo);
-                self.photo.model = keep.model;
+                self.photo = PhotoPanel::default();
                 self.status.photo = Default::default();
                 photo::publish_masks(String::new());
             }
@@ -188,7 +182,7 @@ impl GetAvatarApp {
         if let Some((_, t)) = self.photo.task.take() {
             t.cancel();
         }
-        let model = self.photo.model.get_or_insert_with(|| body.clone()).clone();
+        let model = body.clone();
         let options = self.photo.options.clone().unwrap_or_default();
         let device = match (self.photo.on_gpu, self.engine.as_ref()) {
             (false, _) => fit_device(),
