@@ -198,8 +198,17 @@ pub fn load_inverted(
     requested: &GeneratorConfig,
     device: &Device,
 ) -> Result<InvertedAvatar, CheckpointError> {
-    let st = parse_safetensors(bytes)?;
-    let generator = generator_of(&st, requested, device)?;
+    inverted_of(&parse_safetensors(bytes)?, requested, device)
+}
+
+/// [`load_inverted`] from the parsed file (the browser parses and builds in separate slices
+/// of the UI thread).
+pub fn inverted_of(
+    st: &SafeTensors,
+    requested: &GeneratorConfig,
+    device: &Device,
+) -> Result<InvertedAvatar, CheckpointError> {
+    let generator = generator_of(st, requested, device)?;
     let (ng, nt) = generator.num_ws();
     let code = |name: &str, n: usize| -> Result<Tensor<3>, CheckpointError> {
         let (shape, data) =

@@ -11,7 +11,6 @@
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
 use crate::camera::{OrbitCamera, View};
-use crate::colour::srgb_to_linear;
 use crate::rasterize::{rasterize, Texture};
 
 /// `cos θ` below which the photo has no weight, and above which it has full weight.
@@ -78,6 +77,31 @@ pub struct PhotoProjection {
     depth: Vec<f32>,
 }
 
+/// The 3×3 minimum of a `res²` mask, 0 outside it (and where it holds fewer values): a row
+/// pass then a column pass (the window is separable).
+fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
+    let at = |k: usize| mask.get(k).copied().unwrap_or(0.0);
+    let mut rows = vec![0.0f32; res * res];
+    for y in 0..res {
+        for x in 0..res {
+            let k = y * res + x;
+            let left = if x == 0 { 0.0 } else { at(k - 1) };
+            let right = if x + 1 == res { 0.0 } else { at(k + 1) };
+            rows[k] = at(k).min(left).min(right);
+        }
+    }
+    let mut out = vec![0.0f32; res * res];
+    for y in 0..res {
+        for x in 0..res {
+            let k = y * res + x;
+            let up = if y == 0 { 0.0 } else { rows[k - res] };
+            let down = if y + 1 == res { 0.0 } else { rows[k + res] };
+            out[k] = rows[k].min(up).min(down);
+        }
+    }
+    out
+}
+
 impl PhotoProjection {
     /// A photo (`rgb` sRGB `res²·3`, `mask` `res²`, both in [0, 1]) seen through `world_to_camera`
     /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it.
@@ -110,25 +134,9 @@ impl PhotoProjection {
                 -v.z / v.w
             })
             .collect();
-        let mut eroded = vec![0.0f32; res * res];
-        for y in 0..res {
-            for x in 0..res {
-                let mut m = f32::INFINITY;
-                for dy in -1i64..=1 {
-                    for dx in -1i64..=1 {
-                        let (u, v) = (x as i64 + dx, y as i64 + dy);
-                        let val = if u < 0 || v < 0 || u >= res as i64 || v >= res as i64 {
-                            0.0
-                        } else {
-                            mask.get(v as usize * res + u as usize).copied().unwrap_or(0.0)
-                        };
-                        m = m.min(val);
-                    }
-                }
-                eroded[y * res + x] = m;
-            }
-        }
-        let texels = rgb.chunks_exact(3).map(|c| srgb_to_linear(Vec3::new(c[0], c[1], c[2]))).collect();
+        let eroded = erode3(mask, res);
+        let texels =
+            rgb.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2]).map(crate::colour::decode_srgb_fast)).collect();
         let photo = Texture { width: res, height: res, texels };
         Self { res, view: world_to_camera, view_proj, photo, mask: eroded, depth }
     }
@@ -200,6 +208,26 @@ mod tests {
             f.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
         }
         (v, f)
+    }
+
+    #[test]
+    fn erosion_is_the_three_by_three_minimum_with_zero_outside() {
+        let res = 9;
+        let mut rng = crate::rng::Rng::new(7, 0);
+        let mask: Vec<f32> = (0..res * res).map(|_| rng.uniform()).collect();
+        let got = erode3(&mask, res);
+        for y in 0..res as i64 {
+            for x in 0..res as i64 {
+                let mut m = f32::INFINITY;
+                for (u, v) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy))) {
+                    let inside = (0..res as i64).contains(&u) && (0..res as i64).contains(&v);
+                    m = m.min(if inside { mask[(v * res as i64 + u) as usize] } else { 0.0 });
+                }
+                assert_eq!(got[(y * res as i64 + x) as usize], m, "({x}, {y})");
+            }
+        }
+        // Interior pixels are not all zero (the check above is not trivially met).
+        assert!(got.iter().any(|v| *v > 0.0));
     }
 
     #[test]
