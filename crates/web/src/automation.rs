@@ -714,6 +714,9 @@ pub struct ReconstructStatus {
     pub candidates: usize,
     /// Whether the perceptual term (the shipped discriminator's features) is on.
     pub perceptual: bool,
+    /// Where the steps run: "worker" (the reconstruction worker's own WebGPU device, off the
+    /// UI thread) or "page" (where workers have no WebGPU).
+    pub runs_in: String,
     /// Every step's weighted loss, in order (this run's).
     pub losses: Vec<f32>,
     /// The last step's mask IoU with the person mask.

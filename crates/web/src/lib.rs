@@ -12,6 +12,8 @@
 //!   and the body fit on the shared WebGPU device; the page's file input
 //! - `reconstruct` (wasm32): single-image reconstruction (latent inversion + pivotal tuning on
 //!   the shared WebGPU device) from the photo and its body fit
+//! - `reconstruct_worker` (wasm32): the reconstruction in a dedicated worker (this module again,
+//!   its own WebGPU device: no step holds the UI thread), the page's side and the worker's
 //! - `task` (wasm32): background tasks' event queues, Cancel, yielding to the browser
 //! - `platform` (wasm32): clock and file downloads
 //! - `web` (wasm32): entry point owning the app, JS automation hook
@@ -28,6 +30,8 @@ mod photo;
 mod platform;
 #[cfg(target_arch = "wasm32")]
 mod reconstruct;
+#[cfg(target_arch = "wasm32")]
+mod reconstruct_worker;
 #[cfg(target_arch = "wasm32")]
 mod task;
 #[cfg(target_arch = "wasm32")]

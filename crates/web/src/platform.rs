@@ -7,10 +7,25 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
 
-/// Milliseconds since the page loaded (`performance.now()`); 0 where the browser has no
-/// performance timer.
+thread_local! {
+    /// The global scope's timer: the page's, or the reconstruction worker's
+    /// (`crate::reconstruct_worker`), which has no `window`.
+    static PERFORMANCE: Option<web_sys::Performance> =
+        js_sys::Reflect::get(&js_sys::global(), &JsValue::from_str("performance")).ok().and_then(|p| p.dyn_into().ok());
+}
+
+/// Milliseconds since the page (or worker) started (`performance.now()`); 0 where the browser
+/// has no performance timer.
 pub fn now_ms() -> f64 {
-    web_sys::window().and_then(|w| w.performance()).map(|p| p.now()).unwrap_or(0.0)
+    PERFORMANCE.with(|p| p.as_ref().map(|p| p.now()).unwrap_or(0.0))
+}
+
+/// Call `f` on the global scope's next task (`setTimeout(f, 0)`), on the page or in a worker.
+pub fn set_timeout_0(f: &js_sys::Function) -> Result<(), JsValue> {
+    let global = js_sys::global();
+    let set_timeout: js_sys::Function = js_sys::Reflect::get(&global, &JsValue::from_str("setTimeout"))?.dyn_into()?;
+    set_timeout.call2(&global, f, &JsValue::from(0))?;
+    Ok(())
 }
 
 /// A JS exception's message (an `Error`'s, a thrown string, or the value's debug form).

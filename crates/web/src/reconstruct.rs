@@ -16,8 +16,10 @@ use std::rc::Rc;
 use eframe::egui;
 use getavatar_core::burn::module::Module;
 
+use getavatar_core::body_fit::fit::BodyFit;
+use getavatar_core::body_fit::landmarks::SegmentationMask;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{load_discriminator, load_generator_and_modes, load_inverted};
+use getavatar_core::checkpoint::{inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
 use getavatar_core::inversion::{
     choose_start_async, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
@@ -32,25 +34,54 @@ use crate::generate::{Projected, TextureField};
 use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
 
-/// What a reconstruction needs from the app.
-pub struct ReconstructRequest {
+/// What the inversion runs on: plain data, so that it can be handed to the reconstruction
+/// worker (`crate::reconstruct_worker`) as well as run on the page.
+pub struct InversionJob {
     /// The shipped checkpoint's bytes (None: the deterministic random weights).
     pub checkpoint: Option<Rc<Vec<u8>>>,
     /// The shipped RGB discriminator's bytes, for the perceptual term (None: the term is off).
     pub discriminator: Option<Rc<Vec<u8>>>,
     pub cfg: GeneratorConfig,
-    pub ctx: Rc<BodyContext>,
     /// The photo at the fit's camera, at the inversion's resolution.
     pub target: InversionTarget,
-    /// The same photo at a higher resolution for the colour projection (None: off), made
-    /// when the finish needs it (a large resample: its own slice of the UI thread).
-    pub projection: Option<Box<dyn FnOnce() -> Option<InversionTarget>>>,
+    /// The photo for the colour projection (None: off), cropped when the finish needs it.
+    pub projection: Option<ProjectionSource>,
     pub options: InversionOptions,
     /// A preview every this many steps (0: only the final one).
     pub preview_every: usize,
     /// Search the model's subjects (and w_avg) for the start; else start at w_avg.
     pub search_start: bool,
-    /// An autodiff device (the page's WebGPU device under burn's autodiff).
+}
+
+/// The photo as the app holds it, with its body fit and person mask: the colour projection's
+/// crop is made from it at the finish (a large resample, so only when it is needed).
+#[derive(Clone, Debug)]
+pub struct ProjectionSource {
+    pub fit: BodyFit,
+    /// `width × height` sRGB in [0, 1], row-major RGB.
+    pub rgb: Vec<f32>,
+    pub width: usize,
+    pub height: usize,
+    pub mask: SegmentationMask,
+    /// Side of the crop, pixels.
+    pub res: usize,
+    pub num_betas: usize,
+}
+
+impl ProjectionSource {
+    /// The photo in the fit's crop at `res`² (None where it cannot be made: no projection).
+    pub fn crop(&self) -> Option<InversionTarget> {
+        InversionTarget::from_photo(&self.fit, &self.rgb, self.width, self.height, &self.mask, self.res, self.num_betas)
+            .ok()
+    }
+}
+
+/// What a reconstruction needs from the app.
+pub struct ReconstructRequest {
+    pub job: InversionJob,
+    pub ctx: Rc<BodyContext>,
+    /// The page's WebGPU device (the app's generator's): the worker's result is rigged on it,
+    /// a reconstruction on the page runs on it under burn's autodiff.
     pub device: Device,
 }
 
@@ -100,6 +131,8 @@ pub enum ReconstructEvent {
         candidates: usize,
         perceptual: bool,
         millis: f64,
+        /// In the reconstruction worker (else on the page).
+        in_worker: bool,
     },
     Step(Box<Progress>),
     Preview(Box<Preview>),
@@ -123,13 +156,45 @@ impl TaskEvent for ReconstructEvent {
 
 pub type ReconstructTask = Task<ReconstructEvent>;
 
-/// Start a reconstruction; its events arrive on the returned task.
+/// Where a running inversion reports its progress and learns of Cancel.
+pub(crate) trait Progressing {
+    fn push(&self, e: ReconstructEvent);
+    fn cancelled(&self) -> bool;
+}
+
+/// A reconstruction on the page reports to its task.
+struct OnPage<'a> {
+    task: &'a ReconstructTask,
+    repaint: &'a egui::Context,
+}
+
+impl Progressing for OnPage<'_> {
+    fn push(&self, e: ReconstructEvent) {
+        self.task.push(e, self.repaint);
+    }
+    fn cancelled(&self) -> bool {
+        self.task.cancelled()
+    }
+}
+
+/// Start a reconstruction; its events arrive on the returned task. It runs in the
+/// reconstruction worker (its own WebGPU device, off the UI thread: issue #23), or on the page
+/// where the browser gives workers no WebGPU.
 pub fn reconstruct(req: ReconstructRequest, repaint: egui::Context) -> ReconstructTask {
     let task = ReconstructTask::default();
-    let t = task.clone();
+    match crate::reconstruct_worker::start(req, task.clone(), repaint.clone()) {
+        Ok(()) => {}
+        Err(req) => run_on_page(*req, task.clone(), repaint),
+    }
+    task
+}
+
+/// Run the whole reconstruction on the page (the UI thread, in slices between steps).
+pub(crate) fn run_on_page(req: ReconstructRequest, t: ReconstructTask, repaint: egui::Context) {
     wasm_bindgen_futures::spawn_local(async move {
         let t0 = now_ms();
-        let event = match run(req, &t, &repaint).await {
+        let out = OnPage { task: &t, repaint: &repaint };
+        let event = match run(req, &out).await {
             Ok(Some(mut r)) => {
                 r.millis = now_ms() - t0;
                 ReconstructEvent::Finished(Box::new(r))
@@ -139,65 +204,105 @@ pub fn reconstruct(req: ReconstructRequest, repaint: egui::Context) -> Reconstru
         };
         t.push(event, &repaint);
     });
-    task
 }
 
-async fn run(
-    req: ReconstructRequest,
-    task: &ReconstructTask,
-    repaint: &egui::Context,
-) -> Result<Option<Reconstructed>, String> {
+async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Reconstructed>, String> {
+    let (job, dev) = (&req.job, &req.device.clone().autodiff());
+    let Some(inv) = invert(job, &req.ctx, dev, out).await? else { return Ok(None) };
+    let t_finish = now_ms();
+    // The avatar: extracted, rigged, the photo's colours on what the photo sees.
+    let ctx = req.ctx.as_ref();
+    let mut rigged = generate_rigged_async(&inv.generator, ctx, &inv.styles, dev).await.map_err(|e| e.to_string())?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        return Err("the reconstructed generator produced an empty surface".into());
+    }
+    let projection = match &job.projection {
+        Some(source) => {
+            yield_to_browser().await;
+            match source.crop() {
+                Some(p) => Some(project(&mut rigged, ctx, p.source_photo()).await),
+                None => None,
+            }
+        }
+        None => None,
+    };
+    Ok(Some(Reconstructed {
+        generator: Rc::new(inv.generator),
+        styles: inv.styles,
+        rigged,
+        projection,
+        fit: Some(inv.fit),
+        opened: None,
+        millis: 0.0,
+        finish_ms: inv.finish_ms + now_ms() - t_finish,
+    }))
+}
+
+/// The inversion's outcome: the tuned generator (without gradients) and codes, and how well
+/// they explain the photo at its camera.
+pub(crate) struct Inverted {
+    pub generator: Generator,
+    pub styles: Styles,
+    /// Mask IoU with the person mask, masked PSNR (dB).
+    pub fit: (f32, f32),
+    /// Milliseconds of the final render and figures.
+    pub finish_ms: f64,
+}
+
+/// The inversion itself (start, W+ and PTI steps, the final render): `Ok(None)` when cancelled.
+pub(crate) async fn invert(
+    job: &InversionJob,
+    ctx: &BodyContext,
+    dev: &Device,
+    out: &dyn Progressing,
+) -> Result<Option<Inverted>, String> {
     let t0 = now_ms();
-    let dev = &req.device;
     // Not in the frame that asked (it resampled the photo): loading the model is a slice too.
     yield_to_browser().await;
-    let (g, modes) = match &req.checkpoint {
-        Some(bytes) => load_generator_and_modes(bytes, &req.cfg, dev).map_err(|e| format!("the model: {e}"))?,
-        None => (Generator::new(&req.cfg, 0, dev), None),
+    let (g, modes) = match &job.checkpoint {
+        Some(bytes) => load_generator_and_modes(bytes, &job.cfg, dev).map_err(|e| format!("the model: {e}"))?,
+        None => (Generator::new(&job.cfg, 0, dev), None),
     };
     yield_to_browser().await;
-    let disc = match &req.discriminator {
+    let disc = match &job.discriminator {
         Some(bytes) => Some(load_discriminator(bytes, dev).map_err(|e| format!("the discriminator: {e}"))?),
         None => None,
     };
     let candidates = start_candidates(&g, modes.as_ref());
     yield_to_browser().await;
-    if task.cancelled() {
+    if out.cancelled() {
         return Ok(None);
     }
     // Candidate 0 is w_avg.
-    let best = if req.search_start {
-        choose_start_async(&g, &req.ctx, &req.target, &candidates, dev).await.map_err(|e| e.to_string())?.0
+    let best = if job.search_start {
+        choose_start_async(&g, ctx, &job.target, &candidates, dev).await.map_err(|e| e.to_string())?.0
     } else {
         0
     };
-    let ctx = req.ctx.as_ref();
     let start = &candidates[best];
-    let mut inv = Inverter::new(g, ctx, disc, req.target.clone(), &start.styles, req.options.clone(), dev)
+    let mut inv = Inverter::new(g, ctx, disc, job.target.clone(), &start.styles, job.options.clone(), dev)
         .map_err(|e| e.to_string())?;
-    task.push(
-        ReconstructEvent::Started {
-            start: start.name.clone(),
-            candidates: candidates.len(),
-            perceptual: inv.has_perceptual(),
-            millis: now_ms() - t0,
-        },
-        repaint,
-    );
+    out.push(ReconstructEvent::Started {
+        start: start.name.clone(),
+        candidates: candidates.len(),
+        perceptual: inv.has_perceptual(),
+        millis: now_ms() - t0,
+        in_worker: crate::reconstruct_worker::in_worker(),
+    });
     let t_steps = now_ms();
     loop {
         // Hand the page a frame between steps: it repaints, shows progress and sees Cancel.
         yield_to_browser().await;
-        if task.cancelled() {
+        if out.cancelled() {
             return Ok(None);
         }
         let Some(report) = inv.step_async().await.map_err(|e| e.to_string())? else { break };
         let (done, total) = inv.progress();
         let elapsed_ms = now_ms() - t_steps;
-        task.push(ReconstructEvent::Step(Box::new(Progress { report, done, total, elapsed_ms })), repaint);
-        if req.preview_every > 0 && done % req.preview_every == 0 && done < total {
+        out.push(ReconstructEvent::Step(Box::new(Progress { report, done, total, elapsed_ms })));
+        if job.preview_every > 0 && done % job.preview_every == 0 && done < total {
             if let Some((rgb, mask)) = inv.last_images_async().await.map_err(|e| e.to_string())? {
-                task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), repaint);
+                out.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })));
             }
         }
     }
@@ -207,47 +312,24 @@ async fn run(
     let t_finish = now_ms();
     let (rgb, mask) =
         render_images_async(&inv.render_async().await.map_err(|e| e.to_string())?).await.map_err(|e| e.to_string())?;
-    let t = &req.target;
-    let (iou, psnr) = (mask_iou(&mask, &t.mask), masked_psnr(&rgb, &t.rgb, &t.mask));
+    let t = &job.target;
+    let fit = (mask_iou(&mask, &t.mask), masked_psnr(&rgb, &t.rgb, &t.mask));
     let (_, total) = inv.progress();
-    task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done: total })), repaint);
+    out.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done: total })));
     yield_to_browser().await;
-    if task.cancelled() {
+    if out.cancelled() {
         return Ok(None);
     }
-
-    // The avatar: extracted, rigged, the photo's colours on what the photo sees.
-    let g = inv.generator().clone().no_grad();
-    let styles = inv.styles();
-    let mut rigged = generate_rigged_async(&g, ctx, &styles, dev).await.map_err(|e| e.to_string())?;
-    if rigged.canonical.mesh.faces.is_empty() {
-        return Err("the reconstructed generator produced an empty surface".into());
-    }
-    let projection = match req.projection {
-        Some(crop) => {
-            yield_to_browser().await;
-            let photo = crop();
-            yield_to_browser().await;
-            photo.map(|p| project(&mut rigged, ctx, p.source_photo()))
-        }
-        None => None,
-    };
-    Ok(Some(Reconstructed {
-        generator: Rc::new(g),
-        styles,
-        rigged,
-        projection,
-        fit: Some((iou, psnr)),
-        opened: None,
-        millis: 0.0,
-        finish_ms: now_ms() - t_finish,
-    }))
+    let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
+    Ok(Some(Inverted { generator, styles, fit, finish_ms: now_ms() - t_finish }))
 }
 
 /// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
-/// colours show what the download's texture will.
-fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
+/// colours show what the download's texture will. Two slices of the UI thread.
+async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
+    yield_to_browser().await;
     let projection = rigged.photo_projection(ctx, &photo);
+    yield_to_browser().await;
     rigged.blend_photo_colors(ctx, &projection, &photo.view.body);
     Rc::new(Projected { photo, projection })
 }
@@ -275,26 +357,10 @@ pub fn open(
                     (url, b)
                 }
             };
-            let inv = load_inverted(&bytes, &cfg, &device)
-                .map_err(|e| format!("{name} is not a reconstruction of this model: {e}"))?;
-            drop(bytes);
-            yield_to_browser().await;
-            let mut rigged =
-                generate_rigged_async(&inv.generator, &ctx, &inv.styles, &device).await.map_err(|e| e.to_string())?;
-            if rigged.canonical.mesh.faces.is_empty() {
-                return Err(format!("{name}: the reconstruction's generator produced an empty surface"));
-            }
-            let projection = inv.photo.map(|p| project(&mut rigged, &ctx, p));
-            Ok::<_, String>(Reconstructed {
-                generator: Rc::new(inv.generator),
-                styles: inv.styles,
-                rigged,
-                projection,
-                fit: None,
-                opened: Some(name.clone()),
-                millis: now_ms() - t0,
-                finish_ms: 0.0,
-            })
+            let mut r = rig_saved(bytes, &name, &cfg, &ctx, &device).await?;
+            r.opened = Some(name);
+            r.millis = now_ms() - t0;
+            Ok::<_, String>(r)
         };
         let event = match opened.await {
             Ok(r) => ReconstructEvent::Finished(Box::new(r)),
@@ -303,6 +369,44 @@ pub fn open(
         t.push(event, &repaint);
     });
     task
+}
+
+/// A reconstruction's file (`name`: where it came from, for messages) as the app's avatar:
+/// its generator and codes on `device`, extracted, rigged, its photo projected on.
+pub(crate) async fn rig_saved(
+    bytes: Vec<u8>,
+    name: &str,
+    cfg: &GeneratorConfig,
+    ctx: &BodyContext,
+    device: &Device,
+) -> Result<Reconstructed, String> {
+    // Parsing (a copy of every weight) and building the generator are a slice each.
+    let not_one = |e| format!("{name} is not a reconstruction of this model: {e}");
+    let st = parse_safetensors(&bytes).map_err(not_one)?;
+    drop(bytes);
+    yield_to_browser().await;
+    let inv = inverted_of(&st, cfg, device).map_err(not_one)?;
+    drop(st);
+    yield_to_browser().await;
+    let mut rigged =
+        generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        return Err(format!("{name}: the reconstruction's generator produced an empty surface"));
+    }
+    let projection = match inv.photo {
+        Some(p) => Some(project(&mut rigged, ctx, p).await),
+        None => None,
+    };
+    Ok(Reconstructed {
+        generator: Rc::new(inv.generator),
+        styles: inv.styles,
+        rigged,
+        projection,
+        fit: None,
+        opened: None,
+        millis: 0.0,
+        finish_ms: 0.0,
+    })
 }
 
 /// Save the shown reconstruction (`field`) as one file; reported as

@@ -27,22 +27,37 @@ pub trait TaskEvent {
     fn kind(&self) -> EventKind;
 }
 
+/// What a task runs when it is cancelled.
+type CancelHook = Box<dyn Fn()>;
+
 /// A running task: its events, and the flag that cancels it.
 pub struct Task<E> {
     events: Rc<RefCell<VecDeque<E>>>,
     cancel: Rc<Cell<bool>>,
+    /// Told of a cancellation at once (a task running elsewhere: the reconstruction worker).
+    on_cancel: Rc<RefCell<Option<CancelHook>>>,
     done: Rc<Cell<bool>>,
 }
 
 impl<E> Clone for Task<E> {
     fn clone(&self) -> Self {
-        Self { events: self.events.clone(), cancel: self.cancel.clone(), done: self.done.clone() }
+        Self {
+            events: self.events.clone(),
+            cancel: self.cancel.clone(),
+            on_cancel: self.on_cancel.clone(),
+            done: self.done.clone(),
+        }
     }
 }
 
 impl<E> Default for Task<E> {
     fn default() -> Self {
-        Self { events: Default::default(), cancel: Default::default(), done: Default::default() }
+        Self {
+            events: Default::default(),
+            cancel: Default::default(),
+            on_cancel: Default::default(),
+            done: Default::default(),
+        }
     }
 }
 
@@ -73,6 +88,14 @@ impl<E> Task<E> {
     /// Ask the task to stop at its next step (it reports its cancellation).
     pub fn cancel(&self) {
         self.cancel.set(true);
+        if let Some(f) = self.on_cancel.borrow().as_ref() {
+            f();
+        }
+    }
+
+    /// Run `f` when the task is cancelled (it runs where [`Task::cancelled`] cannot be polled).
+    pub fn on_cancel(&self, f: impl Fn() + 'static) {
+        *self.on_cancel.borrow_mut() = Some(Box::new(f));
     }
 
     /// Cancel was asked for.
@@ -96,12 +119,8 @@ impl<E> Task<E> {
 /// ahead of the page's other tasks, so a long job starved the frames that carry Cancel.
 pub async fn yield_to_browser() {
     let promise = js_sys::Promise::new(&mut |resolve, _reject| {
-        if let Some(w) = web_sys::window() {
-            // A failed setTimeout leaves the promise pending: resolve at once instead.
-            if w.set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, 0).is_err() {
-                let _ = resolve.call0(&JsValue::NULL);
-            }
-        } else {
+        // A failed setTimeout leaves the promise pending: resolve at once instead.
+        if crate::platform::set_timeout_0(&resolve).is_err() {
             let _ = resolve.call0(&JsValue::NULL);
         }
     });

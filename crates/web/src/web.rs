@@ -128,6 +128,13 @@ pub fn start() {
     // registrations: most of the main thread's time in a browser CPU profile of a retexture.
     // SAFETY: called once, first, before any code that reads what they register.
     unsafe { __wasm_call_ctors() };
+    if crate::reconstruct_worker::in_worker() {
+        // The reconstruction worker (`www/reconstruct_worker.js`): no app, only its jobs. Its
+        // steps need no slicing (nothing to draw), but its checkpoints still let Cancel in.
+        crate::task::install_time_slicing();
+        std::panic::set_hook(Box::new(|info| crate::reconstruct_worker::post_fatal(&info.to_string())));
+        return;
+    }
     // Long CPU stages of core run in slices between frames (issue #23: no task over 100 ms).
     crate::task::install_time_slicing();
     // With panic = abort a panic stops the app for good: say so over the canvas (the page's

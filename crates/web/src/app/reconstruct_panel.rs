@@ -14,7 +14,9 @@ use super::GetAvatarApp;
 use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, RECONSTRUCT_PRESETS};
 use crate::generate::TextureField;
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
-use crate::reconstruct::{open, reconstruct, save, ReconstructEvent, ReconstructRequest, ReconstructTask};
+use crate::reconstruct::{
+    open, reconstruct, save, InversionJob, ProjectionSource, ReconstructEvent, ReconstructRequest, ReconstructTask,
+};
 
 /// Side of the photo crop that the colour projection samples, pixels.
 const PROJECTION_RES: usize = 512;
@@ -163,7 +165,7 @@ impl GetAvatarApp {
                 return;
             }
         };
-        let device = engine.device().clone().autodiff();
+        let device = engine.device().clone();
         // The photo as the app holds it (downscaled to at most 768 pixels), which covers the
         // photo the fit was made on.
         let [w, h] = p.preview.size;
@@ -178,12 +180,15 @@ impl GetAvatarApp {
             }
         };
         // The projection's crop is made when the finish needs it (a 512² resample).
-        let projection: Option<Box<dyn FnOnce() -> Option<InversionTarget>>> = if r.projection {
-            let (fit, mask, num_betas) = (fit.clone(), mask.clone(), body.num_betas);
-            Some(Box::new(move || InversionTarget::from_photo(&fit, &rgb, w, h, &mask, PROJECTION_RES, num_betas).ok()))
-        } else {
-            None
-        };
+        let projection = r.projection.then(|| ProjectionSource {
+            fit: fit.clone(),
+            rgb,
+            width: w,
+            height: h,
+            mask,
+            res: PROJECTION_RES,
+            num_betas: body.num_betas,
+        });
         let Some(mut options) = InversionOptions::preset(&r.preset) else {
             self.fail_reconstruct(format!("unknown quality preset `{}` (fast, full)", r.preset));
             return;
@@ -223,18 +228,17 @@ impl GetAvatarApp {
             has_photo: s.has_photo,
             ..ReconstructStatus::default()
         };
-        let req = ReconstructRequest {
+        let job = InversionJob {
             checkpoint,
             discriminator,
             cfg,
-            ctx,
             target: target.clone(),
             projection,
             options,
             preview_every: r.preview_every,
             search_start: r.search_start,
-            device,
         };
+        let req = ReconstructRequest { job, ctx, device };
         self.recon.target = Some(target);
         self.recon.preview = None;
         self.recon.latent = (0, 0.0);
@@ -246,14 +250,16 @@ impl GetAvatarApp {
         let Some(task) = self.recon.task.clone() else { return };
         for event in task.drain() {
             match event {
-                ReconstructEvent::Started { start, candidates, perceptual, millis } => {
+                ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker } => {
                     let s = &mut self.status.reconstruct;
                     s.message = format!(
-                        "starting from {start} (best of {candidates}); perceptual term {}",
-                        if perceptual { "on" } else { "off" }
+                        "starting from {start} (best of {candidates}); perceptual term {}; {}",
+                        if perceptual { "on" } else { "off" },
+                        if in_worker { "in a worker" } else { "on the page" }
                     );
                     (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
                     s.start_ms = millis as f32;
+                    s.runs_in = if in_worker { "worker" } else { "page" }.into();
                     s.state = "latent".into();
                 }
                 ReconstructEvent::Step(p) => {

@@ -1,0 +1,643 @@
+//! The reconstruction worker (issue #23): the inversion's steps each run a backward pass of
+//! hundreds of kernel launches in one call (160–360 ms of the UI thread per step, seconds of
+//! kernel compiles on the first), which no slicing can split. So the page hands the inversion
+//! to a dedicated worker: a second instance of this same wasm module (`www/reconstruct_worker.js`)
+//! with its own WebGPU device, the embedded body model and the checkpoint's bytes. It reports
+//! its start, steps and previews as it goes, and its result as a reconstruction file (the
+//! "Save reconstruction" format: tuned generator, codes, photo), which the page rigs exactly
+//! as "Open reconstruction…" does. Where a worker cannot have WebGPU (or cannot start), the
+//! page runs the reconstruction itself, as before.
+//!
+//! Both sides are here: [`start`] on the page, [`reconstruct_worker_message`] in the worker.
+//! Messages are `{json, …typed arrays}`: the JSON holds the small fields (see [`ToWorker`] and
+//! [`FromWorker`]), the arrays the bulk (checkpoint, images, the result file).
+
+use std::cell::{Cell, RefCell};
+use std::rc::Rc;
+
+use eframe::egui;
+use getavatar_core::body_fit::fit::BodyFit;
+use getavatar_core::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::wgpu::WgpuSetup;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::camera::View;
+use getavatar_core::checkpoint::save_inverted_async;
+use getavatar_core::generator::BodyContext;
+use getavatar_core::inversion::{InversionOptions, InversionTarget, StepReport};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::skinning::BodyParams;
+use glam::Mat4;
+use serde::{Deserialize, Serialize};
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+
+use crate::platform::{js_message, now_ms};
+use crate::reconstruct::{
+    invert, rig_saved, run_on_page, InversionJob, Preview, Progress, Progressing, ProjectionSource, ReconstructEvent,
+    ReconstructRequest, ReconstructTask,
+};
+
+/// The worker's script, next to the page (`cargo xtask build-web` copies `www/` into dist/).
+const WORKER_URL: &str = "./reconstruct_worker.js";
+
+#[wasm_bindgen]
+extern "C" {
+    /// The browser's `Worker` (declared here rather than through web-sys features, which would
+    /// rebuild web-sys and everything above it).
+    #[wasm_bindgen(js_name = Worker)]
+    type JsWorker;
+    #[wasm_bindgen(constructor, js_class = "Worker", catch)]
+    fn new(url: &str, options: &JsValue) -> Result<JsWorker, JsValue>;
+    #[wasm_bindgen(method, js_class = "Worker", js_name = postMessage, catch)]
+    fn post_message(this: &JsWorker, message: &JsValue, transfer: &js_sys::Array) -> Result<(), JsValue>;
+    #[wasm_bindgen(method, js_class = "Worker", setter = onmessage)]
+    fn set_onmessage(this: &JsWorker, f: &js_sys::Function);
+    #[wasm_bindgen(method, js_class = "Worker", setter = onerror)]
+    fn set_onerror(this: &JsWorker, f: &js_sys::Function);
+    #[wasm_bindgen(method, js_class = "Worker")]
+    fn terminate(this: &JsWorker);
+}
+
+/// The page's message to the worker (the `json` field).
+#[derive(Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum ToWorker {
+    /// Run an inversion; the arrays `target_rgb`, `target_mask`, and optionally `checkpoint`,
+    /// `discriminator` and `photo_rgb` (the projection's photo) come with it.
+    Start(Box<JobMeta>),
+    /// Stop the running inversion at its next step.
+    Cancel,
+}
+
+/// An [`InversionJob`] without its arrays.
+#[derive(Serialize, Deserialize)]
+struct JobMeta {
+    cfg: GeneratorConfig,
+    /// The checkpoint (the discriminator) is the previous job's: the page sends each file once.
+    checkpoint_kept: bool,
+    discriminator_kept: bool,
+    options: InversionOptions,
+    preview_every: usize,
+    search_start: bool,
+    world_to_camera: [f32; 16],
+    body: BodyParams,
+    res: usize,
+    projection: Option<ProjectionMeta>,
+}
+
+/// A [`ProjectionSource`] without its arrays (`photo_rgb`, `photo_mask`).
+#[derive(Serialize, Deserialize)]
+struct ProjectionMeta {
+    fit: BodyFit,
+    width: usize,
+    height: usize,
+    mask_width: usize,
+    mask_height: usize,
+    res: usize,
+    num_betas: usize,
+}
+
+/// The worker's messages to the page (the `json` field).
+#[derive(Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+enum FromWorker {
+    Started {
+        start: String,
+        candidates: usize,
+        perceptual: bool,
+        millis: f64,
+    },
+    Step {
+        report: StepReport,
+        done: usize,
+        total: usize,
+        elapsed_ms: f64,
+    },
+    /// With the arrays `rgb` and `mask`.
+    Preview {
+        done: usize,
+    },
+    /// With the array `bytes`: the reconstruction file. IoU and PSNR at the photo's camera
+    /// (None: not finite).
+    Finished {
+        iou: Option<f32>,
+        psnr: Option<f32>,
+        finish_ms: f64,
+    },
+    Failed {
+        message: String,
+    },
+    Cancelled,
+    /// This worker has no WebGPU device: the page runs the reconstruction itself.
+    Unavailable {
+        message: String,
+    },
+    /// The worker's module stopped (a panic): it is gone; the next reconstruction starts a new one.
+    Fatal {
+        message: String,
+    },
+}
+
+// ---------------------------------------------------------------------------------------------
+// The page's side.
+
+/// A checkpoint's and a discriminator's bytes.
+type FilePair = (Option<Rc<Vec<u8>>>, Option<Rc<Vec<u8>>>);
+
+/// The page's worker and the reconstruction it runs.
+struct Client {
+    worker: JsWorker,
+    running: RefCell<Option<Running>>,
+    /// The checkpoint and discriminator the worker holds (sent with an earlier job).
+    sent: RefCell<FilePair>,
+    _onmessage: Closure<dyn FnMut(JsValue)>,
+    _onerror: Closure<dyn FnMut(JsValue)>,
+}
+
+/// A reconstruction handed to the worker.
+struct Running {
+    task: ReconstructTask,
+    repaint: egui::Context,
+    t0: f64,
+    /// Kept to run it on the page if the worker turns out to have no WebGPU.
+    fallback: Option<ReconstructRequest>,
+    cfg: GeneratorConfig,
+    ctx: Rc<BodyContext>,
+    device: Device,
+}
+
+thread_local! {
+    static CLIENT: RefCell<Option<Rc<Client>>> = const { RefCell::new(None) };
+    /// A worker could not run a reconstruction here (why): later ones run on the page.
+    static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
+}
+
+/// Hand `req` to the worker (started on first use); its events arrive on `task`. `Err(req)`:
+/// no worker can run it, run it on the page.
+pub fn start(
+    req: ReconstructRequest,
+    task: ReconstructTask,
+    repaint: egui::Context,
+) -> Result<(), Box<ReconstructRequest>> {
+    if NO_WORKER.with(|n| n.borrow().is_some()) {
+        return Err(Box::new(req));
+    }
+    let client = match client() {
+        Ok(c) => c,
+        Err(e) => {
+            worker_unusable(format!("the reconstruction worker cannot start: {e}"));
+            return Err(Box::new(req));
+        }
+    };
+    let message = match start_message(&req.job, &client) {
+        Ok(m) => m,
+        Err(e) => {
+            worker_unusable(format!("the reconstruction cannot be handed to its worker: {e}"));
+            return Err(Box::new(req));
+        }
+    };
+    if let Err(e) = client.worker.post_message(&message.data, &message.transfer) {
+        worker_unusable(format!("the reconstruction worker refused the job: {}", js_message(&e)));
+        return Err(Box::new(req));
+    }
+    let worker_task = task.clone();
+    let weak = Rc::downgrade(&client);
+    task.on_cancel(move || {
+        if let Some(c) = weak.upgrade() {
+            if c.running.borrow().as_ref().is_some_and(|r| r.task.same(&worker_task)) {
+                let m = message_of(&ToWorker::Cancel, &[]);
+                let _ = c.worker.post_message(&m.data, &m.transfer);
+            }
+        }
+    });
+    let (cfg, ctx, device) = (req.job.cfg.clone(), req.ctx.clone(), req.device.clone());
+    *client.running.borrow_mut() = Some(Running { task, repaint, t0: now_ms(), fallback: Some(req), cfg, ctx, device });
+    Ok(())
+}
+
+/// From now on reconstructions run on the page (said once in the console).
+fn worker_unusable(why: String) {
+    web_sys::console::warn_1(&JsValue::from_str(&format!("{why}; reconstructions run on the page")));
+    NO_WORKER.with(|n| *n.borrow_mut() = Some(why));
+    drop_client();
+}
+
+fn drop_client() {
+    if let Some(c) = CLIENT.with(|c| c.borrow_mut().take()) {
+        c.worker.terminate();
+    }
+}
+
+/// The page's worker, started on first use.
+fn client() -> Result<Rc<Client>, String> {
+    if let Some(c) = CLIENT.with(|c| c.borrow().clone()) {
+        return Ok(c);
+    }
+    let options = js_sys::Object::new();
+    js_sys::Reflect::set(&options, &"type".into(), &"module".into()).map_err(|e| js_message(&e))?;
+    js_sys::Reflect::set(&options, &"name".into(), &"getavatar reconstruction".into()).map_err(|e| js_message(&e))?;
+    let worker = JsWorker::new(WORKER_URL, &options).map_err(|e| js_message(&e))?;
+    let onmessage = Closure::<dyn FnMut(JsValue)>::new(|e: JsValue| {
+        let data = js_sys::Reflect::get(&e, &"data".into()).unwrap_or(JsValue::UNDEFINED);
+        on_message(data);
+    });
+    // The worker's script failed to load or threw outside a job: no worker from now on.
+    let onerror = Closure::<dyn FnMut(JsValue)>::new(|e: JsValue| {
+        let msg = js_sys::Reflect::get(&e, &"message".into()).ok().and_then(|m| m.as_string());
+        unavailable(msg.unwrap_or_else(|| "the worker's script did not load".into()));
+    });
+    worker.set_onmessage(onmessage.as_ref().unchecked_ref());
+    worker.set_onerror(onerror.as_ref().unchecked_ref());
+    let c = Rc::new(Client {
+        worker,
+        running: RefCell::new(None),
+        sent: RefCell::new((None, None)),
+        _onmessage: onmessage,
+        _onerror: onerror,
+    });
+    CLIENT.with(|slot| *slot.borrow_mut() = Some(c.clone()));
+    Ok(c)
+}
+
+/// The job as the worker's `Start` message (the model files only where the worker lacks them).
+fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String> {
+    let t = &job.target;
+    let same = |a: &Option<Rc<Vec<u8>>>, b: &Option<Rc<Vec<u8>>>| match (a, b) {
+        (Some(a), Some(b)) => Rc::ptr_eq(a, b),
+        _ => false,
+    };
+    let sent = client.sent.borrow().clone();
+    let (checkpoint_kept, discriminator_kept) = (same(&job.checkpoint, &sent.0), same(&job.discriminator, &sent.1));
+    let meta = JobMeta {
+        cfg: job.cfg.clone(),
+        checkpoint_kept,
+        discriminator_kept,
+        options: job.options.clone(),
+        preview_every: job.preview_every,
+        search_start: job.search_start,
+        world_to_camera: t.view.world_to_camera.to_cols_array(),
+        body: t.view.body.clone(),
+        res: t.res,
+        projection: job.projection.as_ref().map(|p| ProjectionMeta {
+            fit: p.fit.clone(),
+            width: p.width,
+            height: p.height,
+            mask_width: p.mask.width,
+            mask_height: p.mask.height,
+            res: p.res,
+            num_betas: p.num_betas,
+        }),
+    };
+    let mut arrays: Vec<(&str, JsValue)> = vec![
+        ("target_rgb", js_sys::Float32Array::from(&t.rgb[..]).into()),
+        ("target_mask", js_sys::Float32Array::from(&t.mask[..]).into()),
+    ];
+    if let (Some(b), false) = (&job.checkpoint, checkpoint_kept) {
+        arrays.push(("checkpoint", js_sys::Uint8Array::from(&b[..]).into()));
+    }
+    if let (Some(b), false) = (&job.discriminator, discriminator_kept) {
+        arrays.push(("discriminator", js_sys::Uint8Array::from(&b[..]).into()));
+    }
+    if let Some(p) = &job.projection {
+        arrays.push(("photo_rgb", js_sys::Float32Array::from(&p.rgb[..]).into()));
+        arrays.push(("photo_mask", js_sys::Float32Array::from(&p.mask.data[..]).into()));
+    }
+    *client.sent.borrow_mut() = (job.checkpoint.clone(), job.discriminator.clone());
+    let json = serde_json::to_string(&ToWorker::Start(Box::new(meta))).map_err(|e| e.to_string())?;
+    Ok(object(&json, &arrays))
+}
+
+/// `{json, …arrays}`.
+/// A message and the buffers it hands over (moved, not copied: the arrays are made for it).
+struct Message {
+    data: JsValue,
+    transfer: js_sys::Array,
+}
+
+fn object(json: &str, arrays: &[(&str, JsValue)]) -> Message {
+    let o = js_sys::Object::new();
+    let transfer = js_sys::Array::new();
+    // Setting a field of a fresh plain object cannot fail.
+    let _ = js_sys::Reflect::set(&o, &"json".into(), &json.into());
+    for (k, v) in arrays {
+        let _ = js_sys::Reflect::set(&o, &(*k).into(), v);
+        if let Ok(b) = js_sys::Reflect::get(v, &"buffer".into()) {
+            transfer.push(&b);
+        }
+    }
+    Message { data: o.into(), transfer }
+}
+
+fn message_of<T: Serialize>(m: &T, arrays: &[(&str, JsValue)]) -> Message {
+    // Our own enums of plain fields serialise.
+    object(&serde_json::to_string(m).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}")), arrays)
+}
+
+fn field(data: &JsValue, name: &str) -> Option<JsValue> {
+    js_sys::Reflect::get(data, &name.into()).ok().filter(|v| !v.is_undefined() && !v.is_null())
+}
+
+fn f32_array(data: &JsValue, name: &str) -> Option<Vec<f32>> {
+    field(data, name).map(|v| js_sys::Float32Array::new(&v).to_vec())
+}
+
+fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
+    field(data, name).map(|v| js_sys::Uint8Array::new(&v).to_vec())
+}
+
+/// A message from the worker.
+fn on_message(data: JsValue) {
+    let Some(client) = CLIENT.with(|c| c.borrow().clone()) else { return };
+    let json = field(&data, "json").and_then(|j| j.as_string()).unwrap_or_default();
+    let event = match serde_json::from_str::<FromWorker>(&json) {
+        Ok(e) => e,
+        Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
+    };
+    let mut slot = client.running.borrow_mut();
+    let Some(r) = slot.as_mut() else { return };
+    match event {
+        FromWorker::Started { start, candidates, perceptual, millis } => {
+            r.fallback = None;
+            let e = ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker: true };
+            r.task.push(e, &r.repaint);
+        }
+        FromWorker::Step { report, done, total, elapsed_ms } => {
+            let p = Progress { report, done, total, elapsed_ms };
+            r.task.push(ReconstructEvent::Step(Box::new(p)), &r.repaint);
+        }
+        FromWorker::Preview { done } => {
+            if let (Some(rgb), Some(mask)) = (f32_array(&data, "rgb"), f32_array(&data, "mask")) {
+                r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
+            }
+        }
+        FromWorker::Finished { iou, psnr, finish_ms } => {
+            let Some(r) = slot.take() else { return };
+            match u8_array(&data, "bytes") {
+                Some(bytes) => {
+                    let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, finish_ms));
+                }
+                None => {
+                    r.task.push(ReconstructEvent::Failed("the reconstruction worker sent no result".into()), &r.repaint)
+                }
+            }
+        }
+        FromWorker::Failed { message } => {
+            r.task.push(ReconstructEvent::Failed(format!("the reconstruction failed: {message}")), &r.repaint);
+            *slot = None;
+        }
+        FromWorker::Cancelled => {
+            r.task.push(ReconstructEvent::Cancelled, &r.repaint);
+            *slot = None;
+        }
+        FromWorker::Unavailable { message } => {
+            drop(slot);
+            unavailable(message);
+        }
+        FromWorker::Fatal { message } => {
+            r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
+            *slot = None;
+            drop(slot);
+            drop_client();
+        }
+    }
+}
+
+/// The worker cannot reconstruct here: the running job (if it has not started there) runs on
+/// the page, and so do later ones.
+fn unavailable(why: String) {
+    let running = CLIENT.with(|c| c.borrow().as_ref().and_then(|c| c.running.borrow_mut().take()));
+    worker_unusable(format!("the reconstruction worker has no WebGPU device ({why})"));
+    let Some(r) = running else { return };
+    match r.fallback {
+        Some(req) => run_on_page(req, r.task, r.repaint),
+        None => r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {why}")), &r.repaint),
+    }
+}
+
+/// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
+async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), worker_finish_ms: f64) {
+    // Not in the task that copied the file out of the message.
+    crate::task::yield_to_browser().await;
+    let t = now_ms();
+    let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
+        Ok(mut done) => {
+            done.fit = Some(fit);
+            done.millis = now_ms() - r.t0;
+            done.finish_ms = worker_finish_ms + now_ms() - t;
+            ReconstructEvent::Finished(Box::new(done))
+        }
+        Err(e) => ReconstructEvent::Failed(format!("the reconstruction failed: {e}")),
+    };
+    r.task.push(event, &r.repaint);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The worker's side.
+
+/// What the worker keeps between reconstructions: its device and the body's context.
+struct WorkerState {
+    device: Device,
+    ctx: Rc<BodyContext>,
+    cfg: GeneratorConfig,
+}
+
+thread_local! {
+    static STATE: RefCell<Option<Rc<WorkerState>>> = const { RefCell::new(None) };
+    /// The model files of the last job (the page sends each once).
+    static FILES: RefCell<FilePair> = const { RefCell::new((None, None)) };
+    static CANCEL: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Whether this module runs in a worker (no `window`).
+pub fn in_worker() -> bool {
+    web_sys::window().is_none()
+}
+
+/// Post a message to the page (the worker's global `postMessage`).
+fn post(m: &FromWorker, arrays: &[(&str, JsValue)]) {
+    let global = js_sys::global();
+    let posted = js_sys::Reflect::get(&global, &"postMessage".into())
+        .and_then(|f| f.dyn_into::<js_sys::Function>())
+        .and_then(|f| {
+            let m = message_of(m, arrays);
+            f.call2(&global, &m.data, &m.transfer)
+        });
+    if let Err(e) = posted {
+        web_sys::console::error_1(&JsValue::from_str(&format!(
+            "the reconstruction worker cannot post: {}",
+            js_message(&e)
+        )));
+    }
+}
+
+/// A panic in the worker: tell the page before the module aborts.
+pub fn post_fatal(message: &str) {
+    post(&FromWorker::Fatal { message: message.to_string() }, &[]);
+}
+
+/// JS (the worker's script): a message from the page.
+#[wasm_bindgen]
+pub fn reconstruct_worker_message(data: JsValue) {
+    let json = field(&data, "json").and_then(|j| j.as_string()).unwrap_or_default();
+    match serde_json::from_str::<ToWorker>(&json) {
+        Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
+        Ok(ToWorker::Start(meta)) => {
+            CANCEL.with(|c| c.set(false));
+            wasm_bindgen_futures::spawn_local(run_job(*meta, data));
+        }
+        Err(e) => post(&FromWorker::Failed { message: format!("the worker cannot read the job: {e}") }, &[]),
+    }
+}
+
+/// In the worker, progress goes to the page and Cancel comes from it.
+struct ToPage;
+
+impl Progressing for ToPage {
+    fn push(&self, e: ReconstructEvent) {
+        match e {
+            ReconstructEvent::Started { start, candidates, perceptual, millis, .. } => {
+                post(&FromWorker::Started { start, candidates, perceptual, millis }, &[])
+            }
+            ReconstructEvent::Step(p) => {
+                let Progress { report, done, total, elapsed_ms } = *p;
+                post(&FromWorker::Step { report, done, total, elapsed_ms }, &[])
+            }
+            ReconstructEvent::Preview(p) => post(
+                &FromWorker::Preview { done: p.done },
+                &[
+                    ("rgb", js_sys::Float32Array::from(&p.rgb[..]).into()),
+                    ("mask", js_sys::Float32Array::from(&p.mask[..]).into()),
+                ],
+            ),
+            // The outcome is the job's own message.
+            _ => {}
+        }
+    }
+    fn cancelled(&self) -> bool {
+        CANCEL.with(Cell::get)
+    }
+}
+
+async fn run_job(meta: JobMeta, data: JsValue) {
+    let state = match state(&meta.cfg).await {
+        Ok(s) => s,
+        Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
+    };
+    match job(meta, &data, &state).await {
+        Ok(Some((bytes, (iou, psnr), finish_ms))) => {
+            let finite = |x: f32| Some(x).filter(|x| x.is_finite());
+            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), finish_ms };
+            post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
+        }
+        Ok(None) => post(&FromWorker::Cancelled, &[]),
+        Err(message) => post(&FromWorker::Failed { message }, &[]),
+    }
+}
+
+type Outcome = (Vec<u8>, (f32, f32), f64);
+
+async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Option<Outcome>, String> {
+    let (Some(rgb), Some(mask)) = (f32_array(data, "target_rgb"), f32_array(data, "target_mask")) else {
+        return Err("the job came without its photo".into());
+    };
+    let view = View { world_to_camera: Mat4::from_cols_array(&meta.world_to_camera), body: meta.body };
+    let projection = match meta.projection {
+        Some(p) => {
+            let missing = "the job came without the projection's photo";
+            let rgb = f32_array(data, "photo_rgb").ok_or(missing)?;
+            let mask = f32_array(data, "photo_mask").ok_or(missing)?;
+            let mask = SegmentationMask { width: p.mask_width, height: p.mask_height, data: mask };
+            let (width, height, res, num_betas) = (p.width, p.height, p.res, p.num_betas);
+            Some(ProjectionSource { fit: p.fit, rgb, width, height, mask, res, num_betas })
+        }
+        None => None,
+    };
+    // A file sent now, or the one kept from an earlier job.
+    let file = |name: &str, kept: bool, slot: fn(&mut FilePair) -> &mut Option<Rc<Vec<u8>>>| {
+        FILES.with(|f| {
+            let mut f = f.borrow_mut();
+            let s = slot(&mut f);
+            if !kept {
+                *s = u8_array(data, name).map(Rc::new);
+            }
+            s.clone()
+        })
+    };
+    let checkpoint = file("checkpoint", meta.checkpoint_kept, |f| &mut f.0);
+    let discriminator = file("discriminator", meta.discriminator_kept, |f| &mut f.1);
+    if meta.checkpoint_kept && checkpoint.is_none() {
+        return Err("the worker lost the model's file".into());
+    }
+    let job = InversionJob {
+        checkpoint,
+        discriminator,
+        cfg: meta.cfg,
+        target: InversionTarget { view, res: meta.res, rgb, mask },
+        projection,
+        options: meta.options,
+        preview_every: meta.preview_every,
+        search_start: meta.search_start,
+    };
+    let Some(inv) = invert(&job, &state.ctx, &state.device, &ToPage).await? else { return Ok(None) };
+    let t = now_ms();
+    let photo = match &job.projection {
+        Some(source) => {
+            crate::task::yield_to_browser().await;
+            source.crop().map(|p| p.source_photo())
+        }
+        None => None,
+    };
+    let mut extra = std::collections::BTreeMap::new();
+    extra.insert("inversion/source".into(), "the GETAvatar web app".into());
+    let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
+        .await
+        .map_err(|e| format!("cannot write the result: {e}"))?;
+    Ok(Some((bytes, inv.fit, inv.finish_ms + now_ms() - t)))
+}
+
+/// The worker's device and body context, made on its first job (and again for another config).
+async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
+    if let Some(s) = STATE.with(|s| s.borrow().clone()).filter(|s| &s.cfg == cfg) {
+        return Ok(s);
+    }
+    let device = match STATE.with(|s| s.borrow().as_ref().map(|s| s.device.clone())) {
+        Some(d) => d,
+        None => webgpu_device().await?,
+    };
+    let body = BodyModel::default_body().map_err(|e| format!("the embedded body model: {e}"))?;
+    let ctx = Rc::new(BodyContext::new_async(body, cfg).await);
+    let s = Rc::new(WorkerState { device, ctx, cfg: cfg.clone() });
+    STATE.with(|slot| *slot.borrow_mut() = Some(s.clone()));
+    Ok(s)
+}
+
+/// burn's autodiff device on a WebGPU device of the worker's own (with the adapter's limits,
+/// as the page's: burn's kernels need more storage buffers per stage than the defaults).
+async fn webgpu_device() -> Result<Device, String> {
+    use eframe::egui_wgpu::wgpu;
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::BROWSER_WEBGPU;
+    let instance = wgpu::Instance::new(desc);
+    let adapter = instance
+        .request_adapter(&wgpu::RequestAdapterOptions::default())
+        .await
+        .map_err(|e| format!("no WebGPU adapter in the worker: {e}"))?;
+    let (device, queue) = adapter
+        .request_device(&wgpu::DeviceDescriptor {
+            label: Some("getavatar reconstruction worker"),
+            required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| format!("no WebGPU device in the worker: {e}"))?;
+    let backend = adapter.get_info().backend;
+    let setup = WgpuSetup { instance, adapter, device, queue, backend };
+    let device = Device::wgpu_options()
+        .setup(setup)
+        .init()
+        .map_err(|e| format!("burn cannot use the worker's WebGPU device: {e:?}"))?;
+    Ok(device.autodiff())
+}
