@@ -452,7 +452,8 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
             detail: config_difference(&saved, requested),
         });
     }
-    let g = Generator::new(requested, 0, device);
+    // Every weight is loaded below (a missing one is an error): no random draws for them.
+    let g = crate::network::init::placeholder_weights(|| Generator::new(requested, 0, device));
     let mut l = Load {
         path: Vec::new(),
         seen: BTreeMap::new(),
