@@ -433,9 +433,10 @@ try {
   check(rec.runs_in === 'worker', `the reconstruction's steps ran in the reconstruction worker, off the UI thread (runs_in: ${rec.runs_in})`);
   check(rec.losses[2] < rec.losses[0], `the loss falls over the W+ steps (${rec.losses[0]?.toFixed(4)} → ${rec.losses[2]?.toFixed(4)})`);
   check(rec.mask_iou >= 0.6, `the reconstructed avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.6)`);
-  // The worker loads the app's own module files (GET, same origin) on its first job; nothing
+  // The worker loads the app's own module files (GET, same origin: its script, the wasm module
+  // and the JS glue that imports, pose_detect.js among it) on its first job; nothing
   // else may be requested, and nothing is sent.
-  const own = /\/(reconstruct_worker\.js|getavatar_web\.js|getavatar_web_bg\.wasm)$/;
+  const own = /\/(reconstruct_worker\.js|getavatar_web\.js|getavatar_web_bg\.wasm|pose_detect\.js)$/;
   const origin = new URL(url).origin;
   const foreign = requests.filter(([u, method]) => method !== 'GET' || new URL(u).origin !== origin || !own.test(new URL(u).pathname));
   check(foreign.length === 0, `no network request during the reconstruction but the worker's own module files (${requests.length} in all; others: ${foreign.slice(0, 3).map((r) => r.join(' ')).join(', ')})`);

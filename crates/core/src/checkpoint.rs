@@ -510,10 +510,20 @@ pub async fn collect_params_async<M: Module>(module: &M) -> Result<Vec<NamedTens
     }
     let mut f = Flat { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
     module.visit(&mut f);
+    if f.out.is_empty() {
+        return Ok(Vec::new());
+    }
+    // One read-back of all of them, concatenated on the device (one per parameter cost the
+    // browser tens of seconds on an emulated GPU).
+    let flat = Tensor::cat(f.out.iter().map(|(_, _, t)| t.clone().detach()).collect(), 0);
+    let all =
+        crate::readback::read_f32(flat).await.map_err(|e| CheckpointError::Readback(e.context("the parameters")))?;
     let mut out = Vec::with_capacity(f.out.len());
-    for (name, shape, t) in f.out {
-        let data =
-            crate::readback::read_f32(t).await.map_err(|e| CheckpointError::Readback(e.context(name.clone())))?;
+    let mut at = 0;
+    for (name, shape, _) in f.out {
+        let n = shape.iter().product::<usize>();
+        let data = all.get(at..at + n).ok_or_else(|| fmt_err(format!("{name}: the read-back is short")))?.to_vec();
+        at += n;
         out.push((name, shape, data));
     }
     Ok(out)

@@ -133,6 +133,10 @@ pub async fn yield_to_browser() {
 /// the next checkpoint (up to ~60 ms on the test machine: a fit step's silhouette edges).
 pub const SLICE_MS: f64 = 10.0;
 
+/// The reconstruction worker's slice: it draws nothing, so it yields only to let Cancel in (a
+/// yield costs a clamped `setTimeout`, ≥ 4 ms).
+pub const WORKER_SLICE_MS: f64 = 200.0;
+
 thread_local! {
     /// When the last paused stage resumed: no task that runs a stage started before it.
     static SLICE_START: Cell<f64> = const { Cell::new(f64::NEG_INFINITY) };
@@ -143,11 +147,11 @@ thread_local! {
 pub use getavatar_core::cooperative::checkpoint;
 
 /// Make core's checkpoints (`getavatar_core::cooperative`) yield to the browser once a slice
-/// has run [`SLICE_MS`]: the template SDF, the posed grid, generation and the fits then run
-/// in slices between frames instead of freezing the page.
-pub fn install_time_slicing() {
-    getavatar_core::cooperative::install(Rc::new(|| {
-        if crate::platform::now_ms() - SLICE_START.with(Cell::get) < SLICE_MS {
+/// has run `slice_ms` ([`SLICE_MS`] on the page): the template SDF, the posed grid, generation
+/// and the fits then run in slices between frames instead of freezing the page.
+pub fn install_time_slicing(slice_ms: f64) {
+    getavatar_core::cooperative::install(Rc::new(move || {
+        if crate::platform::now_ms() - SLICE_START.with(Cell::get) < slice_ms {
             return None;
         }
         Some(Box::pin(async {

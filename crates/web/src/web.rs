@@ -131,12 +131,12 @@ pub fn start() {
     if crate::reconstruct_worker::in_worker() {
         // The reconstruction worker (`www/reconstruct_worker.js`): no app, only its jobs. Its
         // steps need no slicing (nothing to draw), but its checkpoints still let Cancel in.
-        crate::task::install_time_slicing();
+        crate::task::install_time_slicing(crate::task::WORKER_SLICE_MS);
         std::panic::set_hook(Box::new(|info| crate::reconstruct_worker::post_fatal(&info.to_string())));
         return;
     }
     // Long CPU stages of core run in slices between frames (issue #23: no task over 100 ms).
-    crate::task::install_time_slicing();
+    crate::task::install_time_slicing(crate::task::SLICE_MS);
     // With panic = abort a panic stops the app for good: say so over the canvas (the page's
     // `getavatarFatal`, which offers a reload) and in the console, never a frozen canvas.
     std::panic::set_hook(Box::new(|info| {
