@@ -52,7 +52,7 @@ mod tests {
     fn placeholder_weights_are_zeros_only_inside() {
         #[allow(deprecated)]
         let dev = Device::ndarray();
-        let values = |t: Tensor<2>| t.into_data().to_vec::<f32>().unwrap();
+        let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
         let mut rng = Rng::new(1, 2);
         let zeros = placeholder_weights(|| values(randn(&mut rng, [3, 4], 1.0, &dev)));
         assert_eq!(zeros, vec![0.0; 12]);
