@@ -428,7 +428,7 @@ try {
   // progress and rigs the result, in slices, so the job is checked like the others (#23).
   jobs.push(['reconstruction, the first', jRec, await pageNow()]);
   page.off('request', onRequest);
-  console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s; losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
+  console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s (${rec.finish_detail}); losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
   check(rec.state === 'done' && rec.losses.length === 4 && rec.previews >= 3, `the reconstruction finishes: ${rec.losses.length} steps, ${rec.previews} previews (${rec.state}: ${rec.message})`);
   check(rec.runs_in === 'worker', `the reconstruction's steps ran in the reconstruction worker, off the UI thread (runs_in: ${rec.runs_in})`);
   check(rec.losses[2] < rec.losses[0], `the loss falls over the W+ steps (${rec.losses[0]?.toFixed(4)} → ${rec.losses[2]?.toFixed(4)})`);

@@ -120,6 +120,8 @@ pub struct Reconstructed {
     /// Milliseconds in all, and of the finish (final render, extraction, rigging, projection).
     pub millis: f64,
     pub finish_ms: f64,
+    /// Where the finish's time went (one line for the status; empty if not measured).
+    pub finish_detail: String,
 }
 
 /// What a reconstruction reports.
@@ -235,6 +237,11 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         opened: None,
         millis: 0.0,
         finish_ms: inv.finish_ms + now_ms() - t_finish,
+        finish_detail: format!(
+            "page: final render {:.1} s, rigging {:.1} s",
+            inv.finish_ms / 1000.0,
+            (now_ms() - t_finish) / 1000.0
+        ),
     }))
 }
 
@@ -406,6 +413,7 @@ pub(crate) async fn rig_saved(
         opened: None,
         millis: 0.0,
         finish_ms: 0.0,
+        finish_detail: String::new(),
     })
 }
 

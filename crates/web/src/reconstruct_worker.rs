@@ -41,6 +41,11 @@ use crate::reconstruct::{
 /// The worker's script, next to the page (`cargo xtask build-web` copies `www/` into dist/).
 const WORKER_URL: &str = "./reconstruct_worker.js";
 
+/// An idle worker is ended after this long: it holds its own GPU memory (the inversion's pool
+/// of buffers, which only ending the worker gives back); a reconstruction soon after reuses it
+/// (its device, body context, model files and compiled kernels).
+const IDLE_RELEASE_MS: i32 = 120_000;
+
 #[wasm_bindgen]
 extern "C" {
     /// The browser's `Worker` (declared here rather than through web-sys features, which would
@@ -123,7 +128,8 @@ enum FromWorker {
     Finished {
         iou: Option<f32>,
         psnr: Option<f32>,
-        finish_ms: f64,
+        render_ms: f64,
+        file_ms: f64,
     },
     Failed {
         message: String,
@@ -171,6 +177,27 @@ thread_local! {
     static CLIENT: RefCell<Option<Rc<Client>>> = const { RefCell::new(None) };
     /// A worker could not run a reconstruction here (why): later ones run on the page.
     static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
+    /// Jobs handed to a worker so far: an idle release applies only if none came since.
+    static JOBS: Cell<u64> = const { Cell::new(0) };
+}
+
+/// End the worker if it is still idle after [`IDLE_RELEASE_MS`].
+fn release_when_idle() {
+    let job = JOBS.with(Cell::get);
+    let release = Closure::once_into_js(move || {
+        let idle = CLIENT.with(|c| c.borrow().as_ref().is_some_and(|c| c.running.borrow().is_none()));
+        if idle && JOBS.with(Cell::get) == job {
+            drop_client();
+        }
+    });
+    let global = js_sys::global();
+    let scheduled = js_sys::Reflect::get(&global, &JsValue::from_str("setTimeout"))
+        .and_then(|f| f.dyn_into::<js_sys::Function>())
+        .and_then(|f| f.call2(&global, &release, &JsValue::from(IDLE_RELEASE_MS)));
+    if scheduled.is_err() {
+        // Without a timer the worker stays until the page closes; nothing is lost.
+        web_sys::console::warn_1(&JsValue::from_str("the reconstruction worker cannot schedule its release"));
+    }
 }
 
 /// Hand `req` to the worker (started on first use); its events arrive on `task`. `Err(req)`:
@@ -211,6 +238,7 @@ pub fn start(
             }
         }
     });
+    JOBS.with(|j| j.set(j.get() + 1));
     let (cfg, ctx, device) = (req.job.cfg.clone(), req.ctx.clone(), req.device.clone());
     *client.running.borrow_mut() = Some(Running { task, repaint, t0: now_ms(), fallback: Some(req), cfg, ctx, device });
     Ok(())
@@ -371,12 +399,13 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, finish_ms } => {
+        FromWorker::Finished { iou, psnr, render_ms, file_ms } => {
             let Some(r) = slot.take() else { return };
             match u8_array(&data, "bytes") {
                 Some(bytes) => {
                     let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
-                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, finish_ms));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (render_ms, file_ms)));
+                    release_when_idle();
                 }
                 None => {
                     r.task.push(ReconstructEvent::Failed("the reconstruction worker sent no result".into()), &r.repaint)
@@ -386,10 +415,12 @@ fn on_message(data: JsValue) {
         FromWorker::Failed { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction failed: {message}")), &r.repaint);
             *slot = None;
+            release_when_idle();
         }
         FromWorker::Cancelled => {
             r.task.push(ReconstructEvent::Cancelled, &r.repaint);
             *slot = None;
+            release_when_idle();
         }
         FromWorker::Unavailable { message } => {
             drop(slot);
@@ -417,7 +448,7 @@ fn unavailable(why: String) {
 }
 
 /// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
-async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), worker_finish_ms: f64) {
+async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (render_ms, file_ms): (f64, f64)) {
     // Not in the task that copied the file out of the message.
     crate::task::yield_to_browser().await;
     let t = now_ms();
@@ -425,7 +456,14 @@ async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), worker_finish_ms: f
         Ok(mut done) => {
             done.fit = Some(fit);
             done.millis = now_ms() - r.t0;
-            done.finish_ms = worker_finish_ms + now_ms() - t;
+            let rig_ms = now_ms() - t;
+            done.finish_ms = render_ms + file_ms + rig_ms;
+            done.finish_detail = format!(
+                "worker: final render {:.1} s, result file {:.1} s; page: rigging {:.1} s",
+                render_ms / 1000.0,
+                file_ms / 1000.0,
+                rig_ms / 1000.0
+            );
             ReconstructEvent::Finished(Box::new(done))
         }
         Err(e) => ReconstructEvent::Failed(format!("the reconstruction failed: {e}")),
@@ -526,9 +564,9 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
     match job(meta, &data, &state).await {
-        Ok(Some((bytes, (iou, psnr), finish_ms))) => {
+        Ok(Some((bytes, (iou, psnr), render_ms, file_ms))) => {
             let finite = |x: f32| Some(x).filter(|x| x.is_finite());
-            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), finish_ms };
+            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), render_ms, file_ms };
             post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
         }
         Ok(None) => post(&FromWorker::Cancelled, &[]),
@@ -536,7 +574,8 @@ async fn run_job(meta: JobMeta, data: JsValue) {
     }
 }
 
-type Outcome = (Vec<u8>, (f32, f32), f64);
+/// The result file, IoU and PSNR, milliseconds of the final render and of the file.
+type Outcome = (Vec<u8>, (f32, f32), f64, f64);
 
 async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Option<Outcome>, String> {
     let (Some(rgb), Some(mask)) = (f32_array(data, "target_rgb"), f32_array(data, "target_mask")) else {
@@ -594,7 +633,7 @@ async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Optio
     let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
-    Ok(Some((bytes, inv.fit, inv.finish_ms + now_ms() - t)))
+    Ok(Some((bytes, inv.fit, inv.finish_ms, now_ms() - t)))
 }
 
 /// The worker's device and body context, made on its first job (and again for another config).

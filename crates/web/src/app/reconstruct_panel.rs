@@ -324,6 +324,7 @@ impl GetAvatarApp {
                             let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
                             (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, r.millis as f32);
                             s.finish_ms = r.finish_ms as f32;
+                            s.finish_detail = r.finish_detail.clone();
                             s.done += 1;
                             s.message = format!(
                                 "reconstructed in {:.0} s: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera",
