@@ -20,11 +20,12 @@ pub fn now_ms() -> f64 {
     PERFORMANCE.with(|p| p.as_ref().map(|p| p.now()).unwrap_or(0.0))
 }
 
-/// Call `f` on the global scope's next task (`setTimeout(f, 0)`), on the page or in a worker.
-pub fn set_timeout_0(f: &js_sys::Function) -> Result<(), JsValue> {
+/// Call `f` after `ms` milliseconds (`setTimeout(f, ms)`; 0: the next task) on the global
+/// scope, the page's or a worker's.
+pub fn set_timeout(f: &js_sys::Function, ms: i32) -> Result<(), JsValue> {
     let global = js_sys::global();
     let set_timeout: js_sys::Function = js_sys::Reflect::get(&global, &JsValue::from_str("setTimeout"))?.dyn_into()?;
-    set_timeout.call2(&global, f, &JsValue::from(0))?;
+    set_timeout.call2(&global, f, &JsValue::from(ms))?;
     Ok(())
 }
 

@@ -190,10 +190,7 @@ fn release_when_idle() {
             drop_client();
         }
     });
-    let global = js_sys::global();
-    let scheduled = js_sys::Reflect::get(&global, &JsValue::from_str("setTimeout"))
-        .and_then(|f| f.dyn_into::<js_sys::Function>())
-        .and_then(|f| f.call2(&global, &release, &JsValue::from(IDLE_RELEASE_MS)));
+    let scheduled = crate::platform::set_timeout(release.unchecked_ref(), IDLE_RELEASE_MS);
     if scheduled.is_err() {
         // Without a timer the worker stays until the page closes; nothing is lost.
         web_sys::console::warn_1(&JsValue::from_str("the reconstruction worker cannot schedule its release"));
@@ -362,6 +359,11 @@ fn message_of<T: Serialize>(m: &T, arrays: &[(&str, JsValue)]) -> Message {
     object(&serde_json::to_string(m).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}")), arrays)
 }
 
+/// A message's JSON part (the one field every message has).
+fn json_of(data: &JsValue) -> Result<String, String> {
+    field(data, "json").and_then(|j| j.as_string()).ok_or_else(|| "a message without its `json` field".to_string())
+}
+
 fn field(data: &JsValue, name: &str) -> Option<JsValue> {
     js_sys::Reflect::get(data, &name.into()).ok().filter(|v| !v.is_undefined() && !v.is_null())
 }
@@ -377,8 +379,7 @@ fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
 /// A message from the worker.
 fn on_message(data: JsValue) {
     let Some(client) = CLIENT.with(|c| c.borrow().clone()) else { return };
-    let json = field(&data, "json").and_then(|j| j.as_string()).unwrap_or_default();
-    let event = match serde_json::from_str::<FromWorker>(&json) {
+    let event = match json_of(&data).and_then(|j| serde_json::from_str::<FromWorker>(&j).map_err(|e| e.to_string())) {
         Ok(e) => e,
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
@@ -518,8 +519,7 @@ pub fn post_fatal(message: &str) {
 /// JS (the worker's script): a message from the page.
 #[wasm_bindgen]
 pub fn reconstruct_worker_message(data: JsValue) {
-    let json = field(&data, "json").and_then(|j| j.as_string()).unwrap_or_default();
-    match serde_json::from_str::<ToWorker>(&json) {
+    match json_of(&data).and_then(|j| serde_json::from_str::<ToWorker>(&j).map_err(|e| e.to_string())) {
         Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));

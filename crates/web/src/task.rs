@@ -120,7 +120,7 @@ impl<E> Task<E> {
 pub async fn yield_to_browser() {
     let promise = js_sys::Promise::new(&mut |resolve, _reject| {
         // A failed setTimeout leaves the promise pending: resolve at once instead.
-        if crate::platform::set_timeout_0(&resolve).is_err() {
+        if crate::platform::set_timeout(&resolve, 0).is_err() {
             let _ = resolve.call0(&JsValue::NULL);
         }
     });
