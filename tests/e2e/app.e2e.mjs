@@ -265,7 +265,7 @@ try {
   console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
   // Issue #28's stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
   const stageRows = s.last_generation_stages?.stages ?? [];
-  console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}`).join('\n'));
+  console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}  dispatches ${x.dispatches}`).join('\n'));
   const names = stageRows.map((x) => x.stage).join(',');
   const sum = stageRows.reduce((a, x) => a + x.host_ms + x.gpu_wait_ms + x.yield_ms, 0);
   check(names === 'mapping,synthesis,posed grid,grid decode,DMTet,normals & colours,rigging,upload'

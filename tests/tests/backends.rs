@@ -10,14 +10,13 @@ use getavatar_core::spatial::KdTree;
 
 mod common;
 use common::values;
+use getavatar_core::profile;
 
 #[test]
 fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
     #[allow(deprecated)]
     let cpu = Device::ndarray();
-    let gpu = Device::wgpu_options()
-        .init()
-        .expect("no wgpu adapter: install a Vulkan driver (CI uses Debian's mesa-vulkan-drivers, i.e. lavapipe)");
+    let gpu = common::gpu();
     let cfg = GeneratorConfig::tiny();
     let model = BodyModel::default_body().expect("body");
     let (gc, gg) = (Generator::new(&cfg, 0, &cpu), Generator::new(&cfg, 0, &gpu));
@@ -57,4 +56,29 @@ fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
     let d = ma.mesh.vertices.iter().map(|v| tb.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
     println!("mesh: {} vertices, max vertex distance {d:.2e} m", ma.mesh.vertices.len());
     assert!(d < 1e-4, "meshes differ by {d} m");
+}
+
+fn clock_ms() -> f64 {
+    static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1e3
+}
+
+/// Issue #28: a profiled stage counts the GPU kernels it launched (cubecl's launch observer);
+/// a stage that launched nothing counts none, unless another test's launches overlap it.
+#[test]
+fn profiled_stages_count_gpu_dispatches() {
+    let gpu = common::gpu();
+    profile::start(clock_ms);
+    profile::stage("matmuls");
+    let mut x = Tensor::<2>::from_data(TensorData::new((0..64 * 64).map(|i| (i % 7) as f32).collect(), [64, 64]), &gpu);
+    for _ in 0..3 {
+        // Read back each product, so the three are separate launches, not one fused graph.
+        x = x.clone().matmul(x) / 64.0;
+        let _ = values(x.clone());
+    }
+    let p = profile::finish().expect("recording");
+    let d = p.stages[0].dispatches;
+    println!("{}", p.table());
+    assert!(d >= 3, "three read-back matmuls launched {d} GPU kernels");
+    assert_eq!(p.dispatches(), d);
 }

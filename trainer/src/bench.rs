@@ -33,10 +33,9 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     let model = BodyModel::default_body()?;
     let lib = PoseLibrary::builtin();
     let poses = ["standing", "walking", "sitting", "arms_up"];
+    let on = crate::backend::opened_adapter().map_or("CPU".to_string(), |a| a.describe());
     println!(
-        "backend: {} for the networks ({}), {} CPU threads available",
-        backend,
-        if backend == "wgpu" { "GPU via Vulkan/Metal/DX12; lavapipe emulates one on the CPU" } else { "CPU" },
+        "backend: {backend} for the networks, on {on}; {} CPU threads available",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!(
@@ -60,13 +59,17 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let ((ctx, g), setup) = secs(|| (BodyContext::new(model.clone(), &cfg), Generator::new(&cfg, 0, &device)));
         let (zg, zt) = seed_latents(&cfg, 1, 2, &device);
         let s = g.styles(zg, zt, 0.7);
+        let params: Vec<_> = poses.iter().map(|p| lib.params(p, &[])).collect::<Result<_, _>>()?;
+        if backend == "wgpu" {
+            // Compile the kernels first: `gen` and `exact` are steady-state figures.
+            generate_avatar(&g, &ctx, &s, &params[0], &device)?;
+        }
         // Network only: styles → triplanes, read back to force execution.
         let (gen_read, gen) = secs(|| {
             let p = g.triplanes(&s);
             read_f32_now(p.geometry).map(|_| ())
         });
         gen_read?;
-        let params: Vec<_> = poses.iter().map(|p| lib.params(p, &[])).collect::<Result<_, _>>()?;
         let (avatar, exact_total) = secs(|| -> Result<_> {
             let mut last = None;
             for _ in 0..repeats {
@@ -138,7 +141,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         );
     }
     println!("gen = mapping + triplane synthesis; extract = exact per-pose path minus gen (inverse skinning, decoders, DMTet, normal field, colours);");
-    println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU);");
+    println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU); on wgpu after one untimed generation (kernels compiled);");
     println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
     for (name, stages, num_params) in stage_tables {
@@ -171,8 +174,11 @@ pub struct TrainBenchArgs {
 pub struct CaseReport {
     pub timings: StepTimings,
     /// Peak resident memory of the process (VmHWM), MiB; lavapipe's "GPU" memory is host
-    /// memory, so this covers both backends.
+    /// memory, so this covers both backends; a real GPU's memory is not in it.
     pub peak_mib: Option<f64>,
+    /// The wgpu adapter the case ran on (`Adapter::describe`), none on NdArray.
+    #[serde(default)]
+    pub adapter: Option<String>,
 }
 
 const CASE_TAG: &str = "GETAVATAR_BENCH_CASE ";
@@ -189,7 +195,8 @@ fn peak_rss_mib() -> Option<f64> {
 /// memory is that case's).
 pub fn train_case(data: &std::path::Path, config: &str, backend: &str, batch: usize, steps: usize) -> Result<()> {
     let timings = time_steps(data, config, backend, batch, steps)?;
-    let r = CaseReport { timings, peak_mib: peak_rss_mib() };
+    let adapter = crate::backend::opened_adapter().map(|a| a.describe());
+    let r = CaseReport { timings, peak_mib: peak_rss_mib(), adapter };
     println!("{CASE_TAG}{}", serde_json::to_string(&r)?);
     Ok(())
 }
@@ -259,8 +266,18 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
     }
     println!("training benchmark: batch {}, {} timed steps per case, {threads} CPU threads", a.batch, a.steps);
     println!(
-        "{:<6} {:<7} {:>5} {:>9} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9}",
-        "config", "backend", "res", "first s", "step s", "R1 step s", "s/kimg", "peak MiB", "vs ndarr", "vs res0"
+        "{:<6} {:<7} {:>5} {:>9} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>10}",
+        "config",
+        "backend",
+        "res",
+        "first s",
+        "step s",
+        "R1 step s",
+        "s/kimg",
+        "peak MiB",
+        "vs ndarr",
+        "vs res0",
+        "disp/step"
     );
     let per_kimg = |r: &CaseReport| {
         let t = &r.timings;
@@ -273,7 +290,7 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
         let vs_res = find(backend, a.resolutions[0])
             .map_or("-".to_string(), |n| format!("{:.2}×", r.timings.step_s / n.timings.step_s));
         println!(
-            "{:<6} {:<7} {:>5} {:>9.2} {:>9.2} {:>10.2} {:>9.0} {:>10} {:>9} {:>9}",
+            "{:<6} {:<7} {:>5} {:>9.2} {:>9.2} {:>10.2} {:>9.0} {:>10} {:>9} {:>9} {:>10.0}",
             config,
             backend,
             res,
@@ -283,11 +300,18 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
             per_kimg(r),
             r.peak_mib.map_or("-".into(), |m| format!("{m:.0}")),
             vs_nd,
-            vs_res
+            vs_res,
+            r.timings.dispatches_per_step
         );
     }
     println!("first = warm-up step (R1, tet-grid inverse skinning, kernel compilation); step = mean plain step; s/kimg = (step + (R1 step − step)/16) · 1000/batch;");
-    println!("peak = the case process's peak resident memory; vs ndarr = step time / NdArray's at the same config and resolution; vs res0 = / the first resolution's.");
+    let mut adapters: Vec<&str> = rows.iter().filter_map(|r| r.3.adapter.as_deref()).collect();
+    adapters.dedup();
+    for adapter in adapters {
+        println!("wgpu adapter: {adapter}");
+    }
+    println!("peak = the case process's peak resident memory; vs ndarr = step time / NdArray's at the same config and resolution; vs res0 = / the first resolution's;");
+    println!("disp/step = GPU kernel launches per plain step (cubecl's launch observer; 0 on NdArray).");
     Ok(())
 }
 
@@ -300,6 +324,9 @@ pub struct StepTimings {
     pub step_s: f64,
     /// One step with the lazy R1 penalty, after warm-up.
     pub r1_step_s: f64,
+    /// GPU kernel launches per plain step (0 on NdArray).
+    #[serde(default)]
+    pub dispatches_per_step: f64,
 }
 
 /// Run `steps` plain steps (after one warm-up step) and one R1 step of a fresh run of `config`
@@ -318,16 +345,21 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
     let (next, first) = train_step(st, &inputs)?;
     st = next;
     let mut plain_s = Vec::new();
+    let counting = getavatar_core::profile::dispatch_count::observe();
+    let d0 = getavatar_core::profile::dispatch_count::total();
     for _ in 0..steps.max(1) {
         let (next, m) = train_step(st, &inputs)?;
         st = next;
         plain_s.push(m.seconds);
     }
+    let dispatches = getavatar_core::profile::dispatch_count::total() - d0;
+    drop(counting);
     st.step = rc.r1_every * (st.step / rc.r1_every + 1);
     let (_, r1) = train_step(st, &inputs)?;
     Ok(StepTimings {
         first_step_s: first.seconds,
         step_s: plain_s.iter().sum::<f64>() / plain_s.len() as f64,
         r1_step_s: r1.seconds,
+        dispatches_per_step: dispatches as f64 / plain_s.len() as f64,
     })
 }

@@ -24,7 +24,6 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::dataset::{encode_png, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
@@ -38,6 +37,8 @@ use crate::inception::ImageChw;
 
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// Dataset directory whose labels (camera, θ, β) and images are used.
     #[arg(long)]
     pub data: PathBuf,
@@ -127,8 +128,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     if !a.psi.is_finite() {
         bail!("--psi must be a number");
     }
-    #[allow(deprecated)]
-    let dev = Device::ndarray();
+    let dev = a.backend.device()?;
     // Load the Inception weights first: a bad file fails before minutes of rendering.
     let inception = match &a.inception {
         Some(p) => Some(crate::inception::Inception::load(p, &dev)?),

@@ -8,7 +8,6 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::{generate_rigged_async, BodyContext};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::motion::{Motion, BUILTIN_CLIPS};
@@ -21,6 +20,8 @@ use crate::sample::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     #[command(flatten)]
     pub model: GeneratorArgs,
     #[arg(long, default_value_t = 0)]
@@ -139,8 +140,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     if a.r#static && a.frames_json.is_some() {
         bail!("--frames-json needs a skinned export (not --static)");
     }
-    #[allow(deprecated)]
-    let device = Device::ndarray();
+    let device = a.backend.device()?;
     // An inverted avatar: its generator, codes, and the photo it was made from.
     let inverted = match &a.inverted {
         Some(p) => {
@@ -351,6 +351,8 @@ fn write_obj_files(
 
 #[derive(clap::Args, Debug)]
 pub struct BenchExportArgs {
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// Generator configs to time (demo uses the shipped model; others random weights).
     #[arg(long, default_value = "demo", value_delimiter = ',')]
     pub configs: Vec<String>,
@@ -365,13 +367,12 @@ pub struct BenchExportArgs {
 
 /// `bench-export`: the export's stages timed one by one (atlas, texel points, texture-field
 /// queries, image + dilation, PNG, glTF writing) and the file sizes, per config and texture
-/// side, on NdArray.
+/// side, on `--backend`.
 pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
     use getavatar_core::generator::recolor_async;
     use getavatar_core::rigging::encode_rgb_png;
     use getavatar_core::uv_atlas::{bake_image, texel_points};
-    #[allow(deprecated)]
-    let device = Device::ndarray();
+    let device = a.backend.device()?;
     let walk = Motion::builtin("walk")?;
     let params = PoseLibrary::builtin().params("standing", &[])?;
     println!("| config | texture | vertices (atlas) | atlas s | texels s | field queries s | image s | PNG s | glb write s | total s | animated .glb MB |");

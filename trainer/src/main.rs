@@ -3,6 +3,7 @@
 //! benchmarks. Each subcommand lives in its own module; this file only parses arguments.
 
 mod atomic;
+mod backend;
 mod bench;
 mod body_convert;
 mod eval;

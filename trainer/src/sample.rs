@@ -22,6 +22,8 @@ use getavatar_core::readback::block_on_ready;
 #[derive(clap::Args, Debug)]
 pub struct SampleArgs {
     #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
+    #[command(flatten)]
     pub model: GeneratorArgs,
     #[arg(long, default_value_t = 0)]
     pub seed_geo: u64,
@@ -215,8 +217,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         format!("unknown pose `{}`; available: {}", a.pose, lib.names().collect::<Vec<_>>().join(", "))
     })?;
     let model = load_body(&a.body)?;
-    #[allow(deprecated)]
-    let device = Device::ndarray();
+    let device = a.backend.device()?;
     // An inverted avatar brings its own (tuned) generator and codes.
     let (cfg, g, modes, inverted) = match &a.inverted {
         Some(p) => {

@@ -9,6 +9,10 @@
 //! table with [`finish`]. [`crate::readback::read_f32`] and [`crate::cooperative::checkpoint`]
 //! report their waits to it.
 //!
+//! With the `wgpu` feature, each stage also counts the GPU dispatches (kernel launches) issued
+//! while it was open, through cubecl's launch observer. The observer is process-wide, so
+//! launches of other threads during a recording count too.
+//!
 //! burn queues GPU work lazily, so a stage's GPU time shows up as the wait of the stage whose
 //! read-back forces it (the triplanes' synthesis is waited for in the grid decode's read-back).
 //! On one thread, work of another task that overlaps a recording (a texture bake running
@@ -31,6 +35,9 @@ pub struct StageTime {
     pub yield_ms: f64,
     /// GPU→CPU read-backs awaited.
     pub readbacks: u32,
+    /// GPU kernel launches issued (0 without the `wgpu` feature, and on NdArray).
+    #[serde(default)]
+    pub dispatches: u64,
 }
 
 /// The stages of one recording, in order.
@@ -52,31 +59,94 @@ impl StageProfile {
         self.stages.iter().map(|s| s.readbacks).sum()
     }
 
-    /// A Markdown table: stage, host ms, GPU wait ms, read-backs, and the totals.
+    pub fn dispatches(&self) -> u64 {
+        self.stages.iter().map(|s| s.dispatches).sum()
+    }
+
+    /// A Markdown table: stage, host ms, GPU wait ms, read-backs, GPU dispatches, and the
+    /// totals.
     pub fn table(&self) -> String {
-        let mut out = String::from("| stage | host ms | GPU wait ms | read-backs |\n|---|---|---|---|\n");
+        let mut out =
+            String::from("| stage | host ms | GPU wait ms | read-backs | dispatches |\n|---|---|---|---|---|\n");
         for s in &self.stages {
-            out += &format!("| {} | {:.1} | {:.1} | {} |\n", s.stage, s.host_ms, s.gpu_wait_ms, s.readbacks);
+            out += &format!(
+                "| {} | {:.1} | {:.1} | {} | {} |\n",
+                s.stage, s.host_ms, s.gpu_wait_ms, s.readbacks, s.dispatches
+            );
         }
-        out += &format!("| total | {:.1} | {:.1} | {} |\n", self.host_ms(), self.gpu_wait_ms(), self.readbacks());
+        out += &format!(
+            "| total | {:.1} | {:.1} | {} | {} |\n",
+            self.host_ms(),
+            self.gpu_wait_ms(),
+            self.readbacks(),
+            self.dispatches()
+        );
         out
     }
 }
 
 struct Recorder {
     clock: Clock,
-    /// The open stage and when it began.
-    current: Option<(StageTime, f64)>,
+    /// The open stage, when it began, and the dispatch count then.
+    current: Option<(StageTime, f64, u64)>,
     done: Vec<StageTime>,
+    /// Counts launches while the recording lives.
+    _dispatches: dispatch_count::Observation,
 }
 
 impl Recorder {
     fn close(&mut self) {
-        if let Some((mut s, t0)) = self.current.take() {
+        if let Some((mut s, t0, d0)) = self.current.take() {
             let wall = (self.clock)() - t0;
             s.host_ms = (wall - s.gpu_wait_ms - s.yield_ms).max(0.0);
+            s.dispatches = dispatch_count::total() - d0;
             self.done.push(s);
         }
+    }
+}
+
+/// GPU dispatches, counted by cubecl's launch observer while a recording is installed.
+#[cfg(feature = "wgpu")]
+pub mod dispatch_count {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::sync::Arc;
+
+    use cubecl_runtime::logging::{LaunchObservation, LaunchObserver};
+
+    static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+
+    struct Count;
+
+    impl LaunchObserver for Count {
+        fn launched(&self, _kernel: &'static str) {
+            LAUNCHES.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Launches counted since the process started (only while an observation was live).
+    pub fn total() -> u64 {
+        LAUNCHES.load(Ordering::Relaxed)
+    }
+
+    /// Counting, until dropped.
+    pub struct Observation(#[allow(dead_code)] LaunchObservation);
+
+    pub fn observe() -> Observation {
+        Observation(LaunchObservation::new(Arc::new(Count)))
+    }
+}
+
+/// Without the `wgpu` feature nothing dispatches GPU kernels.
+#[cfg(not(feature = "wgpu"))]
+pub mod dispatch_count {
+    pub fn total() -> u64 {
+        0
+    }
+
+    pub struct Observation;
+
+    pub fn observe() -> Observation {
+        Observation
     }
 }
 
@@ -86,7 +156,12 @@ thread_local! {
 
 /// Start recording on this thread (a recording already running is dropped).
 pub fn start(clock: Clock) {
-    RECORDER.with(|r| *r.borrow_mut() = Some(Recorder { clock, current: None, done: Vec::new() }));
+    RECORDER.with(|r| {
+        // The old recording's observation ends before the new one begins (one slot).
+        r.borrow_mut().take();
+        *r.borrow_mut() =
+            Some(Recorder { clock, current: None, done: Vec::new(), _dispatches: dispatch_count::observe() })
+    });
 }
 
 /// End the open stage and begin `name` (no-op when not recording).
@@ -95,7 +170,8 @@ pub fn stage(name: &str) {
         if let Some(rec) = r.borrow_mut().as_mut() {
             rec.close();
             let t0 = (rec.clock)();
-            rec.current = Some((StageTime { stage: name.to_string(), ..StageTime::default() }, t0));
+            let d0 = dispatch_count::total();
+            rec.current = Some((StageTime { stage: name.to_string(), ..StageTime::default() }, t0, d0));
         }
     });
 }
@@ -117,7 +193,7 @@ pub(crate) fn now() -> Option<f64> {
 
 fn add(f: impl FnOnce(&mut StageTime)) {
     RECORDER.with(|r| {
-        if let Some((s, _)) = r.borrow_mut().as_mut().and_then(|rec| rec.current.as_mut()) {
+        if let Some((s, _, _)) = r.borrow_mut().as_mut().and_then(|rec| rec.current.as_mut()) {
             f(s);
         }
     });
@@ -181,7 +257,7 @@ mod tests {
         assert_eq!((a.stage.as_str(), a.host_ms, a.gpu_wait_ms, a.yield_ms, a.readbacks), ("a", 5.0, 5.0, 0.0, 1));
         assert_eq!((b.stage.as_str(), b.host_ms, b.gpu_wait_ms, b.yield_ms, b.readbacks), ("b", 1.0, 6.0, 4.0, 1));
         assert_eq!((p.host_ms(), p.gpu_wait_ms(), p.readbacks()), (6.0, 11.0, 2));
-        assert!(p.table().contains("| total | 6.0 | 11.0 | 2 |"), "{}", p.table());
+        assert!(p.table().contains("| total | 6.0 | 11.0 | 2 | 0 |"), "{}", p.table());
         assert!(finish().is_none(), "finish ends the recording");
     }
 }

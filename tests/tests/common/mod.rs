@@ -9,10 +9,15 @@ pub fn cpu() -> Device {
     Device::ndarray()
 }
 
-/// Wgpu on the machine's adapter (lavapipe in CI).
+/// Wgpu on the machine's adapter (lavapipe in CI), opened once per test binary (a second
+/// `init` of the same runtime is an error).
 #[allow(dead_code)]
 pub fn gpu() -> Device {
-    Device::wgpu_options().init().expect("no wgpu adapter: CI uses Debian's mesa-vulkan-drivers (lavapipe)")
+    static GPU: std::sync::OnceLock<Device> = std::sync::OnceLock::new();
+    GPU.get_or_init(|| {
+        Device::wgpu_options().init().expect("no wgpu adapter: CI uses Debian's mesa-vulkan-drivers (lavapipe)")
+    })
+    .clone()
 }
 
 /// A float tensor's values, row-major.

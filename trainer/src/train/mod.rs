@@ -40,10 +40,11 @@ use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use getavatar_core::generator::BodyContext;
 
+pub use crate::backend::device_for;
 pub use args::TrainArgs;
 pub(crate) use run_config::discriminator_config;
 pub use run_config::{Objective, RunConfig};
-pub use state::{device_for, State};
+pub use state::State;
 pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 

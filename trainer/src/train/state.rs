@@ -126,13 +126,3 @@ impl State {
         Ok(s)
     }
 }
-
-/// The device of `--backend`.
-pub fn device_for(backend: &str) -> Result<Device> {
-    Ok(match backend {
-        #[allow(deprecated)]
-        "ndarray" => Device::ndarray(),
-        "wgpu" => Device::wgpu_options().init().map_err(|e| anyhow!("no wgpu adapter: {e:?}"))?,
-        other => bail!("unknown --backend `{other}` (ndarray, wgpu)"),
-    })
-}
