@@ -107,6 +107,8 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let (_, r1024) = secs(|| render_views(&m.vertices, &m.faces, &avatar.normals, &avatar.colors, vp, 1024, 1));
         let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &device))?;
         // The app's new identity (canonical generation + rigging) by stage, kernels warm.
+        use getavatar_core::profile::dispatch_count;
+        let before = dispatch_count::by_kernel();
         getavatar_core::profile::start(clock_ms);
         getavatar_core::profile::stage("mapping");
         let (zg, zt) = seed_latents(&cfg, 3, 4, &device);
@@ -114,7 +116,13 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         let profiled = block_on_ready(generate_rigged_async(&g, &ctx, &s2, &device));
         let stages = getavatar_core::profile::finish().context("the stage recording was lost")?;
         profiled?;
-        stage_tables.push((name.clone(), stages, g.num_params()));
+        // The new identity's launches per kernel: the counts now minus those before it.
+        let kernels: Vec<(&str, u64)> = dispatch_count::by_kernel()
+            .into_iter()
+            .map(|(k, n)| (k, n - before.iter().find(|b| b.0 == k).map_or(0, |b| b.1)))
+            .filter(|(_, n)| *n > 0)
+            .collect();
+        stage_tables.push((name.clone(), stages, g.num_params(), kernels));
         let (_, fast_total) = secs(|| {
             for _ in 0..repeats {
                 for p in &params {
@@ -144,10 +152,17 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU); on wgpu after one untimed generation (kernels compiled);");
     println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
-    for (name, stages, num_params) in stage_tables {
+    for (name, stages, num_params, mut kernels) in stage_tables {
         println!("\n`{name}`: the generator has {num_params} parameters ({:.1} MB as f32)", num_params as f64 * 4e-6);
         println!("new identity (canonical generation + rigging, seeds 3/4), `{name}`, {backend}: host ms, waits on read-backs, read-backs");
         print!("{}", stages.table());
+        if !kernels.is_empty() {
+            kernels.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+            println!("its GPU launches by kernel (the 12 most launched of {}):", kernels.len());
+            for (k, n) in kernels.iter().take(12) {
+                println!("{n:>6} × {k}");
+            }
+        }
     }
     Ok(())
 }

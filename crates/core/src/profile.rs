@@ -108,24 +108,36 @@ impl Recorder {
 /// GPU dispatches, counted by cubecl's launch observer while a recording is installed.
 #[cfg(feature = "wgpu")]
 pub mod dispatch_count {
+    use std::collections::BTreeMap;
     use std::sync::atomic::{AtomicU64, Ordering};
-    use std::sync::Arc;
+    use std::sync::{Arc, Mutex};
 
     use cubecl_runtime::logging::{LaunchObservation, LaunchObserver};
 
     static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+    static BY_KERNEL: Mutex<BTreeMap<&'static str, u64>> = Mutex::new(BTreeMap::new());
 
     struct Count;
 
     impl LaunchObserver for Count {
-        fn launched(&self, _kernel: &'static str) {
+        fn launched(&self, kernel: &'static str) {
             LAUNCHES.fetch_add(1, Ordering::Relaxed);
+            *BY_KERNEL.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).entry(kernel).or_default() += 1;
         }
     }
 
     /// Launches counted since the process started (only while an observation was live).
     pub fn total() -> u64 {
         LAUNCHES.load(Ordering::Relaxed)
+    }
+
+    /// Launches counted so far per kernel name (as the kernel names itself), most first.
+    pub fn by_kernel() -> Vec<(&'static str, u64)> {
+        // A panic while counting cannot leave the map half-written: take it as it is.
+        let m = BY_KERNEL.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        let mut v: Vec<_> = m.iter().map(|(k, n)| (*k, *n)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+        v
     }
 
     /// Counting, until dropped.
@@ -141,6 +153,10 @@ pub mod dispatch_count {
 pub mod dispatch_count {
     pub fn total() -> u64 {
         0
+    }
+
+    pub fn by_kernel() -> Vec<(&'static str, u64)> {
+        Vec::new()
     }
 
     pub struct Observation;

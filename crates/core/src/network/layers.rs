@@ -103,7 +103,9 @@ impl FullyConnected {
     /// `x`: `[B, in]` → `[B, out]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
         let w = self.weight.val() * self.weight_gain;
-        let y = x.matmul(w.transpose()) + (self.bias.val() * self.lr_mul).unsqueeze_dim::<2>(0);
+        // A product with 1 is exact and would cost a GPU launch (the style affines' case).
+        let bias = if self.lr_mul == 1.0 { self.bias.val() } else { self.bias.val() * self.lr_mul };
+        let y = x.matmul(w.transpose()) + bias.unsqueeze_dim::<2>(0);
         if self.activation {
             lrelu_gain(y)
         } else {
