@@ -17,12 +17,18 @@ use super::layers::ModulatedConv2d;
 /// 2× bilinear upsampling along dimension `dim` (2 = rows, 3 = columns), half-pixel centres,
 /// edges clamped: `out[2i] = ¾x[i] + ¼x[i−1]`, `out[2i+1] = ¾x[i] + ¼x[i+1]`.
 ///
-/// Two row gathers (`select`) straight into the upsampled size: a dimension costs five GPU
-/// launches (two gathers, two scalings, one sum) instead of the slicing, concatenating and
-/// interleaving of the version before (issue #28: launches are what a GPU waits on here). The
-/// values are bit-identical (same products, same sum). burn's bilinear `interpolate` has no
-/// backward pass on NdArray, which training needs.
+/// Without gradients (generation), two row gathers (`select`) straight into the upsampled
+/// size: a dimension costs five GPU launches (two gathers, two scalings, one sum) instead of
+/// the slicing, concatenating and interleaving of [`upsample_dim_by_slices`] (issue #28:
+/// launches are what a GPU waits on here). The values are the same bits (same products, same
+/// sum). Training and inversion keep the sliced version: the gathers' backward is a
+/// scatter-add whose rounding differs, which changed the inversion's trajectories. burn's
+/// bilinear `interpolate` has no backward pass on NdArray.
 fn upsample_dim(x: Tensor<4>, dim: usize) -> Tensor<4> {
+    #[cfg(feature = "autodiff")]
+    if x.is_tracked() {
+        return upsample_dim_by_slices(x, dim);
+    }
     let n = x.dims()[dim];
     let device = x.device();
     let (own, neighbour): (Vec<i64>, Vec<i64>) = (0..2 * n as i64)
@@ -34,6 +40,26 @@ fn upsample_dim(x: Tensor<4>, dim: usize) -> Tensor<4> {
         .unzip();
     let index = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v, [2 * n]), &device);
     x.clone().select(dim, index(own)) * 0.75 + x.select(dim, index(neighbour)) * 0.25
+}
+
+/// [`upsample_dim`] by slicing, concatenating and interleaving (what gradients go through).
+fn upsample_dim_by_slices(x: Tensor<4>, dim: usize) -> Tensor<4> {
+    let dims = x.dims();
+    let n = dims[dim];
+    let (prev, next) = if n > 1 {
+        (
+            Tensor::cat(vec![x.clone().narrow(dim, 0, 1), x.clone().narrow(dim, 0, n - 1)], dim),
+            Tensor::cat(vec![x.clone().narrow(dim, 1, n - 1), x.clone().narrow(dim, n - 1, 1)], dim),
+        )
+    } else {
+        (x.clone(), x.clone())
+    };
+    let even = x.clone() * 0.75 + prev * 0.25;
+    let odd = x * 0.75 + next * 0.25;
+    let both: Tensor<5> = Tensor::cat(vec![even.unsqueeze_dim(dim + 1), odd.unsqueeze_dim(dim + 1)], dim + 1);
+    let mut out = dims;
+    out[dim] = 2 * n;
+    both.reshape(out)
 }
 
 fn upsample2(x: Tensor<4>) -> Tensor<4> {
@@ -197,53 +223,18 @@ mod tests {
         assert_eq!(y.len(), 16);
     }
 
-    #[cfg(feature = "autodiff")]
-    /// The slicing and concatenating version that `upsample_dim` replaced, as the reference.
-    fn upsample_dim_by_slices(x: Tensor<4>, dim: usize) -> Tensor<4> {
-        let dims = x.dims();
-        let n = dims[dim];
-        let (prev, next) = if n > 1 {
-            (
-                Tensor::cat(vec![x.clone().narrow(dim, 0, 1), x.clone().narrow(dim, 0, n - 1)], dim),
-                Tensor::cat(vec![x.clone().narrow(dim, 1, n - 1), x.clone().narrow(dim, n - 1, 1)], dim),
-            )
-        } else {
-            (x.clone(), x.clone())
-        };
-        let even = x.clone() * 0.75 + prev * 0.25;
-        let odd = x * 0.75 + next * 0.25;
-        let both: Tensor<5> = Tensor::cat(vec![even.unsqueeze_dim(dim + 1), odd.unsqueeze_dim(dim + 1)], dim + 1);
-        let mut out = dims;
-        out[dim] = 2 * n;
-        both.reshape(out)
-    }
-
-    #[cfg(feature = "autodiff")]
     #[test]
-    fn gathered_upsampling_equals_the_sliced_one_bit_for_bit_with_the_same_gradients() {
+    fn gathered_upsampling_equals_the_sliced_one_bit_for_bit() {
         #[allow(deprecated)]
-        let dev = Device::ndarray().autodiff();
-        let shape = [2, 3, 5, 1];
-        let len: usize = shape.iter().product();
-        let vals: Vec<f32> = (0..len).map(|i| ((i * 37 % 11) as f32 - 5.0) * 0.37).collect();
-        // Weights of the output, so each output element's gradient differs.
-        for (dims, out) in [((2, 3), [2, 3, 10, 2]), ((3, 2), [2, 3, 10, 2])] {
-            let run = |f: &dyn Fn(Tensor<4>, usize) -> Tensor<4>| {
-                let x = Tensor::<4>::from_data(TensorData::new(vals.clone(), shape), &dev).require_grad();
-                let y = f(f(x.clone(), dims.0), dims.1);
-                assert_eq!(y.dims(), out);
-                let n: usize = out.iter().product();
-                let w =
-                    Tensor::<4>::from_data(TensorData::new((0..n).map(|i| (i % 7) as f32 + 0.5).collect(), out), &dev);
-                let grads = (y.clone() * w).sum().backward();
-                let g = x.grad(&grads).expect("gradient").into_data().try_to_vec::<f32>().unwrap();
-                (y.into_data().try_to_vec::<f32>().unwrap(), g)
-            };
-            let (y, g) = run(&upsample_dim);
-            let (y_ref, g_ref) = run(&upsample_dim_by_slices);
-            assert_eq!(y, y_ref, "values, dims {dims:?}");
-            for (a, b) in g.iter().zip(&g_ref) {
-                assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "gradients {a} vs {b}, dims {dims:?}");
+        let dev = Device::ndarray();
+        let vals: Vec<f32> = (0..2 * 3 * 5 * 7).map(|i| ((i * 7919 % 1013) as f32 - 500.0) * 0.0137).collect();
+        let x0 = Tensor::<4>::from_data(TensorData::new(vals, [2, 3, 5, 7]), &dev);
+        // Contiguous, transposed and narrowed inputs, each dimension, and a size-1 dimension.
+        for x in [x0.clone(), x0.clone().swap_dims(2, 3), x0.clone().narrow(3, 1, 5), x0.narrow(2, 0, 1)] {
+            for dim in [2, 3] {
+                let a = upsample_dim(x.clone(), dim).into_data().try_to_vec::<f32>().unwrap();
+                let b = upsample_dim_by_slices(x.clone(), dim).into_data().try_to_vec::<f32>().unwrap();
+                assert_eq!(a, b, "dim {dim}, input {:?}", x.dims());
             }
         }
     }
