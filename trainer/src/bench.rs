@@ -10,7 +10,8 @@ use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use serde::{Deserialize, Serialize};
 
-use crate::train::{device_for, train_step, RunConfig, State, StepInputs};
+use crate::backend::device_for;
+use crate::train::{train_step, RunConfig, State, StepInputs};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Module;
 use getavatar_core::camera::OrbitCamera;

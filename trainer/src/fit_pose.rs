@@ -20,6 +20,8 @@ use getavatar_core::skinning::pose_body;
 
 #[derive(clap::Args, Debug)]
 pub struct FitPoseArgs {
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// The photo (PNG or JPEG): its size maps the normalised landmarks to pixels.
     #[arg(long)]
     pub image: PathBuf,
@@ -89,8 +91,7 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     let [a, b, c] = args.iterations[..] else { bail!("--iterations takes three numbers: torso,body,silhouette") };
     let options = FitOptions { iterations: [a, b, c], num_betas: args.betas, ..FitOptions::default() };
     let input = FitInput::from_detection(&result, w, h, mask.as_ref(), &model, &options)?;
-    #[allow(deprecated)]
-    let device = Device::ndarray().autodiff();
+    let device = args.backend.device()?.autodiff();
     let fit = run_fit(model.clone(), input, options, &device)?;
     crate::atomic::write_atomic(&args.out, fit.to_json()?.as_bytes())?;
     let r = &fit.residuals;
@@ -159,9 +160,8 @@ fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<
 
 #[derive(clap::Args, Debug)]
 pub struct BenchFitArgs {
-    /// ndarray (CPU) or wgpu (native GPU API; lavapipe without a GPU).
-    #[arg(long, default_value = "ndarray")]
-    pub backend: String,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// Photo size of the synthetic detections, pixels.
     #[arg(long, default_value_t = 512)]
     pub size: usize,
@@ -171,11 +171,11 @@ pub struct BenchFitArgs {
 /// mask IoU, and the ratios of the stages' step times (measured in this run).
 pub fn bench_fit(args: &BenchFitArgs) -> Result<()> {
     let model = Arc::new(BodyModel::default_body()?);
-    let device = crate::train::device_for(&args.backend)?.autodiff();
+    let device = args.backend.device()?.autodiff();
     let options = FitOptions::default();
     println!(
         "body fit, backend {}, photo {}², iterations torso/body/silhouette {:?}, silhouette {}²",
-        args.backend, args.size, options.iterations, options.silhouette_size
+        args.backend.backend, args.size, options.iterations, options.silhouette_size
     );
     println!("| pose | torso ms/step | body ms/step | silhouette ms/step | total s | PA-MPJPE mm | IoU |");
     println!("|---|---|---|---|---|---|---|");

@@ -105,10 +105,8 @@ pub struct InvertArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
-    /// Where the inversion runs: ndarray (CPU) or wgpu (the machine's GPU through Vulkan,
-    /// Metal or DX12; Mesa's lavapipe without one).
-    #[arg(long, default_value = "ndarray")]
-    pub backend: String,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -334,7 +332,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let model = load_body(&a.body)?;
     let (target, source, scan) = load_target(a, &model)?;
     target.validate()?;
-    let dev = crate::train::device_for(&a.backend)?.autodiff();
+    let dev = a.backend.device()?.autodiff();
     let (cfg, g, modes) = a.model.load(&dev)?;
     // The shipped discriminator goes with the shipped generator only.
     let shipped_g = a.model.checkpoint.is_none() && !a.model.random;

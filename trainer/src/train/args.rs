@@ -20,9 +20,8 @@ pub struct TrainArgs {
     /// (transfer learning, e.g. onto a dataset without normal maps).
     #[arg(long, num_args = 0..=1)]
     pub resume: Option<Option<PathBuf>>,
-    /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
-    #[arg(long, default_value = "ndarray")]
-    pub backend: String,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// [default: 4]
     #[arg(long)]
     pub batch: Option<usize>,

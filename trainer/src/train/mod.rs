@@ -40,7 +40,6 @@ use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use getavatar_core::generator::BodyContext;
 
-pub use crate::backend::device_for;
 pub use args::TrainArgs;
 pub(crate) use run_config::discriminator_config;
 pub use run_config::{Objective, RunConfig};
@@ -65,7 +64,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     if !ds.resolution.is_power_of_two() || ds.resolution < 16 {
         bail!("dataset resolution {} must be a power of two ≥ 16", ds.resolution);
     }
-    let base = device_for(&a.backend)?;
+    let base = a.backend.device()?;
     let (ad, plain) = (base.clone().autodiff(), base);
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let run_path = a.out.join("run.json");
@@ -184,7 +183,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         dt,
         dt / done.max(1) as f64,
         dt / (done.max(1) as f64 * rc.batch as f64 / 1000.0),
-        a.backend,
+        a.backend.backend,
         last.loss_g,
         last.loss_d,
         state_path.display()
