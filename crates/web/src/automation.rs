@@ -603,6 +603,13 @@ pub struct Status {
     pub fps: f32,
     /// Milliseconds of CPU time of the last pose + upload + render.
     pub last_render_ms: f32,
+    /// Milliseconds from the start of the last frame whose GPU work has completed to that
+    /// completion: host time, the GPU's queue and its work (0 before the first).
+    pub last_frame_ms: f32,
+    /// Bytes the last 3D render wrote to GPU buffers (mesh, joint transforms, uniforms).
+    pub last_frame_upload_bytes: u64,
+    /// Meshes uploaded to the viewport so far (new avatar, shape or body; not a new pose).
+    pub mesh_uploads: u64,
     pub pose: String,
     pub view: String,
     pub res: u32,

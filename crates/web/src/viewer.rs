@@ -192,6 +192,15 @@ pub struct Viewer {
     canon_in_flight: bool,
     /// egui's handle of the colour texture.
     pub texture_id: Option<egui::TextureId>,
+    /// Bytes written to GPU buffers so far (mesh, joint transforms, uniforms): what a frame
+    /// uploads is the difference across it.
+    pub uploaded_bytes: u64,
+    /// Meshes uploaded so far ([`Viewer::set_mesh`] calls).
+    pub mesh_uploads: u64,
+    /// Milliseconds from the start of the last frame whose GPU work has completed to that
+    /// completion (`f64` bits; 0 before the first): host time plus the GPU's, see
+    /// [`Viewer::time_frame`].
+    frame_done_ms: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 /// The mesh pipeline with fragment entry point `fragment` writing one `format` target
@@ -341,6 +350,9 @@ impl Viewer {
             canon_mapped: Default::default(),
             canon_in_flight: false,
             texture_id: None,
+            uploaded_bytes: 0,
+            mesh_uploads: 0,
+            frame_done_ms: Default::default(),
         }
     }
 
@@ -378,6 +390,7 @@ impl Viewer {
             self.bind_group = Self::make_bind_group(device, &self.bind_group_layout, &self.uniforms, &self.bones);
         }
         queue.write_buffer(&self.bones, 0, bytes);
+        self.uploaded_bytes += bytes.len() as u64;
     }
 
     /// Upload a mesh (re-allocating buffers only when it grows). `skinned`: the vertices are
@@ -418,6 +431,8 @@ impl Viewer {
         if let (Some(vb), Some(ib)) = (&self.vertex_buffer, &self.index_buffer) {
             queue.write_buffer(vb, 0, vbytes);
             queue.write_buffer(ib, 0, ibytes);
+            self.uploaded_bytes += (vbytes.len() + ibytes.len()) as u64;
+            self.mesh_uploads += 1;
         }
         self.index_count = (indices.len() * 3) as u32;
     }
@@ -574,10 +589,27 @@ impl Viewer {
             ],
         };
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        self.uploaded_bytes += std::mem::size_of::<Uniforms>() as u64;
         let bg = background(mode).map(|c| c as f64 / 255.0);
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("viewer") });
         let clear = wgpu::Color { r: bg[0], g: bg[1], b: bg[2], a: 1.0 };
         self.draw_pass(&mut encoder, &self.pipeline, color_view, depth_view, clear);
         queue.submit(Some(encoder.finish()));
+    }
+
+    /// Time the frame whose host work started at `start_ms` (`platform::now_ms`'s clock) and whose GPU
+    /// work was just submitted: once the GPU has done it, [`Viewer::last_frame_ms`] is the
+    /// time from `start_ms` to then. On the web the GPU runs in another process, so the host
+    /// time alone says little about what a frame costs.
+    pub fn time_frame(&self, queue: &wgpu::Queue, start_ms: f64) {
+        let done = self.frame_done_ms.clone();
+        queue.on_submitted_work_done(move || {
+            done.store((crate::platform::now_ms() - start_ms).to_bits(), Ordering::SeqCst)
+        });
+    }
+
+    /// See [`Viewer::time_frame`]: the last completed frame's milliseconds (0 before one).
+    pub fn last_frame_ms(&self) -> f64 {
+        f64::from_bits(self.frame_done_ms.load(Ordering::SeqCst))
     }
 }

@@ -493,6 +493,7 @@ impl GetAvatarApp {
         // The per-pixel texture image no longer shows this frame.
         self.texture_valid = false;
         self.texture_epoch += 1;
+        let uploaded_before = self.viewer.as_ref().map_or(0, |v| v.uploaded_bytes);
         if self.mesh_dirty {
             self.upload_mesh(rs);
             self.mesh_dirty = false;
@@ -500,9 +501,12 @@ impl GetAvatarApp {
         let Some(viewer) = self.viewer.as_mut() else { return };
         let mut renderer = rs.renderer.write();
         viewer.render(&rs.device, &rs.queue, &mut renderer, self.res, &self.camera, self.view);
+        viewer.time_frame(&rs.queue, t0);
         self.render_dirty = false;
         self.status.renders += 1;
         self.status.last_render_ms = (now_ms() - t0) as f32;
+        self.status.last_frame_upload_bytes = viewer.uploaded_bytes - uploaded_before;
+        self.status.mesh_uploads = viewer.mesh_uploads;
     }
 
     /// Report an error to the user (shown in the panel and in the status).
@@ -517,6 +521,9 @@ impl GetAvatarApp {
             self.frame_times.pop_front();
         }
         self.status.fps = self.frame_times.len() as f32;
+        if let Some(v) = &self.viewer {
+            self.status.last_frame_ms = v.last_frame_ms() as f32;
+        }
         self.status.pose = self.pose_name.clone();
         self.status.view = self.view.as_str().into();
         self.status.res = self.res;
