@@ -156,6 +156,42 @@ fn fast_repose_path_matches_the_exact_path() {
     assert!(d1.max(d2) < 2.0 * cell, "fast and exact paths differ by {} m", d1.max(d2));
 }
 
+/// A new identity is generated in the canonical pose with the inverse skinning and grid kept
+/// in the `BodyContext` and no rotation of the normal field (#28: host time). The general
+/// path, taken here by moving the body 1 µm, gives the same mesh, normals and colours.
+#[test]
+fn the_canonical_shortcut_matches_the_general_path() {
+    let cfg = GeneratorConfig::tiny();
+    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &cfg);
+    let dev = device();
+    let g = Generator::new(&cfg, 0, &dev);
+    let (zg, zt) = seed_latents(&cfg, 5, 6, &dev);
+    let s = g.styles(zg, zt, 0.7);
+    let params = PoseLibrary::builtin().params("Da", &[]).expect("pose");
+    let fast = generate_avatar(&g, &ctx, &s, &params, &dev).expect("generation reads back");
+    let moved = getavatar_core::skinning::BodyParams { transl: Vec3::new(0.0, 1e-6, 0.0), ..params };
+    let general = generate_avatar(&g, &ctx, &s, &moved, &dev).expect("generation reads back");
+    assert!(!fast.mesh.vertices.is_empty());
+    assert_eq!(
+        (fast.mesh.vertices.len(), fast.mesh.faces.len()),
+        (general.mesh.vertices.len(), general.mesh.faces.len())
+    );
+    let worst = |a: &[Vec3], b: &[Vec3], shift: Vec3| {
+        a.iter().zip(b).map(|(x, y)| (*x + shift - *y).length()).fold(0.0, f32::max)
+    };
+    let dv = worst(&fast.mesh.vertices, &general.mesh.vertices, moved.transl);
+    let dn = worst(&fast.normals, &general.normals, Vec3::ZERO);
+    let dc = worst(&fast.colors, &general.colors, Vec3::ZERO);
+    // The 1 µm move changes the SDF a little where it is nearly flat along an edge: 0.05 mm.
+    assert!(dv < 1e-4 && dn < 1e-3 && dc < 1e-4, "vertices {dv}, normals {dn}, colours {dc}");
+    // What the shortcut assumes: the canonical body's own inverse skinning rotates nothing.
+    let inv = ctx.canonical_inverse();
+    let worst_rotation = (0..ctx.model.v_template.len())
+        .map(|i| (inv.rotation(i) - glam::Mat3::IDENTITY).to_cols_array().iter().fold(0.0f32, |m, x| m.max(x.abs())))
+        .fold(0.0, f32::max);
+    assert!(worst_rotation < 1e-5, "{worst_rotation}");
+}
+
 /// Issue #28: a new identity (canonical generation and rigging) reads back from the device
 /// twice: the geometry fields of the grid's band, then the mesh vertices' normals and colours
 /// together. The stage profile counts every read-back (`readback::read_f32`).

@@ -11,6 +11,7 @@
 //! | Sec. 4.4 camera                         | [`camera`] |
 //! | Sec. 4.2 template SDF, inverse skinning (eq. 2); 4.3 DMTet; eq. 4 normals | [`geometry`] |
 //! | nearest-vertex search for inverse skinning | [`spatial`] |
+//! | maps keyed by mesh ids (a fast hasher, for DMTet's edges and the rigging) | [`id_map`] |
 //! | Sec. 4.1 mapping, triplane synthesis, decoders (burn; feature `generator`/`wgpu`) | `network` |
 //! | Sec. 4 generator end to end (triplanes → SDF → DMTet → textured posed mesh) | `generator` |
 //! | Sec. 4.2 SDF = template + residual, DMTet offsets on the grid's field band | `fields` (+ `geometry::posed_grid`) |
@@ -51,6 +52,7 @@ pub mod fields;
 pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
+pub mod id_map;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod inversion;
 #[cfg(any(feature = "generator", feature = "wgpu"))]

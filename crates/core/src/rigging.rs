@@ -40,7 +40,7 @@ impl RiggedAvatar {
 
     /// Vertices and normals in the pose/shape of `posed` (from `pose_body`).
     pub fn repose(&self, ctx: &BodyContext, posed: &PosedBody) -> (Vec<glam::Vec3>, Vec<glam::Vec3>) {
-        let mut cache: std::collections::HashMap<u32, (Mat4, Mat3)> = std::collections::HashMap::new();
+        let mut cache: crate::id_map::IdMap<u32, (Mat4, Mat3)> = Default::default();
         let mut verts = Vec::with_capacity(self.body_vertex.len());
         let mut normals = Vec::with_capacity(self.body_vertex.len());
         for ((v, n), &b) in self.canonical.mesh.vertices.iter().zip(&self.canonical.normals).zip(&self.body_vertex) {
