@@ -733,18 +733,19 @@ pub struct ReconstructStatus {
     pub ms_per_latent_step: f32,
     pub ms_per_pivotal_step: f32,
     pub eta_s: f32,
-    /// Milliseconds to load the model and choose the start, and of the finish (final render,
-    /// extraction, rigging, the photo's projection).
+    /// Milliseconds to load the model and choose the start, and of the finish (the final
+    /// figures from the last step's render, the result file, extraction, rigging, the photo's
+    /// projection).
     pub start_ms: f32,
     pub finish_ms: f32,
-    /// Where the finish's time went, e.g. "worker: final render 12.0 s, result file 3.1 s;
+    /// Where the finish's time went, e.g. "worker: final figures 0.4 s, result file 3.1 s;
     /// page: rigging 9.0 s".
     pub finish_detail: String,
     /// Previews shown, and the steps done at the latest.
     pub previews: u64,
     pub preview_step: usize,
-    /// The finished result at the photo's camera: mask IoU with the person mask and masked
-    /// PSNR (dB); and its total milliseconds.
+    /// The finished result at the photo's camera (the last step's render, before its update):
+    /// mask IoU with the person mask and masked PSNR (dB); and its total milliseconds.
     pub mask_iou: f32,
     pub psnr_db: f32,
     pub total_ms: f32,

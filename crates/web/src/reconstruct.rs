@@ -238,7 +238,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         millis: 0.0,
         finish_ms: inv.finish_ms + now_ms() - t_finish,
         finish_detail: format!(
-            "page: final render {:.1} s, rigging {:.1} s",
+            "page: final figures {:.1} s, rigging {:.1} s",
             inv.finish_ms / 1000.0,
             (now_ms() - t_finish) / 1000.0
         ),
@@ -252,11 +252,11 @@ pub(crate) struct Inverted {
     pub styles: Styles,
     /// Mask IoU with the person mask, masked PSNR (dB).
     pub fit: (f32, f32),
-    /// Milliseconds of the final render and figures.
+    /// Milliseconds of the final preview and figures (the last step's render read back).
     pub finish_ms: f64,
 }
 
-/// The inversion itself (start, W+ and PTI steps, the final render): `Ok(None)` when cancelled.
+/// The inversion itself (start, W+ and PTI steps, the final figures): `Ok(None)` when cancelled.
 pub(crate) async fn invert(
     job: &InversionJob,
     ctx: &BodyContext,
@@ -315,10 +315,18 @@ pub(crate) async fn invert(
     }
     debug_assert_eq!(inv.phase(), Phase::Done);
 
-    // The result at the photo's camera: the final preview and the figures.
+    // The result at the photo's camera: the final preview and the figures, from the last
+    // step's render (the codes and weights before that step's update), which costs a
+    // read-back; a render of its own would be another forward pass, as long as a W+ step in
+    // the browser (82 s of a 330 s reconstruction on SwiftShader). `trainer invert` renders
+    // the final state.
     let t_finish = now_ms();
-    let (rgb, mask) =
-        render_images_async(&inv.render_async().await.map_err(|e| e.to_string())?).await.map_err(|e| e.to_string())?;
+    let (rgb, mask) = match inv.last_images_async().await.map_err(|e| e.to_string())? {
+        Some(images) => images,
+        None => render_images_async(&inv.render_async().await.map_err(|e| e.to_string())?)
+            .await
+            .map_err(|e| e.to_string())?,
+    };
     let t = &job.target;
     let fit = (mask_iou(&mask, &t.mask), masked_psnr(&rgb, &t.rgb, &t.mask));
     let (_, total) = inv.progress();

@@ -128,7 +128,7 @@ enum FromWorker {
     Finished {
         iou: Option<f32>,
         psnr: Option<f32>,
-        render_ms: f64,
+        figures_ms: f64,
         file_ms: f64,
     },
     Failed {
@@ -400,12 +400,12 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, render_ms, file_ms } => {
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms } => {
             let Some(r) = slot.take() else { return };
             match u8_array(&data, "bytes") {
                 Some(bytes) => {
                     let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
-                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (render_ms, file_ms)));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms)));
                     release_when_idle();
                 }
                 None => {
@@ -449,7 +449,7 @@ fn unavailable(why: String) {
 }
 
 /// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
-async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (render_ms, file_ms): (f64, f64)) {
+async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (figures_ms, file_ms): (f64, f64)) {
     // Not in the task that copied the file out of the message.
     crate::task::yield_to_browser().await;
     let t = now_ms();
@@ -458,10 +458,10 @@ async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (render_ms, file_ms
             done.fit = Some(fit);
             done.millis = now_ms() - r.t0;
             let rig_ms = now_ms() - t;
-            done.finish_ms = render_ms + file_ms + rig_ms;
+            done.finish_ms = figures_ms + file_ms + rig_ms;
             done.finish_detail = format!(
-                "worker: final render {:.1} s, result file {:.1} s; page: rigging {:.1} s",
-                render_ms / 1000.0,
+                "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s",
+                figures_ms / 1000.0,
                 file_ms / 1000.0,
                 rig_ms / 1000.0
             );
@@ -564,9 +564,9 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
     match job(meta, &data, &state).await {
-        Ok(Some((bytes, (iou, psnr), render_ms, file_ms))) => {
+        Ok(Some((bytes, (iou, psnr), figures_ms, file_ms))) => {
             let finite = |x: f32| Some(x).filter(|x| x.is_finite());
-            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), render_ms, file_ms };
+            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), figures_ms, file_ms };
             post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
         }
         Ok(None) => post(&FromWorker::Cancelled, &[]),
@@ -574,7 +574,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
     }
 }
 
-/// The result file, IoU and PSNR, milliseconds of the final render and of the file.
+/// The result file, IoU and PSNR, milliseconds of the final figures and of the file.
 type Outcome = (Vec<u8>, (f32, f32), f64, f64);
 
 async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Option<Outcome>, String> {
