@@ -63,7 +63,7 @@ pub fn id_map_with_capacity<K, V>(n: usize) -> IdMap<K, V> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::hash::{BuildHasher, Hash};
+    use std::hash::BuildHasher;
 
     /// Edge keys of a 64³ grid's neighbours spread over the table: no bucket of 4096 holds
     /// more than a few times its share (the top bits pick the group, the low ones the slot).
@@ -75,11 +75,7 @@ mod tests {
         let mut n = 0u32;
         for a in (0..64u32 * 64 * 64).step_by(7) {
             for d in [1, 64, 64 * 64] {
-                let h = {
-                    let mut s = build.build_hasher();
-                    (a, a + d).hash(&mut s);
-                    s.finish()
-                };
+                let h = build.hash_one((a, a + d));
                 low[(h & 4095) as usize] += 1;
                 high[(h >> 52) as usize] += 1;
                 n += 1;
