@@ -109,12 +109,13 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
 /// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`) on the
 /// bare body in the unseen poses from two yaws → `trainer fit-pose` with the detector's mask,
-/// PA-MPJPE against the pose that was rendered. Issue #20 asks ≤ 60 mm for every case. At
-/// 2026-11-25 nine of ten meet it (25–59 mm). The tenth, arms crossed seen from the side, is a
-/// detector error the fit can only partly undo: MediaPipe gives the hand it sees (the left,
-/// on the right shoulder) the right wrist's label. The fit's two-labelling hypothesis swaps
-/// the hands back (asserted below) and brings it from 107 to 75 mm; the rest is the hidden
-/// right arm. So this guards nine of ten ≤ 60 mm and every case ≤ 90 mm.
+/// PA-MPJPE against the pose that was rendered. Issue #20 asks ≤ 60 mm. At 2026-11-26 the
+/// ten cases give 33–60 mm (mean 48 mm); the worst, arms crossed seen from the side
+/// (60.1 mm), is a detector error the fit can only partly undo: MediaPipe gives the hand it
+/// sees (the left, on the right shoulder) the right wrist's label, and guesses the hidden
+/// elbow. The fit's two-labelling hypothesis swaps the hands back (asserted below), and the
+/// limb chord puts that hand across the chest (107 mm without either). So this guards nine
+/// of ten ≤ 60 mm and every case ≤ 65 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     let dir = tmp("fit-mediapipe");
@@ -184,5 +185,5 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     }
     eprintln!("{}", report.join("\n"));
     let within = errors.iter().filter(|e| **e <= 0.060).count();
-    assert!(within >= 9 && worst <= 0.090, "{within} of 10 within 60 mm, worst {worst}\n{}", report.join("\n"));
+    assert!(within >= 9 && worst <= 0.065, "{within} of 10 within 60 mm, worst {worst}\n{}", report.join("\n"));
 }

@@ -6,10 +6,12 @@
 //! 1. **torso**: orientation and camera translation from the shoulders and hips;
 //! 2. **body**: everything, all landmarks: Geman–McClure robust reprojection of the joints
 //!    ([`super::landmarks::JOINT_LANDMARKS`]) and surface points ([`super::surface`]),
-//!    SMPLify's angle prior on elbows and knees ([`super::limits`]), L2 priors on θ and β
-//!    (no SMPL GMM is redistributable), the world landmarks' bone directions (3D limb
-//!    directions, weakly: they decide what a single image cannot, e.g. which arm is in front),
-//!    and a symmetry prior for hidden limbs (a joint whose bone the detector did not see is
+//!    SMPLify's angle prior on elbows and knees and an L2 on their sideways bend
+//!    ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
+//!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
+//!    cannot, e.g. which arm is in front) and, where an elbow or knee is hidden, its limb's
+//!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
+//!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a joint whose bone the detector did not see is
 //!    pulled towards the mirror image of its seen counterpart's rotation);
 //! 3. **silhouette** (with a mask): the body's mask rendered by the differentiable
 //!    rasteriser ([`crate::diff::rasterize`]: coverage + antialias, so silhouette edges get
@@ -17,7 +19,7 @@
 //!
 //! When exactly one wrist is seen, the detector may have given the seen hand the hidden
 //! one's label (crossed arms from the side): both labellings are fitted through stage 2 and
-//! the one with the lower loss goes on ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
+//! the one whose landmarks the body explains better (the data term) goes on ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
 //!
 //! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
 //! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
@@ -48,7 +50,7 @@ pub use super::options::{FitOptions, FitWeights};
 use super::surface::{surface_landmarks, SurfaceError, SurfaceLandmark};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::camera::{reference_fov_y, to_row_major};
-use crate::diff::body_model::{joint_index, Skeleton, VertexSet};
+use crate::diff::body_model::{joint_index, PosedSkeleton, Skeleton, VertexSet};
 use crate::diff::{matrix, rasterize as diff_raster};
 use crate::optim::Adam;
 use crate::readback::{read_f32, ReadbackError};
@@ -390,6 +392,13 @@ const BONES: [(usize, usize, usize, usize); 8] = [
     (5, 8, 26, 28),
 ];
 
+/// Limb chords of the 3D direction term: (root joint, end joint, landmarks of root, middle
+/// and end). When the middle (elbow, knee) is hidden, its bones' directions are the
+/// detector's guesses, while the chord from a seen shoulder to a seen wrist still says where
+/// the hand is: across the chest or before its own shoulder, which a side view cannot tell.
+const CHORDS: [(usize, usize, usize, usize, usize); 4] =
+    [(16, 20, 11, 13, 15), (17, 21, 12, 14, 16), (1, 7, 23, 25, 27), (2, 8, 24, 26, 28)];
+
 /// The symmetry term's rows (joint, counterpart joint, weight): the parent joint of a bone
 /// whose far-end landmark the detector did not see (visibility below [`VISIBLE`]) while it
 /// saw its counterpart's ([`BONES`]`[i ^ 2]`), weighted by how hidden and how seen.
@@ -459,13 +468,22 @@ impl BodyFitter {
         let cam = initial_camera(&model, &input, &init);
 
         let bones = input.world.as_ref().and_then(|world| {
-            let rows: Vec<_> = BONES.iter().collect();
+            let vis = |l: usize| input.points[l].1;
+            // Every bone, weighted by its ends' visibility; and each limb's chord, weighted by
+            // how seen its ends are and how hidden its middle is.
+            let rows: Vec<((usize, usize, usize, usize), f32)> = BONES
+                .iter()
+                .map(|b| (*b, vis(b.2).min(vis(b.3))))
+                .chain(CHORDS.iter().map(|c| ((c.0, c.1, c.2, c.4), vis(c.2).min(vis(c.4)) * (1.0 - vis(c.3)))))
+                .filter(|r| r.1 > 0.0)
+                .collect();
             if rows.is_empty() {
                 return None;
             }
             let dirs: Vec<f32> =
-                rows.iter().flat_map(|b| (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO).to_array()).collect();
-            let w: Vec<f32> = rows.iter().map(|b| input.points[b.2].1.min(input.points[b.3].1)).collect();
+                rows.iter().flat_map(|(b, _)| (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO).to_array()).collect();
+            let w: Vec<f32> = rows.iter().map(|r| r.1).collect();
+            let rows: Vec<_> = rows.iter().map(|r| r.0).collect();
             let n = rows.len();
             Some((
                 rows.iter().map(|b| b.0).collect(),
@@ -562,7 +580,7 @@ impl BodyFitter {
             self.step_in_stage = 0;
             self.adam = Adam::new(0.9, 0.999, 1e-8);
             if self.stage == 2 {
-                self.keep_better_hypothesis();
+                self.keep_better_hypothesis().await?;
             }
         }
         if self.stage >= 3 {
@@ -587,18 +605,29 @@ impl BodyFitter {
         Ok(Some(FitProgress { stage: self.stage, done: self.done, total: self.total_steps(), loss: value }))
     }
 
-    /// At the end of the body stage: go on with the hand labelling whose body-stage loss
-    /// (reprojection, priors and bone directions) is lower.
-    fn keep_better_hypothesis(&mut self) {
+    /// At the end of the body stage: go on with the hand labelling whose landmarks the body
+    /// explains better (the data term alone: the priors' weights follow the visibilities,
+    /// which the labellings swap, so their totals are not comparable).
+    async fn keep_better_hypothesis(&mut self) -> Result<(), FitError> {
         // The alternative took a step with every step of this fit, so its body stage is done.
-        let Some(mut alt) = self.alternative.take() else { return };
-        let (mine, other) = (self.stage_loss[1].unwrap_or(f32::INFINITY), alt.stage_loss[1].unwrap_or(f32::INFINITY));
+        let Some(mut alt) = self.alternative.take() else { return Ok(()) };
+        let (mine, other) = (self.current_data_term().await?, alt.current_data_term().await?);
         if other < mine {
             let (stage, step_in_stage, done) = (self.stage, self.step_in_stage, self.done);
             std::mem::swap(self, &mut *alt);
             (self.stage, self.step_in_stage, self.done) = (stage, step_in_stage, done);
             self.adam = Adam::new(0.9, 0.999, 1e-8);
         }
+        Ok(())
+    }
+
+    /// The data term of the current parameters (no gradients kept).
+    async fn current_data_term(&self) -> Result<f32, FitError> {
+        let (theta, betas) = self.theta(1);
+        let (theta, betas) = (theta.detach(), betas.detach());
+        let posed = self.skeleton.forward(theta, &betas);
+        let value = self.data_term(&posed, &betas, false).await;
+        Ok(read_f32(value).await?.first().copied().unwrap_or(f32::INFINITY))
     }
 
     /// θ `[24, 3]` and β of the current parameters; in the torso stage only the orientation
@@ -630,21 +659,27 @@ impl BodyFitter {
         (rho * w).sum().reshape([1])
     }
 
+    /// The data term: robust reprojection of the joints (torso stage: the torso's only) and,
+    /// after the torso stage, the surface points, per unit of landmark weight.
+    async fn data_term(&self, posed: &PosedSkeleton, betas: &Tensor<2>, torso: bool) -> Tensor<1> {
+        let joints = posed.joints.clone().select(0, joint_index(&self.joint_ids, &self.device));
+        let norm = if torso { self.joints.torso_sum } else { self.joints.weight_sum + self.points.weight_sum };
+        let mut loss = self.reprojection(self.project(joints), &self.joints, torso);
+        if !torso {
+            let surface = self.surface.pose(posed, betas, &self.skeleton);
+            loss = loss + self.reprojection(self.project(surface), &self.points, false);
+            checkpoint().await;
+        }
+        loss / norm.max(1e-6)
+    }
+
     async fn loss(&mut self, stage: usize) -> Result<Tensor<1>, FitError> {
         let wts = self.options.weights.clone();
         let (theta, betas) = self.theta(stage);
         let posed = self.skeleton.forward(theta, &betas);
         let dev = self.device.clone();
-        let joints = posed.joints.clone().select(0, joint_index(&self.joint_ids, &dev));
         let torso = stage == 0;
-        let norm = if torso { self.joints.torso_sum } else { self.joints.weight_sum + self.points.weight_sum };
-        let mut loss = self.reprojection(self.project(joints), &self.joints, torso);
-        if !torso {
-            let surface = self.surface.pose(&posed, &betas, &self.skeleton);
-            loss = loss + self.reprojection(self.project(surface), &self.points, false);
-            checkpoint().await;
-        }
-        loss = loss / norm.max(1e-6);
+        let mut loss = self.data_term(&posed, &betas, torso).await;
         if torso {
             return Ok(loss);
         }
@@ -655,6 +690,8 @@ impl BodyFitter {
             let a = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.axis, 1).reshape([1]);
             let e = (a * -h.bend).exp();
             loss = loss + e.clone() * e * wts.hinge;
+            let side = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.side, 1).reshape([1]);
+            loss = loss + side.clone() * side * wts.hinge_side;
         }
         let b = self.params.betas.val();
         loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;

@@ -1,8 +1,12 @@
-//! Joint-angle limits of the fit: knees and elbows bend one way. SMPLify's angle prior
-//! penalises `exp(s · θ_axis)²` for the knees' x and the elbows' y rotation; with this body's
-//! rest frames (T-pose, every joint frame aligned with the world axes, as SMPL's) the bending
-//! directions are the same, checked below by posing the body: a positive x rotation takes the
-//! ankle behind the knee, and the elbows' flexion brings the wrists in front of the body.
+//! Joint-angle limits of the fit: knees and elbows bend one way, and not sideways.
+//!
+//! SMPLify's angle prior penalises `exp(s · θ_axis)²` for the knees' x and the elbows' y
+//! rotation. An L2 on the third axis (neither the hinge's nor the bone's, about which the
+//! limb may twist) keeps them from bending sideways, which a hidden forearm otherwise does to
+//! reach a misplaced wrist. With this body's rest frames (T-pose, every joint frame aligned
+//! with the world axes, as SMPL's) the axes are SMPL's, checked below by posing the body: a
+//! positive x rotation takes the ankle behind the knee, the elbows' flexion brings the wrists
+//! in front of the body, and each bone lies along its hinge's remaining axis.
 
 use glam::Vec3;
 
@@ -17,14 +21,18 @@ pub struct Hinge {
     pub axis: usize,
     /// +1 where a natural bend is a positive rotation, −1 where it is negative.
     pub bend: f32,
+    /// The axis of a sideways bend, which the joint does not have (neither the hinge's axis
+    /// nor the bone's, about which the limb twists): z for both, the bones lying along x
+    /// (arms) and y (legs) in the rest pose.
+    pub side: usize,
 }
 
 /// Knees flex about +x; the left elbow about −y, the right elbow about +y.
 pub const HINGES: [Hinge; 4] = [
-    Hinge { joint: 4, axis: 0, bend: 1.0 },
-    Hinge { joint: 5, axis: 0, bend: 1.0 },
-    Hinge { joint: 18, axis: 1, bend: -1.0 },
-    Hinge { joint: 19, axis: 1, bend: 1.0 },
+    Hinge { joint: 4, axis: 0, bend: 1.0, side: 2 },
+    Hinge { joint: 5, axis: 0, bend: 1.0, side: 2 },
+    Hinge { joint: 18, axis: 1, bend: -1.0, side: 2 },
+    Hinge { joint: 19, axis: 1, bend: 1.0, side: 2 },
 ];
 
 /// SMPLify's angle prior on the hinges: Σ exp(−bend · θ_axis)², about 1 per straight joint,
@@ -67,6 +75,9 @@ mod tests {
             } else {
                 assert!(moved.z > 0.1, "elbow {}: wrist moved {moved}", h.joint);
             }
+            // The bone lies along the axis that is neither the hinge's nor the side's.
+            let bone = (joints(&[])[child] - rest[h.joint]).to_array();
+            assert!(h.side != h.axis && bone[h.axis].abs() < 0.03 && bone[h.side].abs() < 0.03, "{h:?}: bone {bone:?}");
             // Hyperextension is the other way round, and costs more than the straight limb.
             let mut straight = [Vec3::ZERO; NUM_JOINTS];
             let base = hinge_penalty(&straight);

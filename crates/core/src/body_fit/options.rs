@@ -13,6 +13,9 @@ pub struct FitWeights {
     pub pose: f32,
     /// SMPLify's angle prior on elbows and knees.
     pub hinge: f32,
+    /// L2 (radians²) on the sideways bend of elbows and knees: the rotation about the axis
+    /// that is neither the hinge's nor the bone's, which these joints do not have.
+    pub hinge_side: f32,
     /// L2 on β.
     pub betas: f32,
     /// Squared difference of unit bone directions to the world landmarks'.
@@ -33,6 +36,7 @@ impl Default for FitWeights {
             robust_sigma: 40.0,
             pose: 0.6,
             hinge: 1.0,
+            hinge_side: 5.0,
             betas: 0.5,
             bones: 25.0,
             symmetry: 20.0,
