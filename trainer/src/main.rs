@@ -19,6 +19,7 @@ mod sample;
 mod synth_scans;
 mod train;
 mod train_discriminator;
+mod variety;
 
 use std::path::PathBuf;
 
@@ -160,6 +161,10 @@ enum Command {
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
     /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
     Eval(eval::EvalArgs),
+    /// How different the generator's avatars are: pairwise pixel L1 of front renders in the
+    /// canonical pose over seeds at ψ, against the training subjects' (a checkpoint's latent
+    /// modes); contact sheets of both
+    Variety(variety::VarietyArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample(sample::SampleArgs),
     /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
@@ -233,6 +238,7 @@ fn main() -> Result<()> {
             })?
         }
         Command::Eval(args) => eval::eval(&args)?,
+        Command::Variety(args) => variety::run(&args)?,
         Command::Train(args) => {
             if args.batch == Some(0) || args.snapshot_every == 0 {
                 anyhow::bail!("--batch and --snapshot-every must be at least 1");

@@ -11,12 +11,12 @@ use getavatar_core::checkpoint::{load_generator, load_inverted, load_latent_mode
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
 use getavatar_core::generator::{
-    default_psi, generate_avatar, seed_latents, BodyContext, Generator, LatentModes, Styles,
+    default_psi, generate_avatar, seed_latents, Avatar, BodyContext, Generator, LatentModes, Styles,
 };
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::render_views_textured;
+use getavatar_core::rasterize::{render_views_textured, RenderedViews};
 use getavatar_core::readback::block_on_ready;
 
 #[derive(clap::Args, Debug)]
@@ -205,6 +205,29 @@ fn parse_subject(spec: &str) -> Result<(usize, usize)> {
     }
 }
 
+/// RGB, normal and mask views of a generated avatar from the reference orbit camera at
+/// `yaw` (radians, 0 = front), `res`²; RGB is the texture field queried at every pixel's
+/// canonical coordinate (paper Sec. 4.4).
+pub fn render_avatar(
+    g: &Generator,
+    styles: &Styles,
+    avatar: &Avatar,
+    yaw: f32,
+    res: usize,
+    device: &Device,
+) -> Result<RenderedViews> {
+    if avatar.mesh.faces.is_empty() {
+        bail!("the generator produced an empty surface");
+    }
+    let cam = OrbitCamera { yaw, ..OrbitCamera::default() };
+    let vp = cam.projection_gl(1.0) * cam.world_to_camera();
+    let planes = g.triplanes(styles);
+    let m = &avatar.mesh;
+    Ok(render_views_textured(&m.vertices, &m.faces, &avatar.normals, &m.attributes, vp, res, 2, |pts| {
+        block_on_ready(recolor_async(g, &planes, styles, pts, device))
+    })?)
+}
+
 pub fn sample(a: &SampleArgs) -> Result<()> {
     if !(16..=4096).contains(&a.res) {
         bail!("--res must be between 16 and 4096 (got {})", a.res);
@@ -249,17 +272,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device)?;
     let t2 = std::time::Instant::now();
-    if avatar.mesh.faces.is_empty() {
-        bail!("the generator produced an empty surface");
-    }
-    let cam = OrbitCamera { yaw: a.yaw_deg.to_radians(), ..OrbitCamera::default() };
-    let vp = cam.projection_gl(1.0) * cam.world_to_camera();
-    // RGB: the texture field queried at every pixel's canonical coordinate (paper Sec. 4.4).
-    let planes = g.triplanes(&styles);
-    let m = &avatar.mesh;
-    let views = render_views_textured(&m.vertices, &m.faces, &avatar.normals, &m.attributes, vp, a.res, 2, |pts| {
-        block_on_ready(recolor_async(&g, &planes, &styles, pts, &device))
-    })?;
+    let views = render_avatar(&g, &styles, &avatar, a.yaw_deg.to_radians(), a.res, &device)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     write_png(&a.out.join("rgb.png"), &views.rgb, a.res, 3)?;
     write_png(&a.out.join("normal.png"), &views.normal, a.res, 3)?;

@@ -449,6 +449,23 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let (o, _) = subject("0,2", &g);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("2 subjects"), "{err}");
+    // `trainer variety` at ψ = 0: every seed renders one of the 2 subjects, so each seed pair
+    // is as far apart as the subjects are, or identical.
+    let vdir = root.join("variety");
+    let args = ["variety", "--config", "tiny", "--checkpoint", g.to_str().unwrap(), "--psi", "0", "--count", "4"];
+    let text = ok(trainer(&[&args[..], &["--res", "32", "--out", vdir.to_str().unwrap()]].concat()));
+    assert!(text.contains("median ratio seeds / subjects"), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(vdir.join("variety.json")).unwrap()).unwrap();
+    assert_eq!((v["seeds"]["pairs"].as_u64(), v["subjects"]["pairs"].as_u64()), (Some(6), Some(1)), "{v}");
+    let between = v["subject_distances"][0].as_f64().unwrap();
+    assert!(between > 0.0, "{v}");
+    for d in v["seed_distances"].as_array().unwrap() {
+        let d = d.as_f64().unwrap();
+        assert!(d == 0.0 || (d - between).abs() < 1e-6, "seed pair at {d}, subjects at {between}");
+    }
+    let sheet = getavatar_core::dataset::decode_png(&std::fs::read(vdir.join("seeds.png")).unwrap()).unwrap();
+    assert_eq!((sheet.width, sheet.height), (4 * 32, 32));
     let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
     assert!(header(&root.join("adv").join("generator.safetensors")).get("latent_modes/geo").is_none());
     assert!(text.contains("initialised the generator from"), "{text}");
