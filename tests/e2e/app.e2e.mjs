@@ -536,8 +536,11 @@ try {
   // Median at 1024² of the time from a frame's start to its GPU work done, and of its host
   // time; body and avatar alternate (3 rounds of 9 frames) so a drifting load weighs on both.
   async function frames(show, n) {
+    // The frame that switches what is shown uploads its buffers: sample only after two
+    // frames of the new one are drawn (a frame takes about a second here).
+    const before = (await status()).renders;
     await page.evaluate((v) => window.getavatar.command({ show: v }), show);
-    await page.waitForTimeout(1000);
+    await waitFor((s) => s.showing === show && s.renders >= before + 3, `three frames of the ${show}`);
     const out = { frame: [], host: [], bytes: new Set(), uploads: new Set() };
     for (let k = 0; k < n; k++) {
       await page.waitForTimeout(120);

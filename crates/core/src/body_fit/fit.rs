@@ -611,7 +611,12 @@ impl BodyFitter {
     async fn keep_better_hypothesis(&mut self) -> Result<(), FitError> {
         // The alternative took a step with every step of this fit, so its body stage is done.
         let Some(mut alt) = self.alternative.take() else { return Ok(()) };
-        let (mine, other) = (self.current_data_term().await?, alt.current_data_term().await?);
+        // Checkpoints between the two: in the browser this runs on the UI thread, before the
+        // first silhouette step.
+        let mine = self.current_data_term().await?;
+        checkpoint().await;
+        let other = alt.current_data_term().await?;
+        checkpoint().await;
         if other < mine {
             let (stage, step_in_stage, done) = (self.stage, self.step_in_stage, self.done);
             std::mem::swap(self, &mut *alt);
