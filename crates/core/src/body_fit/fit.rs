@@ -11,15 +11,17 @@
 //!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
 //!    cannot, e.g. which arm is in front) and, where an elbow or knee is hidden, its limb's
 //!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
-//!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a joint whose bone the detector did not see is
-//!    pulled towards the mirror image of its seen counterpart's rotation);
+//!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a
+//!    joint whose bone the detector did not see is pulled towards the mirror image of its
+//!    seen counterpart's rotation);
 //! 3. **silhouette** (with a mask): the body's mask rendered by the differentiable
 //!    rasteriser ([`crate::diff::rasterize`]: coverage + antialias, so silhouette edges get
 //!    gradients) against the person mask, squared error, on top of stage 2's terms.
 //!
 //! When exactly one wrist is seen, the detector may have given the seen hand the hidden
 //! one's label (crossed arms from the side): both labellings are fitted through stage 2 and
-//! the one whose landmarks the body explains better (the data term) goes on ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
+//! the one whose landmarks the body explains better (the data term) goes on
+//! ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
 //!
 //! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
 //! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
