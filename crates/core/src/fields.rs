@@ -72,6 +72,14 @@ pub fn aligned_points(points: &[Vec3]) -> Vec<Vec3> {
     out
 }
 
+/// The geometry fields of styles `s` (batch 1) at canonical points `[1, P, 3]` as rows of
+/// (residual, offset x, y, z), `[P, 4]`, left on the device.
+pub fn band_rows(g: &Generator, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> Tensor<2> {
+    let (r, o) = g.geometry_fields(planes, s, points);
+    let p = r.dims()[1];
+    Tensor::cat(vec![r.unsqueeze_dim::<3>(2), o], 2).reshape([p, 4])
+}
+
 /// The geometry fields of styles `s` (batch 1) on a grid of `n` vertices: evaluated at the
 /// canonical points `band_points` (`[1, |band|, 3]`, those of the grid vertices `band`), zero
 /// elsewhere. Values only (nothing here is differentiated).
@@ -87,9 +95,8 @@ pub async fn band_fields(
     if band.is_empty() {
         return Ok(f);
     }
-    let (r, o) = g.geometry_fields(planes, s, band_points);
-    // One read-back for both fields: rows of (residual, offset x, y, z).
-    let both = read_f32(Tensor::cat(vec![r.unsqueeze_dim::<3>(2), o], 2).detach()).await?;
+    // One read-back for both fields.
+    let both = read_f32(band_rows(g, planes, s, band_points).detach()).await?;
     for (&i, row) in band.iter().zip(both.chunks_exact(4)) {
         let i = i as usize;
         f.residual[i] = row[0];

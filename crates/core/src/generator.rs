@@ -13,10 +13,12 @@ use glam::{Mat3, Vec3};
 
 use crate::body_model::BodyModel;
 use crate::cooperative::checkpoint;
+use crate::dmtet_gpu;
 use crate::fields::{aligned_points, band_fields, points_tensor};
 use crate::geometry::{marching_tets, InverseSkinning, PosedGrid, TriMesh};
 use crate::network::decoders::Decoders;
 use crate::network::init::{latent, Rng};
+use crate::network::layers::is_ndarray;
 use crate::network::mapping::{truncate_toward_modes, truncate_toward_subject, MappingNetwork};
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
@@ -223,7 +225,7 @@ pub async fn generate_avatar_async(
         && params.betas.iter().all(|b| *b == 0.0)
         && params.transl == Vec3::ZERO;
     let (posed_inv, posed_grid);
-    let (inv, PosedGrid { canonical: canon, template, band }) = if canonical_pose {
+    let (inv, grid) = if canonical_pose {
         let inv = ctx.canonical_inverse();
         (inv, ctx.canonical_grid_async(inv).await)
     } else {
@@ -233,46 +235,130 @@ pub async fn generate_avatar_async(
         (&posed_inv, &posed_grid)
     };
     profile::stage("grid decode");
-    let band_points: Vec<Vec3> = band.iter().map(|&i| canon[i as usize]).collect();
-    // Padded (`POINT_ALIGN`): `band_fields` reads the rows of `band` only.
-    let band_points = aligned_points(&band_points);
-    let fields = band_fields(g, &planes, s, points_tensor(&band_points, device), band, canon.len()).await?;
-    let sdf = fields.sdf(template, &ctx.boundary);
-    let positions = fields.positions(&ctx.grid.vertices);
-    checkpoint().await;
-    profile::stage("DMTet");
+    let band_points: Vec<Vec3> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
+    // Padded (`POINT_ALIGN`): only the rows of `band` are read.
+    let band_points = points_tensor(&aligned_points(&band_points), device);
     // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
     // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
     // seen and would only pollute the exported mesh.
-    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, canon).without_cavities();
+    let surface = if is_ndarray(device) {
+        surface_on_host(g, ctx, &planes, s, band_points, grid, device).await?
+    } else {
+        let topology = if canonical_pose {
+            ctx.canonical_dmtet.get_or_make(device, device_topology(ctx, grid, device)).await
+        } else {
+            std::sync::Arc::new(device_topology(ctx, grid, device).await)
+        };
+        surface_on_device(g, ctx, &planes, s, band_points, &topology).await?
+    };
+    let SurfaceFields { mesh, gradients, colors } = surface;
+    let normals = mesh
+        .vertices
+        .iter()
+        .zip(&gradients)
+        .map(|(v, gradient)| {
+            // The canonical pose is its own canonical space: no rotation (and no search for
+            // the nearest body vertex, ≈ 1 µs per vertex).
+            let rotation = if canonical_pose { Mat3::IDENTITY } else { inv.rotation(inv.to_canonical(*v).1) };
+            normal_field::posed_normal(rotation, *gradient)
+        })
+        .collect();
+    Ok(Avatar { mesh, normals, colors })
+}
+
+/// An extracted outer surface with the canonical SDF gradient and the colour of each vertex.
+struct SurfaceFields {
+    mesh: TriMesh,
+    gradients: Vec<Vec3>,
+    colors: Vec<Vec3>,
+}
+
+/// The surface by the CPU reference (NdArray: the networks run on the host anyway): the
+/// band's fields read back, marching tets on the host, then the normal and texture fields at
+/// the vertices, read back together. Two read-backs.
+async fn surface_on_host(
+    g: &Generator,
+    ctx: &BodyContext,
+    planes: &Triplanes,
+    s: &Styles,
+    band_points: Tensor<3>,
+    grid: &PosedGrid,
+    device: &Device,
+) -> Result<SurfaceFields, ReadbackError> {
+    let fields = band_fields(g, planes, s, band_points, &grid.band, grid.canonical.len()).await?;
+    let sdf = fields.sdf(&grid.template, &ctx.boundary);
+    let positions = fields.positions(&ctx.grid.vertices);
+    checkpoint().await;
+    profile::stage("DMTet");
+    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, &grid.canonical).without_cavities();
     if mesh.vertices.is_empty() {
-        return Ok(Avatar { mesh, normals: Vec::new(), colors: Vec::new() });
+        return Ok(SurfaceFields { mesh, gradients: Vec::new(), colors: Vec::new() });
     }
     checkpoint().await;
     profile::stage("normals & colours");
     // Normal field (eq. 4) and texture field at each vertex's canonical coordinate, read back
     // together (one GPU→CPU transfer): rows of (∇SDF x, y, z, r, g, b).
-    // Padded (`POINT_ALIGN`); the rows past the mesh's vertices are dropped by the zips below.
+    // Padded (`POINT_ALIGN`); the rows past the mesh's vertices are dropped below.
     let canonical = aligned_points(&mesh.attributes);
     let n = canonical.len();
     let points = points_tensor(&canonical, device);
     let grad =
-        normal_field::sdf_gradient(g, &planes, s, &ctx.template, points.clone().reshape([n, 3]), &canonical, device);
-    let rgb = g.texture_field(&planes, s, points).reshape([n, 3]);
+        normal_field::sdf_gradient(g, planes, s, &ctx.template, points.clone().reshape([n, 3]), &canonical, device);
+    let rgb = g.texture_field(planes, s, points).reshape([n, 3]);
     let both = read_f32(Tensor::cat(vec![grad, rgb], 1)).await?;
-    let normals = mesh
-        .vertices
-        .iter()
-        .zip(both.chunks_exact(6))
-        .map(|(v, row)| {
-            // The canonical pose is its own canonical space: no rotation (and no search for
-            // the nearest body vertex, ≈ 1 µs per vertex).
-            let rotation = if canonical_pose { Mat3::IDENTITY } else { inv.rotation(inv.to_canonical(*v).1) };
-            normal_field::posed_normal(rotation, Vec3::from_slice(&row[..3]))
-        })
-        .collect();
-    let colors = both.chunks_exact(6).take(mesh.vertices.len()).map(|row| Vec3::from_slice(&row[3..])).collect();
-    Ok(Avatar { mesh, normals, colors })
+    let rows = both.chunks_exact(6).take(mesh.vertices.len());
+    let (gradients, colors) = rows.map(|r| (Vec3::from_slice(&r[..3]), Vec3::from_slice(&r[3..]))).unzip();
+    Ok(SurfaceFields { mesh, gradients, colors })
+}
+
+/// `grid`'s DMTet topology uploaded to `device`.
+async fn device_topology(ctx: &BodyContext, grid: &PosedGrid, device: &Device) -> dmtet_gpu::DeviceTopology {
+    let topology = dmtet_gpu::DmtetTopology::new_async(&ctx.grid, &ctx.boundary, &grid.template, &grid.band).await;
+    topology.upload(&ctx.grid, &grid.canonical, device)
+}
+
+/// The surface as device work (`dmtet_gpu`): the band's fields stay on the device, marching
+/// tets runs there (one read-back: the counts), the normal and texture fields are evaluated
+/// at the vertices there, and everything comes back in one read-back. The template's part of
+/// the gradient is added on the host (it is a CPU grid).
+async fn surface_on_device(
+    g: &Generator,
+    ctx: &BodyContext,
+    planes: &Triplanes,
+    s: &Styles,
+    band_points: Tensor<3>,
+    topology: &dmtet_gpu::DeviceTopology,
+) -> Result<SurfaceFields, ReadbackError> {
+    let band = crate::fields::band_rows(g, planes, s, band_points);
+    profile::stage("DMTet");
+    let surface = dmtet_gpu::extract(topology, band).await?;
+    if surface.vertex_count == 0 {
+        return Ok(SurfaceFields { mesh: TriMesh::default(), gradients: Vec::new(), colors: Vec::new() });
+    }
+    profile::stage("normals & colours");
+    let canonical = surface.canonical();
+    let n = canonical.dims()[0];
+    let h = normal_field::probe_step(&ctx.template);
+    let grad = normal_field::residual_gradient(g, planes, s, h, canonical.clone());
+    let rgb = g.texture_field(planes, s, canonical.unsqueeze_dim::<3>(0)).reshape([n, 3]);
+    let width = dmtet_gpu::SURFACE_COLUMNS + 6;
+    let rows = Tensor::cat(vec![surface.rows, grad, rgb], 1).reshape([n * width]);
+    let all = read_f32(Tensor::cat(vec![rows, surface.faces.reshape([surface.face_count * 3])], 0)).await?;
+    let (rows, faces) = all.split_at(n * width);
+    let mesh = dmtet_gpu::mesh_from_rows(topology, rows, width, faces, surface.vertex_count);
+    let mut gradients = Vec::with_capacity(surface.vertex_count);
+    let mut colors = Vec::with_capacity(surface.vertex_count);
+    for (row, c) in rows.chunks_exact(width).zip(&mesh.attributes) {
+        let residual = Vec3::from_slice(&row[dmtet_gpu::SURFACE_COLUMNS..dmtet_gpu::SURFACE_COLUMNS + 3]);
+        gradients.push(residual + normal_field::template_gradient(&ctx.template, *c, h));
+        colors.push(Vec3::from_slice(&row[dmtet_gpu::SURFACE_COLUMNS + 3..]));
+    }
+    let (mesh, _, kept) = mesh.without_cavities_mapped();
+    if let Some(kept) = kept {
+        gradients = kept.iter().map(|&i| gradients[i as usize]).collect();
+        colors = kept.iter().map(|&i| colors[i as usize]).collect();
+    }
+    Ok(SurfaceFields { mesh, gradients, colors })
 }
 
 /// Colours of the texture field at canonical points (re-texturing keeps the geometry).

@@ -47,6 +47,8 @@ pub mod dataset;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod diff;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod dmtet_gpu;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod fields;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;

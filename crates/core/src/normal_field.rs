@@ -32,15 +32,22 @@ pub fn sdf_gradient(
     values: &[Vec3],
     device: &Device,
 ) -> Tensor<2> {
-    let p = values.len();
     let h = probe_step(template);
-    let offs: Vec<f32> = (0..p).flat_map(|_| PROBE_DIRECTIONS.iter().flat_map(|d| (*d * h).to_array())).collect();
-    let probes =
-        points.unsqueeze_dim::<3>(1).repeat_dim(1, 6) + Tensor::from_data(TensorData::new(offs, [p, 6, 3]), device);
-    let r = g.sdf_residual(planes, s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
-    let grad_residual = (r.clone().narrow(2, 0, 1) - r.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h));
     let grad_template: Vec<f32> = values.iter().flat_map(|c| template_gradient(template, *c, h).to_array()).collect();
-    grad_residual + Tensor::from_data(TensorData::new(grad_template, [p, 3]), device)
+    residual_gradient(g, planes, s, h, points)
+        + Tensor::from_data(TensorData::new(grad_template, [values.len(), 3]), device)
+}
+
+/// The residual's part of [`sdf_gradient`]: central differences of step `h` through the
+/// network at `points` (`[P, 3]`), device work only (the GPU's DMTet pass adds the template's
+/// part on the host, after its one read-back).
+pub fn residual_gradient(g: &Generator, planes: &Triplanes, s: &Styles, h: f32, points: Tensor<2>) -> Tensor<2> {
+    let p = points.dims()[0];
+    let steps: Vec<f32> = PROBE_DIRECTIONS.iter().flat_map(|d| (*d * h).to_array()).collect();
+    let steps = Tensor::<3>::from_data(TensorData::new(steps, [1, 6, 3]), &points.device());
+    let probes = points.unsqueeze_dim::<3>(1).repeat_dim(1, 6) + steps;
+    let r = g.sdf_residual(planes, s, probes.reshape([1, p * 6, 3])).reshape([p, 3, 2]);
+    (r.clone().narrow(2, 0, 1) - r.narrow(2, 1, 1)).reshape([p, 3]) * (1.0 / (2.0 * h))
 }
 
 /// ∇ of the template SDF at `c` by central differences of step `h`.

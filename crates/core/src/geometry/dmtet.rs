@@ -25,8 +25,8 @@ pub struct TriMesh {
 
 // For each 4-bit inside-code, up to two triangles given as edge indices (nvdiffrec's table,
 // re-oriented below). Edge e joins tet corners EDGES[e].
-const EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
-const TRIANGLES: [[i8; 6]; 16] = [
+pub(crate) const EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
+pub(crate) const TRIANGLES: [[i8; 6]; 16] = [
     [-1, -1, -1, -1, -1, -1],
     [1, 0, 2, -1, -1, -1],
     [4, 0, 3, -1, -1, -1],
@@ -178,6 +178,14 @@ impl TriMesh {
     /// often fingertips or toes) keeps its order, attributes and edges. Returns the mesh and
     /// how many components it dropped.
     pub fn without_cavities(self) -> (TriMesh, usize) {
+        let (mesh, dropped, _) = self.without_cavities_mapped();
+        (mesh, dropped)
+    }
+
+    /// [`TriMesh::without_cavities`], also giving each kept vertex's index in `self` (`None`
+    /// when nothing was dropped: the vertices are unchanged), so per-vertex data computed
+    /// before follows the mesh.
+    pub fn without_cavities_mapped(self) -> (TriMesh, usize, Option<Vec<u32>>) {
         let (ids, sizes) = self.components();
         let mut volume = vec![0.0f64; sizes.len()];
         for (f, id) in self.faces.iter().zip(&ids) {
@@ -187,10 +195,11 @@ impl TriMesh {
         let keep: Vec<bool> = volume.iter().map(|v| *v >= 0.0).collect();
         let dropped = keep.iter().filter(|k| !**k).count();
         if dropped == 0 {
-            return (self, 0);
+            return (self, 0, None);
         }
         let mut remap = vec![u32::MAX; self.vertices.len()];
         let mut out = TriMesh::default();
+        let mut kept = Vec::new();
         for (f, id) in self.faces.iter().zip(&ids) {
             if !keep[*id as usize] {
                 continue;
@@ -198,6 +207,7 @@ impl TriMesh {
             let g = f.map(|v| {
                 if remap[v as usize] == u32::MAX {
                     remap[v as usize] = out.vertices.len() as u32;
+                    kept.push(v);
                     out.vertices.push(self.vertices[v as usize]);
                     if !self.attributes.is_empty() {
                         out.attributes.push(self.attributes[v as usize]);
@@ -210,7 +220,7 @@ impl TriMesh {
             });
             out.faces.push(g);
         }
-        (out, dropped)
+        (out, dropped, Some(kept))
     }
 
     /// Number of boundary or non-manifold edges, and of edges used twice in the same

@@ -34,6 +34,10 @@ pub struct BodyContext {
     /// The canonical body's inverse skinning (into itself), made on first use
     /// ([`BodyContext::canonical_inverse`]).
     canonical_inverse: std::sync::OnceLock<InverseSkinning>,
+    /// The canonical grid's DMTet topology on each device that extracted a surface there
+    /// (`crate::dmtet_gpu`).
+    #[cfg(any(feature = "generator", feature = "wgpu"))]
+    pub canonical_dmtet: crate::dmtet_gpu::TopologyCache,
 }
 
 impl BodyContext {
@@ -80,6 +84,8 @@ impl BodyContext {
             boundary,
             canonical_grid: std::sync::OnceLock::new(),
             canonical_inverse: std::sync::OnceLock::new(),
+            #[cfg(any(feature = "generator", feature = "wgpu"))]
+            canonical_dmtet: Default::default(),
         }
     }
 

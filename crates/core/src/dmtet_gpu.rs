@@ -1,0 +1,464 @@
+//! Marching tetrahedra as device work (#28): the same surface as the CPU reference
+//! [`crate::geometry::marching_tets`], extracted where the generator's fields already are, so a
+//! new identity needs no read-back of the grid's fields and no per-tet loop on the host.
+//!
+//! The grid's topology restricted to the tets where a surface can appear
+//! ([`DmtetTopology`], made once per posed grid on the host and kept on the device) goes up
+//! once. Per avatar, the pass (burn tensor ops, so one code on every backend):
+//! 1. gathers each vertex's residual and offset from the field band's rows (0 off the band),
+//!    SDF = base (template, or outside on the box boundary) + residual;
+//! 2. marks the edges whose ends differ in sign and interpolates their surface vertex
+//!    (position, canonical coordinate) at the zero, `t = s_a / (s_a − s_b)` as on the CPU;
+//! 3. looks up each tet's triangles (nvdiffrec's table by inside-code) and orients them by the
+//!    edge midpoints, from the inside corners towards the outside ones, as on the CPU;
+//! 4. numbers the crossed edges and the real triangles by a blocked prefix sum, reads back
+//!    the two counts (one read-back), and compacts both by an integer scatter of their
+//!    indices (parallel atomics on a GPU) followed by a gather.
+//!
+//! Vertices come in grid-edge order (the CPU numbers them by first use); triangles come in
+//! the CPU's order. The caller reads the compacted rows back with whatever else it computes
+//! at the vertices (the generator: normals and colours), once.
+
+use burn::tensor::{Bool, Device, IndexingUpdateOp, Int, Tensor, TensorData};
+use glam::Vec3;
+
+use crate::geometry::dmtet::{EDGES, TRIANGLES};
+use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::geometry::{TetGrid, TriMesh};
+use crate::id_map::{id_map_with_capacity, IdMap};
+use crate::readback::{read_f32, ReadbackError};
+
+/// Tets looked at between two checkpoints in the browser.
+const TETS_PER_SLICE: usize = 65_536;
+
+/// Columns of [`DeviceSurface::rows`]: position (3), canonical coordinate (3), the topology's
+/// edge index, and the interpolation weight t.
+pub const SURFACE_COLUMNS: usize = 8;
+
+/// The grid's topology where a surface can appear, on the host: every tet with a corner on
+/// the field band, or whose fixed corner SDF values (off the band the SDF is the template's)
+/// already change sign. Other tets keep one sign whatever the generator says.
+#[derive(Clone, Debug)]
+pub struct DmtetTopology {
+    /// Grid vertex of each local vertex.
+    pub vertices: Vec<u32>,
+    /// Local vertices of each kept tet, in grid order.
+    pub tets: Vec<[u32; 4]>,
+    /// Each kept tet's edges (in [`EDGES`] order) as local edge indices.
+    pub tet_edges: Vec<[u32; 6]>,
+    /// Grid vertices (a, b), a < b, of each local edge: the CPU's edge key.
+    pub edges: Vec<(u32, u32)>,
+    /// The same edges' local vertices.
+    pub local_edges: Vec<[u32; 2]>,
+    /// Row of each local vertex in the band's fields, or `band_len` (a zero row) off it.
+    pub band_row: Vec<u32>,
+    /// SDF without the residual: the template's, or [`OUTSIDE_VALUE`] on the box boundary.
+    pub base_sdf: Vec<f32>,
+    /// Rows of the band's fields the pass expects (the band's length; padding rows past it
+    /// are allowed and ignored).
+    pub band_len: usize,
+}
+
+impl DmtetTopology {
+    /// The topology of `grid` for a posed grid's `template` values (one per grid vertex),
+    /// `boundary` flags and field `band` (`geometry::posed_grid::field_band`).
+    pub fn new(grid: &TetGrid, boundary: &[bool], template: &[f32], band: &[u32]) -> Self {
+        crate::cooperative::run_blocking(Self::new_async(grid, boundary, template, band))
+    }
+
+    /// [`DmtetTopology::new`] in slices with a checkpoint after each (the demo grid's 1.6 M
+    /// tets are some 100 ms of work in the browser).
+    pub async fn new_async(grid: &TetGrid, boundary: &[bool], template: &[f32], band: &[u32]) -> Self {
+        let n = grid.vertices.len();
+        let mut row = vec![u32::MAX; n];
+        for (k, &i) in band.iter().enumerate() {
+            row[i as usize] = k as u32;
+        }
+        let base_sdf: Vec<f32> = (0..n).map(|i| if boundary[i] { OUTSIDE_VALUE } else { template[i] }).collect();
+        let mut local = vec![u32::MAX; n];
+        let mut topo = DmtetTopology {
+            vertices: Vec::new(),
+            tets: Vec::new(),
+            tet_edges: Vec::new(),
+            edges: Vec::new(),
+            local_edges: Vec::new(),
+            band_row: Vec::new(),
+            base_sdf: Vec::new(),
+            band_len: band.len(),
+        };
+        let mut edge_id: IdMap<(u32, u32), u32> = id_map_with_capacity(grid.tets.len() / 4);
+        crate::cooperative::for_chunks(&grid.tets, TETS_PER_SLICE, |chunk| {
+            for tet in chunk {
+                topo.add_tet(tet, &row, &base_sdf, &mut local, &mut edge_id);
+            }
+        })
+        .await;
+        topo
+    }
+
+    fn add_tet(
+        &mut self,
+        tet: &[u32; 4],
+        row: &[u32],
+        base_sdf: &[f32],
+        local: &mut [u32],
+        edge_id: &mut IdMap<(u32, u32), u32>,
+    ) {
+        let on_band = tet.iter().any(|&i| row[i as usize] != u32::MAX);
+        let inside = tet.iter().filter(|&&i| base_sdf[i as usize] < 0.0).count();
+        if !on_band && (inside == 0 || inside == 4) {
+            return;
+        }
+        let l = tet.map(|i| {
+            let i = i as usize;
+            if local[i] == u32::MAX {
+                local[i] = self.vertices.len() as u32;
+                self.vertices.push(i as u32);
+                self.band_row.push(if row[i] == u32::MAX { self.band_len as u32 } else { row[i] });
+                self.base_sdf.push(base_sdf[i]);
+            }
+            local[i]
+        });
+        let e = EDGES.map(|[a, b]| {
+            let (a, b) = if tet[a] < tet[b] { (a, b) } else { (b, a) };
+            *edge_id.entry((tet[a], tet[b])).or_insert_with(|| {
+                self.edges.push((tet[a], tet[b]));
+                self.local_edges.push([l[a], l[b]]);
+                (self.edges.len() - 1) as u32
+            })
+        });
+        self.tets.push(l);
+        self.tet_edges.push(e);
+    }
+
+    /// The topology on `device`, with the grid's (undeformed) positions and the canonical
+    /// coordinate of every grid vertex (`canonical`, the posed grid's).
+    pub fn upload(&self, grid: &TetGrid, canonical: &[Vec3], device: &Device) -> DeviceTopology {
+        let ints = |v: Vec<i64>, shape: Vec<usize>| Tensor::<1, Int>::from_data(TensorData::new(v, shape), device);
+        let (ea, eb): (Vec<i64>, Vec<i64>) = self.local_edges.iter().map(|[a, b]| (*a as i64, *b as i64)).unzip();
+        let (t, e, v) = (self.tets.len(), self.edges.len(), self.vertices.len());
+        let points = |f: &dyn Fn(usize) -> Vec3| {
+            let flat: Vec<f32> = self.vertices.iter().flat_map(|&g| f(g as usize).to_array()).collect();
+            Tensor::<2>::from_data(TensorData::new(flat, [v, 3]), device)
+        };
+        DeviceTopology {
+            tets: ints(self.tets.iter().flatten().map(|&i| i as i64).collect(), vec![t * 4]).reshape([t, 4]),
+            tet_edges: ints(self.tet_edges.iter().flatten().map(|&i| i as i64).collect(), vec![t * 6]).reshape([t, 6]),
+            edge_a: ints(ea, vec![e]),
+            edge_b: ints(eb, vec![e]),
+            band_row: ints(self.band_row.iter().map(|&r| r as i64).collect(), vec![v]),
+            base_sdf: Tensor::from_data(TensorData::new(self.base_sdf.clone(), [v]), device),
+            grid_pos: points(&|g| grid.vertices[g]),
+            canonical: points(&|g| canonical[g]),
+            edges: self.edges.clone(),
+            band_len: self.band_len,
+        }
+    }
+}
+
+/// [`DmtetTopology`] on a device: what the pass reads besides the fields.
+#[derive(Clone, Debug)]
+pub struct DeviceTopology {
+    tets: Tensor<2, Int>,
+    tet_edges: Tensor<2, Int>,
+    edge_a: Tensor<1, Int>,
+    edge_b: Tensor<1, Int>,
+    band_row: Tensor<1, Int>,
+    base_sdf: Tensor<1>,
+    grid_pos: Tensor<2>,
+    canonical: Tensor<2>,
+    /// Grid vertices (a, b) of each local edge (host copy: the mesh's `edges`).
+    pub edges: Vec<(u32, u32)>,
+    band_len: usize,
+}
+
+impl DeviceTopology {
+    pub fn device(&self) -> Device {
+        self.base_sdf.device()
+    }
+}
+
+/// An extracted surface still on the device.
+#[derive(Clone, Debug)]
+pub struct DeviceSurface {
+    /// `[V', SURFACE_COLUMNS]`: one row per surface vertex, V' = the vertex count padded to
+    /// [`crate::fields::POINT_ALIGN`] (padding rows repeat a grid point and are ignored).
+    pub rows: Tensor<2>,
+    /// `[F, 3]` vertex indices (as floats, exact below 2²⁴).
+    pub faces: Tensor<2>,
+    pub vertex_count: usize,
+    pub face_count: usize,
+}
+
+impl DeviceSurface {
+    /// Canonical coordinates of the (padded) vertices, `[V', 3]`.
+    pub fn canonical(&self) -> Tensor<2> {
+        self.rows.clone().narrow(1, 3, 3)
+    }
+}
+
+/// Scan block: each element of a block sums at most this many (burn's cumsum kernel is a
+/// loop per element), and the levels above work on block totals.
+const SCAN_BLOCK: usize = 64;
+
+/// Inclusive prefix sum of a 1-D integer tensor by blocks of [`SCAN_BLOCK`], recursively over
+/// the block totals: O(n · block) work in a few launches per level.
+pub fn inclusive_scan(x: Tensor<1, Int>) -> Tensor<1, Int> {
+    let n = x.dims()[0];
+    if n <= SCAN_BLOCK {
+        return x.cumsum(0);
+    }
+    let m = n.div_ceil(SCAN_BLOCK);
+    let x = if m * SCAN_BLOCK > n {
+        let device = x.device();
+        Tensor::cat(vec![x, Tensor::zeros([m * SCAN_BLOCK - n], &device)], 0)
+    } else {
+        x
+    };
+    let rows = x.reshape([m, SCAN_BLOCK]).cumsum(1);
+    let totals = rows.clone().narrow(1, SCAN_BLOCK - 1, 1).reshape([m]);
+    let before = inclusive_scan(totals.clone()) - totals;
+    (rows + before.unsqueeze_dim::<2>(1)).reshape([m * SCAN_BLOCK]).narrow(0, 0, n)
+}
+
+/// For a 0/1 mask `keep` `[N]` with inclusive prefix sum `scan`: the index of each kept
+/// element in order, `[count]` (an integer scatter of the indices to their ranks, then the
+/// ranks read in order).
+fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, count: usize, len: usize) -> Tensor<1, Int> {
+    let device = scan.device();
+    let n = scan.dims()[0];
+    // Dropped elements go to a spare slot at `len` (and add 0 there).
+    let rank = (scan - 1).mask_fill(keep.clone().bool_not(), len as i64);
+    let index = Tensor::<1, Int>::arange(0..n as i64, &device).mask_fill(keep.bool_not(), 0);
+    Tensor::<1, Int>::zeros([len + 1], &device).scatter(0, rank, index, IndexingUpdateOp::Add).narrow(
+        0,
+        0,
+        count.min(len),
+    )
+}
+
+fn empty_surface(device: &Device) -> DeviceSurface {
+    let rows = Tensor::<2>::zeros([1, SURFACE_COLUMNS], device).narrow(0, 0, 0);
+    DeviceSurface { rows, faces: Tensor::zeros([1, 3], device).narrow(0, 0, 0), vertex_count: 0, face_count: 0 }
+}
+
+/// Extract the surface `sdf = 0` on `topo`'s device from the field band's rows
+/// (`[≥ band_len, 4]`: residual, offset x, y, z; see `fields::band_rows`). One read-back (the
+/// vertex and triangle counts).
+pub async fn extract(topo: &DeviceTopology, band: Tensor<2>) -> Result<DeviceSurface, ReadbackError> {
+    let device = topo.device();
+    let (v, t) = (topo.base_sdf.dims()[0], topo.tets.dims()[0]);
+    let e = topo.edges.len();
+    if t == 0 {
+        return Ok(empty_surface(&device));
+    }
+    // 1. Fields per local vertex: rows of the band, a zero row off it.
+    let band = band.narrow(0, 0, topo.band_len);
+    let rows = Tensor::cat(vec![band, Tensor::zeros([1, 4], &device)], 0);
+    let f = rows.select(0, topo.band_row.clone());
+    let sdf = topo.base_sdf.clone() + f.clone().narrow(1, 0, 1).reshape([v]);
+    let pos = topo.grid_pos.clone() + f.narrow(1, 1, 3);
+    let inside = sdf.clone().lower_elem(0.0).int();
+
+    // 2. Surface vertices on the edges whose ends differ in sign.
+    let (ea, eb) = (topo.edge_a.clone(), topo.edge_b.clone());
+    let crossed = inside.clone().select(0, ea.clone()).not_equal(inside.clone().select(0, eb.clone()));
+    let (sa, sb) = (sdf.clone().select(0, ea.clone()), sdf.select(0, eb.clone()));
+    // Where no surface crosses, t would be 0/0: set to 0 (those rows are never kept).
+    let w = (sa.clone() / (sa - sb)).mask_fill(crossed.clone().bool_not(), 0.0).unsqueeze_dim::<2>(1);
+    let lerp = |x: &Tensor<2>| {
+        let (xa, xb) = (x.clone().select(0, ea.clone()), x.clone().select(0, eb.clone()));
+        xa.clone() + (xb - xa) * w.clone()
+    };
+    let edge_index = Tensor::<1, Int>::arange(0..e as i64, &device).float().unsqueeze_dim::<2>(1);
+    let vertex_rows = Tensor::cat(vec![lerp(&pos), lerp(&topo.canonical), edge_index, w.clone()], 1);
+    let vertex_scan = inclusive_scan(crossed.clone().int());
+
+    // 3. Triangles per tet from its inside-code, oriented by the edge midpoints.
+    let corner_inside = inside.select(0, topo.tets.clone().reshape([t * 4])).reshape([t, 4]);
+    let bits = Tensor::<1, Int>::from_data(TensorData::new(vec![1i64, 2, 4, 8], [4]), &device);
+    let code = (corner_inside.clone() * bits.unsqueeze_dim::<2>(0)).sum_dim(1).reshape([t]);
+    let table: Vec<i64> = TRIANGLES.iter().flatten().map(|&k| k.max(0) as i64).collect();
+    let counts: Vec<i64> = TRIANGLES.iter().map(|r| r.iter().filter(|&&k| k >= 0).count() as i64 / 3).collect();
+    let tri_edges =
+        Tensor::<1, Int>::from_data(TensorData::new(table, [96]), &device).reshape([16, 6]).select(0, code.clone());
+    let tri_count = Tensor::<1, Int>::from_data(TensorData::new(counts, [16]), &device).select(0, code);
+    let surface_vertex = (vertex_scan.clone() - 1)
+        .select(0, topo.tet_edges.clone().gather(1, tri_edges.clone()).reshape([t * 6]))
+        .reshape([t, 2, 3]);
+    let p = pos.select(0, topo.tets.clone().reshape([t * 4])).reshape([t, 4, 3]);
+    let occ = corner_inside.float().unsqueeze_dim::<3>(2);
+    let n_in = occ.clone().sum_dim(1);
+    let c_in = (p.clone() * occ.clone()).sum_dim(1) / n_in.clone().clamp_min(1.0);
+    let c_out = (p.clone() * (occ.neg() + 1.0)).sum_dim(1) / (n_in.neg() + 4.0).clamp_min(1.0);
+    let outward = (c_out - c_in).unsqueeze_dim::<4>(1); // [T, 1, 1, 3]
+    let ends =
+        |k: usize| Tensor::<1, Int>::from_data(TensorData::new(EDGES.map(|e| e[k] as i64).to_vec(), [6]), &device);
+    let mids = (p.clone().select(1, ends(0)) + p.select(1, ends(1))) * 0.5;
+    let m = mids.gather(1, tri_edges.unsqueeze_dim::<3>(2).repeat_dim(2, 3)).reshape([t, 2, 3, 3]);
+    let corner = |k: usize| m.clone().narrow(2, k, 1);
+    let (u, q) = (corner(1) - corner(0), corner(2) - corner(0));
+    let axis = |x: &Tensor<4>, k: usize| x.clone().narrow(3, k, 1);
+    let normal = Tensor::cat(
+        vec![
+            axis(&u, 1) * axis(&q, 2) - axis(&u, 2) * axis(&q, 1),
+            axis(&u, 2) * axis(&q, 0) - axis(&u, 0) * axis(&q, 2),
+            axis(&u, 0) * axis(&q, 1) - axis(&u, 1) * axis(&q, 0),
+        ],
+        3,
+    );
+    let flip = (normal * outward).sum_dim(3).reshape([t, 2, 1]).lower_elem(0.0);
+    let fv = |k: usize| surface_vertex.clone().narrow(2, k, 1);
+    let faces = Tensor::cat(vec![fv(0), fv(1).mask_where(flip.clone(), fv(2)), fv(2).mask_where(flip, fv(1))], 2)
+        .reshape([t * 2, 3]);
+    let slot = Tensor::<1, Int>::from_data(TensorData::new(vec![0i64, 1], [2]), &device).unsqueeze_dim::<2>(0);
+    let real = tri_count.unsqueeze_dim::<2>(1).greater(slot).reshape([t * 2]);
+    let face_scan = inclusive_scan(real.clone().int());
+
+    // 4. The counts (one read-back), then compaction.
+    let totals =
+        Tensor::cat(vec![vertex_scan.clone().narrow(0, e - 1, 1), face_scan.clone().narrow(0, 2 * t - 1, 1)], 0);
+    let totals = read_f32(totals.float()).await.map_err(|err| err.context("DMTet counts"))?;
+    let (vertex_count, face_count) = (totals[0] as usize, totals[1] as usize);
+    if vertex_count == 0 || face_count == 0 {
+        return Ok(empty_surface(&device));
+    }
+    let padded = vertex_count.div_ceil(crate::fields::POINT_ALIGN) * crate::fields::POINT_ALIGN;
+    // Padding rows gather row 0 (a finite grid point: its t is 0).
+    let vertex_src = kept_indices(crossed, vertex_scan, padded, padded);
+    let face_src = kept_indices(real, face_scan, face_count, face_count);
+    Ok(DeviceSurface {
+        rows: vertex_rows.select(0, vertex_src),
+        faces: faces.select(0, face_src).float(),
+        vertex_count,
+        face_count,
+    })
+}
+
+/// The mesh of a surface whose rows (`width` ≥ [`SURFACE_COLUMNS`] floats each, the surface's
+/// own columns first) and faces were read back: positions, canonical coordinates as the
+/// attributes, and each vertex's grid edge and weight, as [`crate::geometry::marching_tets`]
+/// gives them.
+pub fn mesh_from_rows(
+    topo: &DeviceTopology,
+    rows: &[f32],
+    width: usize,
+    faces: &[f32],
+    vertex_count: usize,
+) -> TriMesh {
+    let rows = rows.chunks_exact(width).take(vertex_count);
+    let mut mesh = TriMesh {
+        vertices: Vec::with_capacity(vertex_count),
+        faces: faces.chunks_exact(3).map(|f| [f[0] as u32, f[1] as u32, f[2] as u32]).collect(),
+        attributes: Vec::with_capacity(vertex_count),
+        edges: Vec::with_capacity(vertex_count),
+    };
+    for r in rows {
+        mesh.vertices.push(Vec3::from_slice(&r[0..3]));
+        mesh.attributes.push(Vec3::from_slice(&r[3..6]));
+        let (a, b) = topo.edges[r[6] as usize];
+        mesh.edges.push((a, b, r[7]));
+    }
+    mesh
+}
+
+/// Device topologies kept per device (a `BodyContext` keeps its canonical grid's here).
+#[derive(Default)]
+pub struct TopologyCache(std::sync::Mutex<Vec<std::sync::Arc<DeviceTopology>>>);
+
+impl TopologyCache {
+    /// The topology kept for `device`, or `make`'s, then kept.
+    pub async fn get_or_make(
+        &self,
+        device: &Device,
+        make: impl std::future::Future<Output = DeviceTopology>,
+    ) -> std::sync::Arc<DeviceTopology> {
+        let lock = || self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some(t) = lock().iter().find(|t| t.device() == *device) {
+            return t.clone();
+        }
+        let made = std::sync::Arc::new(make.await);
+        lock().push(made.clone());
+        made
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cooperative::run_blocking;
+    use crate::fields::GridFields;
+    use crate::geometry::marching_tets;
+    use crate::readback::read_f32_now;
+    use crate::rng::Rng;
+
+    #[allow(deprecated)]
+    fn cpu() -> Device {
+        Device::ndarray()
+    }
+
+    #[test]
+    fn blocked_scan_is_the_running_sum() {
+        let mut rng = Rng::new(5, 0);
+        for n in [1, 63, 64, 65, 4097, 300_000] {
+            let x: Vec<i64> = (0..n).map(|_| rng.below(2) as i64).collect();
+            let t = Tensor::<1, Int>::from_data(TensorData::new(x.clone(), [n]), &cpu());
+            let got: Vec<i64> = inclusive_scan(t).into_data().convert::<i64>().try_to_vec::<i64>().expect("ints");
+            let want: Vec<i64> = x.iter().scan(0, |s, v| Some(*s + v).inspect(|t| *s = *t)).collect();
+            assert_eq!(got, want, "n = {n}");
+        }
+    }
+
+    /// A sphere's SDF off centre as the "template", random residuals and offsets on the band,
+    /// padding rows of garbage past it: the device pass gives the CPU reference's triangles,
+    /// corner for corner (positions, canonical coordinates, grid edges and weights).
+    #[test]
+    fn the_device_pass_gives_the_cpu_reference_mesh() {
+        let grid = TetGrid::cube(12, Vec3::ZERO, 2.0);
+        let boundary = grid.boundary_flags();
+        let centre = Vec3::new(0.05, -0.03, 0.02);
+        let template: Vec<f32> = grid.vertices.iter().map(|p| (*p - centre).length() - 0.6).collect();
+        let band: Vec<u32> =
+            (0..template.len()).filter(|&i| template[i].abs() < 0.25 && !boundary[i]).map(|i| i as u32).collect();
+        let mut rng = Rng::new(11, 0);
+        let mut fields = GridFields::zeros(template.len());
+        let mut rows = Vec::new();
+        for &i in &band {
+            let r = [rng.range(-0.1, 0.1), rng.range(-0.02, 0.02), rng.range(-0.02, 0.02), rng.range(-0.02, 0.02)];
+            fields.residual[i as usize] = r[0];
+            fields.offset[3 * i as usize..3 * i as usize + 3].copy_from_slice(&r[1..]);
+            rows.extend(r);
+        }
+        rows.extend([9.0; 4 * 7]); // padding rows: must be ignored
+        let canonical: Vec<Vec3> = grid.vertices.iter().map(|p| *p * 1.5 + Vec3::Y).collect();
+        let reference =
+            marching_tets(&fields.positions(&grid.vertices), &grid.tets, &fields.sdf(&template, &boundary), &canonical);
+        assert!(reference.faces.len() > 500, "a real surface: {} triangles", reference.faces.len());
+
+        let device = cpu();
+        let topology = DmtetTopology::new(&grid, &boundary, &template, &band);
+        assert!(topology.tets.len() < grid.tets.len(), "the far tets are left out");
+        let topology = topology.upload(&grid, &canonical, &device);
+        let band_rows = Tensor::<1>::from_data(TensorData::new(rows, [4 * (band.len() + 7)]), &device);
+        let surface = run_blocking(extract(&topology, band_rows.reshape([band.len() + 7, 4]))).expect("extract");
+        assert_eq!(surface.vertex_count, reference.vertices.len());
+        assert_eq!(surface.face_count, reference.faces.len());
+        assert_eq!(surface.rows.dims()[0] % crate::fields::POINT_ALIGN, 0, "rows padded");
+        let rows = read_f32_now(surface.rows).expect("rows");
+        let faces = read_f32_now(surface.faces).expect("faces");
+        let mesh = mesh_from_rows(&topology, &rows, SURFACE_COLUMNS, &faces, surface.vertex_count);
+        let mut worst = 0.0f32;
+        for (f, g) in reference.faces.iter().zip(&mesh.faces) {
+            for (&a, &b) in f.iter().zip(g) {
+                let (a, b) = (a as usize, b as usize);
+                worst = worst.max(reference.vertices[a].distance(mesh.vertices[b]));
+                worst = worst.max(reference.attributes[a].distance(mesh.attributes[b]));
+                let (ea, eb) = (reference.edges[a], mesh.edges[b]);
+                assert_eq!((ea.0, ea.1), (eb.0, eb.1), "corner on another grid edge");
+                worst = worst.max((ea.2 - eb.2).abs());
+            }
+        }
+        assert!(worst < 1e-6, "corners differ by {worst}");
+        assert_eq!(mesh.topology_defects(), (0, 0), "closed and consistently oriented");
+    }
+}
