@@ -29,7 +29,7 @@ use crate::id_map::{id_map_with_capacity, IdMap};
 use crate::readback::{read_f32, ReadbackError};
 
 /// Tets looked at between two checkpoints in the browser.
-const TETS_PER_SLICE: usize = 65_536;
+const TETS_PER_SLICE: usize = 16_384;
 
 /// Columns of [`DeviceSurface::rows`]: position (3), canonical coordinate (3), the topology's
 /// edge index, and the interpolation weight t.
@@ -184,10 +184,10 @@ pub struct DeviceSurface {
     /// `[V', SURFACE_COLUMNS]`: one row per surface vertex, V' = the vertex count padded to
     /// [`crate::fields::POINT_ALIGN`] (padding rows repeat a grid point and are ignored).
     pub rows: Tensor<2>,
-    /// `[F, 3]` vertex indices (as floats, exact below 2²⁴).
+    /// `[2·T, 3]` vertex indices (as floats, exact below 2²⁴), two rows per crossed tet in grid
+    /// order; a tet's unused second triangle is a row of −1 ([`mesh_from_rows`] drops it).
     pub faces: Tensor<2>,
     pub vertex_count: usize,
-    pub face_count: usize,
 }
 
 impl DeviceSurface {
@@ -221,118 +221,110 @@ pub fn inclusive_scan(x: Tensor<1, Int>) -> Tensor<1, Int> {
     (rows + before.unsqueeze_dim::<2>(1)).reshape([m * SCAN_BLOCK]).narrow(0, 0, n)
 }
 
-/// For a 0/1 mask `keep` `[N]` with inclusive prefix sum `scan`: the index of each kept
-/// element in order, `[count]` (an integer scatter of the indices to their ranks, then the
-/// ranks read in order).
-fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, count: usize, len: usize) -> Tensor<1, Int> {
+/// For a mask `keep` `[N]` with inclusive prefix sum `scan` (of `keep` as 0/1): the index of
+/// each kept element in order, padded with 0 to `len` (≥ the kept count) — an integer scatter
+/// of the indices to their ranks (parallel atomics on a GPU), then read in rank order.
+fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, len: usize) -> Tensor<1, Int> {
     let device = scan.device();
     let n = scan.dims()[0];
     // Dropped elements go to a spare slot at `len` (and add 0 there).
     let rank = (scan - 1).mask_fill(keep.clone().bool_not(), len as i64);
     let index = Tensor::<1, Int>::arange(0..n as i64, &device).mask_fill(keep.bool_not(), 0);
-    Tensor::<1, Int>::zeros([len + 1], &device).scatter(0, rank, index, IndexingUpdateOp::Add).narrow(
-        0,
-        0,
-        count.min(len),
-    )
+    let slots = Tensor::<1, Int>::zeros([len + 1], &device);
+    slots.scatter(0, rank, index, IndexingUpdateOp::Add).narrow(0, 0, len)
+}
+
+fn ints(values: &[i64], device: &Device) -> Tensor<1, Int> {
+    Tensor::from_data(TensorData::new(values.to_vec(), [values.len()]), device)
 }
 
 fn empty_surface(device: &Device) -> DeviceSurface {
     let rows = Tensor::<2>::zeros([1, SURFACE_COLUMNS], device).narrow(0, 0, 0);
-    DeviceSurface { rows, faces: Tensor::zeros([1, 3], device).narrow(0, 0, 0), vertex_count: 0, face_count: 0 }
+    DeviceSurface { rows, faces: Tensor::zeros([1, 3], device).narrow(0, 0, 0), vertex_count: 0 }
 }
 
 /// Extract the surface `sdf = 0` on `topo`'s device from the field band's rows
-/// (`[≥ band_len, 4]`: residual, offset x, y, z; see `fields::band_rows`). One read-back (the
-/// vertex and triangle counts).
+/// (`[≥ band_len, 4]`: residual, offset x, y, z; see `fields::band_rows`). One read-back: the
+/// counts of crossed edges and crossed tets, after which the work runs on those only.
 pub async fn extract(topo: &DeviceTopology, band: Tensor<2>) -> Result<DeviceSurface, ReadbackError> {
     let device = topo.device();
     let (v, t) = (topo.base_sdf.dims()[0], topo.tets.dims()[0]);
-    let e = topo.edges.len();
     if t == 0 {
         return Ok(empty_surface(&device));
     }
-    // 1. Fields per local vertex: rows of the band, a zero row off it.
+    // 1. SDF per local vertex: the band's rows, a zero row off it.
     let band = band.narrow(0, 0, topo.band_len);
     let rows = Tensor::cat(vec![band, Tensor::zeros([1, 4], &device)], 0);
     let f = rows.select(0, topo.band_row.clone());
     let sdf = topo.base_sdf.clone() + f.clone().narrow(1, 0, 1).reshape([v]);
-    let pos = topo.grid_pos.clone() + f.narrow(1, 1, 3);
     let inside = sdf.clone().lower_elem(0.0).int();
 
-    // 2. Surface vertices on the edges whose ends differ in sign.
+    // 2. Crossed edges (one surface vertex each) and crossed tets (one or two triangles), and
+    // their counts: the one read-back.
     let (ea, eb) = (topo.edge_a.clone(), topo.edge_b.clone());
     let crossed = inside.clone().select(0, ea.clone()).not_equal(inside.clone().select(0, eb.clone()));
-    let (sa, sb) = (sdf.clone().select(0, ea.clone()), sdf.select(0, eb.clone()));
-    // Where no surface crosses, t would be 0/0: set to 0 (those rows are never kept).
-    let w = (sa.clone() / (sa - sb)).mask_fill(crossed.clone().bool_not(), 0.0).unsqueeze_dim::<2>(1);
+    let vertex_scan = inclusive_scan(crossed.clone().int());
+    let corner_inside = inside.select(0, topo.tets.clone().reshape([t * 4])).reshape([t, 4]);
+    let code = (corner_inside.clone() * ints(&[1, 2, 4, 8], &device).unsqueeze_dim::<2>(0)).sum_dim(1).reshape([t]);
+    let cut = code.clone().greater_elem(0).bool_and(code.clone().lower_elem(15));
+    let tet_scan = inclusive_scan(cut.clone().int());
+    let (e, last) = (topo.edges.len(), |x: &Tensor<1, Int>| x.clone().narrow(0, x.dims()[0] - 1, 1));
+    let totals = Tensor::cat(vec![last(&vertex_scan), last(&tet_scan)], 0).float();
+    let totals = read_f32(totals).await.map_err(|err| err.context("DMTet counts"))?;
+    let (vertex_count, cut_count) = (totals[0] as usize, totals[1] as usize);
+    if vertex_count == 0 || cut_count == 0 {
+        return Ok(empty_surface(&device));
+    }
+    debug_assert!(vertex_count <= e);
+
+    // 3. The surface vertices, on the crossed edges only (padded; padding rows take edge 0
+    // with t = 0, a finite grid point).
+    let padded = vertex_count.div_ceil(crate::fields::POINT_ALIGN) * crate::fields::POINT_ALIGN;
+    let src = kept_indices(crossed.clone(), vertex_scan.clone(), padded);
+    let (ka, kb) = (ea.select(0, src.clone()), eb.select(0, src.clone()));
+    let (sa, sb) = (sdf.clone().select(0, ka.clone()), sdf.select(0, kb.clone()));
+    let real = crossed.select(0, src.clone());
+    let w = (sa.clone() / (sa - sb)).mask_fill(real.bool_not(), 0.0).unsqueeze_dim::<2>(1);
+    let pos = topo.grid_pos.clone() + f.narrow(1, 1, 3);
     let lerp = |x: &Tensor<2>| {
-        let (xa, xb) = (x.clone().select(0, ea.clone()), x.clone().select(0, eb.clone()));
+        let (xa, xb) = (x.clone().select(0, ka.clone()), x.clone().select(0, kb.clone()));
         xa.clone() + (xb - xa) * w.clone()
     };
-    let edge_index = Tensor::<1, Int>::arange(0..e as i64, &device).float().unsqueeze_dim::<2>(1);
-    let vertex_rows = Tensor::cat(vec![lerp(&pos), lerp(&topo.canonical), edge_index, w.clone()], 1);
-    let vertex_scan = inclusive_scan(crossed.clone().int());
+    let rows = Tensor::cat(vec![lerp(&pos), lerp(&topo.canonical), src.float().unsqueeze_dim::<2>(1), w.clone()], 1);
 
-    // 3. Triangles per tet from its inside-code, oriented by the edge midpoints.
-    let corner_inside = inside.select(0, topo.tets.clone().reshape([t * 4])).reshape([t, 4]);
-    let bits = Tensor::<1, Int>::from_data(TensorData::new(vec![1i64, 2, 4, 8], [4]), &device);
-    let code = (corner_inside.clone() * bits.unsqueeze_dim::<2>(0)).sum_dim(1).reshape([t]);
+    // 4. The crossed tets' triangles from their inside-code (nvdiffrec's table), oriented by
+    // the edge midpoints; a tet's unused second triangle is a row of −1.
+    let t = cut_count;
+    let tet_src = kept_indices(cut, tet_scan, t);
+    let tets = topo.tets.clone().select(0, tet_src.clone());
+    let code = code.select(0, tet_src.clone());
     let table: Vec<i64> = TRIANGLES.iter().flatten().map(|&k| k.max(0) as i64).collect();
     let counts: Vec<i64> = TRIANGLES.iter().map(|r| r.iter().filter(|&&k| k >= 0).count() as i64 / 3).collect();
-    let tri_edges =
-        Tensor::<1, Int>::from_data(TensorData::new(table, [96]), &device).reshape([16, 6]).select(0, code.clone());
-    let tri_count = Tensor::<1, Int>::from_data(TensorData::new(counts, [16]), &device).select(0, code);
-    let surface_vertex = (vertex_scan.clone() - 1)
-        .select(0, topo.tet_edges.clone().gather(1, tri_edges.clone()).reshape([t * 6]))
-        .reshape([t, 2, 3]);
-    let p = pos.select(0, topo.tets.clone().reshape([t * 4])).reshape([t, 4, 3]);
-    let occ = corner_inside.float().unsqueeze_dim::<3>(2);
+    let tri_edges = ints(&table, &device).reshape([16, 6]).select(0, code.clone());
+    let tri_count = ints(&counts, &device).select(0, code);
+    let tet_edges = topo.tet_edges.clone().select(0, tet_src.clone());
+    let surface_vertex =
+        (vertex_scan - 1).select(0, tet_edges.gather(1, tri_edges.clone()).reshape([t * 6])).reshape([t, 2, 3]);
+    let p = pos.select(0, tets.reshape([t * 4])).reshape([t, 4, 3]);
+    let occ = corner_inside.select(0, tet_src.clone()).float().unsqueeze_dim::<3>(2);
     let n_in = occ.clone().sum_dim(1);
-    let c_in = (p.clone() * occ.clone()).sum_dim(1) / n_in.clone().clamp_min(1.0);
-    let c_out = (p.clone() * (occ.neg() + 1.0)).sum_dim(1) / (n_in.neg() + 4.0).clamp_min(1.0);
+    let c_in = (p.clone() * occ.clone()).sum_dim(1) / n_in.clone();
+    let c_out = (p.clone() * (occ.neg() + 1.0)).sum_dim(1) / (n_in.neg() + 4.0);
     let outward = (c_out - c_in).unsqueeze_dim::<4>(1); // [T, 1, 1, 3]
-    let ends =
-        |k: usize| Tensor::<1, Int>::from_data(TensorData::new(EDGES.map(|e| e[k] as i64).to_vec(), [6]), &device);
+    let ends = |k: usize| ints(&EDGES.map(|e| e[k] as i64), &device);
     let mids = (p.clone().select(1, ends(0)) + p.select(1, ends(1))) * 0.5;
     let m = mids.gather(1, tri_edges.unsqueeze_dim::<3>(2).repeat_dim(2, 3)).reshape([t, 2, 3, 3]);
     let corner = |k: usize| m.clone().narrow(2, k, 1);
     let (u, q) = (corner(1) - corner(0), corner(2) - corner(0));
-    let axis = |x: &Tensor<4>, k: usize| x.clone().narrow(3, k, 1);
-    let normal = Tensor::cat(
-        vec![
-            axis(&u, 1) * axis(&q, 2) - axis(&u, 2) * axis(&q, 1),
-            axis(&u, 2) * axis(&q, 0) - axis(&u, 0) * axis(&q, 2),
-            axis(&u, 0) * axis(&q, 1) - axis(&u, 1) * axis(&q, 0),
-        ],
-        3,
-    );
+    // u × q with the axes rolled by one and two: (u_y q_z − u_z q_y, …).
+    let roll = |x: &Tensor<4>, by: i64| x.clone().select(3, ints(&[by % 3, (by + 1) % 3, (by + 2) % 3], &device));
+    let normal = roll(&u, 1) * roll(&q, 2) - roll(&u, 2) * roll(&q, 1);
     let flip = (normal * outward).sum_dim(3).reshape([t, 2, 1]).lower_elem(0.0);
     let fv = |k: usize| surface_vertex.clone().narrow(2, k, 1);
-    let faces = Tensor::cat(vec![fv(0), fv(1).mask_where(flip.clone(), fv(2)), fv(2).mask_where(flip, fv(1))], 2)
-        .reshape([t * 2, 3]);
-    let slot = Tensor::<1, Int>::from_data(TensorData::new(vec![0i64, 1], [2]), &device).unsqueeze_dim::<2>(0);
-    let real = tri_count.unsqueeze_dim::<2>(1).greater(slot).reshape([t * 2]);
-    let face_scan = inclusive_scan(real.clone().int());
-
-    // 4. The counts (one read-back), then compaction.
-    let totals =
-        Tensor::cat(vec![vertex_scan.clone().narrow(0, e - 1, 1), face_scan.clone().narrow(0, 2 * t - 1, 1)], 0);
-    let totals = read_f32(totals.float()).await.map_err(|err| err.context("DMTet counts"))?;
-    let (vertex_count, face_count) = (totals[0] as usize, totals[1] as usize);
-    if vertex_count == 0 || face_count == 0 {
-        return Ok(empty_surface(&device));
-    }
-    let padded = vertex_count.div_ceil(crate::fields::POINT_ALIGN) * crate::fields::POINT_ALIGN;
-    // Padding rows gather row 0 (a finite grid point: its t is 0).
-    let vertex_src = kept_indices(crossed, vertex_scan, padded, padded);
-    let face_src = kept_indices(real, face_scan, face_count, face_count);
-    Ok(DeviceSurface {
-        rows: vertex_rows.select(0, vertex_src),
-        faces: faces.select(0, face_src).float(),
-        vertex_count,
-        face_count,
-    })
+    let faces = Tensor::cat(vec![fv(0), fv(1).mask_where(flip.clone(), fv(2)), fv(2).mask_where(flip, fv(1))], 2);
+    let unused = tri_count.unsqueeze_dim::<2>(1).lower_equal(ints(&[0, 1], &device).unsqueeze_dim::<2>(0));
+    let faces = faces.mask_fill(unused.unsqueeze_dim::<3>(2), -1).reshape([t * 2, 3]);
+    Ok(DeviceSurface { rows, faces: faces.float(), vertex_count })
 }
 
 /// The mesh of a surface whose rows (`width` ≥ [`SURFACE_COLUMNS`] floats each, the surface's
@@ -349,7 +341,7 @@ pub fn mesh_from_rows(
     let rows = rows.chunks_exact(width).take(vertex_count);
     let mut mesh = TriMesh {
         vertices: Vec::with_capacity(vertex_count),
-        faces: faces.chunks_exact(3).map(|f| [f[0] as u32, f[1] as u32, f[2] as u32]).collect(),
+        faces: faces.chunks_exact(3).filter(|f| f[0] >= 0.0).map(|f| [f[0] as u32, f[1] as u32, f[2] as u32]).collect(),
         attributes: Vec::with_capacity(vertex_count),
         edges: Vec::with_capacity(vertex_count),
     };
@@ -442,11 +434,11 @@ mod tests {
         let band_rows = Tensor::<1>::from_data(TensorData::new(rows, [4 * (band.len() + 7)]), &device);
         let surface = run_blocking(extract(&topology, band_rows.reshape([band.len() + 7, 4]))).expect("extract");
         assert_eq!(surface.vertex_count, reference.vertices.len());
-        assert_eq!(surface.face_count, reference.faces.len());
         assert_eq!(surface.rows.dims()[0] % crate::fields::POINT_ALIGN, 0, "rows padded");
         let rows = read_f32_now(surface.rows).expect("rows");
         let faces = read_f32_now(surface.faces).expect("faces");
         let mesh = mesh_from_rows(&topology, &rows, SURFACE_COLUMNS, &faces, surface.vertex_count);
+        assert_eq!(mesh.faces.len(), reference.faces.len());
         let mut worst = 0.0f32;
         for (f, g) in reference.faces.iter().zip(&mesh.faces) {
             for (&a, &b) in f.iter().zip(g) {

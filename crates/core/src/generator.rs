@@ -2,8 +2,9 @@
 //! space, evaluated at posed-space tet grid vertices carried to canonical space by inverse
 //! skinning → DMTet in posed space → textured mesh with the normal field (eq. 4).
 //!
-//! Tensor work (networks) runs on the caller's burn `Device`; grid bookkeeping, inverse
-//! skinning and marching tetrahedra run on the CPU (`geometry`). The geometry fields on the
+//! Tensor work (networks) runs on the caller's burn `Device`; grid bookkeeping and inverse
+//! skinning run on the CPU (`geometry`), and so does marching tetrahedra, except for a new
+//! identity on a GPU, which is extracted there (`dmtet_gpu`). The geometry fields on the
 //! grid are `fields`, the normal field `normal_field`, the rigged fast path `rigging`, the
 //! latent modes of multi-modal truncation `network::mapping`.
 
@@ -241,15 +242,14 @@ pub async fn generate_avatar_async(
     // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
     // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
     // seen and would only pollute the exported mesh.
-    let surface = if is_ndarray(device) {
-        surface_on_host(g, ctx, &planes, s, band_points, grid, device).await?
-    } else {
-        let topology = if canonical_pose {
-            ctx.canonical_dmtet.get_or_make(device, device_topology(ctx, grid, device)).await
-        } else {
-            std::sync::Arc::new(device_topology(ctx, grid, device).await)
-        };
+    // On a GPU, a new identity's surface is extracted there (its topology is made once per
+    // device); other poses would need a topology of their own per pose (tens of ms of host
+    // work), more than the CPU reference costs, and NdArray runs everything on the host anyway.
+    let surface = if canonical_pose && !is_ndarray(device) {
+        let topology = ctx.canonical_dmtet.get_or_make(device, device_topology(ctx, grid, device)).await;
         surface_on_device(g, ctx, &planes, s, band_points, &topology).await?
+    } else {
+        surface_on_host(g, ctx, &planes, s, band_points, grid, device).await?
     };
     let SurfaceFields { mesh, gradients, colors } = surface;
     let normals = mesh
@@ -343,7 +343,8 @@ async fn surface_on_device(
     let rgb = g.texture_field(planes, s, canonical.unsqueeze_dim::<3>(0)).reshape([n, 3]);
     let width = dmtet_gpu::SURFACE_COLUMNS + 6;
     let rows = Tensor::cat(vec![surface.rows, grad, rgb], 1).reshape([n * width]);
-    let all = read_f32(Tensor::cat(vec![rows, surface.faces.reshape([surface.face_count * 3])], 0)).await?;
+    let all =
+        read_f32(Tensor::cat(vec![rows, surface.faces.clone().reshape([surface.faces.dims()[0] * 3])], 0)).await?;
     let (rows, faces) = all.split_at(n * width);
     let mesh = dmtet_gpu::mesh_from_rows(topology, rows, width, faces, surface.vertex_count);
     let mut gradients = Vec::with_capacity(surface.vertex_count);
