@@ -66,7 +66,9 @@ pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &D
 /// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan. With
 /// `rc.lambda_texture_swap > 0` (and more than one subject in the batch), adds the weighted
 /// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
-/// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views.
+/// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views. With
+/// `rc.latent_spread > 0`, the subjects' codes are moved towards random ones first
+/// ([`spread_styles`]).
 pub(crate) fn subject_reconstruction(
     g: &Generator,
     rng: &mut Rng,
@@ -99,7 +101,11 @@ pub(crate) fn subject_reconstruction(
     let views: Vec<Vec<View>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.view()).collect()).collect();
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
-    let styles = g.styles(zg.clone(), zt.clone(), 1.0);
+    let styles = if rc.latent_spread > 0.0 {
+        spread_styles(g, zg.clone(), zt.clone(), rc.latent_spread, rng)
+    } else {
+        g.styles(zg.clone(), zt.clone(), 1.0)
+    };
     let b = styles.geo.dims()[0];
     let swap = (rc.lambda_texture_swap > 0.0 && b > 1).then(|| Styles {
         geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),
@@ -136,6 +142,28 @@ pub(crate) fn subject_reconstruction(
         loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
     }
     Ok(SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt })
+}
+
+/// `w + ψ·(w_random − w)` per row: `w` `[B, w_dim]`, `w_random` likewise, `psi` `[B]`.
+pub(crate) fn toward(w: Tensor<2>, w_random: Tensor<2>, psi: &[f32]) -> Tensor<2> {
+    let psi = Tensor::<2>::from_data(TensorData::new(psi.to_vec(), [psi.len(), 1]), &w.device());
+    w.clone() + (w_random - w) * psi
+}
+
+/// The styles of the subjects' latents `zg`, `zt` (`[B, z_dim]`) with each branch's w moved
+/// towards a random w ([`toward`]; ψ uniform in [0, `spread`] per subject and branch; the
+/// random w mapped from z ~ N(0, I) by the same mapping network, without gradient): the
+/// neighbourhoods that multi-modal truncation samples from (`--latent-spread`).
+pub(crate) fn spread_styles(g: &Generator, zg: Tensor<2>, zt: Tensor<2>, spread: f32, rng: &mut Rng) -> Styles {
+    let [b, z] = zg.dims();
+    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, zs: Tensor<2>| {
+        let random: Vec<f32> = rng.normals(b * z);
+        let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &zs.device())).detach();
+        let psi: Vec<f32> = (0..b).map(|_| rng.uniform() * spread).collect();
+        toward(mapping.forward(zs), w_random, &psi)
+    };
+    let (w_geo, w_tex) = (branch(&g.mapping_geo, zg), branch(&g.mapping_tex, zt));
+    g.styles_from_w(w_geo, w_tex)
 }
 
 /// The reconstruction terms of one step ([`subject_reconstruction`]).
@@ -229,4 +257,53 @@ pub(crate) fn canonical_scan_samples(
     bar.finish_and_clear();
     println!("scan terms: {} points from each of {} scans under {}", SCAN_POOL_POINTS, out.len(), dir.display());
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use getavatar_core::network::GeneratorConfig;
+
+    fn values(t: Tensor<2>) -> Vec<f32> {
+        t.into_data().try_to_vec::<f32>().expect("f32")
+    }
+
+    #[test]
+    fn toward_moves_each_row_its_own_fraction_of_the_way() {
+        #[allow(deprecated)]
+        let dev = Device::ndarray();
+        let t = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [3, 2]), &dev);
+        let w = t(vec![1.0, 2.0, 1.0, 2.0, 1.0, 2.0]);
+        let r = t(vec![3.0, -2.0, 3.0, -2.0, 3.0, -2.0]);
+        let got = values(toward(w, r, &[0.0, 0.7, 1.0]));
+        let want = [1.0, 2.0, 2.4, -0.8, 3.0, -2.0];
+        assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-6), "{got:?}");
+    }
+
+    /// Spread 0 is the subjects' own styles; a spread moves each subject's w by at most that
+    /// fraction of its distance to some random w, so never further than `spread` × the
+    /// largest distance between mapped codes, and not at all when ψ is drawn as 0.
+    #[test]
+    fn spread_styles_stay_near_the_subjects_codes() {
+        #[allow(deprecated)]
+        let dev = Device::ndarray();
+        let cfg = GeneratorConfig::tiny();
+        let g = Generator::new(&cfg, 0, &dev);
+        let z = |seed: u64| {
+            Tensor::<2>::from_data(TensorData::new(Rng::new(seed, 0).normals(4 * cfg.z_dim), [4, cfg.z_dim]), &dev)
+        };
+        let (zg, zt) = (z(1), z(2));
+        let own = g.styles(zg.clone(), zt.clone(), 1.0);
+        let same = spread_styles(&g, zg.clone(), zt.clone(), 0.0, &mut Rng::new(3, 0));
+        assert_eq!(values(own.geo.clone().reshape([4, -1])), values(same.geo.reshape([4, -1])));
+        assert_eq!(values(own.tex.clone().reshape([4, -1])), values(same.tex.reshape([4, -1])));
+
+        let moved = spread_styles(&g, zg, zt, 0.7, &mut Rng::new(3, 0));
+        let (a, b) = (values(own.geo.reshape([4, -1])), values(moved.geo.reshape([4, -1])));
+        let shift = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(shift > 0.0, "a spread moves the codes");
+        // w of this untrained tiny mapping has entries of order 1: 0.7 of the way to another
+        // mapped code moves an entry by well under 10.
+        assert!(shift < 10.0, "moved by {shift}");
+    }
 }

@@ -81,6 +81,11 @@ pub struct RunConfig {
     /// runs: 0. Editable in `run.json` like the learning-rate factors.
     #[serde(default)]
     pub lambda_texture_swap: f32,
+    /// The largest fraction of the way to a random w at which reconstruction terms supervise
+    /// a subject (`TrainArgs::latent_spread`). Absent in older runs: 0. Editable in
+    /// `run.json`.
+    #[serde(default)]
+    pub latent_spread: f32,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -144,6 +149,7 @@ impl RunConfig {
             scans: None,
             lambda_scan: 0.0,
             lambda_texture_swap: 0.0,
+            latent_spread: 0.0,
         }
     }
 }
@@ -193,6 +199,13 @@ impl RunConfig {
         if lambda_texture_swap > 0.0 && !reconstruction_terms {
             bail!("--lambda-texture-swap applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
+        let latent_spread = a.latent_spread.unwrap_or(0.0);
+        if !(0.0..=1.0).contains(&latent_spread) {
+            bail!("--latent-spread is a fraction of the way to a random w, in [0, 1]; got {latent_spread}");
+        }
+        if latent_spread > 0.0 && !reconstruction_terms {
+            bail!("--latent-spread applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+        }
         let r1_gamma = a.r1_gamma.unwrap_or(10.0);
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
             bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
@@ -205,6 +218,7 @@ impl RunConfig {
             scans: a.scans.as_ref().map(|d| d.display().to_string()),
             lambda_scan: if a.scans.is_some() { lambda_scan } else { 0.0 },
             lambda_texture_swap,
+            latent_spread,
             ..RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective)
         })
     }
