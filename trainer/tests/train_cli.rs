@@ -586,17 +586,20 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// `--lambda-texture-swap` (reconstruction terms, not in the paper): logged every step, kept
-/// in run.json, refused where it has no effect, when negative, or when a continued run differs.
+/// `--lambda-texture-swap` and `--latent-spread` (reconstruction terms, not in the paper):
+/// the swap term logged every step, both kept in run.json, refused where they have no effect,
+/// out of range, or when a continued run differs.
 #[test]
-fn texture_swap_term_is_logged_and_validated() {
+fn texture_swap_and_latent_spread_are_logged_and_validated() {
     let root = tmp("swap");
     let data = dataset(&root);
     let run = root.join("recon");
-    let text = train(&data, &run, 2, &["--objective", "reconstruction", "--lambda-texture-swap", "0.5"]);
+    let args = ["--objective", "reconstruction", "--lambda-texture-swap", "0.5", "--latent-spread", "0.7"];
+    let text = train(&data, &run, 2, &args);
     assert!(text.contains("trained 2 steps"), "{text}");
     let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
     assert_eq!(rc["lambda_texture_swap"], 0.5, "{rc}");
+    assert!((rc["latent_spread"].as_f64().unwrap() - 0.7).abs() < 1e-6, "{rc}");
     for line in std::fs::read_to_string(run.join("metrics.jsonl")).unwrap().lines() {
         let r: serde_json::Value = serde_json::from_str(line).unwrap();
         let (swap, rec) = (r["texture_swap"].as_f64().unwrap(), r["reconstruction"].as_f64().unwrap());
@@ -608,6 +611,9 @@ fn texture_swap_term_is_logged_and_validated() {
     refused(&["--lambda-texture-swap", "0.5"], &root.join("adv"), "reconstruction terms");
     refused(&["--objective", "reconstruction", "--lambda-texture-swap=-1"], &root.join("neg"), "≥ 0");
     refused(&["--resume", "--lambda-texture-swap", "2"], &run, "keeps its settings");
+    refused(&["--latent-spread", "0.7"], &root.join("adv2"), "reconstruction terms");
+    refused(&["--objective", "reconstruction", "--latent-spread", "1.5"], &root.join("far"), "in [0, 1]");
+    refused(&["--resume", "--latent-spread", "0.3"], &run, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }
 
