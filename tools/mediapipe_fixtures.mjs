@@ -10,6 +10,13 @@
 //   rm trainer/tests/fixtures/mediapipe/*_yaw?.png   # the test re-renders the photos
 //
 // Needs Chromium (/usr/bin/chromium or GETAVATAR_CHROMIUM), as the browser e2e test does.
+//
+// With `--front` the PNGs are front renders (`trainer variety` writes them to `seeds/` and
+// `subjects/`; issue #25's faces criterion): a photo without a person is a finding, not a
+// failure, and the script ends with how many renders MediaPipe found a person in and how
+// many of those it saw facing the camera — the person's left shoulder and hip on the image's
+// right of their right ones, which a detector gets right only where the face and front tell
+// front from back — and writes it to `front.json` in the folder.
 
 import http from 'node:http';
 import fs from 'node:fs';
@@ -22,20 +29,26 @@ const require = createRequire(path.join(root, 'tests/e2e/package.json'));
 const { chromium } = require('playwright-core');
 const { PNG } = require('pngjs');
 
-const dir = path.resolve(process.argv[2] ?? '.');
+const args = process.argv.slice(2);
+const front = args.includes('--front');
+const dir = path.resolve(args.find((a) => !a.startsWith('--')) ?? '.');
 const photos = fs.readdirSync(dir).filter((f) => f.endsWith('.png') && !f.endsWith('.mask.png')).sort();
 const mime = { '.js': 'text/javascript', '.wasm': 'application/wasm', '.html': 'text/html', '.png': 'image/png' };
 const page = `<!DOCTYPE html><html><body><script type="module">
 import { detectPose } from './pose_detect.js';
-window.detect = async (name) => detectPose(new Uint8Array(await (await fetch('photos/' + name)).arrayBuffer()));
+window.detect = async (name) => detectPose(new Uint8Array(await (await fetch('photos/' + name)).arrayBuffer()), 256);
 window.ready = true;
 </script></body></html>`;
 const server = http.createServer((req, res) => {
   const url = decodeURIComponent(req.url.split('?')[0]);
   let file = null;
   if (url === '/' || url === '/index.html') { res.writeHead(200, { 'content-type': 'text/html' }); return res.end(page); }
-  if (url === '/pose_detect.js') file = path.join(root, 'www/pose_detect.js');
-  else if (url.startsWith('/mediapipe/')) file = path.join(root, 'www/node_modules/@mediapipe/pose', path.basename(url));
+  // The app's layout (dist/, as xtask copies it): the detector, its worker, and the two
+  // MediaPipe packages under mediapipe/ (selfie segmentation in its own folder).
+  if (url === '/pose_detect.js' || url === '/pose_worker.js') file = path.join(root, 'www', url.slice(1));
+  else if (url.startsWith('/mediapipe/selfie_segmentation/')) {
+    file = path.join(root, 'www/node_modules/@mediapipe/selfie_segmentation', path.basename(url));
+  } else if (url.startsWith('/mediapipe/')) file = path.join(root, 'www/node_modules/@mediapipe/pose', path.basename(url));
   else if (url.startsWith('/photos/')) file = path.join(dir, path.basename(url));
   if (!file || !fs.existsSync(file)) { res.writeHead(404); return res.end(); }
   res.writeHead(200, { 'content-type': mime[path.extname(file)] ?? 'application/octet-stream' });
@@ -52,10 +65,21 @@ tab.on('pageerror', (e) => console.error('pageerror', e.message));
 await tab.goto(`http://127.0.0.1:${server.address().port}/`);
 await tab.waitForFunction(() => window.ready);
 let failed = 0;
+const seen = { renders: photos.length, person: 0, facing: 0, missed: [], backwards: [] };
 for (const name of photos) {
   const r = JSON.parse(await tab.evaluate((n) => window.detect(n), name));
   const stem = name.replace(/\.png$/, '');
-  if (r.error) { console.error(`${name}: ${r.error}`); failed++; continue; }
+  if (r.error || !r.poseLandmarks) {
+    console.error(`${name}: ${r.error ?? 'no landmarks'}`);
+    if (front) seen.missed.push(name); else failed++;
+    continue;
+  }
+  if (front) {
+    // MediaPipe's indices: 11/12 left/right shoulder, 23/24 left/right hip (the person's own).
+    const l = r.poseLandmarks;
+    seen.person++;
+    if (l[11].x > l[12].x && l[23].x > l[24].x) seen.facing++; else seen.backwards.push(name);
+  }
   const m = r.segmentationMask;
   delete r.segmentationMask;
   fs.writeFileSync(path.join(dir, `${stem}.kp.json`), JSON.stringify(r) + '\n');
@@ -67,4 +91,8 @@ for (const name of photos) {
 }
 await browser.close();
 server.close();
+if (front) {
+  console.log(`front renders: a person in ${seen.person} of ${seen.renders}, facing the camera in ${seen.facing} of those`);
+  fs.writeFileSync(path.join(dir, 'front.json'), JSON.stringify(seen, null, 1) + '\n');
+}
 process.exit(failed ? 1 : 0);

@@ -39,7 +39,8 @@ pub struct VarietyArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
-    /// Output folder: `variety.json`, `seeds.png` and `subjects.png` (contact sheets).
+    /// Output folder: `variety.json`, `seeds.png` and `subjects.png` (contact sheets), and
+    /// each render in `seeds/` and `subjects/` (`NNN.png`).
     #[arg(long, default_value = "variety")]
     pub out: PathBuf,
 }
@@ -123,6 +124,16 @@ fn contact_sheet(renders: &[Render], res: usize, cols: usize) -> Result<Vec<u8>>
     Ok(encode_png(w, h, 3, &buf)?)
 }
 
+/// Each render as its own PNG `dir/NNN.png` (for detectors: `tools/mediapipe_fixtures.mjs
+/// --front` checks that each front render shows a person facing the camera).
+fn write_each(dir: &std::path::Path, renders: &[Render], res: usize) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    for (k, r) in renders.iter().enumerate() {
+        crate::atomic::write_atomic(&dir.join(format!("{k:03}.png")), &encode_png(res, res, 3, &r.rgb)?)?;
+    }
+    Ok(())
+}
+
 pub fn variety(a: &VarietyArgs) -> Result<VarietyReport> {
     if a.count < 2 {
         bail!("--count must be at least 2 (distances are between pairs)");
@@ -161,8 +172,10 @@ pub fn variety(a: &VarietyArgs) -> Result<VarietyReport> {
     bar.finish_and_clear();
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     crate::atomic::write_atomic(&a.out.join("seeds.png"), &contact_sheet(&seeds, a.res, 8)?)?;
+    write_each(&a.out.join("seeds"), &seeds, a.res)?;
     if !own.is_empty() {
         crate::atomic::write_atomic(&a.out.join("subjects.png"), &contact_sheet(&own, a.res, 8)?)?;
+        write_each(&a.out.join("subjects"), &own, a.res)?;
     }
     let (seed_distances, subject_distances) = (pairwise(&seeds), pairwise(&own));
     let seeds_spread = spread(&seed_distances).context("no seed pairs")?;

@@ -466,6 +466,13 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     }
     let sheet = getavatar_core::dataset::decode_png(&std::fs::read(vdir.join("seeds.png")).unwrap()).unwrap();
     assert_eq!((sheet.width, sheet.height), (4 * 32, 32));
+    // Each render on its own too: the sheet's first tile is seeds/000.png.
+    let one = getavatar_core::dataset::decode_png(&std::fs::read(vdir.join("seeds/000.png")).unwrap()).unwrap();
+    assert_eq!((one.width, one.height), (32, 32));
+    let tile = |y: usize| sheet.pixels[y * 4 * 32 * sheet.channels..][..32 * sheet.channels].to_vec();
+    let row = |y: usize| one.pixels[y * 32 * one.channels..][..32 * one.channels].to_vec();
+    assert!((0..32).all(|y| tile(y) == row(y)), "seeds/000.png is the sheet's first tile");
+    assert!(vdir.join("seeds/003.png").exists() && vdir.join("subjects/001.png").exists());
     let text = train(&data, &root.join("adv"), 1, &["--resume", g.to_str().unwrap()]);
     assert!(header(&root.join("adv").join("generator.safetensors")).get("latent_modes/geo").is_none());
     assert!(text.contains("initialised the generator from"), "{text}");
