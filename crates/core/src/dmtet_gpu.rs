@@ -5,15 +5,17 @@
 //! The grid's topology restricted to the tets where a surface can appear
 //! ([`DmtetTopology`], made once per posed grid on the host and kept on the device) goes up
 //! once. Per avatar, the pass (burn tensor ops, so one code on every backend):
-//! 1. gathers each vertex's residual and offset from the field band's rows (0 off the band),
-//!    SDF = base (template, or outside on the box boundary) + residual;
-//! 2. marks the edges whose ends differ in sign and interpolates their surface vertex
-//!    (position, canonical coordinate) at the zero, `t = s_a / (s_a − s_b)` as on the CPU;
-//! 3. looks up each tet's triangles (nvdiffrec's table by inside-code) and orients them by the
-//!    edge midpoints, from the inside corners towards the outside ones, as on the CPU;
-//! 4. numbers the crossed edges and the real triangles by a blocked prefix sum, reads back
-//!    the two counts (one read-back), and compacts both by an integer scatter of their
-//!    indices (parallel atomics on a GPU) followed by a gather.
+//! 1. gathers each vertex's SDF residual from the field band's rows (0 off the band), SDF =
+//!    base (template, or outside on the box boundary) + residual;
+//! 2. marks the edges whose ends differ in sign and the tets whose corners do, numbers both by
+//!    a blocked prefix sum ([`inclusive_scan`]) and reads back the two counts (the one
+//!    read-back);
+//! 3. compacts the crossed edges by an integer scatter of their indices (parallel atomics on a
+//!    GPU) and a gather, and interpolates their surface vertices (position with the DMTet
+//!    offsets, canonical coordinate) at the zero, `t = s_a / (s_a − s_b)` as on the CPU;
+//! 4. compacts the crossed tets likewise, looks up their triangles (nvdiffrec's table by
+//!    inside-code) and orients them by the edge midpoints, from the inside corners towards
+//!    the outside ones, as on the CPU.
 //!
 //! Vertices come in grid-edge order (the CPU numbers them by first use); triangles come in
 //! the CPU's order. The caller reads the compacted rows back with whatever else it computes
