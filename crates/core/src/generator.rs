@@ -342,9 +342,9 @@ async fn surface_on_device(
     let grad = normal_field::residual_gradient(g, planes, s, h, canonical.clone());
     let rgb = g.texture_field(planes, s, canonical.unsqueeze_dim::<3>(0)).reshape([n, 3]);
     let width = dmtet_gpu::SURFACE_COLUMNS + 6;
+    let faces_len = surface.faces.dims()[0] * 3;
     let rows = Tensor::cat(vec![surface.rows, grad, rgb], 1).reshape([n * width]);
-    let all =
-        read_f32(Tensor::cat(vec![rows, surface.faces.clone().reshape([surface.faces.dims()[0] * 3])], 0)).await?;
+    let all = read_f32(Tensor::cat(vec![rows, surface.faces.reshape([faces_len])], 0)).await?;
     let (rows, faces) = all.split_at(n * width);
     let mesh = dmtet_gpu::mesh_from_rows(topology, rows, width, faces, surface.vertex_count);
     let mut gradients = Vec::with_capacity(surface.vertex_count);
