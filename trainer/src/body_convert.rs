@@ -15,7 +15,7 @@ use std::io::Read;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
-use getavatar_core::body_model::{BodyModel, NUM_JOINTS, NUM_POSE_FEATURES, SMPL_PARENTS};
+use getavatar_core::body_model::{BodyModel, NUM_JOINTS, SMPL_PARENTS};
 use getavatar_core::skinning::{blend_transform, forward_kinematics, BodyParams};
 use glam::{DMat3, DVec3, Mat3, Vec2, Vec3};
 
@@ -483,7 +483,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         parents: SMPL_PARENTS,
         shapedirs,
         num_betas: nb,
-        posedirs: vec![0.0; nv * 3 * NUM_POSE_FEATURES],
+        posedirs: Vec::new(),
         vt,
         ft,
         shape_names: comps.iter().map(|c| c.0.to_string()).collect(),

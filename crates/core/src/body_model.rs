@@ -88,7 +88,8 @@ pub struct BodyModel {
     pub shapedirs: Vec<f32>,
     /// Number of shape components B.
     pub num_betas: usize,
-    /// Pose-corrective blend shapes, `V × 3 × 207` row-major (all zeros allowed).
+    /// Pose-corrective blend shapes, `V × 3 × 207` row-major; empty when the model has none
+    /// (a file's all-zero `posedirs` load as empty: no pose pays for scanning or adding them).
     pub posedirs: Vec<f32>,
     /// Texture coordinates (optional; empty when absent).
     pub vt: Vec<Vec2>,
@@ -203,7 +204,12 @@ impl BodyModel {
         let posedirs = match a.get("posedirs") {
             Some(p) => {
                 shape_is("posedirs", p, &[Some(nv), Some(3), Some(NUM_POSE_FEATURES)])?;
-                p.to_f32()
+                let v = p.to_f32();
+                if v.iter().all(|x| *x == 0.0) {
+                    Vec::new()
+                } else {
+                    v
+                }
             }
             None => return Err(NpzError::Missing("posedirs".into()).into()),
         };
@@ -263,7 +269,9 @@ impl BodyModel {
         k.extend(0..NUM_JOINTS as i64);
         m.insert("kintree_table".into(), NpyArray::i64(vec![2, NUM_JOINTS], k));
         m.insert("shapedirs".into(), NpyArray::f32(vec![nv, 3, self.num_betas], self.shapedirs.clone()));
-        m.insert("posedirs".into(), NpyArray::f32(vec![nv, 3, NUM_POSE_FEATURES], self.posedirs.clone()));
+        let posedirs =
+            if self.has_pose_correctives() { self.posedirs.clone() } else { vec![0.0; nv * 3 * NUM_POSE_FEATURES] };
+        m.insert("posedirs".into(), NpyArray::f32(vec![nv, 3, NUM_POSE_FEATURES], posedirs));
         if !self.vt.is_empty() {
             m.insert(
                 "vt".into(),
@@ -318,7 +326,7 @@ impl BodyModel {
 
     /// Whether any pose-corrective blend shape is non-zero.
     pub fn has_pose_correctives(&self) -> bool {
-        self.posedirs.iter().any(|x| *x != 0.0)
+        !self.posedirs.is_empty()
     }
 }
 

@@ -160,13 +160,25 @@ pub fn pose_body(model: &BodyModel, params: &BodyParams) -> PosedBody {
             let rm = m.transpose().to_cols_array();
             feat[(j - 1) * 9..j * 9].copy_from_slice(&rm);
         }
-        for (i, v) in rest.iter_mut().enumerate() {
-            let mut d = [0.0f32; 3];
-            for (c, dc) in d.iter_mut().enumerate() {
-                let row = &model.posedirs[(i * 3 + c) * NUM_POSE_FEATURES..][..NUM_POSE_FEATURES];
-                *dc = row.iter().zip(&feat).map(|(a, b)| a * b).sum();
+        // Only the joints that turn contribute (a zero feature adds exactly nothing): the rest
+        // pose (an export's bind pose) skips all 4.3 M products, the Da-pose all but the hips'.
+        let turned: Vec<usize> =
+            (0..NUM_JOINTS - 1).filter(|&j| feat[j * 9..(j + 1) * 9].iter().any(|f| *f != 0.0)).collect();
+        if !turned.is_empty() {
+            for (i, v) in rest.iter_mut().enumerate() {
+                let mut d = [0.0f32; 3];
+                for (c, dc) in d.iter_mut().enumerate() {
+                    let row = &model.posedirs[(i * 3 + c) * NUM_POSE_FEATURES..][..NUM_POSE_FEATURES];
+                    for &j in &turned {
+                        *dc += row[j * 9..(j + 1) * 9]
+                            .iter()
+                            .zip(&feat[j * 9..(j + 1) * 9])
+                            .map(|(a, b)| a * b)
+                            .sum::<f32>();
+                    }
+                }
+                *v += Vec3::from_array(d);
             }
-            *v += Vec3::from_array(d);
         }
     }
 
@@ -203,6 +215,44 @@ mod tests {
         let v = r * Vec3::X;
         assert!((v - Vec3::Y).length() < 1e-6, "{v}");
         assert_eq!(axis_angle_to_matrix(Vec3::ZERO), Mat3::IDENTITY);
+    }
+
+    /// Pose correctives over the turned joints only give SMPL's dense sum over all 207
+    /// features, and none at all in the rest pose.
+    #[test]
+    fn pose_correctives_skip_only_unturned_joints() {
+        let mut model = crate::body_model::BodyModel::default_body().unwrap();
+        let mut rng = crate::rng::Rng::new(7, 1);
+        model.posedirs =
+            rng.normals(model.num_vertices() * 3 * NUM_POSE_FEATURES).into_iter().map(|x| x * 1e-3).collect();
+        let mut p = BodyParams::default();
+        for j in [1, 5, 16, 20] {
+            p.pose[j] = Vec3::new(0.3, -0.2, 0.1 * j as f32);
+        }
+        let posed = pose_body(&model, &p);
+        let kin = forward_kinematics(&model.parents, &model.regress_joints(&posed.shaped), &p);
+        let mut feat = [0.0f32; NUM_POSE_FEATURES];
+        for j in 1..NUM_JOINTS {
+            feat[(j - 1) * 9..j * 9]
+                .copy_from_slice(&(kin.local_rotations[j] - Mat3::IDENTITY).transpose().to_cols_array());
+        }
+        let mut worst = 0.0f32;
+        for (i, (s, v)) in posed.shaped.iter().zip(&posed.vertices).enumerate() {
+            let d = Vec3::from_array(std::array::from_fn(|c| {
+                model.posedirs[(i * 3 + c) * NUM_POSE_FEATURES..][..NUM_POSE_FEATURES]
+                    .iter()
+                    .zip(&feat)
+                    .map(|(a, b)| a * b)
+                    .sum()
+            }));
+            let dense = blend_transform(&model.weights[i], &kin.skinning).transform_point3(*s + d);
+            worst = worst.max((dense - *v).length());
+        }
+        assert!(worst < 1e-6, "{worst} m from the dense sum");
+        // The rest pose: the shaped vertices, untouched by the (random) correctives.
+        let rest = pose_body(&model, &BodyParams::default());
+        let moved = rest.shaped.iter().zip(&rest.vertices).map(|(a, b)| (*a - *b).length()).fold(0.0f32, f32::max);
+        assert!(moved < 1e-6, "{moved}");
     }
 
     #[test]
