@@ -336,10 +336,13 @@ async fn surface_on_device(
         return Ok(SurfaceFields { mesh: TriMesh::default(), gradients: Vec::new(), colors: Vec::new() });
     }
     profile::stage("normals & colours");
+    // Slices between the launches (the browser: ≈ 25 ms of host time each on SwiftShader).
+    checkpoint().await;
     let canonical = surface.canonical();
     let n = canonical.dims()[0];
     let h = normal_field::probe_step(&ctx.template);
     let grad = normal_field::residual_gradient(g, planes, s, h, canonical.clone());
+    checkpoint().await;
     let rgb = g.texture_field(planes, s, canonical.unsqueeze_dim::<3>(0)).reshape([n, 3]);
     let width = dmtet_gpu::SURFACE_COLUMNS + 6;
     let faces_len = surface.faces.dims()[0] * 3;

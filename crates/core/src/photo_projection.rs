@@ -11,6 +11,7 @@
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
 use crate::camera::{OrbitCamera, View};
+use crate::cooperative::checkpoint;
 use crate::rasterize::{rasterize, Texture};
 
 /// `cos θ` below which the photo has no weight, and above which it has full weight.
@@ -59,8 +60,14 @@ impl SourcePhoto {
     /// The projection of this photo onto a surface (`vertices`, `faces`) posed as the photo
     /// shows it, through the reference camera's projection.
     pub fn projection(&self, vertices: &[Vec3], faces: &[[u32; 3]]) -> PhotoProjection {
+        crate::cooperative::run_blocking(self.projection_async(vertices, faces))
+    }
+
+    /// [`SourcePhoto::projection`] in slices ([`crate::cooperative`]), for the browser.
+    pub async fn projection_async(&self, vertices: &[Vec3], faces: &[[u32; 3]]) -> PhotoProjection {
         let proj = OrbitCamera::default().projection_gl(1.0);
-        PhotoProjection::new(self.view.world_to_camera, proj, self.res, &self.rgb, &self.mask, vertices, faces)
+        PhotoProjection::new_async(self.view.world_to_camera, proj, self.res, &self.rgb, &self.mask, vertices, faces)
+            .await
     }
 }
 
@@ -114,6 +121,20 @@ impl PhotoProjection {
         vertices: &[Vec3],
         faces: &[[u32; 3]],
     ) -> Self {
+        crate::cooperative::run_blocking(Self::new_async(world_to_camera, proj, res, rgb, mask, vertices, faces))
+    }
+
+    /// [`PhotoProjection::new`] in two slices (the depth buffer; the mask and the photo's
+    /// linear colours), for the browser.
+    pub async fn new_async(
+        world_to_camera: Mat4,
+        proj: Mat4,
+        res: usize,
+        rgb: &[f32],
+        mask: &[f32],
+        vertices: &[Vec3],
+        faces: &[[u32; 3]],
+    ) -> Self {
         let view_proj = proj * world_to_camera;
         let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
         let r = rasterize(&clip, faces, res, res);
@@ -134,6 +155,7 @@ impl PhotoProjection {
                 -v.z / v.w
             })
             .collect();
+        checkpoint().await;
         let eroded = erode3(mask, res);
         let texels =
             rgb.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2]).map(crate::colour::decode_srgb_fast)).collect();

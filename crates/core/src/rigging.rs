@@ -239,14 +239,6 @@ impl RiggedAvatar {
         photo.projection(&posed, &self.canonical.mesh.faces)
     }
 
-    /// Blend a photo's projection (made by [`RiggedAvatar::photo_projection`] for the pose
-    /// `body`) into the canonical vertex colours, so that a viewport showing vertex colours
-    /// shows what the baked texture will.
-    pub fn blend_photo_colors(&mut self, ctx: &BodyContext, projection: &PhotoProjection, body: &BodyParams) {
-        let (posed, normals) = self.repose(ctx, &pose_body(&ctx.model, body));
-        projection.blend(&posed, &normals, &mut self.canonical.colors);
-    }
-
     /// Bake the texture field (styles `s`, triplanes `planes`) into a `res²` atlas image: each
     /// covered texel's canonical point is queried (the paper's per-pixel colour), the rest
     /// dilated.

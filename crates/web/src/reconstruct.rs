@@ -28,6 +28,7 @@ use getavatar_core::inversion::{
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::photo_projection::SourcePhoto;
 use getavatar_core::rigging::RiggedAvatar;
+use getavatar_core::skinning::pose_body;
 
 use crate::automation::PhotoSource;
 use crate::generate::{Projected, TextureField};
@@ -340,12 +341,18 @@ pub(crate) async fn invert(
 }
 
 /// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
-/// colours show what the download's texture will. Two slices of the UI thread.
+/// colours show what the download's texture will. Five slices of the UI thread: the body
+/// posed once, as the photo shows it; the avatar re-posed; its depth at the photo's camera;
+/// the photo's mask and linear colours; the blend.
 async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
     yield_to_browser().await;
-    let projection = rigged.photo_projection(ctx, &photo);
+    let body = pose_body(&ctx.model, &photo.view.body);
     yield_to_browser().await;
-    rigged.blend_photo_colors(ctx, &projection, &photo.view.body);
+    let (posed, normals) = rigged.repose(ctx, &body);
+    yield_to_browser().await;
+    let projection = photo.projection_async(&posed, &rigged.canonical.mesh.faces).await;
+    yield_to_browser().await;
+    projection.blend(&posed, &normals, &mut rigged.canonical.colors);
     Rc::new(Projected { photo, projection })
 }
 
