@@ -6,6 +6,8 @@
 import init, { reconstruct_worker_message } from './getavatar_web.js';
 
 const ready = init();
+// Said once, though every message waiting for the module (a job's files, then the job) fails.
+let toldUnavailable = false;
 
 function say(event, message) {
   self.postMessage({ json: JSON.stringify({ event, message }) });
@@ -16,7 +18,8 @@ self.onmessage = async (e) => {
     await ready;
   } catch (err) {
     // No module here (no WebAssembly, or its file did not load): the page reconstructs itself.
-    say('unavailable', `the worker could not load the app's module: ${err?.message ?? err}`);
+    if (!toldUnavailable) say('unavailable', `the worker could not load the app's module: ${err?.message ?? err}`);
+    toldUnavailable = true;
     return;
   }
   try {

@@ -71,6 +71,9 @@ enum ToWorker {
     /// Run an inversion; the arrays `target_rgb`, `target_mask`, and optionally `checkpoint`,
     /// `discriminator` and `photo_rgb` (the projection's photo) come with it.
     Start(Box<JobMeta>),
+    /// The model files the next jobs use, sent ahead of the job in a message of their own
+    /// (arrays `checkpoint` and/or `discriminator`: the ones the worker does not hold yet).
+    Files,
     /// Stop the running inversion at its next step.
     Cancel,
 }
@@ -214,17 +217,6 @@ pub fn start(
             return Err(Box::new(req));
         }
     };
-    let message = match start_message(&req.job, &client) {
-        Ok(m) => m,
-        Err(e) => {
-            worker_unusable(format!("the reconstruction cannot be handed to its worker: {e}"));
-            return Err(Box::new(req));
-        }
-    };
-    if let Err(e) = client.worker.post_message(&message.data, &message.transfer) {
-        worker_unusable(format!("the reconstruction worker refused the job: {}", js_message(&e)));
-        return Err(Box::new(req));
-    }
     let worker_task = task.clone();
     let weak = Rc::downgrade(&client);
     task.on_cancel(move || {
@@ -236,9 +228,52 @@ pub fn start(
         }
     });
     JOBS.with(|j| j.set(j.get() + 1));
+    let posted_task = task.clone();
     let (cfg, ctx, device) = (req.job.cfg.clone(), req.ctx.clone(), req.device.clone());
     *client.running.borrow_mut() = Some(Running { task, repaint, t0: now_ms(), fallback: Some(req), cfg, ctx, device });
+    wasm_bindgen_futures::spawn_local(hand_over(client, posted_task));
     Ok(())
+}
+
+/// Post the running job to the worker, not in the frame that asked: the model files (≈ 7 MB
+/// copied, once per worker), then the job and its photo, each in a task of its own (together
+/// with the frame they held the UI thread ≈ 100 ms on SwiftShader's page). A job cancelled
+/// before it is posted ends here; a worker that refuses it hands it to the page.
+async fn hand_over(client: Rc<Client>, task: ReconstructTask) {
+    for files in [true, false] {
+        crate::task::yield_to_browser().await;
+        let message = {
+            let running = client.running.borrow();
+            let Some(r) = running.as_ref().filter(|r| r.task.same(&task)) else { return };
+            let Some(req) = r.fallback.as_ref() else { return };
+            if r.task.cancelled() {
+                drop(running);
+                if let Some(r) = client.running.borrow_mut().take() {
+                    r.task.push(ReconstructEvent::Cancelled, &r.repaint);
+                }
+                release_when_idle();
+                return;
+            }
+            if files {
+                files_message(&req.job, &client)
+            } else {
+                start_message(&req.job, &client)
+                    .map(Some)
+                    .map_err(|e| format!("the reconstruction cannot be handed to its worker: {e}"))
+            }
+        };
+        let posted = match message {
+            Ok(None) => Ok(()),
+            Ok(Some(m)) => client
+                .worker
+                .post_message(&m.data, &m.transfer)
+                .map_err(|e| format!("the reconstruction worker refused the job: {}", js_message(&e))),
+            Err(e) => Err(e),
+        };
+        if let Err(why) = posted {
+            return fall_back_to_page(why);
+        }
+    }
 }
 
 /// From now on reconstructions run on the page (said once in the console).
@@ -286,6 +321,29 @@ fn client() -> Result<Rc<Client>, String> {
 }
 
 /// The job as the worker's `Start` message (the model files only where the worker lacks them).
+/// The model files of `job` the worker does not hold yet (`None`: it holds both).
+fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>, String> {
+    let mut sent = client.sent.borrow_mut();
+    let (checkpoint, discriminator) = &mut *sent;
+    let mut arrays: Vec<(&str, JsValue)> = Vec::new();
+    for (name, file, held) in
+        [("checkpoint", &job.checkpoint, checkpoint), ("discriminator", &job.discriminator, discriminator)]
+    {
+        if let Some(b) = file {
+            if !held.as_ref().is_some_and(|h| Rc::ptr_eq(h, b)) {
+                arrays.push((name, js_sys::Uint8Array::from(&b[..]).into()));
+                *held = Some(b.clone());
+            }
+        }
+    }
+    if arrays.is_empty() {
+        return Ok(None);
+    }
+    let json = serde_json::to_string(&ToWorker::Files).map_err(|e| e.to_string())?;
+    Ok(Some(object(&json, &arrays)))
+}
+
+/// The job: its settings and photo, and the model files if the worker does not hold them.
 fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String> {
     let t = &job.target;
     let same = |a: &Option<Rc<Vec<u8>>>, b: &Option<Rc<Vec<u8>>>| match (a, b) {
@@ -439,8 +497,14 @@ fn on_message(data: JsValue) {
 /// The worker cannot reconstruct here: the running job (if it has not started there) runs on
 /// the page, and so do later ones.
 fn unavailable(why: String) {
+    fall_back_to_page(format!("the reconstruction worker has no WebGPU device ({why})"));
+}
+
+/// The worker is unusable (`why`): the running job, if it has not started there, runs on the
+/// page, and so do later ones.
+fn fall_back_to_page(why: String) {
     let running = CLIENT.with(|c| c.borrow().as_ref().and_then(|c| c.running.borrow_mut().take()));
-    worker_unusable(format!("the reconstruction worker has no WebGPU device ({why})"));
+    worker_unusable(why.clone());
     let Some(r) = running else { return };
     match r.fallback {
         Some(req) => run_on_page(req, r.task, r.repaint),
@@ -521,6 +585,15 @@ pub fn post_fatal(message: &str) {
 pub fn reconstruct_worker_message(data: JsValue) {
     match json_of(&data).and_then(|j| serde_json::from_str::<ToWorker>(&j).map_err(|e| e.to_string())) {
         Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
+        Ok(ToWorker::Files) => FILES.with(|f| {
+            let mut f = f.borrow_mut();
+            if let Some(b) = u8_array(&data, "checkpoint") {
+                f.0 = Some(Rc::new(b));
+            }
+            if let Some(b) = u8_array(&data, "discriminator") {
+                f.1 = Some(Rc::new(b));
+            }
+        }),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
             wasm_bindgen_futures::spawn_local(run_job(*meta, data));
