@@ -111,21 +111,9 @@ fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
 
 impl PhotoProjection {
     /// A photo (`rgb` sRGB `res²·3`, `mask` `res²`, both in [0, 1]) seen through `world_to_camera`
-    /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it.
-    pub fn new(
-        world_to_camera: Mat4,
-        proj: Mat4,
-        res: usize,
-        rgb: &[f32],
-        mask: &[f32],
-        vertices: &[Vec3],
-        faces: &[[u32; 3]],
-    ) -> Self {
-        crate::cooperative::run_blocking(Self::new_async(world_to_camera, proj, res, rgb, mask, vertices, faces))
-    }
-
-    /// [`PhotoProjection::new`] in two slices (the depth buffer; the mask and the photo's
-    /// linear colours), for the browser.
+    /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it. Two
+    /// slices ([`crate::cooperative`]: the depth buffer; the mask and the photo's linear
+    /// colours); `run_blocking` runs it at once.
     pub async fn new_async(
         world_to_camera: Mat4,
         proj: Mat4,
@@ -213,6 +201,18 @@ impl PhotoProjection {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn project(
+        view: Mat4,
+        proj: Mat4,
+        res: usize,
+        rgb: &[f32],
+        mask: &[f32],
+        v: &[Vec3],
+        f: &[[u32; 3]],
+    ) -> PhotoProjection {
+        crate::cooperative::run_blocking(PhotoProjection::new_async(view, proj, res, rgb, mask, v, f))
+    }
     use crate::camera::OrbitCamera;
 
     /// A unit quad facing +z at z = 0 and a second one behind it at z = −0.5.
@@ -261,7 +261,7 @@ mod tests {
             (0..res * res).flat_map(|k| if k % res < res / 2 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] }).collect();
         let mask = vec![1.0; res * res];
         let (v, f) = quads();
-        let p = PhotoProjection::new(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
         let n = Vec3::Z;
         let (c, w) = p.sample(Vec3::new(-0.2, 1.0, 0.0), n);
         assert!((w - 1.0).abs() < 1e-6 && (c - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3, "{c} {w}");
@@ -275,19 +275,11 @@ mod tests {
         let half = p.sample(Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.927, 0.0, 0.375)).1;
         assert!(half > 0.0 && half < 1.0, "{half}");
         // Outside the person mask: no weight.
-        let p = PhotoProjection::new(
-            cam.world_to_camera(),
-            cam.projection_gl(1.0),
-            res,
-            &rgb,
-            &vec![0.0; res * res],
-            &v,
-            &f,
-        );
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &vec![0.0; res * res], &v, &f);
         assert_eq!(p.sample(Vec3::new(-0.2, 1.0, 0.0), n).1, 0.0);
         // Blending keeps the generated colour where the weight is 0.
         let mut cols = vec![Vec3::splat(0.5); 2];
-        let p = PhotoProjection::new(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
         p.blend(&[Vec3::new(-0.2, 1.0, 0.0), Vec3::new(-0.2, 1.0, -0.5)], &[n, n], &mut cols);
         assert!((cols[0] - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3 && cols[1] == Vec3::splat(0.5), "{cols:?}");
     }
