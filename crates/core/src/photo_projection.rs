@@ -201,6 +201,7 @@ impl PhotoProjection {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::OrbitCamera;
 
     fn project(
         view: Mat4,
@@ -213,7 +214,6 @@ mod tests {
     ) -> PhotoProjection {
         crate::cooperative::run_blocking(PhotoProjection::new_async(view, proj, res, rgb, mask, v, f))
     }
-    use crate::camera::OrbitCamera;
 
     /// A unit quad facing +z at z = 0 and a second one behind it at z = −0.5.
     fn quads() -> (Vec<Vec3>, Vec<[u32; 3]>) {

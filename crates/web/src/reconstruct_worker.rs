@@ -320,7 +320,11 @@ fn client() -> Result<Rc<Client>, String> {
     Ok(c)
 }
 
-/// The job as the worker's `Start` message (the model files only where the worker lacks them).
+/// Whether the worker holds `file` (the page sent that very file before).
+fn holds(held: &Option<Rc<Vec<u8>>>, file: &Rc<Vec<u8>>) -> bool {
+    held.as_ref().is_some_and(|h| Rc::ptr_eq(h, file))
+}
+
 /// The model files of `job` the worker does not hold yet (`None`: it holds both).
 fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>, String> {
     let mut sent = client.sent.borrow_mut();
@@ -330,7 +334,7 @@ fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>,
         [("checkpoint", &job.checkpoint, checkpoint), ("discriminator", &job.discriminator, discriminator)]
     {
         if let Some(b) = file {
-            if !held.as_ref().is_some_and(|h| Rc::ptr_eq(h, b)) {
+            if !holds(held, b) {
                 arrays.push((name, js_sys::Uint8Array::from(&b[..]).into()));
                 *held = Some(b.clone());
             }
@@ -343,13 +347,11 @@ fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>,
     Ok(Some(object(&json, &arrays)))
 }
 
-/// The job: its settings and photo, and the model files if the worker does not hold them.
+/// The job as the worker's `Start` message: its settings and photo, and the model files
+/// only where the worker lacks them (`files_message` went first, so normally none).
 fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String> {
     let t = &job.target;
-    let same = |a: &Option<Rc<Vec<u8>>>, b: &Option<Rc<Vec<u8>>>| match (a, b) {
-        (Some(a), Some(b)) => Rc::ptr_eq(a, b),
-        _ => false,
-    };
+    let same = |file: &Option<Rc<Vec<u8>>>, held: &Option<Rc<Vec<u8>>>| file.as_ref().is_some_and(|f| holds(held, f));
     let sent = client.sent.borrow().clone();
     let (checkpoint_kept, discriminator_kept) = (same(&job.checkpoint, &sent.0), same(&job.discriminator, &sent.1));
     let meta = JobMeta {
