@@ -11,7 +11,7 @@
 #               apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2
 #               (with libvulkan1 alone NVIDIA's ICD gave "no adapter" on the H200 machine; with all seven it worked).
 #               They are unpacked into / : do that only on a disposable machine or container.
-# Writes its logs to $OUT (default ./gpu_bench_out). Takes 5–8 minutes on an H200.
+# Writes its logs to $OUT (default ./gpu_bench_out). The default parts take 5–8 minutes on an H200.
 OUT=${OUT:-gpu_bench_out}
 mkdir -p "$OUT"
 for f in .gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done; ldconfig
@@ -19,7 +19,6 @@ T=/tmp/trainer
 gzip -dc .gl/trainer.gz > $T && chmod +x $T || { echo 'no trainer'; exit 1; }
 export XDG_RUNTIME_DIR=/tmp
 START=$(date +%s)
-left() { echo $(( $1 - ($(date +%s) - START) )); }
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; nproc; uname -r; } 2>&1 | tee $OUT/machine.txt
 ls /usr/share/vulkan/icd.d /etc/vulkan/icd.d /usr/local/nvidia/share/vulkan/icd.d 2>&1 | tee -a $OUT/machine.txt
 # Find the NVIDIA adapter: the default search first, then the driver's own ICD files.
@@ -30,11 +29,39 @@ for icd in "" /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/share/vu
   if grep -q "^wgpu adapter:" $OUT/probe.txt && ! grep -q SOFTWARE $OUT/probe.txt; then break; fi
 done
 echo "VK_DRIVER_FILES=$VK_DRIVER_FILES" | tee -a $OUT/machine.txt
-# 1. Generator stages, wgpu then ndarray (same machine, same run of this script).
-timeout $(left 170) $T bench --configs demo,paper --backend wgpu --repeats 2 2>&1 | tee $OUT/bench_wgpu.txt
-timeout $(left 230) $T bench --configs demo --backend ndarray 2>&1 | tee $OUT/bench_ndarray.txt
-# 2. Training step, NdArray vs wgpu at 128² (the ratio in one run).
-timeout $(left 360) $T bench-train --configs demo --backends ndarray,wgpu --res 128 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_128.txt
-# 3. Training step on the GPU at 256² and 512², demo and paper configs.
-timeout $(left 520) $T bench-train --configs demo,paper --backends wgpu --res 256,512 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_gpu.txt
+# PARTS picks what runs (default: stages,train128,traingpu); each command has its own time limit.
+#   stages    generator stage tables, wgpu (demo, paper) then NdArray (demo); each table is
+#             printed twice: pipelined (the app's way) and synced at each stage's end
+#   train128  training step, NdArray vs wgpu at 128² (the ratio in one run)
+#   traingpu  training step on the GPU at 256² and 512², demo and paper configs
+#   paper512  the paper config at 512² alone, batch 1 (its batch-2 step crashed inside NVIDIA's
+#             driver once), with the kernel log's tail whatever happens
+#   compare   .gl/trainer_b.gz (another build, e.g. another burn feature set) against
+#             .gl/trainer.gz, alternating (ROUNDS, default 2): stage tables and the wgpu
+#             training step at 128²
+PARTS=${PARTS:-stages,train128,traingpu}
+has() { [[ ",$PARTS," == *",$1,"* ]]; }
+if has stages; then
+  timeout 170 $T bench --configs demo,paper --backend wgpu --repeats 2 2>&1 | tee $OUT/bench_wgpu.txt
+  timeout 60 $T bench --configs demo --backend ndarray 2>&1 | tee $OUT/bench_ndarray.txt
+fi
+has train128 && timeout 130 $T bench-train --configs demo --backends ndarray,wgpu --res 128 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_128.txt
+has traingpu && timeout 160 $T bench-train --configs demo,paper --backends wgpu --res 256,512 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_gpu.txt
+if has paper512; then
+  timeout 200 $T bench-train --configs paper --backends wgpu --res 512 --batch 1 --steps 1 --work /tmp/bt 2>&1 | tee $OUT/bench_train_paper512.txt
+  echo "exit ${PIPESTATUS[0]}" | tee -a $OUT/bench_train_paper512.txt
+  dmesg 2>&1 | tail -20 > $OUT/dmesg_tail.txt
+fi
+if has compare; then
+  B=/tmp/trainer_b
+  gzip -dc .gl/trainer_b.gz > $B && chmod +x $B || { echo 'no .gl/trainer_b.gz'; exit 1; }
+  for round in $(seq ${ROUNDS:-2}); do
+    for t in $T $B; do
+      tag=$(basename $t)_$round
+      timeout 120 $t bench --configs demo,paper --backend wgpu > $OUT/compare_bench_$tag.txt 2>&1
+      timeout 100 $t bench-train --configs demo --backends wgpu --res 128 --steps 2 --work /tmp/bt > $OUT/compare_train_$tag.txt 2>&1
+      tail -3 $OUT/compare_train_$tag.txt
+    done
+  done
+fi
 echo "script wall $(( $(date +%s) - START )) s" | tee -a $OUT/machine.txt

@@ -85,8 +85,14 @@ impl StageProfile {
     }
 }
 
+/// Waits for the device's queued work to finish (`Device::sync`), for a recording that
+/// charges each stage with its own GPU time ([`start_synced`]).
+pub type StageSync = Box<dyn FnMut()>;
+
 struct Recorder {
     clock: Clock,
+    /// Called as each stage ends, its time counted as the stage's GPU wait.
+    sync: Option<StageSync>,
     /// The open stage, when it began, and the dispatch count then.
     current: Option<(StageTime, f64, u64)>,
     done: Vec<StageTime>,
@@ -97,6 +103,11 @@ struct Recorder {
 impl Recorder {
     fn close(&mut self) {
         if let Some((mut s, t0, d0)) = self.current.take() {
+            if let Some(sync) = self.sync.as_mut() {
+                let t = (self.clock)();
+                sync();
+                s.gpu_wait_ms += (self.clock)() - t;
+            }
             let wall = (self.clock)() - t0;
             s.host_ms = (wall - s.gpu_wait_ms - s.yield_ms).max(0.0);
             s.dispatches = dispatch_count::total() - d0;
@@ -172,11 +183,22 @@ thread_local! {
 
 /// Start recording on this thread (a recording already running is dropped).
 pub fn start(clock: Clock) {
+    install(clock, None);
+}
+
+/// Start recording with `sync` called as each stage ends: each stage's GPU work then counts
+/// as its own wait instead of the wait of the read-back that forces it. This serialises host
+/// and GPU (a pipelined generation overlaps them), so the total is a bound, not the app's time.
+pub fn start_synced(clock: Clock, sync: StageSync) {
+    install(clock, Some(sync));
+}
+
+fn install(clock: Clock, sync: Option<StageSync>) {
     RECORDER.with(|r| {
         // The old recording's observation ends before the new one begins (one slot).
         r.borrow_mut().take();
         *r.borrow_mut() =
-            Some(Recorder { clock, current: None, done: Vec::new(), _dispatches: dispatch_count::observe() })
+            Some(Recorder { clock, sync, current: None, done: Vec::new(), _dispatches: dispatch_count::observe() })
     });
 }
 
@@ -275,5 +297,28 @@ mod tests {
         assert_eq!((p.host_ms(), p.gpu_wait_ms(), p.readbacks()), (6.0, 11.0, 2));
         assert!(p.table().contains("| total | 6.0 | 11.0 | 2 | 0 |"), "{}", p.table());
         assert!(finish().is_none(), "finish ends the recording");
+    }
+
+    #[test]
+    fn a_synced_recording_charges_each_stage_with_its_sync() {
+        T.with(|t| t.set(0.0));
+        let calls = std::rc::Rc::new(Cell::new(0));
+        let seen = calls.clone();
+        start_synced(
+            fake_clock,
+            Box::new(move || {
+                seen.set(seen.get() + 1);
+                advance(7.0); // the device draining
+            }),
+        );
+        stage("a");
+        advance(2.0);
+        stage("b");
+        advance(1.0);
+        let p = finish().unwrap();
+        assert_eq!(calls.get(), 2, "one sync per stage end");
+        let (a, b) = (&p.stages[0], &p.stages[1]);
+        assert_eq!((a.host_ms, a.gpu_wait_ms, a.readbacks), (2.0, 7.0, 0));
+        assert_eq!((b.host_ms, b.gpu_wait_ms, b.readbacks), (1.0, 7.0, 0));
     }
 }
