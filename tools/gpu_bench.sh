@@ -47,11 +47,6 @@ if has stages; then
 fi
 has train128 && timeout 130 $T bench-train --configs demo --backends ndarray,wgpu --res 128 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_128.txt
 has traingpu && timeout 160 $T bench-train --configs demo,paper --backends wgpu --res 256,512 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_gpu.txt
-if has paper512; then
-  timeout 200 $T bench-train --configs paper --backends wgpu --res 512 --batch 1 --steps 1 --work /tmp/bt 2>&1 | tee $OUT/bench_train_paper512.txt
-  echo "exit ${PIPESTATUS[0]}" | tee -a $OUT/bench_train_paper512.txt
-  dmesg 2>&1 | tail -20 > $OUT/dmesg_tail.txt
-fi
 if has compare; then
   B=/tmp/trainer_b
   gzip -dc .gl/trainer_b.gz > $B && chmod +x $B || { echo 'no .gl/trainer_b.gz'; exit 1; }
@@ -63,5 +58,10 @@ if has compare; then
       tail -3 $OUT/compare_train_$tag.txt
     done
   done
+fi
+if has paper512; then
+  timeout 200 $T bench-train --configs paper --backends wgpu --res 512 --batch 1 --steps 1 --work /tmp/bt 2>&1 | tee $OUT/bench_train_paper512.txt
+  echo "exit ${PIPESTATUS[0]}" | tee -a $OUT/bench_train_paper512.txt
+  dmesg 2>&1 | tail -20 > $OUT/dmesg_tail.txt
 fi
 echo "script wall $(( $(date +%s) - START )) s" | tee -a $OUT/machine.txt

@@ -175,3 +175,44 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
     println!("vs NdArray: vertices within {far:.2e} m, normals 1 − cos ≤ {normal:.2e}, colours within {colour:.2e}");
     assert!(far < 1e-4 && normal < 1e-4 && colour < 1e-4, "{far} {normal} {colour}");
 }
+
+/// Issue #28: a large convolution on a GPU backend goes through im2col + matmul
+/// (`GPU_IM2COL_MIN_MACS`; burn's direct kernel was 83 % of the paper config's generation on an
+/// H200). At that size, on lavapipe, it gives burn's `conv2d` (the direct kernel) within float
+/// noise, values and gradients, for a shared and a per-sample weight.
+#[test]
+fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
+    use getavatar_core::burn::tensor::module::conv2d;
+    use getavatar_core::burn::tensor::ops::ConvOptions;
+    use getavatar_core::network::layers::{conv2d_same, GPU_IM2COL_MIN_MACS};
+    use getavatar_core::rng::Rng;
+    let dev = common::gpu().autodiff();
+    let mut rng = Rng::new(8, 1);
+    let (c, o, k, r) = (128usize, 128usize, 3usize, 64usize);
+    for b in [1usize, 2] {
+        assert!(b * o * c * k * k * r * r >= GPU_IM2COL_MIN_MACS, "the case must take the im2col path");
+        let x: Tensor<4> =
+            Tensor::from_data(TensorData::new(rng.normals(b * c * r * r), [b, c, r, r]), &dev).require_grad();
+        let w: Tensor<5> =
+            Tensor::from_data(TensorData::new(rng.normals(b * o * c * k * k), [b, o, c, k, k]), &dev).require_grad();
+        let opts = |g| ConvOptions::new([1, 1], [k / 2, k / 2], [1, 1], g);
+        let reference = conv2d(x.clone().reshape([1, b * c, r, r]), w.clone().reshape([b * o, c, k, k]), None, opts(b))
+            .reshape([b, o, r, r]);
+        let ours = conv2d_same(x.clone(), w.clone());
+        let weights: Tensor<4> = Tensor::from_data(TensorData::new(rng.normals(b * o * r * r), [b, o, r, r]), &dev);
+        let grads = |y: Tensor<4>| {
+            let g = (y * weights.clone()).sum().backward();
+            (values(x.grad(&g).expect("x grad")), values(w.grad(&g).expect("w grad")))
+        };
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            let scale = b.iter().map(|v| v.abs()).fold(1.0f32, f32::max);
+            let err = a.iter().zip(b).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(err < 1e-5 * scale, "{what} (batch {b}): max error {err} (scale {scale})");
+        };
+        close(&values(ours.clone()), &values(reference.clone()), "values");
+        let (gx0, gw0) = grads(reference);
+        let (gx1, gw1) = grads(ours);
+        close(&gx1, &gx0, "∂x");
+        close(&gw1, &gw0, "∂w");
+    }
+}

@@ -37,24 +37,14 @@ pub fn is_ndarray(device: &Device) -> bool {
 /// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
 /// the discriminators a shared one). On NdArray it is im2col + batched matmul written with
 /// tensor ops: burn-ndarray's `conv2d` backward is 25–35× slower than this at the sizes we
-/// train (see `trainer bench`); on GPU backends it is burn's grouped `conv2d`.
+/// train (see `trainer bench`). On GPU backends it is burn's grouped `conv2d` for small
+/// convolutions and the same im2col + matmul for large ones ([`GPU_IM2COL_MIN_MACS`]).
 pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
-    if is_ndarray(&x.device()) {
-        let xp = if pad > 0 { x.pad((pad, pad, pad, pad), PadMode::Constant(0.0)) } else { x };
-        let mut taps = Vec::with_capacity(k * k);
-        for dy in 0..k {
-            for dx in 0..k {
-                taps.push(xp.clone().slice([0..b, 0..c_in, dy..dy + h, dx..dx + w]));
-            }
-        }
-        // [B, in, k·k, H, W] → columns [B, in·k·k, H·W] (matching the weight's (in, ky, kx) order).
-        let cols = Tensor::<4>::stack::<5>(taps, 2).reshape([b, c_in * k * k, h * w]);
-        let wm = weight.reshape([wb, c_out, c_in * k * k]);
-        let wm = if wb == b { wm } else { wm.expand([b, c_out, c_in * k * k]) };
-        wm.matmul(cols).reshape([b, c_out, h, w])
+    if is_ndarray(&x.device()) || b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
+        conv2d_im2col(x, weight)
     } else if wb == 1 {
         conv2d(x, weight.reshape([c_out, c_in, k, k]), None, ConvOptions::new([1, 1], [pad, pad], [1, 1], 1))
     } else {
@@ -65,6 +55,55 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
             ConvOptions::new([1, 1], [pad, pad], [1, 1], b),
         );
         y.reshape([b, c_out, h, w])
+    }
+}
+
+/// From this many multiply-adds on, a convolution on a GPU backend goes through im2col and a
+/// matmul. burn's wgpu backend has only its direct convolution kernel for dense f32
+/// convolutions (its implicit GEMM needs f16 cooperative matrices): on an NVIDIA H200 it took
+/// 9.4 ms for a 3×3, 512 → 512 channel convolution at 64², 83 % of the paper config's
+/// generation (docs/benchmarks.md). The tiled matmul is far faster there, for k² slices and a
+/// stack more launches and a k²-times larger intermediate. The demo config's convolutions
+/// (at most 1.5 · 10⁸ multiply-adds) stay below the bound, so the browser keeps its launch
+/// count.
+pub const GPU_IM2COL_MIN_MACS: usize = 1 << 29;
+
+/// The most bytes one im2col column matrix may take on a GPU backend: larger convolutions
+/// go band by band of output rows. A storage buffer binding is limited (128 MiB under
+/// WebGPU's defaults, less on some drivers), and the paper config's 256², 128-channel layers
+/// would need 302 MB at once.
+const GPU_COLS_MAX_BYTES: usize = 64 << 20;
+
+/// `conv2d_same` as im2col (the k² shifted taps stacked) and a batched matmul, in tensor ops;
+/// on a GPU backend in bands of output rows whose columns stay within [`GPU_COLS_MAX_BYTES`]
+/// (NdArray takes one band: its results stay what they were).
+fn conv2d_im2col(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+    let [b, c_in, h, w] = x.dims();
+    let [wb, c_out, _, k, _] = weight.dims();
+    let pad = k / 2;
+    let band = if is_ndarray(&x.device()) { h } else { (GPU_COLS_MAX_BYTES / (4 * b * c_in * k * k * w)).clamp(1, h) };
+    let xp = if pad > 0 { x.pad((pad, pad, pad, pad), PadMode::Constant(0.0)) } else { x };
+    let wm = weight.reshape([wb, c_out, c_in * k * k]);
+    let wm = if wb == b { wm } else { wm.expand([b, c_out, c_in * k * k]) };
+    let mut bands: Vec<Tensor<4>> = (0..h)
+        .step_by(band)
+        .map(|y0| {
+            let rows = band.min(h - y0);
+            let mut taps = Vec::with_capacity(k * k);
+            for dy in 0..k {
+                for dx in 0..k {
+                    taps.push(xp.clone().slice([0..b, 0..c_in, y0 + dy..y0 + dy + rows, dx..dx + w]));
+                }
+            }
+            // [B, in, k·k, rows, W] → columns [B, in·k·k, rows·W] (the weight's (in, ky, kx) order).
+            let cols = Tensor::<4>::stack::<5>(taps, 2).reshape([b, c_in * k * k, rows * w]);
+            wm.clone().matmul(cols).reshape([b, c_out, rows, w])
+        })
+        .collect();
+    if bands.len() == 1 {
+        bands.remove(0)
+    } else {
+        Tensor::cat(bands, 2)
     }
 }
 
