@@ -43,8 +43,10 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
-    if is_ndarray(&x.device()) || b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
-        conv2d_im2col(x, weight)
+    if is_ndarray(&x.device()) {
+        conv2d_im2col(x, weight, usize::MAX)
+    } else if b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
+        conv2d_im2col(x, weight, GPU_COLS_MAX_BYTES)
     } else if wb == 1 {
         conv2d(x, weight.reshape([c_out, c_in, k, k]), None, ConvOptions::new([1, 1], [pad, pad], [1, 1], 1))
     } else {
@@ -74,14 +76,15 @@ pub const GPU_IM2COL_MIN_MACS: usize = 1 << 29;
 /// would need 302 MB at once.
 const GPU_COLS_MAX_BYTES: usize = 64 << 20;
 
-/// `conv2d_same` as im2col (the k² shifted taps stacked) and a batched matmul, in tensor ops;
-/// on a GPU backend in bands of output rows whose columns stay within [`GPU_COLS_MAX_BYTES`]
-/// (NdArray takes one band: its results stay what they were).
-fn conv2d_im2col(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+/// `conv2d_same` as im2col (the k² shifted taps stacked) and a batched matmul, in tensor ops,
+/// in bands of output rows whose f32 columns stay within `max_cols_bytes` (at least one row
+/// per band). NdArray passes `usize::MAX` (one band: its results stay what they were), GPU
+/// backends [`GPU_COLS_MAX_BYTES`].
+pub fn conv2d_im2col(x: Tensor<4>, weight: Tensor<5>, max_cols_bytes: usize) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
-    let band = if is_ndarray(&x.device()) { h } else { (GPU_COLS_MAX_BYTES / (4 * b * c_in * k * k * w)).clamp(1, h) };
+    let band = (max_cols_bytes / (4 * b * c_in * k * k * w).max(1)).clamp(1, h.max(1));
     let xp = if pad > 0 { x.pad((pad, pad, pad, pad), PadMode::Constant(0.0)) } else { x };
     let wm = weight.reshape([wb, c_out, c_in * k * k]);
     let wm = if wb == b { wm } else { wm.expand([b, c_out, c_in * k * k]) };
