@@ -4,6 +4,7 @@
 //! cross-entropy), then w_avg tracking and the EMA of G.
 
 use anyhow::Result;
+use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Tensor;
 use getavatar_core::camera::View;
 use getavatar_core::dataset::Label;
@@ -71,9 +72,12 @@ pub(crate) fn adversarial_step(mut st: State, inputs: &StepInputs) -> Result<(St
             .collect();
     lap("D step");
 
-    // G phase: the same fakes against the updated discriminators.
+    // G phase: the same fakes against the updated discriminators, their parameters untracked:
+    // the gradient flows through them to the images, and the weight gradients G's update
+    // never reads (a second matmul per layer) are not computed.
     let imgs = [fakes.rgb, fakes.normal, fakes.mask];
-    let loss_g = sum_active(rc.use_normals, |k| generator_loss(st.d[k].forward(imgs[k].clone(), c_fake.clone())));
+    let frozen: Vec<_> = st.d.iter().map(|d| d.clone().no_grad()).collect();
+    let loss_g = sum_active(rc.use_normals, |k| generator_loss(frozen[k].forward(imgs[k].clone(), c_fake.clone())));
     metrics.loss_g = scalar(loss_g.clone())?;
     metrics.eikonal = scalar(fakes.eikonal.clone())?;
     metrics.cross_entropy = scalar(fakes.cross_entropy.clone())?;
