@@ -9,7 +9,7 @@ use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::spatial::KdTree;
 
 mod common;
-use common::values;
+use common::{assert_close, values};
 use getavatar_core::profile;
 
 #[test]
@@ -204,11 +204,8 @@ fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
             let g = (y * weights.clone()).sum().backward();
             (values(x.grad(&g).expect("x grad")), values(w.grad(&g).expect("w grad")))
         };
-        let close = |ours: &[f32], want: &[f32], what: &str| {
-            let scale = want.iter().map(|v| v.abs()).fold(1.0f32, f32::max);
-            let err = ours.iter().zip(want).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
-            assert!(err < 1e-5 * scale, "{what} (batch {b}): max error {err} (scale {scale})");
-        };
+        let close =
+            |ours: &[f32], want: &[f32], what: &str| assert_close(ours, want, 1e-5, &format!("{what} (batch {b})"));
         close(&values(ours.clone()), &values(reference.clone()), "values");
         // In bands of rows, as the paper config's 256² layers go (here 4 bands of 16 rows).
         let banded = conv2d_im2col(x.clone(), w.clone(), 4 * b * c * k * k * r * 16);

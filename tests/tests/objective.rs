@@ -10,7 +10,7 @@ use getavatar_core::optim::Adam;
 use getavatar_core::rng::Rng;
 
 mod common;
-use common::{cpu, values};
+use common::{assert_close, cpu, values};
 
 fn randn4(rng: &mut Rng, dims: [usize; 4], dev: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(rng.normals(dims.iter().product()), dims), dev)
@@ -166,11 +166,7 @@ fn conv2d_same_matches_burn_conv2d() {
             let g = (y * weights.clone()).sum().backward();
             (values(x.grad(&g).expect("x grad")), values(w.grad(&g).expect("w grad")))
         };
-        let close = |a: &[f32], b: &[f32], what: &str| {
-            let scale = b.iter().map(|v| v.abs()).fold(1.0f32, f32::max);
-            let err = a.iter().zip(b).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
-            assert!(err < 1e-5 * scale, "{what}: max error {err} (scale {scale})");
-        };
+        let close = |ours: &[f32], want: &[f32], what: &str| assert_close(ours, want, 1e-5, what);
         close(&values(ours.clone()), &values(reference.clone()), "values");
         let reference_values = reference.clone().detach();
         let (gx0, gw0) = grads(reference);

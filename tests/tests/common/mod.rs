@@ -26,6 +26,15 @@ pub fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().expect("f32")
 }
 
+/// `ours` equals `want` within `rel` × max(1, max |want|), element by element.
+#[allow(dead_code)]
+pub fn assert_close(ours: &[f32], want: &[f32], rel: f32, what: &str) {
+    assert_eq!(ours.len(), want.len(), "{what}: lengths");
+    let scale = want.iter().map(|v| v.abs()).fold(1.0f32, f32::max);
+    let err = ours.iter().zip(want).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+    assert!(err < rel * scale, "{what}: max error {err} (scale {scale})");
+}
+
 /// Central difference of `f` at `x` along coordinate `i` with step `eps`.
 #[allow(dead_code)]
 pub fn central_difference(f: &dyn Fn(&[f32]) -> f64, x: &[f32], i: usize, eps: f32) -> f64 {
