@@ -174,8 +174,8 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     Ok(())
 }
 
-/// One new identity (canonical generation + rigging, ψ 0.7) recorded stage by stage; with
-/// `sync_on`, that device is synced at each stage's end.
+/// One new identity (canonical generation + rigging, ψ 0.7) recorded stage by stage; when
+/// `synced`, the device is synced at each stage's end (a failed sync fails the call).
 fn profile_identity(
     (g, cfg, ctx): (&Generator, &GeneratorConfig, &BodyContext),
     device: &Device,
@@ -183,19 +183,18 @@ fn profile_identity(
     synced: bool,
 ) -> Result<StageProfile> {
     let sync_error = std::rc::Rc::new(std::cell::RefCell::new(None));
-    match synced {
-        false => getavatar_core::profile::start(clock_ms),
-        true => {
-            let (device, error) = (device.clone(), sync_error.clone());
-            getavatar_core::profile::start_synced(
-                clock_ms,
-                Box::new(move || {
-                    if let Err(e) = device.sync() {
-                        error.borrow_mut().get_or_insert(format!("{e:?}"));
-                    }
-                }),
-            )
-        }
+    if synced {
+        let (device, error) = (device.clone(), sync_error.clone());
+        getavatar_core::profile::start_synced(
+            clock_ms,
+            Box::new(move || {
+                if let Err(e) = device.sync() {
+                    error.borrow_mut().get_or_insert(format!("{e:?}"));
+                }
+            }),
+        );
+    } else {
+        getavatar_core::profile::start(clock_ms);
     }
     getavatar_core::profile::stage("mapping");
     let (zg, zt) = seed_latents(cfg, seed_geo, seed_tex, device);

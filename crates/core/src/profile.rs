@@ -14,7 +14,10 @@
 //! launches of other threads during a recording count too.
 //!
 //! burn queues GPU work lazily, so a stage's GPU time shows up as the wait of the stage whose
-//! read-back forces it (the triplanes' synthesis is waited for in the grid decode's read-back).
+//! read-back forces it (the triplanes' synthesis is waited for in the grid decode's read-back),
+//! or as host time of a later stage whose launches block until cubecl's queue drains (seen on
+//! an H200 at the paper config). [`start_synced`] waits for the device at each stage's end instead, so each stage carries its
+//! own GPU time (at the cost of host and GPU no longer overlapping).
 //! On one thread, work of another task that overlaps a recording (a texture bake running
 //! while a generation does) is counted in it.
 
