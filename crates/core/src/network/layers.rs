@@ -35,16 +35,16 @@ pub fn is_ndarray(device: &Device) -> bool {
 /// `weight` `[B, out, in, k, k]` (or `[1, out, in, k, k]`, shared) → `[B, out, H, W]`.
 ///
 /// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
-/// the discriminators a shared one). On NdArray it is im2col + batched matmul written with
-/// tensor ops: burn-ndarray's `conv2d` backward is 25–35× slower than this at the sizes we
-/// train (see `trainer bench`). On GPU backends it is burn's grouped `conv2d` for small
+/// the discriminators a shared one). On NdArray it is im2col + matmul as one operation with
+/// its own backward pass ([`super::conv_ndarray`]): burn-ndarray's `conv2d` backward is
+/// 25–35× slower at the sizes we train (see `trainer bench`). On GPU backends it is burn's grouped `conv2d` for small
 /// convolutions and the same im2col + matmul for large ones ([`GPU_IM2COL_MIN_MACS`]).
 pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
     if is_ndarray(&x.device()) {
-        conv2d_im2col(x, weight, usize::MAX)
+        conv2d_ndarray(x, weight)
     } else if b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
         conv2d_im2col(x, weight, GPU_COLS_MAX_BYTES)
     } else if wb == 1 {
@@ -58,6 +58,20 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
         );
         y.reshape([b, c_out, h, w])
     }
+}
+
+/// NdArray's convolution: one backend operation with its own backward pass
+/// ([`super::conv_ndarray`]).
+#[cfg(feature = "generator")]
+fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+    use super::conv_ndarray::SameConvBackend;
+    use burn::backend::Dispatch;
+    Tensor::from_dispatch(<Dispatch as SameConvBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
+}
+
+#[cfg(not(feature = "generator"))]
+fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+    conv2d_im2col(x, weight, usize::MAX)
 }
 
 /// From this many multiply-adds on, a convolution on a GPU backend goes through im2col and a

@@ -1,0 +1,352 @@
+//! The networks' one convolution ([`super::layers::conv2d_same`]) on burn's NdArray CPU backend
+//! as a single operation with its own backward pass (burn's backend-extension mechanism).
+//!
+//! Written with tensor ops, the im2col convolution stacks k² shifted copies of the input,
+//! reshapes them into row-major columns and multiplies; under autodiff each of those steps
+//! records its own backward, so a training step spent more time copying (stack, reshape,
+//! zero-padded slice gradients) than multiplying (docs/benchmarks.md, "Where a CPU
+//! adversarial step goes"). Here the forward pass is, per sample, one im2col into a
+//! contiguous buffer and one `sgemm`; the backward pass is `sgemm`s for ∂w (summed over the
+//! batch when the weight is shared) and for the columns' gradient, folded back into ∂x
+//! (col2im). The columns are rebuilt in the backward pass rather than kept, so the tape holds
+//! only `x` and `w`. Results equal the tensor-op im2col's up to float summation order.
+
+// burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
+// (docs/benchmarks.md, "burn's flex CPU backend").
+#![allow(deprecated)]
+
+use std::borrow::Cow;
+
+use burn::backend::ndarray::NdArrayTensor;
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{backend_extension, Backend, NdArray, TensorMetadata};
+use burn::tensor::TensorData;
+
+/// `conv2d_same` as one backend operation: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in,
+/// k, k]` (k odd, stride 1, zero padding k/2) → `[B, out, H, W]`. NdArray, and autodiff over
+/// it; calling it with a tensor of another backend panics, so [`super::layers::conv2d_same`]
+/// only routes NdArray tensors here.
+#[cfg_attr(feature = "autodiff", backend_extension(NdArray, Autodiff))]
+#[cfg_attr(not(feature = "autodiff"), backend_extension(NdArray))]
+pub trait SameConvBackend: Backend {
+    fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// A convolution's sizes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConvDims {
+    pub batch: usize,
+    pub c_in: usize,
+    pub c_out: usize,
+    pub h: usize,
+    pub w: usize,
+    pub k: usize,
+    /// One weight for the whole batch (`[1, out, in, k, k]`) rather than one per sample.
+    pub shared: bool,
+}
+
+impl ConvDims {
+    fn of(x: &[usize], weight: &[usize]) -> Self {
+        Self { batch: x[0], c_in: x[1], c_out: weight[1], h: x[2], w: x[3], k: weight[3], shared: weight[0] == 1 }
+    }
+    fn hw(&self) -> usize {
+        self.h * self.w
+    }
+    /// Rows of the column matrix: (in, ky, kx), the weight's order.
+    fn taps(&self) -> usize {
+        self.c_in * self.k * self.k
+    }
+    fn weight_len(&self) -> usize {
+        self.c_out * self.taps()
+    }
+    /// Sample `n`'s weight matrix `[out, in·k·k]` within the weight buffer.
+    fn weight_of<'a>(&self, weight: &'a [f32], n: usize) -> &'a [f32] {
+        let s = if self.shared { 0 } else { n * self.weight_len() };
+        &weight[s..s + self.weight_len()]
+    }
+}
+
+/// im2col of one sample `x_n` `[in, H, W]` into `cols` `[in·k·k, H·W]` (zero padding).
+fn im2col(d: &ConvDims, x_n: &[f32], cols: &mut [f32]) {
+    let (h, w, k, pad) = (d.h, d.w, d.k, d.k / 2);
+    for c in 0..d.c_in {
+        let plane = &x_n[c * h * w..(c + 1) * h * w];
+        for ky in 0..k {
+            for kx in 0..k {
+                let row = &mut cols[((c * k + ky) * k + kx) * h * w..][..h * w];
+                // Output x reads input x + kx − pad: valid for x in [x0, x1).
+                let x0 = pad.saturating_sub(kx);
+                let x1 = (w + pad).saturating_sub(kx).min(w);
+                for y in 0..h {
+                    let out = &mut row[y * w..(y + 1) * w];
+                    let sy = y + ky;
+                    if sy < pad || sy - pad >= h || x0 >= x1 {
+                        out.fill(0.0);
+                        continue;
+                    }
+                    let src = &plane[(sy - pad) * w..(sy - pad + 1) * w];
+                    out[..x0].fill(0.0);
+                    out[x0..x1].copy_from_slice(&src[x0 + kx - pad..x1 + kx - pad]);
+                    out[x1..].fill(0.0);
+                }
+            }
+        }
+    }
+}
+
+/// The adjoint of [`im2col`]: adds the columns' gradient `cols` into `dx_n` `[in, H, W]`.
+fn col2im(d: &ConvDims, cols: &[f32], dx_n: &mut [f32]) {
+    let (h, w, k, pad) = (d.h, d.w, d.k, d.k / 2);
+    for c in 0..d.c_in {
+        let plane = &mut dx_n[c * h * w..(c + 1) * h * w];
+        for ky in 0..k {
+            for kx in 0..k {
+                let row = &cols[((c * k + ky) * k + kx) * h * w..][..h * w];
+                let x0 = pad.saturating_sub(kx);
+                let x1 = (w + pad).saturating_sub(kx).min(w);
+                for y in 0..h {
+                    let sy = y + ky;
+                    if sy < pad || sy - pad >= h || x0 >= x1 {
+                        continue;
+                    }
+                    let dst = &mut plane[(sy - pad) * w + x0 + kx - pad..(sy - pad) * w + x1 + kx - pad];
+                    for (a, g) in dst.iter_mut().zip(&row[y * w + x0..y * w + x1]) {
+                        *a += g;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `c (m×n) = alpha·a (m×k) · b (k×n) + beta·c`, each operand given by its row and column strides.
+#[allow(clippy::too_many_arguments)]
+fn gemm(m: usize, k: usize, n: usize, a: (&[f32], isize, isize), b: (&[f32], isize, isize), beta: f32, c: &mut [f32]) {
+    debug_assert!(c.len() >= m * n);
+    // SAFETY: the callers pass buffers of at least the extents the strides address: `a` covers
+    // m×k, `b` k×n and `c` m×n elements (row-major `c`, checked above), as the shapes in
+    // `ConvDims` give them.
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.0.as_ptr(),
+            a.1,
+            a.2,
+            b.0.as_ptr(),
+            b.1,
+            b.2,
+            beta,
+            c.as_mut_ptr(),
+            n as isize,
+            1,
+        );
+    }
+}
+
+/// The forward pass on plain buffers: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in, k, k]`
+/// → `[B, out, H, W]`.
+pub fn forward(d: &ConvDims, x: &[f32], weight: &[f32]) -> Vec<f32> {
+    let (hw, taps) = (d.hw(), d.taps());
+    let mut y = vec![0.0; d.batch * d.c_out * hw];
+    let mut cols = vec![0.0; taps * hw];
+    for n in 0..d.batch {
+        im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], &mut cols);
+        let w_n = d.weight_of(weight, n);
+        let y_n = &mut y[n * d.c_out * hw..(n + 1) * d.c_out * hw];
+        gemm(d.c_out, taps, hw, (w_n, taps as isize, 1), (&cols, hw as isize, 1), 0.0, y_n);
+    }
+    y
+}
+
+/// The backward pass on plain buffers: given `dy` `[B, out, H, W]`, the gradients of `x` and
+/// of `weight` (each only when asked for; ∂w shaped like `weight`, summed over the batch when
+/// it is shared).
+pub fn backward(
+    d: &ConvDims,
+    x: &[f32],
+    weight: &[f32],
+    dy: &[f32],
+    want_x: bool,
+    want_w: bool,
+) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
+    let (hw, taps) = (d.hw(), d.taps());
+    let mut dx = want_x.then(|| vec![0.0; d.batch * d.c_in * hw]);
+    let mut dw = want_w.then(|| vec![0.0; if d.shared { 1 } else { d.batch } * d.weight_len()]);
+    let mut cols = vec![0.0; taps * hw];
+    for n in 0..d.batch {
+        let dy_n = &dy[n * d.c_out * hw..(n + 1) * d.c_out * hw];
+        if let Some(dw) = dw.as_mut() {
+            // ∂w_n = dy_n · colsᵀ, accumulated over the batch for a shared weight.
+            im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], &mut cols);
+            let (slot, beta) = if d.shared { (0, if n == 0 { 0.0 } else { 1.0 }) } else { (n, 0.0) };
+            let dw_n = &mut dw[slot * d.weight_len()..(slot + 1) * d.weight_len()];
+            gemm(d.c_out, hw, taps, (dy_n, hw as isize, 1), (&cols, 1, hw as isize), beta, dw_n);
+        }
+        if let Some(dx) = dx.as_mut() {
+            // ∂cols = w_nᵀ · dy_n, folded back onto the input.
+            let w_n = d.weight_of(weight, n);
+            gemm(taps, d.c_out, hw, (w_n, 1, taps as isize), (dy_n, hw as isize, 1), 0.0, &mut cols);
+            col2im(d, &cols, &mut dx[n * d.c_in * hw..(n + 1) * d.c_in * hw]);
+        }
+    }
+    (dx, dw)
+}
+
+/// An NdArray float tensor's shape and values (borrowed when contiguous, as they nearly
+/// always are; f64 tensors converted).
+fn values(t: &NdArrayTensor) -> (Vec<usize>, Cow<'_, [f32]>) {
+    match t {
+        NdArrayTensor::F32(s) => {
+            let view = s.view();
+            let v = match view.to_slice() {
+                Some(v) => Cow::Borrowed(v),
+                None => Cow::Owned(view.iter().copied().collect()),
+            };
+            (s.shape().to_vec(), v)
+        }
+        NdArrayTensor::F64(s) => (s.shape().to_vec(), Cow::Owned(s.view().iter().map(|v| *v as f32).collect())),
+        other => unreachable!("a float tensor of NdArray holds floats, not {:?}", other.dtype()),
+    }
+}
+
+fn tensor(v: Vec<f32>, shape: Vec<usize>) -> NdArrayTensor {
+    NdArrayTensor::from_data(TensorData::new(v, shape))
+}
+
+impl SameConvBackend for NdArray {
+    fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
+        let ((xs, x), (ws, w)) = (values(&x), values(&weight));
+        let d = ConvDims::of(&xs, &ws);
+        tensor(forward(&d, &x, &w), vec![d.batch, d.c_out, d.h, d.w])
+    }
+}
+
+#[cfg(feature = "autodiff")]
+mod autodiff {
+    use super::*;
+    use burn::backend::autodiff::checkpoint::base::Checkpointer;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::autodiff::grads::Gradients;
+    use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+    use burn::backend::Autodiff;
+
+    #[derive(Debug)]
+    struct SameConvBackward;
+
+    impl Backward<NdArray, 2> for SameConvBackward {
+        /// The forward pass's `x` and `weight` (NdArray's arrays are reference-counted: no copy).
+        type State = (FloatTensor<NdArray>, FloatTensor<NdArray>);
+
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node_x, node_w] = ops.parents;
+            let dy = grads.consume::<NdArray>(&ops.node);
+            let (x, weight) = ops.state;
+            let ((xs, x), (ws, w), (_, dy)) = (values(&x), values(&weight), values(&dy));
+            let d = ConvDims::of(&xs, &ws);
+            let (dx, dw) = backward(&d, &x, &w, &dy, node_x.is_some(), node_w.is_some());
+            if let (Some(node), Some(dx)) = (node_x, dx) {
+                grads.register::<NdArray>(node.id, tensor(dx, xs));
+            }
+            if let (Some(node), Some(dw)) = (node_w, dw) {
+                grads.register::<NdArray>(node.id, tensor(dw, ws));
+            }
+        }
+    }
+
+    impl<C: CheckpointStrategy> SameConvBackend for Autodiff<NdArray, C> {
+        fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
+            let (x, x_node) = x.into_parts();
+            let (w, w_node) = weight.into_parts();
+            match SameConvBackward.prepare::<C>([x_node, w_node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let y = NdArray::conv2d_same(x.clone(), w.clone());
+                    prep.finish((x, w), y)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(NdArray::conv2d_same(x, w)),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The plain-buffer passes against a direct loop convolution and its finite differences.
+    #[test]
+    fn forward_and_backward_match_a_direct_convolution() {
+        for (shared, k, h, w) in [(true, 3, 5, 4), (false, 3, 4, 6), (true, 1, 3, 3), (false, 5, 3, 2)] {
+            let d = ConvDims { batch: 2, c_in: 3, c_out: 2, h, w, k, shared };
+            let mut s = 1u32;
+            let mut rnd = |n: usize| -> Vec<f32> {
+                (0..n)
+                    .map(|_| {
+                        s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                        (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+                    })
+                    .collect()
+            };
+            let x = rnd(d.batch * d.c_in * h * w);
+            let wt = rnd(if shared { 1 } else { d.batch } * d.weight_len());
+            let dy = rnd(d.batch * d.c_out * h * w);
+            let direct = |x: &[f32], wt: &[f32]| {
+                let mut y = vec![0.0f32; d.batch * d.c_out * h * w];
+                let p = (k / 2) as isize;
+                for n in 0..d.batch {
+                    let wn = d.weight_of(wt, n);
+                    for o in 0..d.c_out {
+                        for yy in 0..h as isize {
+                            for xx in 0..w as isize {
+                                let mut acc = 0.0;
+                                for c in 0..d.c_in {
+                                    for ky in 0..k as isize {
+                                        for kx in 0..k as isize {
+                                            let (sy, sx) = (yy + ky - p, xx + kx - p);
+                                            if sy >= 0 && sy < h as isize && sx >= 0 && sx < w as isize {
+                                                acc += wn[((o * d.c_in + c) * k + ky as usize) * k + kx as usize]
+                                                    * x[((n * d.c_in + c) * h + sy as usize) * w + sx as usize];
+                                            }
+                                        }
+                                    }
+                                }
+                                y[((n * d.c_out + o) * h + yy as usize) * w + xx as usize] = acc;
+                            }
+                        }
+                    }
+                }
+                y
+            };
+            let y = forward(&d, &x, &wt);
+            for (a, b) in y.iter().zip(direct(&x, &wt)) {
+                assert!((a - b).abs() < 1e-5, "{d:?}: {a} vs {b}");
+            }
+            // The loss Σ y·dy is linear in x and in w, so central differences are exact up to rounding.
+            let loss = |x: &[f32], wt: &[f32]| -> f64 {
+                direct(x, wt).iter().zip(&dy).map(|(a, b)| (*a as f64) * (*b as f64)).sum()
+            };
+            let (dx, dw) = backward(&d, &x, &wt, &dy, true, true);
+            let (dx, dw) = (dx.unwrap(), dw.unwrap());
+            let eps = 1e-2f32;
+            for (i, g) in dx.iter().enumerate() {
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i] += eps;
+                xm[i] -= eps;
+                let fd = (loss(&xp, &wt) - loss(&xm, &wt)) / (2.0 * eps as f64);
+                assert!((*g as f64 - fd).abs() < 1e-3, "{d:?} ∂x[{i}]: {g} vs {fd}");
+            }
+            for (i, g) in dw.iter().enumerate() {
+                let (mut wp, mut wm) = (wt.clone(), wt.clone());
+                wp[i] += eps;
+                wm[i] -= eps;
+                let fd = (loss(&x, &wp) - loss(&x, &wm)) / (2.0 * eps as f64);
+                assert!((*g as f64 - fd).abs() < 1e-3, "{d:?} ∂w[{i}]: {g} vs {fd}");
+            }
+            // Only what is asked for.
+            assert_eq!(backward(&d, &x, &wt, &dy, false, true).0, None);
+            assert_eq!(backward(&d, &x, &wt, &dy, true, false).1, None);
+        }
+    }
+}
