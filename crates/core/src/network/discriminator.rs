@@ -97,7 +97,15 @@ impl DiscriminatorConfig {
     }
 }
 
+/// 2× downsampling: 2×2 average pooling (on NdArray one operation with its own backward,
+/// [`super::ndarray_ops`]).
 fn down2(x: Tensor<4>) -> Tensor<4> {
+    #[cfg(feature = "generator")]
+    if super::layers::is_ndarray(&x.device()) {
+        use super::ndarray_ops::SameConvBackend;
+        use burn::backend::Dispatch;
+        return Tensor::from_dispatch(<Dispatch as SameConvBackend>::avg_pool2x2(x.into_dispatch()));
+    }
     avg_pool2d(x, AvgPoolOptions::new([2, 2]))
 }
 

@@ -36,7 +36,7 @@ pub fn is_ndarray(device: &Device) -> bool {
 ///
 /// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
 /// the discriminators a shared one). On NdArray it is im2col + matmul as one operation with
-/// its own backward pass ([`super::conv_ndarray`]): burn-ndarray's `conv2d` backward is
+/// its own backward pass ([`super::ndarray_ops`]): burn-ndarray's `conv2d` backward is
 /// 25–35× slower at the sizes we train (see `trainer bench`). On GPU backends it is burn's grouped `conv2d` for small
 /// convolutions and the same im2col + matmul for large ones ([`GPU_IM2COL_MIN_MACS`]).
 pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
@@ -61,10 +61,10 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
 }
 
 /// NdArray's convolution: one backend operation with its own backward pass
-/// ([`super::conv_ndarray`]).
+/// ([`super::ndarray_ops`]).
 #[cfg(feature = "generator")]
 fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
-    use super::conv_ndarray::SameConvBackend;
+    use super::ndarray_ops::SameConvBackend;
     use burn::backend::Dispatch;
     Tensor::from_dispatch(<Dispatch as SameConvBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
 }

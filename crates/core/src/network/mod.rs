@@ -3,7 +3,7 @@
 //! natively and in the browser) decides where they run.
 //!
 //! - [`config`]: sizes (`paper`, `demo`, `tiny` presets), all config values
-//! - [`conv_ndarray`]: the convolution on NdArray as one operation with its own backward pass
+//! - [`ndarray_ops`]: the convolution on NdArray as one operation with its own backward pass
 //! - [`layers`]: equalised-lr fully connected layers, modulated convs and modulated FCs
 //! - [`mapping`]: z → w mapping networks with tracked w_avg and truncation ψ
 //! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
@@ -16,7 +16,7 @@
 
 pub mod config;
 #[cfg(feature = "ndarray")]
-pub mod conv_ndarray;
+pub mod ndarray_ops;
 pub mod decoders;
 pub mod discriminator;
 pub mod init;

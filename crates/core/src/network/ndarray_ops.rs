@@ -1,5 +1,6 @@
-//! The networks' one convolution ([`super::layers::conv2d_same`]) on burn's NdArray CPU backend
-//! as a single operation with its own backward pass (burn's backend-extension mechanism).
+//! The networks' heaviest operations on burn's NdArray CPU backend, each as a single operation
+//! with its own backward pass (burn's backend-extension mechanism): the one convolution
+//! ([`super::layers::conv2d_same`]) and the discriminators' 2×2 average pooling.
 //!
 //! Written with tensor ops, the im2col convolution stacks k² shifted copies of the input,
 //! reshapes them into row-major columns and multiplies; under autodiff each of those steps
@@ -10,6 +11,10 @@
 //! batch when the weight is shared) and for the columns' gradient, folded back into ∂x
 //! (col2im). The columns are rebuilt in the backward pass rather than kept, so the tape holds
 //! only `x` and `w`. Results equal the tensor-op im2col's up to float summation order.
+//!
+//! burn-ndarray's `avg_pool2d` and its backward are written for any kernel, stride and
+//! padding and walked 10 % of a CPU training step once the convolution was one operation;
+//! [`SameConvBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops.
 
 // burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
 // (docs/benchmarks.md, "burn's flex CPU backend").
@@ -30,6 +35,9 @@ use burn::tensor::TensorData;
 #[cfg_attr(not(feature = "autodiff"), backend_extension(NdArray))]
 pub trait SameConvBackend: Backend {
     fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// 2×2 average pooling with stride 2: `[B, C, H, W]` → `[B, C, H/2, W/2]` (an odd last
+    /// row or column is dropped, as burn's `avg_pool2d` drops it).
+    fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
 /// A convolution's sizes.
@@ -195,6 +203,47 @@ pub fn backward(
     (dx, dw)
 }
 
+/// 2×2 average pooling of `[planes, H, W]` → `[planes, H/2, W/2]`.
+pub fn pool_forward(planes: usize, h: usize, w: usize, x: &[f32]) -> Vec<f32> {
+    let (ho, wo) = (h / 2, w / 2);
+    let mut y = vec![0.0; planes * ho * wo];
+    for p in 0..planes {
+        for i in 0..ho {
+            let r0 = &x[(p * h + 2 * i) * w..][..w];
+            let r1 = &x[(p * h + 2 * i + 1) * w..][..w];
+            let out = &mut y[(p * ho + i) * wo..][..wo];
+            for (j, o) in out.iter_mut().enumerate() {
+                *o = 0.25 * (r0[2 * j] + r0[2 * j + 1] + r1[2 * j] + r1[2 * j + 1]);
+            }
+        }
+    }
+    y
+}
+
+/// The adjoint of [`pool_forward`]: each output's gradient, a quarter to each of its four inputs.
+pub fn pool_backward(planes: usize, h: usize, w: usize, dy: &[f32]) -> Vec<f32> {
+    let (ho, wo) = (h / 2, w / 2);
+    let mut dx = vec![0.0; planes * h * w];
+    for p in 0..planes {
+        for i in 0..ho {
+            let g = &dy[(p * ho + i) * wo..][..wo];
+            for r in [2 * i, 2 * i + 1] {
+                let row = &mut dx[(p * h + r) * w..][..w];
+                for (j, g) in g.iter().enumerate() {
+                    row[2 * j] = 0.25 * g;
+                    row[2 * j + 1] = 0.25 * g;
+                }
+            }
+        }
+    }
+    dx
+}
+
+/// A `[B, C, H, W]` shape as (planes, H, W).
+fn planes(shape: &[usize]) -> (usize, usize, usize) {
+    (shape[0] * shape[1], shape[2], shape[3])
+}
+
 /// An NdArray float tensor's shape and values (borrowed when contiguous, as they nearly
 /// always are; f64 tensors converted).
 fn values(t: &NdArrayTensor) -> (Vec<usize>, Cow<'_, [f32]>) {
@@ -221,6 +270,12 @@ impl SameConvBackend for NdArray {
         let ((xs, x), (ws, w)) = (values(&x), values(&weight));
         let d = ConvDims::of(&xs, &ws);
         tensor(forward(&d, &x, &w), vec![d.batch, d.c_out, d.h, d.w])
+    }
+
+    fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let (shape, x) = values(&x);
+        let (p, h, w) = planes(&shape);
+        tensor(pool_forward(p, h, w, &x), vec![shape[0], shape[1], h / 2, w / 2])
     }
 }
 
@@ -256,6 +311,24 @@ mod autodiff {
         }
     }
 
+    #[derive(Debug)]
+    struct AvgPool2x2Backward;
+
+    impl Backward<NdArray, 1> for AvgPool2x2Backward {
+        /// The input's shape.
+        type State = Vec<usize>;
+
+        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node] = ops.parents;
+            let dy = grads.consume::<NdArray>(&ops.node);
+            if let Some(node) = node {
+                let (_, dy) = values(&dy);
+                let (p, h, w) = planes(&ops.state);
+                grads.register::<NdArray>(node.id, tensor(pool_backward(p, h, w, &dy), ops.state));
+            }
+        }
+    }
+
     impl<C: CheckpointStrategy> SameConvBackend for Autodiff<NdArray, C> {
         fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
             let (x, x_node) = x.into_parts();
@@ -266,6 +339,17 @@ mod autodiff {
                     prep.finish((x, w), y)
                 }
                 OpsKind::UnTracked(prep) => prep.finish(NdArray::conv2d_same(x, w)),
+            }
+        }
+
+        fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+            let (x, node) = x.into_parts();
+            match AvgPool2x2Backward.prepare::<C>([node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let shape = x.shape().to_vec();
+                    prep.finish(shape, NdArray::avg_pool2x2(x))
+                }
+                OpsKind::UnTracked(prep) => prep.finish(NdArray::avg_pool2x2(x)),
             }
         }
     }
