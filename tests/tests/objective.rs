@@ -208,6 +208,31 @@ fn ndarray_avg_pool2x2_matches_burn_avg_pool2d() {
     }
 }
 
+/// The bias and activation after each convolution (on NdArray one operation with its own
+/// backward) equal the bias add and `lrelu_gain` as tensor ops, values and both gradients.
+#[test]
+fn ndarray_bias_lrelu_matches_the_tensor_ops() {
+    use getavatar_core::network::layers::{bias_lrelu, lrelu_gain};
+    let dev = cpu().autodiff();
+    let mut rng = Rng::new(7, 7);
+    let x = randn4(&mut rng, [2, 3, 5, 4], &dev).require_grad();
+    let bias: Tensor<1> = Tensor::from_data(TensorData::new(rng.normals(3), [3]), &dev).require_grad();
+    let ours = bias_lrelu(x.clone(), bias.clone(), true);
+    let reference = lrelu_gain(x.clone() + bias.clone().reshape([1, 3, 1, 1]));
+    assert_close(&values(ours.clone()), &values(reference.clone()), 1e-6, "values");
+    let weights = randn4(&mut rng, [2, 3, 5, 4], &dev);
+    let grads = |y: Tensor<4>| {
+        let g = (y * weights.clone()).sum().backward();
+        (values(x.grad(&g).expect("x grad")), values(bias.grad(&g).expect("bias grad")))
+    };
+    let ((gx0, gb0), (gx1, gb1)) = (grads(reference), grads(ours));
+    assert_close(&gx1, &gx0, 1e-6, "∂x");
+    assert_close(&gb1, &gb0, 1e-5, "∂bias");
+    // Both slopes are exercised.
+    let v = values(x.clone() + bias.clone().reshape([1, 3, 1, 1]));
+    assert!(v.iter().any(|t| *t > 0.0) && v.iter().any(|t| *t < 0.0));
+}
+
 /// Every float parameter of `m` by checkpoint path.
 fn named_params<M: Module>(m: &M) -> std::collections::BTreeMap<String, Vec<f32>> {
     getavatar_core::checkpoint::collect_params(m).unwrap().into_iter().map(|(name, _, v)| (name, v)).collect()

@@ -14,7 +14,7 @@ use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::init::{full, randn, Rng};
-use super::layers::{conv2d_same, lrelu_gain, FullyConnected};
+use super::layers::{bias_lrelu, conv2d_same, lrelu_gain, FullyConnected};
 
 /// Discriminator sizes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -144,18 +144,16 @@ impl Conv2dLayer {
     }
 
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let c_out = self.weight.dims()[0];
         let mut y = conv2d_same(x, (self.weight.val() * self.gain).unsqueeze_dim(0));
-        if let Some(b) = &self.bias {
-            y = y + b.val().reshape([1, c_out, 1, 1]);
-        }
+        // Pooling commutes with the per-channel bias, so the bias and activation go together
+        // after it.
         if self.down {
             y = down2(y);
         }
-        if self.activation {
-            lrelu_gain(y)
-        } else {
-            y
+        match &self.bias {
+            Some(b) => bias_lrelu(y, b.val(), self.activation),
+            None if self.activation => lrelu_gain(y),
+            None => y,
         }
     }
 }

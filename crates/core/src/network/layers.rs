@@ -74,6 +74,25 @@ fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     conv2d_im2col(x, weight, usize::MAX)
 }
 
+/// `lrelu(x + bias) · √2` over `[B, C, H, W]` with a `[C]` bias, or only the bias without
+/// `activation`: what follows each convolution. On NdArray the activated form is one operation
+/// with its own backward pass ([`super::ndarray_ops`]).
+pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> {
+    #[cfg(feature = "generator")]
+    if activation && is_ndarray(&x.device()) {
+        use super::ndarray_ops::SameConvBackend;
+        use burn::backend::Dispatch;
+        return Tensor::from_dispatch(<Dispatch as SameConvBackend>::bias_lrelu(x.into_dispatch(), bias.into_dispatch()));
+    }
+    let c = bias.dims()[0];
+    let y = x + bias.reshape([1, c, 1, 1]);
+    if activation {
+        lrelu_gain(y)
+    } else {
+        y
+    }
+}
+
 /// From this many multiply-adds on, a convolution on a GPU backend goes through im2col and a
 /// matmul. burn's wgpu backend has only its direct convolution kernel for dense f32
 /// convolutions (its implicit GEMM needs f16 cooperative matrices): on an NVIDIA H200 it took
@@ -211,7 +230,7 @@ impl ModulatedConv2d {
     /// `x`: `[B, in, H, W]`, `w`: `[B, w_dim]` → `[B, out, H, W]`.
     pub fn forward(&self, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
         let [b, c_in, _, _] = x.dims();
-        let [c_out, _, k, _] = self.weight.dims();
+        let [_, _, k, _] = self.weight.dims();
         let mut styles = self.affine.forward(w); // [B, in]
         if !self.demodulate {
             // to-RGB style layers: fold the fan-in gain into the styles.
@@ -224,12 +243,7 @@ impl ModulatedConv2d {
         } else {
             weight
         };
-        let y = conv2d_same(x, weight) + self.bias.val().reshape([1, c_out, 1, 1]);
-        if self.activation {
-            lrelu_gain(y)
-        } else {
-            y
-        }
+        bias_lrelu(conv2d_same(x, weight), self.bias.val(), self.activation)
     }
 }
 

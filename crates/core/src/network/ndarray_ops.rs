@@ -1,6 +1,7 @@
 //! The networks' heaviest operations on burn's NdArray CPU backend, each as a single operation
 //! with its own backward pass (burn's backend-extension mechanism): the one convolution
-//! ([`super::layers::conv2d_same`]) and the discriminators' 2×2 average pooling.
+//! ([`super::layers::conv2d_same`]), the bias and leaky ReLU that follow it
+//! ([`super::layers::bias_lrelu`]) and the discriminators' 2×2 average pooling.
 //!
 //! Written with tensor ops, the im2col convolution stacks k² shifted copies of the input,
 //! reshapes them into row-major columns and multiplies; under autodiff each of those steps
@@ -14,7 +15,9 @@
 //!
 //! burn-ndarray's `avg_pool2d` and its backward are written for any kernel, stride and
 //! padding and walked 10 % of a CPU training step once the convolution was one operation;
-//! [`SameConvBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops.
+//! [`SameConvBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops. Likewise
+//! the bias add, leaky ReLU and gain after each convolution were four element-wise tensor
+//! ops (and a mask) each way; [`SameConvBackend::bias_lrelu`] is one pass each way.
 
 // burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
 // (docs/benchmarks.md, "burn's flex CPU backend").
@@ -38,6 +41,45 @@ pub trait SameConvBackend: Backend {
     /// 2×2 average pooling with stride 2: `[B, C, H, W]` → `[B, C, H/2, W/2]` (an odd last
     /// row or column is dropped, as burn's `avg_pool2d` drops it).
     fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// `lrelu(x + bias) · √2` (slope 0.2, StyleGAN's gain): `x` `[B, C, H, W]`, `bias` `[C]`.
+    fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// Leaky ReLU's negative slope and StyleGAN's gain, as [`super::layers::lrelu_gain`] uses them.
+const SLOPE: f32 = 0.2;
+const GAIN: f32 = std::f32::consts::SQRT_2;
+
+/// `lrelu(x + bias[c]) · gain` over `[B, C, plane]`.
+pub fn bias_lrelu_forward(channels: usize, plane: usize, x: &[f32], bias: &[f32]) -> Vec<f32> {
+    let mut y = Vec::with_capacity(x.len());
+    for (i, chunk) in x.chunks(plane).enumerate() {
+        let b = bias[i % channels];
+        y.extend(chunk.iter().map(|v| {
+            let t = v + b;
+            if t > 0.0 {
+                t * GAIN
+            } else {
+                t * (SLOPE * GAIN)
+            }
+        }));
+    }
+    y
+}
+
+/// The gradients of `x` and `bias` given the forward output `y` and its gradient `dy`.
+pub fn bias_lrelu_backward(channels: usize, plane: usize, y: &[f32], dy: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let mut dx = Vec::with_capacity(dy.len());
+    let mut db = vec![0.0f32; channels];
+    for (i, (ys, gs)) in y.chunks(plane).zip(dy.chunks(plane)).enumerate() {
+        let mut sum = 0.0;
+        dx.extend(ys.iter().zip(gs).map(|(y, g)| {
+            let d = if *y > 0.0 { g * GAIN } else { g * (SLOPE * GAIN) };
+            sum += d;
+            d
+        }));
+        db[i % channels] += sum;
+    }
+    (dx, db)
 }
 
 /// A convolution's sizes.
@@ -277,6 +319,12 @@ impl SameConvBackend for NdArray {
         let (p, h, w) = planes(&shape);
         tensor(pool_forward(p, h, w, &x), vec![shape[0], shape[1], h / 2, w / 2])
     }
+
+    fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        let ((shape, x), (_, b)) = (values(&x), values(&bias));
+        let (c, plane) = (shape[1], shape[2..].iter().product());
+        tensor(bias_lrelu_forward(c, plane, &x, &b), shape)
+    }
 }
 
 #[cfg(feature = "autodiff")]
@@ -329,6 +377,28 @@ mod autodiff {
         }
     }
 
+    #[derive(Debug)]
+    struct BiasLreluBackward;
+
+    impl Backward<NdArray, 2> for BiasLreluBackward {
+        /// The forward pass's output (its sign is the activation's slope).
+        type State = FloatTensor<NdArray>;
+
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node_x, node_b] = ops.parents;
+            let dy = grads.consume::<NdArray>(&ops.node);
+            let ((shape, y), (_, dy)) = (values(&ops.state), values(&dy));
+            let (c, plane) = (shape[1], shape[2..].iter().product());
+            let (dx, db) = bias_lrelu_backward(c, plane, &y, &dy);
+            if let Some(node) = node_x {
+                grads.register::<NdArray>(node.id, tensor(dx, shape));
+            }
+            if let Some(node) = node_b {
+                grads.register::<NdArray>(node.id, tensor(db, vec![c]));
+            }
+        }
+    }
+
     impl<C: CheckpointStrategy> SameConvBackend for Autodiff<NdArray, C> {
         fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
             let (x, x_node) = x.into_parts();
@@ -350,6 +420,18 @@ mod autodiff {
                     prep.finish(shape, NdArray::avg_pool2x2(x))
                 }
                 OpsKind::UnTracked(prep) => prep.finish(NdArray::avg_pool2x2(x)),
+            }
+        }
+
+        fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+            let (x, x_node) = x.into_parts();
+            let (b, b_node) = bias.into_parts();
+            match BiasLreluBackward.prepare::<C>([x_node, b_node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let y = NdArray::bias_lrelu(x, b);
+                    prep.finish(y.clone(), y)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(NdArray::bias_lrelu(x, b)),
             }
         }
     }
