@@ -82,7 +82,10 @@ pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> 
     if activation && is_ndarray(&x.device()) {
         use super::ndarray_ops::SameConvBackend;
         use burn::backend::Dispatch;
-        return Tensor::from_dispatch(<Dispatch as SameConvBackend>::bias_lrelu(x.into_dispatch(), bias.into_dispatch()));
+        return Tensor::from_dispatch(<Dispatch as SameConvBackend>::bias_lrelu(
+            x.into_dispatch(),
+            bias.into_dispatch(),
+        ));
     }
     let c = bias.dims()[0];
     let y = x + bias.reshape([1, c, 1, 1]);

@@ -15,13 +15,13 @@
 //! bit-identical parameters.
 
 pub mod config;
-#[cfg(feature = "ndarray")]
-pub mod ndarray_ops;
 pub mod decoders;
 pub mod discriminator;
 pub mod init;
 pub mod layers;
 pub mod mapping;
+#[cfg(feature = "ndarray")]
+pub mod ndarray_ops;
 pub mod synthesis;
 pub mod triplane;
 

@@ -11,7 +11,9 @@
 //! contiguous buffer and one `sgemm`; the backward pass is `sgemm`s for ∂w (summed over the
 //! batch when the weight is shared) and for the columns' gradient, folded back into ∂x
 //! (col2im). The columns are rebuilt in the backward pass rather than kept, so the tape holds
-//! only `x` and `w`. Results equal the tensor-op im2col's up to float summation order.
+//! only `x` and `w`. Natively the samples of a batch run on the CPU cores side by side (burn's
+//! NdArray backend itself is built single-threaded here); each sample's values are the same for
+//! any number of threads. Results equal the tensor-op im2col's up to float summation order.
 //!
 //! burn-ndarray's `avg_pool2d` and its backward are written for any kernel, stride and
 //! padding and walked 10 % of a CPU training step once the convolution was one operation;
@@ -51,35 +53,42 @@ const GAIN: f32 = std::f32::consts::SQRT_2;
 
 /// `lrelu(x + bias[c]) · gain` over `[B, C, plane]`.
 pub fn bias_lrelu_forward(channels: usize, plane: usize, x: &[f32], bias: &[f32]) -> Vec<f32> {
-    let mut y = Vec::with_capacity(x.len());
-    for (i, chunk) in x.chunks(plane).enumerate() {
+    let mut y = vec![0.0; x.len()];
+    for (i, (ys, xs)) in y.chunks_mut(plane).zip(x.chunks(plane)).enumerate() {
         let b = bias[i % channels];
-        y.extend(chunk.iter().map(|v| {
-            let t = v + b;
-            if t > 0.0 {
-                t * GAIN
-            } else {
-                t * (SLOPE * GAIN)
-            }
-        }));
+        for (y, x) in ys.iter_mut().zip(xs) {
+            let t = x + b;
+            *y = t * if t > 0.0 { GAIN } else { SLOPE * GAIN };
+        }
     }
     y
 }
 
 /// The gradients of `x` and `bias` given the forward output `y` and its gradient `dy`.
 pub fn bias_lrelu_backward(channels: usize, plane: usize, y: &[f32], dy: &[f32]) -> (Vec<f32>, Vec<f32>) {
-    let mut dx = Vec::with_capacity(dy.len());
+    let mut dx = vec![0.0; dy.len()];
     let mut db = vec![0.0f32; channels];
-    for (i, (ys, gs)) in y.chunks(plane).zip(dy.chunks(plane)).enumerate() {
-        let mut sum = 0.0;
-        dx.extend(ys.iter().zip(gs).map(|(y, g)| {
-            let d = if *y > 0.0 { g * GAIN } else { g * (SLOPE * GAIN) };
-            sum += d;
-            d
-        }));
-        db[i % channels] += sum;
+    for (i, ((dxs, ys), gs)) in dx.chunks_mut(plane).zip(y.chunks(plane)).zip(dy.chunks(plane)).enumerate() {
+        for ((d, y), g) in dxs.iter_mut().zip(ys).zip(gs) {
+            *d = g * if *y > 0.0 { GAIN } else { SLOPE * GAIN };
+        }
+        db[i % channels] += lane_sum(dxs);
     }
     (dx, db)
+}
+
+/// A sum in eight interleaved partial sums (vectorisable, and more accurate than one running
+/// sum over a whole plane).
+fn lane_sum(v: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let chunks = v.chunks_exact(8);
+    let tail: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for (l, x) in lanes.iter_mut().zip(c) {
+            *l += x;
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
 }
 
 /// A convolution's sizes.
@@ -116,28 +125,30 @@ impl ConvDims {
     }
 }
 
-/// im2col of one sample `x_n` `[in, H, W]` into `cols` `[in·k·k, H·W]` (zero padding).
-fn im2col(d: &ConvDims, x_n: &[f32], cols: &mut [f32]) {
+/// im2col of one sample `x_n` `[in, H, W]` into `cols` `[in·k·k, H·W]` (zero padding),
+/// replacing what `cols` held (each value written once: the buffer is never zero-filled first).
+fn im2col(d: &ConvDims, x_n: &[f32], cols: &mut Vec<f32>) {
     let (h, w, k, pad) = (d.h, d.w, d.k, d.k / 2);
+    cols.clear();
+    cols.reserve(d.taps() * h * w);
+    let zeros = |cols: &mut Vec<f32>, n: usize| cols.extend(std::iter::repeat_n(0.0, n));
     for c in 0..d.c_in {
         let plane = &x_n[c * h * w..(c + 1) * h * w];
         for ky in 0..k {
             for kx in 0..k {
-                let row = &mut cols[((c * k + ky) * k + kx) * h * w..][..h * w];
                 // Output x reads input x + kx − pad: valid for x in [x0, x1).
                 let x0 = pad.saturating_sub(kx);
                 let x1 = (w + pad).saturating_sub(kx).min(w);
                 for y in 0..h {
-                    let out = &mut row[y * w..(y + 1) * w];
                     let sy = y + ky;
                     if sy < pad || sy - pad >= h || x0 >= x1 {
-                        out.fill(0.0);
+                        zeros(cols, w);
                         continue;
                     }
                     let src = &plane[(sy - pad) * w..(sy - pad + 1) * w];
-                    out[..x0].fill(0.0);
-                    out[x0..x1].copy_from_slice(&src[x0 + kx - pad..x1 + kx - pad]);
-                    out[x1..].fill(0.0);
+                    zeros(cols, x0);
+                    cols.extend_from_slice(&src[x0 + kx - pad..x1 + kx - pad]);
+                    zeros(cols, w - x1);
                 }
             }
         }
@@ -196,24 +207,58 @@ fn gemm(m: usize, k: usize, n: usize, a: (&[f32], isize, isize), b: (&[f32], isi
     }
 }
 
+/// `f(n, out_n, scratch)` for each sample `n` of a batch, `out_n` being the sample's
+/// `out.len() / batch` values of `out`. Natively the samples are spread over the CPU cores
+/// (each thread with its own `scratch`), in the browser they run one after another. Each
+/// sample's values depend only on that sample, so they are the same for any number of threads.
+fn for_samples(batch: usize, out: &mut [f32], f: impl Fn(usize, &mut [f32], &mut Vec<f32>) + Sync) {
+    if batch == 0 {
+        return;
+    }
+    let per = out.len() / batch;
+    #[cfg(not(target_arch = "wasm32"))]
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8).min(batch);
+    #[cfg(target_arch = "wasm32")]
+    let threads = 1;
+    let mut shares: Vec<Vec<(usize, &mut [f32])>> = (0..threads).map(|_| Vec::new()).collect();
+    for (n, out_n) in out.chunks_mut(per.max(1)).enumerate() {
+        shares[n % threads].push((n, out_n));
+    }
+    let work = |share: Vec<(usize, &mut [f32])>| {
+        let mut scratch = Vec::new();
+        for (n, out_n) in share {
+            f(n, out_n, &mut scratch);
+        }
+    };
+    if threads == 1 {
+        shares.into_iter().for_each(work);
+        return;
+    }
+    std::thread::scope(|sc| {
+        let work = &work;
+        let handles: Vec<_> = shares.into_iter().map(|share| sc.spawn(move || work(share))).collect();
+        // A worker's panic is a bug: re-raise it here rather than leave its samples unwritten.
+        for h in handles {
+            h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        }
+    });
+}
+
 /// The forward pass on plain buffers: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in, k, k]`
 /// → `[B, out, H, W]`.
 pub fn forward(d: &ConvDims, x: &[f32], weight: &[f32]) -> Vec<f32> {
     let (hw, taps) = (d.hw(), d.taps());
     let mut y = vec![0.0; d.batch * d.c_out * hw];
-    let mut cols = vec![0.0; taps * hw];
-    for n in 0..d.batch {
-        im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], &mut cols);
-        let w_n = d.weight_of(weight, n);
-        let y_n = &mut y[n * d.c_out * hw..(n + 1) * d.c_out * hw];
-        gemm(d.c_out, taps, hw, (w_n, taps as isize, 1), (&cols, hw as isize, 1), 0.0, y_n);
-    }
+    for_samples(d.batch, &mut y, |n, y_n, cols| {
+        im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], cols);
+        gemm(d.c_out, taps, hw, (d.weight_of(weight, n), taps as isize, 1), (cols, hw as isize, 1), 0.0, y_n);
+    });
     y
 }
 
 /// The backward pass on plain buffers: given `dy` `[B, out, H, W]`, the gradients of `x` and
-/// of `weight` (each only when asked for; ∂w shaped like `weight`, summed over the batch when
-/// it is shared).
+/// of `weight` (each only when asked for; ∂w shaped like `weight`, summed over the batch in
+/// sample order when it is shared).
 pub fn backward(
     d: &ConvDims,
     x: &[f32],
@@ -223,25 +268,35 @@ pub fn backward(
     want_w: bool,
 ) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
     let (hw, taps) = (d.hw(), d.taps());
-    let mut dx = want_x.then(|| vec![0.0; d.batch * d.c_in * hw]);
-    let mut dw = want_w.then(|| vec![0.0; if d.shared { 1 } else { d.batch } * d.weight_len()]);
-    let mut cols = vec![0.0; taps * hw];
-    for n in 0..d.batch {
-        let dy_n = &dy[n * d.c_out * hw..(n + 1) * d.c_out * hw];
-        if let Some(dw) = dw.as_mut() {
-            // ∂w_n = dy_n · colsᵀ, accumulated over the batch for a shared weight.
-            im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], &mut cols);
-            let (slot, beta) = if d.shared { (0, if n == 0 { 0.0 } else { 1.0 }) } else { (n, 0.0) };
-            let dw_n = &mut dw[slot * d.weight_len()..(slot + 1) * d.weight_len()];
-            gemm(d.c_out, hw, taps, (dy_n, hw as isize, 1), (&cols, 1, hw as isize), beta, dw_n);
+    let dy_of = |n: usize| &dy[n * d.c_out * hw..(n + 1) * d.c_out * hw];
+    let dw = want_w.then(|| {
+        // ∂w_n = dy_n · colsᵀ, per sample; a shared weight's is their sum in sample order.
+        let mut dw = vec![0.0; d.batch * d.weight_len()];
+        for_samples(d.batch, &mut dw, |n, dw_n, cols| {
+            im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], cols);
+            gemm(d.c_out, hw, taps, (dy_of(n), hw as isize, 1), (cols, 1, hw as isize), 0.0, dw_n);
+        });
+        if d.shared {
+            let (sum, rest) = dw.split_at_mut(d.weight_len());
+            for dw_n in rest.chunks(d.weight_len()) {
+                for (s, g) in sum.iter_mut().zip(dw_n) {
+                    *s += g;
+                }
+            }
+            dw.truncate(d.weight_len());
         }
-        if let Some(dx) = dx.as_mut() {
-            // ∂cols = w_nᵀ · dy_n, folded back onto the input.
-            let w_n = d.weight_of(weight, n);
-            gemm(taps, d.c_out, hw, (w_n, 1, taps as isize), (dy_n, hw as isize, 1), 0.0, &mut cols);
-            col2im(d, &cols, &mut dx[n * d.c_in * hw..(n + 1) * d.c_in * hw]);
-        }
-    }
+        dw
+    });
+    let dx = want_x.then(|| {
+        // ∂cols = w_nᵀ · dy_n, folded back onto the input.
+        let mut dx = vec![0.0; d.batch * d.c_in * hw];
+        for_samples(d.batch, &mut dx, |n, dx_n, cols| {
+            cols.resize(taps * hw, 0.0);
+            gemm(taps, d.c_out, hw, (d.weight_of(weight, n), 1, taps as isize), (dy_of(n), hw as isize, 1), 0.0, cols);
+            col2im(d, cols, dx_n);
+        });
+        dx
+    });
     (dx, dw)
 }
 
