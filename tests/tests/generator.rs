@@ -394,9 +394,11 @@ fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
         let params = PoseLibrary::builtin().params(pose, &[]).unwrap();
         let got = fingerprint(&generate_avatar(&g, &ctx, &styles, &params, &dev).unwrap());
         assert_eq!((got.0, got.1), (want.0, want.1), "{pose}: vertex and triangle counts {got:?}");
-        // Positions and colours are bit-identical; normals differ by float rounding (≤ 3e-7 per
-        // component: the normal field's operations are now shared with training).
-        for ((k, (a, b)), tol) in got.2.iter().zip(want.2).enumerate().zip([1e-6, 1e-3, 1e-6]) {
+        // Sums over all vertices of positions, normals and colours. They were bit-identical
+        // until NdArray's convolution became one operation (#28, session 34: another float
+        // summation order); since then positions differ by ≈ 2e-5 m and colours by ≈ 5e-4 in
+        // sums over 6,224 vertices, i.e. by float rounding, not by a changed avatar.
+        for ((k, (a, b)), tol) in got.2.iter().zip(want.2).enumerate().zip([1e-4, 1e-3, 2e-3]) {
             assert!((a - b).abs() < tol, "{pose}: sum {k} is {a}, was {b} ({got:?})");
         }
     }

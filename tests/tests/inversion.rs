@@ -48,7 +48,8 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     let cands = start_candidates(&g, None);
     assert_eq!(cands.len(), 1);
     let start = cands[0].styles.clone();
-    let opts = InversionOptions { steps: 80, pti_steps: 8, lr: 0.03, locality_every: 2, ..InversionOptions::default() };
+    let opts =
+        InversionOptions { steps: 80, pti_steps: 60, lr: 0.03, locality_every: 2, ..InversionOptions::default() };
     let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
 
     let mut latent = Vec::new();
@@ -70,7 +71,7 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
             Phase::Done => unreachable!(),
         }
     }
-    assert_eq!((latent.len(), pivotal.len()), (80, 8));
+    assert_eq!((latent.len(), pivotal.len()), (80, 60));
     let total: Vec<f32> = latent.iter().map(|t| t.total).collect();
     eprintln!("W+ losses: {total:?}");
     eprintln!("PTI losses: {:?}", pivotal.iter().map(|t| t.total).collect::<Vec<_>>());
@@ -82,10 +83,16 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     assert!(last.rgb_l1 < 0.5 * first.rgb_l1, "RGB L1 {} → {}", first.rgb_l1, last.rgb_l1);
     // PTI: the locality term ran on even steps, and the loss improved.
     assert!(pivotal[0].locality.is_some() && pivotal[1].locality.is_none());
-    let p_last = pivotal.last().unwrap();
+    // The image loss at the pivot jumps from step to step (the tiny generator's surface gains
+    // and loses triangles as its weights move), so compare the mean of the last 20 steps with
+    // the first: 60 steps lower it by ≈ 17 % (a single last step against the first was within
+    // that noise).
+    let image: Vec<f32> = pivotal.iter().map(|t| t.rgb_l1 + t.rgb_mse).collect();
+    let tail = image[image.len() - 20..].iter().sum::<f32>() / 20.0;
     assert!(
-        p_last.rgb_l1 + p_last.rgb_mse < pivotal[0].rgb_l1 + pivotal[0].rgb_mse,
-        "PTI did not lower the image loss"
+        tail < 0.95 * image[0],
+        "PTI did not lower the image loss: {} → mean {tail} over the last 20 steps",
+        image[0]
     );
 
     // The result at the photo's camera: mask IoU ≥ 0.95 and colours close to the target's.
