@@ -64,9 +64,9 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
 /// ([`super::ndarray_ops`]).
 #[cfg(feature = "generator")]
 fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
-    use super::ndarray_ops::SameConvBackend;
+    use super::ndarray_ops::NdArrayOpsBackend;
     use burn::backend::Dispatch;
-    Tensor::from_dispatch(<Dispatch as SameConvBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
 }
 
 #[cfg(not(feature = "generator"))]
@@ -80,9 +80,9 @@ fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
 pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> {
     #[cfg(feature = "generator")]
     if activation && is_ndarray(&x.device()) {
-        use super::ndarray_ops::SameConvBackend;
+        use super::ndarray_ops::NdArrayOpsBackend;
         use burn::backend::Dispatch;
-        return Tensor::from_dispatch(<Dispatch as SameConvBackend>::bias_lrelu(
+        return Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::bias_lrelu(
             x.into_dispatch(),
             bias.into_dispatch(),
         ));

@@ -17,9 +17,9 @@
 //!
 //! burn-ndarray's `avg_pool2d` and its backward are written for any kernel, stride and
 //! padding and walked 10 % of a CPU training step once the convolution was one operation;
-//! [`SameConvBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops. Likewise
+//! [`NdArrayOpsBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops. Likewise
 //! the bias add, leaky ReLU and gain after each convolution were four element-wise tensor
-//! ops (and a mask) each way; [`SameConvBackend::bias_lrelu`] is one pass each way.
+//! ops (and a mask) each way; [`NdArrayOpsBackend::bias_lrelu`] is one pass each way.
 
 // burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
 // (docs/benchmarks.md, "burn's flex CPU backend").
@@ -32,13 +32,14 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Backend, NdArray, TensorMetadata};
 use burn::tensor::TensorData;
 
-/// `conv2d_same` as one backend operation: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in,
-/// k, k]` (k odd, stride 1, zero padding k/2) → `[B, out, H, W]`. NdArray, and autodiff over
-/// it; calling it with a tensor of another backend panics, so [`super::layers::conv2d_same`]
-/// only routes NdArray tensors here.
+/// The operations, for NdArray and autodiff over it. Calling one with a tensor of another
+/// backend panics, so [`super::layers`] and [`super::discriminator`] only route NdArray
+/// tensors here.
 #[cfg_attr(feature = "autodiff", backend_extension(NdArray, Autodiff))]
 #[cfg_attr(not(feature = "autodiff"), backend_extension(NdArray))]
-pub trait SameConvBackend: Backend {
+pub trait NdArrayOpsBackend: Backend {
+    /// `conv2d_same`: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in, k, k]` (k odd, stride 1,
+    /// zero padding k/2) → `[B, out, H, W]`.
     fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self>;
     /// 2×2 average pooling with stride 2: `[B, C, H, W]` → `[B, C, H/2, W/2]` (an odd last
     /// row or column is dropped, as burn's `avg_pool2d` drops it).
@@ -362,7 +363,7 @@ fn tensor(v: Vec<f32>, shape: Vec<usize>) -> NdArrayTensor {
     NdArrayTensor::from_data(TensorData::new(v, shape))
 }
 
-impl SameConvBackend for NdArray {
+impl NdArrayOpsBackend for NdArray {
     fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
         let ((xs, x), (ws, w)) = (values(&x), values(&weight));
         let d = ConvDims::of(&xs, &ws);
@@ -454,7 +455,7 @@ mod autodiff {
         }
     }
 
-    impl<C: CheckpointStrategy> SameConvBackend for Autodiff<NdArray, C> {
+    impl<C: CheckpointStrategy> NdArrayOpsBackend for Autodiff<NdArray, C> {
         fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
             let (x, x_node) = x.into_parts();
             let (w, w_node) = weight.into_parts();
@@ -551,19 +552,19 @@ mod tests {
             let (dx, dw) = backward(&d, &x, &wt, &dy, true, true);
             let (dx, dw) = (dx.unwrap(), dw.unwrap());
             let eps = 1e-2f32;
-            for (i, g) in dx.iter().enumerate() {
-                let (mut xp, mut xm) = (x.clone(), x.clone());
-                xp[i] += eps;
-                xm[i] -= eps;
-                let fd = (loss(&xp, &wt) - loss(&xm, &wt)) / (2.0 * eps as f64);
-                assert!((*g as f64 - fd).abs() < 1e-3, "{d:?} ∂x[{i}]: {g} vs {fd}");
-            }
-            for (i, g) in dw.iter().enumerate() {
-                let (mut wp, mut wm) = (wt.clone(), wt.clone());
-                wp[i] += eps;
-                wm[i] -= eps;
-                let fd = (loss(&x, &wp) - loss(&x, &wm)) / (2.0 * eps as f64);
-                assert!((*g as f64 - fd).abs() < 1e-3, "{d:?} ∂w[{i}]: {g} vs {fd}");
+            // The loss's central difference along coordinate i of w (of_w) or of x.
+            let central = |of_w: bool, i: usize| -> f64 {
+                let (mut p, mut m) = if of_w { (wt.clone(), wt.clone()) } else { (x.clone(), x.clone()) };
+                p[i] += eps;
+                m[i] -= eps;
+                let (lp, lm) = if of_w { (loss(&x, &p), loss(&x, &m)) } else { (loss(&p, &wt), loss(&m, &wt)) };
+                (lp - lm) / (2.0 * eps as f64)
+            };
+            for (what, of_w, grads) in [("∂x", false, &dx), ("∂w", true, &dw)] {
+                for (i, g) in grads.iter().enumerate() {
+                    let fd = central(of_w, i);
+                    assert!((*g as f64 - fd).abs() < 1e-3, "{d:?} {what}[{i}]: {g} vs {fd}");
+                }
             }
             // Only what is asked for.
             assert_eq!(backward(&d, &x, &wt, &dy, false, true).0, None);
