@@ -190,16 +190,15 @@ fn conv2d_same_matches_burn_conv2d() {
 /// downsampling) equals burn's `avg_pool2d`, values and gradients, odd sizes included.
 #[test]
 fn ndarray_avg_pool2x2_matches_burn_avg_pool2d() {
-    use getavatar_core::burn::backend::Dispatch;
     use getavatar_core::burn::tensor::module::avg_pool2d;
     use getavatar_core::burn::tensor::ops::AvgPoolOptions;
-    use getavatar_core::network::ndarray_ops::NdArrayOpsBackend;
+    use getavatar_core::network::ndarray_ops::avg_pool2x2;
     let dev = cpu().autodiff();
     let mut rng = Rng::new(6, 6);
     for shape in [[2usize, 3usize, 8usize, 6usize], [1, 2, 5, 7]] {
         let x = randn4(&mut rng, shape, &dev).require_grad();
         let reference = avg_pool2d(x.clone(), AvgPoolOptions::new([2, 2]));
-        let ours = Tensor::<4>::from_dispatch(<Dispatch as NdArrayOpsBackend>::avg_pool2x2(x.clone().into_dispatch()));
+        let ours = avg_pool2x2(x.clone());
         assert_eq!(ours.dims(), reference.dims());
         assert_close(&values(ours.clone()), &values(reference.clone()), 1e-6, "values");
         let weights = randn4(&mut rng, reference.dims(), &dev);

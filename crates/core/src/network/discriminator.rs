@@ -102,9 +102,7 @@ impl DiscriminatorConfig {
 fn down2(x: Tensor<4>) -> Tensor<4> {
     #[cfg(feature = "generator")]
     if super::layers::is_ndarray(&x.device()) {
-        use super::ndarray_ops::NdArrayOpsBackend;
-        use burn::backend::Dispatch;
-        return Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::avg_pool2x2(x.into_dispatch()));
+        return super::ndarray_ops::avg_pool2x2(x);
     }
     avg_pool2d(x, AvgPoolOptions::new([2, 2]))
 }

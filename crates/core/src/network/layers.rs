@@ -37,15 +37,18 @@ pub fn is_ndarray(device: &Device) -> bool {
 /// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
 /// the discriminators a shared one). On NdArray it is im2col + matmul as one operation with
 /// its own backward pass ([`super::ndarray_ops`]): burn-ndarray's `conv2d` backward is
-/// 25–35× slower at the sizes we train (see `trainer bench`). On GPU backends it is burn's grouped `conv2d` for small
-/// convolutions and the same im2col + matmul for large ones ([`GPU_IM2COL_MIN_MACS`]).
+/// 25–35× slower at the sizes we train (see `trainer bench`). On GPU backends it is burn's
+/// grouped `conv2d` for small convolutions and the same im2col + matmul for large ones
+/// ([`GPU_IM2COL_MIN_MACS`]).
 pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
+    #[cfg(feature = "generator")]
     if is_ndarray(&x.device()) {
-        conv2d_ndarray(x, weight)
-    } else if b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
+        return super::ndarray_ops::conv2d_same(x, weight);
+    }
+    if b * c_out * c_in * k * k * h * w >= GPU_IM2COL_MIN_MACS {
         conv2d_im2col(x, weight, GPU_COLS_MAX_BYTES)
     } else if wb == 1 {
         conv2d(x, weight.reshape([c_out, c_in, k, k]), None, ConvOptions::new([1, 1], [pad, pad], [1, 1], 1))
@@ -60,32 +63,13 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     }
 }
 
-/// NdArray's convolution: one backend operation with its own backward pass
-/// ([`super::ndarray_ops`]).
-#[cfg(feature = "generator")]
-fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
-    use super::ndarray_ops::NdArrayOpsBackend;
-    use burn::backend::Dispatch;
-    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
-}
-
-#[cfg(not(feature = "generator"))]
-fn conv2d_ndarray(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
-    conv2d_im2col(x, weight, usize::MAX)
-}
-
 /// `lrelu(x + bias) · √2` over `[B, C, H, W]` with a `[C]` bias, or only the bias without
 /// `activation`: what follows each convolution. On NdArray the activated form is one operation
 /// with its own backward pass ([`super::ndarray_ops`]).
 pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> {
     #[cfg(feature = "generator")]
     if activation && is_ndarray(&x.device()) {
-        use super::ndarray_ops::NdArrayOpsBackend;
-        use burn::backend::Dispatch;
-        return Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::bias_lrelu(
-            x.into_dispatch(),
-            bias.into_dispatch(),
-        ));
+        return super::ndarray_ops::bias_lrelu(x, bias);
     }
     let c = bias.dims()[0];
     let y = x + bias.reshape([1, c, 1, 1]);

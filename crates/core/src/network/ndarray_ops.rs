@@ -29,8 +29,8 @@ use std::borrow::Cow;
 
 use burn::backend::ndarray::NdArrayTensor;
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{backend_extension, Backend, NdArray, TensorMetadata};
-use burn::tensor::TensorData;
+use burn::backend::{backend_extension, Backend, Dispatch, NdArray, TensorMetadata};
+use burn::tensor::{Tensor, TensorData};
 
 /// The operations, for NdArray and autodiff over it. Calling one with a tensor of another
 /// backend panics, so [`super::layers`] and [`super::discriminator`] only route NdArray
@@ -46,6 +46,21 @@ pub trait NdArrayOpsBackend: Backend {
     fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self>;
     /// `lrelu(x + bias) · √2` (slope 0.2, StyleGAN's gain): `x` `[B, C, H, W]`, `bias` `[C]`.
     fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// [`NdArrayOpsBackend::conv2d_same`] on tensors (NdArray's, or autodiff over NdArray).
+pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::conv2d_same(x.into_dispatch(), weight.into_dispatch()))
+}
+
+/// [`NdArrayOpsBackend::avg_pool2x2`] on tensors.
+pub fn avg_pool2x2(x: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::avg_pool2x2(x.into_dispatch()))
+}
+
+/// [`NdArrayOpsBackend::bias_lrelu`] on tensors.
+pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::bias_lrelu(x.into_dispatch(), bias.into_dispatch()))
 }
 
 /// Leaky ReLU's negative slope and StyleGAN's gain, as [`super::layers::lrelu_gain`] uses them.
