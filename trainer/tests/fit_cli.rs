@@ -109,13 +109,14 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
 /// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`) on the
 /// bare body in the unseen poses from two yaws → `trainer fit-pose` with the detector's mask,
-/// PA-MPJPE against the pose that was rendered. Issue #20 asks ≤ 60 mm. At 2026-11-26 the
-/// ten cases give 33–60 mm (mean 48 mm); the worst, arms crossed seen from the side
-/// (60.1 mm), is a detector error the fit can only partly undo: MediaPipe gives the hand it
-/// sees (the left, on the right shoulder) the right wrist's label, and guesses the hidden
-/// elbow. The fit's two-labelling hypothesis swaps the hands back (asserted below), and the
-/// limb chord puts that hand across the chest (107 mm without either). So this guards nine
-/// of ten ≤ 60 mm and every case ≤ 65 mm.
+/// PA-MPJPE against the pose that was rendered. Issue #20 asks PA-MPJPE ≤ 60 mm: the mean
+/// over the set, as the field reports it (HMR, SPIN on 3DPW), is 48.4 mm at 2026-11-26, with
+/// the ten cases at 33–60 mm. The worst, arms crossed seen from the side (60.1 mm), is a
+/// detector error the fit can only partly undo: MediaPipe gives the hand it sees (the left,
+/// on the right shoulder) the right wrist's label, and guesses the hidden elbow. The fit's
+/// two-labelling hypothesis swaps the hands back (asserted below), and the limb chord puts
+/// that hand across the chest (107 mm without either). So this guards the set's mean
+/// ≤ 60 mm, nine of ten cases ≤ 60 mm and every case ≤ 65 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     let dir = tmp("fit-mediapipe");
@@ -185,5 +186,11 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     }
     eprintln!("{}", report.join("\n"));
     let within = errors.iter().filter(|e| **e <= 0.060).count();
-    assert!(within >= 9 && worst <= 0.065, "{within} of 10 within 60 mm, worst {worst}\n{}", report.join("\n"));
+    let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+    eprintln!("PA-MPJPE over the set: {:.1} mm", mean * 1000.0);
+    assert!(
+        mean <= 0.060 && within >= 9 && worst <= 0.065,
+        "mean {mean}, {within} of 10 within 60 mm, worst {worst}\n{}",
+        report.join("\n")
+    );
 }
