@@ -30,11 +30,13 @@ pub struct RiggedAvatar {
 }
 
 impl RiggedAvatar {
-    /// Rig an avatar generated in the canonical pose (Da-pose, β = 0).
+    /// Rig an avatar generated in the canonical pose (Da-pose, β = 0). The nearest body
+    /// vertices come from the canonical inverse skinning's k-d tree, which every new identity
+    /// has already built (`BodyContext::canonical_inverse`), not from a tree per avatar.
     pub fn new(canonical: Avatar, ctx: &BodyContext) -> Self {
-        let tree = crate::spatial::KdTree::new(&ctx.canonical.vertices);
+        let inv = ctx.canonical_inverse();
         let body_vertex =
-            canonical.mesh.vertices.iter().map(|v| tree.nearest(*v).map_or(0, |(i, _)| i as u32)).collect();
+            canonical.mesh.vertices.iter().map(|v| inv.nearest_body_vertex(*v).map_or(0, |i| i as u32)).collect();
         Self { canonical, body_vertex }
     }
 

@@ -204,6 +204,11 @@ pub struct GenEngine {
     pub busy: bool,
 }
 
+/// Compute passes cubecl records before it submits them to the queue (its default is 32). A
+/// new identity issues ≈ 800 of them; each `queue.submit` crosses from wasm to the browser's
+/// GPU process.
+const WGPU_TASKS_PER_SUBMIT: usize = 256;
+
 impl GenEngine {
     /// Register egui's wgpu device with burn, build the `demo` generator and start fetching
     /// its trained weights and preparing `body`'s context (its template SDF: a second of work
@@ -221,6 +226,7 @@ impl GenEngine {
             backend: rs.adapter.get_info().backend,
         };
         let device = Device::wgpu_options()
+            .tasks_max(WGPU_TASKS_PER_SUBMIT)
             .setup(setup)
             .init()
             .map_err(|e| format!("burn cannot use the WebGPU device: {e:?}"))?;

@@ -42,6 +42,11 @@ impl InverseSkinning {
         Self { tree, inv_obs, offsets, cano: canonical.vertex_transforms.clone(), obs: posed.vertex_transforms.clone() }
     }
 
+    /// The observed body's vertex nearest to `x_d` (`None` for a body without vertices).
+    pub fn nearest_body_vertex(&self, x_d: Vec3) -> Option<usize> {
+        self.tree.nearest(x_d).map(|(i, _)| i)
+    }
+
     /// Canonical position of posed point `x_d`, and the index of the body vertex used.
     pub fn to_canonical(&self, x_d: Vec3) -> (Vec3, usize) {
         let (x_c, i, _) = self.to_canonical_with_distance(x_d);
