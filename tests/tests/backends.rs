@@ -216,3 +216,57 @@ fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
         close(&gw1, &gw0, "∂w");
     }
 }
+
+/// Issue #28: generation's element-wise chains run as single kernels on wgpu
+/// (`network::cube_ops`): the style affines and mapping layers, weight modulation, bias + leaky
+/// ReLU, and the synthesis's upsampling with its skip sum. They apply to untracked tensors of a
+/// cubecl device only (also of an autodiff one), and a tiny generator's triplanes, fields and
+/// colours through them equal those through the tensor ops (the same generator with its
+/// parameters tracked, on wgpu too) within float noise.
+#[test]
+fn fused_generation_kernels_match_the_tensor_ops() {
+    use getavatar_core::network::cube_ops;
+    let gpu = common::gpu();
+    #[allow(deprecated)]
+    let cpu = Device::ndarray();
+    let t2 = |dev: &Device| Tensor::<2>::from_data(TensorData::new(vec![0.5f32, -1.0, 2.0, 0.25], [2, 2]), dev);
+    let b1 = |dev: &Device| Tensor::<1>::from_data(TensorData::new(vec![0.1f32, -0.2], [2]), dev);
+    let fc = |x: &Tensor<2>, w: &Tensor<2>, b: &Tensor<1>| cube_ops::fully_connected(x, w, b, 0.5, 1.0, true);
+    // Routing: plain and untracked-autodiff wgpu tensors take the kernels; tracked or CPU ones do not.
+    let y = fc(&t2(&gpu), &t2(&gpu), &b1(&gpu)).expect("wgpu tensors take the kernel");
+    // x·Wᵀ·0.5 + b, then leaky ReLU × √2: row 0 = [0.5·(0.25+1) + 0.1, 0.5·(1−0.25) − 0.2] = [0.725, 0.175].
+    assert_close(&values(y)[..2], &[0.725 * std::f32::consts::SQRT_2, 0.175 * std::f32::consts::SQRT_2], 1e-6, "fc");
+    let ad = gpu.clone().autodiff();
+    let y = fc(&t2(&ad), &t2(&ad), &b1(&ad)).expect("untracked autodiff tensors take the kernel");
+    assert!(y.is_autodiff(), "the result goes back to the autodiff device");
+    assert!(fc(&t2(&ad).require_grad(), &t2(&ad), &b1(&ad)).is_none(), "tracked tensors keep the tensor ops");
+    assert!(fc(&t2(&cpu), &t2(&cpu), &b1(&cpu)).is_none(), "NdArray tensors keep the tensor ops");
+
+    // A whole generator: fused (plain wgpu) against tensor ops (tracked parameters).
+    let cfg = GeneratorConfig::tiny();
+    let (fused, plain) = (Generator::new(&cfg, 0, &gpu), Generator::new(&cfg, 0, &ad));
+    let model = BodyModel::default_body().expect("body");
+    let pts: Vec<f32> = model.v_template.iter().step_by(11).flat_map(|v| v.to_array()).collect();
+    let n = pts.len() / 3;
+    let field = |g: &Generator, dev: &Device| {
+        let (zg, zt) = seed_latents(&cfg, 5, 6, dev);
+        let s = g.styles(zg, zt, 0.7);
+        let planes = g.triplanes(&s);
+        let p = Tensor::<3>::from_data(TensorData::new(pts.clone(), [1, n, 3]), dev);
+        let (r, o) = g.geometry_fields(&planes, &s, p.clone());
+        let c = g.texture_field(&planes, &s, p);
+        [values(planes.geometry), values(planes.texture), values(r), values(o), values(c)]
+    };
+    let (a, b) = (field(&fused, &gpu), field(&plain, &ad));
+    for (name, x, y) in ["geometry planes", "texture planes", "sdf residual", "offsets", "colours"]
+        .iter()
+        .zip(&a)
+        .zip(&b)
+        .map(|((n, x), y)| (n, x, y))
+    {
+        let scale = y.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        let diff = x.iter().zip(y).fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
+        println!("{name}: max |Δ| {diff:.3e} (scale {scale:.3e})");
+        assert!(diff <= 1e-5 * scale + 1e-7, "{name}: fused kernels and tensor ops differ by {diff} (scale {scale})");
+    }
+}

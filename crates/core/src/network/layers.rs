@@ -67,6 +67,10 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
 /// `activation`: what follows each convolution. On NdArray the activated form is one operation
 /// with its own backward pass ([`super::ndarray_ops`]).
 pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> {
+    #[cfg(feature = "wgpu")]
+    if let Some(y) = super::cube_ops::bias_lrelu(&x, &bias, 1, activation) {
+        return y;
+    }
     #[cfg(feature = "generator")]
     if activation && is_ndarray(&x.device()) {
         return super::ndarray_ops::bias_lrelu(x, bias);
@@ -164,6 +168,17 @@ impl FullyConnected {
 
     /// `x`: `[B, in]` → `[B, out]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        #[cfg(feature = "wgpu")]
+        if let Some(y) = super::cube_ops::fully_connected(
+            &x,
+            &self.weight.val(),
+            &self.bias.val(),
+            self.weight_gain,
+            self.lr_mul,
+            self.activation,
+        ) {
+            return y;
+        }
         let w = self.weight.val() * self.weight_gain;
         // A product with 1 is exact and would cost a GPU launch (the style affines' case).
         let bias = if self.lr_mul == 1.0 { self.bias.val() } else { self.bias.val() * self.lr_mul };
@@ -216,21 +231,42 @@ impl ModulatedConv2d {
 
     /// `x`: `[B, in, H, W]`, `w`: `[B, w_dim]` → `[B, out, H, W]`.
     pub fn forward(&self, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
-        let [b, c_in, _, _] = x.dims();
+        let [_, c_in, _, _] = x.dims();
         let [_, _, k, _] = self.weight.dims();
-        let mut styles = self.affine.forward(w); // [B, in]
-        if !self.demodulate {
-            // to-RGB style layers: fold the fan-in gain into the styles.
-            styles = styles * (1.0 / ((c_in * k * k) as f32).sqrt());
-        }
-        let weight = self.weight.val().unsqueeze_dim::<5>(0) * styles.reshape([b, 1, c_in, 1, 1]); // [B, out, in, k, k]
-        let weight = if self.demodulate {
-            let d = (weight.clone().powf_scalar(2.0).sum_dims(&[2, 3, 4]) + 1e-8).sqrt().recip(); // [B, out, 1, 1, 1]
-            weight * d
-        } else {
-            weight
-        };
+        let styles = self.affine.forward(w); // [B, in]
+        let style_gain = 1.0 / ((c_in * k * k) as f32).sqrt();
+        let weight: Tensor<5> = modulate(self.weight.val(), styles, style_gain, self.demodulate);
         bias_lrelu(conv2d_same(x, weight), self.bias.val(), self.activation)
+    }
+}
+
+/// StyleGAN2's weight modulation: `weight` `[out, in, taps…]` (rank `D`) times the styles `[B, in]`
+/// → `[B, out, in, taps…]` (rank `D1 = D + 1`). With `demodulate` each (sample, output) slice is
+/// scaled to unit norm; without, the styles are first scaled by `style_gain` (the to-RGB layers
+/// fold their fan-in gain into the styles). One kernel on wgpu for generation
+/// ([`super::cube_ops`]).
+fn modulate<const D: usize, const D1: usize>(
+    weight: Tensor<D>,
+    styles: Tensor<2>,
+    style_gain: f32,
+    demodulate: bool,
+) -> Tensor<D1> {
+    let gain = if demodulate { 1.0 } else { style_gain };
+    #[cfg(feature = "wgpu")]
+    if let Some(w) = super::cube_ops::modulate::<D, D1>(&weight, &styles, gain, demodulate) {
+        return w;
+    }
+    let [b, c_in] = styles.dims();
+    let styles = if demodulate { styles } else { styles * gain };
+    let mut shape = [1usize; D1];
+    (shape[0], shape[2]) = (b, c_in);
+    let weight = weight.unsqueeze_dim::<D1>(0) * styles.reshape(shape); // [B, out, in, taps…]
+    if demodulate {
+        let taps: Vec<usize> = (2..D1).collect();
+        let d = (weight.clone().powf_scalar(2.0).sum_dims(&taps) + 1e-8).sqrt().recip(); // [B, out, 1, …]
+        weight * d
+    } else {
+        weight
     }
 }
 
@@ -283,20 +319,16 @@ impl ModulatedLinear {
 
     /// `x`: `[B, N, in]`, `w`: `[B, w_dim]` → `[B, N, out]`.
     pub fn forward(&self, x: Tensor<3>, w: Tensor<2>) -> Tensor<3> {
-        let [b, _, d_in] = x.dims();
+        let [_, _, d_in] = x.dims();
         let [d_out, _] = self.weight.dims();
-        let mut styles = self.affine.forward(w); // [B, in]
-        if !self.demodulate {
-            styles = styles * (1.0 / (d_in as f32).sqrt());
+        let styles = self.affine.forward(w); // [B, in]
+        let weight: Tensor<3> = modulate(self.weight.val(), styles, 1.0 / (d_in as f32).sqrt(), self.demodulate);
+        let y = x.matmul(weight.swap_dims(1, 2));
+        #[cfg(feature = "wgpu")]
+        if let Some(y) = super::cube_ops::bias_lrelu(&y, &self.bias.val(), 2, self.activation) {
+            return y;
         }
-        let weight = self.weight.val().unsqueeze_dim::<3>(0) * styles.reshape([b, 1, d_in]); // [B, out, in]
-        let weight = if self.demodulate {
-            let d = (weight.clone().powf_scalar(2.0).sum_dim(2) + 1e-8).sqrt().recip(); // [B, out, 1]
-            weight * d
-        } else {
-            weight
-        };
-        let y = x.matmul(weight.swap_dims(1, 2)) + self.bias.val().reshape([1, 1, d_out]);
+        let y = y + self.bias.val().reshape([1, 1, d_out]);
         if self.activation {
             lrelu_gain(y)
         } else {

@@ -4,6 +4,7 @@
 //!
 //! - [`config`]: sizes (`paper`, `demo`, `tiny` presets), all config values
 //! - [`ndarray_ops`]: the convolution on NdArray as one operation with its own backward pass
+//! - [`cube_ops`]: generation's element-wise chains as single kernels on wgpu/WebGPU
 //! - [`layers`]: equalised-lr fully connected layers, modulated convs and modulated FCs
 //! - [`mapping`]: z → w mapping networks with tracked w_avg and truncation ψ
 //! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
@@ -15,6 +16,8 @@
 //! bit-identical parameters.
 
 pub mod config;
+#[cfg(feature = "wgpu")]
+pub mod cube_ops;
 pub mod decoders;
 pub mod discriminator;
 pub mod init;

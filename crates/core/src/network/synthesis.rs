@@ -63,7 +63,20 @@ fn upsample_dim_by_slices(x: Tensor<4>, dim: usize) -> Tensor<4> {
 }
 
 fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    #[cfg(feature = "wgpu")]
+    if let Some(y) = super::cube_ops::upsample2(&x, None) {
+        return y;
+    }
     upsample_dim(upsample_dim(x, 2), 3)
+}
+
+/// `upsample2(x) + skip`: one kernel on wgpu for generation ([`super::cube_ops`]).
+fn upsample2_add(x: Tensor<4>, skip: Tensor<4>) -> Tensor<4> {
+    #[cfg(feature = "wgpu")]
+    if let Some(y) = super::cube_ops::upsample2(&x, Some(&skip)) {
+        return y;
+    }
+    upsample2(x) + skip
 }
 
 #[derive(Module, Debug)]
@@ -182,11 +195,11 @@ impl SynthesisState {
         let t = block.to_texture.forward(h.clone(), pick(ws_tex, self.ti));
         self.ti += 1;
         self.geo = Some(match self.geo.take() {
-            Some(prev) => upsample2(prev) + g,
+            Some(prev) => upsample2_add(prev, g),
             None => g,
         });
         self.tex = Some(match self.tex.take() {
-            Some(prev) => upsample2(prev) + t,
+            Some(prev) => upsample2_add(prev, t),
             None => t,
         });
         self.x = Some(h);
