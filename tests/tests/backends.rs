@@ -22,26 +22,9 @@ fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
     let (gc, gg) = (Generator::new(&cfg, 0, &cpu), Generator::new(&cfg, 0, &gpu));
 
     // Fields at body points near the surface.
-    let pts: Vec<f32> = model.v_template.iter().step_by(7).flat_map(|v| v.to_array()).collect();
-    let n = pts.len() / 3;
-    let field = |g: &Generator, dev: &Device| {
-        let (zg, zt) = seed_latents(&cfg, 3, 4, dev);
-        let s = g.styles(zg, zt, 0.7);
-        let planes = g.triplanes(&s);
-        let p = Tensor::<3>::from_data(TensorData::new(pts.clone(), [1, n, 3]), dev);
-        let (r, o) = g.geometry_fields(&planes, &s, p.clone());
-        let c = g.texture_field(&planes, &s, p);
-        (values(planes.geometry), values(r), values(o), values(c))
-    };
-    let (a, b) = (field(&gc, &cpu), field(&gg, &gpu));
-    for (name, x, y) in
-        [("triplanes", &a.0, &b.0), ("sdf residual", &a.1, &b.1), ("offsets", &a.2, &b.2), ("colours", &a.3, &b.3)]
-    {
-        let scale = x.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
-        let diff = x.iter().zip(y).fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
-        println!("{name}: max |Δ| {diff:.3e} (scale {scale:.3e})");
-        assert!(diff <= 1e-4 * scale + 1e-7, "{name}: NdArray and Wgpu differ by {diff} (scale {scale})");
-    }
+    let pts = body_points(&model, 7);
+    let (a, b) = (fields(&gc, &cfg, (3, 4), &pts, &cpu), fields(&gg, &cfg, (3, 4), &pts, &gpu));
+    assert_fields_close(&a, &b, 1e-4, "NdArray and Wgpu");
 
     // Whole avatars: same mesh within float noise.
     let ctx = BodyContext::new(model, &cfg);
@@ -56,6 +39,37 @@ fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
     let d = ma.mesh.vertices.iter().map(|v| tb.nearest(*v).map_or(f32::MAX, |x| x.1.sqrt())).fold(0.0, f32::max);
     println!("mesh: {} vertices, max vertex distance {d:.2e} m", ma.mesh.vertices.len());
     assert!(d < 1e-4, "meshes differ by {d} m");
+}
+
+/// Every `step`-th vertex of the body template (points near the surface), flattened.
+fn body_points(model: &BodyModel, step: usize) -> Vec<f32> {
+    model.v_template.iter().step_by(step).flat_map(|v| v.to_array()).collect()
+}
+
+/// The names of [`fields`]' outputs.
+const FIELDS: [&str; 5] = ["geometry planes", "texture planes", "sdf residual", "offsets", "colours"];
+
+/// A generator's triplanes, and its SDF residual, offsets and colours at `pts`, for one seed
+/// pair at ψ 0.7 on `dev`.
+fn fields(g: &Generator, cfg: &GeneratorConfig, seeds: (u64, u64), pts: &[f32], dev: &Device) -> [Vec<f32>; 5] {
+    let n = pts.len() / 3;
+    let (zg, zt) = seed_latents(cfg, seeds.0, seeds.1, dev);
+    let s = g.styles(zg, zt, 0.7);
+    let planes = g.triplanes(&s);
+    let p = Tensor::<3>::from_data(TensorData::new(pts.to_vec(), [1, n, 3]), dev);
+    let (r, o) = g.geometry_fields(&planes, &s, p.clone());
+    let c = g.texture_field(&planes, &s, p);
+    [values(planes.geometry), values(planes.texture), values(r), values(o), values(c)]
+}
+
+/// Each of [`fields`]' outputs within `rel` of its scale (plus 1e-7).
+fn assert_fields_close(a: &[Vec<f32>; 5], b: &[Vec<f32>; 5], rel: f32, what: &str) {
+    for ((name, x), y) in FIELDS.iter().zip(a).zip(b) {
+        let scale = y.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        let diff = x.iter().zip(y).fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
+        println!("{name}: max |Δ| {diff:.3e} (scale {scale:.3e})");
+        assert!(diff <= rel * scale + 1e-7, "{name}: {what} differ by {diff} (scale {scale})");
+    }
 }
 
 fn clock_ms() -> f64 {
@@ -246,27 +260,7 @@ fn fused_generation_kernels_match_the_tensor_ops() {
     let cfg = GeneratorConfig::tiny();
     let (fused, plain) = (Generator::new(&cfg, 0, &gpu), Generator::new(&cfg, 0, &ad));
     let model = BodyModel::default_body().expect("body");
-    let pts: Vec<f32> = model.v_template.iter().step_by(11).flat_map(|v| v.to_array()).collect();
-    let n = pts.len() / 3;
-    let field = |g: &Generator, dev: &Device| {
-        let (zg, zt) = seed_latents(&cfg, 5, 6, dev);
-        let s = g.styles(zg, zt, 0.7);
-        let planes = g.triplanes(&s);
-        let p = Tensor::<3>::from_data(TensorData::new(pts.clone(), [1, n, 3]), dev);
-        let (r, o) = g.geometry_fields(&planes, &s, p.clone());
-        let c = g.texture_field(&planes, &s, p);
-        [values(planes.geometry), values(planes.texture), values(r), values(o), values(c)]
-    };
-    let (a, b) = (field(&fused, &gpu), field(&plain, &ad));
-    for (name, x, y) in ["geometry planes", "texture planes", "sdf residual", "offsets", "colours"]
-        .iter()
-        .zip(&a)
-        .zip(&b)
-        .map(|((n, x), y)| (n, x, y))
-    {
-        let scale = y.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
-        let diff = x.iter().zip(y).fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
-        println!("{name}: max |Δ| {diff:.3e} (scale {scale:.3e})");
-        assert!(diff <= 1e-5 * scale + 1e-7, "{name}: fused kernels and tensor ops differ by {diff} (scale {scale})");
-    }
+    let pts = body_points(&model, 11);
+    let (a, b) = (fields(&fused, &cfg, (5, 6), &pts, &gpu), fields(&plain, &cfg, (5, 6), &pts, &ad));
+    assert_fields_close(&a, &b, 1e-5, "fused kernels and tensor ops");
 }

@@ -34,6 +34,16 @@ use cubecl::{calculate_cube_count_elemwise, CubeDim};
 
 const SQRT2: f32 = std::f32::consts::SQRT_2;
 
+/// Leaky ReLU (slope 0.2) with StyleGAN's gain √2, as `layers::lrelu_gain`.
+#[cube]
+fn lrelu_gain(y: f32) -> f32 {
+    let mut v = y;
+    if v < 0.0 {
+        v *= 0.2;
+    }
+    v * SQRT2
+}
+
 #[cube(launch)]
 fn fully_connected_kernel(
     x: &[f32],
@@ -59,10 +69,7 @@ fn fully_connected_kernel(
     }
     let mut y = acc * gain + bias[o] * bias_mul;
     if activation == 1 {
-        if y < 0.0 {
-            y *= 0.2;
-        }
-        y *= SQRT2;
+        y = lrelu_gain(y);
     }
     out[pos] = y;
 }
@@ -132,10 +139,7 @@ fn bias_lrelu_kernel(
     }
     let mut y = x[pos] + bias[(pos / channel_stride) % channels];
     if activation == 1 {
-        if y < 0.0 {
-            y *= 0.2;
-        }
-        y *= SQRT2;
+        y = lrelu_gain(y);
     }
     out[pos] = y;
 }
