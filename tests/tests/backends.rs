@@ -264,3 +264,22 @@ fn fused_generation_kernels_match_the_tensor_ops() {
     let (a, b) = (fields(&fused, &cfg, (5, 6), &pts, &gpu), fields(&plain, &cfg, (5, 6), &pts, &ad));
     assert_fields_close(&a, &b, 1e-5, "fused kernels and tensor ops");
 }
+
+/// Issue #28: DMTet's prefix sum as cubecl kernels on wgpu (`dmtet_gpu::inclusive_scan`,
+/// three launches) is the running sum, at block edges and past them; the compaction built on
+/// it is covered by `marching_tets_on_the_gpu_gives_the_cpu_mesh`.
+#[test]
+fn the_gpu_prefix_sum_is_the_running_sum() {
+    use getavatar_core::burn::tensor::Int;
+    use getavatar_core::dmtet_gpu::inclusive_scan;
+    use getavatar_core::rng::Rng;
+    let gpu = common::gpu();
+    let mut rng = Rng::new(6, 0);
+    for n in [1usize, 255, 256, 257, 513, 300_000] {
+        let x: Vec<i64> = (0..n).map(|_| rng.below(2) as i64).collect();
+        let t = Tensor::<1, Int>::from_data(TensorData::new(x.clone(), [n]), &gpu);
+        let got: Vec<i64> = inclusive_scan(t).into_data().convert::<i64>().try_to_vec::<i64>().expect("ints");
+        let want: Vec<i64> = x.iter().scan(0, |s, v| Some(*s + v).inspect(|t| *s = *t)).collect();
+        assert_eq!(got, want, "n = {n}");
+    }
+}

@@ -206,6 +206,10 @@ const SCAN_BLOCK: usize = 64;
 /// Inclusive prefix sum of a 1-D integer tensor by blocks of [`SCAN_BLOCK`], recursively over
 /// the block totals: O(n · block) work in a few launches per level.
 pub fn inclusive_scan(x: Tensor<1, Int>) -> Tensor<1, Int> {
+    #[cfg(feature = "wgpu")]
+    if let Some(scan) = cube::inclusive_scan(&x) {
+        return scan;
+    }
     let n = x.dims()[0];
     if n <= SCAN_BLOCK {
         return x.cumsum(0);
@@ -227,6 +231,10 @@ pub fn inclusive_scan(x: Tensor<1, Int>) -> Tensor<1, Int> {
 /// each kept element in order, padded with 0 to `len` (≥ the kept count) — an integer scatter
 /// of the indices to their ranks (parallel atomics on a GPU), then read in rank order.
 fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, len: usize) -> Tensor<1, Int> {
+    #[cfg(feature = "wgpu")]
+    if let Some(kept) = cube::kept_indices(&scan, len) {
+        return kept;
+    }
     let device = scan.device();
     let n = scan.dims()[0];
     // Dropped elements go to a spare slot at `len` (and add 0 there).
@@ -234,6 +242,203 @@ fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, len: usize) -> Tens
     let index = Tensor::<1, Int>::arange(0..n as i64, &device).mask_fill(keep.bool_not(), 0);
     let slots = Tensor::<1, Int>::zeros([len + 1], &device);
     slots.scatter(0, rank, index, IndexingUpdateOp::Add).narrow(0, 0, len)
+}
+
+/// [`inclusive_scan`] and [`kept_indices`] as cubecl kernels on wgpu/WebGPU (#28: the tensor-op
+/// versions take about 20 launches per scan and 6 per compaction, and in the browser every
+/// launch is host time): a scan is three launches (block totals, their running sum in one
+/// unit, each block's running sum from its offset), a compaction one (each output slot finds
+/// its element by a binary search of the scan). Integer results, so they equal the tensor
+/// ops exactly. Other backends, and integer types other than i32, take the tensor ops.
+#[cfg(feature = "wgpu")]
+// Kernel code (`#[cube]`) has index loops, not iterators.
+#[allow(clippy::needless_range_loop)]
+mod cube {
+    use burn::backend::tensor::IntTensor;
+    use burn::backend::{backend_extension, Backend, DispatchDevice, TensorMetadata};
+    use burn::tensor::{DType, Int, Shape, Tensor};
+    use burn_cubecl::kernel::into_contiguous;
+    use burn_cubecl::tensor::CubeTensor;
+    use burn_cubecl::CubeBackend;
+    use cubecl::prelude::*;
+    use cubecl::{calculate_cube_count_elemwise, CubeDim};
+
+    /// Elements each unit of a scan sums in turn.
+    const BLOCK: usize = 256;
+
+    #[cube(launch)]
+    fn block_totals(x: &[i32], totals: &mut [i32], n: usize, block: usize) {
+        let t = ABSOLUTE_POS;
+        if t * block >= n {
+            terminate!();
+        }
+        let mut end = (t + 1) * block;
+        if end > n {
+            end = n;
+        }
+        let mut sum = 0i32;
+        for i in t * block..end {
+            sum += x[i];
+        }
+        totals[t] = sum;
+    }
+
+    /// Exclusive running sum of the block totals, in place, by one unit.
+    #[cube(launch)]
+    fn block_offsets(totals: &mut [i32], m: usize) {
+        if ABSOLUTE_POS != 0 {
+            terminate!();
+        }
+        let mut sum = 0i32;
+        for i in 0..m {
+            let v = totals[i];
+            totals[i] = sum;
+            sum += v;
+        }
+    }
+
+    #[cube(launch)]
+    fn block_scan(x: &[i32], offsets: &[i32], out: &mut [i32], n: usize, block: usize) {
+        let t = ABSOLUTE_POS;
+        if t * block >= n {
+            terminate!();
+        }
+        let mut end = (t + 1) * block;
+        if end > n {
+            end = n;
+        }
+        let mut sum = offsets[t];
+        for i in t * block..end {
+            sum += x[i];
+            out[i] = sum;
+        }
+    }
+
+    /// Output slot `j` holds the element whose inclusive scan value first reaches `j + 1`
+    /// (the kept element of rank `j`), or 0 past the kept count.
+    #[cube(launch)]
+    fn kept(scan: &[i32], out: &mut [i32], n: usize, len: usize) {
+        let j = ABSOLUTE_POS;
+        if j >= len {
+            terminate!();
+        }
+        let rank = (j + 1) as i32;
+        let mut index = 0i32;
+        if scan[n - 1] >= rank {
+            let mut lo = 0usize;
+            let mut hi = n - 1;
+            // ⌈log₂ n⌉ ≤ 32 halvings.
+            for _ in 0..32u32 {
+                if lo < hi {
+                    let mid = (lo + hi) / 2;
+                    if scan[mid] >= rank {
+                        hi = mid;
+                    } else {
+                        lo = mid + 1;
+                    }
+                }
+            }
+            index = lo as i32;
+        }
+        out[j] = index;
+    }
+
+    #[backend_extension(Cube)]
+    pub trait ScanBackend: Backend {
+        /// Inclusive prefix sum of a 1-D i32 tensor.
+        fn inclusive_scan(x: IntTensor<Self>) -> IntTensor<Self>;
+        /// See [`super::kept_indices`]; `scan` is an inclusive scan of a 0/1 mask.
+        fn kept_indices(scan: IntTensor<Self>, len: usize) -> IntTensor<Self>;
+    }
+
+    fn empty_i32(like: &CubeTensor, n: usize) -> CubeTensor {
+        let handle = like.client.empty(n.max(1) * std::mem::size_of::<i32>());
+        CubeTensor::new_contiguous(like.client.clone(), like.device.clone(), Shape::new([n]), handle, DType::I32)
+    }
+
+    fn grid(t: &CubeTensor, n: usize) -> (CubeCount, CubeDim) {
+        let dim = CubeDim::new(&t.client, n.max(1));
+        (calculate_cube_count_elemwise(&t.client, n.max(1), dim), dim)
+    }
+
+    impl ScanBackend for CubeBackend {
+        fn inclusive_scan(x: CubeTensor) -> CubeTensor {
+            let x = into_contiguous(x);
+            let n = x.shape().num_elements();
+            let m = n.div_ceil(BLOCK);
+            let (totals, out) = (empty_i32(&x, m), empty_i32(&x, n));
+            let client = x.client.clone();
+            let (count, dim) = grid(&x, m);
+            block_totals::launch(
+                &client,
+                count.clone(),
+                dim,
+                x.clone().into_buffer_arg(),
+                totals.clone().into_buffer_arg(),
+                n,
+                BLOCK,
+            );
+            block_offsets::launch(
+                &client,
+                CubeCount::Static(1, 1, 1),
+                CubeDim::new_single(),
+                totals.clone().into_buffer_arg(),
+                m,
+            );
+            block_scan::launch(
+                &client,
+                count,
+                dim,
+                x.into_buffer_arg(),
+                totals.into_buffer_arg(),
+                out.clone().into_buffer_arg(),
+                n,
+                BLOCK,
+            );
+            out
+        }
+
+        fn kept_indices(scan: CubeTensor, len: usize) -> CubeTensor {
+            let scan = into_contiguous(scan);
+            let n = scan.shape().num_elements();
+            let out = empty_i32(&scan, len);
+            let (count, dim) = grid(&scan, len);
+            kept::launch(
+                &scan.client.clone(),
+                count,
+                dim,
+                scan.into_buffer_arg(),
+                out.clone().into_buffer_arg(),
+                n,
+                len,
+            );
+            out
+        }
+    }
+
+    /// Whether `t` is an i32 tensor of a cubecl device without autodiff (the pass's integers
+    /// never are on an autodiff device).
+    fn eligible(t: &Tensor<1, Int>) -> bool {
+        let device = t.device();
+        t.dtype() == DType::I32 && !device.is_autodiff() && matches!(device.as_dispatch(), DispatchDevice::Cube(_))
+    }
+
+    /// The kernel scan, or `None` where it does not apply.
+    pub fn inclusive_scan(x: &Tensor<1, Int>) -> Option<Tensor<1, Int>> {
+        (eligible(x) && x.dims()[0] > 0).then(|| {
+            Tensor::from_dispatch(<burn::backend::Dispatch as ScanBackend>::inclusive_scan(x.clone().into_dispatch()))
+        })
+    }
+
+    /// The kernel compaction, or `None` where it does not apply.
+    pub fn kept_indices(scan: &Tensor<1, Int>, len: usize) -> Option<Tensor<1, Int>> {
+        (eligible(scan) && scan.dims()[0] > 0 && len > 0).then(|| {
+            Tensor::from_dispatch(<burn::backend::Dispatch as ScanBackend>::kept_indices(
+                scan.clone().into_dispatch(),
+                len,
+            ))
+        })
+    }
 }
 
 fn ints(values: &[i64], device: &Device) -> Tensor<1, Int> {
