@@ -572,6 +572,8 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
         ("--objective", "adversarial"),
         ("--lambda-scan", "0.5"),
         ("--lambda-reconstruction", "1"),
+        ("--lr-g", "0.001"),
+        ("--lr-d", "0.001"),
     ] {
         refused(&["--resume", flag, value], &run, &format!("{flag} {value} differs from the run's"));
     }
@@ -590,6 +592,13 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     let same = ["--resume", "--views", "3", "--objective", "reconstruction", "--seed", "0", "--r1-gamma", "10"];
     let text = train(&data, &run, 3, &same);
     assert!(text.contains("trained 1 steps") || text.contains("trained 1 step"), "{text}");
+    // The learning rates: the objective's defaults, or the flags' values, kept in run.json.
+    assert_eq!((rc["lr_g"].as_f64(), rc["lr_d"].as_f64()), (Some(0.0005), Some(0.002)), "{rc}");
+    refused(&["--lr-g", "0"], &root.join("lr0"), "--lr-g must be a finite learning rate > 0, got 0");
+    let ttur = root.join("ttur");
+    train(&data, &ttur, 1, &["--lr-g", "0.0003", "--lr-d", "0.004"]);
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(ttur.join("run.json")).unwrap()).unwrap();
+    assert_eq!((rc["lr_g"].as_f64(), rc["lr_d"].as_f64()), (Some(0.0003), Some(0.004)), "{rc}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

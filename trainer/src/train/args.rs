@@ -80,6 +80,14 @@ pub struct TrainArgs {
     /// blends. 0 (the default): off; 0.7 matches sampling.
     #[arg(long)]
     pub latent_spread: Option<f32>,
+    /// Adam learning rate of G (not of the paper's defaults where changed) [default: 0.002
+    /// adversarial, 0.0005 reconstruction]. Below D's rate it lets the discriminators get
+    /// ahead of G (a two-time-scale update).
+    #[arg(long)]
+    pub lr_g: Option<f32>,
+    /// Adam learning rate of the discriminators [default: 0.002].
+    #[arg(long)]
+    pub lr_d: Option<f32>,
 }
 
 impl TrainArgs {
@@ -99,7 +107,7 @@ impl TrainArgs {
     pub fn resume_conflicts(&self, rc: &RunConfig) -> Vec<String> {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
-        let rows: [(&str, Option<String>, String, &str); 11] = [
+        let rows: [(&str, Option<String>, String, &str); 13] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -126,6 +134,8 @@ impl TrainArgs {
                 "lambda_texture_swap",
             ),
             ("--latent-spread", self.latent_spread.map(num), num(rc.latent_spread), "latent_spread"),
+            ("--lr-g", self.lr_g.map(num), num(rc.lr_g), "lr_g"),
+            ("--lr-d", self.lr_d.map(num), num(rc.lr_d), "lr_d"),
         ];
         rows.into_iter()
             .filter_map(|(flag, given, run, field)| match given {

@@ -210,16 +210,25 @@ impl RunConfig {
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
             bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
         }
+        for (flag, lr) in [("--lr-g", a.lr_g), ("--lr-d", a.lr_d)] {
+            if let Some(lr) = lr.filter(|lr| !(*lr > 0.0 && lr.is_finite())) {
+                bail!("{flag} must be a finite learning rate > 0, got {lr}");
+            }
+        }
         let gcfg = GeneratorConfig::preset(a.config_name())
             .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
+        let defaults =
+            RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective);
         Ok(RunConfig {
+            lr_g: a.lr_g.unwrap_or(defaults.lr_g),
+            lr_d: a.lr_d.unwrap_or(defaults.lr_d),
             lambda_reconstruction,
             views_per_subject: views,
             scans: a.scans.as_ref().map(|d| d.display().to_string()),
             lambda_scan: if a.scans.is_some() { lambda_scan } else { 0.0 },
             lambda_texture_swap,
             latent_spread,
-            ..RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective)
+            ..defaults
         })
     }
 
