@@ -365,7 +365,8 @@ impl CubeOpsBackend for CubeBackend {
     }
 }
 
-/// Whether `t` can go through the kernels: on a cubecl device, f32, recording no gradients.
+/// Whether `t` can go through the kernels: on a cubecl device, f32, not empty, recording no
+/// gradients.
 /// `Some(autodiff)` says whether it is an (untracked) tensor of an autodiff device, whose
 /// result goes back to that device.
 fn eligible<const D: usize>(t: &Tensor<D>) -> Option<bool> {
@@ -373,7 +374,8 @@ fn eligible<const D: usize>(t: &Tensor<D>) -> Option<bool> {
     if t.is_tracked() {
         return None;
     }
-    if t.dtype() != DType::F32 {
+    // Empty tensors (a decoder on no points) keep the tensor ops: a launch needs ≥ 1 unit.
+    if t.dtype() != DType::F32 || t.shape().num_elements() == 0 {
         return None;
     }
     let device = t.device();
