@@ -445,9 +445,10 @@ fn ints(values: &[i64], device: &Device) -> Tensor<1, Int> {
     Tensor::from_data(TensorData::new(values.to_vec(), [values.len()]), device)
 }
 
+/// No surface: zero rows and faces (burn refuses to narrow to length 0, so from empty data).
 fn empty_surface(device: &Device) -> DeviceSurface {
-    let rows = Tensor::<2>::zeros([1, SURFACE_COLUMNS], device).narrow(0, 0, 0);
-    DeviceSurface { rows, faces: Tensor::zeros([1, 3], device).narrow(0, 0, 0), vertex_count: 0 }
+    let none = |columns: usize| Tensor::<2>::from_data(TensorData::new(Vec::<f32>::new(), [0, columns]), device);
+    DeviceSurface { rows: none(SURFACE_COLUMNS), faces: none(3), vertex_count: 0 }
 }
 
 /// Extract the surface `sdf = 0` on `topo`'s device from the field band's rows
@@ -658,5 +659,11 @@ mod tests {
         }
         assert!(worst < 1e-6, "corners differ by {worst}");
         assert_eq!(mesh.topology_defects(), (0, 0), "closed and consistently oriented");
+
+        // A grid with no sign change and no band: no surface, an empty one (not a panic).
+        let far = vec![1.0f32; template.len()];
+        let empty = DmtetTopology::new(&grid, &boundary, &far, &[]).upload(&grid, &canonical, &device);
+        let none = run_blocking(extract(&empty, Tensor::<2>::zeros([1, 4], &device))).expect("extract");
+        assert_eq!((none.vertex_count, none.rows.dims(), none.faces.dims()), (0, [0, SURFACE_COLUMNS], [0, 3]));
     }
 }
