@@ -261,10 +261,22 @@ mod cube {
     use burn_cubecl::tensor::CubeTensor;
     use burn_cubecl::CubeBackend;
     use cubecl::prelude::*;
-    use cubecl::{calculate_cube_count_elemwise, CubeDim};
+    use cubecl::CubeDim;
+
+    use crate::network::cube_ops::grid;
 
     /// Elements each unit of a scan sums in turn.
     const BLOCK: usize = 256;
+
+    /// The end of block `t`'s elements (the last block may be short).
+    #[cube]
+    fn block_end(t: usize, block: usize, n: usize) -> usize {
+        let mut end = (t + 1) * block;
+        if end > n {
+            end = n;
+        }
+        end
+    }
 
     #[cube(launch)]
     fn block_totals(x: &[i32], totals: &mut [i32], n: usize, block: usize) {
@@ -272,10 +284,7 @@ mod cube {
         if t * block >= n {
             terminate!();
         }
-        let mut end = (t + 1) * block;
-        if end > n {
-            end = n;
-        }
+        let end = block_end(t, block, n);
         let mut sum = 0i32;
         for i in t * block..end {
             sum += x[i];
@@ -303,10 +312,7 @@ mod cube {
         if t * block >= n {
             terminate!();
         }
-        let mut end = (t + 1) * block;
-        if end > n {
-            end = n;
-        }
+        let end = block_end(t, block, n);
         let mut sum = offsets[t];
         for i in t * block..end {
             sum += x[i];
@@ -356,11 +362,6 @@ mod cube {
         CubeTensor::new_contiguous(like.client.clone(), like.device.clone(), Shape::new([n]), handle, DType::I32)
     }
 
-    fn grid(t: &CubeTensor, n: usize) -> (CubeCount, CubeDim) {
-        let dim = CubeDim::new(&t.client, n.max(1));
-        (calculate_cube_count_elemwise(&t.client, n.max(1), dim), dim)
-    }
-
     impl ScanBackend for CubeBackend {
         fn inclusive_scan(x: CubeTensor) -> CubeTensor {
             let x = into_contiguous(x);
@@ -368,7 +369,7 @@ mod cube {
             let m = n.div_ceil(BLOCK);
             let (totals, out) = (empty_i32(&x, m), empty_i32(&x, n));
             let client = x.client.clone();
-            let (count, dim) = grid(&x, m);
+            let (count, dim) = grid(&x, m.max(1));
             block_totals::launch(
                 &client,
                 count.clone(),
@@ -402,7 +403,7 @@ mod cube {
             let scan = into_contiguous(scan);
             let n = scan.shape().num_elements();
             let out = empty_i32(&scan, len);
-            let (count, dim) = grid(&scan, len);
+            let (count, dim) = grid(&scan, len.max(1));
             kept::launch(
                 &scan.client.clone(),
                 count,

@@ -239,8 +239,8 @@ fn is_dense(t: &CubeTensor) -> bool {
     !t.meta.is_tiled() && t.is_contiguous_buffer() && t.is_nonoverlapping()
 }
 
-/// One unit per element of `n`: the launch's cube dimension and count.
-fn grid(t: &CubeTensor, n: usize) -> (CubeCount, CubeDim) {
+/// One unit per element of `n` (≥ 1): the launch's cube dimension and count.
+pub(crate) fn grid(t: &CubeTensor, n: usize) -> (CubeCount, CubeDim) {
     let dim = CubeDim::new(&t.client, n);
     (calculate_cube_count_elemwise(&t.client, n, dim), dim)
 }
