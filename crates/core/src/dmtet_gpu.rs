@@ -263,7 +263,7 @@ mod cube {
     use cubecl::prelude::*;
     use cubecl::CubeDim;
 
-    use crate::network::cube_ops::grid;
+    use crate::network::cube_ops::{empty_contiguous, grid};
 
     /// Elements each unit of a scan sums in turn.
     const BLOCK: usize = 256;
@@ -358,8 +358,7 @@ mod cube {
     }
 
     fn empty_i32(like: &CubeTensor, n: usize) -> CubeTensor {
-        let handle = like.client.empty(n.max(1) * std::mem::size_of::<i32>());
-        CubeTensor::new_contiguous(like.client.clone(), like.device.clone(), Shape::new([n]), handle, DType::I32)
+        empty_contiguous(like, Shape::new([n]), DType::I32)
     }
 
     impl ScanBackend for CubeBackend {

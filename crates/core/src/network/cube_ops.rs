@@ -227,10 +227,11 @@ pub trait CubeOpsBackend: Backend {
     fn upsample2(x: FloatTensor<Self>, skip: FloatTensor<Self>, add_skip: bool) -> FloatTensor<Self>;
 }
 
-/// A contiguous f32 output tensor on `like`'s device.
-fn empty_like(like: &CubeTensor, shape: Shape) -> CubeTensor {
-    let handle = like.client.empty(shape.num_elements() * std::mem::size_of::<f32>());
-    CubeTensor::new_contiguous(like.client.clone(), like.device.clone(), shape, handle, DType::F32)
+/// A contiguous output tensor of `dtype` on `like`'s device.
+pub(crate) fn empty_contiguous(like: &CubeTensor, shape: Shape, dtype: DType) -> CubeTensor {
+    // At least one element: a zero-sized buffer is not a valid binding.
+    let handle = like.client.empty(shape.num_elements().max(1) * dtype.size());
+    CubeTensor::new_contiguous(like.client.clone(), like.device.clone(), shape, handle, dtype)
 }
 
 /// Whether `t`'s elements fill its buffer exactly once, in some order of its dimensions: what
@@ -257,7 +258,7 @@ impl CubeOpsBackend for CubeBackend {
         let (x, weight, bias) = (into_contiguous(x), into_contiguous(weight), into_contiguous(bias));
         let [rows, d_in] = x.shape().dims();
         let d_out = weight.shape()[0];
-        let out = empty_like(&x, Shape::new([rows, d_out]));
+        let out = empty_contiguous(&x, Shape::new([rows, d_out]), DType::F32);
         let (count, dim) = grid(&x, rows * d_out);
         fully_connected_kernel::launch(
             &x.client.clone(),
