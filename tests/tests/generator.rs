@@ -403,3 +403,57 @@ fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
         }
     }
 }
+
+/// Texture detail blocks (`texture_res`): finer texture planes, the same geometry planes; a
+/// checkpoint without them grows into the finer config rendering the same planes up to the
+/// 2× upsampling (the new to-texture layer starts at zero), and their weights count as the
+/// texture branch.
+#[test]
+fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generator() {
+    use getavatar_core::checkpoint::{load_generator, load_generator_growing_texture, save_generator};
+    use getavatar_core::generator::is_texture_param;
+    let dev = device();
+    let cfg = GeneratorConfig::tiny();
+    let fine = GeneratorConfig { texture_res: Some(2 * cfg.plane_res), ..cfg.clone() };
+    assert!(fine.validate().is_ok());
+    for bad in [3 * cfg.plane_res, cfg.plane_res / 2, 32 * cfg.plane_res] {
+        let e = GeneratorConfig { texture_res: Some(bad), ..cfg.clone() }.validate().unwrap_err();
+        assert!(e.contains("texture_res"), "{e}");
+    }
+    let coarse = Generator::new(&cfg, 3, &dev);
+    let bytes = save_generator(&coarse, &cfg, &Default::default()).unwrap();
+    // The plain loader refuses the other config; the growing one takes it.
+    assert!(load_generator(&bytes, &fine, &dev).is_err());
+    let grown = load_generator_growing_texture(&bytes, &fine, 5, &dev).expect("grows");
+    let other = GeneratorConfig { z_dim: 8, ..fine.clone() };
+    assert!(load_generator_growing_texture(&bytes, &other, 5, &dev).is_err(), "only the texture planes may differ");
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let a = coarse.triplanes(&coarse.styles(zg.clone(), zt.clone(), 0.7));
+    let b = grown.triplanes(&grown.styles(zg, zt, 0.7));
+    let r = cfg.plane_res;
+    assert_eq!(a.texture.dims(), [1, 3 * cfg.plane_channels, r, r]);
+    assert_eq!(b.texture.dims(), [1, 3 * cfg.plane_channels, 2 * r, 2 * r]);
+    let vec = |t: Tensor<4>| t.into_data().try_to_vec::<f32>().expect("f32");
+    assert_eq!(vec(a.geometry), vec(b.geometry), "the geometry planes are untouched");
+    // Texel (2i, 2j) of the grown planes is ¾·¾ of texel (i, j) plus its up-left neighbours'
+    // shares (half-pixel bilinear): check an interior texel against that formula.
+    let (ta, tb) = (vec(a.texture), vec(b.texture));
+    let at = |c: usize, y: usize, x: usize| ta[(c * r + y) * r + x];
+    let (c, i, j) = (1, 3, 4);
+    let want = 0.5625 * at(c, i, j) + 0.1875 * (at(c, i - 1, j) + at(c, i, j - 1)) + 0.0625 * at(c, i - 1, j - 1);
+    let got = tb[(c * 2 * r + 2 * i) * 2 * r + 2 * j];
+    assert!((got - want).abs() < 1e-5, "{got} vs {want}");
+    // The detail block's weights are the texture branch's (its own learning rate).
+    let names: Vec<String> = getavatar_core::checkpoint::collect_params(&grown)
+        .unwrap()
+        .into_iter()
+        .map(|(n, _, _)| n)
+        .filter(|n| n.starts_with("synthesis.texture_detail."))
+        .collect();
+    assert!(names.len() >= 4, "{names:?}");
+    assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
+    // Generation with the grown generator runs on the finer planes.
+    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &fine);
+    let av = generate(&grown, &ctx, &fine, (1, 2), "standing");
+    assert!(av.colors.iter().all(|c| c.min_element() >= 0.0 && c.max_element() <= 1.0));
+}

@@ -7,7 +7,9 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::{load_generator, load_inverted, load_latent_modes, InvertedAvatar};
+use getavatar_core::checkpoint::{
+    checkpoint_config, load_generator, load_inverted, load_latent_modes, parse_safetensors, InvertedAvatar,
+};
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
 use getavatar_core::generator::{
@@ -110,10 +112,10 @@ pub struct GeneratorArgs {
 
 impl GeneratorArgs {
     /// The config preset, the generator (see [`generator_or_random`]) and its latent modes.
+    /// A checkpoint's config replaces the preset where the two differ only in the texture
+    /// planes' resolution (a generator grown with `trainer train --texture-res`).
     pub fn load(&self, device: &Device) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
-        let cfg = self.config()?;
-        let (g, modes) = generator_or_random(self.checkpoint.as_deref(), self.random, &cfg, device)?;
-        Ok((cfg, g, modes))
+        generator_or_random(self.checkpoint.as_deref(), self.random, &self.config()?, device)
     }
 }
 
@@ -134,13 +136,14 @@ pub fn load_inverted_file(path: &Path, cfg: &GeneratorConfig, device: &Device) -
 
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
-/// so) the deterministic random weights (seed 0) of `cfg`.
+/// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
+/// the checkpoint's where it is `cfg` with other texture planes ([`with_saved_texture_res`]).
 pub fn generator_or_random(
     checkpoint: Option<&Path>,
     random: bool,
     cfg: &GeneratorConfig,
     device: &Device,
-) -> Result<(Generator, Option<LatentModes>)> {
+) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
     let shipped = if random { None } else { shipped_model(cfg) };
     Ok(match checkpoint.map(Path::to_path_buf).or(shipped) {
         Some(p) => {
@@ -149,9 +152,11 @@ pub fn generator_or_random(
             }
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             let loading = || format!("loading checkpoint {}", p.display());
+            let cfg = with_saved_texture_res(&bytes, cfg);
             (
-                load_generator(&bytes, cfg, device).with_context(loading)?,
+                load_generator(&bytes, &cfg, device).with_context(loading)?,
                 load_latent_modes(&bytes, device).with_context(loading)?,
+                cfg,
             )
         }
         None => {
@@ -159,9 +164,20 @@ pub fn generator_or_random(
                 "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
                 cfg.name
             );
-            (Generator::new(cfg, 0, device), None)
+            (Generator::new(cfg, 0, device), None, cfg.clone())
         }
     })
+    .map(|(g, modes, cfg)| (cfg, g, modes))
+}
+
+/// `cfg` with the texture planes of the checkpoint in `bytes` where the checkpoint's config is
+/// `cfg` but for them; otherwise `cfg` (and loading reports the difference).
+pub fn with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
+    let saved = parse_safetensors(bytes).ok().and_then(|st| checkpoint_config(&st).ok());
+    match saved {
+        Some(s) if GeneratorConfig { texture_res: s.texture_res, ..cfg.clone() } == s => s,
+        _ => cfg.clone(),
+    }
 }
 
 /// The body model in `path` (SMPL-layout .npz), or the embedded open body.

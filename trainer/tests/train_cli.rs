@@ -602,6 +602,51 @@ fn views_per_subject_is_validated_and_kept_in_the_run() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `--texture-res` (texture detail blocks, not in the paper): kept in run.json's generator
+/// config, validated, refused where a continued run differs, and a `--resume FILE` generator
+/// with coarser texture planes grows into it; `trainer variety` then takes the checkpoint's
+/// own config for `--config tiny`.
+#[test]
+fn texture_res_grows_a_saved_generator_and_is_kept_in_the_run() {
+    let root = tmp("texres");
+    let data = dataset(&root);
+    let (coarse, fine) = (root.join("coarse"), root.join("fine"));
+    train(&data, &coarse, 1, &["--objective", "reconstruction"]);
+    let init = coarse.join("generator.safetensors");
+    let text = train(
+        &data,
+        &fine,
+        1,
+        &["--objective", "reconstruction", "--texture-res", "32", "--resume", init.to_str().unwrap()],
+    );
+    assert!(text.contains("initialised the generator from"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fine.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["generator"]["texture_res"], 32, "{rc}");
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
+    refused(&["--resume", "--texture-res", "64"], &fine, "--texture-res 64 differs from the run's 32");
+    refused(&["--resume", "--texture-res", "32"], &coarse, "--texture-res 32 differs from the run's (none)");
+    refused(&["--texture-res", "24"], &root.join("bad"), "--texture-res 24: config field `texture_res`");
+    // A checkpoint with finer texture planes than the run's cannot shrink into it.
+    let fine_init = fine.join("generator.safetensors");
+    refused(&["--resume", fine_init.to_str().unwrap()], &root.join("shrink"), "texture_res");
+    let v = root.join("variety");
+    let o = trainer(&[
+        "variety",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        fine_init.to_str().unwrap(),
+        "--count",
+        "2",
+        "--res",
+        "16",
+        "--out",
+        v.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// `--lambda-texture-swap` and `--latent-spread` (reconstruction terms, not in the paper):
 /// the swap term logged every step, both kept in run.json, refused where they have no effect,
 /// out of range, or when a continued run differs.

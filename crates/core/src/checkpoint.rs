@@ -391,6 +391,9 @@ struct Load<'a> {
     device: Device,
     error: Option<CheckpointError>,
     used: usize,
+    /// Parameters under this path prefix may be missing from the file: they keep the model's
+    /// own initialisation (a grown generator's new blocks).
+    keep_missing: Option<&'a str>,
 }
 
 impl ModuleMapper for Load<'_> {
@@ -416,6 +419,7 @@ impl ModuleMapper for Load<'_> {
                     .get_or_insert(CheckpointError::Param(name, format!("shape {shape:?}, model expects {want:?}")));
                 param
             }
+            None if self.keep_missing.is_some_and(|p| name.starts_with(p)) => param,
             None => {
                 self.error.get_or_insert(CheckpointError::Param(name, "missing from the checkpoint".into()));
                 param
@@ -454,6 +458,42 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     }
     // Every weight is loaded below (a missing one is an error): no random draws for them.
     let g = crate::network::init::placeholder_weights(|| Generator::new(requested, 0, device));
+    load_into(g, st, None, device)
+}
+
+/// A generator of config `requested` from a checkpoint saved with coarser texture planes:
+/// the same config but a smaller `texture_res` (e.g. the paper's planes, none). Every saved
+/// weight is loaded; the texture detail blocks the file lacks keep their initialisation (the
+/// generator built with `seed`), whose to-texture layers are zero, so the grown generator
+/// renders what the saved one rendered, up to the bilinear upsampling of its texture planes.
+pub fn load_generator_growing_texture(
+    bytes: &[u8],
+    requested: &GeneratorConfig,
+    seed: u64,
+    device: &Device,
+) -> Result<Generator, CheckpointError> {
+    let st = parse_safetensors(bytes)?;
+    let saved = checkpoint_config(&st)?;
+    let same_but_texture =
+        GeneratorConfig { texture_res: saved.texture_res, name: saved.name.clone(), ..requested.clone() };
+    if same_but_texture != saved || requested.texture_plane_res() < saved.texture_plane_res() {
+        return Err(CheckpointError::ConfigMismatch {
+            saved: saved.name.clone(),
+            requested: requested.name.clone(),
+            detail: config_difference(&saved, requested),
+        });
+    }
+    load_into(Generator::new(requested, seed, device), &st, Some("synthesis.texture_detail."), device)
+}
+
+/// Load `st`'s weights into `g` (see [`Load`]); every tensor of the file but the latent modes
+/// and an inversion's codes must be used.
+fn load_into(
+    g: Generator,
+    st: &SafeTensors,
+    keep_missing: Option<&str>,
+    device: &Device,
+) -> Result<Generator, CheckpointError> {
     let mut l = Load {
         path: Vec::new(),
         seen: BTreeMap::new(),
@@ -461,6 +501,7 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
         device: device.clone(),
         error: None,
         used: 0,
+        keep_missing,
     };
     let g = g.map(&mut l);
     if let Some(e) = l.error {
@@ -539,8 +580,15 @@ pub fn load_params<M: Module>(
 ) -> Result<M, CheckpointError> {
     let sub: BTreeMap<String, (Vec<usize>, Vec<f32>)> =
         tensors.iter().filter_map(|(k, v)| k.strip_prefix(prefix).map(|rest| (rest.to_string(), v.clone()))).collect();
-    let mut l =
-        Load { path: Vec::new(), seen: BTreeMap::new(), tensors: &sub, device: device.clone(), error: None, used: 0 };
+    let mut l = Load {
+        path: Vec::new(),
+        seen: BTreeMap::new(),
+        tensors: &sub,
+        device: device.clone(),
+        error: None,
+        used: 0,
+        keep_missing: None,
+    };
     let m = module.map(&mut l);
     match l.error {
         Some(e) => Err(e),

@@ -45,12 +45,13 @@ pub struct Generator {
 
 /// Whether the parameter at checkpoint path `name` (e.g. `decoders.texture.out.weight`)
 /// belongs to the texture branch: the w_tex mapping network, the backbone's to-texture
-/// layers, the texture decoder and its RGB head. Only the RGB image depends on them; the
+/// layers, the texture detail blocks, the texture decoder and its RGB head. Only the RGB image depends on them; the
 /// shared backbone and everything geometric are outside it. Training may give this branch its
 /// own learning rate (`optim::Adam::step_scaled`).
 pub fn is_texture_param(name: &str) -> bool {
     name.starts_with("mapping_tex.")
         || name.contains(".to_texture.")
+        || name.starts_with("synthesis.texture_detail.")
         || name.starts_with("decoders.texture.")
         || name.starts_with("decoders.to_rgb.")
 }

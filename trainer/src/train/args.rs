@@ -88,6 +88,11 @@ pub struct TrainArgs {
     /// Adam learning rate of the discriminators [default: 0.002].
     #[arg(long)]
     pub lr_d: Option<f32>,
+    /// Resolution of the generator's texture planes, finer than the config's planes (not in
+    /// the paper: texture-only detail blocks, `GeneratorConfig::texture_res`). A `--resume`
+    /// checkpoint with coarser texture planes grows into it, rendering as before at first.
+    #[arg(long)]
+    pub texture_res: Option<usize>,
 }
 
 impl TrainArgs {
@@ -107,7 +112,8 @@ impl TrainArgs {
     pub fn resume_conflicts(&self, rc: &RunConfig) -> Vec<String> {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
-        let rows: [(&str, Option<String>, String, &str); 13] = [
+        let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
+        let rows: [(&str, Option<String>, String, &str); 14] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -136,6 +142,12 @@ impl TrainArgs {
             ("--latent-spread", self.latent_spread.map(num), num(rc.latent_spread), "latent_spread"),
             ("--lr-g", self.lr_g.map(num), num(rc.lr_g), "lr_g"),
             ("--lr-d", self.lr_d.map(num), num(rc.lr_d), "lr_d"),
+            (
+                "--texture-res",
+                self.texture_res.map(|r| r.to_string()),
+                plane(rc.generator.texture_res),
+                "generator.texture_res",
+            ),
         ];
         rows.into_iter()
             .filter_map(|(flag, given, run, field)| match given {

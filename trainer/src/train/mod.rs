@@ -35,7 +35,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::checkpoint::{load_generator, save_generator_with_modes};
+use getavatar_core::checkpoint::{load_generator_growing_texture, save_generator_with_modes};
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use getavatar_core::generator::BodyContext;
@@ -113,8 +113,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         if let Some(Some(init)) = &a.resume {
             // Transfer learning (paper Sec. 5.3): start G from a trained generator.
             let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
-            st.g = load_generator(&bytes, &rc.generator, &ad)?;
-            st.g_ema = load_generator(&bytes, &rc.generator, &plain)?;
+            // A generator saved with coarser texture planes grows into the run's config.
+            st.g = load_generator_growing_texture(&bytes, &rc.generator, rc.seed, &ad)?;
+            st.g_ema = load_generator_growing_texture(&bytes, &rc.generator, rc.seed, &plain)?;
             println!("initialised the generator from {}", init.display());
         }
         st

@@ -215,8 +215,12 @@ impl RunConfig {
                 bail!("{flag} must be a finite learning rate > 0, got {lr}");
             }
         }
-        let gcfg = GeneratorConfig::preset(a.config_name())
+        let mut gcfg = GeneratorConfig::preset(a.config_name())
             .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
+        if let Some(res) = a.texture_res {
+            gcfg.texture_res = Some(res);
+            gcfg.validate().map_err(|e| anyhow::anyhow!("--texture-res {res}: {e}"))?;
+        }
         let defaults =
             RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective);
         Ok(RunConfig {

@@ -22,6 +22,13 @@ pub struct GeneratorConfig {
     pub plane_res: usize,
     /// Channels per plane (geometry and texture planes alike).
     pub plane_channels: usize,
+    /// Resolution of the texture planes where it is finer than `plane_res` (not in the paper):
+    /// texture-only detail blocks carry the texture planes on from `plane_res`² by doublings
+    /// ([`crate::network::synthesis::TextureDetailBlock`]). A 64² plane over the canonical
+    /// space's 2 m has 3.1 cm texels: stripes, hems and faces are finer than two of them.
+    /// Absent (None): the texture planes are `plane_res`², as in the paper.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub texture_res: Option<usize>,
     /// Backbone channels at resolution r: min(channel_base / r, channel_max).
     pub channel_base: usize,
     pub channel_max: usize,
@@ -47,6 +54,7 @@ impl GeneratorConfig {
             w_avg_beta: 0.998,
             plane_res: 256,
             plane_channels: 32,
+            texture_res: None,
             channel_base: 32768,
             channel_max: 512,
             decoder_hidden: 32,
@@ -122,6 +130,22 @@ impl GeneratorConfig {
         r
     }
 
+    /// Resolutions of the texture detail blocks: 2·plane_res, …, texture_res (none by default).
+    pub fn texture_detail_resolutions(&self) -> Vec<usize> {
+        let mut r = Vec::new();
+        let mut res = self.plane_res * 2;
+        while res <= self.texture_res.unwrap_or(0) {
+            r.push(res);
+            res *= 2;
+        }
+        r
+    }
+
+    /// Resolution of the texture planes.
+    pub fn texture_plane_res(&self) -> usize {
+        self.texture_detail_resolutions().last().copied().unwrap_or(self.plane_res)
+    }
+
     /// Check that the sizes are usable; the message names the field.
     pub fn validate(&self) -> Result<(), String> {
         let pos = [
@@ -140,6 +164,14 @@ impl GeneratorConfig {
         }
         if !self.plane_res.is_power_of_two() || self.plane_res < 4 {
             return Err(format!("config field `plane_res` must be a power of two ≥ 4 (got {})", self.plane_res));
+        }
+        if let Some(t) = self.texture_res {
+            if !t.is_power_of_two() || t < self.plane_res || t > 16 * self.plane_res {
+                return Err(format!(
+                    "config field `texture_res` must be a power of two from plane_res ({}) to 16× it (got {t})",
+                    self.plane_res
+                ));
+            }
         }
         if self.template_res < 8 {
             return Err(format!("config field `template_res` must be ≥ 8 (got {})", self.template_res));

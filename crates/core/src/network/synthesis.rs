@@ -97,9 +97,32 @@ pub struct Triplanes {
     pub texture: Tensor<4>,
 }
 
+/// A texture-only block after the backbone (not in the paper; `GeneratorConfig::texture_res`):
+/// the backbone's last features upsampled 2×, one 3×3 modulated conv and a to-texture layer,
+/// both styled by w_tex, added to the 2×-upsampled texture planes. Its to-texture layer starts
+/// at zero, so a grown generator renders what it rendered before, with planes that can now
+/// hold detail at half the texel size.
+#[derive(Module, Debug)]
+pub struct TextureDetailBlock {
+    pub conv: ModulatedConv2d,
+    pub to_texture: ModulatedConv2d,
+    pub res: usize,
+}
+
+impl TextureDetailBlock {
+    pub fn new(rng: &mut Rng, cfg: &GeneratorConfig, c_in: usize, res: usize, device: &Device) -> Self {
+        let c = cfg.channels(res);
+        let mut to_texture = ModulatedConv2d::new(rng, cfg.w_dim, c, 3 * cfg.plane_channels, 1, false, false, device);
+        to_texture.weight = Param::from_tensor(to_texture.weight.val().zeros_like());
+        Self { conv: ModulatedConv2d::new(rng, cfg.w_dim, c_in, c, 3, true, true, device), to_texture, res }
+    }
+}
+
 #[derive(Module, Debug)]
 pub struct TriplaneSynthesis {
     pub blocks: Vec<SynthesisBlock>,
+    /// Texture-only blocks beyond `plane_res` (empty in the paper's configs).
+    pub texture_detail: Vec<TextureDetailBlock>,
 }
 
 impl TriplaneSynthesis {
@@ -128,7 +151,17 @@ impl TriplaneSynthesis {
             blocks.push(SynthesisBlock { constant, convs, to_geometry, to_texture, res });
             c_prev = c;
         }
-        Self { blocks }
+        let detail_res = cfg.texture_detail_resolutions();
+        // Drawn after the backbone's: configs without detail blocks initialise as before.
+        let texture_detail = detail_res
+            .into_iter()
+            .map(|res| {
+                let block = TextureDetailBlock::new(rng, cfg, c_prev, res, device);
+                c_prev = cfg.channels(res);
+                block
+            })
+            .collect();
+        Self { blocks, texture_detail }
     }
 
     /// Number of w_geo vectors consumed (one per 3×3 conv and per to-geometry layer).
@@ -136,9 +169,9 @@ impl TriplaneSynthesis {
         self.blocks.iter().map(|b| b.convs.len() + 1).sum()
     }
 
-    /// Number of w_tex vectors consumed (one per to-texture layer).
+    /// Number of w_tex vectors consumed (one per to-texture layer, and per detail conv).
     pub fn num_ws_tex(&self) -> usize {
-        self.blocks.len()
+        self.blocks.len() + 2 * self.texture_detail.len()
     }
 
     /// `ws_geo`: `[B, num_ws_geo, w_dim]`, `ws_tex`: `[B, num_ws_tex, w_dim]` (W+; repeat one w
@@ -147,6 +180,9 @@ impl TriplaneSynthesis {
         let mut state = SynthesisState::default();
         for block in &self.blocks {
             state.run(block, &ws_geo, &ws_tex);
+        }
+        for block in &self.texture_detail {
+            state.detail(block, &ws_tex);
         }
         state.finish()
     }
@@ -157,6 +193,10 @@ impl TriplaneSynthesis {
         let mut state = SynthesisState::default();
         for block in &self.blocks {
             state.run(block, &ws_geo, &ws_tex);
+            crate::cooperative::checkpoint().await;
+        }
+        for block in &self.texture_detail {
+            state.detail(block, &ws_tex);
             crate::cooperative::checkpoint().await;
         }
         state.finish()
@@ -202,6 +242,18 @@ impl SynthesisState {
             Some(prev) => upsample2_add(prev, t),
             None => t,
         });
+        self.x = Some(h);
+    }
+
+    /// A texture detail block: features and texture planes carried on at twice the size.
+    fn detail(&mut self, block: &TextureDetailBlock, ws_tex: &Tensor<3>) {
+        let [b, _, w_dim] = ws_tex.dims();
+        let pick = |i: usize| ws_tex.clone().narrow(1, i, 1).reshape([b, w_dim]);
+        let (Some(x), Some(tex)) = (self.x.take(), self.tex.take()) else { unreachable_input() };
+        let h = block.conv.forward(upsample2(x), pick(self.ti));
+        let t = block.to_texture.forward(h.clone(), pick(self.ti + 1));
+        self.ti += 2;
+        self.tex = Some(upsample2_add(tex, t));
         self.x = Some(h);
     }
 
