@@ -98,12 +98,23 @@ pub struct Triplanes {
 }
 
 /// A texture-only block after the backbone (not in the paper; `GeneratorConfig::texture_res`):
-/// the backbone's last features upsampled 2×, one 3×3 modulated conv and a to-texture layer,
-/// both styled by w_tex, added to the 2×-upsampled texture planes. Its to-texture layer starts
-/// at zero, so a grown generator renders what it rendered before, with planes that can now
-/// hold detail at half the texel size.
+/// the backbone's last features upsampled 2× and, beside them, a learned constant at the
+/// block's resolution; one 3×3 modulated conv and a to-texture layer, both styled by w_tex,
+/// added to the 2×-upsampled texture planes. Its to-texture layer starts at zero, so a grown
+/// generator renders what it rendered before, with planes that can now hold detail at half
+/// the texel size.
+///
+/// The constant is what makes that detail learnable: the upsampled features are smooth, and a
+/// conv of smooth features learns a high-frequency target (stripes, a face's features) only
+/// slowly (a single subject's stripes stayed averaged after 250 steps without it). The L1
+/// gradient reaches the constant directly, as a free field in canonical plane space shared by
+/// all identities (a face sits at the same canonical place on every body), which each
+/// identity's w_tex weighs through the modulated conv (as CIPS's and StyleGAN3's spatial
+/// inputs do).
 #[derive(Module, Debug)]
 pub struct TextureDetailBlock {
+    /// `[C, res, res]`, concatenated to the upsampled features.
+    pub constant: Param<Tensor<3>>,
     pub conv: ModulatedConv2d,
     pub to_texture: ModulatedConv2d,
     pub res: usize,
@@ -112,9 +123,11 @@ pub struct TextureDetailBlock {
 impl TextureDetailBlock {
     pub fn new(rng: &mut Rng, cfg: &GeneratorConfig, c_in: usize, res: usize, device: &Device) -> Self {
         let c = cfg.channels(res);
+        let constant = Param::from_tensor(randn(rng, [c, res, res], 1.0, device));
+        let conv = ModulatedConv2d::new(rng, cfg.w_dim, c_in + c, c, 3, true, true, device);
         let mut to_texture = ModulatedConv2d::new(rng, cfg.w_dim, c, 3 * cfg.plane_channels, 1, false, false, device);
         to_texture.weight = Param::from_tensor(to_texture.weight.val().zeros_like());
-        Self { conv: ModulatedConv2d::new(rng, cfg.w_dim, c_in, c, 3, true, true, device), to_texture, res }
+        Self { constant, conv, to_texture, res }
     }
 }
 
@@ -250,7 +263,9 @@ impl SynthesisState {
         let [b, _, w_dim] = ws_tex.dims();
         let pick = |i: usize| ws_tex.clone().narrow(1, i, 1).reshape([b, w_dim]);
         let (Some(x), Some(tex)) = (self.x.take(), self.tex.take()) else { unreachable_input() };
-        let h = block.conv.forward(upsample2(x), pick(self.ti));
+        let [ch, r, _] = block.constant.dims();
+        let constant = block.constant.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r]);
+        let h = block.conv.forward(Tensor::cat(vec![upsample2(x), constant], 1), pick(self.ti));
         let t = block.to_texture.forward(h.clone(), pick(self.ti + 1));
         self.ti += 2;
         self.tex = Some(upsample2_add(tex, t));
