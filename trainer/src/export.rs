@@ -144,8 +144,8 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     // An inverted avatar: its generator, codes, and the photo it was made from.
     let inverted = match &a.inverted {
         Some(p) => {
-            let cfg = a.model.config()?;
-            Some((load_inverted_file(p, &cfg, &device)?, cfg))
+            let (cfg, inv) = load_inverted_file(p, &a.model.config()?, &device)?;
+            Some((inv, cfg))
         }
         None => None,
     };

@@ -127,11 +127,20 @@ impl GeneratorArgs {
     }
 }
 
-/// An inverted avatar: `trainer invert`'s output directory or its `inverted.safetensors`.
-pub fn load_inverted_file(path: &Path, cfg: &GeneratorConfig, device: &Device) -> Result<InvertedAvatar> {
+/// An inverted avatar: `trainer invert`'s output directory or its `inverted.safetensors`, with
+/// the config it loads under (`cfg`, or the file's where it differs only in its texture
+/// planes, as [`generator_or_random`]).
+pub fn load_inverted_file(
+    path: &Path,
+    cfg: &GeneratorConfig,
+    device: &Device,
+) -> Result<(GeneratorConfig, InvertedAvatar)> {
     let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    load_inverted(&bytes, cfg, device).with_context(|| format!("loading the inverted avatar {}", file.display()))
+    let cfg = with_saved_texture_res(&bytes, cfg);
+    let inv = load_inverted(&bytes, &cfg, device)
+        .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
+    Ok((cfg, inv))
 }
 
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
@@ -260,8 +269,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
     // An inverted avatar brings its own (tuned) generator and codes.
     let (cfg, g, modes, inverted) = match &a.inverted {
         Some(p) => {
-            let cfg = a.model.config()?;
-            let inv = load_inverted_file(p, &cfg, &device)?;
+            let (cfg, inv) = load_inverted_file(p, &a.model.config()?, &device)?;
             (cfg, inv.generator, None, Some(inv.styles))
         }
         None => {
