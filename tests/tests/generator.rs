@@ -452,6 +452,14 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
         .collect();
     assert!(names.len() >= 4, "{names:?}");
     assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
+    // A file with finer texture planes names its own config for the preset it grew from
+    // (the app and the CLI load the shipped file that way), and for no other.
+    use getavatar_core::checkpoint::config_with_saved_texture_res;
+    let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
+    assert_eq!(config_with_saved_texture_res(&grown_bytes, &cfg), fine);
+    assert_eq!(config_with_saved_texture_res(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
+    assert_eq!(config_with_saved_texture_res(b"junk", &cfg), cfg);
+    assert!(load_generator(&grown_bytes, &config_with_saved_texture_res(&grown_bytes, &cfg), &dev).is_ok());
     // Generation with the grown generator runs on the finer planes.
     let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &fine);
     let av = generate(&grown, &ctx, &fine, (1, 2), "standing");

@@ -8,7 +8,7 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{
-    checkpoint_config, load_generator, load_inverted, load_latent_modes, parse_safetensors, InvertedAvatar,
+    config_with_saved_texture_res, load_generator, load_inverted, load_latent_modes, InvertedAvatar,
 };
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
@@ -137,7 +137,7 @@ pub fn load_inverted_file(
 ) -> Result<(GeneratorConfig, InvertedAvatar)> {
     let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    let cfg = with_saved_texture_res(&bytes, cfg);
+    let cfg = config_with_saved_texture_res(&bytes, cfg);
     let inv = load_inverted(&bytes, &cfg, device)
         .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
     Ok((cfg, inv))
@@ -146,7 +146,8 @@ pub fn load_inverted_file(
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
 /// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
-/// the checkpoint's where it is `cfg` with other texture planes ([`with_saved_texture_res`]).
+/// the checkpoint's where it is `cfg` with other texture planes
+/// ([`config_with_saved_texture_res`]).
 pub fn generator_or_random(
     checkpoint: Option<&Path>,
     random: bool,
@@ -161,7 +162,7 @@ pub fn generator_or_random(
             }
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             let loading = || format!("loading checkpoint {}", p.display());
-            let cfg = with_saved_texture_res(&bytes, cfg);
+            let cfg = config_with_saved_texture_res(&bytes, cfg);
             (
                 load_generator(&bytes, &cfg, device).with_context(loading)?,
                 load_latent_modes(&bytes, device).with_context(loading)?,
@@ -177,16 +178,6 @@ pub fn generator_or_random(
         }
     })
     .map(|(g, modes, cfg)| (cfg, g, modes))
-}
-
-/// `cfg` with the texture planes of the checkpoint in `bytes` where the checkpoint's config is
-/// `cfg` but for them; otherwise `cfg` (and loading reports the difference).
-pub fn with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
-    let saved = parse_safetensors(bytes).ok().and_then(|st| checkpoint_config(&st).ok());
-    match saved {
-        Some(s) if GeneratorConfig { texture_res: s.texture_res, ..cfg.clone() } == s => s,
-        _ => cfg.clone(),
-    }
 }
 
 /// The body model in `path` (SMPL-layout .npz), or the embedded open body.

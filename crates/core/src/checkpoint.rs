@@ -461,6 +461,17 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     load_into(g, st, None, device)
 }
 
+/// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other texture
+/// planes (`GeneratorConfig::texture_res`, which only the synthesis's detail blocks depend
+/// on): the config to load and save such a file under. Where the files differ in more, or
+/// `bytes` is no generator file, `cfg` (and loading reports why).
+pub fn config_with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
+    match parse_safetensors(bytes).and_then(|st| checkpoint_config(&st)) {
+        Ok(saved) if GeneratorConfig { texture_res: saved.texture_res, ..cfg.clone() } == saved => saved,
+        _ => cfg.clone(),
+    }
+}
+
 /// A generator of config `requested` from a checkpoint saved with coarser texture planes:
 /// the same config but a smaller `texture_res` (e.g. the paper's planes, none). Every saved
 /// weight is loaded; the texture detail blocks the file lacks keep their initialisation (the

@@ -15,7 +15,7 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{load_generator_and_modes, save_inverted_async};
+use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
     default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles,
 };
@@ -70,13 +70,15 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
         return Err("no trained model ships with this build".into());
     }
     let bytes = fetch_bytes(MODEL_URL).await?;
-    let (g, modes) = load_generator_and_modes(&bytes, cfg, device)
+    // A checkpoint grown to finer texture planes brings its own config (`texture_res`).
+    let cfg = config_with_saved_texture_res(&bytes, cfg);
+    let (g, modes) = load_generator_and_modes(&bytes, &cfg, device)
         .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
     let disc = match manifest.get("demo_d") {
         Some(_) => fetch_bytes(DISCRIMINATOR_URL).await.map(Rc::new),
         None => Err("no discriminator ships with this build".into()),
     };
-    Ok(Shipped { generator: g, modes, bytes: Rc::new(bytes), discriminator: disc })
+    Ok(Shipped { generator: g, cfg, modes, bytes: Rc::new(bytes), discriminator: disc })
 }
 
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
@@ -105,6 +107,8 @@ type Bake = Result<(BakedTexture, f64), String>;
 /// discriminator's bytes (or why there are none).
 struct Shipped {
     generator: Generator,
+    /// The config the file was loaded under (the preset, or the file's own texture planes).
+    cfg: GeneratorConfig,
     modes: Option<LatentModes>,
     bytes: Rc<Vec<u8>>,
     discriminator: Result<Rc<Vec<u8>>, String>,
@@ -242,7 +246,7 @@ impl GenEngine {
                     None => None,
                 };
                 if let (Ok(shipped), Some(ctx)) = (&loaded, &ctx) {
-                    warm_up(shipped, ctx, &cfg, &device).await;
+                    warm_up(shipped, ctx, &shipped.cfg, &device).await;
                 }
                 *slot.borrow_mut() = Some((loaded, ctx));
                 repaint.request_repaint();
@@ -345,6 +349,7 @@ impl GenEngine {
             self.weights = match w {
                 Ok(shipped) => {
                     self.generator = Rc::new(shipped.generator);
+                    self.cfg = shipped.cfg;
                     let k = shipped.modes.as_ref().map_or(0, LatentModes::count);
                     self.modes = Rc::new(shipped.modes);
                     let n = shipped.bytes.len();
