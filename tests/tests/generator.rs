@@ -459,6 +459,20 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     assert_eq!(config_with_saved_texture_res(&grown_bytes, &cfg), fine);
     assert_eq!(config_with_saved_texture_res(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
     assert_eq!(config_with_saved_texture_res(b"junk", &cfg), cfg);
+    // A file claiming absurd texture planes is not adopted, and cannot size a model.
+    let huge = GeneratorConfig { texture_res: Some(1 << 20), ..cfg.clone() };
+    let meta = [
+        ("format".to_string(), getavatar_core::checkpoint::FORMAT.to_string()),
+        ("config".to_string(), serde_json::to_string(&huge).unwrap()),
+    ]
+    .into_iter()
+    .collect();
+    let params = getavatar_core::checkpoint::collect_params(&grown).unwrap();
+    let forged = getavatar_core::checkpoint::write_safetensors(&meta, &params).unwrap();
+    assert_eq!(config_with_saved_texture_res(&forged, &cfg), cfg);
+    let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
+    assert!(e.contains("texture_res"), "{e}");
+    assert!(load_generator_growing_texture(&bytes, &huge, 5, &dev).is_err());
     assert!(load_generator(&grown_bytes, &config_with_saved_texture_res(&grown_bytes, &cfg), &dev).is_ok());
     // Generation with the grown generator runs on the finer planes.
     let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &fine);

@@ -456,6 +456,8 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
             detail: config_difference(&saved, requested),
         });
     }
+    // A file's config sizes the model before any weight is read: refuse absurd sizes first.
+    requested.validate().map_err(|e| fmt_err(format!("config: {e}")))?;
     // Every weight is loaded below (a missing one is an error): no random draws for them.
     let g = crate::network::init::placeholder_weights(|| Generator::new(requested, 0, device));
     load_into(g, st, None, device)
@@ -467,7 +469,12 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 /// `bytes` is no generator file, `cfg` (and loading reports why).
 pub fn config_with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
     match parse_safetensors(bytes).and_then(|st| checkpoint_config(&st)) {
-        Ok(saved) if GeneratorConfig { texture_res: saved.texture_res, ..cfg.clone() } == saved => saved,
+        Ok(saved)
+            if GeneratorConfig { texture_res: saved.texture_res, ..cfg.clone() } == saved
+                && saved.validate().is_ok() =>
+        {
+            saved
+        }
         _ => cfg.clone(),
     }
 }
@@ -494,6 +501,7 @@ pub fn load_generator_growing_texture(
             detail: config_difference(&saved, requested),
         });
     }
+    requested.validate().map_err(|e| fmt_err(format!("config: {e}")))?;
     load_into(Generator::new(requested, seed, device), &st, Some("synthesis.texture_detail."), device)
 }
 
