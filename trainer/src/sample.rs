@@ -8,7 +8,7 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{
-    config_with_saved_texture_res, load_generator, load_inverted, load_latent_modes, InvertedAvatar,
+    config_with_saved_texture_res, load_generator_and_modes, load_inverted, InvertedAvatar,
 };
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
@@ -163,21 +163,17 @@ pub fn generator_or_random(
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             let loading = || format!("loading checkpoint {}", p.display());
             let cfg = config_with_saved_texture_res(&bytes, cfg);
-            (
-                load_generator(&bytes, &cfg, device).with_context(loading)?,
-                load_latent_modes(&bytes, device).with_context(loading)?,
-                cfg,
-            )
+            let (g, modes) = load_generator_and_modes(&bytes, &cfg, device).with_context(loading)?;
+            (cfg, g, modes)
         }
         None => {
             eprintln!(
                 "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
                 cfg.name
             );
-            (Generator::new(cfg, 0, device), None, cfg.clone())
+            (cfg.clone(), Generator::new(cfg, 0, device), None)
         }
     })
-    .map(|(g, modes, cfg)| (cfg, g, modes))
 }
 
 /// The body model in `path` (SMPL-layout .npz), or the embedded open body.

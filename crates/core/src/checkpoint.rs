@@ -339,9 +339,8 @@ pub fn parse_safetensors_lenient(bytes: &[u8]) -> Result<SafeTensors, Checkpoint
 fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, CheckpointError> {
     // The safetensors crate validates the header (length, JSON, offsets contiguous and within
     // the file, shape × dtype = bytes with overflow checks) before anything is allocated.
-    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fmt_err(e.to_string()))?;
+    let metadata = header_metadata(bytes)?;
     let file = safetensors::SafeTensors::deserialize(bytes).map_err(|e| fmt_err(e.to_string()))?;
-    let metadata = header.metadata().iter().flatten().map(|(k, v)| (k.clone(), v.clone())).collect();
     let mut out = SafeTensors { metadata, tensors: BTreeMap::new() };
     for (name, view) in file.iter() {
         if view.dtype() != safetensors::Dtype::F32 {
@@ -356,12 +355,23 @@ fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, Checkpoin
     Ok(out)
 }
 
+/// The string metadata of a safetensors file, from its validated header alone (no tensor is
+/// decoded).
+fn header_metadata(bytes: &[u8]) -> Result<BTreeMap<String, String>, CheckpointError> {
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fmt_err(e.to_string()))?;
+    Ok(header.metadata().iter().flatten().map(|(k, v)| (k.clone(), v.clone())).collect())
+}
+
 /// Read the config embedded in a checkpoint.
 pub fn checkpoint_config(st: &SafeTensors) -> Result<GeneratorConfig, CheckpointError> {
-    if st.metadata.get("format").map(String::as_str) != Some(FORMAT) {
-        return Err(fmt_err(format!("metadata `format` is {:?}, expected {FORMAT}", st.metadata.get("format"))));
+    config_of_metadata(&st.metadata)
+}
+
+fn config_of_metadata(metadata: &BTreeMap<String, String>) -> Result<GeneratorConfig, CheckpointError> {
+    if metadata.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(fmt_err(format!("metadata `format` is {:?}, expected {FORMAT}", metadata.get("format"))));
     }
-    let c = st.metadata.get("config").ok_or_else(|| fmt_err("metadata lacks `config`"))?;
+    let c = metadata.get("config").ok_or_else(|| fmt_err("metadata lacks `config`"))?;
     serde_json::from_str(c).map_err(|e| fmt_err(format!("embedded config: {e}")))
 }
 
@@ -468,7 +478,8 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 /// on): the config to load and save such a file under. Where the files differ in more, or
 /// `bytes` is no generator file, `cfg` (and loading reports why).
 pub fn config_with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
-    match parse_safetensors(bytes).and_then(|st| checkpoint_config(&st)) {
+    // The header alone: the caller parses the whole file to load it.
+    match header_metadata(bytes).and_then(|m| config_of_metadata(&m)) {
         Ok(saved)
             if GeneratorConfig { texture_res: saved.texture_res, ..cfg.clone() } == saved
                 && saved.validate().is_ok() =>
