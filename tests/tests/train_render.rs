@@ -425,8 +425,10 @@ fn scan_terms_map_to_canonical_space_and_train_their_branch() {
     let mut g = Generator::new(&cfg, 0, &dev);
     let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
     let picks: Vec<usize> = (0..canon.len()).step_by(7).collect();
-    let losses =
-        |g: &Generator| scan_losses(g, &ctx, &g.styles(zg.clone(), zt.clone(), 1.0), &[(&canon, picks.clone())], &dev);
+    let losses = |g: &Generator| {
+        let styles = g.styles(zg.clone(), zt.clone(), 1.0);
+        scan_losses(g, &ctx, &g.triplanes(&styles), &styles, &[(&canon, picks.clone())], &dev)
+    };
     let grads = losses(&g).texture.backward();
     assert!(grad_mass(&g, &grads, "mapping_tex") > 0.0);
     assert_eq!(grad_mass(&g, &grads, "decoders.sdf"), 0.0, "colour does not depend on the SDF head");

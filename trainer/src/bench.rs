@@ -11,7 +11,7 @@ use getavatar_core::diff::avatar::PosedGridCache;
 use serde::{Deserialize, Serialize};
 
 use crate::backend::device_for;
-use crate::train::{train_step, RunConfig, State, StepInputs};
+use crate::train::{train_step, RunConfig, ScanPools, State, StepInputs};
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Device;
@@ -395,7 +395,7 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
     let (ad, plain) = (base.clone().autodiff(), base);
     let ctx = BodyContext::new(BodyModel::default_body()?, &rc.generator);
     let grids = PosedGridCache::default();
-    let scans = Vec::new();
+    let scans = ScanPools::default();
     let mut st = State::new(&rc, &ad, &plain);
     let inputs = StepInputs { ds: &ds, ctx: &ctx, grids: &grids, scans: &scans, rc: &rc, ad: &ad };
     let (next, first) = train_step(st, &inputs)?;

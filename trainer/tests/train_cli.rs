@@ -678,37 +678,43 @@ fn texture_swap_and_latent_spread_are_logged_and_validated() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// `--scans` (reconstruction terms, not in the paper): the canonical-space scan terms are
-/// logged and lower the texture error; the setting is kept in run.json and checked.
+/// `--scans` (reconstruction terms, not in the paper): the canonical-space scan terms and
+/// the face term are logged and lower their texture errors; the settings are kept in
+/// run.json and checked.
 #[test]
 fn scan_terms_are_logged_kept_in_the_run_and_lower_the_texture_error() {
     let root = tmp("scans");
     let data = dataset(&root);
     let scans = root.join("scans");
     let run = root.join("recon");
-    let text = train(
-        &data,
-        &run,
-        40,
-        &["--objective", "reconstruction", "--scans", scans.to_str().unwrap(), "--snapshot-every", "20"],
-    );
+    let scan_args = ["--objective", "reconstruction", "--scans", scans.to_str().unwrap()];
+    let text = train(&data, &run, 40, &[&scan_args[..], &["--lambda-face", "1", "--snapshot-every", "20"]].concat());
     assert!(text.contains("scan terms: 16384 points from each of 2 scans"), "{text}");
+    assert!(text.contains("face term: 4096 face points from each of 2 scans"), "{text}");
     let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
     assert_eq!(rc["scans"], scans.display().to_string(), "{rc}");
-    assert_eq!(rc["lambda_scan"], 1.0, "{rc}");
-    let rows: Vec<serde_json::Value> = std::fs::read_to_string(run.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
-    let tex: Vec<f64> = rows.iter().map(|r| r["scan_texture"].as_f64().expect("scan_texture logged")).collect();
+    assert_eq!((&rc["lambda_scan"], &rc["lambda_face"]), (&1.0.into(), &1.0.into()), "{rc}");
+    let rows = |run: &Path| -> Vec<serde_json::Value> {
+        let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+        text.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    };
+    let rows = rows(&run);
+    for key in ["scan_texture", "face_texture"] {
+        let v: Vec<f64> = rows.iter().map(|r| r[key].as_f64().unwrap_or_else(|| panic!("{key} logged"))).collect();
+        let (first, last) = (v[..5].iter().sum::<f64>() / 5.0, v[35..].iter().sum::<f64>() / 5.0);
+        assert!(last < 0.8 * first, "{key} of steps 1–5 {first:.4}, of steps 36–40 {last:.4}");
+    }
     assert!(rows.iter().all(|r| r["scan_sdf"].as_f64().is_some_and(|v| v.is_finite() && v >= 0.0)));
-    let (first, last) = (tex[..5].iter().sum::<f64>() / 5.0, tex[35..].iter().sum::<f64>() / 5.0);
-    assert!(last < 0.8 * first, "scan texture L1 of steps 1–5 {first:.4}, of steps 36–40 {last:.4}");
+    // The face term alone: the surface pool is not drawn and its terms are not logged.
+    let text =
+        train(&data, &root.join("face"), 1, &[&scan_args[..], &["--lambda-scan", "0", "--lambda-face", "2"]].concat());
+    assert!(text.contains("face term: 4096") && !text.contains("scan terms:"), "{text}");
+    let row = std::fs::read_to_string(root.join("face").join("metrics.jsonl")).unwrap();
+    assert!(row.contains("\"scan_texture\":null") && row.contains("\"face_texture\":"), "{row}");
     // Without --scans nothing is logged.
     train(&data, &root.join("plain"), 1, &["--objective", "reconstruction"]);
     let row = std::fs::read_to_string(root.join("plain").join("metrics.jsonl")).unwrap();
-    assert!(row.contains("\"scan_texture\":null"), "{row}");
+    assert!(row.contains("\"scan_texture\":null") && !row.contains("face_texture"), "{row}");
 
     let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
     refused(&["--scans", scans.to_str().unwrap()], &root.join("adv"), "reconstruction terms");
@@ -720,5 +726,8 @@ fn scan_terms_are_logged_kept_in_the_run_and_lower_the_texture_error() {
         "no scan of subject",
     );
     refused(&["--resume", "--scans", empty.to_str().unwrap()], &run, "keeps its settings");
+    refused(&["--objective", "reconstruction", "--lambda-face", "1"], &root.join("noscans"), "--scans DIR");
+    refused(&[&scan_args[..], &["--lambda-face=-1"]].concat(), &root.join("negface"), "≥ 0");
+    refused(&["--resume", "--lambda-face", "0.5"], &run, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }

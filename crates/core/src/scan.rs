@@ -525,12 +525,26 @@ pub fn sample_surface(
     n: usize,
     rng: &mut crate::rng::Rng,
 ) -> Vec<SurfaceSample> {
+    sample_surface_where(scan, prepared, n, rng, |_| true)
+}
+
+/// [`sample_surface`] over the triangles whose centroid (body frame) passes `keep`: uniform by
+/// area over that part of the surface. Empty where it has no area.
+pub fn sample_surface_where(
+    scan: &Scan,
+    prepared: &RenderableScan,
+    n: usize,
+    rng: &mut crate::rng::Rng,
+    keep: impl Fn(Vec3) -> bool,
+) -> Vec<SurfaceSample> {
     let v = &prepared.vertices;
     let mut cumulative = Vec::with_capacity(prepared.triangles.len());
     let mut total = 0.0f64;
     for t in &prepared.triangles {
         let [a, b, c] = t.map(|i| v[i as usize]);
-        total += 0.5 * (b - a).cross(c - a).length() as f64;
+        if keep((a + b + c) / 3.0) {
+            total += 0.5 * (b - a).cross(c - a).length() as f64;
+        }
         cumulative.push(total);
     }
     // Also catches NaN areas.
@@ -540,7 +554,8 @@ pub fn sample_surface(
     (0..n)
         .map(|_| {
             let x = rng.uniform() as f64 * total;
-            let k = cumulative.partition_point(|&c| c < x).min(cumulative.len() - 1);
+            // The first triangle whose cumulative area exceeds x: one with area (x < total).
+            let k = cumulative.partition_point(|&c| c <= x).min(cumulative.len() - 1);
             let t = prepared.triangles[k].map(|i| i as usize);
             // Uniform barycentrics: (1 − √r₁, √r₁ (1 − r₂), √r₁ r₂).
             let (r1, r2) = (rng.uniform().sqrt(), rng.uniform());
@@ -648,6 +663,25 @@ mod tests {
         assert!(
             sample_surface(&scan, &RenderableScan::new(&scan, &smpl), 5, &mut crate::rng::Rng::new(1, 0)).is_empty()
         );
+    }
+
+    #[test]
+    fn surface_samples_where_keep_only_the_chosen_triangles() {
+        // Three triangles in the z = 0 plane: red (area 3), blue (area 1), green (area 2)
+        // beyond x = 4. Keeping centroids with x > 3 draws blue : green = 1 : 2, never red.
+        let text = "v 0 0 0\nv 3 0 0\nv 0 2 0\nv 3 2 0\nv 4 2 0\nv 4 0 0\nv 6 0 0\n\
+                    usemtl red\nf 1 2 3\nusemtl blue\nf 2 5 4\nusemtl green\nf 6 7 5\n";
+        let mesh = parse_obj(text).unwrap();
+        let scan = Scan { mesh, textures: vec![None, None, None], colors: vec![Vec3::X, Vec3::Z, Vec3::Y] };
+        let prepared = RenderableScan::new(&scan, &SmplParams::from_body(&BodyParams::default(), 1.0));
+        let n = 3000;
+        let s = sample_surface_where(&scan, &prepared, n, &mut crate::rng::Rng::new(3, 0), |c| c.x > 3.0);
+        assert_eq!(s.len(), n);
+        assert!(s.iter().all(|p| p.color != Vec3::X && p.position.x >= 3.0 - 1e-5), "a red point was drawn");
+        let green = s.iter().filter(|p| p.color == Vec3::Y).count() as f32 / n as f32;
+        assert!((green - 2.0 / 3.0).abs() < 0.03, "green share {green}");
+        // Nothing kept: no points.
+        assert!(sample_surface_where(&scan, &prepared, 5, &mut crate::rng::Rng::new(3, 0), |c| c.x > 9.0).is_empty());
     }
 
     #[test]

@@ -89,6 +89,7 @@ pub(crate) fn adversarial_step(mut st: State, inputs: &StepInputs) -> Result<(St
         let r = subject_reconstruction(&st.g, &mut st.rng, inputs)?;
         metrics.reconstruction = Some(r.l1);
         (metrics.scan_texture, metrics.scan_sdf) = (r.scan.map(|s| s.0), r.scan.map(|s| s.1));
+        metrics.face_texture = r.face;
         total_g = total_g
             + (r.loss + r.fakes.eikonal * rc.lambda_eikonal + r.fakes.cross_entropy * rc.lambda_cross_entropy)
                 * rc.lambda_reconstruction;

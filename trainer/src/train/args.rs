@@ -63,6 +63,12 @@ pub struct TrainArgs {
     /// Weight of the scan terms (with `--scans`) [default: 1].
     #[arg(long)]
     pub lambda_scan: Option<f32>,
+    /// With `--scans` (not in the paper): weight of the face term, the scan texture term at
+    /// points drawn on the face alone (`FACE_POINTS_PER_STEP` of each drawn subject), where
+    /// eyes, brows and mouth are too small in the renders for the image L1 to keep them.
+    /// `--lambda-scan 0` leaves it alone. 0 (the default): off.
+    #[arg(long)]
+    pub lambda_face: Option<f32>,
     /// Reconstruction terms only (not in the paper): weight of a texture-swap term. Each drawn
     /// subject's surface is also coloured by the texture field built from another drawn
     /// subject's geometry code with its own texture code, and that RGB is compared with the
@@ -113,7 +119,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 14] = [
+        let rows: [(&str, Option<String>, String, &str); 15] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -127,6 +133,7 @@ impl TrainArgs {
                 "scans",
             ),
             ("--lambda-scan", self.lambda_scan.map(num), num(rc.lambda_scan), "lambda_scan"),
+            ("--lambda-face", self.lambda_face.map(num), num(rc.lambda_face), "lambda_face"),
             (
                 "--lambda-reconstruction",
                 self.lambda_reconstruction.map(num),

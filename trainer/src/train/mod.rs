@@ -48,6 +48,7 @@ pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
+pub use reconstruction::ScanPools;
 use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
 use snapshots::sample_grid;
 
@@ -127,8 +128,10 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let ctx = BodyContext::new(model, &rc.generator);
     let grids = PosedGridCache::default();
     let scans = match &rc.scans {
-        Some(dir) if rc.lambda_scan > 0.0 => canonical_scan_samples(Path::new(dir), &ds, &ctx, rc.seed)?,
-        _ => Vec::new(),
+        Some(dir) if rc.lambda_scan > 0.0 || rc.lambda_face > 0.0 => {
+            canonical_scan_samples(Path::new(dir), &ds, &ctx, rc.seed, (rc.lambda_scan > 0.0, rc.lambda_face > 0.0))?
+        }
+        _ => ScanPools::default(),
     };
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(st.step.min(a.steps));

@@ -10,12 +10,14 @@ use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::camera::View;
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset, Label};
 use getavatar_core::diff::avatar::{render_avatar_views_retextured, FakeViews};
-use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
+use getavatar_core::diff::scan_supervision::{scan_losses, texture_loss, CanonicalSamples, FaceRegion};
 use getavatar_core::generator::{BodyContext, Generator, LatentModes, ModePairing, Styles};
 use getavatar_core::optim::ema_update;
 use getavatar_core::rng::Rng;
 
-use super::run_config::{Objective, RunConfig, SCAN_POINTS_PER_STEP, SCAN_POOL_POINTS};
+use super::run_config::{
+    Objective, RunConfig, FACE_POINTS_PER_STEP, FACE_POOL_POINTS, SCAN_POINTS_PER_STEP, SCAN_POOL_POINTS,
+};
 use super::state::State;
 use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics, StepInputs};
 
@@ -63,16 +65,17 @@ pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &D
 /// `rc.views_per_subject − 1` further views of the same avatar, and is compared with the real
 /// images by L1 (RGB + mask, + normal map where the data has them).
 /// With `scans` (one per subject) and `rc.lambda_scan > 0`, adds the weighted scan terms at
-/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan. With
+/// `SCAN_POINTS_PER_STEP` points of each drawn subject's scan, and with `rc.lambda_face > 0`
+/// the weighted face term at `FACE_POINTS_PER_STEP` of its face points. With
 /// `rc.lambda_texture_swap > 0` (and more than one subject in the batch), adds the weighted
 /// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
 /// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views. With
 /// `rc.latent_spread > 0`, the subjects' codes are moved towards random ones first
 /// ([`spread_styles`]).
-pub(crate) fn subject_reconstruction(
+pub(crate) fn subject_reconstruction<'a>(
     g: &Generator,
     rng: &mut Rng,
-    inputs: &StepInputs,
+    inputs: &StepInputs<'a>,
 ) -> Result<SubjectReconstruction> {
     let StepInputs { ds, ctx, grids, scans, rc, ad } = *inputs;
     let idx: Vec<usize> = (0..rc.batch).map(|_| rng.below(ds.len())).collect();
@@ -128,20 +131,32 @@ pub(crate) fn subject_reconstruction(
     if let Some(t) = swap_loss {
         loss = loss + t;
     }
-    let mut scan = None;
-    if rc.lambda_scan > 0.0 && !scans.is_empty() {
-        let batch: Vec<(&CanonicalSamples, Vec<usize>)> = idx
-            .iter()
-            .map(|&i| {
-                let s = &scans[subjects[i].min(scans.len() - 1)];
-                (s, (0..SCAN_POINTS_PER_STEP).map(|_| rng.below(s.len().max(1))).collect())
-            })
-            .collect();
-        let terms = scan_losses(g, ctx, &styles, &batch, ad);
-        scan = Some((scalar(terms.texture.clone())?, scalar(terms.sdf.clone())?));
-        loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
+    let (mut scan, mut face) = (None, None);
+    let use_surface = rc.lambda_scan > 0.0 && !scans.surface.is_empty();
+    let use_face = rc.lambda_face > 0.0 && !scans.face.is_empty();
+    if use_surface || use_face {
+        let planes = g.triplanes(&styles);
+        // `per_step` points of each drawn subject's pool, drawn with replacement.
+        let mut draw = |pools: &'a [CanonicalSamples], per_step: usize| -> Vec<(&'a CanonicalSamples, Vec<usize>)> {
+            idx.iter()
+                .map(|&i| {
+                    let s = &pools[subjects[i].min(pools.len() - 1)];
+                    (s, (0..per_step).map(|_| rng.below(s.len().max(1))).collect())
+                })
+                .collect()
+        };
+        if use_surface {
+            let terms = scan_losses(g, ctx, &planes, &styles, &draw(&scans.surface, SCAN_POINTS_PER_STEP), ad);
+            scan = Some((scalar(terms.texture.clone())?, scalar(terms.sdf.clone())?));
+            loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
+        }
+        if use_face {
+            let term = texture_loss(g, &planes, &styles, &draw(&scans.face, FACE_POINTS_PER_STEP), ad);
+            face = Some(scalar(term.clone())?);
+            loss = loss + term * rc.lambda_face;
+        }
     }
-    Ok(SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt })
+    Ok(SubjectReconstruction { loss, l1, scan, face, texture_swap, fakes, zg, zt })
 }
 
 /// `w + ψ·(w_random − w)` per row: `w` `[B, w_dim]`, `w_random` likewise, `psi` `[B]`.
@@ -174,6 +189,8 @@ pub(crate) struct SubjectReconstruction {
     pub(crate) l1: f32,
     /// Scan texture and SDF terms (unweighted), where used.
     pub(crate) scan: Option<(f32, f32)>,
+    /// The face term (unweighted), where used.
+    pub(crate) face: Option<f32>,
     /// The texture-swap L1 (unweighted), where used.
     pub(crate) texture_swap: Option<f32>,
     /// The renders (for the eikonal and cross-entropy terms).
@@ -189,13 +206,14 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
     let rc = inputs.rc;
     let t0 = std::time::Instant::now();
     let b = rc.batch;
-    let SubjectReconstruction { loss, l1, scan, texture_swap, fakes, zg, zt } =
+    let SubjectReconstruction { loss, l1, scan, face, texture_swap, fakes, zg, zt } =
         subject_reconstruction(&st.g, &mut st.rng, inputs)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone())?,
         reconstruction: Some(l1),
         scan_texture: scan.map(|s| s.0),
         scan_sdf: scan.map(|s| s.1),
+        face_texture: face,
         texture_swap,
         eikonal: scalar(fakes.eikonal.clone())?,
         cross_entropy: scalar(fakes.cross_entropy.clone())?,
@@ -215,15 +233,29 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
 }
 
 /// The scan samples of every dataset subject (index = `subject_of_entries`), in canonical
-/// space under the body fit of the subject's views: `SCAN_POOL_POINTS` points per scan, drawn
-/// deterministically from (seed, subject name). A subject without a scan under `dir` is an
-/// error.
+/// space: the scan terms' surface pool and the face term's face pool, each empty where its
+/// term is off.
+#[derive(Default)]
+pub struct ScanPools {
+    pub surface: Vec<CanonicalSamples>,
+    pub face: Vec<CanonicalSamples>,
+}
+
+/// The scan pools of the dataset's subjects under the body fit of each subject's views:
+/// with `surface`, `SCAN_POOL_POINTS` points per scan; with `face`, `FACE_POOL_POINTS` on
+/// its face ([`FaceRegion`]); drawn deterministically from (seed, subject name). A subject
+/// without a scan under `dir`, or without a face where one is asked, is an error.
 pub(crate) fn canonical_scan_samples(
     dir: &Path,
     ds: &Dataset,
     ctx: &BodyContext,
     seed: u64,
-) -> Result<Vec<CanonicalSamples>> {
+    (surface, face): (bool, bool),
+) -> Result<ScanPools> {
+    let region = match face {
+        true => Some(FaceRegion::of(ctx).map_err(|e| anyhow!("the face term needs a face on the body model: {e}"))?),
+        false => None,
+    };
     let found: BTreeMap<String, PathBuf> = find_scans(dir)?.into_iter().collect();
     let subjects = subject_of_entries(ds);
     let n = subjects.iter().copied().max().map_or(0, |m| m + 1);
@@ -236,28 +268,62 @@ pub(crate) fn canonical_scan_samples(
     }
     let bar = crate::progress::bar(n as u64, "scans");
     bar.set_message(format!("scan samples from {}", dir.display()));
-    let load = |(name, label): &(String, Label)| -> Result<CanonicalSamples> {
+    let load = |(name, label): &(String, Label)| -> Result<(CanonicalSamples, CanonicalSamples)> {
         let obj = found.get(name).ok_or_else(|| anyhow!("no scan of subject `{name}` under {}", dir.display()))?;
         let scan = load_scan(obj)?;
         let smpl = load_body_fit(name, obj, None)?;
         let prepared = getavatar_core::scan::RenderableScan::new(&scan, &smpl);
-        let mut rng = Rng::new(seed, getavatar_core::rng::hash_str(name));
-        let surface = getavatar_core::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
-        if surface.is_empty() {
-            bail!("the scan of subject `{name}` has no surface area");
+        let mut pools = (CanonicalSamples::default(), CanonicalSamples::default());
+        if surface {
+            let mut rng = Rng::new(seed, getavatar_core::rng::hash_str(name));
+            let points = getavatar_core::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
+            if points.is_empty() {
+                bail!("the scan of subject `{name}` has no surface area");
+            }
+            pools.0 = CanonicalSamples::from_surface(&points, ctx, &label.body_params());
+        }
+        if let Some(region) = &region {
+            // Its own stream, so that the surface pool stays what runs without it drew.
+            let mut rng = Rng::new(seed ^ FACE_STREAM, getavatar_core::rng::hash_str(name));
+            let params = label.body_params();
+            pools.1 = CanonicalSamples::face_of(&scan, &prepared, ctx, &params, region, FACE_POOL_POINTS, &mut rng);
+            if pools.1.is_empty() {
+                bail!("the scan of subject `{name}` has no surface on the face (covered, or not a person facing +z in its body fit's frame): train without --lambda-face");
+            }
         }
         bar.inc(1);
-        Ok(CanonicalSamples::from_surface(&surface, ctx, &label.body_params()))
+        Ok(pools)
     };
     let todo: Vec<&(String, Label)> = first.iter().flatten().collect();
-    let out: Vec<CanonicalSamples> = {
+    let out: Vec<(CanonicalSamples, CanonicalSamples)> = {
         use rayon::prelude::*;
         todo.par_iter().map(|x| load(x)).collect::<Result<_>>()?
     };
     bar.finish_and_clear();
-    println!("scan terms: {} points from each of {} scans under {}", SCAN_POOL_POINTS, out.len(), dir.display());
-    Ok(out)
+    let (surface_pool, face_pool): (Vec<_>, Vec<_>) = out.into_iter().unzip();
+    let pools = ScanPools {
+        surface: if surface { surface_pool } else { Vec::new() },
+        face: if face { face_pool } else { Vec::new() },
+    };
+    if surface {
+        println!(
+            "scan terms: {SCAN_POOL_POINTS} points from each of {} scans under {}",
+            pools.surface.len(),
+            dir.display()
+        );
+    }
+    if face {
+        println!(
+            "face term: {FACE_POOL_POINTS} face points from each of {} scans under {}",
+            pools.face.len(),
+            dir.display()
+        );
+    }
+    Ok(pools)
 }
+
+/// Seed offset of the face pools' random stream.
+const FACE_STREAM: u64 = 0xface;
 
 #[cfg(test)]
 mod tests {
@@ -305,5 +371,53 @@ mod tests {
         // w of this untrained tiny mapping has entries of order 1: 0.7 of the way to another
         // mapped code moves an entry by well under 10.
         assert!(shift < 10.0, "moved by {shift}");
+    }
+
+    /// The face pool of a synthetic scan holds its face: eye whites on both sides of the
+    /// nose, dark pupils, and nothing far from the canonical face.
+    #[test]
+    fn face_pools_hold_the_synthetic_scans_eyes() {
+        use getavatar_core::scan::{sample_surface, RenderableScan};
+        let dir = tempfile::tempdir().unwrap();
+        let args = crate::synth_scans::SynthArgs {
+            out: dir.path().into(),
+            count: 1,
+            seed: 0,
+            threads: 1,
+            texture_size: 1024,
+            pose: None,
+        };
+        crate::synth_scans::synth_scans(&args).unwrap();
+        let (name, obj) = find_scans(dir.path()).unwrap().into_iter().next().unwrap();
+        let (scan, smpl) = (load_scan(&obj).unwrap(), load_body_fit(&name, &obj, None).unwrap());
+        let prepared = RenderableScan::new(&scan, &smpl);
+        let model = getavatar_core::body_model::BodyModel::default_body().unwrap();
+        let ctx = BodyContext::new(model, &GeneratorConfig::tiny());
+        let region = FaceRegion::of(&ctx).unwrap();
+        // The body frame has the fit's translation taken out (`SmplParams::scan_to_body`), and
+        // the dataset's labels, which the training carries points with, have none.
+        let params = getavatar_core::skinning::BodyParams { transl: glam::Vec3::ZERO, ..smpl.body_params() };
+        let n = 4096;
+        let face = CanonicalSamples::face_of(&scan, &prepared, &ctx, &params, &region, n, &mut Rng::new(0, 1));
+        assert_eq!(face.len(), n);
+        // Points lie in triangles whose centroid is in the region: within a triangle's size.
+        for p in &face.points {
+            let d = *p - region.nose;
+            assert!(d.x.abs() < 0.09 && d.y > -0.09 && d.y < 0.1 && d.z > -0.085, "{d} from the nose");
+        }
+        // The scans' eye white is a grey 0.92 (linear); the pupils are 0.05–0.08.
+        let white = |c: &glam::Vec3| c.min_element() > 0.8 && c.max_element() - c.min_element() < 0.05;
+        let sides: Vec<f32> =
+            face.points.iter().zip(&face.colors).filter(|(_, c)| white(c)).map(|(p, _)| p.x).collect();
+        let (left, right) = (sides.iter().filter(|&&x| x > region.nose.x).count(), sides.len());
+        let right = right - left;
+        assert!(left >= n / 400 && right >= n / 400, "eye-white points: {left} left, {right} right of {n}");
+        let dark = face.colors.iter().filter(|c| c.max_element() < 0.1).count();
+        assert!(dark >= n / 1000, "{dark} pupil points of {n}");
+        // Drawn uniformly over the whole scan, few points land on the face at all.
+        let all =
+            CanonicalSamples::from_surface(&sample_surface(&scan, &prepared, n, &mut Rng::new(0, 2)), &ctx, &params);
+        let on_face = all.points.iter().filter(|p| region.contains(**p)).count();
+        assert!(on_face * 20 < n, "{on_face} of {n} uniform points on the face");
     }
 }

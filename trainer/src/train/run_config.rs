@@ -15,6 +15,10 @@ use super::args::TrainArgs;
 pub const SCAN_POOL_POINTS: usize = 16384;
 /// Points of each drawn subject's pool used per step.
 pub const SCAN_POINTS_PER_STEP: usize = 2048;
+/// Face points drawn per scan and kept for the face term (`--lambda-face`).
+pub const FACE_POOL_POINTS: usize = 4096;
+/// Face points of each drawn subject used per step.
+pub const FACE_POINTS_PER_STEP: usize = 512;
 
 /// What a run optimises.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -77,6 +81,10 @@ pub struct RunConfig {
     /// Weight of the scan terms. Absent in older runs: 0.
     #[serde(default)]
     pub lambda_scan: f32,
+    /// Weight of the face term (`TrainArgs::lambda_face`). Absent in older runs: 0. Editable
+    /// in `run.json`.
+    #[serde(default)]
+    pub lambda_face: f32,
     /// Weight of the texture-swap term (`TrainArgs::lambda_texture_swap`). Absent in older
     /// runs: 0. Editable in `run.json` like the learning-rate factors.
     #[serde(default)]
@@ -148,6 +156,7 @@ impl RunConfig {
             views_per_subject: 1,
             scans: None,
             lambda_scan: 0.0,
+            lambda_face: 0.0,
             lambda_texture_swap: 0.0,
             latent_spread: 0.0,
         }
@@ -193,6 +202,13 @@ impl RunConfig {
         if !(lambda_scan >= 0.0 && lambda_scan.is_finite()) {
             bail!("--lambda-scan must be a finite weight ≥ 0, got {lambda_scan}");
         }
+        let lambda_face = a.lambda_face.unwrap_or(0.0);
+        if !(lambda_face >= 0.0 && lambda_face.is_finite()) {
+            bail!("--lambda-face must be a finite weight ≥ 0, got {lambda_face}");
+        }
+        if lambda_face > 0.0 && a.scans.is_none() {
+            bail!("--lambda-face weighs a term at points of the scans' faces: give the scans with --scans DIR");
+        }
         if !(lambda_texture_swap >= 0.0 && lambda_texture_swap.is_finite()) {
             bail!("--lambda-texture-swap must be a finite weight ≥ 0, got {lambda_texture_swap}");
         }
@@ -230,6 +246,7 @@ impl RunConfig {
             views_per_subject: views,
             scans: a.scans.as_ref().map(|d| d.display().to_string()),
             lambda_scan: if a.scans.is_some() { lambda_scan } else { 0.0 },
+            lambda_face,
             lambda_texture_swap,
             latent_spread,
             ..defaults

@@ -12,9 +12,9 @@ use getavatar_core::rng::Rng;
 use serde::Serialize;
 
 use getavatar_core::diff::avatar::PosedGridCache;
-use getavatar_core::diff::scan_supervision::CanonicalSamples;
 use getavatar_core::generator::BodyContext;
 
+use super::reconstruction::ScanPools;
 use super::run_config::RunConfig;
 
 /// What every training step reads: the data, the body, the inverse-skinning cache, the scan
@@ -24,7 +24,7 @@ pub struct StepInputs<'a> {
     pub ds: &'a Dataset,
     pub ctx: &'a BodyContext,
     pub grids: &'a PosedGridCache,
-    pub scans: &'a [CanonicalSamples],
+    pub scans: &'a ScanPools,
     pub rc: &'a RunConfig,
     pub ad: &'a Device,
 }
@@ -46,6 +46,9 @@ pub struct Metrics {
     /// The scan terms (`--scans`): texture L1 and SDF L1; absent without scans.
     pub scan_texture: Option<f32>,
     pub scan_sdf: Option<f32>,
+    /// The face term (`--lambda-face`): texture L1 at face points; absent without it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub face_texture: Option<f32>,
     /// The texture-swap RGB L1 (`lambda_texture_swap > 0`); absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub texture_swap: Option<f32>,

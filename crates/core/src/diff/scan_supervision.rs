@@ -12,14 +12,22 @@
 //!   (L1, in units of [`SDF_UNIT`]).
 //!
 //! Both are dense, per-point and cheap (no extraction or rasterisation).
+//!
+//! The **face term** (`trainer train --lambda-face`) is the texture term at points drawn on
+//! the face alone ([`FaceRegion`]). A face is about 0.5 % of a clothed body's surface, and its
+//! features (eyes 2.6 cm wide, brows, mouth) are 1–2 px in the training renders, where a
+//! centimetre of the generated head's geometry moves them between views and L1 averages them
+//! out. In canonical space they sit at the same place on every view, and on every subject.
 
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
+use crate::body_fit::surface::{surface_landmarks, SurfaceError};
 use crate::colour::{encode_srgb, encode_srgb_tensor};
 use crate::generator::{BodyContext, Generator, Styles};
 use crate::geometry::InverseSkinning;
-use crate::scan::SurfaceSample;
+use crate::network::synthesis::Triplanes;
+use crate::scan::{sample_surface_where, RenderableScan, Scan, SurfaceSample};
 use crate::skinning::{pose_body, BodyParams};
 
 /// Offset δ (metres) of the off-surface SDF probes along the normal.
@@ -41,8 +49,31 @@ impl CanonicalSamples {
     /// Carry body-frame `samples` of a scan whose body fit is `params` to canonical space
     /// (nearest posed body vertex's transform; normals by its rotation's inverse).
     pub fn from_surface(samples: &[SurfaceSample], ctx: &BodyContext, params: &BodyParams) -> Self {
-        let posed = pose_body(&ctx.model, params);
-        let inv = InverseSkinning::new(&ctx.model, &posed, &ctx.canonical);
+        Self::carried(samples, &Self::inverse(ctx, params))
+    }
+
+    /// `n` points of `scan`'s face ([`FaceRegion`]), uniform by area, in canonical space: the
+    /// triangles whose centroid the body fit `params` carries into `face`. Empty where the
+    /// scan has no surface there (a hood, a helmet, a scan that is not of a person).
+    pub fn face_of(
+        scan: &Scan,
+        prepared: &RenderableScan,
+        ctx: &BodyContext,
+        params: &BodyParams,
+        face: &FaceRegion,
+        n: usize,
+        rng: &mut crate::rng::Rng,
+    ) -> Self {
+        let inv = Self::inverse(ctx, params);
+        let samples = sample_surface_where(scan, prepared, n, rng, |c| face.contains(inv.to_canonical(c).0));
+        Self::carried(&samples, &inv)
+    }
+
+    fn inverse(ctx: &BodyContext, params: &BodyParams) -> InverseSkinning {
+        InverseSkinning::new(&ctx.model, &pose_body(&ctx.model, params), &ctx.canonical)
+    }
+
+    fn carried(samples: &[SurfaceSample], inv: &InverseSkinning) -> Self {
         let mut out = Self::default();
         for s in samples {
             let (c, i) = inv.to_canonical(s.position);
@@ -62,6 +93,32 @@ impl CanonicalSamples {
     }
 }
 
+/// The front of the head in canonical space: within 7.5 cm of the canonical body's nose
+/// (`body_fit::surface`: the most forward midline vertex of the head) across, from 7.5 cm
+/// below it to 8.5 cm above, and in front of a plane 7 cm behind it. That holds the eyes
+/// (3.3 cm either side, 3.5 cm up), brows and mouth of the synthetic scans and the skin
+/// around them, not the ears or the back of the head.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceRegion {
+    pub nose: Vec3,
+}
+
+impl FaceRegion {
+    /// The region of the canonical body of `ctx`; an error for a body that is not a person in
+    /// the SMPL layout.
+    pub fn of(ctx: &BodyContext) -> Result<Self, SurfaceError> {
+        let nose =
+            surface_landmarks(&ctx.model)?.into_iter().find(|l| l.landmark == 0).ok_or(SurfaceError("nose"))?.vertex;
+        let nose = ctx.canonical.vertices.get(nose as usize).copied().ok_or(SurfaceError("nose"))?;
+        Ok(Self { nose })
+    }
+
+    pub fn contains(&self, p: Vec3) -> bool {
+        let d = p - self.nose;
+        d.x.abs() < 0.075 && (-0.075..0.085).contains(&d.y) && d.z > -0.07
+    }
+}
+
 /// The two terms, each a mean over the batch's points.
 pub struct ScanLosses {
     /// L1 between texture field and albedo, both sRGB-encoded ([`crate::colour`]).
@@ -70,27 +127,21 @@ pub struct ScanLosses {
     pub sdf: Tensor<1>,
 }
 
-/// The scan terms of avatar b of `styles` (batch B) against `batch[b]`: the samples of its
-/// subject and which of them to use (the same count for every b).
+/// The points of avatar b of a batch: the samples of its subject and which of them to use
+/// (the same count for every b).
+pub type ScanBatch<'a> = [(&'a CanonicalSamples, Vec<usize>)];
+
+/// The scan terms of avatar b of `styles` (batch B, its `planes`) against `batch[b]`.
 pub fn scan_losses(
     g: &Generator,
     ctx: &BodyContext,
+    planes: &Triplanes,
     styles: &Styles,
-    batch: &[(&CanonicalSamples, Vec<usize>)],
+    batch: &ScanBatch,
     device: &Device,
 ) -> ScanLosses {
-    let b = batch.len();
-    let m = batch.first().map_or(0, |x| x.1.len());
-    assert!(batch.iter().all(|x| x.1.len() == m), "scan_losses: the same number of points per avatar");
-    let planes = g.triplanes(styles);
-    let t3 = |v: Vec<f32>, n: usize| Tensor::<3>::from_data(TensorData::new(v, [b, n, 3]), device);
-
-    // Texture at the surface points.
-    let pts: Vec<f32> = batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.points[i].to_array())).collect();
-    let want: Vec<f32> =
-        batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.colors[i].to_array().map(encode_srgb))).collect();
-    let color = encode_srgb_tensor(g.texture_field(&planes, styles, t3(pts, m)));
-    let texture = (color - t3(want, m)).abs().mean();
+    let (b, m) = batch_shape(batch);
+    let texture = texture_loss(g, planes, styles, batch, device);
 
     // SDF at p, p + δn, p − δn: targets 0, +δ, −δ. The template part is a constant.
     let d = SDF_PROBE_OFFSET;
@@ -104,8 +155,36 @@ pub fn scan_losses(
             }
         }
     }
-    let residual = g.sdf_residual(&planes, styles, t3(probes, 3 * m));
+    let residual = g.sdf_residual(planes, styles, batch_points(probes, b, 3 * m, device));
     let target = Tensor::<2>::from_data(TensorData::new(target, [b, 3 * m]), device);
     let sdf = (residual - target).abs().mean() / SDF_UNIT;
     ScanLosses { texture, sdf }
+}
+
+/// The texture term alone: L1 between the texture field of avatar b of `styles` (its
+/// `planes`) at `batch[b]`'s points and their albedo, both sRGB-encoded, a mean over the
+/// batch's points. The face term is this at face points ([`CanonicalSamples::face_of`]).
+pub fn texture_loss(
+    g: &Generator,
+    planes: &Triplanes,
+    styles: &Styles,
+    batch: &ScanBatch,
+    device: &Device,
+) -> Tensor<1> {
+    let (b, m) = batch_shape(batch);
+    let pts: Vec<f32> = batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.points[i].to_array())).collect();
+    let want: Vec<f32> =
+        batch.iter().flat_map(|(s, idx)| idx.iter().flat_map(|&i| s.colors[i].to_array().map(encode_srgb))).collect();
+    let color = encode_srgb_tensor(g.texture_field(planes, styles, batch_points(pts, b, m, device)));
+    (color - batch_points(want, b, m, device)).abs().mean()
+}
+
+fn batch_shape(batch: &ScanBatch) -> (usize, usize) {
+    let m = batch.first().map_or(0, |x| x.1.len());
+    assert!(batch.iter().all(|x| x.1.len() == m), "scan terms: the same number of points per avatar");
+    (batch.len(), m)
+}
+
+fn batch_points(v: Vec<f32>, b: usize, n: usize, device: &Device) -> Tensor<3> {
+    Tensor::<3>::from_data(TensorData::new(v, [b, n, 3]), device)
 }
