@@ -74,4 +74,5 @@ fn export_writes_a_textured_animated_avatar_and_refuses_bad_motions() {
     bad(&["--texture-res", "0", "--motion", s(&junk)], "junk.npz");
     bad(&["--texture-res", "8"], "--texture-res 8");
     bad(&["--static", "--frames-json", s(&dir.join("f.json"))], "--frames-json needs a skinned export");
+    let _ = std::fs::remove_dir_all(&dir);
 }

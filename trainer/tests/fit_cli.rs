@@ -104,6 +104,7 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
     std::fs::write(&headless, serde_json::to_string(&hidden).unwrap()).unwrap();
     bad(&["--image", s(&photo_p), "--keypoints", s(&headless)], "no torso found");
     bad(&["--image", s(&photo_p), "--keypoints", s(&dir.join("missing.json"))], "missing.json");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
@@ -193,4 +194,5 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
         "mean {mean}, {within} of 10 within 60 mm, worst {worst}\n{}",
         report.join("\n")
     );
+    let _ = std::fs::remove_dir_all(&dir);
 }
