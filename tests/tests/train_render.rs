@@ -365,6 +365,11 @@ fn retextured_views_keep_the_surface_and_train_only_the_colours() {
     let rgb = values(same.rgb.clone());
     let max_diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
     assert!(max_diff(&rgb, &values(same.rgb_retextured.clone().unwrap())) < 1e-6);
+    // The render hands out the avatar's own triplanes (the scan and face terms reuse them).
+    let planes = g.triplanes(&own);
+    assert_eq!(same.planes.texture.dims(), planes.texture.dims());
+    assert!(max_diff(&values(same.planes.texture.clone()), &values(planes.texture)) < 1e-6);
+    assert!(max_diff(&values(same.planes.geometry.clone()), &values(planes.geometry)) < 1e-6);
     let swapped = Styles { geo: g.styles(zg2, zt.clone(), 1.0).geo, tex: own.tex.clone() };
     let f =
         render_avatar_views_retextured(&g, &ctx, &own, Some(&swapped), &[views(&labels)], res, &grids, &dev).unwrap();

@@ -135,7 +135,7 @@ pub(crate) fn subject_reconstruction<'a>(
     let use_surface = rc.lambda_scan > 0.0 && !scans.surface.is_empty();
     let use_face = rc.lambda_face > 0.0 && !scans.face.is_empty();
     if use_surface || use_face {
-        let planes = g.triplanes(&styles);
+        let planes = &fakes.planes;
         // `per_step` points of each drawn subject's pool, drawn with replacement.
         let mut draw = |pools: &'a [CanonicalSamples], per_step: usize| -> Vec<(&'a CanonicalSamples, Vec<usize>)> {
             idx.iter()
@@ -146,12 +146,12 @@ pub(crate) fn subject_reconstruction<'a>(
                 .collect()
         };
         if use_surface {
-            let terms = scan_losses(g, ctx, &planes, &styles, &draw(&scans.surface, SCAN_POINTS_PER_STEP), ad);
+            let terms = scan_losses(g, ctx, planes, &styles, &draw(&scans.surface, SCAN_POINTS_PER_STEP), ad);
             scan = Some((scalar(terms.texture.clone())?, scalar(terms.sdf.clone())?));
             loss = loss + (terms.texture + terms.sdf) * rc.lambda_scan;
         }
         if use_face {
-            let term = texture_loss(g, &planes, &styles, &draw(&scans.face, FACE_POINTS_PER_STEP), ad);
+            let term = texture_loss(g, planes, &styles, &draw(&scans.face, FACE_POINTS_PER_STEP), ad);
             face = Some(scalar(term.clone())?);
             loss = loss + term * rc.lambda_face;
         }

@@ -49,6 +49,9 @@ pub struct FakeViews {
     /// With [`render_avatar_views_retextured`]: the RGB images of the same surfaces coloured
     /// by the texture field of the other styles (same layout as `rgb`).
     pub rgb_retextured: Option<Tensor<4>>,
+    /// The triplanes of the batch's avatars (`[B, 3·C, R, R]`, with gradients), for terms
+    /// that evaluate the fields elsewhere (the scan and face terms) without a second synthesis.
+    pub planes: Triplanes,
 }
 
 fn vec3_tensor(v: &[Vec3], device: &Device) -> Tensor<2> {
@@ -218,10 +221,12 @@ pub async fn render_avatar_views_async(
             eprintln!("    {:>8.3} s  render: {_what}", t0.elapsed().as_secs_f64());
         }
     };
+    let mut all_planes = Vec::new();
     for (b, cams) in views.iter().enumerate() {
-        let Some(first) = cams.first() else { continue };
         let s = styles_of(styles, b);
         let planes = g.triplanes(&s);
+        all_planes.push(planes.clone());
+        let Some(first) = cams.first() else { continue };
         let re = retexture.map(|r| {
             let r = styles_of(r, b);
             (g.triplanes(&r), r)
@@ -390,5 +395,9 @@ pub async fn render_avatar_views_async(
         cross_entropy: mean(ce),
         triangles,
         rgb_retextured: (!retextured.is_empty()).then(|| Tensor::cat(retextured, 0)),
+        planes: Triplanes {
+            geometry: Tensor::cat(all_planes.iter().map(|p| p.geometry.clone()).collect(), 0),
+            texture: Tensor::cat(all_planes.into_iter().map(|p| p.texture).collect(), 0),
+        },
     })
 }
