@@ -252,10 +252,10 @@ pub(crate) fn canonical_scan_samples(
     seed: u64,
     (surface, face): (bool, bool),
 ) -> Result<ScanPools> {
-    let region = match face {
-        true => Some(FaceRegion::of(ctx).map_err(|e| anyhow!("the face term needs a face on the body model: {e}"))?),
-        false => None,
-    };
+    let region = face
+        .then(|| FaceRegion::of(ctx))
+        .transpose()
+        .map_err(|e| anyhow!("the face term needs a face on the body model: {e}"))?;
     let found: BTreeMap<String, PathBuf> = find_scans(dir)?.into_iter().collect();
     let subjects = subject_of_entries(ds);
     let n = subjects.iter().copied().max().map_or(0, |m| m + 1);
