@@ -73,6 +73,16 @@ pub struct EvalArgs {
     /// to see where the IoU is lost.
     #[arg(long)]
     pub images: Option<PathBuf>,
+    /// Render each label with its own training subject's codes (the checkpoint's latent
+    /// modes) instead of seeds, and also report the RGB / normal / mask L1 against the data:
+    /// how closely a reconstruction-trained checkpoint reproduces its subjects. The dataset's
+    /// subject folders, in sorted order, are subjects 0, 1, … as in training, so the dataset
+    /// must hold the run's training subjects or the first of them prepared alike (e.g. the
+    /// first 16 of `synth-scans --count 64`, which are bit-identical to `--count 16`). On the
+    /// training data at its resolution, `--count 4` gives the snapshot grid's `grid_l1.jsonl`
+    /// figure.
+    #[arg(long, conflicts_with_all = ["psi", "seed", "mean_truncation"])]
+    pub subject_codes: bool,
 }
 
 #[derive(Debug, Serialize)]
@@ -89,8 +99,21 @@ pub struct EvalReport {
     pub normal_error_deg: Option<f32>,
     pub fid: Option<f32>,
     pub kid: Option<f32>,
-    /// The same figures per label, in evaluation order (seeds `seed + 2k`, `seed + 2k + 1`).
+    /// With `--subject-codes`: the L1 between the renders and the data's images.
+    pub reconstruction_l1: Option<ReconstructionL1>,
+    /// The same figures per label, in evaluation order (seeds `seed + 2k`, `seed + 2k + 1`,
+    /// or with `--subject-codes` the label's subject).
     pub per_label: Vec<LabelFigures>,
+}
+
+/// Mean absolute difference in [0, 1] units (images in [0, 1], normals' components halved),
+/// over pixels, channels and labels; the units of the training snapshots' `grid_l1.jsonl`.
+#[derive(Debug, Serialize, Clone, Copy, PartialEq)]
+pub struct ReconstructionL1 {
+    pub rgb: f32,
+    /// None when the dataset has no normal maps.
+    pub normal: Option<f32>,
+    pub mask: f32,
 }
 
 /// One evaluated label: which dataset image, and both IoUs against the posed body.
@@ -99,6 +122,11 @@ pub struct LabelFigures {
     pub image: String,
     pub mask_iou: f32,
     pub data_mask_iou: f32,
+    /// With `--subject-codes`: the training subject rendered, and its RGB L1 ([0, 1] units).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub subject: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rgb_l1: Option<f32>,
 }
 
 fn iou(a: &[bool], b: &[bool]) -> f32 {
@@ -135,6 +163,23 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         None => None,
     };
     let (cfg, g, modes) = a.model.load(&dev)?;
+    let subjects = if a.subject_codes {
+        let Some(m) = &modes else {
+            bail!("--subject-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
+        };
+        let subjects = crate::train::subject_of_entries(&ds);
+        let n = subjects.iter().max().map_or(0, |s| s + 1);
+        if n > m.count() {
+            bail!(
+                "--subject-codes: {} holds {n} subjects but the checkpoint has codes for {}; use the run's training data (or its first subjects)",
+                a.data.display(),
+                m.count()
+            );
+        }
+        Some(subjects)
+    } else {
+        None
+    };
     let modes = crate::sample::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
@@ -154,13 +199,24 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let (mut ious, mut data_ious, mut per_label) = (Vec::new(), Vec::new(), Vec::new());
     let (mut angle_sum, mut angle_n) = (0f64, 0usize);
     let (mut fake_rgb, mut real_rgb) = (Vec::new(), Vec::new());
+    let mut rec_sums: Vec<(f64, Option<f64>, f64)> = Vec::new();
     for k in 0..count {
         let idx = k * ds.len() / count;
         let sample = ds.load(idx)?;
         let label = sample.label.clone();
-        let (zg, zt) = seed_latents(&cfg, a.seed + 2 * k as u64, a.seed + 2 * k as u64 + 1, &dev);
-        let f = render_avatars(&g, &ctx, &g.styles_with(zg, zt, a.psi, modes), &[label.view()], res, &grids, &dev)?;
-        let mask: Vec<f32> = read_f32_now(f.mask)?;
+        let subject = subjects.as_ref().map(|s| s[idx]);
+        let styles = match (subject, modes) {
+            (Some(s), Some(m)) => {
+                let (wg, wt) = m.subject(s, s).context("a subject inside the checkpoint's count (checked above)")?;
+                g.styles_from_w(wg, wt)
+            }
+            _ => {
+                let (zg, zt) = seed_latents(&cfg, a.seed + 2 * k as u64, a.seed + 2 * k as u64 + 1, &dev);
+                g.styles_with(zg, zt, a.psi, modes)
+            }
+        };
+        let f = render_avatars(&g, &ctx, &styles, &[label.view()], res, &grids, &dev)?;
+        let mask: Vec<f32> = read_f32_now(f.mask.clone())?;
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
         if inception.is_some() {
             let rgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
@@ -195,9 +251,51 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
                 .collect();
             write_strip(&dir.join(format!("{k:02}.png")), &[&fake_rgb, &overlay, &real_rgb], res)?;
         }
-        per_label.push(LabelFigures { image: sample.name.clone(), mask_iou: ious[k], data_mask_iou: data_ious[k] });
-        if let Some(rn) = &sample.normal {
-            let fnrm: Vec<f32> = read_f32_now(f.normal)?;
+        let fnrm: Option<Vec<f32>> = match &sample.normal {
+            Some(_) => Some(read_f32_now(f.normal.clone())?),
+            None => None,
+        };
+        let rgb_l1 = match subject {
+            Some(_) => {
+                // Renders are in [-1, 1] (mask too), the data in [0, 1]; normals are unit
+                // vectors in both, so their difference is halved like the others'.
+                let frgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
+                let n = (res * res) as f64;
+                let chw_l1 = |fake: &[f32], real: &dyn Fn(usize, usize) -> f32, ch: usize, to01: bool| -> f64 {
+                    let mut sum = 0f64;
+                    for c in 0..ch {
+                        for p in 0..res * res {
+                            let v = fake[c * res * res + p];
+                            let v = if to01 { v * 0.5 + 0.5 } else { v };
+                            sum += (v - real(c, src(p))).abs() as f64;
+                        }
+                    }
+                    let d = sum / (n * ch as f64);
+                    if to01 {
+                        d
+                    } else {
+                        d / 2.0
+                    }
+                };
+                let rgb = chw_l1(&frgb, &|c, q| sample.rgb[3 * q + c], 3, true);
+                let msk = chw_l1(&mask, &|_, q| sample.mask[q], 1, true);
+                let nrm = match (&fnrm, &sample.normal) {
+                    (Some(fnrm), Some(rn)) => Some(chw_l1(fnrm, &|c, q| rn[3 * q + c], 3, false)),
+                    _ => None,
+                };
+                rec_sums.push((rgb, nrm, msk));
+                Some(rgb as f32)
+            }
+            None => None,
+        };
+        per_label.push(LabelFigures {
+            image: sample.name.clone(),
+            mask_iou: ious[k],
+            data_mask_iou: data_ious[k],
+            subject,
+            rgb_l1,
+        });
+        if let (Some(rn), Some(fnrm)) = (&sample.normal, &fnrm) {
             for p in 0..res * res {
                 if fake[p] && real[p] {
                     let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
@@ -242,6 +340,15 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         normal_error_deg: (angle_n > 0).then(|| (angle_sum / angle_n as f64) as f32),
         fid,
         kid,
+        reconstruction_l1: (!rec_sums.is_empty()).then(|| {
+            let n = rec_sums.len() as f64;
+            let normals: Option<Vec<f64>> = rec_sums.iter().map(|r| r.1).collect();
+            ReconstructionL1 {
+                rgb: (rec_sums.iter().map(|r| r.0).sum::<f64>() / n) as f32,
+                normal: normals.map(|v| (v.iter().sum::<f64>() / n) as f32),
+                mask: (rec_sums.iter().map(|r| r.2).sum::<f64>() / n) as f32,
+            }
+        }),
         per_label,
     })
 }
@@ -274,6 +381,14 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
         r.data_mask_iou_mean,
         r.normal_error_deg.map(|d| format!("{d:.1}°")).unwrap_or_else(|| "n/a (no normal maps)".into())
     );
+    if let Some(l1) = &r.reconstruction_l1 {
+        println!(
+            "reconstruction L1 against the data ([0, 1] units, each label at its subject's codes): RGB {:.4}, normal {}, mask {:.4}",
+            l1.rgb,
+            l1.normal.map(|v| format!("{v:.4}")).unwrap_or_else(|| "n/a (no normal maps)".into()),
+            l1.mask
+        );
+    }
     if let (Some(fid), Some(kid)) = (r.fid, r.kid) {
         println!("FID {fid:.2}, KID {kid:.4} ({} images per set)", r.labels);
     }

@@ -449,6 +449,42 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let (o, _) = subject("0,2", &g);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("2 subjects"), "{err}");
+    // `trainer eval --subject-codes` renders each label at its own subject's codes and
+    // measures the L1 against the data: on the training data at `--count 4` it is the
+    // snapshot grid's figure (same labels, same weights), so a checkpoint can be measured on
+    // another run's grid.
+    let report = root.join("subject_codes.json");
+    let ckpt = ["--checkpoint", g.to_str().unwrap(), "--subject-codes", "--out", report.to_str().unwrap()];
+    let text = ok(eval(&data, &ckpt));
+    assert!(text.contains("reconstruction L1 against the data"), "{text}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    for k in ["rgb", "normal", "mask"] {
+        let (got, grid) = (r["reconstruction_l1"][k].as_f64().unwrap(), fits[1][k].as_f64().unwrap());
+        assert!((got - grid).abs() <= 1e-4 + 0.01 * grid, "{k}: eval {got} against the grid's {grid}");
+    }
+    let subjects: Vec<u64> =
+        r["per_label"].as_array().unwrap().iter().map(|l| l["subject"].as_u64().unwrap()).collect();
+    assert_eq!(subjects, [0, 0, 1, 1], "{r}");
+    // Seeded evaluations report no reconstruction figure; a checkpoint without codes, a
+    // dataset with more subjects than codes and a ψ with the flag are refused.
+    let seeded: serde_json::Value = {
+        ok(eval(&data, &["--checkpoint", g.to_str().unwrap(), "--out", report.to_str().unwrap()]));
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+    };
+    assert!(seeded["reconstruction_l1"].is_null() && seeded["per_label"][0]["subject"].is_null(), "{seeded}");
+    let o = eval(&data, &["--subject-codes"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("needs a checkpoint with latent modes"), "{err}");
+    let o = eval(&data, &["--checkpoint", g.to_str().unwrap(), "--subject-codes", "--psi", "0.5"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--psi"), "a ψ with the flag");
+    let scans3 = root.join("scans3");
+    ok(trainer(&["synth-scans", "--out", scans3.to_str().unwrap(), "--count", "3", "--texture-size", "128"]));
+    let data3 = root.join("data3");
+    let prep = ["prepare", "--scans", scans3.to_str().unwrap(), "--out", data3.to_str().unwrap()];
+    ok(trainer(&[&prep[..], &["--views", "1", "--res", "16"]].concat()));
+    let o = eval(&data3, &["--checkpoint", g.to_str().unwrap(), "--subject-codes"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("holds 3 subjects but the checkpoint has codes for 2"), "{err}");
     // `trainer variety` at ψ = 0: every seed renders one of the 2 subjects, so each seed pair
     // is as far apart as the subjects are, or identical.
     let vdir = root.join("variety");
