@@ -160,6 +160,10 @@ fn surface_off_the_body_gets_its_own_charts() {
     let atlas = transfer_body_uvs(&verts, &tris, &uvs).unwrap();
     let tube_faces = tris.len() - tube_start;
     assert_eq!(atlas.own_chart_faces, tube_faces, "the tube, and only it, in charts of its own");
+    // The avatar's triangle order is kept, the own charts' triangles included.
+    for (t, (a, f)) in atlas.faces.iter().zip(&tris).enumerate() {
+        assert_eq!(a.map(|v| atlas.source[v as usize]), *f, "triangle {t}");
+    }
     // Most of the body keeps its own layout; the rest (fine features a 5 mm shell folds: eyelids,
     // lips, between fingers) goes through the centroid's face.
     assert!(

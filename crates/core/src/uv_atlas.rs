@@ -39,6 +39,8 @@ pub struct UvAtlas {
     /// Avatar vertex each atlas vertex copies.
     pub source: Vec<u32>,
     pub uvs: Vec<Vec2>,
+    /// One per avatar triangle, in the avatar's order: `faces[t]` is triangle t's corners
+    /// (same winding) as atlas vertices.
     pub faces: Vec<[u32; 3]>,
     /// Triangles mapped through the body's layout, across its seams, and in their own charts.
     pub body_faces: usize,
@@ -52,6 +54,8 @@ pub enum AtlasError {
     NoBodyUvs,
     #[error("the mesh has no triangles")]
     Empty,
+    #[error("the {0} triangles away from the body do not fit into the atlas' free region at any scale")]
+    Packing(usize),
 }
 
 /// Closest point on triangle `abc` to `p`, as barycentric weights (Ericson, RTCD 5.1.5).
@@ -277,6 +281,8 @@ pub async fn transfer_body_uvs_async(
         let (fc, bc, dc) = body.closest(centroid);
         if dc > FAR_FROM_BODY || idx.iter().any(|v| near[*v] > FAR_FROM_BODY) {
             far.push(t);
+            // Its own chart's corners replace this placeholder (the avatar's order is kept).
+            atlas.faces.push([0; 3]);
             continue;
         }
         let uv_c = body.uv_at(fc, bc);
@@ -318,15 +324,15 @@ pub async fn transfer_body_uvs_async(
             atlas.seam_faces += 1;
         }
     }
-    own_charts(vertices, faces, &far, &mut atlas);
+    own_charts(vertices, faces, &far, &mut atlas)?;
     Ok(atlas)
 }
 
 /// Charts of their own for the triangles in `far`: grouped by dominant normal axis, connected
 /// groups projected onto the axis plane, shelf-packed into the region outside the body layout.
-fn own_charts(vertices: &[Vec3], faces: &[[u32; 3]], far: &[usize], atlas: &mut UvAtlas) {
+fn own_charts(vertices: &[Vec3], faces: &[[u32; 3]], far: &[usize], atlas: &mut UvAtlas) -> Result<(), AtlasError> {
     if far.is_empty() {
-        return;
+        return Ok(());
     }
     let axis_of = |t: usize| -> usize {
         let [a, b, c] = faces[t].map(|v| vertices[v as usize]);
@@ -449,7 +455,7 @@ fn own_charts(vertices: &[Vec3], faces: &[[u32; 3]], far: &[usize], atlas: &mut 
             hi = mid;
         }
     }
-    let Some(at) = fits(lo) else { return };
+    let Some(at) = fits(lo) else { return Err(AtlasError::Packing(far.len())) };
     for (b, origin) in boxes.iter().zip(at) {
         let mut local: std::collections::HashMap<u32, u32> = std::collections::HashMap::new();
         for &i in &b.members {
@@ -462,10 +468,11 @@ fn own_charts(vertices: &[Vec3], faces: &[[u32; 3]], far: &[usize], atlas: &mut 
                     atlas.source.len() as u32 - 1
                 });
             }
-            atlas.faces.push(out);
+            atlas.faces[far[i]] = out;
             atlas.own_chart_faces += 1;
         }
     }
+    Ok(())
 }
 
 /// The texels of a `res × res` atlas image that its triangles cover (texel centres inside a
