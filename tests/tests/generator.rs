@@ -368,25 +368,28 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
     (a.mesh.vertices.len(), a.mesh.faces.len(), [sum(positions), sum(normals), sum(colors)])
 }
 
-/// The shipped demo checkpoint still loads and generates the same avatars as before the
-/// code-health refactor of issue #26 (field evaluation, normal field and posed grid moved to
-/// their own modules, read-backs as `Result`, safetensors parsing by the crate). The figures
-/// were measured on the .glb of commit e02b26a's `trainer sample --config demo --seed-geo 1
-/// --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training subject).
+/// The shipped demo checkpoint loads and generates, through the library, the avatars its CLI
+/// exported: the figures were measured on the .glb of `trainer sample --config demo
+/// --seed-geo 1 --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training
+/// subject) when the file was shipped (v2 of #25, commit 7934a22's release build), summing
+/// the glTF's POSITION, NORMAL and COLOR_0 accessors. (The 16-subject file before it was
+/// checked the same way against commit e02b26a, to pin #26's refactor.)
 #[test]
-fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
-    use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
+    use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator, load_latent_modes};
     use getavatar_core::generator::default_psi;
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors");
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
-    let cfg = GeneratorConfig::demo();
+    // The shipped file is the demo config with 128² texture planes (v2, #25).
+    let cfg = config_with_saved_texture_res(&bytes, &GeneratorConfig::demo());
+    assert_eq!(cfg.texture_res, Some(128));
     let g = load_generator(&bytes, &cfg, &dev).unwrap();
     let modes = load_latent_modes(&bytes, &dev).unwrap();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
     let expected: [(&str, Fingerprint); 2] = [
-        ("walking", (6224, 12444, [-2548.4932040847852, -224.0772518895028, 21114.74598182086])),
-        ("arms_up", (6364, 12724, [-1556.346129423538, -81.01174340693979, 22093.632529905997])),
+        ("walking", (6754, 13504, [-2388.2859398525147, -52.5116613081409, 11407.002876036568])),
+        ("arms_up", (6922, 13840, [-1243.0152622700923, 16.84491468901797, 11300.391313218977])),
     ];
     for (pose, want) in expected {
         let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
@@ -394,10 +397,10 @@ fn shipped_demo_model_generates_the_avatars_it_did_before_the_refactor() {
         let params = PoseLibrary::builtin().params(pose, &[]).unwrap();
         let got = fingerprint(&generate_avatar(&g, &ctx, &styles, &params, &dev).unwrap());
         assert_eq!((got.0, got.1), (want.0, want.1), "{pose}: vertex and triangle counts {got:?}");
-        // Sums over all vertices of positions, normals and colours. They were bit-identical
-        // until NdArray's convolution became one operation (#28, session 34: another float
-        // summation order); since then positions differ by ≈ 2e-5 m and colours by ≈ 5e-4 in
-        // sums over 6,224 vertices, i.e. by float rounding, not by a changed avatar.
+        // Sums over all vertices of positions, normals and colours. The release CLI and
+        // this debug test may round differently (for the file before this one, positions
+        // differed by ≈ 2e-5 m and colours by ≈ 5e-4 in sums over 6,224 vertices once
+        // NdArray's convolution became one operation, #28): float rounding, not another avatar.
         for ((k, (a, b)), tol) in got.2.iter().zip(want.2).enumerate().zip([1e-4, 1e-3, 2e-3]) {
             assert!((a - b).abs() < tol, "{pose}: sum {k} is {a}, was {b} ({got:?})");
         }

@@ -4,7 +4,7 @@
 //! from seams and chart borders).
 
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{load_generator, load_latent_modes};
+use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator, load_latent_modes};
 use getavatar_core::colour::linear_to_srgb;
 use getavatar_core::generator::{default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext};
 use getavatar_core::network::GeneratorConfig;
@@ -17,9 +17,10 @@ use glam::Vec3;
 fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     #[allow(deprecated)]
     let dev = Device::ndarray();
-    let cfg = GeneratorConfig::demo();
     let bytes =
         std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors")).expect("demo model");
+    // The shipped file is the demo config with finer texture planes (`texture_res`).
+    let cfg = config_with_saved_texture_res(&bytes, &GeneratorConfig::demo());
     let g = load_generator(&bytes, &cfg, &dev).expect("loads");
     let modes = load_latent_modes(&bytes, &dev).expect("modes");
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -40,13 +41,19 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
         seen[*v as usize] += 1;
     }
     assert!(seen.iter().all(|c| *c > 0), "every avatar vertex is in the atlas");
+    // Most triangles take the body's layout; garments standing off the body by more than
+    // FAR_FROM_BODY (this avatar's loose top: 19 % of its triangles on the v2 model of #25,
+    // under 10 % on the body-hugging 16-subject file before it) get charts of their own.
     assert!(
-        atlas.body_faces > 9 * atlas.faces.len() / 10,
+        atlas.body_faces > 3 * atlas.faces.len() / 4,
         "{} of {} triangles on the body's layout",
         atlas.body_faces,
         atlas.faces.len()
     );
-    // Triangle corners keep the avatar's triangles (same vertices, same order).
+    assert!(atlas.own_chart_faces > 0, "this avatar has surface off the body, so the own-chart path is tested");
+    assert_eq!(atlas.body_faces + atlas.seam_faces + atlas.own_chart_faces, atlas.faces.len());
+    // Triangle t of the atlas is the avatar's triangle t (same vertices, same winding), also
+    // where it lies in a chart of its own.
     for (a, f) in atlas.faces.iter().zip(&rigged.canonical.mesh.faces) {
         assert_eq!(a.map(|v| atlas.source[v as usize]), *f);
     }
