@@ -55,19 +55,45 @@ const server = http.createServer((req, res) => {
   fs.createReadStream(file).pipe(res);
 });
 await new Promise((r) => server.listen(0, '127.0.0.1', r));
-const browser = await chromium.launch({
+// Headless Chromium loses the page (or the whole browser) part way through a few dozen
+// detections, so every PAGE_PHOTOS photos run on a fresh page, and a lost page or browser
+// is reopened and the photo tried once more.
+const PAGE_PHOTOS = 12;
+const launch = () => chromium.launch({
   executablePath: process.env.GETAVATAR_CHROMIUM ?? '/usr/bin/chromium',
   headless: true,
   args: ['--no-sandbox', '--use-angle=swiftshader', '--disable-background-networking', '--no-first-run'],
 });
-const tab = await browser.newPage();
-tab.on('pageerror', (e) => console.error('pageerror', e.message));
-await tab.goto(`http://127.0.0.1:${server.address().port}/`);
-await tab.waitForFunction(() => window.ready);
+let browser = await launch();
+let tab = null;
+let onTab = 0;
+const openTab = async () => {
+  if (tab) await tab.close().catch(() => {});
+  if (!browser.isConnected()) browser = await launch();
+  tab = await browser.newPage();
+  tab.on('pageerror', (e) => console.error('pageerror', e.message));
+  await tab.goto(`http://127.0.0.1:${server.address().port}/`);
+  await tab.waitForFunction(() => window.ready);
+  onTab = 0;
+};
+const detect = async (name) => {
+  for (let attempt = 0; ; attempt++) {
+    try {
+      if (!tab || onTab >= PAGE_PHOTOS) await openTab();
+      onTab++;
+      return JSON.parse(await tab.evaluate((n) => window.detect(n), name));
+    } catch (e) {
+      if (attempt >= 1) throw new Error(`${name}: the page was lost twice: ${e.message}`);
+      console.error(`${name}: the page was lost (${e.message.split('\n')[0]}); trying again on a fresh page`);
+      tab = null;
+      if (!browser.isConnected()) browser = await launch();
+    }
+  }
+};
 let failed = 0;
 const seen = { renders: photos.length, person: 0, facing: 0, missed: [], backwards: [] };
 for (const name of photos) {
-  const r = JSON.parse(await tab.evaluate((n) => window.detect(n), name));
+  const r = await detect(name);
   const stem = name.replace(/\.png$/, '');
   if (r.error || !r.poseLandmarks) {
     console.error(`${name}: ${r.error ?? 'no landmarks'}`);
