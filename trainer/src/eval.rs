@@ -16,6 +16,11 @@
 //!   images a CPU eval affords, FID is strongly biased upwards; compare runs at equal
 //!   `--count` only. Without the weights file it says so and reports null.
 //!
+//! With `--subject-codes` each label is rendered at its own training subject's codes (the
+//! checkpoint's latent modes) instead of seeds, and the RGB / normal / mask L1 against the
+//! data is reported too: how closely the checkpoint reproduces its subjects, on any grid of
+//! their views (on the training data, `--count 4` is the run's `grid_l1.jsonl` figure).
+//!
 //! The JSON report (`--out`) lists every label's two IoUs (`per_label`), and `--images DIR`
 //! writes one PNG per label (generated RGB | generated mask against the posed body | data),
 //! so a low mean can be traced to the labels and shapes that cause it.
