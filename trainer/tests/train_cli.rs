@@ -662,9 +662,20 @@ fn texture_res_grows_a_saved_generator_and_is_kept_in_the_run() {
     refused(&["--resume", "--texture-res", "64"], &fine, "--texture-res 64 differs from the run's 32");
     refused(&["--resume", "--texture-res", "32"], &coarse, "--texture-res 32 differs from the run's (none)");
     refused(&["--texture-res", "24"], &root.join("bad"), "--texture-res 24: config field `texture_res`");
-    // A checkpoint with finer texture planes than the run's cannot shrink into it.
+    // Without --texture-res, a checkpoint's own finer texture planes are kept (the shipped
+    // demo model resumes as it is)…
     let fine_init = fine.join("generator.safetensors");
-    refused(&["--resume", fine_init.to_str().unwrap()], &root.join("shrink"), "texture_res");
+    let kept = root.join("kept");
+    let text = train(&data, &kept, 1, &["--objective", "reconstruction", "--resume", fine_init.to_str().unwrap()]);
+    assert!(text.contains("initialised the generator from"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(kept.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["generator"]["texture_res"], 32, "{rc}");
+    // …and a checkpoint with finer texture planes than a --texture-res asked cannot shrink.
+    let finer = root.join("finer");
+    let grow = ["--objective", "reconstruction", "--texture-res", "64", "--resume", fine_init.to_str().unwrap()];
+    train(&data, &finer, 1, &grow);
+    let finer_init = finer.join("generator.safetensors");
+    refused(&["--texture-res", "32", "--resume", finer_init.to_str().unwrap()], &root.join("shrink"), "texture_res");
     let v = root.join("variety");
     let o = trainer(&[
         "variety",

@@ -97,6 +97,7 @@ pub struct TrainArgs {
     /// Resolution of the generator's texture planes, finer than the config's planes (not in
     /// the paper: texture-only detail blocks, `GeneratorConfig::texture_res`). A `--resume`
     /// checkpoint with coarser texture planes grows into it, rendering as before at first.
+    /// Without it, a `--resume` checkpoint's own texture planes are kept.
     #[arg(long)]
     pub texture_res: Option<usize>,
 }

@@ -236,6 +236,11 @@ impl RunConfig {
         if let Some(res) = a.texture_res {
             gcfg.texture_res = Some(res);
             gcfg.validate().map_err(|e| anyhow::anyhow!("--texture-res {res}: {e}"))?;
+        } else if let Some(Some(init)) = &a.resume {
+            // A generator saved with finer texture planes (e.g. the shipped demo model) keeps
+            // them: its config where it differs from the preset only there.
+            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+            gcfg = getavatar_core::checkpoint::config_with_saved_texture_res(&bytes, &gcfg);
         }
         let defaults =
             RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective);
