@@ -676,6 +676,39 @@ fn texture_res_grows_a_saved_generator_and_is_kept_in_the_run() {
     train(&data, &finer, 1, &grow);
     let finer_init = finer.join("generator.safetensors");
     refused(&["--texture-res", "32", "--resume", finer_init.to_str().unwrap()], &root.join("shrink"), "texture_res");
+    // --train-only: a stage that trains one part (here the detail block's learned constant)
+    // and leaves every other weight as the file had it; kept in run.json, checked against
+    // the generator's parameter names, and fixed on --resume.
+    let only = root.join("only");
+    let constant = "synthesis.texture_detail.0.constant";
+    let stage = ["--objective", "reconstruction", "--train-only", constant, "--resume", fine_init.to_str().unwrap()];
+    let text = train(&data, &only, 3, &stage);
+    assert!(text.contains("(--train-only synthesis.texture_detail.0.constant)"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(only.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["train_only"], constant, "{rc}");
+    let tensors = |p: &Path| getavatar_core::checkpoint::parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
+    let (before, after) = (tensors(&fine_init), tensors(&only.join("generator.safetensors")));
+    let mut moved = Vec::new();
+    for (name, (_, a)) in &before {
+        // w_avg is a running mean of the mapping's outputs, not a weight: it is tracked.
+        if name.contains("w_avg") {
+            continue;
+        }
+        let b = &after.get(name).unwrap_or_else(|| panic!("{name} missing")).1;
+        // Relative: the EMA's update of an unchanged weight rounds (the mapping's weights
+        // are stored 1/lr_mul = 100× larger).
+        let d = a.iter().zip(b).map(|(x, y)| (x - y).abs() / x.abs().max(1e-3)).fold(0f32, f32::max);
+        if d > 1e-5 {
+            moved.push(name.clone());
+        }
+    }
+    assert_eq!(moved, [constant], "only the constant moves");
+    refused(
+        &["--train-only", "synthesis.nothing", "--objective", "reconstruction"],
+        &root.join("none"),
+        "no generator parameter",
+    );
+    refused(&["--resume", "--train-only", "mapping_tex"], &only, "--train-only mapping_tex differs from the run's");
     let v = root.join("variety");
     let o = trainer(&[
         "variety",

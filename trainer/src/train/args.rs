@@ -69,6 +69,12 @@ pub struct TrainArgs {
     /// `--lambda-scan 0` leaves it alone. 0 (the default): off.
     #[arg(long)]
     pub lambda_face: Option<f32>,
+    /// Train only the generator parameters whose checkpoint path starts with PREFIX (e.g.
+    /// `synthesis.texture_detail.1.constant`, the learned constant of the second texture
+    /// detail block); the others keep their weights. For a stage that teaches one part, such
+    /// as the faces of the shared constant, without moving the weights every subject shares.
+    #[arg(long, value_name = "PREFIX")]
+    pub train_only: Option<String>,
     /// Reconstruction terms only (not in the paper): weight of a texture-swap term. Each drawn
     /// subject's surface is also coloured by the texture field built from another drawn
     /// subject's geometry code with its own texture code, and that RGB is compared with the
@@ -120,7 +126,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 15] = [
+        let rows: [(&str, Option<String>, String, &str); 16] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -149,6 +155,12 @@ impl TrainArgs {
             ),
             ("--latent-spread", self.latent_spread.map(num), num(rc.latent_spread), "latent_spread"),
             ("--lr-g", self.lr_g.map(num), num(rc.lr_g), "lr_g"),
+            (
+                "--train-only",
+                self.train_only.clone(),
+                rc.train_only.clone().unwrap_or_else(|| "(all)".into()),
+                "train_only",
+            ),
             ("--lr-d", self.lr_d.map(num), num(rc.lr_d), "lr_d"),
             (
                 "--texture-res",

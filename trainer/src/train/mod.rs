@@ -125,6 +125,24 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     if !rc.use_normals {
         println!("the dataset has no normal maps: the normal discriminator is off");
     }
+    if let Some(prefix) = &rc.train_only {
+        let names: Vec<String> =
+            getavatar_core::checkpoint::collect_params(&st.g_ema)?.into_iter().map(|(name, _, _)| name).collect();
+        let trained = names.iter().filter(|n| n.starts_with(prefix.as_str())).count();
+        if trained == 0 {
+            bail!(
+                "--train-only {prefix}: no generator parameter's path starts with it (they start with {})",
+                names
+                    .iter()
+                    .filter_map(|n| n.split('.').next())
+                    .collect::<std::collections::BTreeSet<_>>()
+                    .into_iter()
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+        println!("training {trained} of the generator's {} parameters (--train-only {prefix})", names.len());
+    }
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model, &rc.generator);
     let grids = PosedGridCache::default();

@@ -94,6 +94,11 @@ pub struct RunConfig {
     /// `run.json`.
     #[serde(default)]
     pub latent_spread: f32,
+    /// Train only the generator parameters whose checkpoint path starts with this prefix
+    /// (`TrainArgs::train_only`); the others keep their weights. Absent: all. Editable in
+    /// `run.json`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_only: Option<String>,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -159,6 +164,7 @@ impl RunConfig {
             lambda_face: 0.0,
             lambda_texture_swap: 0.0,
             latent_spread: 0.0,
+            train_only: None,
         }
     }
 }
@@ -254,6 +260,7 @@ impl RunConfig {
             lambda_face,
             lambda_texture_swap,
             latent_spread,
+            train_only: a.train_only.clone(),
             ..defaults
         })
     }

@@ -96,11 +96,14 @@ pub(crate) fn latents(rng: &mut Rng, b: usize, dim: usize, dev: &Device) -> Tens
 }
 
 /// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul` and the
-/// geometry heads at `lr_g · lr_geometry_head_mul`.
+/// geometry heads at `lr_g · lr_geometry_head_mul`; with `train_only`, parameters outside it
+/// at 0.
 pub(crate) fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
     let (tex, geo) = (rc.lr_texture_mul, rc.lr_geometry_head_mul);
     adam.step_scaled(rc.lr_g, g, grads, &|name| {
-        if is_texture_param(name) {
+        if rc.train_only.as_deref().is_some_and(|p| !name.starts_with(p)) {
+            0.0
+        } else if is_texture_param(name) {
             tex
         } else if is_geometry_head_param(name) {
             geo
