@@ -223,8 +223,14 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let f = render_avatars(&g, &ctx, &styles, &[label.view()], res, &grids, &dev)?;
         let mask: Vec<f32> = read_f32_now(f.mask.clone())?;
         let fake: Vec<bool> = mask.iter().map(|m| *m > 0.0).collect();
+        // The render's RGB, read back once for whichever of FID, the strips and the
+        // reconstruction L1 asks for it.
+        let rgb: Vec<f32> = if inception.is_some() || a.images.is_some() || subject.is_some() {
+            read_f32_now(f.rgb.clone())?
+        } else {
+            Vec::new()
+        };
         if inception.is_some() {
-            let rgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
             fake_rgb.push(ImageChw {
                 data: rgb.iter().map(|v| ((v + 1.0) * 0.5).clamp(0.0, 1.0)).collect(),
                 height: res,
@@ -237,7 +243,6 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
         data_ious.push(iou(&real, &body));
         if let Some(dir) = &a.images {
-            let rgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
             let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
             let real_rgb: Vec<f32> = (0..res * res * 3)
                 .map(|i| {
@@ -264,7 +269,6 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
             Some(_) => {
                 // Renders are in [-1, 1] (mask too), the data in [0, 1]; normals are unit
                 // vectors in both, so their difference is halved like the others'.
-                let frgb: Vec<f32> = read_f32_now(f.rgb.clone())?;
                 let n = (res * res) as f64;
                 let chw_l1 = |fake: &[f32], real: &dyn Fn(usize, usize) -> f32, ch: usize, to01: bool| -> f64 {
                     let mut sum = 0f64;
@@ -282,7 +286,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
                         d / 2.0
                     }
                 };
-                let rgb = chw_l1(&frgb, &|c, q| sample.rgb[3 * q + c], 3, true);
+                let rgb = chw_l1(&rgb, &|c, q| sample.rgb[3 * q + c], 3, true);
                 let msk = chw_l1(&mask, &|_, q| sample.mask[q], 1, true);
                 let nrm = match (&fnrm, &sample.normal) {
                     (Some(fnrm), Some(rn)) => Some(chw_l1(fnrm, &|c, q| rn[3 * q + c], 3, false)),
