@@ -741,6 +741,8 @@ fn texture_swap_and_latent_spread_are_logged_and_validated() {
     let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
     assert_eq!(rc["lambda_texture_swap"], 0.5, "{rc}");
     assert!((rc["latent_spread"].as_f64().unwrap() - 0.7).abs() < 1e-6, "{rc}");
+    // Without --latent-spread-geo the geometry takes --latent-spread: nothing is written.
+    assert!(rc.get("latent_spread_geo").is_none(), "{rc}");
     for line in std::fs::read_to_string(run.join("metrics.jsonl")).unwrap().lines() {
         let r: serde_json::Value = serde_json::from_str(line).unwrap();
         let (swap, rec) = (r["texture_swap"].as_f64().unwrap(), r["reconstruction"].as_f64().unwrap());
@@ -755,6 +757,21 @@ fn texture_swap_and_latent_spread_are_logged_and_validated() {
     refused(&["--latent-spread", "0.7"], &root.join("adv2"), "reconstruction terms");
     refused(&["--objective", "reconstruction", "--latent-spread", "1.5"], &root.join("far"), "in [0, 1]");
     refused(&["--resume", "--latent-spread", "0.3"], &run, "keeps its settings");
+    refused(&["--resume", "--latent-spread-geo", "1"], &run, "keeps its settings");
+    refused(&["--latent-spread-geo", "1"], &root.join("adv3"), "reconstruction terms");
+    refused(&["--objective", "reconstruction", "--latent-spread-geo=-0.5"], &root.join("neg2"), "in [0, 1]");
+    // A geometry spread of its own is kept in run.json beside the texture's.
+    let geo = root.join("geo");
+    let text = train(
+        &data,
+        &geo,
+        1,
+        &["--objective", "reconstruction", "--latent-spread", "0.25", "--latent-spread-geo", "1"],
+    );
+    assert!(text.contains("trained 1 steps"), "{text}");
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(geo.join("run.json")).unwrap()).unwrap();
+    assert!((rc["latent_spread"].as_f64().unwrap() - 0.25).abs() < 1e-6, "{rc}");
+    assert_eq!(rc["latent_spread_geo"], 1.0, "{rc}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -92,6 +92,12 @@ pub struct TrainArgs {
     /// blends. 0 (the default): off; 0.7 matches sampling.
     #[arg(long)]
     pub latent_spread: Option<f32>,
+    /// The geometry branch's spread where it should differ from `--latent-spread` (which
+    /// then applies to the texture branch alone). A wide geometry spread with a narrow
+    /// texture spread trains the shapes that ψ = 1 samples reach while the colours stay
+    /// close to the subjects'. Absent: `--latent-spread`.
+    #[arg(long)]
+    pub latent_spread_geo: Option<f32>,
     /// Adam learning rate of G (not of the paper's defaults where changed) [default: 0.002
     /// adversarial, 0.0005 reconstruction]. Below D's rate it lets the discriminators get
     /// ahead of G (a two-time-scale update).
@@ -126,7 +132,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 16] = [
+        let rows: [(&str, Option<String>, String, &str); 17] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -154,6 +160,12 @@ impl TrainArgs {
                 "lambda_texture_swap",
             ),
             ("--latent-spread", self.latent_spread.map(num), num(rc.latent_spread), "latent_spread"),
+            (
+                "--latent-spread-geo",
+                self.latent_spread_geo.map(num),
+                rc.latent_spread_geo.map_or_else(|| "(--latent-spread)".into(), num),
+                "latent_spread_geo",
+            ),
             ("--lr-g", self.lr_g.map(num), num(rc.lr_g), "lr_g"),
             (
                 "--train-only",

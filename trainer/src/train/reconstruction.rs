@@ -70,8 +70,8 @@ pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &D
 /// `rc.lambda_texture_swap > 0` (and more than one subject in the batch), adds the weighted
 /// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
 /// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views. With
-/// `rc.latent_spread > 0`, the subjects' codes are moved towards random ones first
-/// ([`spread_styles`]).
+/// a latent spread (`rc.latent_spreads()`), the subjects' codes are moved towards random ones
+/// first ([`spread_styles`]).
 pub(crate) fn subject_reconstruction<'a>(
     g: &Generator,
     rng: &mut Rng,
@@ -104,8 +104,9 @@ pub(crate) fn subject_reconstruction<'a>(
     let views: Vec<Vec<View>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.view()).collect()).collect();
     let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
-    let styles = if rc.latent_spread > 0.0 {
-        spread_styles(g, zg.clone(), zt.clone(), rc.latent_spread, rng)
+    let (spread_geo, spread_tex) = rc.latent_spreads();
+    let styles = if spread_geo > 0.0 || spread_tex > 0.0 {
+        spread_styles(g, zg.clone(), zt.clone(), [spread_geo, spread_tex], rng)
     } else {
         g.styles(zg.clone(), zt.clone(), 1.0)
     };
@@ -168,16 +169,17 @@ pub(crate) fn toward(w: Tensor<2>, w_random: Tensor<2>, psi: &[f32]) -> Tensor<2
 /// The styles of the subjects' latents `zg`, `zt` (`[B, z_dim]`) with each branch's w moved
 /// towards a random w ([`toward`]; ψ uniform in [0, `spread`] per subject and branch; the
 /// random w mapped from z ~ N(0, I) by the same mapping network, without gradient): the
-/// neighbourhoods that multi-modal truncation samples from (`--latent-spread`).
-pub(crate) fn spread_styles(g: &Generator, zg: Tensor<2>, zt: Tensor<2>, spread: f32, rng: &mut Rng) -> Styles {
+/// neighbourhoods that multi-modal truncation samples from (`--latent-spread`). `spreads` is
+/// [geometry, texture]; the random draws do not depend on it.
+pub(crate) fn spread_styles(g: &Generator, zg: Tensor<2>, zt: Tensor<2>, spreads: [f32; 2], rng: &mut Rng) -> Styles {
     let [b, z] = zg.dims();
-    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, zs: Tensor<2>| {
+    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, zs: Tensor<2>, spread: f32| {
         let random: Vec<f32> = rng.normals(b * z);
         let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &zs.device())).detach();
         let psi: Vec<f32> = (0..b).map(|_| rng.uniform() * spread).collect();
         toward(mapping.forward(zs), w_random, &psi)
     };
-    let (w_geo, w_tex) = (branch(&g.mapping_geo, zg), branch(&g.mapping_tex, zt));
+    let (w_geo, w_tex) = (branch(&g.mapping_geo, zg, spreads[0]), branch(&g.mapping_tex, zt, spreads[1]));
     g.styles_from_w(w_geo, w_tex)
 }
 
@@ -360,17 +362,27 @@ mod tests {
         };
         let (zg, zt) = (z(1), z(2));
         let own = g.styles(zg.clone(), zt.clone(), 1.0);
-        let same = spread_styles(&g, zg.clone(), zt.clone(), 0.0, &mut Rng::new(3, 0));
+        let same = spread_styles(&g, zg.clone(), zt.clone(), [0.0, 0.0], &mut Rng::new(3, 0));
         assert_eq!(values(own.geo.clone().reshape([4, -1])), values(same.geo.reshape([4, -1])));
         assert_eq!(values(own.tex.clone().reshape([4, -1])), values(same.tex.reshape([4, -1])));
 
-        let moved = spread_styles(&g, zg, zt, 0.7, &mut Rng::new(3, 0));
-        let (a, b) = (values(own.geo.reshape([4, -1])), values(moved.geo.reshape([4, -1])));
-        let shift = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        let moved = spread_styles(&g, zg.clone(), zt.clone(), [0.7, 0.7], &mut Rng::new(3, 0));
+        let max_shift = |a: &Tensor<3>, b: &Tensor<3>| {
+            let (a, b) = (values(a.clone().reshape([4, -1])), values(b.clone().reshape([4, -1])));
+            a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max)
+        };
+        let shift = max_shift(&own.geo, &moved.geo);
         assert!(shift > 0.0, "a spread moves the codes");
         // w of this untrained tiny mapping has entries of order 1: 0.7 of the way to another
         // mapped code moves an entry by well under 10.
         assert!(shift < 10.0, "moved by {shift}");
+
+        // Per branch: a geometry spread alone leaves the texture styles at the subjects' own,
+        // and moves the geometry exactly as the same draws did above (the draws do not
+        // depend on the spreads).
+        let geo_only = spread_styles(&g, zg, zt, [0.7, 0.0], &mut Rng::new(3, 0));
+        assert_eq!(values(own.tex.clone().reshape([4, -1])), values(geo_only.tex.reshape([4, -1])));
+        assert_eq!(values(moved.geo.reshape([4, -1])), values(geo_only.geo.reshape([4, -1])));
     }
 
     /// The face pool of a synthetic scan holds its face: eye whites on both sides of the

@@ -94,6 +94,10 @@ pub struct RunConfig {
     /// `run.json`.
     #[serde(default)]
     pub latent_spread: f32,
+    /// The geometry branch's own spread (`TrainArgs::latent_spread_geo`), where it differs
+    /// from `latent_spread`. Absent: `latent_spread`. Editable in `run.json`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latent_spread_geo: Option<f32>,
     /// Train only the generator parameters whose checkpoint path starts with this prefix
     /// (`TrainArgs::train_only`); the others keep their weights. Absent: all. Editable in
     /// `run.json`.
@@ -106,6 +110,12 @@ pub(crate) fn one_view() -> usize {
 }
 
 impl RunConfig {
+    /// The latent spreads of the geometry and texture branches (`latent_spread_geo`, falling
+    /// back to `latent_spread`, and `latent_spread`).
+    pub fn latent_spreads(&self) -> (f32, f32) {
+        (self.latent_spread_geo.unwrap_or(self.latent_spread), self.latent_spread)
+    }
+
     /// The settings of a fresh run on `ds` (the reference code's values, see
     /// `../shared/reference/paper-code-facts.md`; EMA half-life scaled to the batch).
     pub fn new(ds: &Dataset, data: &Path, generator: GeneratorConfig, batch: usize, r1_gamma: f32, seed: u64) -> Self {
@@ -164,6 +174,7 @@ impl RunConfig {
             lambda_face: 0.0,
             lambda_texture_swap: 0.0,
             latent_spread: 0.0,
+            latent_spread_geo: None,
             train_only: None,
         }
     }
@@ -228,6 +239,14 @@ impl RunConfig {
         if latent_spread > 0.0 && !reconstruction_terms {
             bail!("--latent-spread applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
+        if let Some(s) = a.latent_spread_geo {
+            if !(0.0..=1.0).contains(&s) {
+                bail!("--latent-spread-geo is a fraction of the way to a random w, in [0, 1]; got {s}");
+            }
+            if s > 0.0 && !reconstruction_terms {
+                bail!("--latent-spread-geo applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+            }
+        }
         let r1_gamma = a.r1_gamma.unwrap_or(10.0);
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
             bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
@@ -260,6 +279,7 @@ impl RunConfig {
             lambda_face,
             lambda_texture_swap,
             latent_spread,
+            latent_spread_geo: a.latent_spread_geo,
             train_only: a.train_only.clone(),
             ..defaults
         })
