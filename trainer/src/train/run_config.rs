@@ -232,20 +232,19 @@ impl RunConfig {
         if lambda_texture_swap > 0.0 && !reconstruction_terms {
             bail!("--lambda-texture-swap applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
         }
-        let latent_spread = a.latent_spread.unwrap_or(0.0);
-        if !(0.0..=1.0).contains(&latent_spread) {
-            bail!("--latent-spread is a fraction of the way to a random w, in [0, 1]; got {latent_spread}");
-        }
-        if latent_spread > 0.0 && !reconstruction_terms {
-            bail!("--latent-spread applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
-        }
-        if let Some(s) = a.latent_spread_geo {
+        let check_spread = |flag: &str, s: f32| -> Result<()> {
             if !(0.0..=1.0).contains(&s) {
-                bail!("--latent-spread-geo is a fraction of the way to a random w, in [0, 1]; got {s}");
+                bail!("{flag} is a fraction of the way to a random w, in [0, 1]; got {s}");
             }
             if s > 0.0 && !reconstruction_terms {
-                bail!("--latent-spread-geo applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
+                bail!("{flag} applies to reconstruction terms: use it with --objective reconstruction or --lambda-reconstruction");
             }
+            Ok(())
+        };
+        let latent_spread = a.latent_spread.unwrap_or(0.0);
+        check_spread("--latent-spread", latent_spread)?;
+        if let Some(s) = a.latent_spread_geo {
+            check_spread("--latent-spread-geo", s)?;
         }
         let r1_gamma = a.r1_gamma.unwrap_or(10.0);
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
