@@ -366,6 +366,37 @@ async fn surface_on_device(
     Ok(SurfaceFields { mesh, gradients, colors })
 }
 
+/// The surface sizes (in [`crate::fields::POINT_ALIGN`] multiples) whose normal- and
+/// texture-field kernels [`warm_surface_kernels`] compiles: the demo model's avatars have
+/// 5,000–9,000 surface vertices, padded to 21–36 multiples.
+pub const WARM_SURFACE_MULTIPLES: std::ops::RangeInclusive<usize> = 16..=40;
+
+/// Compile the kernels of the surface fields (normal field and texture field at the DMTet
+/// vertices) for every padded surface size in [`WARM_SURFACE_MULTIPLES`], one size per
+/// checkpoint, results dropped. The matrix-multiply kernels are chosen by the batch's size,
+/// and a size class the start-up generation did not meet compiled a ≈ 110 ms kernel in the
+/// first generation of another avatar on the software-GPU test machine (issue #23's bound
+/// is 100 ms). For the page's idle time after the model loads.
+pub async fn warm_surface_kernels(
+    g: &Generator,
+    ctx: &BodyContext,
+    planes: &Triplanes,
+    s: &Styles,
+    device: &Device,
+) -> Result<(), ReadbackError> {
+    let h = normal_field::probe_step(&ctx.template);
+    for k in WARM_SURFACE_MULTIPLES {
+        let n = k * crate::fields::POINT_ALIGN;
+        let points = points_tensor(&vec![Vec3::ZERO; n], device);
+        let grad = normal_field::residual_gradient(g, planes, s, h, points.clone().reshape([n, 3]));
+        let rgb = g.texture_field(planes, s, points).reshape([n, 3]);
+        // One value read back: the work and its compiles are done before the next size.
+        read_f32(Tensor::cat(vec![grad, rgb], 1).sum()).await?;
+        checkpoint().await;
+    }
+    Ok(())
+}
+
 /// Colours of the texture field at canonical points (re-texturing keeps the geometry).
 pub async fn recolor_async(
     g: &Generator,

@@ -17,7 +17,8 @@ use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
-    default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles,
+    default_psi, generate_rigged_async, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator,
+    LatentModes, Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
@@ -95,6 +96,10 @@ async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, de
     let planes = shipped.generator.triplanes_async(&styles).await;
     if let Err(e) = warm_bake_kernels(&shipped.generator, &planes, &styles, device).await {
         web_sys::console::warn_1(&format!("warming the bake's kernels up failed: {e}").into());
+    }
+    // Other avatars' surface sizes than this one's (their field kernels differ by size class).
+    if let Err(e) = warm_surface_kernels(&shipped.generator, ctx, &planes, &styles, device).await {
+        web_sys::console::warn_1(&format!("warming the surface fields' kernels up failed: {e}").into());
     }
 }
 
