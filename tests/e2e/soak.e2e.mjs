@@ -175,8 +175,10 @@ try {
     // view while a fitted photo is shown).
     marker++;
     await page.evaluate((m) => window.getavatar.commandJson(`{"soak_marker":${m}}`), marker);
-    await waitFor((s) => s.errors.some((e) => e.includes(`"soak_marker":${marker}}`)),
-      `the app's answer after action ${i} (${a.kind})`, 120000);
+    // A panic stops the frame loop, so the marker would never come back: stop waiting then.
+    await waitFor((s) => s.errors.some((e) => e.includes(`"soak_marker":${marker}}`))
+      || consoleErrors.some((e) => e.includes('panicked')),
+    `the app's answer after action ${i} (${a.kind})`, 120000);
     if (await page.$('#fatal')) throw new Error(`the app stopped after action ${i} (${a.kind}): ${await page.innerText('#fatal')}`);
     const m = await memory();
     for (const k of Object.keys(peak)) peak[k] = Math.max(peak[k], m[k]);

@@ -130,6 +130,37 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     eprintln!("|ΔRGB| quantiles: 50 % {:.2}, 90 % {:.2}, 99 % {:.2} (/255)", q(0.5), q(0.9), q(0.99));
     eprintln!("bake vs texture field: mean |ΔRGB| {mean:.2}/255, worst {worst:.1}/255 over {} vertices", picked.len());
     assert!(mean <= 2.0, "mean |ΔRGB| {mean:.2}/255 (≤ 2/255)");
+
+    // The downloads take this bake with this avatar, and refuse it with another mesh (a bake
+    // that finished after the app's avatar changed once indexed past the new mesh's vertices
+    // and panicked, #23): here the same vertices with the triangles in another order, and
+    // one vertex and its triangles fewer.
+    let params = getavatar_core::skinning::BodyParams::default();
+    let glb = rigged.posed_glb(&ctx, &params, Some(&baked), "own bake").expect("the avatar's own bake exports");
+    assert!(glb.len() > baked.png.len());
+    let mut shuffled = rigged.clone();
+    shuffled.canonical.mesh.faces.rotate_left(1);
+    let last = n as u32 - 1;
+    let mut smaller = rigged.clone();
+    smaller.canonical.mesh.faces.retain(|f| !f.contains(&last));
+    smaller.canonical.mesh.vertices.pop();
+    smaller.canonical.mesh.attributes.pop();
+    smaller.canonical.colors.pop();
+    smaller.canonical.normals.pop();
+    smaller.body_vertex.pop();
+    for other in [&shuffled, &smaller] {
+        for r in [
+            other.posed_glb(&ctx, &params, Some(&baked), "stale bake"),
+            other.animated_glb(&ctx, &params, &[], Some(&baked), "stale bake"),
+        ] {
+            let e = r.expect_err("another mesh's bake is refused");
+            assert!(
+                matches!(e, getavatar_core::gltf_export::ExportError::TextureMismatch(_)),
+                "refused as a mismatch: {e}"
+            );
+        }
+        assert!(other.posed_glb(&ctx, &params, None, "vertex colours").is_ok());
+    }
 }
 
 /// Surface far from the body (a skirt-like tube around the hips) gets charts of its own,

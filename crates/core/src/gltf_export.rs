@@ -49,6 +49,8 @@ pub enum ExportError {
     Skin(String),
     #[error("animation `{0}`: {1}")]
     Clip(String, String),
+    #[error("the baked texture belongs to another mesh: {0}")]
+    TextureMismatch(String),
 }
 
 /// A skeleton and skin weights for [`write_glb_full`] (SMPL layout: parents precede

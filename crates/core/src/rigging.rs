@@ -77,16 +77,18 @@ impl RiggedAvatar {
 
     /// The mesh to export from per-avatar-vertex `positions` and `normals`: with a baked
     /// texture, the atlas' vertices (seams split) with their UVs, else the avatar's own with
-    /// its vertex colours; and the avatar vertex each exported vertex copies.
+    /// its vertex colours; and the avatar vertex each exported vertex copies. A texture
+    /// baked for another mesh (a bake that finished after the avatar changed) is refused.
     fn export_mesh(
         &self,
         positions: Vec<glam::Vec3>,
         normals: Vec<glam::Vec3>,
         texture: Option<&BakedTexture>,
         name: &str,
-    ) -> (ExportMesh, Vec<u32>) {
+    ) -> Result<(ExportMesh, Vec<u32>), ExportError> {
         match texture {
             Some(t) => {
+                self.check_atlas(&t.atlas)?;
                 let src = &t.atlas.source;
                 let mesh = ExportMesh {
                     positions: src.iter().map(|v| positions[*v as usize]).collect(),
@@ -96,7 +98,7 @@ impl RiggedAvatar {
                     indices: t.atlas.faces.clone(),
                     name: name.to_string(),
                 };
-                (mesh, src.clone())
+                Ok((mesh, src.clone()))
             }
             None => {
                 let mesh = ExportMesh {
@@ -107,9 +109,36 @@ impl RiggedAvatar {
                     indices: self.canonical.mesh.faces.clone(),
                     name: name.to_string(),
                 };
-                (mesh, (0..self.body_vertex.len() as u32).collect())
+                Ok((mesh, (0..self.body_vertex.len() as u32).collect()))
             }
         }
+    }
+
+    /// Whether `atlas` was built for this avatar's mesh: one atlas triangle per avatar
+    /// triangle, whose corners copy that triangle's vertices.
+    fn check_atlas(&self, atlas: &UvAtlas) -> Result<(), ExportError> {
+        let faces = &self.canonical.mesh.faces;
+        let n = self.body_vertex.len();
+        if atlas.faces.len() != faces.len() || atlas.uvs.len() != atlas.source.len() {
+            return Err(ExportError::TextureMismatch(format!(
+                "its atlas has {} triangles and {} UVs for {} vertices, the avatar {} triangles",
+                atlas.faces.len(),
+                atlas.uvs.len(),
+                atlas.source.len(),
+                faces.len()
+            )));
+        }
+        for (t, (af, f)) in atlas.faces.iter().zip(faces).enumerate() {
+            for (a, v) in af.iter().zip(f) {
+                let s = atlas.source.get(*a as usize).copied();
+                if s != Some(*v) || *v as usize >= n {
+                    return Err(ExportError::TextureMismatch(format!(
+                        "triangle {t}'s atlas corner {a} copies vertex {s:?}, the avatar's corner is {v} ({n} vertices)"
+                    )));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The avatar as a static .glb in the pose/shape of `params`, textured when `texture` is
@@ -122,7 +151,7 @@ impl RiggedAvatar {
         name: &str,
     ) -> Result<Vec<u8>, ExportError> {
         let (positions, normals) = self.repose(ctx, &pose_body(&ctx.model, params));
-        let (mesh, _) = self.export_mesh(positions, normals, texture, name);
+        let (mesh, _) = self.export_mesh(positions, normals, texture, name)?;
         write_glb_full(&mesh, texture.map(|t| t.png.as_slice()), None, &[])
     }
 
@@ -138,7 +167,7 @@ impl RiggedAvatar {
         name: &str,
     ) -> Result<Vec<u8>, ExportError> {
         let (positions, normals) = self.bind_pose(ctx, &params.betas);
-        let (mesh, source) = self.export_mesh(positions, normals, texture, name);
+        let (mesh, source) = self.export_mesh(positions, normals, texture, name)?;
         let weights = source.iter().map(|v| &ctx.model.weights[self.body_vertex[*v as usize] as usize]);
         let skin = smpl_skin(&ctx.model, params, weights);
         let clips: Vec<_> = motions.iter().map(motion_clip).collect();

@@ -789,6 +789,8 @@ pub struct MotionStatus {
     pub last_bake_ms: f32,
     pub atlas_vertices: usize,
     pub atlas_own_chart_faces: usize,
+    /// Bakes dropped because the avatar or its colours changed while they ran.
+    pub stale_bakes: u64,
     /// Whether the last download (posed or animated) carried a texture.
     pub last_textured: bool,
 }

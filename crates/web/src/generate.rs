@@ -105,8 +105,9 @@ async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, de
 
 /// Colours of a texture-field query, or why it failed.
 type TextureColours = Result<Vec<glam::Vec3>, String>;
-/// A finished bake and its milliseconds.
-type Bake = Result<(BakedTexture, f64), String>;
+/// A finished bake: the texture field it was baked from (which avatar and colours it
+/// belongs to) and the texture with its time in ms, or why it failed.
+type Bake = (Rc<TextureField>, Result<(BakedTexture, f64), String>);
 
 /// A fetched checkpoint: the generator, its latent modes (if any), its bytes, and the
 /// discriminator's bytes (or why there are none).
@@ -401,7 +402,7 @@ impl GenEngine {
     /// [`GenEngine::poll_bake`].
     pub fn bake(&mut self, field: Rc<TextureField>, rigged: RiggedAvatar, res: usize, repaint: eframe::egui::Context) {
         let Some(ctx) = self.ctx.clone() else {
-            *self.bake_slot.borrow_mut() = Some(Err("the body context is not ready".into()));
+            *self.bake_slot.borrow_mut() = Some((field, Err("the body context is not ready".into())));
             return;
         };
         let (dev, slot) = (self.device.clone(), self.bake_slot.clone());
@@ -412,14 +413,15 @@ impl GenEngine {
             let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
             let g = &field.generator;
             let baked = rigged.bake_texture_photo_async(g, &planes, &field.styles, &ctx, res, photo, &dev).await;
-            *slot.borrow_mut() = Some(
-                baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}")),
-            );
+            let baked =
+                baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}"));
+            *slot.borrow_mut() = Some((field, baked));
             repaint.request_repaint();
         });
     }
 
-    /// The last [`GenEngine::bake`]'s texture (or why it failed), once.
+    /// The last [`GenEngine::bake`]'s texture (or why it failed) with the field it was
+    /// baked from, once.
     pub fn poll_bake(&mut self) -> Option<Bake> {
         let r = self.bake_slot.borrow_mut().take();
         if r.is_some() {

@@ -4,6 +4,8 @@
 //! scrub / speed / loop, and the downloads: the posed .glb and the animated .glb (skinned,
 //! with the chosen clips), named after what they hold.
 
+use std::rc::Rc;
+
 use eframe::egui;
 use glam::Vec3;
 
@@ -329,8 +331,18 @@ impl GetAvatarApp {
     pub(super) fn poll_bake(&mut self) {
         let Some(engine) = self.engine.as_mut() else { return };
         self.status.motion.baking = engine.baking;
-        let Some(result) = engine.poll_bake() else { return };
+        let Some((field, result)) = engine.poll_bake() else { return };
         self.status.motion.baking = false;
+        // A bake that finished after the avatar or its colours changed (a generation, a
+        // re-texture or a reconstruction landed meanwhile) belongs to the old one: drop it and
+        // bake the avatar shown now for the download that waits.
+        if !self.field.as_ref().is_some_and(|f| Rc::ptr_eq(f, &field)) {
+            self.status.motion.stale_bakes += 1;
+            if let Some(kind) = self.pending_download.take() {
+                self.request_download(kind);
+            }
+            return;
+        }
         match result {
             Ok((b, ms)) => {
                 let s = &mut self.status.motion;
