@@ -371,9 +371,10 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// The shipped demo checkpoint loads and generates, through the library, the avatars its CLI
 /// exported: the figures were measured on the .glb of `trainer sample --config demo
 /// --seed-geo 1 --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training
-/// subject) when the file was shipped (v2 of #25, commit 7934a22's release build), summing
-/// the glTF's POSITION, NORMAL and COLOR_0 accessors. (The 16-subject file before it was
-/// checked the same way against commit e02b26a, to pin #26's refactor.)
+/// subject) when the file was shipped (v2.1 of #25, session 40's release build), summing
+/// the glTF's POSITION, NORMAL and COLOR_0 accessors (`tools/glb_fingerprint.py` prints the
+/// figures). (The 16-subject file before it was checked the same way against commit
+/// e02b26a, to pin #26's refactor.)
 #[test]
 fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
     use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator, load_latent_modes};
