@@ -114,31 +114,28 @@ impl RiggedAvatar {
         }
     }
 
-    /// Whether `atlas` was built for this avatar's mesh: one atlas triangle per avatar
-    /// triangle, whose corners copy that triangle's vertices.
+    /// Whether `atlas` was built for this avatar's mesh: every atlas vertex copies one of its
+    /// vertices, and atlas triangle t's corners copy avatar triangle t's.
     fn check_atlas(&self, atlas: &UvAtlas) -> Result<(), ExportError> {
-        let faces = &self.canonical.mesh.faces;
-        let n = self.body_vertex.len();
+        let (faces, n) = (&self.canonical.mesh.faces, self.body_vertex.len());
+        let mismatch = |what: String| Err(ExportError::TextureMismatch(what));
         if atlas.faces.len() != faces.len() || atlas.uvs.len() != atlas.source.len() {
-            return Err(ExportError::TextureMismatch(format!(
+            return mismatch(format!(
                 "its atlas has {} triangles and {} UVs for {} vertices, the avatar {} triangles",
                 atlas.faces.len(),
                 atlas.uvs.len(),
                 atlas.source.len(),
                 faces.len()
-            )));
+            ));
         }
-        for (t, (af, f)) in atlas.faces.iter().zip(faces).enumerate() {
-            for (a, v) in af.iter().zip(f) {
-                let s = atlas.source.get(*a as usize).copied();
-                if s != Some(*v) || *v as usize >= n {
-                    return Err(ExportError::TextureMismatch(format!(
-                        "triangle {t}'s atlas corner {a} copies vertex {s:?}, the avatar's corner is {v} ({n} vertices)"
-                    )));
-                }
-            }
+        if let Some(v) = atlas.source.iter().find(|v| **v as usize >= n) {
+            return mismatch(format!("its atlas copies vertex {v}, the avatar has {n}"));
         }
-        Ok(())
+        let corners = |af: &[u32; 3]| af.map(|a| atlas.source.get(a as usize).copied());
+        match atlas.faces.iter().zip(faces).position(|(af, f)| corners(af) != f.map(Some)) {
+            Some(t) => mismatch(format!("its triangle {t} copies other vertices than the avatar's triangle {t}")),
+            None => Ok(()),
+        }
     }
 
     /// The avatar as a static .glb in the pose/shape of `params`, textured when `texture` is
