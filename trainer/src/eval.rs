@@ -74,8 +74,9 @@ pub struct EvalArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Also write one PNG per label here (`NN.png`: generated RGB | generated mask against
-    /// the posed body, white both, red generated only, blue body only | the data's image),
-    /// to see where the IoU is lost.
+    /// the posed body, white both, red generated only, blue body only | the data's image |
+    /// with normal maps, the angle between the normals, white 0° to red 45°), to see where
+    /// the IoU and the normal error are lost.
     #[arg(long)]
     pub images: Option<PathBuf>,
     /// Render each label with its own training subject's codes (the checkpoint's latent
@@ -102,6 +103,11 @@ pub struct EvalReport {
     pub data_mask_iou_mean: f32,
     /// Mean angle between generated and data normals where both cover the pixel (degrees).
     pub normal_error_deg: Option<f32>,
+    /// Where that angle comes from: its median, and the mean over the pixels at least
+    /// [`EDGE_BAND`] px inside both silhouettes (away from where a shifted outline meets
+    /// grazing normals), with the share of the compared pixels that are there.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub normal_error_breakdown: Option<NormalErrorBreakdown>,
     pub fid: Option<f32>,
     pub kid: Option<f32>,
     /// With `--subject-codes`: the L1 between the renders and the data's images.
@@ -109,6 +115,60 @@ pub struct EvalReport {
     /// The same figures per label, in evaluation order (seeds `seed + 2k`, `seed + 2k + 1`,
     /// or with `--subject-codes` the label's subject).
     pub per_label: Vec<LabelFigures>,
+}
+
+/// Pixels this close to either silhouette's outline (Chebyshev distance) count as edge.
+pub const EDGE_BAND: usize = 2;
+
+/// The normal error split by where it arises (`EvalReport::normal_error_breakdown`).
+#[derive(Debug, Serialize, Clone, Copy, PartialEq)]
+pub struct NormalErrorBreakdown {
+    pub median_deg: f32,
+    /// Mean over pixels at least `EDGE_BAND` px inside both silhouettes.
+    pub interior_deg: f32,
+    /// Share of the compared pixels that are interior.
+    pub interior_share: f32,
+    /// Mean over the other (edge) pixels.
+    pub edge_deg: f32,
+}
+
+/// Which pixels of a `res`² image lie at least `band` px (Chebyshev) inside the mask.
+fn interior(mask: &[bool], res: usize, band: usize) -> Vec<bool> {
+    let b = band as isize;
+    (0..res * res)
+        .map(|p| {
+            let (y, x) = ((p / res) as isize, (p % res) as isize);
+            (-b..=b).all(|dy| {
+                (-b..=b).all(|dx| {
+                    let (yy, xx) = (y + dy, x + dx);
+                    (0..res as isize).contains(&yy)
+                        && (0..res as isize).contains(&xx)
+                        && mask[yy as usize * res + xx as usize]
+                })
+            })
+        })
+        .collect()
+}
+
+/// The breakdown of per-pixel angles (degrees) with their interior flags; None for none.
+fn breakdown(angles: &mut [(f32, bool)]) -> Option<NormalErrorBreakdown> {
+    if angles.is_empty() {
+        return None;
+    }
+    let mean = |it: &mut dyn Iterator<Item = f32>| -> (f32, usize) {
+        let (s, n) = it.fold((0f64, 0usize), |(s, n), a| (s + a as f64, n + 1));
+        ((s / n.max(1) as f64) as f32, n)
+    };
+    let (interior_deg, ni) = mean(&mut angles.iter().filter(|a| a.1).map(|a| a.0));
+    let (edge_deg, _) = mean(&mut angles.iter().filter(|a| !a.1).map(|a| a.0));
+    let mid = angles.len() / 2;
+    angles.select_nth_unstable_by(mid, |a, b| a.0.total_cmp(&b.0));
+    Some(NormalErrorBreakdown {
+        median_deg: angles[mid].0,
+        interior_deg,
+        interior_share: ni as f32 / angles.len() as f32,
+        edge_deg,
+    })
 }
 
 /// Mean absolute difference in [0, 1] units (images in [0, 1], normals' components halved),
@@ -203,6 +263,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let bar = crate::progress::bar(count as u64, "labels");
     let (mut ious, mut data_ious, mut per_label) = (Vec::new(), Vec::new(), Vec::new());
     let (mut angle_sum, mut angle_n) = (0f64, 0usize);
+    let mut angles: Vec<(f32, bool)> = Vec::new();
     let (mut fake_rgb, mut real_rgb) = (Vec::new(), Vec::new());
     let mut rec_sums: Vec<(f64, Option<f64>, f64)> = Vec::new();
     for k in 0..count {
@@ -242,25 +303,6 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         ious.push(iou(&fake, &body));
         let real: Vec<bool> = (0..res * res).map(|p| sample.mask[src(p)] > 0.5).collect();
         data_ious.push(iou(&real, &body));
-        if let Some(dir) = &a.images {
-            let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
-            let real_rgb: Vec<f32> = (0..res * res * 3)
-                .map(|i| {
-                    let q = src(i / 3);
-                    let m = sample.mask[q];
-                    sample.rgb[3 * q + i % 3] * m + (1.0 - m)
-                })
-                .collect();
-            let overlay: Vec<f32> = (0..res * res * 3)
-                .map(|i| match (fake[i / 3], body[i / 3], i % 3) {
-                    (true, true, _) => 1.0,
-                    (true, false, c) => [0.9, 0.1, 0.1][c],
-                    (false, true, c) => [0.1, 0.3, 0.9][c],
-                    (false, false, _) => 0.0,
-                })
-                .collect();
-            write_strip(&dir.join(format!("{k:02}.png")), &[&fake_rgb, &overlay, &real_rgb], res)?;
-        }
         let fnrm: Option<Vec<f32>> = match &sample.normal {
             Some(_) => Some(read_f32_now(f.normal.clone())?),
             None => None,
@@ -304,7 +346,10 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
             subject,
             rgb_l1,
         });
+        let mut pixel_angle: Vec<Option<f32>> = vec![None; res * res];
         if let (Some(rn), Some(fnrm)) = (&sample.normal, &fnrm) {
+            let both: Vec<bool> = fake.iter().zip(&real).map(|(f, r)| *f && *r).collect();
+            let inside = interior(&both, res, EDGE_BAND);
             for p in 0..res * res {
                 if fake[p] && real[p] {
                     let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
@@ -314,11 +359,49 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
                     let la = a3.iter().map(|x| x * x).sum::<f32>().sqrt();
                     let lb = b3.iter().map(|x| x * x).sum::<f32>().sqrt();
                     if la > 1e-3 && lb > 1e-3 {
-                        angle_sum += ((dot / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees()) as f64;
+                        let angle = (dot / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees();
+                        angle_sum += angle as f64;
                         angle_n += 1;
+                        angles.push((angle, inside[p]));
+                        pixel_angle[p] = Some(angle);
                     }
                 }
             }
+        }
+        if let Some(dir) = &a.images {
+            let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
+            let real_rgb: Vec<f32> = (0..res * res * 3)
+                .map(|i| {
+                    let q = src(i / 3);
+                    let m = sample.mask[q];
+                    sample.rgb[3 * q + i % 3] * m + (1.0 - m)
+                })
+                .collect();
+            let overlay: Vec<f32> = (0..res * res * 3)
+                .map(|i| match (fake[i / 3], body[i / 3], i % 3) {
+                    (true, true, _) => 1.0,
+                    (true, false, c) => [0.9, 0.1, 0.1][c],
+                    (false, true, c) => [0.1, 0.3, 0.9][c],
+                    (false, false, _) => 0.0,
+                })
+                .collect();
+            // With normal maps, a fourth panel: the angle between the normals per pixel
+            // (white 0°, red from 45°; grey where only one image covers the pixel).
+            let heat: Vec<f32> = (0..res * res * 3)
+                .map(|i| match (pixel_angle[i / 3], fake[i / 3] || real[i / 3]) {
+                    (Some(a), _) => {
+                        let t = (a / 45.0).clamp(0.0, 1.0);
+                        [1.0 - 0.2 * t, 1.0 - t, 1.0 - t][i % 3]
+                    }
+                    (None, true) => 0.6,
+                    (None, false) => 0.0,
+                })
+                .collect();
+            let mut panels: Vec<&[f32]> = vec![&fake_rgb, &overlay, &real_rgb];
+            if fnrm.is_some() {
+                panels.push(&heat);
+            }
+            write_strip(&dir.join(format!("{k:02}.png")), &panels, res)?;
         }
         bar.inc(1);
     }
@@ -347,6 +430,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         mask_iou_min: ious.iter().copied().fold(f32::INFINITY, f32::min),
         data_mask_iou_mean: mean(&data_ious),
         normal_error_deg: (angle_n > 0).then(|| (angle_sum / angle_n as f64) as f32),
+        normal_error_breakdown: breakdown(&mut angles),
         fid,
         kid,
         reconstruction_l1: (!rec_sums.is_empty()).then(|| {
@@ -390,6 +474,15 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
         r.data_mask_iou_mean,
         r.normal_error_deg.map(|d| format!("{d:.1}°")).unwrap_or_else(|| "n/a (no normal maps)".into())
     );
+    if let Some(b) = &r.normal_error_breakdown {
+        println!(
+            "normal error: median {:.1}°; {:.0} % of the compared pixels lie ≥ {EDGE_BAND} px inside both silhouettes, {:.1}° there, {:.1}° nearer the outlines",
+            b.median_deg,
+            100.0 * b.interior_share,
+            b.interior_deg,
+            b.edge_deg
+        );
+    }
     if let Some(l1) = &r.reconstruction_l1 {
         println!(
             "reconstruction L1 against the data ([0, 1] units, each label at its subject's codes): RGB {:.4}, normal {}, mask {:.4}",
@@ -406,4 +499,32 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
         println!("wrote {}", out.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn interior_keeps_pixels_the_band_away_from_the_outline_and_the_border() {
+        // A 7×7 square in a 9×9 image: with band 2 only its 3×3 centre is interior.
+        let res = 9;
+        let mask: Vec<bool> =
+            (0..res * res).map(|p| (1..8).contains(&(p / res)) && (1..8).contains(&(p % res))).collect();
+        let inside = interior(&mask, res, 2);
+        let got: Vec<usize> = (0..res * res).filter(|&p| inside[p]).collect();
+        assert_eq!(got, vec![30, 31, 32, 39, 40, 41, 48, 49, 50]);
+        // The image border counts as outside.
+        assert!(!interior(&[true; 25], 5, 1)[0] && interior(&[true; 25], 5, 1)[12]);
+    }
+
+    #[test]
+    fn breakdown_splits_the_mean_and_finds_the_median() {
+        let mut a = vec![(10.0, true), (20.0, true), (60.0, false), (2.0, true), (90.0, false)];
+        let b = breakdown(&mut a).unwrap();
+        assert_eq!(b.median_deg, 20.0);
+        assert!((b.interior_deg - 32.0 / 3.0).abs() < 1e-5 && (b.edge_deg - 75.0).abs() < 1e-5);
+        assert!((b.interior_share - 0.6).abs() < 1e-6);
+        assert_eq!(breakdown(&mut []), None);
+    }
 }
