@@ -377,13 +377,13 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// e02b26a, to pin #26's refactor.)
 #[test]
 fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
-    use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator, load_latent_modes};
+    use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator, load_latent_modes};
     use getavatar_core::generator::default_psi;
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors");
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
     // The shipped file is the demo config with 128² texture planes (v2.1, #25).
-    let cfg = config_with_saved_texture_res(&bytes, &GeneratorConfig::demo());
+    let cfg = config_with_saved_detail_res(&bytes, &GeneratorConfig::demo());
     assert_eq!(cfg.texture_res, Some(128));
     let g = load_generator(&bytes, &cfg, &dev).unwrap();
     let modes = load_latent_modes(&bytes, &dev).unwrap();
@@ -408,13 +408,66 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
     }
 }
 
+/// Geometry detail blocks (`geometry_res`): finer geometry planes, the same texture planes;
+/// a checkpoint without them grows into the finer config with the same SDF residual up to
+/// the planes' 2× upsampling (the new to-geometry layer starts at zero); their weights are
+/// not the texture branch's, and they take w_geo styles of their own.
+#[test]
+fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_generator() {
+    use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator_growing, save_generator};
+    use getavatar_core::generator::is_texture_param;
+    let dev = device();
+    let cfg = GeneratorConfig { texture_res: Some(32), ..GeneratorConfig::tiny() };
+    let fine = GeneratorConfig { geometry_res: Some(2 * cfg.plane_res), ..cfg.clone() };
+    assert!(fine.validate().is_ok());
+    let e = GeneratorConfig { geometry_res: Some(3 * cfg.plane_res), ..cfg.clone() }.validate().unwrap_err();
+    assert!(e.contains("geometry_res"), "{e}");
+    let coarse = Generator::new(&cfg, 3, &dev);
+    let bytes = save_generator(&coarse, &cfg, &Default::default()).unwrap();
+    let grown = load_generator_growing(&bytes, &fine, 5, &dev).expect("grows");
+    assert_eq!(grown.num_ws().0, coarse.num_ws().0 + 2, "a detail conv and a to-geometry layer");
+    assert_eq!(grown.num_ws().1, coarse.num_ws().1);
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let (sa, sb) = (coarse.styles(zg.clone(), zt.clone(), 0.7), grown.styles(zg, zt, 0.7));
+    let (a, b) = (coarse.triplanes(&sa), grown.triplanes(&sb));
+    let r = cfg.plane_res;
+    assert_eq!(b.geometry.dims(), [1, 3 * cfg.plane_channels, 2 * r, 2 * r]);
+    let vec = |t: Tensor<4>| t.into_data().try_to_vec::<f32>().expect("f32");
+    assert_eq!(vec(a.texture.clone()), vec(b.texture.clone()), "the texture planes are untouched");
+    let (ga, gb) = (vec(a.geometry.clone()), vec(b.geometry.clone()));
+    let at = |c: usize, y: usize, x: usize| ga[(c * r + y) * r + x];
+    let (c, i, j) = (2, 5, 3);
+    let want = 0.5625 * at(c, i, j) + 0.1875 * (at(c, i - 1, j) + at(c, i, j - 1)) + 0.0625 * at(c, i - 1, j - 1);
+    let got = gb[(c * 2 * r + 2 * i) * 2 * r + 2 * j];
+    assert!((got - want).abs() < 1e-5, "{got} vs {want}");
+    // The SDF residual at canonical points: the same field, up to the planes' resampling.
+    let pts: Vec<f32> = (0..64).flat_map(|k| [0.3 * ((k as f32) * 0.7).sin(), -0.9 + 0.03 * k as f32, 0.1]).collect();
+    let pts = Tensor::<3>::from_data(getavatar_core::burn::tensor::TensorData::new(pts, [1, 64, 3]), &dev);
+    let flat = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().expect("f32");
+    let (ra, rb) = (flat(coarse.sdf_residual(&a, &sa, pts.clone())), flat(grown.sdf_residual(&b, &sb, pts)));
+    let scale = ra.iter().map(|v| v.abs()).fold(0f32, f32::max);
+    let diff = ra.iter().zip(&rb).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    assert!(scale > 0.0 && diff < 0.5 * scale, "residual moved by {diff} (scale {scale})");
+    let names: Vec<String> = getavatar_core::checkpoint::collect_params(&grown)
+        .unwrap()
+        .into_iter()
+        .map(|(n, _, _)| n)
+        .filter(|n| n.starts_with("synthesis.geometry_detail."))
+        .collect();
+    assert!(names.len() >= 4 && names.iter().all(|n| !is_texture_param(n)), "{names:?}");
+    let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
+    assert_eq!(config_with_saved_detail_res(&grown_bytes, &GeneratorConfig::tiny()), fine);
+    let back = GeneratorConfig { geometry_res: None, ..fine.clone() };
+    assert!(load_generator_growing(&grown_bytes, &back, 5, &dev).is_err(), "geometry planes cannot shrink");
+}
+
 /// Texture detail blocks (`texture_res`): finer texture planes, the same geometry planes; a
 /// checkpoint without them grows into the finer config rendering the same planes up to the
 /// 2× upsampling (the new to-texture layer starts at zero), and their weights count as the
 /// texture branch.
 #[test]
 fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generator() {
-    use getavatar_core::checkpoint::{load_generator, load_generator_growing_texture, save_generator};
+    use getavatar_core::checkpoint::{load_generator, load_generator_growing, save_generator};
     use getavatar_core::generator::is_texture_param;
     let dev = device();
     let cfg = GeneratorConfig::tiny();
@@ -428,9 +481,9 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     let bytes = save_generator(&coarse, &cfg, &Default::default()).unwrap();
     // The plain loader refuses the other config; the growing one takes it.
     assert!(load_generator(&bytes, &fine, &dev).is_err());
-    let grown = load_generator_growing_texture(&bytes, &fine, 5, &dev).expect("grows");
+    let grown = load_generator_growing(&bytes, &fine, 5, &dev).expect("grows");
     let other = GeneratorConfig { z_dim: 8, ..fine.clone() };
-    assert!(load_generator_growing_texture(&bytes, &other, 5, &dev).is_err(), "only the texture planes may differ");
+    assert!(load_generator_growing(&bytes, &other, 5, &dev).is_err(), "only the texture planes may differ");
     let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
     let a = coarse.triplanes(&coarse.styles(zg.clone(), zt.clone(), 0.7));
     let b = grown.triplanes(&grown.styles(zg, zt, 0.7));
@@ -458,11 +511,11 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
     // A file with finer texture planes names its own config for the preset it grew from
     // (the app and the CLI load the shipped file that way), and for no other.
-    use getavatar_core::checkpoint::config_with_saved_texture_res;
+    use getavatar_core::checkpoint::config_with_saved_detail_res;
     let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
-    assert_eq!(config_with_saved_texture_res(&grown_bytes, &cfg), fine);
-    assert_eq!(config_with_saved_texture_res(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
-    assert_eq!(config_with_saved_texture_res(b"junk", &cfg), cfg);
+    assert_eq!(config_with_saved_detail_res(&grown_bytes, &cfg), fine);
+    assert_eq!(config_with_saved_detail_res(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
+    assert_eq!(config_with_saved_detail_res(b"junk", &cfg), cfg);
     // A file claiming absurd texture planes is not adopted, and cannot size a model.
     let huge = GeneratorConfig { texture_res: Some(1 << 20), ..cfg.clone() };
     let meta = [
@@ -473,11 +526,11 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     .collect();
     let params = getavatar_core::checkpoint::collect_params(&grown).unwrap();
     let forged = getavatar_core::checkpoint::write_safetensors(&meta, &params).unwrap();
-    assert_eq!(config_with_saved_texture_res(&forged, &cfg), cfg);
+    assert_eq!(config_with_saved_detail_res(&forged, &cfg), cfg);
     let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
     assert!(e.contains("texture_res"), "{e}");
-    assert!(load_generator_growing_texture(&bytes, &huge, 5, &dev).is_err());
-    assert!(load_generator(&grown_bytes, &config_with_saved_texture_res(&grown_bytes, &cfg), &dev).is_ok());
+    assert!(load_generator_growing(&bytes, &huge, 5, &dev).is_err());
+    assert!(load_generator(&grown_bytes, &config_with_saved_detail_res(&grown_bytes, &cfg), &dev).is_ok());
     // Generation with the grown generator runs on the finer planes.
     let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &fine);
     let av = generate(&grown, &ctx, &fine, (1, 2), "standing");

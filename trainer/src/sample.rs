@@ -8,7 +8,7 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{
-    config_with_saved_texture_res, load_generator_and_modes, load_inverted, InvertedAvatar,
+    config_with_saved_detail_res, load_generator_and_modes, load_inverted, InvertedAvatar,
 };
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
@@ -137,7 +137,7 @@ pub fn load_inverted_file(
 ) -> Result<(GeneratorConfig, InvertedAvatar)> {
     let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    let cfg = config_with_saved_texture_res(&bytes, cfg);
+    let cfg = config_with_saved_detail_res(&bytes, cfg);
     let inv = load_inverted(&bytes, &cfg, device)
         .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
     Ok((cfg, inv))
@@ -147,7 +147,7 @@ pub fn load_inverted_file(
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
 /// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
 /// the checkpoint's where it is `cfg` with other texture planes
-/// ([`config_with_saved_texture_res`]).
+/// ([`config_with_saved_detail_res`]).
 pub fn generator_or_random(
     checkpoint: Option<&Path>,
     random: bool,
@@ -162,7 +162,7 @@ pub fn generator_or_random(
             }
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             let loading = || format!("loading checkpoint {}", p.display());
-            let cfg = config_with_saved_texture_res(&bytes, cfg);
+            let cfg = config_with_saved_detail_res(&bytes, cfg);
             let (g, modes) = load_generator_and_modes(&bytes, &cfg, device).with_context(loading)?;
             (cfg, g, modes)
         }

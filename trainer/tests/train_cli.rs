@@ -676,6 +676,24 @@ fn texture_res_grows_a_saved_generator_and_is_kept_in_the_run() {
     train(&data, &finer, 1, &grow);
     let finer_init = finer.join("generator.safetensors");
     refused(&["--texture-res", "32", "--resume", finer_init.to_str().unwrap()], &root.join("shrink"), "texture_res");
+    // --geometry-res grows the geometry planes the same way, keeping the file's texture
+    // planes; a continued run and a later --resume FILE keep both.
+    let geo = root.join("geo");
+    let grow = ["--objective", "reconstruction", "--geometry-res", "32", "--resume", fine_init.to_str().unwrap()];
+    train(&data, &geo, 1, &grow);
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(geo.join("run.json")).unwrap()).unwrap();
+    assert_eq!(
+        (rc["generator"]["texture_res"].clone(), rc["generator"]["geometry_res"].clone()),
+        (32.into(), 32.into())
+    );
+    refused(&["--resume", "--geometry-res", "64"], &geo, "--geometry-res 64 differs from the run's 32");
+    refused(&["--geometry-res", "24"], &root.join("badgeo"), "--geometry-res 24: config field `geometry_res`");
+    let geo_init = geo.join("generator.safetensors");
+    let geo_kept = root.join("geo_kept");
+    train(&data, &geo_kept, 1, &["--objective", "reconstruction", "--resume", geo_init.to_str().unwrap()]);
+    let rc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(geo_kept.join("run.json")).unwrap()).unwrap();
+    assert_eq!(rc["generator"]["geometry_res"], 32, "{rc}");
     // --train-only: a stage that trains one part (here the detail block's learned constant)
     // and leaves every other weight as the file had it; kept in run.json, checked against
     // the generator's parameter names, and fixed on --resume.

@@ -401,9 +401,9 @@ struct Load<'a> {
     device: Device,
     error: Option<CheckpointError>,
     used: usize,
-    /// Parameters under this path prefix may be missing from the file: they keep the model's
-    /// own initialisation (a grown generator's new blocks).
-    keep_missing: Option<&'a str>,
+    /// Parameters under these path prefixes may be missing from the file: they keep the
+    /// model's own initialisation (a grown generator's new blocks).
+    keep_missing: &'a [&'a str],
 }
 
 impl ModuleMapper for Load<'_> {
@@ -429,7 +429,7 @@ impl ModuleMapper for Load<'_> {
                     .get_or_insert(CheckpointError::Param(name, format!("shape {shape:?}, model expects {want:?}")));
                 param
             }
-            None if self.keep_missing.is_some_and(|p| name.starts_with(p)) => param,
+            None if self.keep_missing.iter().any(|p| name.starts_with(p)) => param,
             None => {
                 self.error.get_or_insert(CheckpointError::Param(name, "missing from the checkpoint".into()));
                 param
@@ -470,32 +470,33 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     requested.validate().map_err(|e| fmt_err(format!("config: {e}")))?;
     // Every weight is loaded below (a missing one is an error): no random draws for them.
     let g = crate::network::init::placeholder_weights(|| Generator::new(requested, 0, device));
-    load_into(g, st, None, device)
+    load_into(g, st, &[], device)
 }
 
-/// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other texture
-/// planes (`GeneratorConfig::texture_res`, which only the synthesis's detail blocks depend
-/// on): the config to load and save such a file under. Where the files differ in more, or
-/// `bytes` is no generator file, `cfg` (and loading reports why).
-pub fn config_with_saved_texture_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
+/// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other detail
+/// planes (`GeneratorConfig::texture_res` and `geometry_res`, which only the synthesis's
+/// detail blocks depend on): the config to load and save such a file under. Where the files
+/// differ in more, or `bytes` is no generator file, `cfg` (and loading reports why).
+pub fn config_with_saved_detail_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
     // The header alone: the caller parses the whole file to load it.
     match header_metadata(bytes).and_then(|m| config_of_metadata(&m)) {
-        Ok(saved)
-            if GeneratorConfig { texture_res: saved.texture_res, ..cfg.clone() } == saved
-                && saved.validate().is_ok() =>
-        {
-            saved
-        }
+        Ok(saved) if with_detail_of(cfg, &saved) == saved && saved.validate().is_ok() => saved,
         _ => cfg.clone(),
     }
 }
 
-/// A generator of config `requested` from a checkpoint saved with coarser texture planes:
-/// the same config but a smaller `texture_res` (e.g. the paper's planes, none). Every saved
-/// weight is loaded; the texture detail blocks the file lacks keep their initialisation (the
-/// generator built with `seed`), whose to-texture layers are zero, so the grown generator
-/// renders what the saved one rendered, up to the bilinear upsampling of its texture planes.
-pub fn load_generator_growing_texture(
+/// `cfg` with the detail planes (`texture_res`, `geometry_res`) of `other`.
+fn with_detail_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> GeneratorConfig {
+    GeneratorConfig { texture_res: other.texture_res, geometry_res: other.geometry_res, ..cfg.clone() }
+}
+
+/// A generator of config `requested` from a checkpoint saved with coarser detail planes:
+/// the same config but a smaller `texture_res` and/or `geometry_res` (e.g. the paper's
+/// planes, none). Every saved weight is loaded; the detail blocks the file lacks keep their
+/// initialisation (the generator built with `seed`), whose output layers are zero, so the
+/// grown generator renders what the saved one rendered, up to the bilinear upsampling of the
+/// grown planes.
+pub fn load_generator_growing(
     bytes: &[u8],
     requested: &GeneratorConfig,
     seed: u64,
@@ -503,9 +504,11 @@ pub fn load_generator_growing_texture(
 ) -> Result<Generator, CheckpointError> {
     let st = parse_safetensors(bytes)?;
     let saved = checkpoint_config(&st)?;
-    let same_but_texture =
-        GeneratorConfig { texture_res: saved.texture_res, name: saved.name.clone(), ..requested.clone() };
-    if same_but_texture != saved || requested.texture_plane_res() < saved.texture_plane_res() {
+    let same_but_detail = GeneratorConfig { name: saved.name.clone(), ..with_detail_of(requested, &saved) };
+    if same_but_detail != saved
+        || requested.texture_plane_res() < saved.texture_plane_res()
+        || requested.geometry_plane_res() < saved.geometry_plane_res()
+    {
         return Err(CheckpointError::ConfigMismatch {
             saved: saved.name.clone(),
             requested: requested.name.clone(),
@@ -513,7 +516,8 @@ pub fn load_generator_growing_texture(
         });
     }
     requested.validate().map_err(|e| fmt_err(format!("config: {e}")))?;
-    load_into(Generator::new(requested, seed, device), &st, Some("synthesis.texture_detail."), device)
+    let grown = ["synthesis.texture_detail.", "synthesis.geometry_detail."];
+    load_into(Generator::new(requested, seed, device), &st, &grown, device)
 }
 
 /// Load `st`'s weights into `g` (see [`Load`]); every tensor of the file but the latent modes
@@ -521,7 +525,7 @@ pub fn load_generator_growing_texture(
 fn load_into(
     g: Generator,
     st: &SafeTensors,
-    keep_missing: Option<&str>,
+    keep_missing: &[&str],
     device: &Device,
 ) -> Result<Generator, CheckpointError> {
     let mut l = Load {
@@ -617,7 +621,7 @@ pub fn load_params<M: Module>(
         device: device.clone(),
         error: None,
         used: 0,
-        keep_missing: None,
+        keep_missing: &[],
     };
     let m = module.map(&mut l);
     match l.error {

@@ -15,7 +15,7 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{config_with_saved_texture_res, load_generator_and_modes, save_inverted_async};
+use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
     default_psi, generate_rigged_async, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator,
     LatentModes, Styles,
@@ -72,7 +72,7 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
     }
     let bytes = fetch_bytes(MODEL_URL).await?;
     // A checkpoint grown to finer texture planes brings its own config (`texture_res`).
-    let cfg = config_with_saved_texture_res(&bytes, cfg);
+    let cfg = config_with_saved_detail_res(&bytes, cfg);
     let (g, modes) = load_generator_and_modes(&bytes, &cfg, device)
         .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
     let disc = match manifest.get("demo_d") {

@@ -112,6 +112,14 @@ pub struct TrainArgs {
     /// Without it, a `--resume` checkpoint's own texture planes are kept.
     #[arg(long)]
     pub texture_res: Option<usize>,
+    /// Resolution of the generator's geometry planes, finer than the config's planes (not in
+    /// the paper: geometry-only detail blocks, `GeneratorConfig::geometry_res`), so that the
+    /// normal field can hold surface detail finer than the planes' texels; the mesh's tet grid
+    /// is unchanged. A `--resume` checkpoint with coarser geometry planes grows into it,
+    /// rendering as before at first. Without it, a `--resume` checkpoint's own geometry planes
+    /// are kept.
+    #[arg(long)]
+    pub geometry_res: Option<usize>,
 }
 
 impl TrainArgs {
@@ -132,7 +140,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 17] = [
+        let rows: [(&str, Option<String>, String, &str); 18] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -179,6 +187,12 @@ impl TrainArgs {
                 self.texture_res.map(|r| r.to_string()),
                 plane(rc.generator.texture_res),
                 "generator.texture_res",
+            ),
+            (
+                "--geometry-res",
+                self.geometry_res.map(|r| r.to_string()),
+                plane(rc.generator.geometry_res),
+                "generator.geometry_res",
             ),
         ];
         rows.into_iter()

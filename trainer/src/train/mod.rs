@@ -35,7 +35,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
-use getavatar_core::checkpoint::{load_generator_growing_texture, save_generator_with_modes};
+use getavatar_core::checkpoint::{load_generator_growing, save_generator_with_modes};
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
 use getavatar_core::generator::BodyContext;
@@ -116,8 +116,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
             // Transfer learning (paper Sec. 5.3): start G from a trained generator.
             let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
             // A generator saved with coarser texture planes grows into the run's config.
-            st.g = load_generator_growing_texture(&bytes, &rc.generator, rc.seed, &ad)?;
-            st.g_ema = load_generator_growing_texture(&bytes, &rc.generator, rc.seed, &plain)?;
+            st.g = load_generator_growing(&bytes, &rc.generator, rc.seed, &ad)?;
+            st.g_ema = load_generator_growing(&bytes, &rc.generator, rc.seed, &plain)?;
             println!("initialised the generator from {}", init.display());
         }
         st

@@ -55,6 +55,12 @@ pub struct RunConfig {
     /// (`generator::is_geometry_head_param`). Absent in older runs: 1. Editable in `run.json` like the above.
     #[serde(default = "one")]
     pub lr_geometry_head_mul: f32,
+    /// Factor on `lr_g` for the geometry detail blocks (`GeneratorConfig::geometry_res`,
+    /// parameters under `synthesis.geometry_detail.`): a grown block starts at zero output and
+    /// learns its constant's detail field slowly at `lr_g` alone. Absent: 1. Editable in
+    /// `run.json` like the above.
+    #[serde(default = "one")]
+    pub lr_geometry_detail_mul: f32,
     pub lr_d: f32,
     pub r1_gamma: f32,
     pub r1_every: u64,
@@ -158,6 +164,7 @@ impl RunConfig {
                 Objective::Adversarial => 0.1,
                 Objective::Reconstruction => 1.0,
             },
+            lr_geometry_detail_mul: 1.0,
             lr_d: 0.002,
             r1_gamma,
             r1_every: 16,
@@ -257,14 +264,19 @@ impl RunConfig {
         }
         let mut gcfg = GeneratorConfig::preset(a.config_name())
             .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
+        if let Some(Some(init)) = &a.resume {
+            // A generator saved with finer detail planes (e.g. the shipped demo model's
+            // texture planes) keeps them: its config where it differs from the preset only there.
+            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+            gcfg = getavatar_core::checkpoint::config_with_saved_detail_res(&bytes, &gcfg);
+        }
         if let Some(res) = a.texture_res {
             gcfg.texture_res = Some(res);
             gcfg.validate().map_err(|e| anyhow::anyhow!("--texture-res {res}: {e}"))?;
-        } else if let Some(Some(init)) = &a.resume {
-            // A generator saved with finer texture planes (e.g. the shipped demo model) keeps
-            // them: its config where it differs from the preset only there.
-            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
-            gcfg = getavatar_core::checkpoint::config_with_saved_texture_res(&bytes, &gcfg);
+        }
+        if let Some(res) = a.geometry_res {
+            gcfg.geometry_res = Some(res);
+            gcfg.validate().map_err(|e| anyhow::anyhow!("--geometry-res {res}: {e}"))?;
         }
         let defaults =
             RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective);

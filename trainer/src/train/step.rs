@@ -95,9 +95,9 @@ pub(crate) fn latents(rng: &mut Rng, b: usize, dim: usize, dev: &Device) -> Tens
     Tensor::from_data(TensorData::new(rng.normals(b * dim), [b, dim]), dev)
 }
 
-/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul` and the
-/// geometry heads at `lr_g · lr_geometry_head_mul`; with `train_only`, parameters outside it
-/// at 0.
+/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul`, the
+/// geometry heads at `lr_g · lr_geometry_head_mul` and the geometry detail blocks at
+/// `lr_g · lr_geometry_detail_mul`; with `train_only`, parameters outside it at 0.
 pub(crate) fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
     let (tex, geo) = (rc.lr_texture_mul, rc.lr_geometry_head_mul);
     adam.step_scaled(rc.lr_g, g, grads, &|name| {
@@ -107,6 +107,8 @@ pub(crate) fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, gr
             tex
         } else if is_geometry_head_param(name) {
             geo
+        } else if name.starts_with("synthesis.geometry_detail.") {
+            rc.lr_geometry_detail_mul
         } else {
             1.0
         }

@@ -29,6 +29,14 @@ pub struct GeneratorConfig {
     /// Absent (None): the texture planes are `plane_res`², as in the paper.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub texture_res: Option<usize>,
+    /// Resolution of the geometry planes where it is finer than `plane_res` (not in the
+    /// paper): geometry-only detail blocks ([`crate::network::synthesis::GeometryDetailBlock`])
+    /// carry the SDF-residual planes on by doublings, so the normal field (∇SDF) can hold
+    /// surface detail finer than the 3.6 cm texels of the demo's 64² planes (the data's
+    /// garment folds have 4–7 cm wavelengths). The tet grid, and so the mesh, stay as they
+    /// are. Absent (None): the geometry planes are `plane_res`², as in the paper.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry_res: Option<usize>,
     /// Backbone channels at resolution r: min(channel_base / r, channel_max).
     pub channel_base: usize,
     pub channel_max: usize,
@@ -55,6 +63,7 @@ impl GeneratorConfig {
             plane_res: 256,
             plane_channels: 32,
             texture_res: None,
+            geometry_res: None,
             channel_base: 32768,
             channel_max: 512,
             decoder_hidden: 32,
@@ -130,20 +139,35 @@ impl GeneratorConfig {
         r
     }
 
-    /// Resolutions of the texture detail blocks: 2·plane_res, …, texture_res (none by default).
-    pub fn texture_detail_resolutions(&self) -> Vec<usize> {
+    /// Doublings of `plane_res` up to `limit`: 2·plane_res, …, limit (none for None).
+    fn detail_resolutions(&self, limit: Option<usize>) -> Vec<usize> {
         let mut r = Vec::new();
         let mut res = self.plane_res * 2;
-        while res <= self.texture_res.unwrap_or(0) {
+        while res <= limit.unwrap_or(0) {
             r.push(res);
             res *= 2;
         }
         r
     }
 
+    /// Resolutions of the texture detail blocks: 2·plane_res, …, texture_res (none by default).
+    pub fn texture_detail_resolutions(&self) -> Vec<usize> {
+        self.detail_resolutions(self.texture_res)
+    }
+
     /// Resolution of the texture planes.
     pub fn texture_plane_res(&self) -> usize {
         self.texture_detail_resolutions().last().copied().unwrap_or(self.plane_res)
+    }
+
+    /// Resolutions of the geometry detail blocks: 2·plane_res, …, geometry_res (none by default).
+    pub fn geometry_detail_resolutions(&self) -> Vec<usize> {
+        self.detail_resolutions(self.geometry_res)
+    }
+
+    /// Resolution of the geometry planes.
+    pub fn geometry_plane_res(&self) -> usize {
+        self.geometry_detail_resolutions().last().copied().unwrap_or(self.plane_res)
     }
 
     /// Check that the sizes are usable; the message names the field.
@@ -165,12 +189,14 @@ impl GeneratorConfig {
         if !self.plane_res.is_power_of_two() || self.plane_res < 4 {
             return Err(format!("config field `plane_res` must be a power of two ≥ 4 (got {})", self.plane_res));
         }
-        if let Some(t) = self.texture_res {
-            if !t.is_power_of_two() || t < self.plane_res || t > 16 * self.plane_res {
-                return Err(format!(
-                    "config field `texture_res` must be a power of two from plane_res ({}) to 16× it (got {t})",
-                    self.plane_res
-                ));
+        for (field, res) in [("texture_res", self.texture_res), ("geometry_res", self.geometry_res)] {
+            if let Some(t) = res {
+                if !t.is_power_of_two() || t < self.plane_res || t > 16 * self.plane_res {
+                    return Err(format!(
+                        "config field `{field}` must be a power of two from plane_res ({}) to 16× it (got {t})",
+                        self.plane_res
+                    ));
+                }
             }
         }
         if self.template_res < 8 {

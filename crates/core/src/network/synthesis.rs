@@ -131,11 +131,38 @@ impl TextureDetailBlock {
     }
 }
 
+/// A geometry-only block after the backbone (not in the paper; `GeneratorConfig::geometry_res`),
+/// the texture detail block's twin for the SDF-residual planes: the backbone's last features
+/// (or the previous geometry block's) upsampled 2× beside a learned constant, one 3×3
+/// modulated conv and a to-geometry layer styled by w_geo, added to the 2×-upsampled geometry
+/// planes. Its to-geometry layer starts at zero, so a grown generator's SDF is the saved one's
+/// up to that upsampling. The constant is a free field in canonical plane space shared by all
+/// identities: surface detail that sits at the same canonical place on every body (the folds
+/// at elbows and knees, a face's relief) is learnt once and weighed per identity.
+#[derive(Module, Debug)]
+pub struct GeometryDetailBlock {
+    /// `[C, res, res]`, concatenated to the upsampled features.
+    pub constant: Param<Tensor<3>>,
+    pub conv: ModulatedConv2d,
+    pub to_geometry: ModulatedConv2d,
+    pub res: usize,
+}
+
+impl GeometryDetailBlock {
+    pub fn new(rng: &mut Rng, cfg: &GeneratorConfig, c_in: usize, res: usize, device: &Device) -> Self {
+        let TextureDetailBlock { constant, conv, to_texture, res } =
+            TextureDetailBlock::new(rng, cfg, c_in, res, device);
+        Self { constant, conv, to_geometry: to_texture, res }
+    }
+}
+
 #[derive(Module, Debug)]
 pub struct TriplaneSynthesis {
     pub blocks: Vec<SynthesisBlock>,
     /// Texture-only blocks beyond `plane_res` (empty in the paper's configs).
     pub texture_detail: Vec<TextureDetailBlock>,
+    /// Geometry-only blocks beyond `plane_res` (empty in the paper's configs).
+    pub geometry_detail: Vec<GeometryDetailBlock>,
 }
 
 impl TriplaneSynthesis {
@@ -164,9 +191,11 @@ impl TriplaneSynthesis {
             blocks.push(SynthesisBlock { constant, convs, to_geometry, to_texture, res });
             c_prev = c;
         }
-        let detail_res = cfg.texture_detail_resolutions();
-        // Drawn after the backbone's: configs without detail blocks initialise as before.
-        let texture_detail = detail_res
+        let backbone_channels = c_prev;
+        // Drawn after the backbone's (texture, then geometry): configs without detail blocks
+        // initialise as before, and so do those without geometry detail.
+        let texture_detail = cfg
+            .texture_detail_resolutions()
             .into_iter()
             .map(|res| {
                 let block = TextureDetailBlock::new(rng, cfg, c_prev, res, device);
@@ -174,12 +203,23 @@ impl TriplaneSynthesis {
                 block
             })
             .collect();
-        Self { blocks, texture_detail }
+        let mut c_prev = backbone_channels;
+        let geometry_detail = cfg
+            .geometry_detail_resolutions()
+            .into_iter()
+            .map(|res| {
+                let block = GeometryDetailBlock::new(rng, cfg, c_prev, res, device);
+                c_prev = cfg.channels(res);
+                block
+            })
+            .collect();
+        Self { blocks, texture_detail, geometry_detail }
     }
 
-    /// Number of w_geo vectors consumed (one per 3×3 conv and per to-geometry layer).
+    /// Number of w_geo vectors consumed (one per 3×3 conv and per to-geometry layer, and per
+    /// geometry detail conv).
     pub fn num_ws_geo(&self) -> usize {
-        self.blocks.iter().map(|b| b.convs.len() + 1).sum()
+        self.blocks.iter().map(|b| b.convs.len() + 1).sum::<usize>() + 2 * self.geometry_detail.len()
     }
 
     /// Number of w_tex vectors consumed (one per to-texture layer, and per detail conv).
@@ -194,8 +234,13 @@ impl TriplaneSynthesis {
         for block in &self.blocks {
             state.run(block, &ws_geo, &ws_tex);
         }
+        let backbone = state.x.clone();
         for block in &self.texture_detail {
             state.detail(block, &ws_tex);
+        }
+        state.x = backbone;
+        for block in &self.geometry_detail {
+            state.geometry_detail(block, &ws_geo);
         }
         state.finish()
     }
@@ -208,8 +253,14 @@ impl TriplaneSynthesis {
             state.run(block, &ws_geo, &ws_tex);
             crate::cooperative::checkpoint().await;
         }
+        let backbone = state.x.clone();
         for block in &self.texture_detail {
             state.detail(block, &ws_tex);
+            crate::cooperative::checkpoint().await;
+        }
+        state.x = backbone;
+        for block in &self.geometry_detail {
+            state.geometry_detail(block, &ws_geo);
             crate::cooperative::checkpoint().await;
         }
         state.finish()
@@ -269,6 +320,21 @@ impl SynthesisState {
         let t = block.to_texture.forward(h.clone(), pick(self.ti + 1));
         self.ti += 2;
         self.tex = Some(upsample2_add(tex, t));
+        self.x = Some(h);
+    }
+
+    /// A geometry detail block: features (from the backbone's last block on) and geometry
+    /// planes carried on at twice the size.
+    fn geometry_detail(&mut self, block: &GeometryDetailBlock, ws_geo: &Tensor<3>) {
+        let [b, _, w_dim] = ws_geo.dims();
+        let pick = |i: usize| ws_geo.clone().narrow(1, i, 1).reshape([b, w_dim]);
+        let (Some(x), Some(geo)) = (self.x.take(), self.geo.take()) else { unreachable_input() };
+        let [ch, r, _] = block.constant.dims();
+        let constant = block.constant.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r]);
+        let h = block.conv.forward(Tensor::cat(vec![upsample2(x), constant], 1), pick(self.gi));
+        let g = block.to_geometry.forward(h.clone(), pick(self.gi + 1));
+        self.gi += 2;
+        self.geo = Some(upsample2_add(geo, g));
         self.x = Some(h);
     }
 
