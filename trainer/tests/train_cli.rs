@@ -175,7 +175,7 @@ fn tiny_trains_twenty_steps() {
         let mut buf = vec![0; reader.output_buffer_size()];
         let info = reader.next_frame(&mut buf).unwrap();
         let (w, h) = (info.width as usize, info.height as usize);
-        assert_eq!((w, h), (3 * 16, 16), "RGB | overlay | data at the dataset's 16²");
+        assert_eq!((w, h), (4 * 16, 16), "RGB | overlay | data | normal angle at the dataset's 16²");
         let (mut both, mut union) = (0, 0);
         for y in 0..h {
             for x in 16..32 {
@@ -190,6 +190,12 @@ fn tiny_trains_twenty_steps() {
     assert!(r["data_mask_iou_mean"].as_f64().unwrap() > 0.6, "{r}");
     let err = r["normal_error_deg"].as_f64().unwrap();
     assert!(err > 0.0 && err < 90.0, "{r}");
+    // Its breakdown: the interior and outline means weighted by their shares are the mean.
+    let b = &r["normal_error_breakdown"];
+    let (share, inner, edge) =
+        (b["interior_share"].as_f64().unwrap(), b["interior_deg"].as_f64().unwrap(), b["edge_deg"].as_f64().unwrap());
+    assert!((0.0..=1.0).contains(&share) && b["median_deg"].as_f64().unwrap() < 90.0, "{b}");
+    assert!((share * inner + (1.0 - share) * edge - err).abs() < 1e-3 * err.max(1.0), "{b} vs {err}");
     // With Inception weights (hash-generated stand-ins of the right shapes): FID and KID are
     // reported, and a bad weights file fails before any rendering with a message naming it.
     let weights = root.join("inception.safetensors");

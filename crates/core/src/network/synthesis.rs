@@ -137,8 +137,9 @@ impl TextureDetailBlock {
 /// modulated conv and a to-geometry layer styled by w_geo, added to the 2×-upsampled geometry
 /// planes. Its to-geometry layer starts at zero, so a grown generator's SDF is the saved one's
 /// up to that upsampling. The constant is a free field in canonical plane space shared by all
-/// identities: surface detail that sits at the same canonical place on every body (the folds
-/// at elbows and knees, a face's relief) is learnt once and weighed per identity.
+/// identities: surface detail that sits at the same canonical place on every body (a face's
+/// relief) is learnt once and weighed per identity; detail that moves with the body's shape
+/// (garment folds) has to come from w_geo through the conv (MODEL_CARD, History, session 42).
 #[derive(Module, Debug)]
 pub struct GeometryDetailBlock {
     /// `[C, res, res]`, concatenated to the upsampled features.
