@@ -312,30 +312,20 @@ impl SynthesisState {
 
     /// A texture detail block: features and texture planes carried on at twice the size.
     fn detail(&mut self, block: &TextureDetailBlock, ws_tex: &Tensor<3>) {
-        let [b, _, w_dim] = ws_tex.dims();
-        let pick = |i: usize| ws_tex.clone().narrow(1, i, 1).reshape([b, w_dim]);
         let (Some(x), Some(tex)) = (self.x.take(), self.tex.take()) else { unreachable_input() };
-        let [ch, r, _] = block.constant.dims();
-        let constant = block.constant.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r]);
-        let h = block.conv.forward(Tensor::cat(vec![upsample2(x), constant], 1), pick(self.ti));
-        let t = block.to_texture.forward(h.clone(), pick(self.ti + 1));
+        let (h, tex) = detail_step(&block.constant, &block.conv, &block.to_texture, x, tex, ws_tex, self.ti);
         self.ti += 2;
-        self.tex = Some(upsample2_add(tex, t));
+        self.tex = Some(tex);
         self.x = Some(h);
     }
 
     /// A geometry detail block: features (from the backbone's last block on) and geometry
     /// planes carried on at twice the size.
     fn geometry_detail(&mut self, block: &GeometryDetailBlock, ws_geo: &Tensor<3>) {
-        let [b, _, w_dim] = ws_geo.dims();
-        let pick = |i: usize| ws_geo.clone().narrow(1, i, 1).reshape([b, w_dim]);
         let (Some(x), Some(geo)) = (self.x.take(), self.geo.take()) else { unreachable_input() };
-        let [ch, r, _] = block.constant.dims();
-        let constant = block.constant.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r]);
-        let h = block.conv.forward(Tensor::cat(vec![upsample2(x), constant], 1), pick(self.gi));
-        let g = block.to_geometry.forward(h.clone(), pick(self.gi + 1));
+        let (h, geo) = detail_step(&block.constant, &block.conv, &block.to_geometry, x, geo, ws_geo, self.gi);
         self.gi += 2;
-        self.geo = Some(upsample2_add(geo, g));
+        self.geo = Some(geo);
         self.x = Some(h);
     }
 
@@ -345,6 +335,28 @@ impl SynthesisState {
             _ => unreachable_input(),
         }
     }
+}
+
+/// One detail block (texture or geometry): the features `x` upsampled 2× beside the block's
+/// `constant`, its `conv` styled by `ws[i]` and its output layer `out` by `ws[i + 1]`; returns
+/// the block's features and `planes` upsampled 2× plus the output.
+#[allow(clippy::too_many_arguments)]
+fn detail_step(
+    constant: &Param<Tensor<3>>,
+    conv: &ModulatedConv2d,
+    out: &ModulatedConv2d,
+    x: Tensor<4>,
+    planes: Tensor<4>,
+    ws: &Tensor<3>,
+    i: usize,
+) -> (Tensor<4>, Tensor<4>) {
+    let [b, _, w_dim] = ws.dims();
+    let pick = |i: usize| ws.clone().narrow(1, i, 1).reshape([b, w_dim]);
+    let [ch, r, _] = constant.dims();
+    let constant = constant.val().unsqueeze_dim::<4>(0).expand([b, ch, r, r]);
+    let h = conv.forward(Tensor::cat(vec![upsample2(x), constant], 1), pick(i));
+    let o = out.forward(h.clone(), pick(i + 1));
+    (h, upsample2_add(planes, o))
 }
 
 /// The backbone always has at least the 4² block; reaching this is a construction bug.
