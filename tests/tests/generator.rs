@@ -377,13 +377,13 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// e02b26a, to pin #26's refactor.)
 #[test]
 fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
-    use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator, load_latent_modes};
+    use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
     use getavatar_core::generator::default_psi;
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors");
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
     // The shipped file is the demo config with 128² texture planes (v2.1, #25).
-    let cfg = config_with_saved_detail_res(&bytes, &GeneratorConfig::demo());
+    let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
     assert_eq!(cfg.texture_res, Some(128));
     let g = load_generator(&bytes, &cfg, &dev).unwrap();
     let modes = load_latent_modes(&bytes, &dev).unwrap();
@@ -414,7 +414,7 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
 /// not the texture branch's, and they take w_geo styles of their own.
 #[test]
 fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_generator() {
-    use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator_growing, save_generator};
+    use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator_growing, save_generator};
     use getavatar_core::generator::is_texture_param;
     let dev = device();
     let cfg = GeneratorConfig { texture_res: Some(32), ..GeneratorConfig::tiny() };
@@ -456,7 +456,7 @@ fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_gener
         .collect();
     assert!(names.len() >= 4 && names.iter().all(|n| !is_texture_param(n)), "{names:?}");
     let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
-    assert_eq!(config_with_saved_detail_res(&grown_bytes, &GeneratorConfig::tiny()), fine);
+    assert_eq!(config_with_saved_resolutions(&grown_bytes, &GeneratorConfig::tiny()), fine);
     let back = GeneratorConfig { geometry_res: None, ..fine.clone() };
     assert!(load_generator_growing(&grown_bytes, &back, 5, &dev).is_err(), "geometry planes cannot shrink");
 }
@@ -511,11 +511,11 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
     // A file with finer texture planes names its own config for the preset it grew from
     // (the app and the CLI load the shipped file that way), and for no other.
-    use getavatar_core::checkpoint::config_with_saved_detail_res;
+    use getavatar_core::checkpoint::config_with_saved_resolutions;
     let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
-    assert_eq!(config_with_saved_detail_res(&grown_bytes, &cfg), fine);
-    assert_eq!(config_with_saved_detail_res(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
-    assert_eq!(config_with_saved_detail_res(b"junk", &cfg), cfg);
+    assert_eq!(config_with_saved_resolutions(&grown_bytes, &cfg), fine);
+    assert_eq!(config_with_saved_resolutions(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
+    assert_eq!(config_with_saved_resolutions(b"junk", &cfg), cfg);
     // A file claiming absurd texture planes is not adopted, and cannot size a model.
     let huge = GeneratorConfig { texture_res: Some(1 << 20), ..cfg.clone() };
     let meta = [
@@ -526,13 +526,84 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     .collect();
     let params = getavatar_core::checkpoint::collect_params(&grown).unwrap();
     let forged = getavatar_core::checkpoint::write_safetensors(&meta, &params).unwrap();
-    assert_eq!(config_with_saved_detail_res(&forged, &cfg), cfg);
+    assert_eq!(config_with_saved_resolutions(&forged, &cfg), cfg);
     let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
     assert!(e.contains("texture_res"), "{e}");
     assert!(load_generator_growing(&bytes, &huge, 5, &dev).is_err());
-    assert!(load_generator(&grown_bytes, &config_with_saved_detail_res(&grown_bytes, &cfg), &dev).is_ok());
+    assert!(load_generator(&grown_bytes, &config_with_saved_resolutions(&grown_bytes, &cfg), &dev).is_ok());
     // Generation with the grown generator runs on the finer planes.
     let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &fine);
     let av = generate(&grown, &ctx, &fine, (1, 2), "standing");
     assert!(av.colors.iter().all(|c| c.min_element() >= 0.0 && c.max_element() <= 1.0));
+}
+
+/// The tet grid (`tet_res`) is no weight's: the same seed draws the same weights on any grid,
+/// a file saved with a finer grid names its config for the preset it came from (the app and
+/// the CLI extract the shipped file on its own grid) and loads either way, the DMTet offsets
+/// stay within a quarter of the grid's cell, and the finer grid gives more triangles over the
+/// same body. A file claiming an absurd grid is not adopted and cannot size a model.
+#[test]
+fn a_checkpoint_brings_its_tet_grid_and_no_weight_depends_on_it() {
+    use getavatar_core::checkpoint::{
+        collect_params, config_with_saved_resolutions, load_generator, load_generator_growing, save_generator,
+        write_safetensors, FORMAT,
+    };
+    use getavatar_core::geometry::tet_grid::REFERENCE_BOX_SIZE;
+    let dev = device();
+    let cfg = GeneratorConfig::tiny();
+    let finer = GeneratorConfig { tet_res: cfg.tet_res * 3 / 2, ..cfg.clone() };
+    let (g, gf) = (Generator::new(&cfg, 3, &dev), Generator::new(&finer, 3, &dev));
+    let (pa, pf) = (collect_params(&g).unwrap(), collect_params(&gf).unwrap());
+    assert_eq!(pa, pf, "the grid changes no weight");
+    let bytes = save_generator(&gf, &finer, &Default::default()).unwrap();
+    assert_eq!(config_with_saved_resolutions(&bytes, &cfg), finer);
+    let loaded = load_generator(&bytes, &finer, &dev).expect("loads on its own grid");
+    assert_eq!(loaded.decoders.tet_res, finer.tet_res);
+    let coarse = load_generator_growing(&bytes, &cfg, 5, &dev).expect("loads on the preset's grid");
+    assert_eq!(coarse.decoders.tet_res, cfg.tet_res);
+    assert_eq!(collect_params(&coarse).unwrap(), pf);
+    // Offsets: bounded by a quarter of each grid's cell, so smaller on the finer grid.
+    let pts: Vec<f32> = (0..64).flat_map(|k| [0.3 * ((k as f32) * 0.7).sin(), -0.9 + 0.03 * k as f32, 0.1]).collect();
+    let pts = Tensor::<3>::from_data(getavatar_core::burn::tensor::TensorData::new(pts, [1, 64, 3]), &dev);
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let s = loaded.styles(zg, zt, 0.7);
+    let planes = loaded.triplanes(&s);
+    let max_offset = |g: &Generator| {
+        let (_, o) = g.geometry_fields(&planes, &s, pts.clone());
+        o.into_data().try_to_vec::<f32>().expect("f32").iter().fold(0f32, |m, v| m.max(v.abs()))
+    };
+    let (of, oc) = (max_offset(&loaded), max_offset(&coarse));
+    let cell = |n: usize| REFERENCE_BOX_SIZE / n as f32;
+    assert!(of > 0.0 && of <= cell(finer.tet_res) / 4.0 + 1e-6, "{of}");
+    assert!((of / oc - cfg.tet_res as f32 / finer.tet_res as f32).abs() < 1e-3, "{of} vs {oc}");
+    // The same avatar on both grids: the same extent, more triangles on the finer one.
+    let avatar = |g: &Generator, c: &GeneratorConfig| {
+        let ctx = BodyContext::new(BodyModel::default_body().expect("body"), c);
+        generate(g, &ctx, c, (1, 2), "standing")
+    };
+    let (af, ac) = (avatar(&loaded, &finer), avatar(&coarse, &cfg));
+    let extent = |a: &Avatar| {
+        let v = &a.mesh.vertices;
+        let lo = v.iter().fold(Vec3::splat(f32::INFINITY), |m, p| m.min(*p));
+        let hi = v.iter().fold(Vec3::splat(f32::NEG_INFINITY), |m, p| m.max(*p));
+        (lo, hi)
+    };
+    let ((lf, hf), (lc, hc)) = (extent(&af), extent(&ac));
+    assert!(
+        (lf - lc).abs().max_element() < 1.5 * cell(cfg.tet_res)
+            && (hf - hc).abs().max_element() < 1.5 * cell(cfg.tet_res),
+        "{lf}..{hf} vs {lc}..{hc}"
+    );
+    let (tf, tc) = (af.mesh.faces.len(), ac.mesh.faces.len());
+    assert!(tf as f32 > 1.5 * tc as f32, "{tf} triangles on the finer grid, {tc} on the coarser");
+    // A forged file asking for a huge grid.
+    let huge = GeneratorConfig { tet_res: 1 << 16, ..cfg.clone() };
+    let meta =
+        [("format".to_string(), FORMAT.to_string()), ("config".to_string(), serde_json::to_string(&huge).unwrap())]
+            .into_iter()
+            .collect();
+    let forged = write_safetensors(&meta, &pf).unwrap();
+    assert_eq!(config_with_saved_resolutions(&forged, &cfg), cfg);
+    let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
+    assert!(e.contains("tet_res"), "{e}");
 }

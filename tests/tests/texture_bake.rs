@@ -4,7 +4,7 @@
 //! from seams and chart borders).
 
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator, load_latent_modes};
+use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
 use getavatar_core::colour::linear_to_srgb;
 use getavatar_core::generator::{default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext};
 use getavatar_core::network::GeneratorConfig;
@@ -20,7 +20,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     let bytes =
         std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors")).expect("demo model");
     // The shipped file is the demo config with finer texture planes (`texture_res`).
-    let cfg = config_with_saved_detail_res(&bytes, &GeneratorConfig::demo());
+    let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
     let g = load_generator(&bytes, &cfg, &dev).expect("loads");
     let modes = load_latent_modes(&bytes, &dev).expect("modes");
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);

@@ -378,7 +378,7 @@ pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
     println!("| config | texture | vertices (atlas) | atlas s | texels s | field queries s | image s | PNG s | glb write s | total s | animated .glb MB |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for config in &a.configs {
-        let gen = GeneratorArgs { config: config.clone(), checkpoint: None, random: config != "demo" };
+        let gen = GeneratorArgs { config: config.clone(), checkpoint: None, random: config != "demo", tet_res: None };
         let (cfg, g, modes) = gen.load(&device)?;
         let ctx = BodyContext::new(BodyModel::default_body()?, &cfg);
         let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), None, false, &device);

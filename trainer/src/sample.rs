@@ -8,7 +8,7 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
 use getavatar_core::checkpoint::{
-    config_with_saved_detail_res, load_generator_and_modes, load_inverted, InvertedAvatar,
+    config_with_saved_resolutions, load_generator_and_modes, load_inverted, InvertedAvatar,
 };
 use getavatar_core::dataset::encode_png;
 use getavatar_core::generator::recolor_async;
@@ -108,14 +108,27 @@ pub struct GeneratorArgs {
     /// Use deterministic random weights even where a trained model ships.
     #[arg(long = "random-weights", conflicts_with = "checkpoint")]
     pub random: bool,
+    /// Extract the surface on an N³ tet grid instead of the model's own (`tet_res` of its
+    /// config; no weight depends on it). Finer grids resolve narrow gaps and grazing
+    /// outlines at the cost of time and memory.
+    #[arg(long = "tet-res", value_name = "N")]
+    pub tet_res: Option<usize>,
 }
 
 impl GeneratorArgs {
     /// The config preset, the generator (see [`generator_or_random`]) and its latent modes.
-    /// A checkpoint's config replaces the preset where the two differ only in the texture
-    /// planes' resolution (a generator grown with `trainer train --texture-res`).
+    /// A checkpoint's config replaces the preset where the two differ only in resolutions
+    /// (a generator grown with `trainer train --texture-res`, a finer tet grid).
+    /// `--tet-res` replaces the loaded config's tet grid.
     pub fn load(&self, device: &Device) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
-        generator_or_random(self.checkpoint.as_deref(), self.random, &self.config()?, device)
+        let (mut cfg, mut g, modes) =
+            generator_or_random(self.checkpoint.as_deref(), self.random, &self.config()?, device)?;
+        if let Some(n) = self.tet_res {
+            cfg.tet_res = n;
+            cfg.validate().map_err(|e| anyhow::anyhow!("--tet-res {n}: {e}"))?;
+            g.decoders.tet_res = n;
+        }
+        Ok((cfg, g, modes))
     }
 }
 
@@ -137,7 +150,7 @@ pub fn load_inverted_file(
 ) -> Result<(GeneratorConfig, InvertedAvatar)> {
     let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
     let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-    let cfg = config_with_saved_detail_res(&bytes, cfg);
+    let cfg = config_with_saved_resolutions(&bytes, cfg);
     let inv = load_inverted(&bytes, &cfg, device)
         .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
     Ok((cfg, inv))
@@ -147,7 +160,7 @@ pub fn load_inverted_file(
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
 /// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
 /// the checkpoint's where it is `cfg` with other texture planes
-/// ([`config_with_saved_detail_res`]).
+/// ([`config_with_saved_resolutions`]).
 pub fn generator_or_random(
     checkpoint: Option<&Path>,
     random: bool,
@@ -162,7 +175,7 @@ pub fn generator_or_random(
             }
             let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
             let loading = || format!("loading checkpoint {}", p.display());
-            let cfg = config_with_saved_detail_res(&bytes, cfg);
+            let cfg = config_with_saved_resolutions(&bytes, cfg);
             let (g, modes) = load_generator_and_modes(&bytes, &cfg, device).with_context(loading)?;
             (cfg, g, modes)
         }

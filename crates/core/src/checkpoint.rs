@@ -473,26 +473,34 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
     load_into(g, st, &[], device)
 }
 
-/// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other detail
-/// planes (`GeneratorConfig::texture_res` and `geometry_res`, which only the synthesis's
-/// detail blocks depend on): the config to load and save such a file under. Where the files
-/// differ in more, or `bytes` is no generator file, `cfg` (and loading reports why).
-pub fn config_with_saved_detail_res(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
+/// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other
+/// resolutions: detail planes (`GeneratorConfig::texture_res` and `geometry_res`, which only
+/// the synthesis's detail blocks depend on) or tet grid (`tet_res`, which no weight depends
+/// on: the file's surface is extracted on its own grid). The config to load and save such a
+/// file under. Where the files differ in more, or `bytes` is no generator file, `cfg` (and
+/// loading reports why).
+pub fn config_with_saved_resolutions(bytes: &[u8], cfg: &GeneratorConfig) -> GeneratorConfig {
     // The header alone: the caller parses the whole file to load it.
     match header_metadata(bytes).and_then(|m| config_of_metadata(&m)) {
-        Ok(saved) if with_detail_of(cfg, &saved) == saved && saved.validate().is_ok() => saved,
+        Ok(saved) if with_resolutions_of(cfg, &saved) == saved && saved.validate().is_ok() => saved,
         _ => cfg.clone(),
     }
 }
 
-/// `cfg` with the detail planes (`texture_res`, `geometry_res`) of `other`.
-fn with_detail_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> GeneratorConfig {
-    GeneratorConfig { texture_res: other.texture_res, geometry_res: other.geometry_res, ..cfg.clone() }
+/// `cfg` with the detail planes (`texture_res`, `geometry_res`) and the tet grid (`tet_res`)
+/// of `other`.
+fn with_resolutions_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> GeneratorConfig {
+    GeneratorConfig {
+        texture_res: other.texture_res,
+        geometry_res: other.geometry_res,
+        tet_res: other.tet_res,
+        ..cfg.clone()
+    }
 }
 
 /// A generator of config `requested` from a checkpoint saved with coarser detail planes:
 /// the same config but a smaller `texture_res` and/or `geometry_res` (e.g. the paper's
-/// planes, none). Every saved weight is loaded; the detail blocks the file lacks keep their
+/// planes, none), and any tet grid (`tet_res`). Every saved weight is loaded; the detail blocks the file lacks keep their
 /// initialisation (the generator built with `seed`), whose output layers are zero, so the
 /// grown generator renders what the saved one rendered, up to the bilinear upsampling of the
 /// grown planes.
@@ -504,8 +512,8 @@ pub fn load_generator_growing(
 ) -> Result<Generator, CheckpointError> {
     let st = parse_safetensors(bytes)?;
     let saved = checkpoint_config(&st)?;
-    let same_but_detail = GeneratorConfig { name: saved.name.clone(), ..with_detail_of(requested, &saved) };
-    if same_but_detail != saved
+    let same_but_res = GeneratorConfig { name: saved.name.clone(), ..with_resolutions_of(requested, &saved) };
+    if same_but_res != saved
         || requested.texture_plane_res() < saved.texture_plane_res()
         || requested.geometry_plane_res() < saved.geometry_plane_res()
     {

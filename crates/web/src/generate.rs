@@ -15,7 +15,7 @@ use eframe::egui_wgpu;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{config_with_saved_detail_res, load_generator_and_modes, save_inverted_async};
+use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
     default_psi, generate_rigged_async, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator,
     LatentModes, Styles,
@@ -71,8 +71,9 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
         return Err("no trained model ships with this build".into());
     }
     let bytes = fetch_bytes(MODEL_URL).await?;
-    // A checkpoint grown to finer texture planes brings its own config (`texture_res`).
-    let cfg = config_with_saved_detail_res(&bytes, cfg);
+    // A checkpoint grown to finer detail planes, or extracted on another tet grid, brings its
+    // own config (`texture_res`, `geometry_res`, `tet_res`).
+    let cfg = config_with_saved_resolutions(&bytes, cfg);
     let (g, modes) = load_generator_and_modes(&bytes, &cfg, device)
         .map_err(|e| format!("{MODEL_URL} is not a demo checkpoint: {e}"))?;
     let disc = match manifest.get("demo_d") {
@@ -247,8 +248,10 @@ impl GenEngine {
             let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
             wasm_bindgen_futures::spawn_local(async move {
                 let loaded = load_shipped(&cfg, &device).await;
+                // The shipped file's config where it brings its own resolutions (its tet grid).
+                let cfg = loaded.as_ref().map_or(&cfg, |s| &s.cfg);
                 let ctx = match body {
-                    Some(b) => Some(Rc::new(BodyContext::new_async(b, &cfg).await)),
+                    Some(b) => Some(Rc::new(BodyContext::new_async(b, cfg).await)),
                     None => None,
                 };
                 if let (Ok(shipped), Some(ctx)) = (&loaded, &ctx) {

@@ -268,7 +268,7 @@ impl RunConfig {
             // A generator saved with finer detail planes (e.g. the shipped demo model's
             // texture planes) keeps them: its config where it differs from the preset only there.
             let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
-            gcfg = getavatar_core::checkpoint::config_with_saved_detail_res(&bytes, &gcfg);
+            gcfg = getavatar_core::checkpoint::config_with_saved_resolutions(&bytes, &gcfg);
         }
         if let Some(res) = a.texture_res {
             gcfg.texture_res = Some(res);

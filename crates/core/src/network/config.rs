@@ -4,6 +4,10 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Largest tet grid a config may ask for: 192³ cubes are 42 M tets, beyond what a browser's
+/// GPU memory and a checkpoint from elsewhere should be able to demand.
+pub const MAX_TET_RES: usize = 192;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct GeneratorConfig {
     /// Name of the preset this config came from ("paper", "demo", "tiny" or "custom").
@@ -44,7 +48,9 @@ pub struct GeneratorConfig {
     pub decoder_hidden: usize,
     /// Texture feature size before to-RGB.
     pub texture_features: usize,
-    /// Tet grid cells per side (Kuhn grid, `(n+1)³` vertices).
+    /// Tet grid cells per side (Kuhn grid, `(n+1)³` vertices), at most [`MAX_TET_RES`]. No
+    /// weight depends on it (the DMTet offsets are bounded by its cell), so a file may be
+    /// extracted on a finer grid than it was trained on.
     pub tet_res: usize,
     /// Template SDF samples per side.
     pub template_res: usize,
@@ -185,6 +191,12 @@ impl GeneratorConfig {
             if v == 0 {
                 return Err(format!("config field `{name}` must be positive"));
             }
+        }
+        if self.tet_res > MAX_TET_RES {
+            return Err(format!(
+                "config field `tet_res` must be at most {MAX_TET_RES} (cubes per side; got {})",
+                self.tet_res
+            ));
         }
         if !self.plane_res.is_power_of_two() || self.plane_res < 4 {
             return Err(format!("config field `plane_res` must be a power of two ≥ 4 (got {})", self.plane_res));
