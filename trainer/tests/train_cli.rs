@@ -98,18 +98,30 @@ fn resume_is_bit_identical_and_outputs_are_complete() {
     assert!(first["loss_g"].as_f64().unwrap().is_finite() && first["r1"].as_f64().is_some(), "{first}");
     assert!(a.join("samples_000002.png").is_file());
     let out = root.join("sample");
-    ok(trainer(&[
-        "sample",
-        "--config",
-        "tiny",
-        "--checkpoint",
-        a.join("generator.safetensors").to_str().unwrap(),
-        "--res",
-        "64",
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let g = a.join("generator.safetensors");
+    let sample = |extra: &[&str]| {
+        let mut args = vec!["sample", "--config", "tiny", "--checkpoint", g.to_str().unwrap(), "--res", "64"];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--out", out.to_str().unwrap()]);
+        trainer(&args)
+    };
+    let triangles = |text: &str| -> usize {
+        let at = text.find(" triangles").unwrap_or_else(|| panic!("no triangle count: {text}"));
+        text[..at]
+            .rsplit(' ')
+            .next()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no triangle count: {text}"))
+    };
+    let own = triangles(&ok(sample(&[])));
     assert!(out.join("rgb.png").is_file());
+    // `--tet-res` extracts the same generator on another grid: a coarser grid, fewer
+    // triangles; a grid beyond the cap is refused with the flag named.
+    let coarse = triangles(&ok(sample(&["--tet-res", "12"])));
+    assert!(0 < coarse && coarse < own, "{coarse} triangles on 12³, {own} on the config's 24³");
+    let o = sample(&["--tet-res", "500"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--tet-res 500") && err.contains("at most 192"), "{err}");
     // A fresh run never overwrites an existing one.
     let o = trainer(&["train", "--data", data.to_str().unwrap(), "--config", "tiny", "--out", a.to_str().unwrap()]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--resume"));
