@@ -141,8 +141,8 @@ impl GeneratorArgs {
 }
 
 /// An inverted avatar: `trainer invert`'s output directory or its `inverted.safetensors`, with
-/// the config it loads under (`cfg`, or the file's where it differs only in its texture
-/// planes, as [`generator_or_random`]).
+/// the config it loads under (`cfg`, or the file's where it differs only in resolutions,
+/// as [`generator_or_random`]).
 pub fn load_inverted_file(
     path: &Path,
     cfg: &GeneratorConfig,
@@ -159,7 +159,7 @@ pub fn load_inverted_file(
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
 /// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
 /// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
-/// the checkpoint's where it is `cfg` with other texture planes
+/// the checkpoint's where it is `cfg` with other detail planes or tet grid
 /// ([`config_with_saved_resolutions`]).
 pub fn generator_or_random(
     checkpoint: Option<&Path>,

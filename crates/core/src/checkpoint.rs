@@ -500,10 +500,10 @@ fn with_resolutions_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> Genera
 
 /// A generator of config `requested` from a checkpoint saved with coarser detail planes:
 /// the same config but a smaller `texture_res` and/or `geometry_res` (e.g. the paper's
-/// planes, none), and any tet grid (`tet_res`). Every saved weight is loaded; the detail blocks the file lacks keep their
-/// initialisation (the generator built with `seed`), whose output layers are zero, so the
-/// grown generator renders what the saved one rendered, up to the bilinear upsampling of the
-/// grown planes.
+/// planes, none), and any tet grid (`tet_res`). Every saved weight is loaded; the detail
+/// blocks the file lacks keep their initialisation (the generator built with `seed`), whose
+/// output layers are zero, so the grown generator renders what the saved one rendered, up to
+/// the bilinear upsampling of the grown planes.
 pub fn load_generator_growing(
     bytes: &[u8],
     requested: &GeneratorConfig,

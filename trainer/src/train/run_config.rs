@@ -265,8 +265,8 @@ impl RunConfig {
         let mut gcfg = GeneratorConfig::preset(a.config_name())
             .with_context(|| format!("unknown --config `{}`", a.config_name()))?;
         if let Some(Some(init)) = &a.resume {
-            // A generator saved with finer detail planes (e.g. the shipped demo model's
-            // texture planes) keeps them: its config where it differs from the preset only there.
+            // A generator saved with finer detail planes or another tet grid (e.g. the shipped
+            // demo model's) keeps them: its config where it differs from the preset only there.
             let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
             gcfg = getavatar_core::checkpoint::config_with_saved_resolutions(&bytes, &gcfg);
         }
