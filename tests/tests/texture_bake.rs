@@ -19,7 +19,8 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     let dev = Device::ndarray();
     let bytes =
         std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors")).expect("demo model");
-    // The shipped file is the demo config with finer texture planes (`texture_res`).
+    // The shipped file is the demo config with its own resolutions (finer texture and
+    // geometry planes, a finer tet grid).
     let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
     let g = load_generator(&bytes, &cfg, &dev).expect("loads");
     let modes = load_latent_modes(&bytes, &dev).expect("modes");
