@@ -483,6 +483,23 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
     let subjects: Vec<u64> =
         r["per_label"].as_array().unwrap().iter().map(|l| l["subject"].as_u64().unwrap()).collect();
     assert_eq!(subjects, [0, 0, 1, 1], "{r}");
+    // `--supersample 2` renders at twice the size and box-filters, as `prepare` makes the
+    // data: the same labels and subjects, a report that says so, figures that differ from the
+    // point-sampled ones but stay near them; 0 and 5 samples are refused by name.
+    let ss_report = root.join("subject_codes_ss2.json");
+    let ss_args = ["--checkpoint", g.to_str().unwrap(), "--subject-codes", "--supersample", "2"];
+    let text = ok(eval(&data, &[&ss_args[..], &["--out", ss_report.to_str().unwrap()]].concat()));
+    assert!(text.contains("(2×2 samples per pixel)"), "{text}");
+    let rs: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&ss_report).unwrap()).unwrap();
+    assert_eq!((rs["supersample"].as_u64(), r["supersample"].as_u64()), (Some(2), Some(1)), "{rs}");
+    assert_eq!(rs["resolution"], r["resolution"], "compared at the data's resolution");
+    let (point, filtered) =
+        (r["reconstruction_l1"]["mask"].as_f64().unwrap(), rs["reconstruction_l1"]["mask"].as_f64().unwrap());
+    assert!(filtered != point && (filtered - point).abs() < 0.5 * point, "mask L1 {point} → {filtered}");
+    for bad in ["0", "5"] {
+        let o = eval(&data, &["--checkpoint", g.to_str().unwrap(), "--supersample", bad]);
+        assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--supersample"), "{bad}");
+    }
     // Seeded evaluations report no reconstruction figure; a checkpoint without codes, a
     // dataset with more subjects than codes and a ψ with the flag are refused.
     let seeded: serde_json::Value = {
