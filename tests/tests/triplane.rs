@@ -1,7 +1,8 @@
 //! Triplane lookup (paper Sec. 4.1): the row-table sampler (autodiff devices) agrees with the
 //! backends' `grid_sample_2d` (inference) inside, at the border and outside the box, and is
 //! exact on a linear plane; its gradients with respect to the planes and the points match
-//! finite differences (of the native path) on NdArray and on Wgpu (lavapipe).
+//! finite differences (of the native path) on NdArray and on Wgpu (lavapipe). On NdArray the
+//! tracked lookup is its own operation, checked against the row table.
 
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
@@ -106,6 +107,33 @@ fn grad_check(dev: &Device) {
         diff / size,
         stable.len()
     );
+}
+
+/// On NdArray the tracked lookup is one operation with its own backward pass
+/// (`ndarray_ops::triplane_bilinear`); the row-table sampler is what other backends use. Both
+/// give the same values and the same gradients for the planes and the points.
+#[test]
+fn the_cpu_lookup_operation_equals_the_row_table_sampler_and_so_do_its_gradients() {
+    let ad = cpu().autodiff();
+    let n = 64;
+    let (p, q) = scene(n);
+    let mut rng = Rng::new(7, 8);
+    let w: Vec<f32> = (0..B * n * C).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+    let run = |op: bool| {
+        let (pl, pt) = (planes(&p, &ad).require_grad(), points(&q, n, &ad).require_grad());
+        let y =
+            if op { sample_triplanes(pl.clone(), pt.clone()) } else { sample_triplanes_rows(pl.clone(), pt.clone()) };
+        let wt = Tensor::<3>::from_data(TensorData::new(w.clone(), [B, n, C]), &ad);
+        let grads = (y.clone() * wt).sum().backward();
+        (values(y), values(pl.grad(&grads).expect("plane gradient")), values(pt.grad(&grads).expect("point gradient")))
+    };
+    let (op, rows) = (run(true), run(false));
+    for (what, a, b) in [("values", &op.0, &rows.0), ("∂planes", &op.1, &rows.1), ("∂points", &op.2, &rows.2)] {
+        assert_eq!(a.len(), b.len(), "{what}");
+        let scale = b.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let err = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+        assert!(scale > 0.1 && err <= 1e-5 * scale, "{what}: max difference {err} of {scale}");
+    }
 }
 
 #[test]

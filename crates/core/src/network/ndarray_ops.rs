@@ -19,7 +19,14 @@
 //! padding and walked 10 % of a CPU training step once the convolution was one operation;
 //! [`NdArrayOpsBackend::avg_pool2x2`] is the 2×2, stride-2 case as two plain loops. Likewise
 //! the bias add, leaky ReLU and gain after each convolution were four element-wise tensor
-//! ops (and a mask) each way; [`NdArrayOpsBackend::bias_lrelu`] is one pass each way.
+//! ops (and a mask) each way; [`NdArrayOpsBackend::bias_lrelu`] is one pass each way. The
+//! synthesis network's 2× upsampling, in tensor ops, narrows, concatenates, interleaves and
+//! reshapes each axis; with 256² texture detail planes its copies (and their gradients'
+//! slices) were the largest share of a CPU training step, so [`NdArrayOpsBackend::upsample2`]
+//! is one separable pass each way. The triplane lookup under autodiff (`triplane`'s row
+//! table) rebuilt a table of every plane's 2×2 neighbourhoods at each call, and its gradient
+//! as large, for a few thousand points; [`NdArrayOpsBackend::triplane_bilinear`] reads and
+//! scatters only the texels the points touch.
 
 // burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
 // (docs/benchmarks.md, "burn's flex CPU backend").
@@ -46,6 +53,15 @@ pub trait NdArrayOpsBackend: Backend {
     fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self>;
     /// `lrelu(x + bias) · √2` (slope 0.2, StyleGAN's gain): `x` `[B, C, H, W]`, `bias` `[C]`.
     fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// The synthesis network's 2× bilinear upsampling (`synthesis::upsample2`): `[B, C, H, W]`
+    /// → `[B, C, 2H, 2W]`, each output the 0.75 / 0.25 blend of its input and the nearer
+    /// neighbour, clamped at the borders.
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// The triplane lookup (`triplane::sample_triplanes`) at texel coordinates: `planes`
+    /// `[B, 3·C, R, R]`, `texels` `[B, N, 3]` (a point's box coordinates mapped to texels,
+    /// `align_corners = false`) → `[B, N, C]`, the sum over the three planes of the bilinear
+    /// sample, zero outside.
+    fn triplane_bilinear(planes: FloatTensor<Self>, texels: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
 /// [`NdArrayOpsBackend::conv2d_same`] on tensors (NdArray's, or autodiff over NdArray).
@@ -61,6 +77,19 @@ pub fn avg_pool2x2(x: Tensor<4>) -> Tensor<4> {
 /// [`NdArrayOpsBackend::bias_lrelu`] on tensors.
 pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::bias_lrelu(x.into_dispatch(), bias.into_dispatch()))
+}
+
+/// [`NdArrayOpsBackend::upsample2`] on tensors.
+pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::upsample2(x.into_dispatch()))
+}
+
+/// [`NdArrayOpsBackend::triplane_bilinear`] on tensors.
+pub fn triplane_bilinear(planes: Tensor<4>, texels: Tensor<3>) -> Tensor<3> {
+    Tensor::from_dispatch(<Dispatch as NdArrayOpsBackend>::triplane_bilinear(
+        planes.into_dispatch(),
+        texels.into_dispatch(),
+    ))
 }
 
 /// Leaky ReLU's negative slope and StyleGAN's gain, as [`super::layers::lrelu_gain`] uses them.
@@ -352,6 +381,174 @@ pub fn pool_backward(planes: usize, h: usize, w: usize, dy: &[f32]) -> Vec<f32> 
     dx
 }
 
+/// The two inputs of output `k` of a 2× upsampling along an axis of length `n`: its own input
+/// `k / 2` (weight 0.75) and the nearer neighbour, clamped at the ends (weight 0.25).
+fn up_taps(k: usize, n: usize) -> (usize, usize) {
+    let i = k / 2;
+    (i, if k % 2 == 0 { i.saturating_sub(1) } else { (i + 1).min(n - 1) })
+}
+
+/// 2× bilinear upsampling of `[planes, H, W]` → `[planes, 2H, 2W]`, along H then along W with
+/// the same products and sums as `synthesis::upsample_dim` twice (so the same bits).
+pub fn upsample2_forward(planes: usize, h: usize, w: usize, x: &[f32]) -> Vec<f32> {
+    let (h2, w2) = (2 * h, 2 * w);
+    let mut tall = vec![0.0f32; h2 * w];
+    let mut y = vec![0.0f32; planes * h2 * w2];
+    for p in 0..planes {
+        let xp = &x[p * h * w..][..h * w];
+        for (k, out) in tall.chunks_exact_mut(w).enumerate() {
+            let (i, j) = up_taps(k, h);
+            let (a, b) = (&xp[i * w..][..w], &xp[j * w..][..w]);
+            for ((o, a), b) in out.iter_mut().zip(a).zip(b) {
+                *o = a * 0.75 + b * 0.25;
+            }
+        }
+        let yp = &mut y[p * h2 * w2..][..h2 * w2];
+        for (out, src) in yp.chunks_exact_mut(w2).zip(tall.chunks_exact(w)) {
+            for (k, o) in out.iter_mut().enumerate() {
+                let (i, j) = up_taps(k, w);
+                *o = src[i] * 0.75 + src[j] * 0.25;
+            }
+        }
+    }
+    y
+}
+
+/// The adjoint of [`upsample2_forward`]: each output's gradient back to its inputs with the
+/// same weights, along W then along H.
+pub fn upsample2_backward(planes: usize, h: usize, w: usize, dy: &[f32]) -> Vec<f32> {
+    let (h2, w2) = (2 * h, 2 * w);
+    let mut tall = vec![0.0f32; h2 * w];
+    let mut dx = vec![0.0f32; planes * h * w];
+    for p in 0..planes {
+        tall.fill(0.0);
+        let gp = &dy[p * h2 * w2..][..h2 * w2];
+        for (acc, g) in tall.chunks_exact_mut(w).zip(gp.chunks_exact(w2)) {
+            for (k, g) in g.iter().enumerate() {
+                let (i, j) = up_taps(k, w);
+                acc[i] += 0.75 * g;
+                acc[j] += 0.25 * g;
+            }
+        }
+        let dp = &mut dx[p * h * w..][..h * w];
+        for (k, g) in tall.chunks_exact(w).enumerate() {
+            let (i, j) = up_taps(k, h);
+            for (r, wt) in [(i, 0.75f32), (j, 0.25)] {
+                for (acc, g) in dp[r * w..][..w].iter_mut().zip(g) {
+                    *acc += wt * g;
+                }
+            }
+        }
+    }
+    dx
+}
+
+/// Sizes of a triplane lookup: batch, points per sample, channels per plane, plane side.
+#[derive(Clone, Copy, Debug)]
+pub struct TriplaneDims {
+    pub batch: usize,
+    pub points: usize,
+    pub channels: usize,
+    pub res: usize,
+}
+
+/// (horizontal, vertical) texel axes of the planes (x,y), (y,z), (x,z): `triplane::PLANE_AXES`.
+const TRIPLANE_AXES: [[usize; 2]; 3] = [[0, 1], [1, 2], [0, 2]];
+
+/// Each plane's bilinear stencil at point `(bi, ni)`: for plane k, the four texels' flat offsets
+/// into `[B, 3·C, R, R]` at channel 0 (None outside the plane) with their weights, and the
+/// weights' derivatives along the plane's two axes (for the texel coordinates' gradient).
+#[allow(clippy::type_complexity)]
+fn triplane_stencil(
+    d: &TriplaneDims,
+    texels: &[f32],
+    bi: usize,
+    ni: usize,
+    k: usize,
+) -> ([(Option<usize>, f32, f32, f32); 4], [usize; 2]) {
+    let t = &texels[(bi * d.points + ni) * 3..][..3];
+    let [au, av] = TRIPLANE_AXES[k];
+    let (u, v) = (t[au], t[av]);
+    let (u0, v0) = (u.floor(), v.floor());
+    let (fu, fv) = (u - u0, v - v0);
+    let (gu, gv) = (-fu + 1.0, -fv + 1.0);
+    let r = d.res as i64;
+    let base = (bi * 3 + k) * d.channels * d.res * d.res;
+    let at = |y: f32, x: f32| -> Option<usize> {
+        let (y, x) = (y as i64, x as i64);
+        ((0..r).contains(&y) && (0..r).contains(&x)).then(|| base + (y * r + x) as usize)
+    };
+    // (texel, weight, ∂weight/∂u, ∂weight/∂v) in the row-table sampler's order.
+    (
+        [
+            (at(v0, u0), gu * gv, -gv, -gu),
+            (at(v0, u0 + 1.0), fu * gv, gv, -fu),
+            (at(v0 + 1.0, u0), gu * fv, -fv, gu),
+            (at(v0 + 1.0, u0 + 1.0), fu * fv, fv, fu),
+        ],
+        [au, av],
+    )
+}
+
+/// The lookup's values `[B, N, C]`.
+pub fn triplane_forward(d: &TriplaneDims, planes: &[f32], texels: &[f32]) -> Vec<f32> {
+    let (c, plane) = (d.channels, d.res * d.res);
+    let mut y = vec![0.0f32; d.batch * d.points * c];
+    for bi in 0..d.batch {
+        for ni in 0..d.points {
+            let out = &mut y[(bi * d.points + ni) * c..][..c];
+            for k in 0..3 {
+                let (stencil, _) = triplane_stencil(d, texels, bi, ni, k);
+                for (texel, w, _, _) in stencil {
+                    if let Some(o) = texel {
+                        for (ch, acc) in out.iter_mut().enumerate() {
+                            *acc += w * planes[o + ch * plane];
+                        }
+                    }
+                }
+            }
+        }
+    }
+    y
+}
+
+/// The lookup's gradients for the planes and the texel coordinates, each only when asked.
+pub fn triplane_backward(
+    d: &TriplaneDims,
+    planes: &[f32],
+    texels: &[f32],
+    dy: &[f32],
+    want_planes: bool,
+    want_texels: bool,
+) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
+    let (c, plane) = (d.channels, d.res * d.res);
+    let mut dp = want_planes.then(|| vec![0.0f32; d.batch * 3 * c * plane]);
+    let mut dt = want_texels.then(|| vec![0.0f32; d.batch * d.points * 3]);
+    for bi in 0..d.batch {
+        for ni in 0..d.points {
+            let g = &dy[(bi * d.points + ni) * c..][..c];
+            for k in 0..3 {
+                let (stencil, [au, av]) = triplane_stencil(d, texels, bi, ni, k);
+                for (texel, w, dw_du, dw_dv) in stencil {
+                    let Some(o) = texel else { continue };
+                    if let Some(dp) = dp.as_mut() {
+                        for (ch, g) in g.iter().enumerate() {
+                            dp[o + ch * plane] += w * g;
+                        }
+                    }
+                    if let Some(dt) = dt.as_mut() {
+                        let dot: f32 = g.iter().enumerate().map(|(ch, g)| g * planes[o + ch * plane]).sum();
+                        let t = &mut dt[(bi * d.points + ni) * 3..][..3];
+                        t[au] += dw_du * dot;
+                        t[av] += dw_dv * dot;
+                    }
+                }
+            }
+        }
+    }
+    (dp, dt)
+}
+
 /// A `[B, C, H, W]` shape as (planes, H, W).
 fn planes(shape: &[usize]) -> (usize, usize, usize) {
     (shape[0] * shape[1], shape[2], shape[3])
@@ -395,6 +592,25 @@ impl NdArrayOpsBackend for NdArray {
         let ((shape, x), (_, b)) = (values(&x), values(&bias));
         let (c, plane) = (shape[1], shape[2..].iter().product());
         tensor(bias_lrelu_forward(c, plane, &x, &b), shape)
+    }
+
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let (shape, x) = values(&x);
+        let (p, h, w) = planes(&shape);
+        tensor(upsample2_forward(p, h, w, &x), vec![shape[0], shape[1], 2 * h, 2 * w])
+    }
+
+    fn triplane_bilinear(planes: FloatTensor<Self>, texels: FloatTensor<Self>) -> FloatTensor<Self> {
+        let ((ps, p), (ts, t)) = (values(&planes), values(&texels));
+        let d = TriplaneDims::of(&ps, &ts);
+        tensor(triplane_forward(&d, &p, &t), vec![d.batch, d.points, d.channels])
+    }
+}
+
+impl TriplaneDims {
+    /// From the planes' `[B, 3·C, R, R]` and the texel coordinates' `[B, N, 3]` shapes.
+    fn of(planes: &[usize], texels: &[usize]) -> Self {
+        Self { batch: planes[0], points: texels[1], channels: planes[1] / 3, res: planes[2] }
     }
 }
 
@@ -470,6 +686,47 @@ mod autodiff {
         }
     }
 
+    #[derive(Debug)]
+    struct Upsample2Backward;
+
+    impl Backward<NdArray, 1> for Upsample2Backward {
+        /// The input's shape.
+        type State = Vec<usize>;
+
+        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node] = ops.parents;
+            let dy = grads.consume::<NdArray>(&ops.node);
+            if let Some(node) = node {
+                let (_, dy) = values(&dy);
+                let (p, h, w) = planes(&ops.state);
+                grads.register::<NdArray>(node.id, tensor(upsample2_backward(p, h, w, &dy), ops.state));
+            }
+        }
+    }
+
+    #[derive(Debug)]
+    struct TriplaneBackward;
+
+    impl Backward<NdArray, 2> for TriplaneBackward {
+        /// The forward pass's planes and texel coordinates (reference-counted: no copy).
+        type State = (FloatTensor<NdArray>, FloatTensor<NdArray>);
+
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node_p, node_t] = ops.parents;
+            let dy = grads.consume::<NdArray>(&ops.node);
+            let (planes, texels) = ops.state;
+            let ((ps, p), (ts, t), (_, dy)) = (values(&planes), values(&texels), values(&dy));
+            let d = TriplaneDims::of(&ps, &ts);
+            let (dp, dt) = triplane_backward(&d, &p, &t, &dy, node_p.is_some(), node_t.is_some());
+            if let (Some(node), Some(dp)) = (node_p, dp) {
+                grads.register::<NdArray>(node.id, tensor(dp, ps));
+            }
+            if let (Some(node), Some(dt)) = (node_t, dt) {
+                grads.register::<NdArray>(node.id, tensor(dt, ts));
+            }
+        }
+    }
+
     impl<C: CheckpointStrategy> NdArrayOpsBackend for Autodiff<NdArray, C> {
         fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
             let (x, x_node) = x.into_parts();
@@ -505,12 +762,66 @@ mod autodiff {
                 OpsKind::UnTracked(prep) => prep.finish(NdArray::bias_lrelu(x, b)),
             }
         }
+
+        fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+            let (x, node) = x.into_parts();
+            match Upsample2Backward.prepare::<C>([node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let shape = x.shape().to_vec();
+                    prep.finish(shape, NdArray::upsample2(x))
+                }
+                OpsKind::UnTracked(prep) => prep.finish(NdArray::upsample2(x)),
+            }
+        }
+
+        fn triplane_bilinear(planes: FloatTensor<Self>, texels: FloatTensor<Self>) -> FloatTensor<Self> {
+            let (p, p_node) = planes.into_parts();
+            let (t, t_node) = texels.into_parts();
+            match TriplaneBackward.prepare::<C>([p_node, t_node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let y = NdArray::triplane_bilinear(p.clone(), t.clone());
+                    prep.finish((p, t), y)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(NdArray::triplane_bilinear(p, t)),
+            }
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The upsampling against its definition (each output from its two taps), and its
+    /// backward pass against the adjoint identity ⟨up(x), dy⟩ = ⟨x, up*(dy)⟩, exact for a
+    /// linear map, on odd and even sizes and a 1-wide axis.
+    #[test]
+    fn upsample2_matches_its_definition_and_its_backward_is_the_adjoint() {
+        for (planes, h, w) in [(2, 3, 4), (1, 1, 5), (3, 4, 1), (1, 2, 2)] {
+            let x: Vec<f32> = (0..planes * h * w).map(|i| ((i * 37 % 11) as f32) - 5.0).collect();
+            let y = upsample2_forward(planes, h, w, &x);
+            assert_eq!(y.len(), planes * 4 * h * w);
+            let at = |p: usize, r: usize, c: usize| x[(p * h + r) * w + c];
+            for p in 0..planes {
+                for r2 in 0..2 * h {
+                    for c2 in 0..2 * w {
+                        let ((ri, rj), (ci, cj)) = (up_taps(r2, h), up_taps(c2, w));
+                        let want = 0.75 * (0.75 * at(p, ri, ci) + 0.25 * at(p, ri, cj))
+                            + 0.25 * (0.75 * at(p, rj, ci) + 0.25 * at(p, rj, cj));
+                        let got = y[(p * 2 * h + r2) * 2 * w + c2];
+                        assert!((got - want).abs() < 1e-5, "{planes}×{h}×{w} at {p},{r2},{c2}: {got} vs {want}");
+                    }
+                }
+            }
+            // The first output row and column repeat the input's border (clamped taps).
+            assert_eq!(y[0], x[0]);
+            let dy: Vec<f32> = (0..y.len()).map(|i| ((i * 13 % 7) as f32) * 0.5 - 1.0).collect();
+            let dx = upsample2_backward(planes, h, w, &dy);
+            let lhs: f64 = y.iter().zip(&dy).map(|(a, b)| (*a as f64) * (*b as f64)).sum();
+            let rhs: f64 = x.iter().zip(&dx).map(|(a, b)| (*a as f64) * (*b as f64)).sum();
+            assert!((lhs - rhs).abs() < 1e-3 * lhs.abs().max(1.0), "{planes}×{h}×{w}: {lhs} vs {rhs}");
+        }
+    }
 
     /// The plain-buffer passes against a direct loop convolution and its finite differences.
     #[test]

@@ -67,6 +67,12 @@ fn upsample2(x: Tensor<4>) -> Tensor<4> {
     if let Some(y) = super::cube_ops::upsample2(&x, None) {
         return y;
     }
+    // One operation each way on the CPU (`ndarray_ops`): the same values as the tensor ops
+    // below, without their copies.
+    #[cfg(feature = "ndarray")]
+    if super::layers::is_ndarray(&x.device()) {
+        return super::ndarray_ops::upsample2(x);
+    }
     upsample_dim(upsample_dim(x, 2), 3)
 }
 
@@ -380,6 +386,34 @@ mod tests {
         // Output row 1 = ¾·row 0 + ¼·row 1 = [2, 6] → [2, 3, 5, 6].
         assert_eq!(&y[4..8], &[2.0, 3.0, 5.0, 6.0]);
         assert_eq!(y.len(), 16);
+    }
+
+    /// The NdArray operation (`ndarray_ops::upsample2`) against the tensor-op path it
+    /// replaces on the CPU: the same bits forward, and under autodiff the same gradient.
+    #[cfg(all(feature = "autodiff", feature = "ndarray"))]
+    #[test]
+    fn the_cpu_upsampling_operation_equals_the_tensor_ops_and_so_do_its_gradients() {
+        #[allow(deprecated)]
+        let dev = Device::ndarray().autodiff();
+        let vals: Vec<f32> = (0..2 * 3 * 5 * 7).map(|i| ((i * 7919 % 1013) as f32 - 500.0) * 0.0137).collect();
+        let weights: Vec<f32> = (0..2 * 3 * 10 * 14).map(|i| ((i * 104_729 % 997) as f32 - 498.0) * 0.01).collect();
+        let wt = Tensor::<4>::from_data(TensorData::new(weights, [2, 3, 10, 14]), &dev);
+        let run = |op: bool| {
+            let x = Tensor::<4>::from_data(TensorData::new(vals.clone(), [2, 3, 5, 7]), &dev).require_grad();
+            let y = if op {
+                crate::network::ndarray_ops::upsample2(x.clone())
+            } else {
+                upsample_dim(upsample_dim(x.clone(), 2), 3)
+            };
+            let grads = (y.clone() * wt.clone()).sum().backward();
+            let g = x.grad(&grads).expect("x is tracked").into_data().try_to_vec::<f32>().unwrap();
+            (y.into_data().try_to_vec::<f32>().unwrap(), g)
+        };
+        let ((y_op, g_op), (y_ref, g_ref)) = (run(true), run(false));
+        assert_eq!(y_op, y_ref);
+        for (a, b) in g_op.iter().zip(&g_ref) {
+            assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{a} vs {b}");
+        }
     }
 
     #[test]

@@ -9,7 +9,10 @@
 //! is a row scatter-add) and weights the four texels. burn's generic `grid_sample_2d` under
 //! autodiff instead expands per-channel gather indices and masks, which cost about half of a
 //! training step on NdArray. Without autodiff the backends' native `grid_sample_2d` kernels are
-//! faster, so inference keeps them ([`sample_triplanes`] picks by device).
+//! faster, so inference keeps them ([`sample_triplanes`] picks by device). On NdArray under
+//! autodiff the lookup is one operation with its own backward pass
+//! (`ndarray_ops::triplane_bilinear`), which touches only the texels the points read: the
+//! table costs O(R²·C) per call, about half of a training step with 256² texture planes.
 
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Int, Tensor, TensorData};
@@ -27,6 +30,12 @@ pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
     #[cfg(feature = "autodiff")]
     if planes.is_autodiff() || points.is_autodiff() {
         if planes.is_tracked() || points.is_tracked() {
+            // On the CPU one operation with its own backward pass (`ndarray_ops`).
+            #[cfg(feature = "ndarray")]
+            if super::layers::is_ndarray(&planes.device()) {
+                let r = planes.dims()[2];
+                return super::ndarray_ops::triplane_bilinear(planes, texel_coordinates(points, r));
+            }
             return sample_triplanes_rows(planes, points);
         }
         return sample_triplanes_native(planes.inner(), points.inner()).autodiff();
@@ -38,6 +47,12 @@ pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
 fn box_coordinates(points: Tensor<3>) -> Tensor<3> {
     let center = Tensor::<1>::from_floats(REFERENCE_BOX_CENTER.to_array(), &points.device()).reshape([1, 1, 3]);
     (points - center) * (2.0 / REFERENCE_BOX_SIZE)
+}
+
+/// Texel coordinates of canonical points on planes of side `r` (`align_corners = false`:
+/// −1 ↦ −0.5, 1 ↦ R − 0.5), `[B, N, 3]`.
+fn texel_coordinates(points: Tensor<3>, r: usize) -> Tensor<3> {
+    (box_coordinates(points) + 1.0) * (r as f64 / 2.0) - 0.5
 }
 
 /// [`sample_triplanes`] with the backend's `grid_sample_2d`, plane by plane.
@@ -77,7 +92,7 @@ pub fn sample_triplanes_rows(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> 
         .reshape([b * 3 * s * s, 4 * c]);
 
     // Texel coordinates (align_corners = false: −1 ↦ −0.5, 1 ↦ R − 0.5) per plane, [B, N, 3].
-    let t = (box_coordinates(points) + 1.0) * (r as f64 / 2.0) - 0.5;
+    let t = texel_coordinates(points, r);
     let axis =
         |a: [i64; 3]| t.clone().select(2, Tensor::<1, Int>::from_data(TensorData::new(a.to_vec(), [3]), &device));
     let (u, v) = (axis(PLANE_AXES[0]), axis(PLANE_AXES[1]));
