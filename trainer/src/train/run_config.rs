@@ -61,6 +61,14 @@ pub struct RunConfig {
     /// `run.json` like the above.
     #[serde(default = "one")]
     pub lr_geometry_detail_mul: f32,
+    /// Further factor, on top of `lr_texture_mul`, for the texture detail blocks
+    /// (`GeneratorConfig::texture_res`, parameters under `synthesis.texture_detail.`): a block
+    /// grown into a trained generator starts at zero output, and its learned constant's texels
+    /// are each reached by few points a step, so Adam's rate sets its pace (a 256² block gave
+    /// nothing measurable after 200 steps at `lr_texture_mul` alone; MODEL_CARD, session 44).
+    /// Absent: 1. Editable in `run.json` like the above.
+    #[serde(default = "one")]
+    pub lr_texture_detail_mul: f32,
     pub lr_d: f32,
     pub r1_gamma: f32,
     pub r1_every: u64,
@@ -165,6 +173,7 @@ impl RunConfig {
                 Objective::Reconstruction => 1.0,
             },
             lr_geometry_detail_mul: 1.0,
+            lr_texture_detail_mul: 1.0,
             lr_d: 0.002,
             r1_gamma,
             r1_every: 16,

@@ -95,24 +95,29 @@ pub(crate) fn latents(rng: &mut Rng, b: usize, dim: usize, dev: &Device) -> Tens
     Tensor::from_data(TensorData::new(rng.normals(b * dim), [b, dim]), dev)
 }
 
-/// One Adam step of G at `lr_g`, the texture branch at `lr_g · lr_texture_mul`, the
-/// geometry heads at `lr_g · lr_geometry_head_mul` and the geometry detail blocks at
-/// `lr_g · lr_geometry_detail_mul`; with `train_only`, parameters outside it at 0.
+/// One Adam step of G, each parameter at `lr_g` times its [`lr_factor`].
 pub(crate) fn generator_update(adam: &mut Adam, rc: &RunConfig, g: Generator, grads: &Gradients) -> Generator {
-    let (tex, geo) = (rc.lr_texture_mul, rc.lr_geometry_head_mul);
-    adam.step_scaled(rc.lr_g, g, grads, &|name| {
-        if rc.train_only.as_deref().is_some_and(|p| !name.starts_with(p)) {
-            0.0
-        } else if is_texture_param(name) {
-            tex
-        } else if is_geometry_head_param(name) {
-            geo
-        } else if name.starts_with("synthesis.geometry_detail.") {
-            rc.lr_geometry_detail_mul
-        } else {
-            1.0
-        }
-    })
+    adam.step_scaled(rc.lr_g, g, grads, &|name| lr_factor(rc, name))
+}
+
+/// The factor on `lr_g` of the G parameter at checkpoint path `name`: the texture branch at
+/// `lr_texture_mul` (its detail blocks at `lr_texture_mul · lr_texture_detail_mul`), the
+/// geometry heads at `lr_geometry_head_mul`, the geometry detail blocks at
+/// `lr_geometry_detail_mul`, the rest at 1; with `train_only`, parameters outside it at 0.
+pub(crate) fn lr_factor(rc: &RunConfig, name: &str) -> f32 {
+    if rc.train_only.as_deref().is_some_and(|p| !name.starts_with(p)) {
+        0.0
+    } else if name.starts_with("synthesis.texture_detail.") {
+        rc.lr_texture_mul * rc.lr_texture_detail_mul
+    } else if is_texture_param(name) {
+        rc.lr_texture_mul
+    } else if is_geometry_head_param(name) {
+        rc.lr_geometry_head_mul
+    } else if name.starts_with("synthesis.geometry_detail.") {
+        rc.lr_geometry_detail_mul
+    } else {
+        1.0
+    }
 }
 
 /// Track both mapping networks' w_avg (decay `beta`) on this step's latents.
@@ -122,4 +127,40 @@ pub(crate) fn track_w_avg(mut g: Generator, zg: Tensor<2>, zt: Tensor<2>, beta: 
     let wt = g.mapping_tex.forward(zt.detach());
     g.mapping_tex = g.mapping_tex.track_w_avg(wt, beta);
     g
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::train::run_config::Objective;
+
+    #[test]
+    fn each_parameter_group_learns_at_its_own_factor() {
+        let ds = getavatar_core::dataset::Dataset {
+            root: "data".into(),
+            entries: Vec::new(),
+            resolution: 64,
+            has_normals: true,
+        };
+        let tiny = getavatar_core::network::GeneratorConfig::tiny();
+        let mut rc = RunConfig::with_objective(&ds, &ds.root, tiny, 4, 10.0, 0, Objective::Reconstruction);
+        (rc.lr_texture_mul, rc.lr_texture_detail_mul) = (8.0, 3.0);
+        (rc.lr_geometry_head_mul, rc.lr_geometry_detail_mul) = (0.25, 4.0);
+        let cases = [
+            ("synthesis.texture_detail.1.constant", 24.0),
+            ("synthesis.texture_detail.0.to_texture.weight", 24.0),
+            ("synthesis.blocks.2.to_texture.weight", 8.0),
+            ("decoders.texture.0.weight", 8.0),
+            ("mapping_tex.layers.0.weight", 8.0),
+            ("decoders.sdf.0.weight", 0.25),
+            ("synthesis.geometry_detail.0.constant", 4.0),
+            ("synthesis.blocks.2.convs.0.weight", 1.0),
+        ];
+        for (name, want) in cases {
+            assert_eq!(lr_factor(&rc, name), want, "{name}");
+        }
+        rc.train_only = Some("synthesis.texture_detail.".into());
+        assert_eq!(lr_factor(&rc, "synthesis.texture_detail.1.constant"), 24.0);
+        assert_eq!(lr_factor(&rc, "decoders.texture.0.weight"), 0.0);
+    }
 }
