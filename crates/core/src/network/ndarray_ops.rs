@@ -22,7 +22,7 @@
 //! ops (and a mask) each way; [`NdArrayOpsBackend::bias_lrelu`] is one pass each way. The
 //! synthesis network's 2× upsampling, in tensor ops, narrows, concatenates, interleaves and
 //! reshapes each axis; with 256² texture detail planes its copies (and their gradients'
-//! slices) were the largest share of a CPU training step, so [`NdArrayOpsBackend::upsample2`]
+//! slices) took a fifth of a CPU training step (docs/benchmarks.md), so [`NdArrayOpsBackend::upsample2`]
 //! is one separable pass each way. The triplane lookup under autodiff (`triplane`'s row
 //! table) rebuilt a table of every plane's 2×2 neighbourhoods at each call, and its gradient
 //! as large, for a few thousand points; [`NdArrayOpsBackend::triplane_bilinear`] reads and
