@@ -646,10 +646,12 @@ mod autodiff {
         }
     }
 
+    /// The backward pass of a linear operation of one `[B, C, H, W]` input that works plane by
+    /// plane (the pooling, the upsampling): its adjoint `(planes, H, W, dy) → dx`.
     #[derive(Debug)]
-    struct AvgPool2x2Backward;
+    struct PlanewiseBackward(fn(usize, usize, usize, &[f32]) -> Vec<f32>);
 
-    impl Backward<NdArray, 1> for AvgPool2x2Backward {
+    impl Backward<NdArray, 1> for PlanewiseBackward {
         /// The input's shape.
         type State = Vec<usize>;
 
@@ -659,8 +661,24 @@ mod autodiff {
             if let Some(node) = node {
                 let (_, dy) = values(&dy);
                 let (p, h, w) = planes(&ops.state);
-                grads.register::<NdArray>(node.id, tensor(pool_backward(p, h, w, &dy), ops.state));
+                grads.register::<NdArray>(node.id, tensor((self.0)(p, h, w, &dy), ops.state));
             }
+        }
+    }
+
+    /// A plane-wise operation (`forward` on NdArray) under autodiff, with its `adjoint`.
+    fn planewise<C: CheckpointStrategy>(
+        x: FloatTensor<Autodiff<NdArray, C>>,
+        forward: fn(FloatTensor<NdArray>) -> FloatTensor<NdArray>,
+        adjoint: fn(usize, usize, usize, &[f32]) -> Vec<f32>,
+    ) -> FloatTensor<Autodiff<NdArray, C>> {
+        let (x, node) = x.into_parts();
+        match PlanewiseBackward(adjoint).prepare::<C>([node]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let shape = x.shape().to_vec();
+                prep.finish(shape, forward(x))
+            }
+            OpsKind::UnTracked(prep) => prep.finish(forward(x)),
         }
     }
 
@@ -682,24 +700,6 @@ mod autodiff {
             }
             if let Some(node) = node_b {
                 grads.register::<NdArray>(node.id, tensor(db, vec![c]));
-            }
-        }
-    }
-
-    #[derive(Debug)]
-    struct Upsample2Backward;
-
-    impl Backward<NdArray, 1> for Upsample2Backward {
-        /// The input's shape.
-        type State = Vec<usize>;
-
-        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-            let [node] = ops.parents;
-            let dy = grads.consume::<NdArray>(&ops.node);
-            if let Some(node) = node {
-                let (_, dy) = values(&dy);
-                let (p, h, w) = planes(&ops.state);
-                grads.register::<NdArray>(node.id, tensor(upsample2_backward(p, h, w, &dy), ops.state));
             }
         }
     }
@@ -741,14 +741,7 @@ mod autodiff {
         }
 
         fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
-            let (x, node) = x.into_parts();
-            match AvgPool2x2Backward.prepare::<C>([node]).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => {
-                    let shape = x.shape().to_vec();
-                    prep.finish(shape, NdArray::avg_pool2x2(x))
-                }
-                OpsKind::UnTracked(prep) => prep.finish(NdArray::avg_pool2x2(x)),
-            }
+            planewise::<C>(x, NdArray::avg_pool2x2, pool_backward)
         }
 
         fn bias_lrelu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -764,14 +757,7 @@ mod autodiff {
         }
 
         fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
-            let (x, node) = x.into_parts();
-            match Upsample2Backward.prepare::<C>([node]).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => {
-                    let shape = x.shape().to_vec();
-                    prep.finish(shape, NdArray::upsample2(x))
-                }
-                OpsKind::UnTracked(prep) => prep.finish(NdArray::upsample2(x)),
-            }
+            planewise::<C>(x, NdArray::upsample2, upsample2_backward)
         }
 
         fn triplane_bilinear(planes: FloatTensor<Self>, texels: FloatTensor<Self>) -> FloatTensor<Self> {
