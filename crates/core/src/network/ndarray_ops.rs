@@ -623,27 +623,70 @@ mod autodiff {
     use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
     use burn::backend::Autodiff;
 
-    #[derive(Debug)]
-    struct SameConvBackward;
+    /// The gradients of a two-input operation (the convolution, the triplane lookup) from its
+    /// inputs' shapes and values and its output's gradient, each only when asked.
+    type PairAdjoint =
+        fn((&[usize], &[f32]), (&[usize], &[f32]), &[f32], bool, bool) -> (Option<Vec<f32>>, Option<Vec<f32>>);
 
-    impl Backward<NdArray, 2> for SameConvBackward {
-        /// The forward pass's `x` and `weight` (NdArray's arrays are reference-counted: no copy).
+    /// The backward pass of a two-input operation that keeps both inputs for it.
+    #[derive(Debug)]
+    struct PairBackward(PairAdjoint);
+
+    impl Backward<NdArray, 2> for PairBackward {
+        /// The forward pass's inputs (NdArray's arrays are reference-counted: no copy).
         type State = (FloatTensor<NdArray>, FloatTensor<NdArray>);
 
         fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-            let [node_x, node_w] = ops.parents;
+            let [node_a, node_b] = ops.parents;
             let dy = grads.consume::<NdArray>(&ops.node);
-            let (x, weight) = ops.state;
-            let ((xs, x), (ws, w), (_, dy)) = (values(&x), values(&weight), values(&dy));
-            let d = ConvDims::of(&xs, &ws);
-            let (dx, dw) = backward(&d, &x, &w, &dy, node_x.is_some(), node_w.is_some());
-            if let (Some(node), Some(dx)) = (node_x, dx) {
-                grads.register::<NdArray>(node.id, tensor(dx, xs));
+            let (a, b) = ops.state;
+            let ((sa, va), (sb, vb), (_, dy)) = (values(&a), values(&b), values(&dy));
+            let (da, db) = (self.0)((&sa, &va), (&sb, &vb), &dy, node_a.is_some(), node_b.is_some());
+            if let (Some(node), Some(da)) = (node_a, da) {
+                grads.register::<NdArray>(node.id, tensor(da, sa));
             }
-            if let (Some(node), Some(dw)) = (node_w, dw) {
-                grads.register::<NdArray>(node.id, tensor(dw, ws));
+            if let (Some(node), Some(db)) = (node_b, db) {
+                grads.register::<NdArray>(node.id, tensor(db, sb));
             }
         }
+    }
+
+    /// A two-input operation (`forward` on NdArray) under autodiff, with its `adjoint`.
+    fn pair<C: CheckpointStrategy>(
+        a: FloatTensor<Autodiff<NdArray, C>>,
+        b: FloatTensor<Autodiff<NdArray, C>>,
+        forward: fn(FloatTensor<NdArray>, FloatTensor<NdArray>) -> FloatTensor<NdArray>,
+        adjoint: PairAdjoint,
+    ) -> FloatTensor<Autodiff<NdArray, C>> {
+        let (a, a_node) = a.into_parts();
+        let (b, b_node) = b.into_parts();
+        match PairBackward(adjoint).prepare::<C>([a_node, b_node]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let y = forward(a.clone(), b.clone());
+                prep.finish((a, b), y)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(forward(a, b)),
+        }
+    }
+
+    fn conv_adjoint(
+        (xs, x): (&[usize], &[f32]),
+        (ws, w): (&[usize], &[f32]),
+        dy: &[f32],
+        want_x: bool,
+        want_w: bool,
+    ) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
+        backward(&ConvDims::of(xs, ws), x, w, dy, want_x, want_w)
+    }
+
+    fn triplane_adjoint(
+        (ps, p): (&[usize], &[f32]),
+        (ts, t): (&[usize], &[f32]),
+        dy: &[f32],
+        want_p: bool,
+        want_t: bool,
+    ) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
+        triplane_backward(&TriplaneDims::of(ps, ts), p, t, dy, want_p, want_t)
     }
 
     /// The backward pass of a linear operation of one `[B, C, H, W]` input that works plane by
@@ -704,40 +747,9 @@ mod autodiff {
         }
     }
 
-    #[derive(Debug)]
-    struct TriplaneBackward;
-
-    impl Backward<NdArray, 2> for TriplaneBackward {
-        /// The forward pass's planes and texel coordinates (reference-counted: no copy).
-        type State = (FloatTensor<NdArray>, FloatTensor<NdArray>);
-
-        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-            let [node_p, node_t] = ops.parents;
-            let dy = grads.consume::<NdArray>(&ops.node);
-            let (planes, texels) = ops.state;
-            let ((ps, p), (ts, t), (_, dy)) = (values(&planes), values(&texels), values(&dy));
-            let d = TriplaneDims::of(&ps, &ts);
-            let (dp, dt) = triplane_backward(&d, &p, &t, &dy, node_p.is_some(), node_t.is_some());
-            if let (Some(node), Some(dp)) = (node_p, dp) {
-                grads.register::<NdArray>(node.id, tensor(dp, ps));
-            }
-            if let (Some(node), Some(dt)) = (node_t, dt) {
-                grads.register::<NdArray>(node.id, tensor(dt, ts));
-            }
-        }
-    }
-
     impl<C: CheckpointStrategy> NdArrayOpsBackend for Autodiff<NdArray, C> {
         fn conv2d_same(x: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self> {
-            let (x, x_node) = x.into_parts();
-            let (w, w_node) = weight.into_parts();
-            match SameConvBackward.prepare::<C>([x_node, w_node]).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => {
-                    let y = NdArray::conv2d_same(x.clone(), w.clone());
-                    prep.finish((x, w), y)
-                }
-                OpsKind::UnTracked(prep) => prep.finish(NdArray::conv2d_same(x, w)),
-            }
+            pair::<C>(x, weight, NdArray::conv2d_same, conv_adjoint)
         }
 
         fn avg_pool2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -761,15 +773,7 @@ mod autodiff {
         }
 
         fn triplane_bilinear(planes: FloatTensor<Self>, texels: FloatTensor<Self>) -> FloatTensor<Self> {
-            let (p, p_node) = planes.into_parts();
-            let (t, t_node) = texels.into_parts();
-            match TriplaneBackward.prepare::<C>([p_node, t_node]).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => {
-                    let y = NdArray::triplane_bilinear(p.clone(), t.clone());
-                    prep.finish((p, t), y)
-                }
-                OpsKind::UnTracked(prep) => prep.finish(NdArray::triplane_bilinear(p, t)),
-            }
+            pair::<C>(planes, texels, NdArray::triplane_bilinear, triplane_adjoint)
         }
     }
 }
