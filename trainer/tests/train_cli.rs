@@ -881,3 +881,67 @@ fn scan_terms_are_logged_kept_in_the_run_and_lower_the_texture_error() {
     refused(&["--resume", "--lambda-face", "0.5"], &run, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `--lr-codes` (reconstruction only, not in the paper): the subjects' learned codes live in
+/// the training state (a resume continues them bit-identically), move the generator file's
+/// latent modes off the fixed latents' codes, and a run started from that file goes on from
+/// them; the setting is kept in run.json and refused where it has no effect.
+#[test]
+fn learned_subject_codes_resume_exactly_and_carry_over_through_the_generator_file() {
+    let root = tmp("codes");
+    let data = dataset(&root);
+    let recon = ["--objective", "reconstruction"];
+    let (a, b) = (root.join("a"), root.join("b"));
+    let with_codes = [&recon[..], &["--lr-codes", "0.05"]].concat();
+    train(&data, &a, 2, &with_codes);
+    train(&data, &b, 1, &with_codes);
+    let text = train(&data, &b, 2, &["--resume"]);
+    assert!(text.contains("trained 1 steps"), "{text}");
+    for f in ["state.safetensors", "generator.safetensors"] {
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f}: 2 steps == 1 + resume + 1"
+        );
+    }
+    let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(a.join("run.json")).unwrap()).unwrap();
+    assert!((rc["lr_codes"].as_f64().unwrap() - 0.05).abs() < 1e-6, "{rc}");
+    let tensors = |p: &Path| parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
+    let state = tensors(&a.join("state.safetensors"));
+    let (shape, codes) = &state["codes/geo"];
+    assert_eq!(shape[0], 2, "one code per subject");
+    assert!(codes.iter().any(|v| v.abs() > 1e-3), "two steps at rate 0.05 move the codes");
+    assert!(
+        state.contains_key("adam_codes/geo/m"),
+        "the codes' Adam moments are kept: {:?}",
+        state.keys().collect::<Vec<_>>()
+    );
+
+    // From a's generator file: with learned codes the offsets start at its modes, so the
+    // modes hardly move in one step at a tiny rate; with fixed codes they fall back to the
+    // mapping of the fixed latents, off a's modes by the learned offsets.
+    let modes = |p: &Path| {
+        let t = tensors(&p.join("generator.safetensors"));
+        [t["latent_modes/geo"].1.clone(), t["latent_modes/tex"].1.clone()].concat()
+    };
+    let init = a.join("generator.safetensors");
+    let from = |out: &Path, extra: &[&str]| {
+        let args = [&recon[..], &["--lr-g", "1e-9", "--resume", init.to_str().unwrap()], extra].concat();
+        train(&data, out, 1, &args)
+    };
+    let text = from(&root.join("d"), &["--lr-codes", "1e-9"]);
+    assert!(text.contains("subjects' codes from the latent modes of"), "{text}");
+    let (ma, md, me) = (modes(&a), modes(&root.join("d")), {
+        from(&root.join("e"), &[]);
+        modes(&root.join("e"))
+    });
+    let max_diff = |x: &[f32], y: &[f32]| x.iter().zip(y).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+    assert!(max_diff(&ma, &md) < 1e-3, "carried over: {}", max_diff(&ma, &md));
+    assert!(max_diff(&ma, &me) > 1e-2, "fixed codes differ from the learned: {}", max_diff(&ma, &me));
+
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
+    refused(&["--lr-codes", "0.01"], &root.join("adv"), "--objective reconstruction");
+    refused(&["--objective", "reconstruction", "--lr-codes=-1"], &root.join("neg"), "≥ 0");
+    refused(&["--resume", "--lr-codes", "0.1"], &a, "keeps its settings");
+    let _ = std::fs::remove_dir_all(&root);
+}

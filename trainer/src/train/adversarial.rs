@@ -86,7 +86,7 @@ pub(crate) fn adversarial_step(mut st: State, inputs: &StepInputs) -> Result<(St
     if rc.lambda_reconstruction > 0.0 {
         // The anchor: the subjects' views at their fixed latents, with their own eikonal and
         // cross-entropy terms (a second surface is extracted).
-        let r = subject_reconstruction(&st.g, &mut st.rng, inputs)?;
+        let r = subject_reconstruction(&st.g, None, &mut st.rng, inputs)?;
         metrics.reconstruction = Some(r.l1);
         (metrics.scan_texture, metrics.scan_sdf) = (r.scan.map(|s| s.0), r.scan.map(|s| s.1));
         metrics.face_texture = r.face;

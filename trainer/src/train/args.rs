@@ -98,6 +98,13 @@ pub struct TrainArgs {
     /// close to the subjects'. Absent: `--latent-spread`.
     #[arg(long)]
     pub latent_spread_geo: Option<f32>,
+    /// Reconstruction objective only (not in the paper; GLO): learn each training subject's W
+    /// codes as offsets from its fixed latents' mapping, at this Adam rate, with the same L1 as
+    /// the generator. The generator file's latent modes are the moved codes. A run started
+    /// from a file (`--resume FILE`) whose latent modes hold as many subjects starts its
+    /// offsets at those modes. 0 (the default): fixed codes.
+    #[arg(long)]
+    pub lr_codes: Option<f32>,
     /// Adam learning rate of G (not of the paper's defaults where changed) [default: 0.002
     /// adversarial, 0.0005 reconstruction]. Below D's rate it lets the discriminators get
     /// ahead of G (a two-time-scale update).
@@ -140,7 +147,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 18] = [
+        let rows: [(&str, Option<String>, String, &str); 19] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -182,6 +189,7 @@ impl TrainArgs {
                 "train_only",
             ),
             ("--lr-d", self.lr_d.map(num), num(rc.lr_d), "lr_d"),
+            ("--lr-codes", self.lr_codes.map(num), num(rc.lr_codes), "lr_codes"),
             (
                 "--texture-res",
                 self.texture_res.map(|r| r.to_string()),

@@ -18,8 +18,8 @@
 //!
 //! Modules, along StyleGAN's training loop: `args` (the CLI), `run_config` (`run.json`),
 //! `state` (`state.safetensors`), `step` (what both objectives share), `adversarial` (the
-//! paper's step), `reconstruction` (the warm-up, anchor and scan terms), `snapshots`
-//! (sample grids).
+//! paper's step), `reconstruction` (the warm-up, anchor and scan terms), `subject_codes`
+//! (the reconstruction's learned per-subject codes), `snapshots` (sample grids).
 
 mod adversarial;
 mod args;
@@ -28,6 +28,7 @@ mod run_config;
 mod snapshots;
 mod state;
 mod step;
+mod subject_codes;
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -35,6 +36,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{load_generator_growing, save_generator_with_modes};
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::PosedGridCache;
@@ -52,6 +54,7 @@ pub(crate) use reconstruction::subject_of_entries;
 pub use reconstruction::ScanPools;
 use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
 use snapshots::sample_grid;
+use subject_codes::SubjectCodes;
 
 /// One training step of the run's objective.
 pub fn train_step(st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
@@ -59,6 +62,34 @@ pub fn train_step(st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
         Objective::Adversarial => adversarial::adversarial_step(st, inputs),
         Objective::Reconstruction => reconstruction_step(st, inputs),
     }
+}
+
+/// The learned subject codes a run with `lr_codes` > 0 starts from: the offsets that reach
+/// the latent modes of the generator file it started from (`init`, where they hold the
+/// dataset's number of subjects: a checkpoint trained with learned codes goes on from its
+/// codes), else zero (every subject at its fixed latents' code).
+fn initial_codes(st: &State, rc: &RunConfig, ds: &Dataset, init: Option<&Path>, ad: &Device) -> Result<SubjectCodes> {
+    let n = subject_of_entries(ds).into_iter().max().map_or(0, |m| m + 1);
+    let w_dim = rc.generator.w_dim;
+    if let Some(path) = init {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let plain = ad.clone().without_autodiff();
+        if let Some(modes) = getavatar_core::checkpoint::load_latent_modes(&bytes, &plain)? {
+            let fixed = subject_modes(&st.g_ema, None, ds, rc, &plain)?
+                .context("a reconstruction run's subjects have modes")?;
+            if let Some(codes) = SubjectCodes::reaching(&modes, &fixed, ad)? {
+                println!("learning the {n} subjects' codes from the latent modes of {}", path.display());
+                return Ok(codes);
+            }
+            println!(
+                "{} holds {} latent modes, the dataset {n} subjects: the learned codes start at the fixed ones",
+                path.display(),
+                modes.count()
+            );
+        }
+    }
+    println!("learning the {n} subjects' codes, starting at their fixed latents' codes");
+    Ok(SubjectCodes::zeros(n, w_dim, ad))
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
@@ -122,6 +153,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         }
         st
     };
+    if rc.lr_codes > 0.0 && st.codes.is_none() {
+        st.codes = Some(initial_codes(&st, &rc, &ds, a.resume.as_ref().and_then(|r| r.as_deref()), &ad)?);
+    }
     if !rc.use_normals {
         println!("the dataset has no normal maps: the normal discriminator is off");
     }
@@ -162,7 +196,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let mut extra = BTreeMap::new();
         extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
         extra.insert("step".to_string(), step.to_string());
-        let modes = subject_modes(&st.g_ema, &ds, &rc, &plain);
+        let modes = subject_modes(&st.g_ema, st.codes.as_ref(), &ds, &rc, &plain)?;
         let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
         // The new checkpoint is written, then the last one becomes the previous one (resume

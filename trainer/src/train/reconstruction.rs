@@ -20,6 +20,7 @@ use super::run_config::{
 };
 use super::state::State;
 use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics, StepInputs};
+use super::subject_codes::{subject_ws, SubjectCodes};
 
 /// Subject of every dataset entry (the folder part of its image path) as an index into the
 /// sorted subject names.
@@ -48,16 +49,30 @@ pub(crate) fn subject_latents(rc: &RunConfig, subjects: &[usize], dev: &Device) 
 /// The W codes of the training subjects' fixed latents under `g`, saved with the generator of
 /// reconstruction and anchored runs as the modes of multi-modal truncation; None for the
 /// paper's objective, whose latents have no subjects.
-pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &Device) -> Option<LatentModes> {
+/// With learned `codes` (`subject_codes`), the modes are the moved codes.
+pub(crate) fn subject_modes(
+    g: &Generator,
+    codes: Option<&SubjectCodes>,
+    ds: &Dataset,
+    rc: &RunConfig,
+    dev: &Device,
+) -> Result<Option<LatentModes>> {
     if rc.objective == Objective::Adversarial && rc.lambda_reconstruction == 0.0 {
-        return None;
+        return Ok(None);
     }
-    let n = subject_of_entries(ds).into_iter().max()? + 1;
+    let Some(n) = subject_of_entries(ds).into_iter().max().map(|m| m + 1) else { return Ok(None) };
     let (zg, zt) = subject_latents(rc, &(0..n).collect::<Vec<_>>(), dev);
+    let offsets = codes.map(|c| c.values_on(dev)).transpose()?;
+    if let Some((o, _)) = &offsets {
+        if o.dims()[0] != n {
+            bail!("the run learns codes for {} subjects, the dataset has {n}", o.dims()[0]);
+        }
+    }
+    let (geo, tex) = subject_ws(g, zg, zt, offsets);
     // With the texture-swap term the colours follow the texture code, so each branch may
     // go to its own nearest subject (one subject's geometry, another's colours).
     let pairing = if rc.lambda_texture_swap > 0.0 { ModePairing::Branch } else { ModePairing::Subject };
-    Some(LatentModes { geo: g.mapping_geo.forward(zg), tex: g.mapping_tex.forward(zt), pairing })
+    Ok(Some(LatentModes { geo, tex, pairing }))
 }
 
 /// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
@@ -71,9 +86,11 @@ pub(crate) fn subject_modes(g: &Generator, ds: &Dataset, rc: &RunConfig, dev: &D
 /// texture-swap term: the same surfaces coloured by the texture field of (the next drawn
 /// subject's w_geo, this subject's w_tex), L1 against this subject's RGB views. With
 /// a latent spread (`rc.latent_spreads()`), the subjects' codes are moved towards random ones
-/// first ([`spread_styles`]).
+/// first ([`spread_styles`]). With `codes`, each subject's codes are moved by its learned
+/// offsets (`subject_codes`) before anything else.
 pub(crate) fn subject_reconstruction<'a>(
     g: &Generator,
+    codes: Option<&SubjectCodes>,
     rng: &mut Rng,
     inputs: &StepInputs<'a>,
 ) -> Result<SubjectReconstruction> {
@@ -102,13 +119,23 @@ pub(crate) fn subject_reconstruction<'a>(
         })
         .collect();
     let views: Vec<Vec<View>> = groups.iter().map(|g| g.iter().map(|&i| ds.entries[i].1.view()).collect()).collect();
-    let (zg, zt) = subject_latents(rc, &idx.iter().map(|&i| subjects[i]).collect::<Vec<_>>(), ad);
+    let drawn: Vec<usize> = idx.iter().map(|&i| subjects[i]).collect();
+    if let Some(c) = codes {
+        if let Some(s) = drawn.iter().find(|&&s| s >= c.count()) {
+            bail!(
+                "subject {s} has no learned code (the run learns {}): the dataset has more subjects than the run",
+                c.count()
+            );
+        }
+    }
+    let (zg, zt) = subject_latents(rc, &drawn, ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
     let (spread_geo, spread_tex) = rc.latent_spreads();
+    let (wg, wt) = subject_ws(g, zg.clone(), zt.clone(), codes.map(|c| c.select(&drawn)));
     let styles = if spread_geo > 0.0 || spread_tex > 0.0 {
-        spread_styles(g, zg.clone(), zt.clone(), [spread_geo, spread_tex], rng)
+        spread_styles(g, wg, wt, [spread_geo, spread_tex], rng)
     } else {
-        g.styles(zg.clone(), zt.clone(), 1.0)
+        g.styles_from_w(wg, wt)
     };
     let b = styles.geo.dims()[0];
     let swap = (rc.lambda_texture_swap > 0.0 && b > 1).then(|| Styles {
@@ -166,20 +193,21 @@ pub(crate) fn toward(w: Tensor<2>, w_random: Tensor<2>, psi: &[f32]) -> Tensor<2
     w.clone() + (w_random - w) * psi
 }
 
-/// The styles of the subjects' latents `zg`, `zt` (`[B, z_dim]`) with each branch's w moved
+/// The styles of the subjects' W codes `wg`, `wt` (`[B, w_dim]`) with each branch's w moved
 /// towards a random w ([`toward`]; ψ uniform in [0, `spread`] per subject and branch; the
 /// random w mapped from z ~ N(0, I) by the same mapping network, without gradient): the
 /// neighbourhoods that multi-modal truncation samples from (`--latent-spread`). `spreads` is
 /// [geometry, texture]; the random draws do not depend on it.
-pub(crate) fn spread_styles(g: &Generator, zg: Tensor<2>, zt: Tensor<2>, spreads: [f32; 2], rng: &mut Rng) -> Styles {
-    let [b, z] = zg.dims();
-    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, zs: Tensor<2>, spread: f32| {
+pub(crate) fn spread_styles(g: &Generator, wg: Tensor<2>, wt: Tensor<2>, spreads: [f32; 2], rng: &mut Rng) -> Styles {
+    let b = wg.dims()[0];
+    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, w: Tensor<2>, spread: f32| {
+        let z = mapping.z_dim();
         let random: Vec<f32> = rng.normals(b * z);
-        let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &zs.device())).detach();
+        let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &w.device())).detach();
         let psi: Vec<f32> = (0..b).map(|_| rng.uniform() * spread).collect();
-        toward(mapping.forward(zs), w_random, &psi)
+        toward(w, w_random, &psi)
     };
-    let (w_geo, w_tex) = (branch(&g.mapping_geo, zg, spreads[0]), branch(&g.mapping_tex, zt, spreads[1]));
+    let (w_geo, w_tex) = (branch(&g.mapping_geo, wg, spreads[0]), branch(&g.mapping_tex, wt, spreads[1]));
     g.styles_from_w(w_geo, w_tex)
 }
 
@@ -209,7 +237,7 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
     let t0 = std::time::Instant::now();
     let b = rc.batch;
     let SubjectReconstruction { loss, l1, scan, face, texture_swap, fakes, zg, zt } =
-        subject_reconstruction(&st.g, &mut st.rng, inputs)?;
+        subject_reconstruction(&st.g, st.codes.as_ref(), &mut st.rng, inputs)?;
     let metrics = Metrics {
         loss_g: scalar(loss.clone())?,
         reconstruction: Some(l1),
@@ -225,6 +253,7 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
     let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
     let grads = total.backward();
     let g = track_w_avg(generator_update(&mut st.adam_g, rc, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
+    st.codes = st.codes.map(|c| st.adam_codes.step(rc.lr_codes, c, &grads));
     let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
     let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
     st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));
@@ -362,11 +391,12 @@ mod tests {
         };
         let (zg, zt) = (z(1), z(2));
         let own = g.styles(zg.clone(), zt.clone(), 1.0);
-        let same = spread_styles(&g, zg.clone(), zt.clone(), [0.0, 0.0], &mut Rng::new(3, 0));
+        let (wg, wt) = (g.mapping_geo.forward(zg), g.mapping_tex.forward(zt));
+        let same = spread_styles(&g, wg.clone(), wt.clone(), [0.0, 0.0], &mut Rng::new(3, 0));
         assert_eq!(values(own.geo.clone().reshape([4, -1])), values(same.geo.reshape([4, -1])));
         assert_eq!(values(own.tex.clone().reshape([4, -1])), values(same.tex.reshape([4, -1])));
 
-        let moved = spread_styles(&g, zg.clone(), zt.clone(), [0.7, 0.7], &mut Rng::new(3, 0));
+        let moved = spread_styles(&g, wg.clone(), wt.clone(), [0.7, 0.7], &mut Rng::new(3, 0));
         let max_shift = |a: &Tensor<3>, b: &Tensor<3>| {
             let (a, b) = (values(a.clone().reshape([4, -1])), values(b.clone().reshape([4, -1])));
             a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max)
@@ -380,7 +410,7 @@ mod tests {
         // Per branch: a geometry spread alone leaves the texture styles at the subjects' own,
         // and moves the geometry exactly as the same draws did above (the draws do not
         // depend on the spreads).
-        let geo_only = spread_styles(&g, zg, zt, [0.7, 0.0], &mut Rng::new(3, 0));
+        let geo_only = spread_styles(&g, wg, wt, [0.7, 0.0], &mut Rng::new(3, 0));
         assert_eq!(values(own.tex.clone().reshape([4, -1])), values(geo_only.tex.reshape([4, -1])));
         assert_eq!(values(moved.geo.reshape([4, -1])), values(geo_only.geo.reshape([4, -1])));
     }

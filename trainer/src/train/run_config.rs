@@ -117,6 +117,11 @@ pub struct RunConfig {
     /// `run.json`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub train_only: Option<String>,
+    /// Adam rate of the learned subject codes of a reconstruction run
+    /// (`TrainArgs::lr_codes`, `subject_codes`); 0: the subjects keep their fixed latents'
+    /// codes. Absent in older runs: 0. Editable in `run.json`.
+    #[serde(default)]
+    pub lr_codes: f32,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -192,6 +197,7 @@ impl RunConfig {
             latent_spread: 0.0,
             latent_spread_geo: None,
             train_only: None,
+            lr_codes: 0.0,
         }
     }
 }
@@ -262,6 +268,13 @@ impl RunConfig {
         if let Some(s) = a.latent_spread_geo {
             check_spread("--latent-spread-geo", s)?;
         }
+        let lr_codes = a.lr_codes.unwrap_or(0.0);
+        if !(lr_codes >= 0.0 && lr_codes.is_finite()) {
+            bail!("--lr-codes must be a finite learning rate ≥ 0, got {lr_codes}");
+        }
+        if lr_codes > 0.0 && objective != Objective::Reconstruction {
+            bail!("--lr-codes learns the subjects' codes of the reconstruction objective: use it with --objective reconstruction");
+        }
         let r1_gamma = a.r1_gamma.unwrap_or(10.0);
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
             bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
@@ -301,6 +314,7 @@ impl RunConfig {
             latent_spread,
             latent_spread_geo: a.latent_spread_geo,
             train_only: a.train_only.clone(),
+            lr_codes,
             ..defaults
         })
     }

@@ -15,6 +15,7 @@ use super::reconstruction::{subject_latents, subject_of_entries};
 use super::run_config::{Objective, RunConfig};
 use super::state::State;
 use super::step::{latents, load_reals, scalar};
+use super::subject_codes::subject_ws;
 
 /// L1 (in [0, 1] units, mean over pixels and channels) between G_ema's renders of the
 /// sample grid's subjects and the data's views of them: a fixed yardstick of how far a
@@ -40,16 +41,23 @@ pub(crate) fn sample_grid(
     let n = 4.min(ds.len());
     let shown: Vec<usize> = (0..n).map(|i| i * ds.len() / n).collect();
     let labels: Vec<Label> = shown.iter().map(|&i| ds.entries[i].1.clone()).collect();
-    let (zg, zt) = if rc.objective == Objective::Reconstruction {
-        // The subjects of the shown views, to compare with the data.
+    let styles = if rc.objective == Objective::Reconstruction {
+        // The subjects of the shown views (at their learned codes, where the run learns
+        // them), to compare with the data.
         let subjects = subject_of_entries(ds);
-        subject_latents(rc, &(0..n).map(|i| subjects[i * ds.len() / n]).collect::<Vec<_>>(), plain)
+        let shown_subjects: Vec<usize> = shown.iter().map(|&i| subjects[i]).collect();
+        let (zg, zt) = subject_latents(rc, &shown_subjects, plain);
+        let offsets = st.codes.as_ref().map(|c| c.values_of(&shown_subjects, plain)).transpose()?;
+        let (wg, wt) = subject_ws(&st.g_ema, zg, zt, offsets);
+        st.g_ema.styles_from_w(wg, wt)
     } else {
         let mut rng = Rng::new(12345, 1);
-        (latents(&mut rng, n, rc.generator.z_dim, plain), latents(&mut rng, n, rc.generator.z_dim, plain))
+        let (zg, zt) =
+            (latents(&mut rng, n, rc.generator.z_dim, plain), latents(&mut rng, n, rc.generator.z_dim, plain));
+        st.g_ema.styles(zg, zt, 1.0)
     };
     let views: Vec<View> = labels.iter().map(Label::view).collect();
-    let f = render_avatars(&st.g_ema, ctx, &st.g_ema.styles(zg, zt, 1.0), &views, rc.resolution, grids, plain)?;
+    let f = render_avatars(&st.g_ema, ctx, &styles, &views, rc.resolution, grids, plain)?;
     let fit = if rc.objective == Objective::Reconstruction {
         let (rgb, nrm, msk, _) = load_reals(ds, &shown, plain)?;
         // Images are in [-1, 1]: half the mean absolute difference is in [0, 1] units.

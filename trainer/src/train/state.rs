@@ -13,6 +13,7 @@ use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 
 use super::run_config::{Objective, RunConfig};
+use super::subject_codes::SubjectCodes;
 
 const STATE_FORMAT: &str = "getavatar-train-state/1";
 
@@ -24,6 +25,9 @@ pub struct State {
     pub d: Vec<Discriminator>,
     pub adam_g: Adam,
     pub adam_d: Vec<Adam>,
+    /// The learned subject codes of a reconstruction run with `lr_codes` > 0, and their Adam.
+    pub codes: Option<SubjectCodes>,
+    pub adam_codes: Adam,
     pub step: u64,
     pub rng: Rng,
 }
@@ -50,6 +54,8 @@ impl State {
                 .collect(),
             adam_g: generator_adam(rc),
             adam_d: (0..3).map(|_| Adam::new(0.0, 0.99, 1e-8)).collect(),
+            codes: None,
+            adam_codes: generator_adam(rc),
             step: 0,
             rng: Rng::new(seed, 0x7a1e),
         }
@@ -65,8 +71,12 @@ impl State {
         for (k, d) in self.d.iter().enumerate() {
             put(&format!("d{k}/"), collect_params(d)?);
         }
+        if let Some(c) = &self.codes {
+            put("codes/", collect_params(c)?);
+        }
         let adams: Vec<(String, &Adam)> = std::iter::once(("adam_g/".to_string(), &self.adam_g))
             .chain(self.adam_d.iter().enumerate().map(|(k, a)| (format!("adam_d{k}/"), a)))
+            .chain(self.codes.is_some().then(|| ("adam_codes/".to_string(), &self.adam_codes)))
             .collect();
         let mut meta = BTreeMap::new();
         for (prefix, a) in &adams {
@@ -104,8 +114,13 @@ impl State {
                 .map(|(k, d)| load_params(d, &st.tensors, &format!("d{k}/"), ad))
                 .collect::<Result<_, _>>()?;
         let inner = ad.clone().without_autodiff();
-        let load_adam = |prefix: &str| -> Result<Adam> {
-            let mut a = if prefix == "adam_g/" { generator_adam(rc) } else { Adam::new(0.0, 0.99, 1e-8) };
+        if let Some((shape, _)) = st.tensors.get("codes/geo") {
+            let [n, w] = shape[..] else { bail!("codes/geo has shape {shape:?}, expected [subjects, w_dim]") };
+            s.codes = Some(load_params(SubjectCodes::zeros(n, w, ad), &st.tensors, "codes/", ad)?);
+        }
+        // `fresh`: the optimiser as a new run makes it (its betas), to fill with the moments.
+        let load_adam = |prefix: &str, fresh: Adam| -> Result<Adam> {
+            let mut a = fresh;
             a.step = num(&format!("{prefix}step"))?;
             for (k, (shape, vals)) in &st.tensors {
                 if let Some(rest) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {
@@ -119,8 +134,12 @@ impl State {
             }
             Ok(a)
         };
-        s.adam_g = load_adam("adam_g/")?;
-        s.adam_d = (0..3).map(|k| load_adam(&format!("adam_d{k}/"))).collect::<Result<_>>()?;
+        s.adam_g = load_adam("adam_g/", generator_adam(rc))?;
+        s.adam_d =
+            (0..3).map(|k| load_adam(&format!("adam_d{k}/"), Adam::new(0.0, 0.99, 1e-8))).collect::<Result<_>>()?;
+        if s.codes.is_some() {
+            s.adam_codes = load_adam("adam_codes/", generator_adam(rc))?;
+        }
         s.step = num("step")?;
         s.rng = Rng::from_state(num("rng_state")?, num("rng_inc")?);
         Ok(s)

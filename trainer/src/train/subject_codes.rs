@@ -1,0 +1,152 @@
+//! Learned subject codes (not in the paper; Bojanowski et al. 2018, "Optimizing the Latent
+//! Space of Generative Networks", GLO): in a reconstruction run each training subject's W code
+//! per branch is the mapping of its fixed latent ([`super::reconstruction::subject_latents`])
+//! plus a learned offset, trained by the same L1 as the generator (`run.json` `lr_codes`,
+//! `--lr-codes`). With the offsets at zero the codes are those of a run without them.
+//!
+//! Why: the fixed codes are 64 random points of W that the mapping network (at StyleGAN's
+//! lr × 0.01) barely moves, and the synthesis network has to bring each subject's prints out
+//! of wherever its code happens to lie. A W+ inversion of one data view with the generator
+//! frozen draws the stripes that the subject's own code renders as a smear (MODEL_CARD,
+//! session 45), so the codes, not the network's capacity, are what holds the colours back.
+//! The offsets are saved in the training state, and the generator file carries the moved
+//! codes as its latent modes (what sampling truncates towards and `eval --subject-codes`
+//! renders).
+
+use anyhow::Result;
+use getavatar_core::burn;
+use getavatar_core::burn::module::{Module, Param};
+use getavatar_core::burn::tensor::{Device, Int, Tensor, TensorData};
+use getavatar_core::generator::{Generator, LatentModes};
+use getavatar_core::readback::read_f32_now;
+
+/// Per-subject offsets in W, `[subjects, w_dim]` per branch.
+#[derive(Module, Debug)]
+pub struct SubjectCodes {
+    pub geo: Param<Tensor<2>>,
+    pub tex: Param<Tensor<2>>,
+}
+
+impl SubjectCodes {
+    /// Offsets `geo`, `tex` (`[subjects, w_dim]` each, row-major) as trainable parameters.
+    pub fn from_values(subjects: usize, w_dim: usize, geo: Vec<f32>, tex: Vec<f32>, device: &Device) -> Self {
+        let p = |v: Vec<f32>| {
+            Param::from_tensor(Tensor::from_data(TensorData::new(v, [subjects, w_dim]), device).require_grad())
+        };
+        Self { geo: p(geo), tex: p(tex) }
+    }
+
+    /// Zero offsets: every subject at its fixed latent's code.
+    pub fn zeros(subjects: usize, w_dim: usize, device: &Device) -> Self {
+        Self::from_values(subjects, w_dim, vec![0.0; subjects * w_dim], vec![0.0; subjects * w_dim], device)
+    }
+
+    /// The offsets that move the fixed codes `fixed` onto `modes` (a generator file's latent
+    /// modes, e.g. a run started from a checkpoint trained with learned codes), or None where
+    /// the file holds another number of subjects.
+    pub fn reaching(modes: &LatentModes, fixed: &LatentModes, device: &Device) -> Result<Option<Self>> {
+        let [n, w] = fixed.geo.dims();
+        if modes.geo.dims() != [n, w] || modes.tex.dims() != [n, w] {
+            return Ok(None);
+        }
+        let diff = |a: &Tensor<2>, b: &Tensor<2>| -> Result<Vec<f32>> {
+            let (a, b) = (read_f32_now(a.clone())?, read_f32_now(b.clone())?);
+            Ok(a.iter().zip(&b).map(|(x, y)| x - y).collect())
+        };
+        Ok(Some(Self::from_values(n, w, diff(&modes.geo, &fixed.geo)?, diff(&modes.tex, &fixed.tex)?, device)))
+    }
+
+    /// Number of subjects.
+    pub fn count(&self) -> usize {
+        self.geo.dims()[0]
+    }
+
+    /// The offsets of `subjects` (`[B, w_dim]` per branch), tracked for the update.
+    pub fn select(&self, subjects: &[usize]) -> (Tensor<2>, Tensor<2>) {
+        (rows(self.geo.val(), subjects), rows(self.tex.val(), subjects))
+    }
+
+    /// The offsets of `subjects` as untracked tensors on `device`.
+    pub fn values_of(&self, subjects: &[usize], device: &Device) -> Result<(Tensor<2>, Tensor<2>)> {
+        let (geo, tex) = self.values_on(device)?;
+        Ok((rows(geo, subjects), rows(tex, subjects)))
+    }
+
+    /// All offsets as untracked tensors on `device` (for the saved modes and the sample grid).
+    pub fn values_on(&self, device: &Device) -> Result<(Tensor<2>, Tensor<2>)> {
+        let [n, w] = self.geo.dims();
+        let t = |p: &Param<Tensor<2>>| -> Result<Tensor<2>> {
+            Ok(Tensor::from_data(TensorData::new(read_f32_now(p.val().detach())?, [n, w]), device))
+        };
+        Ok((t(&self.geo)?, t(&self.tex)?))
+    }
+}
+
+/// Rows `subjects` of `t` (`[subjects, w_dim]` → `[B, w_dim]`).
+fn rows(t: Tensor<2>, subjects: &[usize]) -> Tensor<2> {
+    let idx: Vec<i64> = subjects.iter().map(|&s| s as i64).collect();
+    let n = idx.len();
+    let device = t.device();
+    t.select(0, Tensor::<1, Int>::from_data(TensorData::new(idx, [n]), &device))
+}
+
+/// The W codes `[B, w_dim]` per branch of subjects with fixed latents `zg`, `zt` under `g`:
+/// the mappings, plus the subjects' learned offsets `(geo, tex)` where given.
+pub(crate) fn subject_ws(
+    g: &Generator,
+    zg: Tensor<2>,
+    zt: Tensor<2>,
+    offsets: Option<(Tensor<2>, Tensor<2>)>,
+) -> (Tensor<2>, Tensor<2>) {
+    let (wg, wt) = (g.mapping_geo.forward(zg), g.mapping_tex.forward(zt));
+    match offsets {
+        Some((og, ot)) => (wg + og, wt + ot),
+        None => (wg, wt),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use getavatar_core::network::GeneratorConfig;
+    use getavatar_core::optim::Adam;
+
+    fn rows(t: Tensor<2>) -> Vec<Vec<f32>> {
+        let [_, w] = t.dims();
+        read_f32_now(t).unwrap().chunks(w).map(<[f32]>::to_vec).collect()
+    }
+
+    /// A step on one subject's L1 moves that subject's offsets (towards lowering it) and
+    /// leaves the undrawn subjects' rows where they were; zero offsets add nothing.
+    #[test]
+    fn an_update_moves_the_drawn_subjects_codes_only() {
+        #[allow(deprecated)]
+        let plain = Device::ndarray();
+        let dev = plain.clone().autodiff();
+        let cfg = GeneratorConfig::tiny();
+        let g = Generator::new(&cfg, 0, &dev);
+        let codes = SubjectCodes::zeros(3, cfg.w_dim, &dev);
+        let z = |s: u64| {
+            Tensor::<2>::from_data(
+                TensorData::new(getavatar_core::rng::Rng::new(s, 0).normals(cfg.z_dim), [1, cfg.z_dim]),
+                &dev,
+            )
+        };
+        let (w0, _) = subject_ws(&g, z(1), z(2), None);
+        let (w1, t1) = subject_ws(&g, z(1), z(2), Some(codes.select(&[1])));
+        assert_eq!(rows(w0.clone()), rows(w1.clone()), "zero offsets leave the codes as they are");
+        // Pull subject 1's codes towards a target 1 unit above the current one per element.
+        let target = w0.detach() + 1.0;
+        let loss = (w1 - target).abs().mean() + t1.abs().mean();
+        let grads = loss.backward();
+        let mut adam = Adam::new(0.9, 0.99, 1e-8);
+        let moved = adam.step(0.01, codes, &grads);
+        let (geo, tex) = moved.values_on(&plain).unwrap();
+        let (geo, tex) = (rows(geo), rows(tex));
+        for s in [0, 2] {
+            assert!(geo[s].iter().chain(&tex[s]).all(|v| *v == 0.0), "subject {s} was not drawn: {:?}", &geo[s][..4]);
+        }
+        // Adam's first step moves every element of the drawn row by the rate, towards the target.
+        assert!(geo[1].iter().all(|v| (v - 0.01).abs() < 1e-4), "geo row 1: {:?}", &geo[1][..4]);
+    }
+}
