@@ -916,6 +916,12 @@ fn learned_subject_codes_resume_exactly_and_carry_over_through_the_generator_fil
         "the codes' Adam moments are kept: {:?}",
         state.keys().collect::<Vec<_>>()
     );
+    // The average beside G_ema trails the codes; with StyleGAN's ramp-up (the half-life at
+    // most 5 % of the images seen) it stays close to them in the first steps.
+    let ema = &state["codes_ema/geo"].1;
+    let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    let lag: Vec<f32> = ema.iter().zip(codes).map(|(e, c)| e - c).collect();
+    assert!(norm(&lag) > 0.0 && norm(&lag) < 0.1 * norm(codes), "ema − codes {} codes {}", norm(&lag), norm(codes));
 
     // From a's generator file: with learned codes the offsets start at its modes, so the
     // modes hardly move in one step at a tiny rate; with fixed codes they fall back to the

@@ -154,7 +154,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         st
     };
     if rc.lr_codes > 0.0 && st.codes.is_none() {
-        st.codes = Some(initial_codes(&st, &rc, &ds, a.resume.as_ref().and_then(|r| r.as_deref()), &ad)?);
+        let codes = initial_codes(&st, &rc, &ds, a.resume.as_ref().and_then(|r| r.as_deref()), &ad)?;
+        st.codes_ema = Some(codes.copy_to(&plain)?);
+        st.codes = Some(codes);
     }
     if !rc.use_normals {
         println!("the dataset has no normal maps: the normal discriminator is off");
@@ -196,7 +198,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let mut extra = BTreeMap::new();
         extra.insert("kimg".to_string(), format!("{:.3}", step as f64 * rc.batch as f64 / 1000.0));
         extra.insert("step".to_string(), step.to_string());
-        let modes = subject_modes(&st.g_ema, st.codes.as_ref(), &ds, &rc, &plain)?;
+        let modes = subject_modes(&st.g_ema, st.codes_ema.as_ref(), &ds, &rc, &plain)?;
         let g_bytes = save_generator_with_modes(&st.g_ema, &rc.generator, modes.as_ref(), &extra)?;
         write_atomic(&a.out.join("generator.safetensors"), &g_bytes)?;
         // The new checkpoint is written, then the last one becomes the previous one (resume

@@ -256,7 +256,11 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
     st.codes = st.codes.map(|c| st.adam_codes.step(rc.lr_codes, c, &grads));
     let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
     let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
-    st.g_ema = ema_update(st.g_ema, &g, 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8)));
+    let beta = 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8));
+    st.g_ema = ema_update(st.g_ema, &g, beta);
+    if let (Some(ema), Some(codes)) = (st.codes_ema.take(), &st.codes) {
+        st.codes_ema = Some(ema_update(ema, codes, beta));
+    }
     st.g = g;
     st.step += 1;
     let (step, seconds) = (st.step, t0.elapsed().as_secs_f64());

@@ -47,7 +47,7 @@ pub(crate) fn sample_grid(
         let subjects = subject_of_entries(ds);
         let shown_subjects: Vec<usize> = shown.iter().map(|&i| subjects[i]).collect();
         let (zg, zt) = subject_latents(rc, &shown_subjects, plain);
-        let offsets = st.codes.as_ref().map(|c| c.values_of(&shown_subjects, plain)).transpose()?;
+        let offsets = st.codes_ema.as_ref().map(|c| c.values_of(&shown_subjects, plain)).transpose()?;
         let (wg, wt) = subject_ws(&st.g_ema, zg, zt, offsets);
         st.g_ema.styles_from_w(wg, wt)
     } else {

@@ -25,8 +25,10 @@ pub struct State {
     pub d: Vec<Discriminator>,
     pub adam_g: Adam,
     pub adam_d: Vec<Adam>,
-    /// The learned subject codes of a reconstruction run with `lr_codes` > 0, and their Adam.
+    /// The learned subject codes of a reconstruction run with `lr_codes` > 0, their moving
+    /// average beside G_ema (on its device), and their Adam.
     pub codes: Option<SubjectCodes>,
+    pub codes_ema: Option<SubjectCodes>,
     pub adam_codes: Adam,
     pub step: u64,
     pub rng: Rng,
@@ -55,6 +57,7 @@ impl State {
             adam_g: generator_adam(rc),
             adam_d: (0..3).map(|_| Adam::new(0.0, 0.99, 1e-8)).collect(),
             codes: None,
+            codes_ema: None,
             adam_codes: generator_adam(rc),
             step: 0,
             rng: Rng::new(seed, 0x7a1e),
@@ -73,6 +76,9 @@ impl State {
         }
         if let Some(c) = &self.codes {
             put("codes/", collect_params(c)?);
+        }
+        if let Some(c) = &self.codes_ema {
+            put("codes_ema/", collect_params(c)?);
         }
         let adams: Vec<(String, &Adam)> = std::iter::once(("adam_g/".to_string(), &self.adam_g))
             .chain(self.adam_d.iter().enumerate().map(|(k, a)| (format!("adam_d{k}/"), a)))
@@ -116,7 +122,13 @@ impl State {
         let inner = ad.clone().without_autodiff();
         if let Some((shape, _)) = st.tensors.get("codes/geo") {
             let [n, w] = shape[..] else { bail!("codes/geo has shape {shape:?}, expected [subjects, w_dim]") };
-            s.codes = Some(load_params(SubjectCodes::zeros(n, w, ad), &st.tensors, "codes/", ad)?);
+            let codes = load_params(SubjectCodes::zeros(n, w, ad), &st.tensors, "codes/", ad)?;
+            s.codes_ema = Some(if st.tensors.contains_key("codes_ema/geo") {
+                load_params(SubjectCodes::zeros(n, w, plain), &st.tensors, "codes_ema/", plain)?
+            } else {
+                codes.copy_to(plain)?
+            });
+            s.codes = Some(codes);
         }
         // `fresh`: the optimiser as a new run makes it (its betas), to fill with the moments.
         let load_adam = |prefix: &str, fresh: Adam| -> Result<Adam> {

@@ -9,9 +9,11 @@
 //! of wherever its code happens to lie. A W+ inversion of one data view with the generator
 //! frozen draws the stripes that the subject's own code renders as a smear (MODEL_CARD,
 //! session 45), so the codes, not the network's capacity, are what holds the colours back.
-//! The offsets are saved in the training state, and the generator file carries the moved
-//! codes as its latent modes (what sampling truncates towards and `eval --subject-codes`
-//! renders).
+//! The offsets are saved in the training state with an exponential moving average beside
+//! G_ema's (the same decay: G_ema with the current offsets renders each subject as a
+//! generator some 60 steps older would at codes it was not trained with), and the generator
+//! file carries G_ema's codes, moved by the averaged offsets, as its latent modes (what
+//! sampling truncates towards and `eval --subject-codes` renders).
 
 use anyhow::Result;
 use getavatar_core::burn;
@@ -30,9 +32,7 @@ pub struct SubjectCodes {
 impl SubjectCodes {
     /// Offsets `geo`, `tex` (`[subjects, w_dim]` each, row-major) as trainable parameters.
     pub fn from_values(subjects: usize, w_dim: usize, geo: Vec<f32>, tex: Vec<f32>, device: &Device) -> Self {
-        let p = |v: Vec<f32>| {
-            Param::from_tensor(Tensor::from_data(TensorData::new(v, [subjects, w_dim]), device).require_grad())
-        };
+        let p = |v: Vec<f32>| Param::from_tensor(Tensor::from_data(TensorData::new(v, [subjects, w_dim]), device));
         Self { geo: p(geo), tex: p(tex) }
     }
 
@@ -54,6 +54,13 @@ impl SubjectCodes {
             Ok(a.iter().zip(&b).map(|(x, y)| x - y).collect())
         };
         Ok(Some(Self::from_values(n, w, diff(&modes.geo, &fixed.geo)?, diff(&modes.tex, &fixed.tex)?, device)))
+    }
+
+    /// The same offsets on `device` (for the EMA copy beside G_ema).
+    pub fn copy_to(&self, device: &Device) -> Result<Self> {
+        let [n, w] = self.geo.dims();
+        let v = |p: &Param<Tensor<2>>| read_f32_now(p.val().detach());
+        Ok(Self::from_values(n, w, v(&self.geo)?, v(&self.tex)?, device))
     }
 
     /// Number of subjects.
