@@ -455,9 +455,9 @@ pub struct TriplaneDims {
 /// (horizontal, vertical) texel axes of the planes (x,y), (y,z), (x,z): `triplane::PLANE_AXES`.
 const TRIPLANE_AXES: [[usize; 2]; 3] = [[0, 1], [1, 2], [0, 2]];
 
-/// Each plane's bilinear stencil at point `(bi, ni)`: for plane k, the four texels' flat offsets
-/// into `[B, 3·C, R, R]` at channel 0 (None outside the plane) with their weights, and the
-/// weights' derivatives along the plane's two axes (for the texel coordinates' gradient).
+/// Each plane's bilinear stencil at point `(bi, ni)`: for plane k, the four texels' indices
+/// into the `B·3·R·R` texels of all planes (None outside the plane) with their weights, and
+/// the weights' derivatives along the plane's two axes (for the texel coordinates' gradient).
 #[allow(clippy::type_complexity)]
 fn triplane_stencil(
     d: &TriplaneDims,
@@ -473,7 +473,7 @@ fn triplane_stencil(
     let (fu, fv) = (u - u0, v - v0);
     let (gu, gv) = (-fu + 1.0, -fv + 1.0);
     let r = d.res as i64;
-    let base = (bi * 3 + k) * d.channels * d.res * d.res;
+    let base = (bi * 3 + k) * d.res * d.res;
     let at = |y: f32, x: f32| -> Option<usize> {
         let (y, x) = (y as i64, x as i64);
         ((0..r).contains(&y) && (0..r).contains(&x)).then(|| base + (y * r + x) as usize)
@@ -490,29 +490,64 @@ fn triplane_stencil(
     )
 }
 
-/// The lookup's values `[B, N, C]`.
-pub fn triplane_forward(d: &TriplaneDims, planes: &[f32], texels: &[f32]) -> Vec<f32> {
+/// Planes `[B·3, C, R, R]` (the tensors' layout) as `[B·3, R, R, C]`: each texel's channels
+/// side by side, as the lookup reads and writes them (a texel's 16 channels in one cache line
+/// instead of 16 lines a plane apart).
+fn channels_last(d: &TriplaneDims, planes: &[f32]) -> Vec<f32> {
     let (c, plane) = (d.channels, d.res * d.res);
+    let mut out = vec![0.0f32; planes.len()];
+    for (p, src) in planes.chunks(c * plane).enumerate() {
+        let dst = &mut out[p * c * plane..][..c * plane];
+        for ch in 0..c {
+            for (t, v) in src[ch * plane..][..plane].iter().enumerate() {
+                dst[t * c + ch] = *v;
+            }
+        }
+    }
+    out
+}
+
+/// The inverse of [`channels_last`].
+fn channels_first(d: &TriplaneDims, last: &[f32]) -> Vec<f32> {
+    let (c, plane) = (d.channels, d.res * d.res);
+    let mut out = vec![0.0f32; last.len()];
+    for (p, src) in last.chunks(c * plane).enumerate() {
+        let dst = &mut out[p * c * plane..][..c * plane];
+        for (t, texel) in src.chunks(c).enumerate() {
+            for (ch, v) in texel.iter().enumerate() {
+                dst[ch * plane + t] = *v;
+            }
+        }
+    }
+    out
+}
+
+/// The lookup's values `[B, N, C]` (each avatar of the batch on its own core natively).
+pub fn triplane_forward(d: &TriplaneDims, planes: &[f32], texels: &[f32]) -> Vec<f32> {
+    let c = d.channels;
+    let last = channels_last(d, planes);
     let mut y = vec![0.0f32; d.batch * d.points * c];
-    for bi in 0..d.batch {
+    for_samples(d.batch, &mut y, |bi, y_b, _| {
         for ni in 0..d.points {
-            let out = &mut y[(bi * d.points + ni) * c..][..c];
+            let out = &mut y_b[ni * c..][..c];
             for k in 0..3 {
                 let (stencil, _) = triplane_stencil(d, texels, bi, ni, k);
                 for (texel, w, _, _) in stencil {
-                    if let Some(o) = texel {
-                        for (ch, acc) in out.iter_mut().enumerate() {
-                            *acc += w * planes[o + ch * plane];
+                    if let Some(t) = texel {
+                        for (acc, p) in out.iter_mut().zip(&last[t * c..][..c]) {
+                            *acc += w * p;
                         }
                     }
                 }
             }
         }
-    }
+    });
     y
 }
 
-/// The lookup's gradients for the planes and the texel coordinates, each only when asked.
+/// The lookup's gradients for the planes and the texel coordinates, each only when asked
+/// (each avatar of the batch on its own core natively; the sums run in the same order as one
+/// thread's, so the values do not depend on the cores).
 pub fn triplane_backward(
     d: &TriplaneDims,
     planes: &[f32],
@@ -522,30 +557,45 @@ pub fn triplane_backward(
     want_texels: bool,
 ) -> (Option<Vec<f32>>, Option<Vec<f32>>) {
     let (c, plane) = (d.channels, d.res * d.res);
-    let mut dp = want_planes.then(|| vec![0.0f32; d.batch * 3 * c * plane]);
-    let mut dt = want_texels.then(|| vec![0.0f32; d.batch * d.points * 3]);
-    for bi in 0..d.batch {
-        for ni in 0..d.points {
-            let g = &dy[(bi * d.points + ni) * c..][..c];
-            for k in 0..3 {
-                let (stencil, [au, av]) = triplane_stencil(d, texels, bi, ni, k);
-                for (texel, w, dw_du, dw_dv) in stencil {
-                    let Some(o) = texel else { continue };
-                    if let Some(dp) = dp.as_mut() {
-                        for (ch, g) in g.iter().enumerate() {
-                            dp[o + ch * plane] += w * g;
+    let dp = want_planes.then(|| {
+        let mut acc = vec![0.0f32; d.batch * 3 * c * plane];
+        for_samples(d.batch, &mut acc, |bi, acc_b, _| {
+            let first = bi * 3 * plane;
+            for ni in 0..d.points {
+                let g = &dy[(bi * d.points + ni) * c..][..c];
+                for k in 0..3 {
+                    let (stencil, _) = triplane_stencil(d, texels, bi, ni, k);
+                    for (texel, w, _, _) in stencil {
+                        let Some(t) = texel else { continue };
+                        for (a, g) in acc_b[(t - first) * c..][..c].iter_mut().zip(g) {
+                            *a += w * g;
                         }
-                    }
-                    if let Some(dt) = dt.as_mut() {
-                        let dot: f32 = g.iter().enumerate().map(|(ch, g)| g * planes[o + ch * plane]).sum();
-                        let t = &mut dt[(bi * d.points + ni) * 3..][..3];
-                        t[au] += dw_du * dot;
-                        t[av] += dw_dv * dot;
                     }
                 }
             }
-        }
-    }
+        });
+        channels_first(d, &acc)
+    });
+    let dt = want_texels.then(|| {
+        let last = channels_last(d, planes);
+        let mut dt = vec![0.0f32; d.batch * d.points * 3];
+        for_samples(d.batch, &mut dt, |bi, dt_b, _| {
+            for ni in 0..d.points {
+                let g = &dy[(bi * d.points + ni) * c..][..c];
+                let t3 = &mut dt_b[ni * 3..][..3];
+                for k in 0..3 {
+                    let (stencil, [au, av]) = triplane_stencil(d, texels, bi, ni, k);
+                    for (texel, _, dw_du, dw_dv) in stencil {
+                        let Some(t) = texel else { continue };
+                        let dot: f32 = g.iter().zip(&last[t * c..][..c]).map(|(g, p)| g * p).sum();
+                        t3[au] += dw_du * dot;
+                        t3[av] += dw_dv * dot;
+                    }
+                }
+            }
+        });
+        dt
+    });
     (dp, dt)
 }
 
