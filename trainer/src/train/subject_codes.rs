@@ -4,11 +4,15 @@
 //! plus a learned offset, trained by the same L1 as the generator (`run.json` `lr_codes`,
 //! `--lr-codes`). With the offsets at zero the codes are those of a run without them.
 //!
-//! Why: the fixed codes are 64 random points of W that the mapping network (at StyleGAN's
-//! lr × 0.01) barely moves, and the synthesis network has to bring each subject's prints out
-//! of wherever its code happens to lie. A W+ inversion of one data view with the generator
-//! frozen draws the stripes that the subject's own code renders as a smear (MODEL_CARD,
-//! session 45), so the codes, not the network's capacity, are what holds the colours back.
+//! Why it was tried: the fixed codes are random points of W that the mapping network (at
+//! StyleGAN's lr × 0.01) barely moves. A W+ inversion of one data view with the shipped
+//! generator frozen draws stripes that the subject's own code renders as a smear
+//! (`assets/models/codes_vs_network.png`), so the network can render more than the fixed
+//! codes ask of it. What it gave (MODEL_CARD, session 45): one learned W per branch at rate
+//! 0.01 for 225 steps, from a run's state at step 125, left v1's grid worse than that state
+//! (RGB L1 0.0095 against 0.0090, mask 0.0064 against 0.0051); the inversion moves each
+//! layer's w on its own, which one W per branch cannot.
+//!
 //! The offsets are saved in the training state with an exponential moving average beside
 //! G_ema's (the same decay: G_ema with the current offsets renders each subject as a
 //! generator some 60 steps older would at codes it was not trained with), and the generator
