@@ -10,8 +10,9 @@
 //! (`assets/models/codes_vs_network.png`), so the network can render more than the fixed
 //! codes ask of it. What it gave (MODEL_CARD, session 45): one learned W per branch at rate
 //! 0.01 for 225 steps, from a run's state at step 125, left v1's grid worse than that state
-//! (RGB L1 0.0095 against 0.0090, mask 0.0064 against 0.0051); the inversion moves each
-//! layer's w on its own, which one W per branch cannot.
+//! (RGB L1 0.0095 against 0.0090, mask 0.0064 against 0.0051), though its own grid was still
+//! falling when the averaged codes came in; the inversion moves each layer's w on its own,
+//! which one W per branch cannot.
 //!
 //! The offsets are saved in the training state with an exponential moving average beside
 //! G_ema's (the same decay: G_ema with the current offsets renders each subject as a
