@@ -945,6 +945,20 @@ fn learned_subject_codes_resume_exactly_and_carry_over_through_the_generator_fil
     assert!(max_diff(&ma, &md) < 1e-3, "carried over: {}", max_diff(&ma, &md));
     assert!(max_diff(&ma, &me) > 1e-2, "fixed codes differ from the learned: {}", max_diff(&ma, &me));
 
+    // `lr_codes_geo_mul` 0 in run.json: only the texture codes learn from then on.
+    let t = root.join("tex_only");
+    train(&data, &t, 1, &with_codes);
+    let before = tensors(&t.join("state.safetensors"));
+    let rc_path = t.join("run.json");
+    let mut rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&rc_path).unwrap()).unwrap();
+    assert_eq!(rc["lr_codes_geo_mul"], 1.0, "{rc}");
+    rc["lr_codes_geo_mul"] = 0.0.into();
+    std::fs::write(&rc_path, serde_json::to_string(&rc).unwrap()).unwrap();
+    train(&data, &t, 2, &["--resume"]);
+    let after = tensors(&t.join("state.safetensors"));
+    assert_eq!(before["codes/geo"].1, after["codes/geo"].1, "the geometry codes stay");
+    assert_ne!(before["codes/tex"].1, after["codes/tex"].1, "the texture codes learn");
+
     let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
     refused(&["--lr-codes", "0.01"], &root.join("adv"), "--objective reconstruction");
     refused(&["--objective", "reconstruction", "--lr-codes=-1"], &root.join("neg"), "≥ 0");

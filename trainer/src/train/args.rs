@@ -102,7 +102,8 @@ pub struct TrainArgs {
     /// codes as offsets from its fixed latents' mapping, at this Adam rate, with the same L1 as
     /// the generator. The generator file's latent modes are the moved codes. A run started
     /// from a file (`--resume FILE`) whose latent modes hold as many subjects starts its
-    /// offsets at those modes. 0 (the default): fixed codes.
+    /// offsets at those modes. `run.json`'s `lr_codes_geo_mul` scales the geometry codes'
+    /// rate (0: only the texture codes learn). 0 (the default): fixed codes.
     #[arg(long)]
     pub lr_codes: Option<f32>,
     /// Adam learning rate of G (not of the paper's defaults where changed) [default: 0.002

@@ -253,7 +253,10 @@ pub(crate) fn reconstruction_step(mut st: State, inputs: &StepInputs) -> Result<
     let total = loss + fakes.eikonal * rc.lambda_eikonal + fakes.cross_entropy * rc.lambda_cross_entropy;
     let grads = total.backward();
     let g = track_w_avg(generator_update(&mut st.adam_g, rc, st.g, &grads), zg, zt, rc.generator.w_avg_beta);
-    st.codes = st.codes.map(|c| st.adam_codes.step(rc.lr_codes, c, &grads));
+    let geo_mul = rc.lr_codes_geo_mul;
+    st.codes = st.codes.map(|c| {
+        st.adam_codes.step_scaled(rc.lr_codes, c, &grads, &|name| if name.starts_with("geo") { geo_mul } else { 1.0 })
+    });
     let seen_kimg = (st.step + 1) as f32 * b as f32 / 1000.0;
     let half_life = rc.ema_kimg.min(0.05 * seen_kimg);
     let beta = 0.5f32.powf(b as f32 / (half_life * 1000.0).max(1e-8));

@@ -122,6 +122,10 @@ pub struct RunConfig {
     /// codes. Absent in older runs: 0. Editable in `run.json`.
     #[serde(default)]
     pub lr_codes: f32,
+    /// Factor on `lr_codes` for the geometry branch's codes (0: only the texture codes
+    /// learn). Absent: 1. Editable in `run.json`.
+    #[serde(default = "one")]
+    pub lr_codes_geo_mul: f32,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -198,6 +202,7 @@ impl RunConfig {
             latent_spread_geo: None,
             train_only: None,
             lr_codes: 0.0,
+            lr_codes_geo_mul: 1.0,
         }
     }
 }
