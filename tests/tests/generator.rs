@@ -265,7 +265,9 @@ fn checkpoints_round_trip_and_reject_other_configs() {
 #[test]
 fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     use getavatar_core::burn::tensor::TensorData;
-    use getavatar_core::checkpoint::{load_generator, load_latent_modes, save_generator, save_generator_with_modes};
+    use getavatar_core::checkpoint::{
+        load_generator, load_generator_and_modes, load_latent_modes, save_generator, save_generator_with_modes,
+    };
     use getavatar_core::generator::{LatentModes, ModePairing};
     use getavatar_core::network::mapping::{truncate_toward_modes, truncate_toward_subject};
     let dev = device();
@@ -302,6 +304,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let m = LatentModes {
         geo: g.mapping_geo.forward(zg.clone()),
         tex: g.mapping_tex.forward(zt.clone()),
+        tex_layers: None,
         pairing: ModePairing::Subject,
     };
     let bytes = save_generator_with_modes(&g, &cfg, Some(&m), &extra).unwrap();
@@ -320,7 +323,8 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     assert!(c.iter().zip(&a).all(|(x, y)| (x - y).abs() < 1e-4), "ψ = 0 is the nearest (only) mode");
     assert!(c.iter().zip(&d).any(|(x, y)| (x - y).abs() > 1e-3));
     // Modes of another width than w_dim are refused.
-    let narrow = LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1), pairing: m.pairing };
+    let narrow =
+        LatentModes { geo: m.geo.clone(), tex: m.tex.clone().narrow(1, 0, 1), tex_layers: None, pairing: m.pairing };
     let bad = save_generator_with_modes(&g, &cfg, Some(&narrow), &extra).unwrap();
     assert!(load_latent_modes(&bad, &dev).is_err());
 
@@ -336,6 +340,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     let two = LatentModes {
         geo: w(&g.mapping_geo, &z1, &z2),
         tex: w(&g.mapping_tex, &z3, &z4),
+        tex_layers: None,
         pairing: ModePairing::Branch,
     };
     let bytes = save_generator_with_modes(&g, &cfg, Some(&two), &extra).unwrap();
@@ -354,6 +359,42 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     patched[at + 1..at + 7].copy_from_slice(b"braNch");
     let err = load_latent_modes(&patched, &dev).expect_err("unknown pairing").to_string();
     assert!(err.contains("latent_modes/pairing"), "{err}");
+
+    // Per-layer texture modes (W+ subject codes): they travel in the file; a subject's styles
+    // and ψ = 0 add its layer offsets to its W code on each layer, ψ = ½ half of them, ψ = 1
+    // none; a file whose layer count is not the generator's is refused.
+    let nt = g.num_ws().1;
+    let offsets: Vec<f32> = (0..2 * nt * cfg.w_dim).map(|i| ((i % 7) as f32 - 3.0) * 0.1).collect();
+    let layered = LatentModes {
+        tex_layers: Some(Tensor::from_data(TensorData::new(offsets.clone(), [2, nt, cfg.w_dim]), &dev)),
+        ..two.clone()
+    };
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&layered), &extra).unwrap();
+    let (_, loaded) = load_generator_and_modes(&bytes, &cfg, &dev).expect("a file with layer offsets loads");
+    let loaded = loaded.expect("modes present");
+    assert_eq!(vals(loaded.tex_layers.clone().expect("layers travel").reshape([1, 2 * nt * cfg.w_dim])), offsets);
+    let t1 = row(&two.tex, 1);
+    let expect = |scale: f32| -> Vec<f32> {
+        (0..nt * cfg.w_dim).map(|i| t1[i % cfg.w_dim] + scale * offsets[nt * cfg.w_dim + i]).collect()
+    };
+    let own = g.subject_styles(&loaded, 0, 1).expect("in range");
+    assert!(near(&vals(own.tex.reshape([1, nt * cfg.w_dim])), &expect(1.0)), "subject 1's texture, layer by layer");
+    let at_psi =
+        |psi: f32| vals(g.styles_with(z1.clone(), z4.clone(), psi, Some(&loaded)).tex.reshape([1, nt * cfg.w_dim]));
+    assert!(near(&at_psi(0.0), &expect(1.0)), "ψ = 0: the mode's W+ code");
+    let w4 = vals(g.mapping_tex.forward(z4.clone()));
+    let half: Vec<f32> = (0..nt * cfg.w_dim)
+        .map(|i| 0.5 * (t1[i % cfg.w_dim] + w4[i % cfg.w_dim]) + 0.5 * offsets[nt * cfg.w_dim + i])
+        .collect();
+    assert!(near(&at_psi(0.5), &half), "ψ = ½: half way, half the offsets");
+    let plain_w: Vec<f32> = (0..nt * cfg.w_dim).map(|i| w4[i % cfg.w_dim]).collect();
+    assert!(near(&at_psi(1.0), &plain_w), "ψ = 1: the seed's own code");
+    assert!(g.subject_styles(&loaded, 0, 2).is_none(), "out of range");
+    let short = LatentModes { tex_layers: layered.tex_layers.clone().map(|t| t.narrow(1, 0, nt - 1)), ..two.clone() };
+    let bytes = save_generator_with_modes(&g, &cfg, Some(&short), &extra).unwrap();
+    let Err(err) = load_generator_and_modes(&bytes, &cfg, &dev) else { panic!("wrong layer count refused") };
+    let err = err.to_string();
+    assert!(err.contains("latent_modes/tex_layers"), "{err}");
 }
 
 type Fingerprint = (usize, usize, [f64; 3]);

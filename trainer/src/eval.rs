@@ -315,8 +315,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         let subject = subjects.as_ref().map(|s| s[idx]);
         let styles = match (subject, modes) {
             (Some(s), Some(m)) => {
-                let (wg, wt) = m.subject(s, s).context("a subject inside the checkpoint's count (checked above)")?;
-                g.styles_from_w(wg, wt)
+                g.subject_styles(m, s, s).context("a subject inside the checkpoint's count (checked above)")?
             }
             _ => {
                 let (zg, zt) = seed_latents(&cfg, a.seed + 2 * k as u64, a.seed + 2 * k as u64 + 1, &dev);

@@ -286,10 +286,9 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
             let Some(modes) = &modes else {
                 bail!("--subject needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
             };
-            let (wg, wt) = modes.subject(k, m).with_context(|| {
+            g.subject_styles(modes, k, m).with_context(|| {
                 format!("--subject {spec}: the checkpoint has {} subjects (0…{})", modes.count(), modes.count() - 1)
-            })?;
-            g.styles_from_w(wg, wt)
+            })?
         }
         (None, None) => seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, a.mean_truncation, &device),
     };

@@ -164,8 +164,7 @@ pub fn variety(a: &VarietyArgs) -> Result<VarietyReport> {
     let mut own = Vec::with_capacity(subjects);
     if let Some(m) = &modes {
         for k in 0..subjects {
-            let (wg, wt) = m.subject(k, k).context("a latent mode inside the checkpoint's count")?;
-            own.push(render(&g.styles_from_w(wg, wt))?);
+            own.push(render(&g.subject_styles(m, k, k).context("a latent mode inside the checkpoint's count")?)?);
             bar.inc(1);
         }
     }

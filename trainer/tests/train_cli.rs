@@ -965,3 +965,82 @@ fn learned_subject_codes_resume_exactly_and_carry_over_through_the_generator_fil
     refused(&["--resume", "--lr-codes", "0.1"], &a, "keeps its settings");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `--codes-wplus`: the learned texture codes are W+ (one offset per texture style layer).
+/// They resume bit-identically, the generator file carries them as `latent_modes/tex_layers`
+/// (the subjects' W codes stay the fixed latents' mapping), a W+ run started from that file
+/// goes on from them, and a W run cannot hold them (it starts at the fixed codes).
+#[test]
+fn wplus_subject_codes_resume_exactly_and_travel_as_layer_offsets() {
+    let root = tmp("codes_wplus");
+    let data = dataset(&root);
+    let wplus = ["--objective", "reconstruction", "--lr-codes", "0.05", "--codes-wplus"];
+    let (a, b) = (root.join("a"), root.join("b"));
+    train(&data, &a, 2, &wplus);
+    train(&data, &b, 1, &wplus);
+    train(&data, &b, 2, &["--resume"]);
+    for f in ["state.safetensors", "generator.safetensors"] {
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f}: 2 steps == 1 + resume + 1"
+        );
+    }
+    let tensors = |p: &Path| parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
+    let state = tensors(&a.join("state.safetensors"));
+    let (geo_shape, _) = &state["codes/geo"];
+    let (tex_shape, tex) = &state["codes/tex"];
+    let w = geo_shape[1];
+    assert_eq!(tex_shape[0], 2, "one code per subject");
+    assert!(tex_shape[1] > w && tex_shape[1] % w == 0, "W+: several layers of w_dim: {tex_shape:?}");
+    let layers = tex_shape[1] / w;
+    // Layers differ: the finest texture layers get other gradients than the first.
+    let layer = |l: usize| tex[l * w..(l + 1) * w].to_vec();
+    assert!(layer(0) != layer(layers - 1), "each layer moves on its own");
+    assert!(tex.iter().any(|v| v.abs() > 1e-3), "two steps at rate 0.05 move the codes");
+
+    let file = tensors(&a.join("generator.safetensors"));
+    let (shape, offsets) = &file["latent_modes/tex_layers"];
+    assert_eq!(shape, &vec![2, layers, w], "the file's layer offsets");
+    // The file's modes are G_ema's codes with the averaged offsets.
+    let ema = &state["codes_ema/tex"].1;
+    assert_eq!(offsets, ema, "the layer offsets are the averaged codes");
+
+    // From a's file: a W+ run starts at its layer offsets (one step at a tiny rate keeps
+    // them); a W run cannot hold them and starts at the fixed codes, without layers.
+    let init = a.join("generator.safetensors");
+    let from = |out: &Path, extra: &[&str]| {
+        let args =
+            [&["--objective", "reconstruction", "--lr-g", "1e-9", "--resume", init.to_str().unwrap()][..], extra]
+                .concat();
+        train(&data, out, 1, &args)
+    };
+    let text = from(&root.join("d"), &["--lr-codes", "1e-9", "--codes-wplus"]);
+    assert!(text.contains("subjects' codes from the latent modes of"), "{text}");
+    let d = tensors(&root.join("d").join("generator.safetensors"));
+    let max_diff = |x: &[f32], y: &[f32]| x.iter().zip(y).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+    assert!(max_diff(&d["latent_modes/tex_layers"].1, offsets) < 1e-3, "carried over");
+    let text = from(&root.join("e"), &["--lr-codes", "1e-9"]);
+    assert!(text.contains("start at the fixed ones"), "{text}");
+    assert!(!tensors(&root.join("e").join("generator.safetensors")).contains_key("latent_modes/tex_layers"));
+
+    // The file samples a subject with its layers (`sample --subject`).
+    let out = root.join("sample");
+    ok(trainer(&[
+        "sample",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        init.to_str().unwrap(),
+        "--subject",
+        "1",
+        "--res",
+        "32",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+
+    let refused = |extra: &[&str], out: &Path, needle: &str| refused(&data, extra, out, needle);
+    refused(&["--objective", "reconstruction", "--codes-wplus"], &root.join("no_rate"), "--lr-codes");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -27,6 +27,9 @@ pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
 /// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
 pub const MODES_GEO: &str = "latent_modes/geo";
 pub const MODES_TEX: &str = "latent_modes/tex";
+/// Optional per-layer offsets of the texture modes (`[K, n_tex_ws, w_dim]`,
+/// `LatentModes::tex_layers`).
+pub const MODES_TEX_LAYERS: &str = "latent_modes/tex_layers";
 /// Metadata key: how ψ pairs the branches' modes (`subject` or `branch`, see
 /// [`ModePairing`]); absent in older checkpoints: `subject`.
 pub const MODES_PAIRING: &str = "latent_modes/pairing";
@@ -99,6 +102,14 @@ pub fn save_generator_with_modes(
         for (name, t) in [(MODES_GEO, &m.geo), (MODES_TEX, &m.tex)] {
             let shape = t.dims().to_vec();
             tensors.push((name.to_string(), shape, read_f32_now(t.clone()).map_err(|e| e.context(name))?));
+        }
+        if let Some(t) = &m.tex_layers {
+            let shape = t.dims().to_vec();
+            tensors.push((
+                MODES_TEX_LAYERS.into(),
+                shape,
+                read_f32_now(t.clone()).map_err(|e| e.context(MODES_TEX_LAYERS))?,
+            ));
         }
     }
     write_safetensors(&meta, &tensors)
@@ -314,9 +325,23 @@ fn latent_modes_of(st: &SafeTensors, device: &Device) -> Result<Option<LatentMod
                     fmt_err(format!("metadata `{MODES_PAIRING}` is {v:?}, expected \"subject\" or \"branch\""))
                 })?,
             };
-            Ok(Some(LatentModes { geo: t(sg, vg), tex: t(stx, vt), pairing }))
+            let tex_layers = match get(MODES_TEX_LAYERS) {
+                None => None,
+                Some((s, v)) => {
+                    if !(s.len() == 3 && s[0] == sg[0] && s[1] >= 1 && s[2] == w_dim) {
+                        return Err(CheckpointError::Param(
+                            MODES_TEX_LAYERS.into(),
+                            format!("shape {s:?}, expected [{}, layers, {w_dim}]", sg[0]),
+                        ));
+                    }
+                    Some(Tensor::<3>::from_data(TensorData::new(v.clone(), [s[0], s[1], s[2]]), device))
+                }
+            };
+            Ok(Some(LatentModes { geo: t(sg, vg), tex: t(stx, vt), tex_layers, pairing }))
         }
-        _ => Err(CheckpointError::Param(MODES_GEO.into(), "only one branch's latent modes present".into())),
+        (None, Some(_)) | (Some(_), None) => {
+            Err(CheckpointError::Param(MODES_GEO.into(), "only one branch's latent modes present".into()))
+        }
     }
 }
 
@@ -454,7 +479,18 @@ pub fn load_generator_and_modes(
     device: &Device,
 ) -> Result<(Generator, Option<LatentModes>), CheckpointError> {
     let st = parse_safetensors(bytes)?;
-    Ok((generator_of(&st, requested, device)?, latent_modes_of(&st, device)?))
+    let g = generator_of(&st, requested, device)?;
+    let modes = latent_modes_of(&st, device)?;
+    if let Some(layers) = modes.as_ref().and_then(|m| m.tex_layers.as_ref()) {
+        let n = g.num_ws().1;
+        if layers.dims()[1] != n {
+            return Err(CheckpointError::Param(
+                MODES_TEX_LAYERS.into(),
+                format!("{} texture layers, the generator has {n}", layers.dims()[1]),
+            ));
+        }
+    }
+    Ok((g, modes))
 }
 
 fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) -> Result<Generator, CheckpointError> {
@@ -553,8 +589,16 @@ fn load_into(
         .tensors
         .keys()
         .filter(|k| {
-            [MODES_GEO, MODES_TEX, INVERTED_GEO, INVERTED_TEX, INVERTED_PHOTO_RGB, INVERTED_PHOTO_MASK]
-                .contains(&k.as_str())
+            [
+                MODES_GEO,
+                MODES_TEX,
+                MODES_TEX_LAYERS,
+                INVERTED_GEO,
+                INVERTED_TEX,
+                INVERTED_PHOTO_RGB,
+                INVERTED_PHOTO_MASK,
+            ]
+            .contains(&k.as_str())
         })
         .count();
     if l.used + modes != st.tensors.len() {

@@ -20,7 +20,7 @@ use crate::geometry::{marching_tets, InverseSkinning, PosedGrid, TriMesh};
 use crate::network::decoders::Decoders;
 use crate::network::init::{latent, Rng};
 use crate::network::layers::is_ndarray;
-use crate::network::mapping::{truncate_toward_modes, truncate_toward_subject, MappingNetwork};
+use crate::network::mapping::{nearest_mode, truncate_toward_modes, truncate_toward_subject, MappingNetwork};
 use crate::network::synthesis::{TriplaneSynthesis, Triplanes};
 use crate::network::triplane::sample_triplanes;
 use crate::network::GeneratorConfig;
@@ -99,8 +99,19 @@ impl Generator {
     /// codes instead of w_avg (multi-modal truncation): both branches towards the subject whose
     /// geometry mode is nearest to w_geo ([`truncate_toward_subject`]), or each branch towards
     /// its own nearest mode ([`truncate_toward_modes`]), as `modes.pairing` says.
+    /// With per-layer texture modes (`modes.tex_layers`), the texture styles also get
+    /// (1 − ψ) of the chosen texture mode's layer offsets.
     pub fn styles_with(&self, z_geo: Tensor<2>, z_tex: Tensor<2>, psi: f32, modes: Option<&LatentModes>) -> Styles {
         let (wg, wt) = (self.mapping_geo.forward(z_geo), self.mapping_tex.forward(z_tex));
+        // The texture mode each row goes to, where the modes have layer offsets to add.
+        let tex_mode = modes.and_then(|m| {
+            let layers = m.tex_layers.as_ref().filter(|_| psi != 1.0)?;
+            let k = match m.pairing {
+                ModePairing::Branch => nearest_mode(&wt, &m.tex),
+                ModePairing::Subject => nearest_mode(&wg, &m.geo),
+            };
+            Some(layers.clone().select(0, k))
+        });
         let (wg, wt) = match modes {
             Some(m) if m.pairing == ModePairing::Branch => {
                 (truncate_toward_modes(wg, &m.geo, psi), truncate_toward_modes(wt, &m.tex, psi))
@@ -108,7 +119,23 @@ impl Generator {
             Some(m) => truncate_toward_subject(wg, wt, &m.geo, &m.tex, psi),
             None => (self.mapping_geo.truncate(wg, psi), self.mapping_tex.truncate(wt, psi)),
         };
-        self.styles_from_w(wg, wt)
+        let s = self.styles_from_w(wg, wt);
+        match tex_mode {
+            Some(layers) => Styles { tex: s.tex + layers * (1.0 - psi), geo: s.geo },
+            None => s,
+        }
+    }
+
+    /// The styles of training subject `geo`'s geometry mode and subject `tex`'s texture mode
+    /// (with its layer offsets, where the modes have them): a subject as trained, or re-textured
+    /// with another's colours. None out of range.
+    pub fn subject_styles(&self, modes: &LatentModes, geo: usize, tex: usize) -> Option<Styles> {
+        let (wg, wt) = modes.subject(geo, tex)?;
+        let s = self.styles_from_w(wg, wt);
+        Some(match &modes.tex_layers {
+            Some(l) => Styles { tex: s.tex + l.clone().narrow(0, tex, 1), geo: s.geo },
+            None => s,
+        })
     }
 
     /// Styles from W codes `[B, w_dim]` per branch (each repeated over its layers), e.g. a

@@ -686,9 +686,9 @@ pub fn start_candidates(g: &Generator, modes: Option<&LatentModes>) -> Vec<Start
     let mut out = vec![StartCandidate { name: "w_avg".into(), styles: g.styles_from_w(ag.clone(), at.clone()) }];
     if let Some(m) = modes {
         for k in 0..m.count() {
-            let wg = m.geo.clone().narrow(0, k, 1);
-            let wt = m.tex.clone().narrow(0, k, 1);
-            out.push(StartCandidate { name: format!("mode {k}"), styles: g.styles_from_w(wg, wt) });
+            if let Some(styles) = g.subject_styles(m, k, k) {
+                out.push(StartCandidate { name: format!("mode {k}"), styles });
+            }
         }
     }
     out

@@ -106,6 +106,12 @@ pub struct TrainArgs {
     /// rate (0: only the texture codes learn). 0 (the default): fixed codes.
     #[arg(long)]
     pub lr_codes: Option<f32>,
+    /// With `--lr-codes`: learn each subject's texture code in W+, one offset per texture style
+    /// layer (a multi-view W+ inversion of every subject, trained beside G), instead of one W
+    /// offset. The generator file's latent modes then carry the layer offsets
+    /// (`latent_modes/tex_layers`).
+    #[arg(long)]
+    pub codes_wplus: bool,
     /// Adam learning rate of G (not of the paper's defaults where changed) [default: 0.002
     /// adversarial, 0.0005 reconstruction]. Below D's rate it lets the discriminators get
     /// ahead of G (a two-time-scale update).
@@ -148,7 +154,7 @@ impl TrainArgs {
         let num = |v: f32| v.to_string();
         let objective = |o: Objective| format!("{o:?}").to_lowercase();
         let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
-        let rows: [(&str, Option<String>, String, &str); 19] = [
+        let rows: [(&str, Option<String>, String, &str); 20] = [
             ("--config", self.config.clone(), rc.generator.name.clone(), "generator"),
             ("--batch", self.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
             ("--seed", self.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
@@ -191,6 +197,7 @@ impl TrainArgs {
             ),
             ("--lr-d", self.lr_d.map(num), num(rc.lr_d), "lr_d"),
             ("--lr-codes", self.lr_codes.map(num), num(rc.lr_codes), "lr_codes"),
+            ("--codes-wplus", self.codes_wplus.then(|| "true".into()), rc.codes_wplus.to_string(), "codes_wplus"),
             (
                 "--texture-res",
                 self.texture_res.map(|r| r.to_string()),

@@ -71,13 +71,14 @@ pub fn train_step(st: State, inputs: &StepInputs) -> Result<(State, Metrics)> {
 fn initial_codes(st: &State, rc: &RunConfig, ds: &Dataset, init: Option<&Path>, ad: &Device) -> Result<SubjectCodes> {
     let n = subject_of_entries(ds).into_iter().max().map_or(0, |m| m + 1);
     let w_dim = rc.generator.w_dim;
+    let layers = if rc.codes_wplus { st.g.num_ws().1 } else { 1 };
     if let Some(path) = init {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
         let plain = ad.clone().without_autodiff();
         if let Some(modes) = getavatar_core::checkpoint::load_latent_modes(&bytes, &plain)? {
             let fixed = subject_modes(&st.g_ema, None, ds, rc, &plain)?
                 .context("a reconstruction run's subjects have modes")?;
-            if let Some(codes) = SubjectCodes::reaching(&modes, &fixed, ad)? {
+            if let Some(codes) = SubjectCodes::reaching(&modes, &fixed, layers, ad)? {
                 println!("learning the {n} subjects' codes from the latent modes of {}", path.display());
                 return Ok(codes);
             }
@@ -89,7 +90,7 @@ fn initial_codes(st: &State, rc: &RunConfig, ds: &Dataset, init: Option<&Path>, 
         }
     }
     println!("learning the {n} subjects' codes, starting at their fixed latents' codes");
-    Ok(SubjectCodes::zeros(n, w_dim, ad))
+    Ok(SubjectCodes::zeros(n, w_dim, layers, ad))
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
@@ -153,6 +154,15 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         }
         st
     };
+    if let Some(c) = &st.codes {
+        if (c.tex_layers() > 1) != rc.codes_wplus {
+            bail!(
+                "the state's texture codes are {} but run.json says codes_wplus {}: set it back",
+                if c.tex_layers() > 1 { "W+" } else { "W" },
+                rc.codes_wplus
+            );
+        }
+    }
     if rc.lr_codes > 0.0 && st.codes.is_none() {
         let codes = initial_codes(&st, &rc, &ds, a.resume.as_ref().and_then(|r| r.as_deref()), &ad)?;
         st.codes_ema = Some(codes.copy_to(&plain)?);

@@ -20,7 +20,7 @@ use super::run_config::{
 };
 use super::state::State;
 use super::step::{generator_update, load_reals, scalar, track_w_avg, Metrics, StepInputs};
-use super::subject_codes::{subject_ws, SubjectCodes};
+use super::subject_codes::{layer_modes, subject_ws, with_layer_offsets, SubjectCodes};
 
 /// Subject of every dataset entry (the folder part of its image path) as an index into the
 /// sorted subject names.
@@ -68,11 +68,12 @@ pub(crate) fn subject_modes(
             bail!("the run learns codes for {} subjects, the dataset has {n}", o.dims()[0]);
         }
     }
+    let tex_layers = offsets.as_ref().and_then(|(_, t)| layer_modes(t, rc.generator.w_dim));
     let (geo, tex) = subject_ws(g, zg, zt, offsets);
     // With the texture-swap term the colours follow the texture code, so each branch may
     // go to its own nearest subject (one subject's geometry, another's colours).
     let pairing = if rc.lambda_texture_swap > 0.0 { ModePairing::Branch } else { ModePairing::Subject };
-    Ok(Some(LatentModes { geo, tex, pairing }))
+    Ok(Some(LatentModes { geo, tex, tex_layers, pairing }))
 }
 
 /// The warm-up's reconstruction term: G renders `rc.batch` random views of the dataset (drawn
@@ -131,12 +132,15 @@ pub(crate) fn subject_reconstruction<'a>(
     let (zg, zt) = subject_latents(rc, &drawn, ad);
     let (real_rgb, real_nrm, real_msk, _) = load_reals(ds, &groups.concat(), ad)?;
     let (spread_geo, spread_tex) = rc.latent_spreads();
-    let (wg, wt) = subject_ws(g, zg.clone(), zt.clone(), codes.map(|c| c.select(&drawn)));
+    let offsets = codes.map(|c| c.select(&drawn));
+    let tex_offsets = offsets.as_ref().map(|(_, t)| t.clone());
+    let (wg, wt) = subject_ws(g, zg.clone(), zt.clone(), offsets);
     let styles = if spread_geo > 0.0 || spread_tex > 0.0 {
         spread_styles(g, wg, wt, [spread_geo, spread_tex], rng)
     } else {
         g.styles_from_w(wg, wt)
     };
+    let styles = with_layer_offsets(styles, tex_offsets);
     let b = styles.geo.dims()[0];
     let swap = (rc.lambda_texture_swap > 0.0 && b > 1).then(|| Styles {
         geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),

@@ -126,6 +126,10 @@ pub struct RunConfig {
     /// learn). Absent: 1. Editable in `run.json`.
     #[serde(default = "one")]
     pub lr_codes_geo_mul: f32,
+    /// The learned texture codes are W+ (one offset per texture style layer) instead of W
+    /// (`TrainArgs::codes_wplus`). Absent: false. Fixed once the run has codes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub codes_wplus: bool,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -203,6 +207,7 @@ impl RunConfig {
             train_only: None,
             lr_codes: 0.0,
             lr_codes_geo_mul: 1.0,
+            codes_wplus: false,
         }
     }
 }
@@ -280,6 +285,9 @@ impl RunConfig {
         if lr_codes > 0.0 && objective != Objective::Reconstruction {
             bail!("--lr-codes learns the subjects' codes of the reconstruction objective: use it with --objective reconstruction");
         }
+        if a.codes_wplus && lr_codes == 0.0 {
+            bail!("--codes-wplus makes the learned texture codes W+: give their rate with --lr-codes");
+        }
         let r1_gamma = a.r1_gamma.unwrap_or(10.0);
         if !(r1_gamma >= 0.0 && r1_gamma.is_finite()) {
             bail!("--r1-gamma must be a finite weight ≥ 0, got {r1_gamma}");
@@ -320,6 +328,7 @@ impl RunConfig {
             latent_spread_geo: a.latent_spread_geo,
             train_only: a.train_only.clone(),
             lr_codes,
+            codes_wplus: a.codes_wplus,
             ..defaults
         })
     }

@@ -15,7 +15,7 @@ use super::reconstruction::{subject_latents, subject_of_entries};
 use super::run_config::{Objective, RunConfig};
 use super::state::State;
 use super::step::{latents, load_reals, scalar};
-use super::subject_codes::subject_ws;
+use super::subject_codes::{subject_ws, with_layer_offsets};
 
 /// L1 (in [0, 1] units, mean over pixels and channels) between G_ema's renders of the
 /// sample grid's subjects and the data's views of them: a fixed yardstick of how far a
@@ -48,8 +48,9 @@ pub(crate) fn sample_grid(
         let shown_subjects: Vec<usize> = shown.iter().map(|&i| subjects[i]).collect();
         let (zg, zt) = subject_latents(rc, &shown_subjects, plain);
         let offsets = st.codes_ema.as_ref().map(|c| c.values_of(&shown_subjects, plain)).transpose()?;
+        let tex_offsets = offsets.as_ref().map(|(_, t)| t.clone());
         let (wg, wt) = subject_ws(&st.g_ema, zg, zt, offsets);
-        st.g_ema.styles_from_w(wg, wt)
+        with_layer_offsets(st.g_ema.styles_from_w(wg, wt), tex_offsets)
     } else {
         let mut rng = Rng::new(12345, 1);
         let (zg, zt) =

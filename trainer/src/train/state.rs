@@ -122,9 +122,14 @@ impl State {
         let inner = ad.clone().without_autodiff();
         if let Some((shape, _)) = st.tensors.get("codes/geo") {
             let [n, w] = shape[..] else { bail!("codes/geo has shape {shape:?}, expected [subjects, w_dim]") };
-            let codes = load_params(SubjectCodes::zeros(n, w, ad), &st.tensors, "codes/", ad)?;
+            // W codes: `[n, w]`; W+ texture codes: `[n, layers · w]`.
+            let layers = match st.tensors.get("codes/tex").map(|(s, _)| &s[..]) {
+                Some(&[m, k]) if m == n && k % w == 0 && k > 0 => k / w,
+                other => bail!("codes/tex has shape {other:?}, expected [{n}, layers · {w}]"),
+            };
+            let codes = load_params(SubjectCodes::zeros(n, w, layers, ad), &st.tensors, "codes/", ad)?;
             s.codes_ema = Some(if st.tensors.contains_key("codes_ema/geo") {
-                load_params(SubjectCodes::zeros(n, w, plain), &st.tensors, "codes_ema/", plain)?
+                load_params(SubjectCodes::zeros(n, w, layers, plain), &st.tensors, "codes_ema/", plain)?
             } else {
                 codes.copy_to(plain)?
             });

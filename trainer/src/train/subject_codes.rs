@@ -24,10 +24,12 @@ use anyhow::Result;
 use getavatar_core::burn;
 use getavatar_core::burn::module::{Module, Param};
 use getavatar_core::burn::tensor::{Device, Int, Tensor, TensorData};
-use getavatar_core::generator::{Generator, LatentModes};
+use getavatar_core::generator::{Generator, LatentModes, Styles};
 use getavatar_core::readback::read_f32_now;
 
-/// Per-subject offsets in W, `[subjects, w_dim]` per branch.
+/// Per-subject offsets: `geo` in W, `[subjects, w_dim]`; `tex` in W, `[subjects, w_dim]`, or
+/// with `codes_wplus` in W+, one offset per texture style layer, `[subjects, layers · w_dim]`
+/// (layer-major within a row).
 #[derive(Module, Debug)]
 pub struct SubjectCodes {
     pub geo: Param<Tensor<2>>,
@@ -35,21 +37,38 @@ pub struct SubjectCodes {
 }
 
 impl SubjectCodes {
-    /// Offsets `geo`, `tex` (`[subjects, w_dim]` each, row-major) as trainable parameters.
-    pub fn from_values(subjects: usize, w_dim: usize, geo: Vec<f32>, tex: Vec<f32>, device: &Device) -> Self {
-        let p = |v: Vec<f32>| Param::from_tensor(Tensor::from_data(TensorData::new(v, [subjects, w_dim]), device));
-        Self { geo: p(geo), tex: p(tex) }
+    /// Offsets `geo` (`[subjects, w_dim]`) and `tex` (`[subjects, tex_layers · w_dim]`),
+    /// row-major, as trainable parameters.
+    pub fn from_values(
+        subjects: usize,
+        w_dim: usize,
+        tex_layers: usize,
+        geo: Vec<f32>,
+        tex: Vec<f32>,
+        device: &Device,
+    ) -> Self {
+        let p =
+            |v: Vec<f32>, w: usize| Param::from_tensor(Tensor::from_data(TensorData::new(v, [subjects, w]), device));
+        Self { geo: p(geo, w_dim), tex: p(tex, tex_layers * w_dim) }
     }
 
     /// Zero offsets: every subject at its fixed latent's code.
-    pub fn zeros(subjects: usize, w_dim: usize, device: &Device) -> Self {
-        Self::from_values(subjects, w_dim, vec![0.0; subjects * w_dim], vec![0.0; subjects * w_dim], device)
+    pub fn zeros(subjects: usize, w_dim: usize, tex_layers: usize, device: &Device) -> Self {
+        let (g, t) = (vec![0.0; subjects * w_dim], vec![0.0; subjects * tex_layers * w_dim]);
+        Self::from_values(subjects, w_dim, tex_layers, g, t, device)
     }
 
     /// The offsets that move the fixed codes `fixed` onto `modes` (a generator file's latent
-    /// modes, e.g. a run started from a checkpoint trained with learned codes), or None where
-    /// the file holds another number of subjects.
-    pub fn reaching(modes: &LatentModes, fixed: &LatentModes, device: &Device) -> Result<Option<Self>> {
+    /// modes, e.g. a run started from a checkpoint trained with learned codes), with
+    /// `tex_layers` texture offsets per subject (1: W codes; the generator's texture style
+    /// count: W+). None where the file holds another number of subjects, or per-layer texture
+    /// modes that W codes cannot hold.
+    pub fn reaching(
+        modes: &LatentModes,
+        fixed: &LatentModes,
+        tex_layers: usize,
+        device: &Device,
+    ) -> Result<Option<Self>> {
         let [n, w] = fixed.geo.dims();
         if modes.geo.dims() != [n, w] || modes.tex.dims() != [n, w] {
             return Ok(None);
@@ -58,14 +77,28 @@ impl SubjectCodes {
             let (a, b) = (read_f32_now(a.clone())?, read_f32_now(b.clone())?);
             Ok(a.iter().zip(&b).map(|(x, y)| x - y).collect())
         };
-        Ok(Some(Self::from_values(n, w, diff(&modes.geo, &fixed.geo)?, diff(&modes.tex, &fixed.tex)?, device)))
+        let tex_w = diff(&modes.tex, &fixed.tex)?;
+        let tex = match (&modes.tex_layers, tex_layers) {
+            (None, 1) => tex_w,
+            (Some(_), 1) => return Ok(None),
+            (layers, l) => {
+                let extra = match layers {
+                    Some(t) if t.dims() == [n, l, w] => read_f32_now(t.clone())?,
+                    Some(_) => return Ok(None),
+                    None => vec![0.0; n * l * w],
+                };
+                // Each subject's W offset on every layer, plus the file's layer offsets.
+                (0..n * l * w).map(|i| tex_w[(i / (l * w)) * w + i % w] + extra[i]).collect()
+            }
+        };
+        Ok(Some(Self::from_values(n, w, tex_layers, diff(&modes.geo, &fixed.geo)?, tex, device)))
     }
 
     /// The same offsets on `device` (for the EMA copy beside G_ema).
     pub fn copy_to(&self, device: &Device) -> Result<Self> {
         let [n, w] = self.geo.dims();
         let v = |p: &Param<Tensor<2>>| read_f32_now(p.val().detach());
-        Ok(Self::from_values(n, w, v(&self.geo)?, v(&self.tex)?, device))
+        Ok(Self::from_values(n, w, self.tex_layers(), v(&self.geo)?, v(&self.tex)?, device))
     }
 
     /// Number of subjects.
@@ -73,7 +106,13 @@ impl SubjectCodes {
         self.geo.dims()[0]
     }
 
-    /// The offsets of `subjects` (`[B, w_dim]` per branch), tracked for the update.
+    /// Texture offsets per subject: 1 (W codes) or the texture style count (W+).
+    pub fn tex_layers(&self) -> usize {
+        self.tex.dims()[1] / self.geo.dims()[1]
+    }
+
+    /// The offsets of `subjects` (`[B, w_dim]` and `[B, tex_layers · w_dim]`), tracked for
+    /// the update.
     pub fn select(&self, subjects: &[usize]) -> (Tensor<2>, Tensor<2>) {
         (rows(self.geo.val(), subjects), rows(self.tex.val(), subjects))
     }
@@ -86,15 +125,14 @@ impl SubjectCodes {
 
     /// All offsets as untracked tensors on `device` (for the saved modes and the sample grid).
     pub fn values_on(&self, device: &Device) -> Result<(Tensor<2>, Tensor<2>)> {
-        let [n, w] = self.geo.dims();
         let t = |p: &Param<Tensor<2>>| -> Result<Tensor<2>> {
-            Ok(Tensor::from_data(TensorData::new(read_f32_now(p.val().detach())?, [n, w]), device))
+            Ok(Tensor::from_data(TensorData::new(read_f32_now(p.val().detach())?, p.dims()), device))
         };
         Ok((t(&self.geo)?, t(&self.tex)?))
     }
 }
 
-/// Rows `subjects` of `t` (`[subjects, w_dim]` → `[B, w_dim]`).
+/// Rows `subjects` of `t` (`[subjects, k]` → `[B, k]`).
 fn rows(t: Tensor<2>, subjects: &[usize]) -> Tensor<2> {
     let idx: Vec<i64> = subjects.iter().map(|&s| s as i64).collect();
     let n = idx.len();
@@ -103,7 +141,8 @@ fn rows(t: Tensor<2>, subjects: &[usize]) -> Tensor<2> {
 }
 
 /// The W codes `[B, w_dim]` per branch of subjects with fixed latents `zg`, `zt` under `g`:
-/// the mappings, plus the subjects' learned offsets `(geo, tex)` where given.
+/// the mappings, plus the subjects' learned offsets `(geo, tex)` where given (the texture
+/// offsets only where they are W codes; W+ ones go onto the styles, [`with_layer_offsets`]).
 pub(crate) fn subject_ws(
     g: &Generator,
     zg: Tensor<2>,
@@ -112,9 +151,27 @@ pub(crate) fn subject_ws(
 ) -> (Tensor<2>, Tensor<2>) {
     let (wg, wt) = (g.mapping_geo.forward(zg), g.mapping_tex.forward(zt));
     match offsets {
-        Some((og, ot)) => (wg + og, wt + ot),
+        Some((og, ot)) if ot.dims() == wt.dims() => (wg + og, wt + ot),
+        Some((og, _)) => (wg + og, wt),
         None => (wg, wt),
     }
+}
+
+/// `styles` with W+ texture offsets `tex` (`[B, layers · w_dim]`) added, layer by layer;
+/// unchanged for W offsets (which [`subject_ws`] already added) or none.
+pub(crate) fn with_layer_offsets(styles: Styles, tex: Option<Tensor<2>>) -> Styles {
+    let [b, n, w] = styles.tex.dims();
+    match tex {
+        Some(t) if t.dims()[1] == n * w && n > 1 => Styles { tex: styles.tex + t.reshape([b, n, w]), geo: styles.geo },
+        _ => styles,
+    }
+}
+
+/// The per-layer texture offsets of W+ codes as latent modes' `tex_layers` (`[subjects,
+/// layers, w_dim]`); None for W codes.
+pub(crate) fn layer_modes(tex: &Tensor<2>, w_dim: usize) -> Option<Tensor<3>> {
+    let [n, k] = tex.dims();
+    (k > w_dim).then(|| tex.clone().reshape([n, k / w_dim, w_dim]))
 }
 
 #[cfg(test)]
@@ -137,7 +194,7 @@ mod tests {
         let dev = plain.clone().autodiff();
         let cfg = GeneratorConfig::tiny();
         let g = Generator::new(&cfg, 0, &dev);
-        let codes = SubjectCodes::zeros(3, cfg.w_dim, &dev);
+        let codes = SubjectCodes::zeros(3, cfg.w_dim, 1, &dev);
         let z = |s: u64| {
             Tensor::<2>::from_data(
                 TensorData::new(getavatar_core::rng::Rng::new(s, 0).normals(cfg.z_dim), [1, cfg.z_dim]),

@@ -75,7 +75,7 @@ pub fn truncate_toward_modes(w: Tensor<2>, modes: &Tensor<2>, psi: f32) -> Tenso
 }
 
 /// Index `[B]` of the nearest row of `modes` `[K, w_dim]` (Euclidean) to each row of `w`.
-fn nearest_mode(w: &Tensor<2>, modes: &Tensor<2>) -> Tensor<1, Int> {
+pub fn nearest_mode(w: &Tensor<2>, modes: &Tensor<2>) -> Tensor<1, Int> {
     let [b, _] = w.dims();
     // ‖w − c‖² up to the per-row constant ‖w‖²: ‖c‖² − 2 w·c, `[B, K]`.
     let cc = modes.clone().powf_scalar(2.0).sum_dim(1).reshape([1, modes.dims()[0]]);
@@ -112,6 +112,11 @@ pub fn truncate_toward_subject(
 pub struct LatentModes {
     pub geo: Tensor<2>,
     pub tex: Tensor<2>,
+    /// Per-layer offsets of the texture modes, `[K, n_tex_ws, w_dim]` (learned W+ subject
+    /// codes, `trainer train --codes-wplus`): texture mode k's styles are row k of `tex` on
+    /// every layer plus row k of these; truncation with ψ keeps (1 − ψ) of them. None: the
+    /// modes are W codes.
+    pub tex_layers: Option<Tensor<3>>,
     /// How ψ pairs the two branches' modes (stored in the checkpoint).
     pub pairing: ModePairing,
 }
