@@ -338,6 +338,53 @@ fn views_of_one_avatar_equal_separate_renders() {
     }
 }
 
+/// What `trainer fit-codes` rests on: a rendered view's covered pixels are the texture field
+/// at the canonical points `FakeViews::surfaces` gives (sRGB-encoded, no shading), and every
+/// other pixel is the white background, so with the geometry fixed the RGB term needs only
+/// those points.
+#[test]
+fn rgb_pixels_are_the_texture_field_at_the_views_surface_points() {
+    use getavatar_core::colour::encode_srgb_tensor;
+    use getavatar_core::diff::avatar::render_avatar_views;
+    let dev = cpu();
+    let cfg = GeneratorConfig::tiny();
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let g = Generator::new(&cfg, 0, &dev);
+    let params = PoseLibrary::builtin().params("walking", &[]).unwrap();
+    let labels: Vec<Label> = [0.4f32, 2.8]
+        .iter()
+        .map(|&yaw| Label::new(OrbitCamera { yaw, pitch: 0.1, ..OrbitCamera::default() }.world_to_camera(), &params))
+        .collect();
+    let res = 32;
+    let (zg, zt) = seed_latents(&cfg, 5, 6, &dev);
+    let s = g.styles(zg, zt, 1.0);
+    let f = render_avatar_views(&g, &ctx, &s, &[views(&labels)], res, &PosedGridCache::default(), &dev).unwrap();
+    assert_eq!(f.surfaces.len(), 2, "one per view");
+    let rgb = values(f.rgb.clone());
+    let planes = g.triplanes(&s);
+    for (v, surface) in f.surfaces.iter().enumerate() {
+        let surface = surface.as_ref().expect("the avatar covers pixels");
+        let p = surface.pixels.len();
+        assert!(p > 50, "view {v}: {p} pixels");
+        let c =
+            values(encode_srgb_tensor(g.texture_field(&planes, &s, surface.canonical.clone().unsqueeze_dim::<3>(0))));
+        let mut covered = vec![false; res * res];
+        for (k, &px) in surface.pixels.iter().enumerate() {
+            covered[px as usize] = true;
+            for ch in 0..3 {
+                let want = c[3 * k + ch] * 2.0 - 1.0;
+                let got = rgb[((v * 3 + ch) * res * res) + px as usize];
+                assert!((got - want).abs() < 1e-5, "view {v} pixel {px} channel {ch}: {got} vs {want}");
+            }
+        }
+        let background = (0..res * res).filter(|&px| !covered[px]).collect::<Vec<_>>();
+        assert!(!background.is_empty());
+        for px in background {
+            assert!((0..3).all(|ch| rgb[((v * 3 + ch) * res * res) + px] == 1.0), "view {v} pixel {px} is white");
+        }
+    }
+}
+
 /// The texture-swap term's renders (not in the paper): the surface of one code coloured by the
 /// texture field of other styles. With the same styles they equal the plain RGB; with another
 /// geometry code in the texture styles only covered pixels change, and the term's gradient

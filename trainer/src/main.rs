@@ -9,6 +9,7 @@ mod body_convert;
 mod eval;
 mod export;
 mod fid;
+mod fit_codes;
 mod fit_pose;
 mod inception;
 mod invert;
@@ -177,6 +178,10 @@ enum Command {
     /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned
     /// generator and codes, and metrics go to --out.
     Invert(invert::InvertArgs),
+    /// Fit W+ texture codes for every training subject of a checkpoint to all of its data
+    /// views, the generator frozen (not in the paper: a multi-view form of its inversion);
+    /// writes the checkpoint with the codes as its latent modes' layer offsets.
+    FitCodes(fit_codes::FitCodesArgs),
     /// Time the export's stages (atlas, bake, PNG, glTF) and file sizes per config.
     BenchExport(export::BenchExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
@@ -267,6 +272,7 @@ fn main() -> Result<()> {
         Command::Sample(args) => sample::sample(&args)?,
         Command::Export(args) => export::export(&args)?,
         Command::Invert(args) => invert::invert(&args)?,
+        Command::FitCodes(args) => fit_codes::fit_codes(&args)?,
         Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,

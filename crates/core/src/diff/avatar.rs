@@ -52,6 +52,19 @@ pub struct FakeViews {
     /// The triplanes of the batch's avatars (`[B, 3·C, R, R]`, with gradients), for terms
     /// that evaluate the fields elsewhere (the scan and face terms) without a second synthesis.
     pub planes: Triplanes,
+    /// Per rendered view (in the images' order): the covered pixels and their canonical
+    /// surface points, where the RGB image is the texture field (None: nothing covered).
+    pub surfaces: Vec<Option<PixelSurface>>,
+}
+
+/// The surface a view sees: covered pixel indices (`y·res + x`) and each one's canonical
+/// point (`[P, 3]`, with gradients through the geometry). A covered pixel's RGB is the texture
+/// field at its point (no shading; only the mask is antialiased), so with the geometry fixed
+/// the RGB term's texture gradient needs only these points (`trainer fit-codes`).
+#[derive(Clone, Debug)]
+pub struct PixelSurface {
+    pub pixels: Vec<u32>,
+    pub canonical: Tensor<2>,
 }
 
 fn vec3_tensor(v: &[Vec3], device: &Device) -> Tensor<2> {
@@ -212,6 +225,7 @@ pub async fn render_avatar_views_async(
     let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
     let mut triangles = Vec::new();
     let mut retextured = Vec::new();
+    let mut surfaces = Vec::new();
     // Stage timings on stderr with GETAVATAR_PROFILE set (native only: no clock on wasm32).
     #[cfg(not(target_arch = "wasm32"))]
     let t0 = std::env::var_os("GETAVATAR_PROFILE").is_some().then(std::time::Instant::now);
@@ -262,6 +276,7 @@ pub async fn render_avatar_views_async(
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
             for _ in cams {
+                surfaces.push(None);
                 rgbs.push(bg(1.0, 3));
                 normals.push(bg(0.0, 3));
                 masks.push(bg(-1.0, 1));
@@ -334,6 +349,7 @@ pub async fn render_avatar_views_async(
             let cov = Coverage::new(&r, &mesh.faces);
             if cov.is_empty() {
                 let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
+                surfaces.push(None);
                 rgbs.push(bg(1.0, 3));
                 normals.push(bg(0.0, 3));
                 if re.is_some() {
@@ -347,6 +363,7 @@ pub async fn render_avatar_views_async(
             crate::cooperative::checkpoint().await;
             let p = cov.len();
             let pix_canon = interpolate(&cov, clip.clone(), vcanon.clone(), device); // [P, 3]
+            surfaces.push(Some(PixelSurface { pixels: cov.pixels.clone(), canonical: pix_canon.clone() }));
 
             // RGB: texture field at each pixel's canonical coordinate.
             let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
@@ -399,5 +416,6 @@ pub async fn render_avatar_views_async(
             geometry: Tensor::cat(all_planes.iter().map(|p| p.geometry.clone()).collect(), 0),
             texture: Tensor::cat(all_planes.into_iter().map(|p| p.texture).collect(), 0),
         },
+        surfaces,
     })
 }
