@@ -26,13 +26,15 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::burn;
 use getavatar_core::burn::module::{Module, Param};
 use getavatar_core::burn::tensor::{Device, Int, Tensor, TensorData};
-use getavatar_core::checkpoint::{parse_safetensors, save_generator_with_modes, write_safetensors, NamedTensor};
+use getavatar_core::checkpoint::{
+    collect_params, load_params, parse_safetensors, save_generator_with_modes, write_safetensors, NamedTensor,
+};
 use getavatar_core::colour::decode_srgb;
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::{render_avatar_views, PixelSurface, PosedGridCache};
 use getavatar_core::diff::scan_supervision::{texture_loss, CanonicalSamples};
-use getavatar_core::generator::{BodyContext, Generator, LatentModes, Styles};
-use getavatar_core::optim::Adam;
+use getavatar_core::generator::{is_texture_param, BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::optim::{trainable_where, Adam};
 use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 use glam::Vec3;
@@ -67,6 +69,11 @@ pub struct FitCodesArgs {
     /// resumed to more steps goes on as one run would).
     #[arg(long, default_value_t = 0.02)]
     pub lr: f32,
+    /// Adam rate of the generator's texture branch (`generator::is_texture_param`: to-texture
+    /// layers, texture detail blocks, texture decoder) on the same L1, beside the codes;
+    /// 0 (the default): the generator stays frozen. The geometry never changes.
+    #[arg(long, default_value_t = 0.0)]
+    pub lr_texture: f32,
     /// Weight of the offsets' mean square (keeps them near the subject's W code, which is
     /// where truncation with ψ > 0 starts from).
     #[arg(long, default_value_t = 0.0)]
@@ -93,8 +100,10 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     if a.batch == 0 || a.points == 0 || a.pool == 0 || a.steps == 0 || a.snapshot_every == 0 {
         bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
     }
-    if !(a.lr > 0.0 && a.lr.is_finite() && a.lambda_reg >= 0.0 && a.lambda_reg.is_finite()) {
-        bail!("--lr must be a finite rate > 0 and --lambda-reg a finite weight ≥ 0");
+    if !(a.lr > 0.0 && a.lr.is_finite() && a.lambda_reg >= 0.0 && a.lambda_reg.is_finite())
+        || !(a.lr_texture >= 0.0 && a.lr_texture.is_finite())
+    {
+        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0 and --lambda-reg a finite weight ≥ 0");
     }
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     #[allow(deprecated)]
@@ -129,17 +138,31 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         None => vec![0.0; k * nt * w_dim],
     };
     let state_path = a.out.join("state.safetensors");
-    let (mut codes, mut adam, mut step, mut rng) = if state_path.exists() {
-        let (c, adam, step, rng) = load_state(&state_path, k, nt * w_dim, &ad)?;
-        println!("resuming the fit at step {step} from {}", state_path.display());
-        (c, adam, step, rng)
+    let (_, g_ad, _) = a.model.load(&ad)?;
+    // Only the texture branch is tracked where it learns; nothing of G otherwise.
+    let trainable = |g: Generator| {
+        if a.lr_texture > 0.0 {
+            trainable_where(g, &is_texture_param)
+        } else {
+            g.no_grad()
+        }
+    };
+    let mut fit = if state_path.exists() {
+        let fit = FitState::load(&state_path, k, nt * w_dim, g_ad, &ad)?;
+        println!("resuming the fit at step {} from {}", fit.step, state_path.display());
+        fit
     } else {
         let c = TexCodes { tex: Param::from_tensor(Tensor::from_data(TensorData::new(init, [k, nt * w_dim]), &ad)) };
-        (c, Adam::new(0.9, 0.999, 1e-8), 0usize, Rng::new(a.seed, 0xf17c))
+        FitState {
+            codes: c,
+            adam: Adam::new(0.9, 0.999, 1e-8),
+            g: g_ad,
+            adam_g: Adam::new(0.9, 0.99, 1e-8),
+            step: 0,
+            rng: Rng::new(a.seed, 0xf17c),
+        }
     };
-
-    let (_, g_ad, _) = a.model.load(&ad)?;
-    let g_ad = g_ad.no_grad();
+    fit.g = trainable(fit.g);
     let ws = |m: &Tensor<2>, rows: &[usize], dev: &Device| {
         let idx: Vec<i64> = rows.iter().map(|&r| r as i64).collect();
         let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [rows.len()]), dev);
@@ -147,56 +170,62 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     };
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
     let bar = crate::progress::bar(a.steps as u64, "steps");
-    bar.set_position(step as u64);
-    let snapshot = |codes: &TexCodes, adam: &Adam, step: usize, rng: &Rng| -> Result<()> {
-        write_atomic(&state_path, &save_state(codes, adam, step, rng)?)?;
-        let layers = read_f32_now(codes.tex.val().detach())?;
+    bar.set_position(fit.step as u64);
+    let snapshot = |fit: &FitState| -> Result<()> {
+        write_atomic(&state_path, &fit.save(a.lr_texture > 0.0)?)?;
+        let layers = read_f32_now(fit.codes.tex.val().detach())?;
         let fitted = LatentModes {
             tex_layers: Some(Tensor::from_data(TensorData::new(layers, [k, nt, w_dim]), &plain)),
             ..modes.clone()
         };
         let mut extra = BTreeMap::new();
-        extra.insert("fit_codes_steps".to_string(), step.to_string());
+        extra.insert("fit_codes_steps".to_string(), fit.step.to_string());
         extra.insert("fit_codes_data".to_string(), a.data.display().to_string());
-        write_atomic(&a.out.join("generator.safetensors"), &save_generator_with_modes(&g, &cfg, Some(&fitted), &extra)?)
+        let bytes = save_generator_with_modes(&fit.g, &cfg, Some(&fitted), &extra)?;
+        write_atomic(&a.out.join("generator.safetensors"), &bytes)
     };
-    while step < a.steps {
+    while fit.step < a.steps {
+        let step = fit.step;
         // Each subject equally often: the steps walk through a shuffled order of them.
-        let drawn: Vec<usize> = (0..a.batch.min(n))
-            .map(|i| order(n, a.seed, (step * a.batch.min(n) + i) / n)[(step * a.batch.min(n) + i) % n])
-            .collect();
+        let per = a.batch.min(n);
+        let drawn: Vec<usize> =
+            (0..per).map(|i| order(n, a.seed, (step * per + i) / n)[(step * per + i) % n]).collect();
+        let rng = &mut fit.rng;
         let batch: Vec<(&CanonicalSamples, Vec<usize>)> = drawn
             .iter()
             .map(|&s| (&pools[s], (0..a.points).map(|_| rng.below(pools[s].points.len())).collect()))
             .collect();
-        let offsets = codes.tex.val().select(
-            0,
-            Tensor::<1, Int>::from_data(TensorData::new(drawn.iter().map(|&s| s as i64).collect(), [drawn.len()]), &ad),
-        );
-        let b = drawn.len();
-        let base = g_ad.styles_from_w(ws(&modes.geo, &drawn, &ad), ws(&modes.tex, &drawn, &ad));
-        let styles = Styles { geo: base.geo, tex: base.tex + offsets.clone().reshape([b, nt, w_dim]) };
-        let planes = g_ad.triplanes(&styles);
-        let l1 = texture_loss(&g_ad, &planes, &styles, &batch, &ad);
+        let idx: Vec<i64> = drawn.iter().map(|&s| s as i64).collect();
+        let offsets = fit.codes.tex.val().select(0, Tensor::<1, Int>::from_data(TensorData::new(idx, [per]), &ad));
+        let base = fit.g.styles_from_w(ws(&modes.geo, &drawn, &ad), ws(&modes.tex, &drawn, &ad));
+        let styles = Styles { geo: base.geo, tex: base.tex + offsets.clone().reshape([per, nt, w_dim]) };
+        let planes = fit.g.triplanes(&styles);
+        let l1 = texture_loss(&fit.g, &planes, &styles, &batch, &ad);
         let reg = offsets.powf_scalar(2.0).mean();
         let loss = l1.clone() + reg.clone() * a.lambda_reg;
         let grads = loss.backward();
-        let lr = a.lr * ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
-        codes = adam.step(lr, codes, &grads);
-        step += 1;
+        let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
+        fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
+        if a.lr_texture > 0.0 {
+            fit.g = fit.adam_g.step(a.lr_texture * warm, fit.g, &grads);
+        }
+        fit.step += 1;
+        let step = fit.step;
         let (l1, reg) = (read_f32_now(l1)?[0], read_f32_now(reg)?[0]);
         if !l1.is_finite() {
             bail!("step {step}: non-finite loss; the last snapshot is intact");
         }
+        let lr = a.lr * warm;
         writeln!(log, "{}", serde_json::json!({ "step": step, "l1": l1, "reg": reg, "lr": lr, "subjects": drawn }))?;
         bar.set_position(step as u64);
         bar.set_message(format!("L1 {l1:.4} reg {reg:.4}"));
         if step % a.snapshot_every == 0 || step == a.steps {
-            snapshot(&codes, &adam, step, &rng)?;
+            snapshot(&fit)?;
         }
     }
     bar.finish_and_clear();
     compare_png(&a.out, &ds, &subject_of, n, &g, &cfg, &modes, &plain)?;
+    let step = fit.step;
     println!(
         "fitted the texture codes of {n} subjects in {step} steps; checkpoint {}",
         a.out.join("generator.safetensors").display()
@@ -301,57 +330,94 @@ fn surface_pools(
     Ok(pools)
 }
 
-fn save_state(codes: &TexCodes, adam: &Adam, step: usize, rng: &Rng) -> Result<Vec<u8>> {
-    let mut tensors: Vec<NamedTensor> = Vec::new();
-    let c = read_f32_now(codes.tex.val().detach())?;
-    tensors.push(("codes".into(), codes.tex.dims().to_vec(), c));
-    for (name, (m, v)) in &adam.moments {
-        for (suffix, t) in [("m", m), ("v", v)] {
-            let vals = read_f32_now(t.clone())?;
-            tensors.push((format!("adam/{name}/{suffix}"), vec![vals.len()], vals));
-        }
-    }
-    let (s, inc) = rng.state();
-    let mut meta = BTreeMap::new();
-    meta.insert("format".to_string(), STATE_FORMAT.to_string());
-    meta.insert("step".to_string(), step.to_string());
-    meta.insert("adam_step".to_string(), adam.step.to_string());
-    meta.insert("rng_state".to_string(), s.to_string());
-    meta.insert("rng_inc".to_string(), inc.to_string());
-    Ok(write_safetensors(&meta, &tensors)?)
+/// What a fit resumes from: the codes, G (its texture branch learns with `--lr-texture`),
+/// both optimisers, the step and the point draws' generator.
+struct FitState {
+    codes: TexCodes,
+    adam: Adam,
+    g: Generator,
+    adam_g: Adam,
+    step: usize,
+    rng: Rng,
 }
 
-fn load_state(path: &Path, k: usize, width: usize, ad: &Device) -> Result<(TexCodes, Adam, usize, Rng)> {
-    let st = parse_safetensors(&std::fs::read(path)?).with_context(|| format!("reading {}", path.display()))?;
-    if st.metadata.get("format").map(String::as_str) != Some(STATE_FORMAT) {
-        bail!("{} is not a fit-codes state", path.display());
-    }
-    let num = |key: &str| -> Result<u64> {
-        st.metadata.get(key).and_then(|v| v.parse().ok()).with_context(|| format!("{} lacks `{key}`", path.display()))
-    };
-    let (shape, vals) = st.tensors.get("codes").with_context(|| format!("{} lacks the codes", path.display()))?;
-    if shape[..] != [k, width] {
-        bail!("{}: codes of shape {shape:?}, the checkpoint needs [{k}, {width}]", path.display());
-    }
-    let codes = TexCodes { tex: Param::from_tensor(Tensor::from_data(TensorData::new(vals.clone(), [k, width]), ad)) };
-    let mut adam = Adam::new(0.9, 0.999, 1e-8);
-    adam.step = num("adam_step")?;
-    let inner = ad.clone().without_autodiff();
-    for (name, (s, m)) in &st.tensors {
-        if let Some(p) = name.strip_prefix("adam/").and_then(|r| r.strip_suffix("/m")) {
-            let (_, v) = st
-                .tensors
-                .get(&format!("adam/{p}/v"))
-                .with_context(|| format!("{} lacks adam/{p}/v", path.display()))?;
-            let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [s[0]]), &inner);
-            adam.moments.insert(p.to_string(), (t(m), t(v)));
+impl FitState {
+    /// The state's bytes; G and its optimiser only where it learns (`with_g`).
+    fn save(&self, with_g: bool) -> Result<Vec<u8>> {
+        let mut tensors: Vec<NamedTensor> = Vec::new();
+        let c = read_f32_now(self.codes.tex.val().detach())?;
+        tensors.push(("codes".into(), self.codes.tex.dims().to_vec(), c));
+        let mut meta = BTreeMap::new();
+        let mut adams = vec![("adam", &self.adam)];
+        if with_g {
+            tensors.extend(collect_params(&self.g)?.into_iter().map(|(n, s, v)| (format!("g/{n}"), s, v)));
+            adams.push(("adam_g", &self.adam_g));
         }
+        for (prefix, adam) in adams {
+            for (name, (m, v)) in &adam.moments {
+                for (suffix, t) in [("m", m), ("v", v)] {
+                    let vals = read_f32_now(t.clone())?;
+                    tensors.push((format!("{prefix}/{name}/{suffix}"), vec![vals.len()], vals));
+                }
+            }
+            meta.insert(format!("{prefix}_step"), adam.step.to_string());
+        }
+        let (s, inc) = self.rng.state();
+        meta.insert("format".to_string(), STATE_FORMAT.to_string());
+        meta.insert("step".to_string(), self.step.to_string());
+        meta.insert("rng_state".to_string(), s.to_string());
+        meta.insert("rng_inc".to_string(), inc.to_string());
+        Ok(write_safetensors(&meta, &tensors)?)
     }
-    Ok((codes, adam, num("step")? as usize, Rng::from_state(num("rng_state")?, num("rng_inc")?)))
+
+    /// The state at `path`: codes of `[k, width]`, and G's weights over `g` where it holds them.
+    fn load(path: &Path, k: usize, width: usize, g: Generator, ad: &Device) -> Result<Self> {
+        let st = parse_safetensors(&std::fs::read(path)?).with_context(|| format!("reading {}", path.display()))?;
+        if st.metadata.get("format").map(String::as_str) != Some(STATE_FORMAT) {
+            bail!("{} is not a fit-codes state", path.display());
+        }
+        let num = |key: &str| -> Result<u64> {
+            st.metadata
+                .get(key)
+                .and_then(|v| v.parse().ok())
+                .with_context(|| format!("{} lacks `{key}`", path.display()))
+        };
+        let (shape, vals) = st.tensors.get("codes").with_context(|| format!("{} lacks the codes", path.display()))?;
+        if shape[..] != [k, width] {
+            bail!("{}: codes of shape {shape:?}, the checkpoint needs [{k}, {width}]", path.display());
+        }
+        let codes =
+            TexCodes { tex: Param::from_tensor(Tensor::from_data(TensorData::new(vals.clone(), [k, width]), ad)) };
+        let inner = ad.clone().without_autodiff();
+        let load_adam = |prefix: &str, mut adam: Adam| -> Result<Adam> {
+            adam.step = num(&format!("{prefix}_step"))?;
+            for (name, (s, m)) in &st.tensors {
+                if let Some(p) = name.strip_prefix(&format!("{prefix}/")).and_then(|r| r.strip_suffix("/m")) {
+                    let (_, v) = st
+                        .tensors
+                        .get(&format!("{prefix}/{p}/v"))
+                        .with_context(|| format!("{} lacks {prefix}/{p}/v", path.display()))?;
+                    let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [s[0]]), &inner);
+                    adam.moments.insert(p.to_string(), (t(m), t(v)));
+                }
+            }
+            Ok(adam)
+        };
+        let with_g = st.metadata.contains_key("adam_g_step");
+        let g = if with_g { load_params(g, &st.tensors, "g/", ad)? } else { g };
+        Ok(Self {
+            codes,
+            adam: load_adam("adam", Adam::new(0.9, 0.999, 1e-8))?,
+            g,
+            adam_g: if with_g { load_adam("adam_g", Adam::new(0.9, 0.99, 1e-8))? } else { Adam::new(0.9, 0.99, 1e-8) },
+            step: num("step")? as usize,
+            rng: Rng::from_state(num("rng_state")?, num("rng_inc")?),
+        })
+    }
 }
 
-/// `compare.png`: for the first view of up to 4 subjects, data | the file's own codes | the
-/// fitted codes.
+/// `compare.png`: for the first view of up to 4 subjects, data | the input file at its own
+/// codes | the fitted file.
 #[allow(clippy::too_many_arguments)]
 fn compare_png(
     out: &Path,
@@ -364,7 +430,7 @@ fn compare_png(
     plain: &Device,
 ) -> Result<()> {
     let bytes = std::fs::read(out.join("generator.safetensors"))?;
-    let (_, after) = getavatar_core::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
+    let (g_after, after) = getavatar_core::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
     let after = after.context("the fitted file has latent modes")?;
     let ctx = BodyContext::new(crate::sample::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
@@ -377,7 +443,7 @@ fn compare_png(
         let data = ds.load(i)?;
         let view = ds.entries[i].1.view();
         let mut cols: Vec<Vec<f32>> = vec![data.rgb.iter().map(|v| v * 2.0 - 1.0).collect()];
-        for m in [before, &after] {
+        for (g, m) in [(g, before), (&g_after, &after)] {
             let styles = g.subject_styles(m, s, s).context("a subject inside the count")?;
             let f = getavatar_core::diff::avatar::render_avatars(
                 g,

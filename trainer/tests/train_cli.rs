@@ -1056,39 +1056,52 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let run = root.join("run");
     train(&data, &run, 1, &["--objective", "reconstruction"]);
     let g = run.join("generator.safetensors");
-    let fit = |out: &Path, steps: &str| {
-        ok(trainer(&[
-            "fit-codes",
-            "--config",
-            "tiny",
-            "--checkpoint",
-            g.to_str().unwrap(),
-            "--data",
-            data.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--steps",
-            steps,
-            "--batch",
-            "2",
-            "--points",
-            "256",
-            "--lr",
-            "0.1",
-            "--snapshot-every",
-            "10",
-        ]))
+    let fit = |out: &Path, steps: &str, extra: &[&str]| {
+        ok(trainer(
+            &[
+                &[
+                    "fit-codes",
+                    "--config",
+                    "tiny",
+                    "--checkpoint",
+                    g.to_str().unwrap(),
+                    "--data",
+                    data.to_str().unwrap(),
+                    "--out",
+                    out.to_str().unwrap(),
+                    "--steps",
+                    steps,
+                    "--batch",
+                    "2",
+                    "--points",
+                    "256",
+                    "--lr",
+                    "0.1",
+                    "--snapshot-every",
+                    "10",
+                ][..],
+                extra,
+            ]
+            .concat(),
+        ))
     };
     let (a, b) = (root.join("a"), root.join("b"));
-    let text = fit(&a, "30");
+    let text = fit(&a, "30", &[]);
     assert!(text.contains("fitted the texture codes of 2 subjects in 30 steps"), "{text}");
     // b stops at 20 and resumes to 30 (a state written at 20); the same as a's 30 in one go.
-    fit(&b, "20");
-    let text = fit(&b, "30");
-    assert!(text.contains("resuming the fit at step 20"), "{text}");
-    for f in ["state.safetensors", "generator.safetensors"] {
-        assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}: 30 == 20 + resume + 10");
-    }
+    let resumed = |a: &Path, b: &Path, extra: &[&str]| {
+        fit(b, "20", extra);
+        let text = fit(b, "30", extra);
+        assert!(text.contains("resuming the fit at step 20"), "{text}");
+        for f in ["state.safetensors", "generator.safetensors"] {
+            assert_eq!(
+                std::fs::read(a.join(f)).unwrap(),
+                std::fs::read(b.join(f)).unwrap(),
+                "{f}: 30 == 20 + resume + 10"
+            );
+        }
+    };
+    resumed(&a, &b, &[]);
     let fitted = a.join("generator.safetensors");
     let t = parse_safetensors(&std::fs::read(&fitted).unwrap()).unwrap().tensors;
     let (shape, layers) = &t["latent_modes/tex_layers"];
@@ -1107,6 +1120,21 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
     assert!(f(&after, "rgb") < 0.9 * f(&before, "rgb"), "RGB L1 {} → {}", f(&before, "rgb"), f(&after, "rgb"));
     assert_eq!(f(&after, "mask"), f(&before, "mask"), "the texture codes leave the geometry");
+    // With the texture branch learning too (`--lr-texture`): it resumes exactly (G and its
+    // optimiser in the state), the file's weights change, the geometry does not.
+    let (c, d) = (root.join("c"), root.join("d"));
+    let tex = ["--lr-texture", "0.002"];
+    fit(&c, "30", &tex);
+    resumed(&c, &d, &tex);
+    let tuned = c.join("generator.safetensors");
+    let weights = |p: &Path, name: &str| parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors[name].1.clone();
+    let dec = "decoders.to_rgb.weight";
+    assert_ne!(weights(&tuned, dec), weights(&fitted, dec), "the texture decoder learnt");
+    let sdf = "decoders.sdf.out.weight";
+    assert_eq!(weights(&tuned, sdf), weights(&fitted, sdf), "the SDF head did not");
+    let both = l1(&tuned);
+    assert_eq!(f(&both, "mask"), f(&before, "mask"), "the geometry stays");
+    assert!(f(&both, "rgb") < 0.9 * f(&before, "rgb"), "RGB L1 {} → {}", f(&before, "rgb"), f(&both, "rgb"));
     let png = std::fs::read(a.join("compare.png")).unwrap();
     let img = image::load_from_memory(&png).unwrap();
     assert_eq!((img.width(), img.height()), (3 * 16, 2 * 16), "data | before | after per subject");

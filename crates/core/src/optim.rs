@@ -93,6 +93,30 @@ impl ModuleMapper for AdamMapper<'_> {
     }
 }
 
+/// `module` with only the parameters whose path `keep` accepts (as in checkpoints, e.g.
+/// `decoders.texture.out.weight`) tracked for gradients: a backward pass then computes no
+/// gradient for the others, nor through the layers that only they feed.
+pub fn trainable_where<M: Module>(module: M, keep: &dyn Fn(&str) -> bool) -> M {
+    struct Mark<'a> {
+        path: Vec<String>,
+        seen: BTreeMap<String, usize>,
+        keep: &'a dyn Fn(&str) -> bool,
+    }
+    impl ModuleMapper for Mark<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let name = param_name(&self.path, &mut self.seen);
+            p.set_require_grad((self.keep)(&name))
+        }
+    }
+    module.map(&mut Mark { path: Vec::new(), seen: BTreeMap::new(), keep })
+}
+
 /// Exponential moving average of a model's parameters (the paper's "EMA of the generator"):
 /// `ema ← β·ema + (1 − β)·model`, matched by parameter path. `ema` may live on the model's
 /// device without autodiff.
