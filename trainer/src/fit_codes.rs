@@ -100,9 +100,8 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     if a.batch == 0 || a.points == 0 || a.pool == 0 || a.steps == 0 || a.snapshot_every == 0 {
         bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
     }
-    if !(a.lr > 0.0 && a.lr.is_finite() && a.lambda_reg >= 0.0 && a.lambda_reg.is_finite())
-        || !(a.lr_texture >= 0.0 && a.lr_texture.is_finite())
-    {
+    let finite_at_least = |x: f32, low: f32| x >= low && x.is_finite();
+    if !(a.lr > 0.0 && a.lr.is_finite() && finite_at_least(a.lambda_reg, 0.0) && finite_at_least(a.lr_texture, 0.0)) {
         bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0 and --lambda-reg a finite weight ≥ 0");
     }
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
