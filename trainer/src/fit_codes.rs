@@ -43,6 +43,9 @@ use crate::atomic::write_atomic;
 
 #[derive(clap::Args, Debug)]
 pub struct FitCodesArgs {
+    /// The fit's device (the views are rendered once on the CPU either way).
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// The prepared dataset the checkpoint was trained on (its subjects are the latent modes'
     /// rows; a dataset of its first subjects fits those alone).
     #[arg(long)]
@@ -107,7 +110,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     #[allow(deprecated)]
     let plain = Device::ndarray();
-    let ad = plain.clone().autodiff();
+    let ad = a.backend.device()?.autodiff();
     let (cfg, g, modes) = a.model.load(&plain)?;
     let Some(modes) = modes else {
         bail!("fit-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
@@ -137,6 +140,21 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         None => vec![0.0; k * nt * w_dim],
     };
     let state_path = a.out.join("state.safetensors");
+    // The input file's own metadata (its training step, kimg) carries over to the output.
+    let source = match (&a.model.checkpoint, a.model.random) {
+        (Some(p), _) => Some(p.clone()),
+        (None, false) => crate::sample::shipped_model(&a.model.config()?),
+        (None, true) => None,
+    };
+    let mut source_meta = BTreeMap::new();
+    if let Some(p) = &source {
+        let st = parse_safetensors(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)?;
+        source_meta.extend(st.metadata.into_iter().filter(|(k, _)| {
+            !matches!(k.as_str(), "format" | "config")
+                && !k.starts_with("latent_modes/")
+                && !k.starts_with("fit_codes_")
+        }));
+    }
     let (_, g_ad, _) = a.model.load(&ad)?;
     // Only the texture branch is tracked where it learns; nothing of G otherwise.
     let trainable = |g: Generator| {
@@ -177,7 +195,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
             tex_layers: Some(Tensor::from_data(TensorData::new(layers, [k, nt, w_dim]), &plain)),
             ..modes.clone()
         };
-        let mut extra = BTreeMap::new();
+        let mut extra = source_meta.clone();
         extra.insert("fit_codes_steps".to_string(), fit.step.to_string());
         extra.insert("fit_codes_data".to_string(), a.data.display().to_string());
         let bytes = save_generator_with_modes(&fit.g, &cfg, Some(&fitted), &extra)?;

@@ -1103,7 +1103,11 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     };
     resumed(&a, &b, &[]);
     let fitted = a.join("generator.safetensors");
-    let t = parse_safetensors(&std::fs::read(&fitted).unwrap()).unwrap().tensors;
+    let file = parse_safetensors(&std::fs::read(&fitted).unwrap()).unwrap();
+    let meta = &file.metadata;
+    assert_eq!(meta.get("step").map(String::as_str), Some("1"), "the input's training step carries over: {meta:?}");
+    assert_eq!(meta.get("fit_codes_steps").map(String::as_str), Some("30"), "{meta:?}");
+    let t = file.tensors;
     let (shape, layers) = &t["latent_modes/tex_layers"];
     assert_eq!(shape.len(), 3);
     assert_eq!(shape[0], 2, "{shape:?}");
