@@ -371,12 +371,7 @@ impl FitState {
             adams.push(("adam_g", &self.adam_g));
         }
         for (prefix, adam) in adams {
-            for (name, (m, v)) in &adam.moments {
-                for (suffix, t) in [("m", m), ("v", v)] {
-                    let vals = read_f32_now(t.clone())?;
-                    tensors.push((format!("{prefix}/{name}/{suffix}"), vec![vals.len()], vals));
-                }
-            }
+            tensors.extend(adam.moment_tensors(&format!("{prefix}/"))?);
             meta.insert(format!("{prefix}_step"), adam.step.to_string());
         }
         let (s, inc) = self.rng.state();
@@ -406,18 +401,11 @@ impl FitState {
         let codes =
             TexCodes { tex: Param::from_tensor(Tensor::from_data(TensorData::new(vals.clone(), [k, width]), ad)) };
         let inner = ad.clone().without_autodiff();
-        let load_adam = |prefix: &str, mut adam: Adam| -> Result<Adam> {
+        let load_adam = |prefix: &str, adam: Adam| -> Result<Adam> {
+            let mut adam = adam
+                .with_moments(&st.tensors, &format!("{prefix}/"), &inner)
+                .map_err(|e| anyhow::anyhow!("{} {e}", path.display()))?;
             adam.step = num(&format!("{prefix}_step"))?;
-            for (name, (s, m)) in &st.tensors {
-                if let Some(p) = name.strip_prefix(&format!("{prefix}/")).and_then(|r| r.strip_suffix("/m")) {
-                    let (_, v) = st
-                        .tensors
-                        .get(&format!("{prefix}/{p}/v"))
-                        .with_context(|| format!("{} lacks {prefix}/{p}/v", path.display()))?;
-                    let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [s[0]]), &inner);
-                    adam.moments.insert(p.to_string(), (t(m), t(v)));
-                }
-            }
             Ok(adam)
         };
         let with_g = st.metadata.contains_key("adam_g_step");

@@ -6,9 +6,13 @@
 use std::collections::BTreeMap;
 
 use burn::module::{Module, ModuleMapper, Param};
-use burn::tensor::{Gradients, Tensor};
+use burn::tensor::{Device, Gradients, Tensor, TensorData};
 
 use crate::checkpoint::unique_name as param_name;
+#[cfg(not(target_arch = "wasm32"))]
+use crate::checkpoint::NamedTensor;
+#[cfg(not(target_arch = "wasm32"))]
+use crate::readback::{read_f32_now, ReadbackError};
 
 /// Adam hyper-parameters and per-parameter moments (flattened, on the parameters' device).
 #[derive(Clone, Debug)]
@@ -25,6 +29,40 @@ pub struct Adam {
 impl Adam {
     pub fn new(beta1: f32, beta2: f32, eps: f32) -> Self {
         Self { beta1, beta2, eps, step: 0, moments: BTreeMap::new() }
+    }
+
+    /// The moments as flat named tensors `{prefix}{path}/m` and `…/v`, for a checkpoint (the
+    /// step goes in the caller's metadata). Native only (it blocks on the read-backs).
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn moment_tensors(&self, prefix: &str) -> Result<Vec<NamedTensor>, ReadbackError> {
+        let mut out = Vec::new();
+        for (name, (m, v)) in &self.moments {
+            for (suffix, t) in [("m", m), ("v", v)] {
+                let what = format!("{prefix}{name}/{suffix}");
+                let vals = read_f32_now(t.clone()).map_err(|e| e.context(what.clone()))?;
+                out.push((what, vec![vals.len()], vals));
+            }
+        }
+        Ok(out)
+    }
+
+    /// This optimiser with the moments [`Adam::moment_tensors`] wrote under `prefix` in
+    /// `tensors`, on `device` (without autodiff). Err names a first moment without its second.
+    pub fn with_moments(
+        mut self,
+        tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+        prefix: &str,
+        device: &Device,
+    ) -> Result<Self, String> {
+        for (k, (shape, m)) in tensors {
+            if let Some(name) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {
+                let (_, v) =
+                    tensors.get(&format!("{prefix}{name}/v")).ok_or_else(|| format!("lacks {prefix}{name}/v"))?;
+                let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [shape[0]]), device);
+                self.moments.insert(name.to_string(), (t(m), t(v)));
+            }
+        }
+        Ok(self)
     }
 
     /// One update of `module` (an autodiff module whose loss produced `grads`) with learning

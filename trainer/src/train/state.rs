@@ -4,12 +4,11 @@
 use std::collections::BTreeMap;
 
 use anyhow::{anyhow, bail, Result};
-use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
 use getavatar_core::generator::Generator;
 use getavatar_core::network::discriminator::Discriminator;
 use getavatar_core::optim::Adam;
-use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 
 use super::run_config::{Objective, RunConfig};
@@ -86,12 +85,7 @@ impl State {
             .collect();
         let mut meta = BTreeMap::new();
         for (prefix, a) in &adams {
-            for (name, (m, v)) in &a.moments {
-                let vals = |t: &Tensor<1>| read_f32_now(t.clone()).map_err(|e| e.context(format!("{prefix}{name}")));
-                let (mv, vv) = (vals(m)?, vals(v)?);
-                tensors.push((format!("{prefix}{name}/m"), vec![mv.len()], mv));
-                tensors.push((format!("{prefix}{name}/v"), vec![vv.len()], vv));
-            }
+            tensors.extend(a.moment_tensors(prefix)?);
             meta.insert(format!("{prefix}step"), a.step.to_string());
         }
         let (s, inc) = self.rng.state();
@@ -137,18 +131,8 @@ impl State {
         }
         // `fresh`: the optimiser as a new run makes it (its betas), to fill with the moments.
         let load_adam = |prefix: &str, fresh: Adam| -> Result<Adam> {
-            let mut a = fresh;
+            let mut a = fresh.with_moments(&st.tensors, prefix, &inner).map_err(|e| anyhow!("state {e}"))?;
             a.step = num(&format!("{prefix}step"))?;
-            for (k, (shape, vals)) in &st.tensors {
-                if let Some(rest) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix("/m")) {
-                    let v = st
-                        .tensors
-                        .get(&format!("{prefix}{rest}/v"))
-                        .ok_or_else(|| anyhow!("state lacks {prefix}{rest}/v"))?;
-                    let t = |d: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(d.clone(), [shape[0]]), &inner);
-                    a.moments.insert(rest.to_string(), (t(vals), t(&v.1)));
-                }
-            }
             Ok(a)
         };
         s.adam_g = load_adam("adam_g/", generator_adam(rc))?;
