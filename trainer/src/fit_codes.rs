@@ -81,6 +81,13 @@ pub struct FitCodesArgs {
     /// where truncation with ψ > 0 starts from).
     #[arg(long, default_value_t = 0.0)]
     pub lambda_reg: f32,
+    /// Weight of the texture-swap term (as `train --lambda-texture-swap`): each drawn subject's
+    /// points coloured again by the texture field built from the next drawn subject's
+    /// geometry styles and its own texture styles, L1 against its own colours, so that its
+    /// colours stay its own on other shapes (the app's re-texturing, `pairing: branch`).
+    /// 0: off.
+    #[arg(long, default_value_t = 0.5)]
+    pub lambda_texture_swap: f32,
     /// Write the generator and the state every N steps.
     #[arg(long, default_value_t = 50)]
     pub snapshot_every: usize,
@@ -104,8 +111,13 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
     }
     let finite_at_least = |x: f32, low: f32| x >= low && x.is_finite();
-    if !(a.lr > 0.0 && a.lr.is_finite() && finite_at_least(a.lambda_reg, 0.0) && finite_at_least(a.lr_texture, 0.0)) {
-        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0 and --lambda-reg a finite weight ≥ 0");
+    if !(a.lr > 0.0
+        && a.lr.is_finite()
+        && finite_at_least(a.lambda_reg, 0.0)
+        && finite_at_least(a.lr_texture, 0.0)
+        && finite_at_least(a.lambda_texture_swap, 0.0))
+    {
+        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0, --lambda-reg and --lambda-texture-swap finite weights ≥ 0");
     }
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     #[allow(deprecated)]
@@ -219,7 +231,17 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         let planes = fit.g.triplanes(&styles);
         let l1 = texture_loss(&fit.g, &planes, &styles, &batch, &ad);
         let reg = offsets.powf_scalar(2.0).mean();
-        let loss = l1.clone() + reg.clone() * a.lambda_reg;
+        let mut loss = l1.clone() + reg.clone() * a.lambda_reg;
+        let swap = (a.lambda_texture_swap > 0.0 && per > 1).then(|| {
+            // The next drawn subject's geometry styles under each subject's texture styles.
+            let geo =
+                Tensor::cat(vec![styles.geo.clone().narrow(0, 1, per - 1), styles.geo.clone().narrow(0, 0, 1)], 0);
+            let swapped = Styles { geo, tex: styles.tex.clone() };
+            texture_loss(&fit.g, &fit.g.triplanes(&swapped), &swapped, &batch, &ad)
+        });
+        if let Some(t) = &swap {
+            loss = loss + t.clone() * a.lambda_texture_swap;
+        }
         let grads = loss.backward();
         let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
         fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
@@ -229,11 +251,16 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         fit.step += 1;
         let step = fit.step;
         let (l1, reg) = (read_f32_now(l1)?[0], read_f32_now(reg)?[0]);
+        let swap = swap.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
         if !l1.is_finite() {
             bail!("step {step}: non-finite loss; the last snapshot is intact");
         }
         let lr = a.lr * warm;
-        writeln!(log, "{}", serde_json::json!({ "step": step, "l1": l1, "reg": reg, "lr": lr, "subjects": drawn }))?;
+        writeln!(
+            log,
+            "{}",
+            serde_json::json!({ "step": step, "l1": l1, "swap": swap, "reg": reg, "lr": lr, "subjects": drawn })
+        )?;
         bar.set_position(step as u64);
         bar.set_message(format!("L1 {l1:.4} reg {reg:.4}"));
         if step % a.snapshot_every == 0 || step == a.steps {

@@ -1102,6 +1102,10 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
         }
     };
     resumed(&a, &b, &[]);
+    // The texture-swap term (on by default) is logged beside the L1.
+    let rows = std::fs::read_to_string(a.join("metrics.jsonl")).unwrap();
+    let row: serde_json::Value = serde_json::from_str(rows.lines().next().unwrap()).unwrap();
+    assert!(row["swap"].as_f64().is_some_and(|v| v > 0.0), "{row}");
     let fitted = a.join("generator.safetensors");
     let file = parse_safetensors(&std::fs::read(&fitted).unwrap()).unwrap();
     let meta = &file.metadata;
