@@ -102,6 +102,7 @@ struct TexCodes {
 }
 
 const STATE_FORMAT: &str = "getavatar-fit-codes-1";
+const SURFACES_FORMAT: &str = "getavatar-fit-codes-surfaces-1";
 /// Steps of the linear learning-rate warm-up (Adam's first steps move every coordinate by
 /// about the rate, whatever its gradient).
 const WARMUP_STEPS: f32 = 20.0;
@@ -304,6 +305,22 @@ fn surface_pools(
     let path = a.out.join("surfaces.safetensors");
     if path.exists() {
         let st = parse_safetensors(&std::fs::read(&path)?).with_context(|| format!("reading {}", path.display()))?;
+        // The pools belong to one dataset's subjects at one resolution (and to the geometry of
+        // the checkpoint they were rendered with, which a texture fit never changes).
+        let meta = |k: &str| st.metadata.get(k).map(String::as_str);
+        let want = (n.to_string(), ds.resolution.to_string());
+        if meta("format") != Some(SURFACES_FORMAT)
+            || meta("subjects") != Some(want.0.as_str())
+            || meta("resolution") != Some(want.1.as_str())
+        {
+            bail!(
+                "{} holds the surfaces of another fit ({:?} subjects at {:?}², this data {n} at {}²): delete it to render them again",
+                path.display(),
+                meta("subjects"),
+                meta("resolution"),
+                ds.resolution
+            );
+        }
         let pools: Vec<CanonicalSamples> = (0..n)
             .map(|s| -> Result<CanonicalSamples> {
                 let get = |what: &str| {
@@ -369,7 +386,9 @@ fn surface_pools(
     }
     bar.finish_and_clear();
     let mut meta = BTreeMap::new();
-    meta.insert("format".to_string(), "getavatar-fit-codes-surfaces-1".to_string());
+    meta.insert("format".to_string(), SURFACES_FORMAT.to_string());
+    meta.insert("subjects".to_string(), n.to_string());
+    meta.insert("resolution".to_string(), res.to_string());
     write_atomic(&path, &write_safetensors(&meta, &tensors)?)?;
     Ok(pools)
 }

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use getavatar_core::checkpoint::parse_safetensors;
+use getavatar_core::checkpoint::{parse_safetensors, write_safetensors};
 
 mod common;
 use common::trainer;
@@ -1146,6 +1146,27 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let png = std::fs::read(a.join("compare.png")).unwrap();
     let img = image::load_from_memory(&png).unwrap();
     assert_eq!((img.width(), img.height()), (3 * 16, 2 * 16), "data | before | after per subject");
+
+    // Surfaces of another dataset in --out are refused, by name.
+    let other = root.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    let mut pools = parse_safetensors(&std::fs::read(a.join("surfaces.safetensors")).unwrap()).unwrap();
+    pools.metadata.insert("subjects".into(), "3".into());
+    let tensors: Vec<_> = pools.tensors.into_iter().map(|(k, (s, v))| (k, s, v)).collect();
+    std::fs::write(other.join("surfaces.safetensors"), write_safetensors(&pools.metadata, &tensors).unwrap()).unwrap();
+    let o = trainer(&[
+        "fit-codes",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        g.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("surfaces of another fit"), "{err}");
 
     let o = trainer(&["fit-codes", "--config", "tiny", "--random-weights", "--data", data.to_str().unwrap(), "--out"])
         .status;
