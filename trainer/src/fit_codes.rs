@@ -193,11 +193,8 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         }
     };
     fit.g = trainable(fit.g);
-    let ws = |m: &Tensor<2>, rows: &[usize], dev: &Device| {
-        let idx: Vec<i64> = rows.iter().map(|&r| r as i64).collect();
-        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [rows.len()]), dev);
-        m.clone().to_device(dev).select(0, idx)
-    };
+    // The subjects' W codes on the fit's device, once.
+    let (modes_geo, modes_tex) = (modes.geo.clone().to_device(&ad), modes.tex.clone().to_device(&ad));
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("metrics.jsonl"))?;
     let bar = crate::progress::bar(a.steps as u64, "steps");
     bar.set_position(fit.step as u64);
@@ -226,8 +223,9 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
             .map(|&s| (&pools[s], (0..a.points).map(|_| rng.below(pools[s].points.len())).collect()))
             .collect();
         let idx: Vec<i64> = drawn.iter().map(|&s| s as i64).collect();
-        let offsets = fit.codes.tex.val().select(0, Tensor::<1, Int>::from_data(TensorData::new(idx, [per]), &ad));
-        let base = fit.g.styles_from_w(ws(&modes.geo, &drawn, &ad), ws(&modes.tex, &drawn, &ad));
+        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [per]), &ad);
+        let offsets = fit.codes.tex.val().select(0, idx.clone());
+        let base = fit.g.styles_from_w(modes_geo.clone().select(0, idx.clone()), modes_tex.clone().select(0, idx));
         let styles = Styles { geo: base.geo, tex: base.tex + offsets.clone().reshape([per, nt, w_dim]) };
         let planes = fit.g.triplanes(&styles);
         let l1 = texture_loss(&fit.g, &planes, &styles, &batch, &ad);

@@ -75,6 +75,13 @@ fn train(data: &Path, out: &Path, steps: u64, extra: &[&str]) -> String {
     ok(train_output(data, out, steps, extra))
 }
 
+/// Each of `files` is byte-identical in folders `a` and `b` (`what` says why it should be).
+fn same_files(a: &Path, b: &Path, files: &[&str], what: &str) {
+    for f in files {
+        assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}: {what}");
+    }
+}
+
 #[test]
 fn resume_is_bit_identical_and_outputs_are_complete() {
     let root = tmp("resume");
@@ -897,13 +904,7 @@ fn learned_subject_codes_resume_exactly_and_carry_over_through_the_generator_fil
     train(&data, &b, 1, &with_codes);
     let text = train(&data, &b, 2, &["--resume"]);
     assert!(text.contains("trained 1 steps"), "{text}");
-    for f in ["state.safetensors", "generator.safetensors"] {
-        assert_eq!(
-            std::fs::read(a.join(f)).unwrap(),
-            std::fs::read(b.join(f)).unwrap(),
-            "{f}: 2 steps == 1 + resume + 1"
-        );
-    }
+    same_files(&a, &b, &["state.safetensors", "generator.safetensors"], "2 steps == 1 + resume + 1");
     let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(a.join("run.json")).unwrap()).unwrap();
     assert!((rc["lr_codes"].as_f64().unwrap() - 0.05).abs() < 1e-6, "{rc}");
     let tensors = |p: &Path| parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
@@ -979,13 +980,7 @@ fn wplus_subject_codes_resume_exactly_and_travel_as_layer_offsets() {
     train(&data, &a, 2, &wplus);
     train(&data, &b, 1, &wplus);
     train(&data, &b, 2, &["--resume"]);
-    for f in ["state.safetensors", "generator.safetensors"] {
-        assert_eq!(
-            std::fs::read(a.join(f)).unwrap(),
-            std::fs::read(b.join(f)).unwrap(),
-            "{f}: 2 steps == 1 + resume + 1"
-        );
-    }
+    same_files(&a, &b, &["state.safetensors", "generator.safetensors"], "2 steps == 1 + resume + 1");
     let tensors = |p: &Path| parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
     let state = tensors(&a.join("state.safetensors"));
     let (geo_shape, _) = &state["codes/geo"];
@@ -1093,13 +1088,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
         fit(b, "20", extra);
         let text = fit(b, "30", extra);
         assert!(text.contains("resuming the fit at step 20"), "{text}");
-        for f in ["state.safetensors", "generator.safetensors"] {
-            assert_eq!(
-                std::fs::read(a.join(f)).unwrap(),
-                std::fs::read(b.join(f)).unwrap(),
-                "{f}: 30 == 20 + resume + 10"
-            );
-        }
+        same_files(a, b, &["state.safetensors", "generator.safetensors"], "30 == 20 + resume + 10");
     };
     resumed(&a, &b, &[]);
     // The texture-swap term (on by default) is logged beside the L1.
