@@ -88,6 +88,19 @@ pub struct FitCodesArgs {
     /// 0: off.
     #[arg(long, default_value_t = 0.5)]
     pub lambda_texture_swap: f32,
+    /// The training scans (`synth-scans`' folder): with `--lambda-face`, each subject's face
+    /// points are drawn from its scan (as `train --lambda-face`).
+    #[arg(long)]
+    pub scans: Option<PathBuf>,
+    /// Weight of the face term (not in the paper; as `train --lambda-face`): the same L1 at
+    /// `--face-points` points per drawn subject from a pool on its scan's face
+    /// (`FaceRegion`), where the views' pixels put about 1 % of the points and an eye is a
+    /// pixel or two. Needs `--scans`; 0 (the default): off.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_face: f32,
+    /// Face points per drawn subject per step.
+    #[arg(long, default_value_t = crate::train::FACE_POINTS_PER_STEP)]
+    pub face_points: usize,
     /// Write the generator and the state every N steps.
     #[arg(long, default_value_t = 50)]
     pub snapshot_every: usize,
@@ -116,9 +129,13 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         && a.lr.is_finite()
         && finite_at_least(a.lambda_reg, 0.0)
         && finite_at_least(a.lr_texture, 0.0)
-        && finite_at_least(a.lambda_texture_swap, 0.0))
+        && finite_at_least(a.lambda_texture_swap, 0.0)
+        && finite_at_least(a.lambda_face, 0.0))
     {
-        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0, --lambda-reg and --lambda-texture-swap finite weights ≥ 0");
+        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0, --lambda-reg, --lambda-texture-swap and --lambda-face finite weights ≥ 0");
+    }
+    if a.lambda_face > 0.0 && (a.scans.is_none() || a.face_points == 0) {
+        bail!("--lambda-face needs --scans (the training scans) and --face-points ≥ 1");
     }
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     #[allow(deprecated)]
@@ -145,6 +162,13 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     if let Some(s) = pools.iter().position(|p| p.points.is_empty()) {
         bail!("subject {s}: no pixel of its views is inside both the render and the data's silhouette");
     }
+    let faces = match (&a.scans, a.lambda_face > 0.0) {
+        (Some(dir), true) => {
+            let ctx = BodyContext::new(crate::sample::load_body(&None)?, &cfg);
+            crate::train::canonical_scan_samples(dir, &ds, &ctx, a.seed, (false, true))?.face
+        }
+        _ => Vec::new(),
+    };
 
     // The codes start at the file's layer offsets (none: zero, the W codes).
     let k = modes.count();
@@ -241,6 +265,17 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         if let Some(t) = &swap {
             loss = loss + t.clone() * a.lambda_texture_swap;
         }
+        let face = (!faces.is_empty()).then(|| {
+            let rng = &mut fit.rng;
+            let batch: Vec<(&CanonicalSamples, Vec<usize>)> = drawn
+                .iter()
+                .map(|&s| (&faces[s], (0..a.face_points).map(|_| rng.below(faces[s].points.len())).collect()))
+                .collect();
+            texture_loss(&fit.g, &planes, &styles, &batch, &ad)
+        });
+        if let Some(t) = &face {
+            loss = loss + t.clone() * a.lambda_face;
+        }
         let grads = loss.backward();
         let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
         fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
@@ -251,6 +286,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         let step = fit.step;
         let (l1, reg) = (read_f32_now(l1)?[0], read_f32_now(reg)?[0]);
         let swap = swap.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
+        let face = face.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
         if !l1.is_finite() {
             bail!("step {step}: non-finite loss; the last snapshot is intact");
         }
@@ -258,7 +294,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         writeln!(
             log,
             "{}",
-            serde_json::json!({ "step": step, "l1": l1, "swap": swap, "reg": reg, "lr": lr, "subjects": drawn })
+            serde_json::json!({ "step": step, "l1": l1, "swap": swap, "face": face, "reg": reg, "lr": lr, "subjects": drawn })
         )?;
         bar.set_position(step as u64);
         bar.set_message(format!("L1 {l1:.4} reg {reg:.4}"));

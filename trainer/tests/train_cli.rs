@@ -1135,6 +1135,33 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let png = std::fs::read(a.join("compare.png")).unwrap();
     let img = image::load_from_memory(&png).unwrap();
     assert_eq!((img.width(), img.height()), (3 * 16, 2 * 16), "data | before | after per subject");
+    // The face term (`--scans --lambda-face`): the L1 at points of the scans' faces is logged
+    // and falls; off, it is logged as null.
+    assert!(rows.contains("\"face\":null"), "no face term by default");
+    let e = root.join("e");
+    let scans = root.join("scans");
+    let text = fit(&e, "30", &[&tex[..], &["--scans", scans.to_str().unwrap(), "--lambda-face", "1"]].concat());
+    assert!(text.contains("face term: 4096 face points from each of 2 scans"), "{text}");
+    let rows = std::fs::read_to_string(e.join("metrics.jsonl")).unwrap();
+    let face: Vec<f64> =
+        rows.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap()).collect();
+    let (first, last) = (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0);
+    assert!(last < 0.8 * first, "face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
+    let o = trainer(&[
+        "fit-codes",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        g.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        root.join("noscans").to_str().unwrap(),
+        "--lambda-face",
+        "1",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--lambda-face needs --scans"), "{err}");
 
     // Surfaces of another dataset in --out are refused, by name.
     let other = root.join("other");

@@ -50,9 +50,11 @@ pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
+pub(crate) use reconstruction::canonical_scan_samples;
 pub(crate) use reconstruction::subject_of_entries;
 pub use reconstruction::ScanPools;
-use reconstruction::{canonical_scan_samples, reconstruction_step, subject_modes};
+use reconstruction::{reconstruction_step, subject_modes};
+pub(crate) use run_config::FACE_POINTS_PER_STEP;
 use snapshots::sample_grid;
 use subject_codes::SubjectCodes;
 
