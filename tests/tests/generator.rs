@@ -651,3 +651,51 @@ fn a_checkpoint_brings_its_tet_grid_and_no_weight_depends_on_it() {
     let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
     assert!(e.contains("tet_res"), "{e}");
 }
+
+/// W+ texture modes follow a checkpoint that grows texture detail blocks
+/// (`Generator::grown_modes`, `trainer fit-codes --texture-res`): the new block's two style
+/// layers, between the file's detail blocks and the 3 decoder layers, get zero offsets; every
+/// other layer of every subject keeps its own. Too many layers is refused.
+#[test]
+fn texture_modes_grow_with_the_texture_detail_blocks() {
+    use getavatar_core::burn::tensor::TensorData;
+    use getavatar_core::checkpoint::{load_generator_growing, save_generator};
+    use getavatar_core::generator::{LatentModes, ModePairing};
+    let dev = device();
+    let cfg = GeneratorConfig { texture_res: Some(2 * GeneratorConfig::tiny().plane_res), ..GeneratorConfig::tiny() };
+    let fine = GeneratorConfig { texture_res: Some(4 * cfg.plane_res), ..cfg.clone() };
+    let coarse = Generator::new(&cfg, 3, &dev);
+    let grown = load_generator_growing(&save_generator(&coarse, &cfg, &Default::default()).unwrap(), &fine, 5, &dev)
+        .expect("grows");
+    let (nt, w) = (coarse.num_ws().1, cfg.w_dim);
+    assert_eq!(grown.num_ws().1, nt + 2, "a detail conv and a to-texture layer");
+    let k = 2;
+    let offsets: Vec<f32> = (0..k * nt * w).map(|i| 1.0 + i as f32).collect();
+    let codes = |d: usize| Tensor::from_data(TensorData::new(vec![0.5; k * d], [k, d]), &dev);
+    let modes = LatentModes {
+        geo: codes(w),
+        tex: codes(w),
+        tex_layers: Some(Tensor::from_data(TensorData::new(offsets.clone(), [k, nt, w]), &dev)),
+        pairing: ModePairing::Branch,
+    };
+    let g = grown.grown_modes(modes.clone()).expect("grows");
+    let layers = g.tex_layers.clone().expect("kept").into_data().try_to_vec::<f32>().unwrap();
+    assert_eq!(layers.len(), k * (nt + 2) * w);
+    let old = |s: usize, l: usize| &offsets[(s * nt + l) * w..(s * nt + l + 1) * w];
+    let new = |s: usize, l: usize| &layers[(s * (nt + 2) + l) * w..(s * (nt + 2) + l + 1) * w];
+    for s in 0..k {
+        for l in 0..nt - 3 {
+            assert_eq!(new(s, l), old(s, l), "subject {s}, backbone/detail layer {l}");
+        }
+        for l in nt - 3..nt - 1 {
+            assert!(new(s, l).iter().all(|&v| v == 0.0), "subject {s}: new layer {l} starts at zero");
+        }
+        for l in nt - 3..nt {
+            assert_eq!(new(s, l + 2), old(s, l), "subject {s}: decoder layer {l} moves by 2");
+        }
+    }
+    // Already the generator's count: unchanged; more than it has: refused.
+    assert_eq!(coarse.grown_modes(modes.clone()).unwrap().tex_layers.unwrap().dims(), [k, nt, w]);
+    let too_many = LatentModes { tex_layers: g.tex_layers.clone(), ..modes };
+    assert!(coarse.grown_modes(too_many).unwrap_err().contains("layers"));
+}

@@ -101,6 +101,11 @@ pub struct FitCodesArgs {
     /// Face points per drawn subject per step.
     #[arg(long, default_value_t = crate::train::FACE_POINTS_PER_STEP)]
     pub face_points: usize,
+    /// Texture planes finer than the checkpoint's (not in the paper; as `train --texture-res`):
+    /// the file grows a texture detail block, rendering as before at first, which learns with
+    /// the texture branch (`--lr-texture`). Give it again to resume such a fit.
+    #[arg(long)]
+    pub texture_res: Option<usize>,
     /// Write the generator and the state every N steps.
     #[arg(long, default_value_t = 50)]
     pub snapshot_every: usize,
@@ -141,7 +146,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     #[allow(deprecated)]
     let plain = Device::ndarray();
     let ad = a.backend.device()?.autodiff();
-    let (cfg, g, modes) = a.model.load(&plain)?;
+    let (cfg, g, modes) = load_grown(a, &plain)?;
     let Some(modes) = modes else {
         bail!("fit-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
     };
@@ -192,7 +197,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
                 && !k.starts_with("fit_codes_")
         }));
     }
-    let (_, g_ad, _) = a.model.load(&ad)?;
+    let (_, g_ad, _) = load_grown(a, &ad)?;
     // Only the texture branch is tracked where it learns; nothing of G otherwise.
     let trainable = |g: Generator| {
         if a.lr_texture > 0.0 {
@@ -310,6 +315,34 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         a.out.join("generator.safetensors").display()
     );
     Ok(())
+}
+
+/// The checkpoint as `--model` loads it, grown to `--texture-res` where that is finer than
+/// its texture planes (the new detail block's output layer starts at zero).
+fn load_grown(
+    a: &FitCodesArgs,
+    device: &Device,
+) -> Result<(getavatar_core::network::GeneratorConfig, Generator, Option<LatentModes>)> {
+    let (cfg, g, modes) = a.model.load(device)?;
+    let Some(res) = a.texture_res else { return Ok((cfg, g, modes)) };
+    if a.lr_texture <= 0.0 {
+        bail!("--texture-res grows a texture detail block that only --lr-texture trains: give a rate > 0");
+    }
+    if res == cfg.texture_plane_res() {
+        return Ok((cfg, g, modes));
+    }
+    let path = match (&a.model.checkpoint, a.model.random) {
+        (Some(p), _) => p.clone(),
+        (None, false) => crate::sample::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?,
+        (None, true) => bail!("--texture-res grows a checkpoint: give --checkpoint"),
+    };
+    let grown = getavatar_core::network::GeneratorConfig { texture_res: Some(res), ..cfg.clone() };
+    grown.validate().map_err(|e| anyhow::anyhow!("--texture-res {res}: {e}"))?;
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    let g = getavatar_core::checkpoint::load_generator_growing(&bytes, &grown, 0, device)
+        .with_context(|| format!("growing {} to {res}² texture planes", path.display()))?;
+    let modes = modes.map(|m| g.grown_modes(m)).transpose().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok((grown, g, modes))
 }
 
 /// A shuffled order of `0..n`, the `epoch`-th one of `seed`.

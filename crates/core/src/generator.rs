@@ -126,6 +126,27 @@ impl Generator {
         }
     }
 
+    /// `modes` of this generator's checkpoint before it grew texture detail blocks
+    /// (`checkpoint::load_generator_growing`): the new blocks' style layers, which come after
+    /// the file's detail blocks and before the 3 decoder layers, get zero offsets, so every
+    /// subject renders as before. Modes without layer offsets, or with this generator's
+    /// count, are returned as they are; more layers than this generator has is an error.
+    pub fn grown_modes(&self, modes: LatentModes) -> Result<LatentModes, String> {
+        let Some(layers) = &modes.tex_layers else { return Ok(modes) };
+        let [k, have, w] = layers.dims();
+        let (_, nt) = self.num_ws();
+        if have == nt {
+            return Ok(modes);
+        }
+        if have > nt || have < 3 {
+            return Err(format!("texture mode offsets of {have} layers; this generator has {nt}"));
+        }
+        let zeros = Tensor::zeros([k, nt - have, w], &layers.device());
+        let at = have - 3;
+        let grown = Tensor::cat(vec![layers.clone().narrow(1, 0, at), zeros, layers.clone().narrow(1, at, 3)], 1);
+        Ok(LatentModes { tex_layers: Some(grown), ..modes })
+    }
+
     /// The styles of training subject `geo`'s geometry mode and subject `tex`'s texture mode
     /// (with its layer offsets, where the modes have them): a subject as trained, or re-textured
     /// with another's colours. None out of range.
