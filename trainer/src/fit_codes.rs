@@ -333,7 +333,9 @@ fn load_grown(
     }
     let path = match (&a.model.checkpoint, a.model.random) {
         (Some(p), _) => p.clone(),
-        (None, false) => crate::sample::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?,
+        (None, false) => {
+            crate::sample::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?
+        }
         (None, true) => bail!("--texture-res grows a checkpoint: give --checkpoint"),
     };
     let grown = getavatar_core::network::GeneratorConfig { texture_res: Some(res), ..cfg.clone() };

@@ -1162,6 +1162,37 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--lambda-face needs --scans"), "{err}");
+    // Finer texture planes (`--texture-res`): the file grows a detail block, which learns,
+    // its subjects' W+ codes get the block's two layers, the geometry stays, and the fit
+    // resumes exactly.
+    let grow = [&tex[..], &["--texture-res", "32"]].concat();
+    let (f, h) = (root.join("f"), root.join("h"));
+    fit(&f, "30", &grow);
+    resumed(&f, &h, &grow);
+    let grown = f.join("generator.safetensors");
+    let file = parse_safetensors(&std::fs::read(&grown).unwrap()).unwrap();
+    let cfg: serde_json::Value = serde_json::from_str(&file.metadata["config"]).unwrap();
+    assert_eq!(cfg["texture_res"], 32, "{cfg}");
+    let (layers, _) = &file.tensors["latent_modes/tex_layers"];
+    assert_eq!(layers[1], shape[1] + 2, "the detail block's conv and to-texture layers");
+    let block = &file.tensors["synthesis.texture_detail.0.to_texture.weight"].1;
+    assert!(block.iter().any(|&v| v != 0.0), "the new block's output layer learnt from zero");
+    assert_eq!(weights(&grown, sdf), weights(&fitted, sdf), "the geometry stays");
+    let refused_grow = trainer(&[
+        "fit-codes",
+        "--config",
+        "tiny",
+        "--checkpoint",
+        g.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        root.join("nolr").to_str().unwrap(),
+        "--texture-res",
+        "32",
+    ]);
+    let err = String::from_utf8_lossy(&refused_grow.stderr);
+    assert!(!refused_grow.status.success() && err.contains("--lr-texture"), "{err}");
 
     // Surfaces of another dataset in --out are refused, by name.
     let other = root.join("other");
