@@ -182,21 +182,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         None => vec![0.0; k * nt * w_dim],
     };
     let state_path = a.out.join("state.safetensors");
-    // The input file's own metadata (its training step, kimg) carries over to the output.
-    let source = match (&a.model.checkpoint, a.model.random) {
-        (Some(p), _) => Some(p.clone()),
-        (None, false) => crate::sample::shipped_model(&a.model.config()?),
-        (None, true) => None,
-    };
-    let mut source_meta = BTreeMap::new();
-    if let Some(p) = &source {
-        let st = parse_safetensors(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)?;
-        source_meta.extend(st.metadata.into_iter().filter(|(k, _)| {
-            !matches!(k.as_str(), "format" | "config")
-                && !k.starts_with("latent_modes/")
-                && !k.starts_with("fit_codes_")
-        }));
-    }
+    let source_meta = source_metadata(&a.model)?;
     let (_, g_ad, _) = load_grown(a, &ad)?;
     // Only the texture branch is tracked where it learns; nothing of G otherwise.
     let trainable = |g: Generator| {
@@ -315,6 +301,26 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         a.out.join("generator.safetensors").display()
     );
     Ok(())
+}
+
+/// The metadata of the file `model` loads (its training step, kimg, earlier fits' records)
+/// that a file derived from it carries over; none for random weights.
+pub(crate) fn source_metadata(model: &crate::sample::GeneratorArgs) -> Result<BTreeMap<String, String>> {
+    let source = match (&model.checkpoint, model.random) {
+        (Some(p), _) => Some(p.clone()),
+        (None, false) => crate::sample::shipped_model(&model.config()?),
+        (None, true) => None,
+    };
+    let mut meta = BTreeMap::new();
+    if let Some(p) = &source {
+        let st = parse_safetensors(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)?;
+        meta.extend(
+            st.metadata
+                .into_iter()
+                .filter(|(k, _)| !matches!(k.as_str(), "format" | "config") && !k.starts_with("latent_modes/")),
+        );
+    }
+    Ok(meta)
 }
 
 /// The checkpoint as `--model` loads it, grown to `--texture-res` where that is finer than

@@ -10,6 +10,7 @@ mod eval;
 mod export;
 mod fid;
 mod fit_codes;
+mod fit_mapping;
 mod fit_pose;
 mod inception;
 mod invert;
@@ -182,6 +183,10 @@ enum Command {
     /// views, the generator frozen (not in the paper: a multi-view form of its inversion);
     /// writes the checkpoint with the codes as its latent modes' layer offsets.
     FitCodes(fit_codes::FitCodesArgs),
+    /// Refit the texture mapping network so that seeds' texture codes are distributed like
+    /// the training subjects' (a mixture around each), not between them (not in the paper);
+    /// writes the checkpoint.
+    FitMapping(fit_mapping::FitMappingArgs),
     /// Time the export's stages (atlas, bake, PNG, glTF) and file sizes per config.
     BenchExport(export::BenchExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
@@ -273,6 +278,7 @@ fn main() -> Result<()> {
         Command::Export(args) => export::export(&args)?,
         Command::Invert(args) => invert::invert(&args)?,
         Command::FitCodes(args) => fit_codes::fit_codes(&args)?,
+        Command::FitMapping(args) => fit_mapping::fit_mapping(&args)?,
         Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
