@@ -1080,6 +1080,14 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
             .concat(),
         ))
     };
+    // A fit into `out` with `extra` that is refused with `needle` in its error.
+    let refused_fit = |out: &Path, extra: &[&str], needle: &str| {
+        let (g, data, out) = (g.to_str().unwrap(), data.to_str().unwrap(), out.to_str().unwrap());
+        let args = ["fit-codes", "--config", "tiny", "--checkpoint", g, "--data", data, "--out", out];
+        let o = trainer(&[&args[..], extra].concat());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{err}");
+    };
     let (a, b) = (root.join("a"), root.join("b"));
     let text = fit(&a, "30", &[]);
     assert!(text.contains("fitted the texture codes of 2 subjects in 30 steps"), "{text}");
@@ -1147,21 +1155,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
         rows.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap()).collect();
     let (first, last) = (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0);
     assert!(last < 0.8 * first, "face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
-    let o = trainer(&[
-        "fit-codes",
-        "--config",
-        "tiny",
-        "--checkpoint",
-        g.to_str().unwrap(),
-        "--data",
-        data.to_str().unwrap(),
-        "--out",
-        root.join("noscans").to_str().unwrap(),
-        "--lambda-face",
-        "1",
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("--lambda-face needs --scans"), "{err}");
+    refused_fit(&root.join("noscans"), &["--lambda-face", "1"], "--lambda-face needs --scans");
     // Finer texture planes (`--texture-res`): the file grows a detail block, which learns,
     // its subjects' W+ codes get the block's two layers, the geometry stays, and the fit
     // resumes exactly.
@@ -1178,21 +1172,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let block = &file.tensors["synthesis.texture_detail.0.to_texture.weight"].1;
     assert!(block.iter().any(|&v| v != 0.0), "the new block's output layer learnt from zero");
     assert_eq!(weights(&grown, sdf), weights(&fitted, sdf), "the geometry stays");
-    let refused_grow = trainer(&[
-        "fit-codes",
-        "--config",
-        "tiny",
-        "--checkpoint",
-        g.to_str().unwrap(),
-        "--data",
-        data.to_str().unwrap(),
-        "--out",
-        root.join("nolr").to_str().unwrap(),
-        "--texture-res",
-        "32",
-    ]);
-    let err = String::from_utf8_lossy(&refused_grow.stderr);
-    assert!(!refused_grow.status.success() && err.contains("--lr-texture"), "{err}");
+    refused_fit(&root.join("nolr"), &["--texture-res", "32"], "--lr-texture");
 
     // Surfaces of another dataset in --out are refused, by name.
     let other = root.join("other");
@@ -1201,19 +1181,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     pools.metadata.insert("subjects".into(), "3".into());
     let tensors: Vec<_> = pools.tensors.into_iter().map(|(k, (s, v))| (k, s, v)).collect();
     std::fs::write(other.join("surfaces.safetensors"), write_safetensors(&pools.metadata, &tensors).unwrap()).unwrap();
-    let o = trainer(&[
-        "fit-codes",
-        "--config",
-        "tiny",
-        "--checkpoint",
-        g.to_str().unwrap(),
-        "--data",
-        data.to_str().unwrap(),
-        "--out",
-        other.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("surfaces of another fit"), "{err}");
+    refused_fit(&other, &[], "surfaces of another fit");
 
     let o = trainer(&["fit-codes", "--config", "tiny", "--random-weights", "--data", data.to_str().unwrap(), "--out"])
         .status;
