@@ -21,6 +21,7 @@
 //! not resumable; the file is written once, atomically. w_avg becomes the new codes' mean.
 
 use std::collections::BTreeMap;
+use std::io::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
@@ -112,20 +113,15 @@ pub fn fit_mapping(a: &FitMappingArgs) -> Result<()> {
         if !v.is_finite() {
             bail!("step {step}: non-finite loss; nothing was written");
         }
-        std::io::Write::write_all(
-            &mut log,
-            format!("{}\n", serde_json::json!({ "step": step, "loss": v })).as_bytes(),
-        )?;
+        writeln!(log, "{}", serde_json::json!({ "step": step, "loss": v }))?;
         bar.set_position(step as u64);
         bar.set_message(format!("loss {v:.4}"));
     }
     bar.finish_and_clear();
     let after = probe(&g, &probe_z, &centres, nn)?;
     // w_avg: the new codes' mean (ordinary truncation, `--mean-truncation`, pulls towards it).
-    let mean = g.mapping_tex.forward(probe_z.clone()).detach().mean_dim(0);
     g.mapping_tex.w_avg =
-        getavatar_core::burn::module::Param::from_tensor(mean.reshape([w_dim])).set_require_grad(false);
-    let g: Generator = g;
+        getavatar_core::burn::module::Param::from_tensor(after.mean.clone().reshape([w_dim])).set_require_grad(false);
     let mut extra: BTreeMap<String, String> = source_meta;
     extra.insert("fit_mapping_steps".into(), a.steps.to_string());
     extra.insert("fit_mapping_spread".into(), a.spread.to_string());
@@ -149,11 +145,12 @@ pub fn fit_mapping(a: &FitMappingArgs) -> Result<()> {
 
 /// Figures of the mapping's codes for `z`: the median distance of a code to its nearest
 /// subject's (in units of `nn`), how many subjects are the nearest of some code, and the share
-/// of codes within half of `nn` of a subject's.
+/// of codes within half of `nn` of a subject's; and the codes' mean, `[1, w_dim]`.
 struct Probe {
     median_distance: f32,
     covered: usize,
     within_half: f32,
+    mean: Tensor<2>,
 }
 
 fn probe(g: &Generator, z: &Tensor<2>, centres: &Tensor<2>, nn: f32) -> Result<Probe> {
@@ -168,7 +165,7 @@ fn probe(g: &Generator, z: &Tensor<2>, centres: &Tensor<2>, nn: f32) -> Result<P
         .map_err(|e| anyhow::anyhow!("reading the nearest subjects: {e:?}"))?;
     let covered = near.iter().collect::<std::collections::BTreeSet<_>>().len();
     let within_half = d.iter().filter(|&&v| v < 0.5 * nn).count() as f32 / d.len() as f32;
-    Ok(Probe { median_distance: median(d) / nn, covered, within_half })
+    Ok(Probe { median_distance: median(d) / nn, covered, within_half, mean: w.mean_dim(0) })
 }
 
 /// The fit's objective, in units of `nn`²: each code's distance to its nearest subject's code
