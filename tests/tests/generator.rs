@@ -700,3 +700,82 @@ fn texture_modes_grow_with_the_texture_detail_blocks() {
     let too_many = LatentModes { tex_layers: g.tex_layers.clone(), ..modes };
     assert!(coarse.grown_modes(too_many).unwrap_err().contains("layers"));
 }
+
+/// The face plane (`GeneratorConfig::face`): a checkpoint without one grows into it rendering
+/// the same colours everywhere (its constant starts at zero); once it holds features, colours
+/// change on the face and nowhere else (not behind it, not beside it), fading at the window's
+/// edge; its weights are the texture branch's, and the file round-trips with its window.
+#[test]
+fn the_face_plane_colours_the_face_alone_and_grows_from_a_saved_generator() {
+    use getavatar_core::burn::tensor::TensorData;
+    use getavatar_core::checkpoint::{
+        config_with_saved_resolutions, load_generator, load_generator_growing, save_generator,
+    };
+    use getavatar_core::generator::{is_face_param, is_texture_param};
+    use getavatar_core::network::config::FacePlaneConfig;
+    use getavatar_core::network::face_plane::face_window;
+    let dev = device();
+    let cfg = GeneratorConfig::tiny();
+    let body = BodyModel::default_body().expect("body");
+    let window = face_window(&body, 16).expect("the body has a face");
+    let [cx, cy, front] = window.center;
+    // The nose tip lies on the canonical head: at the midline, well above the root (the pelvis).
+    assert!(cx.abs() < 0.01 && cy > 0.3 && front > 0.05, "{window:?}");
+    let with_face = GeneratorConfig { face: Some(window.clone()), ..cfg.clone() };
+    assert!(with_face.validate().is_ok());
+    for bad in [
+        FacePlaneConfig { res: 2, ..window.clone() },
+        FacePlaneConfig { half_size: [0.0, 0.1], ..window.clone() },
+        FacePlaneConfig { depth: f32::NAN, ..window.clone() },
+    ] {
+        let e = GeneratorConfig { face: Some(bad), ..cfg.clone() }.validate().unwrap_err();
+        assert!(e.contains("face"), "{e}");
+    }
+    let plain = Generator::new(&cfg, 3, &dev);
+    let bytes = save_generator(&plain, &cfg, &Default::default()).unwrap();
+    assert!(load_generator(&bytes, &with_face, &dev).is_err(), "the plain loader wants the file's config");
+    let mut grown = load_generator_growing(&bytes, &with_face, 5, &dev).expect("grows");
+    assert_eq!(grown.num_ws(), plain.num_ws(), "the face plane takes the texture decoder's first style");
+    // Points: on the face (nose tip, an eye), 20 cm behind the nose (the back of the head's
+    // depth), beside the window, and half-way into its edge fade.
+    let [hx, _] = window.half_size;
+    let pts = [
+        [cx, cy, front],
+        [cx + 0.032, cy + 0.03, front - 0.02],
+        [cx, cy, front - 0.2],
+        [cx + 1.2 * hx, cy, front],
+        [cx + 0.875 * hx, cy, front],
+    ];
+    let flat: Vec<f32> = pts.iter().flatten().copied().collect();
+    let pts = Tensor::<3>::from_data(TensorData::new(flat, [1, 5, 3]), &dev);
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let colours = |g: &Generator| {
+        let s = g.styles(zg.clone(), zt.clone(), 0.7);
+        let planes = g.triplanes(&s);
+        g.texture_field(&planes, &s, pts.clone()).into_data().try_to_vec::<f32>().expect("f32")
+    };
+    let before = colours(&plain);
+    assert_eq!(colours(&grown), before, "a grown face plane renders what the file rendered");
+    // A constant feature over the whole plane.
+    let face = grown.face.as_mut().expect("a face plane");
+    let dims = face.constant.dims();
+    face.constant = Param::from_tensor(Tensor::ones(dims, &dev) * 3.0);
+    let after = colours(&grown);
+    let moved = |i: usize| (0..3).map(|c| (after[3 * i + c] - before[3 * i + c]).abs()).sum::<f32>();
+    assert!(moved(0) > 1e-3 && moved(1) > 1e-3, "the face's colours change: {} {}", moved(0), moved(1));
+    assert_eq!(moved(2), 0.0, "behind the face");
+    assert_eq!(moved(3), 0.0, "beside the window");
+    assert!(moved(4) > 0.0 && moved(4) < moved(0), "the edge fades: {} of {}", moved(4), moved(0));
+    let names: Vec<String> =
+        getavatar_core::checkpoint::collect_params(&grown).unwrap().into_iter().map(|(n, _, _)| n).collect();
+    let faces: Vec<&String> = names.iter().filter(|n| is_face_param(n)).collect();
+    assert!(faces.len() >= 3 && faces.iter().all(|n| is_texture_param(n)), "{faces:?}");
+    // The file keeps the window: loaders take it from there, and it cannot be dropped.
+    let saved = save_generator(&grown, &with_face, &Default::default()).unwrap();
+    assert_eq!(config_with_saved_resolutions(&saved, &cfg), with_face);
+    let back = load_generator(&saved, &with_face, &dev).expect("loads");
+    assert_eq!(colours(&back), after);
+    assert!(load_generator_growing(&saved, &cfg, 5, &dev).is_err(), "the face plane cannot be dropped");
+    let moved_window = GeneratorConfig { face: Some(FacePlaneConfig { res: 32, ..window }), ..cfg };
+    assert!(load_generator_growing(&saved, &moved_window, 5, &dev).is_err(), "nor changed");
+}

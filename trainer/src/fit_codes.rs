@@ -33,7 +33,7 @@ use getavatar_core::colour::decode_srgb;
 use getavatar_core::dataset::Dataset;
 use getavatar_core::diff::avatar::{render_avatar_views, PixelSurface, PosedGridCache};
 use getavatar_core::diff::scan_supervision::{texture_loss, CanonicalSamples};
-use getavatar_core::generator::{is_texture_param, BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::generator::{is_face_param, is_texture_param, BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::optim::{trainable_where, Adam};
 use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
@@ -68,8 +68,9 @@ pub struct FitCodesArgs {
     /// Points pooled per subject from its views' pixels.
     #[arg(long, default_value_t = 65536)]
     pub pool: usize,
-    /// Adam's rate, after a linear warm-up over the first 20 steps (no ramp-down: a fit
-    /// resumed to more steps goes on as one run would).
+    /// Adam's rate for the codes, after a linear warm-up over the first 20 steps (no
+    /// ramp-down: a fit resumed to more steps goes on as one run would); 0 keeps the file's
+    /// codes (with `--lr-texture`: fit the generator alone).
     #[arg(long, default_value_t = 0.02)]
     pub lr: f32,
     /// Adam rate of the generator's texture branch (`generator::is_texture_param`: to-texture
@@ -106,6 +107,15 @@ pub struct FitCodesArgs {
     /// the texture branch (`--lr-texture`). Give it again to resume such a fit.
     #[arg(long)]
     pub texture_res: Option<usize>,
+    /// A face plane of N² texels (not in the paper; `GeneratorConfig::face`) over the canonical
+    /// body's face, grown onto a checkpoint without one (rendering as before at first) and
+    /// learning with the texture branch (`--lr-texture`). Give it again to resume such a fit.
+    #[arg(long)]
+    pub face_res: Option<usize>,
+    /// Of the generator, train the face plane alone (with `--lr-texture`): everything away
+    /// from the face renders as the checkpoint did.
+    #[arg(long)]
+    pub face_only: bool,
     /// Write the generator and the state every N steps.
     #[arg(long, default_value_t = 50)]
     pub snapshot_every: usize,
@@ -130,14 +140,17 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
     }
     let finite_at_least = |x: f32, low: f32| x >= low && x.is_finite();
-    if !(a.lr > 0.0
-        && a.lr.is_finite()
+    if !(finite_at_least(a.lr, 0.0)
+        && (a.lr > 0.0 || a.lr_texture > 0.0)
         && finite_at_least(a.lambda_reg, 0.0)
         && finite_at_least(a.lr_texture, 0.0)
         && finite_at_least(a.lambda_texture_swap, 0.0)
         && finite_at_least(a.lambda_face, 0.0))
     {
-        bail!("--lr must be a finite rate > 0, --lr-texture ≥ 0, --lambda-reg, --lambda-texture-swap and --lambda-face finite weights ≥ 0");
+        bail!("--lr and --lr-texture must be finite rates ≥ 0, not both 0; --lambda-reg, --lambda-texture-swap and --lambda-face finite weights ≥ 0");
+    }
+    if (a.face_only || a.face_res.is_some()) && a.lr_texture <= 0.0 {
+        bail!("--face-res and --face-only need --lr-texture > 0 (the rate the face plane learns at)");
     }
     if a.lambda_face > 0.0 && (a.scans.is_none() || a.face_points == 0) {
         bail!("--lambda-face needs --scans (the training scans) and --face-points ≥ 1");
@@ -186,7 +199,9 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     let (_, g_ad, _) = load_grown(a, &ad)?;
     // Only the texture branch is tracked where it learns; nothing of G otherwise.
     let trainable = |g: Generator| {
-        if a.lr_texture > 0.0 {
+        if a.face_only {
+            trainable_where(g, &is_face_param)
+        } else if a.lr_texture > 0.0 {
             trainable_where(g, &is_texture_param)
         } else {
             g.no_grad()
@@ -269,7 +284,9 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         }
         let grads = loss.backward();
         let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
-        fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
+        if a.lr > 0.0 {
+            fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
+        }
         if a.lr_texture > 0.0 {
             fit.g = fit.adam_g.step(a.lr_texture * warm, fit.g, &grads);
         }
@@ -324,17 +341,32 @@ pub(crate) fn source_metadata(model: &crate::sample::GeneratorArgs) -> Result<BT
 }
 
 /// The checkpoint as `--model` loads it, grown to `--texture-res` where that is finer than
-/// its texture planes (the new detail block's output layer starts at zero).
+/// its texture planes (the new detail block's output layer starts at zero) and by a face
+/// plane with `--face-res` where it has none (its constant starts at zero).
 fn load_grown(
     a: &FitCodesArgs,
     device: &Device,
 ) -> Result<(getavatar_core::network::GeneratorConfig, Generator, Option<LatentModes>)> {
     let (cfg, g, modes) = a.model.load(device)?;
-    let Some(res) = a.texture_res else { return Ok((cfg, g, modes)) };
-    if a.lr_texture <= 0.0 {
+    if a.texture_res.is_some() && a.lr_texture <= 0.0 {
         bail!("--texture-res grows a texture detail block that only --lr-texture trains: give a rate > 0");
     }
-    if res == cfg.texture_plane_res() {
+    let mut grown = cfg.clone();
+    if let Some(res) = a.texture_res {
+        grown.texture_res = Some(res);
+    }
+    if let Some(res) = a.face_res {
+        grown.face = Some(match &cfg.face {
+            Some(f) if f.res == res => f.clone(),
+            Some(f) => bail!("the checkpoint has a {}² face plane; --face-res {res} differs", f.res),
+            None => {
+                let model = crate::sample::load_body(&None)?;
+                getavatar_core::network::face_plane::face_window(&model, res)
+                    .map_err(|e| anyhow::anyhow!("--face-res needs a face on the body model: {e}"))?
+            }
+        });
+    }
+    if grown.texture_plane_res() == cfg.texture_plane_res() && grown.face == cfg.face {
         return Ok((cfg, g, modes));
     }
     let path = match (&a.model.checkpoint, a.model.random) {
@@ -342,13 +374,18 @@ fn load_grown(
         (None, false) => {
             crate::sample::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?
         }
-        (None, true) => bail!("--texture-res grows a checkpoint: give --checkpoint"),
+        (None, true) => bail!("--texture-res and --face-res grow a checkpoint: give --checkpoint"),
     };
-    let grown = getavatar_core::network::GeneratorConfig { texture_res: Some(res), ..cfg.clone() };
-    grown.validate().map_err(|e| anyhow::anyhow!("--texture-res {res}: {e}"))?;
+    grown.validate().map_err(|e| anyhow::anyhow!("--texture-res / --face-res: {e}"))?;
     let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    let g = getavatar_core::checkpoint::load_generator_growing(&bytes, &grown, 0, device)
-        .with_context(|| format!("growing {} to {res}² texture planes", path.display()))?;
+    let g = getavatar_core::checkpoint::load_generator_growing(&bytes, &grown, 0, device).with_context(|| {
+        format!(
+            "growing {} to {}² texture planes and face plane {:?}",
+            path.display(),
+            grown.texture_plane_res(),
+            grown.face
+        )
+    })?;
     let modes = modes.map(|m| g.grown_modes(m)).transpose().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     Ok((grown, g, modes))
 }

@@ -1070,11 +1070,11 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
                     "2",
                     "--points",
                     "256",
-                    "--lr",
-                    "0.1",
                     "--snapshot-every",
                     "10",
                 ][..],
+                // The codes' rate unless `extra` gives one.
+                if extra.contains(&"--lr") { &[] } else { &["--lr", "0.1"] },
                 extra,
             ]
             .concat(),
@@ -1173,6 +1173,45 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     assert!(block.iter().any(|&v| v != 0.0), "the new block's output layer learnt from zero");
     assert_eq!(weights(&grown, sdf), weights(&fitted, sdf), "the geometry stays");
     refused_fit(&root.join("nolr"), &["--texture-res", "32"], "--lr-texture");
+    // A face plane (`--face-res`), learning alone (`--face-only`, the codes kept with
+    // `--lr 0`): the file grows one with the body's face window, only its weights change, the
+    // face L1 falls, and the fit resumes exactly.
+    let face_fit = [
+        "--lr",
+        "0",
+        "--lr-texture",
+        "0.05",
+        "--face-res",
+        "16",
+        "--face-only",
+        "--lambda-texture-swap",
+        "0",
+        "--scans",
+        scans.to_str().unwrap(),
+        "--lambda-face",
+        "1",
+    ];
+    let (fp, fq) = (root.join("fp"), root.join("fq"));
+    fit(&fp, "30", &face_fit);
+    resumed(&fp, &fq, &face_fit);
+    let faced = fp.join("generator.safetensors");
+    let file = parse_safetensors(&std::fs::read(&faced).unwrap()).unwrap();
+    let cfg: serde_json::Value = serde_json::from_str(&file.metadata["config"]).unwrap();
+    assert_eq!(cfg["face"]["res"], 16, "{cfg}");
+    let input = parse_safetensors(&std::fs::read(&g).unwrap()).unwrap().tensors;
+    for (name, (_, values)) in &file.tensors {
+        match input.get(name) {
+            Some((_, before)) => assert_eq!(values, before, "{name} is not the face plane's"),
+            None => assert!(name.starts_with("face.") || name.starts_with("latent_modes/"), "{name}"),
+        }
+    }
+    assert!(file.tensors["face.constant"].1.iter().any(|&v| v != 0.0), "the face plane learnt from zero");
+    let rows = std::fs::read_to_string(fp.join("metrics.jsonl")).unwrap();
+    let face: Vec<f64> =
+        rows.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap()).collect();
+    let (first, last) = (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0);
+    assert!(last < 0.9 * first, "face-plane fit: face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
+    refused_fit(&root.join("noface_lr"), &["--face-res", "16"], "--lr-texture");
 
     // Surfaces of another dataset in --out are refused, by name.
     let other = root.join("other");

@@ -511,7 +511,7 @@ fn generator_of(st: &SafeTensors, requested: &GeneratorConfig, device: &Device) 
 
 /// `cfg`, or the config saved in checkpoint `bytes` where that is `cfg` with other
 /// resolutions: detail planes (`GeneratorConfig::texture_res` and `geometry_res`, which only
-/// the synthesis's detail blocks depend on) or tet grid (`tet_res`, which no weight depends
+/// the synthesis's detail blocks depend on), a face plane (`face`) or tet grid (`tet_res`, which no weight depends
 /// on: the file's surface is extracted on its own grid). The config to load and save such a
 /// file under. Where the files differ in more, or `bytes` is no generator file, `cfg` (and
 /// loading reports why).
@@ -523,12 +523,13 @@ pub fn config_with_saved_resolutions(bytes: &[u8], cfg: &GeneratorConfig) -> Gen
     }
 }
 
-/// `cfg` with the detail planes (`texture_res`, `geometry_res`) and the tet grid (`tet_res`)
-/// of `other`.
+/// `cfg` with the detail planes (`texture_res`, `geometry_res`), the face plane (`face`) and
+/// the tet grid (`tet_res`) of `other`.
 fn with_resolutions_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> GeneratorConfig {
     GeneratorConfig {
         texture_res: other.texture_res,
         geometry_res: other.geometry_res,
+        face: other.face.clone(),
         tet_res: other.tet_res,
         ..cfg.clone()
     }
@@ -536,10 +537,11 @@ fn with_resolutions_of(cfg: &GeneratorConfig, other: &GeneratorConfig) -> Genera
 
 /// A generator of config `requested` from a checkpoint saved with coarser detail planes:
 /// the same config but a smaller `texture_res` and/or `geometry_res` (e.g. the paper's
-/// planes, none), and any tet grid (`tet_res`). Every saved weight is loaded; the detail
-/// blocks the file lacks keep their initialisation (the generator built with `seed`), whose
-/// output layers are zero, so the grown generator renders what the saved one rendered, up to
-/// the bilinear upsampling of the grown planes.
+/// planes, none), no face plane where `requested` has one, and any tet grid (`tet_res`).
+/// Every saved weight is loaded; the detail blocks and face plane the file lacks keep their
+/// initialisation (the generator built with `seed`), whose output layers (the face plane's
+/// constant) are zero, so the grown generator renders what the saved one rendered, up to the
+/// bilinear upsampling of the grown planes.
 pub fn load_generator_growing(
     bytes: &[u8],
     requested: &GeneratorConfig,
@@ -552,6 +554,7 @@ pub fn load_generator_growing(
     if same_but_res != saved
         || requested.texture_plane_res() < saved.texture_plane_res()
         || requested.geometry_plane_res() < saved.geometry_plane_res()
+        || (saved.face.is_some() && saved.face != requested.face)
     {
         return Err(CheckpointError::ConfigMismatch {
             saved: saved.name.clone(),
@@ -560,7 +563,7 @@ pub fn load_generator_growing(
         });
     }
     requested.validate().map_err(|e| fmt_err(format!("config: {e}")))?;
-    let grown = ["synthesis.texture_detail.", "synthesis.geometry_detail."];
+    let grown = ["synthesis.texture_detail.", "synthesis.geometry_detail.", "face."];
     load_into(Generator::new(requested, seed, device), &st, &grown, device)
 }
 

@@ -18,6 +18,7 @@ use crate::dmtet_gpu;
 use crate::fields::{aligned_points, band_fields, points_tensor};
 use crate::geometry::{marching_tets, InverseSkinning, PosedGrid, TriMesh};
 use crate::network::decoders::Decoders;
+use crate::network::face_plane::FacePlane;
 use crate::network::init::{latent, Rng};
 use crate::network::layers::is_ndarray;
 use crate::network::mapping::{nearest_mode, truncate_toward_modes, truncate_toward_subject, MappingNetwork};
@@ -41,19 +42,28 @@ pub struct Generator {
     pub mapping_tex: MappingNetwork,
     pub synthesis: TriplaneSynthesis,
     pub decoders: Decoders,
+    /// The face plane (`GeneratorConfig::face`; not in the paper), added to the texture
+    /// features on the canonical face.
+    pub face: Option<FacePlane>,
 }
 
 /// Whether the parameter at checkpoint path `name` (e.g. `decoders.texture.out.weight`)
 /// belongs to the texture branch: the w_tex mapping network, the backbone's to-texture
-/// layers, the texture detail blocks, the texture decoder and its RGB head. Only the RGB image depends on them; the
+/// layers, the texture detail blocks, the face plane, the texture decoder and its RGB head. Only the RGB image depends on them; the
 /// shared backbone and everything geometric are outside it. Training may give this branch its
 /// own learning rate (`optim::Adam::step_scaled`).
 pub fn is_texture_param(name: &str) -> bool {
     name.starts_with("mapping_tex.")
         || name.contains(".to_texture.")
         || name.starts_with("synthesis.texture_detail.")
+        || is_face_param(name)
         || name.starts_with("decoders.texture.")
         || name.starts_with("decoders.to_rgb.")
+}
+
+/// Whether the parameter at checkpoint path `name` belongs to the face plane.
+pub fn is_face_param(name: &str) -> bool {
+    name.starts_with("face.")
 }
 
 /// Whether the parameter at checkpoint path `name` belongs to the heads that place the
@@ -81,6 +91,8 @@ impl Generator {
             mapping_tex: mapping(&mut rng),
             synthesis: TriplaneSynthesis::new(&mut rng, cfg, device),
             decoders: Decoders::new(&mut rng, cfg, device),
+            // Drawn last: configs without a face plane initialise as before.
+            face: cfg.face.as_ref().map(|f| FacePlane::new(&mut rng, cfg, f, device)),
         }
     }
 
@@ -207,7 +219,10 @@ impl Generator {
     /// Colours `[B, N, 3]` in [0, 1] at canonical points.
     pub fn texture_field(&self, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> Tensor<3> {
         let (_, nt) = self.num_ws();
-        let feat = sample_triplanes(planes.texture.clone(), points);
+        let mut feat = sample_triplanes(planes.texture.clone(), points.clone());
+        if let Some(face) = &self.face {
+            feat = feat + face.features(points, Self::w(&s.tex, nt - 3));
+        }
         self.decoders.rgb(feat, Self::w(&s.tex, nt - 1))
     }
 }

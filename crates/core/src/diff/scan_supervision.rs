@@ -23,12 +23,13 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
 use crate::body_fit::surface::{surface_landmarks, SurfaceError};
+use crate::body_model::BodyModel;
 use crate::colour::{encode_srgb, encode_srgb_tensor};
 use crate::generator::{BodyContext, Generator, Styles};
 use crate::geometry::InverseSkinning;
 use crate::network::synthesis::Triplanes;
 use crate::scan::{sample_surface_where, RenderableScan, Scan, SurfaceSample};
-use crate::skinning::{pose_body, BodyParams};
+use crate::skinning::{pose_body, BodyParams, PosedBody};
 
 /// Offset δ (metres) of the off-surface SDF probes along the normal.
 pub const SDF_PROBE_OFFSET: f32 = 0.01;
@@ -107,9 +108,14 @@ impl FaceRegion {
     /// The region of the canonical body of `ctx`; an error for a body that is not a person in
     /// the SMPL layout.
     pub fn of(ctx: &BodyContext) -> Result<Self, SurfaceError> {
-        let nose =
-            surface_landmarks(&ctx.model)?.into_iter().find(|l| l.landmark == 0).ok_or(SurfaceError("nose"))?.vertex;
-        let nose = ctx.canonical.vertices.get(nose as usize).copied().ok_or(SurfaceError("nose"))?;
+        Self::of_body(&ctx.model, &ctx.canonical)
+    }
+
+    /// The region of `model`, whose canonical body (`inverse_skinning::canonical_body`) is
+    /// `canonical`.
+    pub fn of_body(model: &BodyModel, canonical: &PosedBody) -> Result<Self, SurfaceError> {
+        let nose = surface_landmarks(model)?.into_iter().find(|l| l.landmark == 0).ok_or(SurfaceError("nose"))?.vertex;
+        let nose = canonical.vertices.get(nose as usize).copied().ok_or(SurfaceError("nose"))?;
         Ok(Self { nose })
     }
 

@@ -41,6 +41,12 @@ pub struct GeneratorConfig {
     /// are. Absent (None): the geometry planes are `plane_res`², as in the paper.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub geometry_res: Option<usize>,
+    /// A texture plane over the canonical face alone (not in the paper;
+    /// [`crate::network::face_plane::FacePlane`]): a 128² texture plane has 1.8 cm texels, an
+    /// eye is one of them, and the back of the head reads the same front-plane texels as the
+    /// face. Absent (None): no face plane, as in the paper.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub face: Option<FacePlaneConfig>,
     /// Backbone channels at resolution r: min(channel_base / r, channel_max).
     pub channel_base: usize,
     pub channel_max: usize,
@@ -56,6 +62,24 @@ pub struct GeneratorConfig {
     pub template_res: usize,
 }
 
+/// Where the face plane lies in canonical space and how fine it is (metres; the canonical
+/// body's face looks along +z).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FacePlaneConfig {
+    /// Texels per side.
+    pub res: usize,
+    /// Centre of the plane's window (x, y) and the z of the face's front (the nose tip).
+    pub center: [f32; 3],
+    /// Half the window's width and height.
+    pub half_size: [f32; 2],
+    /// How far behind the nose tip the plane still reaches (fully to `depth` − 2 cm, fading
+    /// to nothing at `depth`): the cheeks and ears' front, not the back of the head.
+    pub depth: f32,
+}
+
+/// Largest face plane a config may ask for.
+pub const MAX_FACE_RES: usize = 256;
+
 impl GeneratorConfig {
     /// The reference code's sizes.
     pub fn paper() -> Self {
@@ -70,6 +94,7 @@ impl GeneratorConfig {
             plane_channels: 32,
             texture_res: None,
             geometry_res: None,
+            face: None,
             channel_base: 32768,
             channel_max: 512,
             decoder_hidden: 32,
@@ -211,6 +236,18 @@ impl GeneratorConfig {
                         self.plane_res
                     ));
                 }
+            }
+        }
+        if let Some(f) = &self.face {
+            let finite = f.center.iter().chain(&f.half_size).chain([&f.depth]).all(|v| v.is_finite());
+            if !(4..=MAX_FACE_RES).contains(&f.res)
+                || !finite
+                || f.half_size.iter().any(|&h| h <= 0.0)
+                || f.depth <= 0.0
+            {
+                return Err(format!(
+                    "config field `face` must have a res from 4 to {MAX_FACE_RES} and finite, positive sizes (got {f:?})"
+                ));
             }
         }
         if self.template_res < 8 {

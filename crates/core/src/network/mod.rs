@@ -9,6 +9,7 @@
 //! - [`mapping`]: z → w mapping networks with tracked w_avg and truncation ψ
 //! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
 //! - [`triplane`]: plane sampling at canonical points (xy, yz, xz; bilinear; summed)
+//! - [`face_plane`]: a fine texture-feature plane over the canonical face alone (not in the paper)
 //! - [`decoders`]: SDF residual, DMTet offset and texture decoders, to-RGB
 //! - [`discriminator`]: the camera-conditioned StyleGAN2 residual discriminator (RGB, normal, mask)
 //!
@@ -20,6 +21,7 @@ pub mod config;
 pub mod cube_ops;
 pub mod decoders;
 pub mod discriminator;
+pub mod face_plane;
 pub mod init;
 pub mod layers;
 pub mod mapping;
