@@ -412,10 +412,10 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// The shipped demo checkpoint loads and generates, through the library, the avatars its CLI
 /// exported: the figures were measured on the .glb of `trainer sample --config demo
 /// --seed-geo 1 --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training
-/// subject) when the file was shipped (v3.2 of #25, session 47's release build: v3's
+/// subject) when the file was shipped (v3.3 of #25, session 48's release build: v3's
 /// geometry, so the position and normal sums are v3's; v3.1's fitted texture codes and
-/// texture branch; a refitted texture mapping, which picks another subject's colours for
-/// texture seed 2), summing the glTF's POSITION, NORMAL and COLOR_0 accessors
+/// texture branch; v3.2's refitted texture mapping, which picks another subject's colours for
+/// texture seed 2; v3.3's face plane, which colours the face alone), summing the glTF's POSITION, NORMAL and COLOR_0 accessors
 /// (`tools/glb_fingerprint.py` prints the figures). (The 16-subject file before it was checked the same way against commit
 /// e02b26a, to pin #26's refactor.)
 #[test]
@@ -426,16 +426,18 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
     // The shipped file is the demo config with 128² texture and geometry planes, extracted
-    // on a 96³ tet grid (v3, v3.1 and v3.2, #25), and its latent modes carry W+ texture codes.
+    // on a 96³ tet grid (v3 to v3.3, #25) with a 64² face plane (v3.3), and its latent modes
+    // carry W+ texture codes.
     let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
     assert_eq!((cfg.texture_res, cfg.geometry_res, cfg.tet_res), (Some(128), Some(128), 96));
+    assert_eq!(cfg.face.as_ref().map(|f| f.res), Some(64));
     let g = load_generator(&bytes, &cfg, &dev).unwrap();
     let modes = load_latent_modes(&bytes, &dev).unwrap();
     assert_eq!(modes.as_ref().and_then(|m| m.tex_layers.as_ref()).map(|t| t.dims()), Some([64, g.num_ws().1, 128]));
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
     let expected: [(&str, Fingerprint); 2] = [
-        ("walking", (14576, 29144, [-5271.214605034233, -250.93387932197948, 29344.587405149825])),
-        ("arms_up", (14892, 29780, [-3468.108474515305, 435.5633037153639, 28754.646834599786])),
+        ("walking", (14576, 29144, [-5271.214605034233, -250.93387932197948, 29333.571582364035])),
+        ("arms_up", (14892, 29780, [-3468.108474515305, 435.5633037153639, 28746.391369986115])),
     ];
     for (pose, want) in expected {
         let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
