@@ -14,6 +14,7 @@
 use glam::Vec3;
 
 use crate::body_model::{joint_index, BodyModel};
+use crate::skinning::PosedBody;
 
 /// A surface landmark: the MediaPipe index and the weight of its reprojection term.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -34,6 +35,13 @@ const FOOT_WEIGHT: f32 = 1.0;
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[error("the body has no vertex for the landmark `{0}` (is it a human body, T-pose, facing +z?)")]
 pub struct SurfaceError(pub &'static str);
+
+/// Where the nose landmark's vertex lies on `body`, a posed body of `model` (e.g. its
+/// canonical Da-pose body, `inverse_skinning::canonical_body`).
+pub fn nose_on(model: &BodyModel, body: &PosedBody) -> Result<Vec3, SurfaceError> {
+    let nose = surface_landmarks(model)?.into_iter().find(|l| l.landmark == 0).ok_or(SurfaceError("nose"))?.vertex;
+    body.vertices.get(nose as usize).copied().ok_or(SurfaceError("nose"))
+}
 
 /// The surface landmarks of `model`, picked by the rules of the module documentation.
 pub fn surface_landmarks(model: &BodyModel) -> Result<Vec<SurfaceLandmark>, SurfaceError> {

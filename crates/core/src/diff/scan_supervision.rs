@@ -22,7 +22,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
-use crate::body_fit::surface::{surface_landmarks, SurfaceError};
+use crate::body_fit::surface::{nose_on, SurfaceError};
 use crate::body_model::BodyModel;
 use crate::colour::{encode_srgb, encode_srgb_tensor};
 use crate::generator::{BodyContext, Generator, Styles};
@@ -114,9 +114,7 @@ impl FaceRegion {
     /// The region of `model`, whose canonical body (`inverse_skinning::canonical_body`) is
     /// `canonical`.
     pub fn of_body(model: &BodyModel, canonical: &PosedBody) -> Result<Self, SurfaceError> {
-        let nose = surface_landmarks(model)?.into_iter().find(|l| l.landmark == 0).ok_or(SurfaceError("nose"))?.vertex;
-        let nose = canonical.vertices.get(nose as usize).copied().ok_or(SurfaceError("nose"))?;
-        Ok(Self { nose })
+        Ok(Self { nose: nose_on(model, canonical)? })
     }
 
     pub fn contains(&self, p: Vec3) -> bool {

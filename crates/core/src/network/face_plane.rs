@@ -23,9 +23,8 @@ use super::config::{FacePlaneConfig, GeneratorConfig};
 use super::init::{full, Rng};
 use super::layers::ModulatedConv2d;
 use super::triplane::sample_triplanes;
-use crate::body_fit::surface::SurfaceError;
+use crate::body_fit::surface::{nose_on, SurfaceError};
 use crate::body_model::BodyModel;
-use crate::diff::scan_supervision::FaceRegion;
 use crate::geometry::inverse_skinning::canonical_body;
 use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 
@@ -35,10 +34,11 @@ const EDGE_FADE: f32 = 0.25;
 const DEPTH_FADE: f32 = 0.02;
 
 /// The face plane of `model`'s canonical face at `res`² texels: around the face term's region
-/// (`FaceRegion`: 7.5 cm either side of the nose, 7.5 cm below to 8.5 cm above it), with the
-/// fades outside it, and 8 cm deep (the ears lie about 10 cm behind the nose tip).
+/// (`diff::scan_supervision::FaceRegion`: 7.5 cm either side of the nose, 7.5 cm below to
+/// 8.5 cm above it), with the fades outside it, and 8 cm deep (the ears lie about 10 cm
+/// behind the nose tip).
 pub fn face_window(model: &BodyModel, res: usize) -> Result<FacePlaneConfig, SurfaceError> {
-    let nose = FaceRegion::of_body(model, &canonical_body(model))?.nose;
+    let nose = nose_on(model, &canonical_body(model))?;
     Ok(FacePlaneConfig { res, center: [nose.x, nose.y + 0.005, nose.z], half_size: [0.095, 0.1], depth: 0.08 })
 }
 
