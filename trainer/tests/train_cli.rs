@@ -1150,10 +1150,16 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let scans = root.join("scans");
     let text = fit(&e, "30", &[&tex[..], &["--scans", scans.to_str().unwrap(), "--lambda-face", "1"]].concat());
     assert!(text.contains("face term: 4096 face points from each of 2 scans"), "{text}");
-    let rows = std::fs::read_to_string(e.join("metrics.jsonl")).unwrap();
-    let face: Vec<f64> =
-        rows.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap()).collect();
-    let (first, last) = (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0);
+    // The logged face L1's means over steps 1–5 and 26–30 of a 30-step fit in `dir`.
+    let face_means = |dir: &Path| {
+        let rows = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
+        let face: Vec<f64> = rows
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap())
+            .collect();
+        (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0)
+    };
+    let (first, last) = face_means(&e);
     assert!(last < 0.8 * first, "face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
     refused_fit(&root.join("noscans"), &["--lambda-face", "1"], "--lambda-face needs --scans");
     // Finer texture planes (`--texture-res`): the file grows a detail block, which learns,
@@ -1206,10 +1212,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
         }
     }
     assert!(file.tensors["face.constant"].1.iter().any(|&v| v != 0.0), "the face plane learnt from zero");
-    let rows = std::fs::read_to_string(fp.join("metrics.jsonl")).unwrap();
-    let face: Vec<f64> =
-        rows.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["face"].as_f64().unwrap()).collect();
-    let (first, last) = (face[..5].iter().sum::<f64>() / 5.0, face[25..].iter().sum::<f64>() / 5.0);
+    let (first, last) = face_means(&fp);
     assert!(last < 0.9 * first, "face-plane fit: face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
     refused_fit(&root.join("noface_lr"), &["--face-res", "16"], "--lr-texture");
 
