@@ -160,6 +160,9 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     let plain = Device::ndarray();
     let ad = a.backend.device()?.autodiff();
     let (cfg, g, modes) = load_grown(a, &plain)?;
+    if a.face_only && cfg.face.is_none() {
+        bail!("--face-only trains the face plane, and this checkpoint has none: give --face-res N to grow one");
+    }
     let Some(modes) = modes else {
         bail!("fit-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
     };

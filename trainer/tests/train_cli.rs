@@ -1215,6 +1215,7 @@ fn fit_codes_brings_the_subjects_colours_closer_and_resumes_exactly() {
     let (first, last) = face_means(&fp);
     assert!(last < 0.9 * first, "face-plane fit: face L1 of steps 1–5 {first:.4}, of steps 26–30 {last:.4}");
     refused_fit(&root.join("noface_lr"), &["--face-res", "16"], "--lr-texture");
+    refused_fit(&root.join("noface"), &["--lr-texture", "0.05", "--face-only"], "give --face-res");
 
     // Surfaces of another dataset in --out are refused, by name.
     let other = root.join("other");
