@@ -93,7 +93,7 @@ pub struct EvalArgs {
     /// `trainer prepare --ss N` makes the data (its default is 2). With 1 (the default) each
     /// pixel is one point sample of the fields, so fine colour detail aliases where the data
     /// averages it: at 64² the scans themselves, rendered with one sample per pixel, differ
-    /// from their 2×2-supersampled views by an RGB L1 of 0.0085 (MODEL_CARD, session 44).
+    /// from their 2×2-supersampled views by an RGB L1 of 0.0085 (MODEL_CARD, Evaluation).
     #[arg(long, default_value_t = 1)]
     pub supersample: usize,
 }

@@ -65,7 +65,7 @@ pub struct RunConfig {
     /// (`GeneratorConfig::texture_res`, parameters under `synthesis.texture_detail.`): a block
     /// grown into a trained generator starts at zero output, and its learned constant's texels
     /// are each reached by few points a step, so Adam's rate sets its pace (a 256² block gave
-    /// nothing measurable after 200 steps at `lr_texture_mul` alone; MODEL_CARD, session 44).
+    /// nothing measurable after 200 steps at `lr_texture_mul` alone; the MODEL_CARD's git history).
     /// Absent: 1. Editable in `run.json` like the above.
     #[serde(default = "one")]
     pub lr_texture_detail_mul: f32,

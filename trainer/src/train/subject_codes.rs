@@ -8,7 +8,7 @@
 //! StyleGAN's lr × 0.01) barely moves. A W+ inversion of one data view with the shipped
 //! generator frozen draws stripes that the subject's own code renders as a smear
 //! (`assets/models/codes_vs_network.png`), so the network can render more than the fixed
-//! codes ask of it. What it gave (MODEL_CARD, session 45): one learned W per branch at rate
+//! codes ask of it. What it gave (the MODEL_CARD's git history): one learned W per branch at rate
 //! 0.01 for 225 steps, from a run's state at step 125, left v1's grid worse than that state
 //! (RGB L1 0.0095 against 0.0090, mask 0.0064 against 0.0051), though its own grid was still
 //! falling when the averaged codes came in; the inversion moves each layer's w on its own,

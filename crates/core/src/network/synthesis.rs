@@ -145,7 +145,7 @@ impl TextureDetailBlock {
 /// up to that upsampling. The constant is a free field in canonical plane space shared by all
 /// identities: surface detail that sits at the same canonical place on every body (a face's
 /// relief) is learnt once and weighed per identity; detail that moves with the body's shape
-/// (garment folds) has to come from w_geo through the conv (MODEL_CARD, History, session 42).
+/// (garment folds) has to come from w_geo through the conv (MODEL_CARD, Evaluation: normal error).
 #[derive(Module, Debug)]
 pub struct GeometryDetailBlock {
     /// `[C, res, res]`, concatenated to the upsampled features.
