@@ -130,10 +130,13 @@ const coverage = (m) => m.reduce((a, b) => a + b, 0) / m.length;
 function iou(a, b) { let i = 0, u = 0; for (let k = 0; k < a.length; k++) { i += a[k] & b[k]; u += a[k] | b[k]; } return i / u; }
 
 /** Positions of the first mesh primitive of a .glb (float32 VEC3 accessor). */
+function glbJson(bytes) {
+  const jsonLen = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength).getUint32(12, true);
+  return { json: JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + jsonLen))), jsonLen };
+}
+
 function glbPositions(bytes) {
-  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
-  const jsonLen = dv.getUint32(12, true);
-  const json = JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + jsonLen)));
+  const { json, jsonLen } = glbJson(bytes);
   const binStart = 20 + jsonLen + 8;
   const acc = json.accessors[json.meshes[0].primitives[0].attributes.POSITION];
   const view = json.bufferViews[acc.bufferView];
@@ -612,6 +615,36 @@ try {
   s = await status();
   check(texAnimRep.issues.numErrors === 0 && texAnimRep.info.hasTextures && texAnimRep.info.animationCount === 2 && s.motion.bakes === bakesBefore + 1,
     `animated .glb reuses the bake (${s.motion.bakes - bakesBefore} bake): textured ${texAnimRep.info.hasTextures}, ${texAnimRep.info.animationCount} animations, ${texAnimRep.issues.numErrors} errors`);
+  // VRM 1.0: "⬇ .vrm" saves the avatar shown (its 256² bake) with the humanoid map and no
+  // animations, its licence by origin; "⬇ .vrma" saves each chosen clip (walk, wave).
+  const [vdl] = await Promise.all([page.waitForEvent('download'), page.evaluate(() => window.getavatar.command({ download_vrm: true }))]);
+  const vrmBytes = new Uint8Array(fs.readFileSync(await vdl.path()));
+  const vrmRep = await validator.validateBytes(vrmBytes);
+  const vrmJson = glbPositions(vrmBytes).json;
+  const vrmExt = vrmJson.extensions?.VRMC_vrm;
+  const photoMade = /reconstruction/.test(vdl.suggestedFilename());
+  s = await status();
+  check(vrmRep.issues.numErrors === 0 && vrmExt?.specVersion === '1.0' && vrmExt.humanoid?.humanBones?.hips && vrmExt.humanoid.humanBones.leftUpperArm
+    && !(vrmJson.animations?.length) && vrmJson.images?.length === 1 && s.motion.vrm_downloads === 1 && /\.vrm$/.test(vdl.suggestedFilename())
+    && vrmExt.meta?.avatarPermission === (photoMade ? 'onlyAuthor' : 'everyone'),
+    `⬇ .vrm ${vdl.suggestedFilename()} (${(vrmBytes.length / 1e6).toFixed(2)} MB): ${vrmRep.issues.numErrors} errors, VRM ${vrmExt?.specVersion}, ${Object.keys(vrmExt?.humanoid?.humanBones ?? {}).length} humanoid bones, ${vrmJson.animations?.length ?? 0} animations, ${vrmJson.images?.length} image, avatarPermission ${vrmExt?.meta?.avatarPermission}`);
+  const vrmas = [];
+  const twoVrmas = new Promise((resolve) => {
+    const on = (d) => { vrmas.push(d); if (vrmas.length === 2) { page.off('download', on); resolve(); } };
+    page.on('download', on);
+  });
+  await page.evaluate(() => window.getavatar.command({ download_vrma: true }));
+  await twoVrmas;
+  for (const d of vrmas) {
+    const bytes = new Uint8Array(fs.readFileSync(await d.path()));
+    const rep = await validator.validateBytes(bytes);
+    const j = glbJson(bytes).json;
+    check(rep.issues.numErrors === 0 && j.extensions?.VRMC_vrm_animation?.humanoid?.humanBones?.hips && j.animations?.length === 1 && !j.meshes,
+      `⬇ .vrma ${d.suggestedFilename()}: ${rep.issues.numErrors} errors, ${j.animations?.length} animation, hips node ${j.extensions?.VRMC_vrm_animation?.humanoid?.humanBones?.hips?.node}`);
+  }
+  s = await status();
+  check(vrmas.map((d) => d.suggestedFilename()).sort().join() === 'getavatar_walk.vrma,getavatar_wave.vrma' && s.motion.vrma_downloads === 2,
+    `one .vrma per chosen clip: ${vrmas.map((d) => d.suggestedFilename()).join(', ')}`);
   await page.screenshot({ path: path.join(out, 'motion.png') });
 
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);

@@ -412,7 +412,7 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// The shipped demo checkpoint loads and generates, through the library, the avatars its CLI
 /// exported: the figures were measured on the .glb of `trainer sample --config demo
 /// --seed-geo 1 --seed-tex 2 --pose walking|arms_up` (default ψ: 0, the nearest training
-/// subject) when the file was shipped (v3.3 of #25, session 48's release build: v3's
+/// subject) when the file was shipped (v3.3, a release build: v3's
 /// geometry, so the position and normal sums are v3's; v3.1's fitted texture codes and
 /// texture branch; v3.2's refitted texture mapping, which picks another subject's colours for
 /// texture seed 2; v3.3's face plane, which colours the face alone), summing the glTF's POSITION, NORMAL and COLOR_0 accessors

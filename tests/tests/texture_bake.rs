@@ -7,6 +7,7 @@ use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
 use getavatar_core::colour::linear_to_srgb;
 use getavatar_core::generator::{default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext};
+use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::readback::block_on_ready;
 use getavatar_core::uv_atlas::texel_points;
@@ -152,7 +153,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     for other in [&shuffled, &smaller] {
         for r in [
             other.posed_glb(&ctx, &params, Some(&baked), "stale bake"),
-            other.animated_glb(&ctx, &params, &[], Some(&baked), "stale bake"),
+            other.animated_glb(&ctx, &params, &[], Some(&baked), "stale bake", SkeletonNames::Smpl),
         ] {
             let e = r.expect_err("another mesh's bake is refused");
             assert!(

@@ -1,7 +1,9 @@
 //! `trainer export`: an avatar (or the bare body) as an animatable .glb — bound in the rest
-//! pose, 24 SMPL joints, showing the chosen pose, with motion clips as glTF animations — or,
-//! with `--static`, the posed mesh alone. The app's downloads use the same core code
-//! (`RiggedAvatar::animated_glb`, `skin_export`).
+//! pose, 24 SMPL joints (or humanoid-named, `--skeleton humanoid`), showing the chosen pose,
+//! with motion clips as glTF animations — or, with `--static`, the posed mesh alone; as a
+//! VRM 1.0 avatar (`--format vrm`); or motion clips as VRM animations (`--format vrma`).
+//! The app's downloads use the same core code (`RiggedAvatar::animated_glb` / `vrm`,
+//! `skin_export`).
 
 use std::path::PathBuf;
 
@@ -10,11 +12,13 @@ use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::generator::{generate_rigged_async, BodyContext};
 use getavatar_core::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::humanoid::{SkeletonNames, HUMANOID_BONES};
 use getavatar_core::motion::{Motion, BUILTIN_CLIPS};
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::readback::block_on_ready;
-use getavatar_core::skin_export::animated_body_glb;
-use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
+use getavatar_core::skin_export::{animated_body_glb, body_vrm, motion_vrma, vrm_frame};
+use getavatar_core::skinning::{forward_kinematics, pose_body, vertex_normals, BodyParams};
+use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta};
 
 use crate::sample::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
@@ -68,13 +72,33 @@ pub struct ExportArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
+    /// The file: `glb` (glTF 2.0), `vrm` (a VRM 1.0 avatar in its rest T-pose, soles at
+    /// y = 0, humanoid bones; no animations) or `vrma` (each --motion as a VRM animation:
+    /// one file, or with several `<stem>_<motion>.vrma` beside --out).
+    #[arg(long, value_enum, default_value_t = Format::Glb)]
+    pub format: Format,
+    /// The skeleton's node names: `smpl` (pelvis, left_hip, …) or `humanoid` (Hips,
+    /// LeftUpLeg, …, which retargeting tools map by name).
+    #[arg(long, value_parser = SkeletonNames::parse, default_value = "smpl")]
+    pub skeleton: SkeletonNames,
     #[arg(long, default_value = "avatar.glb")]
     pub out: PathBuf,
     /// Also write, for checking other tools against the project's skinning, the vertex
     /// positions the project's LBS gives at the first, a middle and the last frame of each
-    /// motion: `{"clips": [{"name", "frames": [{"frame", "time", "positions": [x, y, z, …]}]}]}`.
+    /// motion: `{"clips": [{"name", "frames": [{"frame", "time", "positions": [x, y, z, …]}]}]}`;
+    /// for `vrm` the rest joints (`{"offset": [x, y, z], "joints": {"hips": [x, y, z], …}}`:
+    /// VRM's frame, the body moved by `offset`), for `vrma` the joints per frame (`"joints"`
+    /// in place of `"positions"`, and the skeleton's `"offset"`).
     #[arg(long, value_name = "FILE")]
     pub frames_json: Option<PathBuf>,
+}
+
+/// `trainer export --format`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Format {
+    Glb,
+    Vrm,
+    Vrma,
 }
 
 /// The avatar a file holds, in words.
@@ -94,7 +118,8 @@ fn check_frames(m: &Motion) -> Vec<usize> {
 
 fn frames_json(
     motions: &[Motion],
-    positions: impl Fn(&BodyParams) -> Vec<glam::Vec3>,
+    positions: impl Fn(&BodyParams) -> serde_json::Value,
+    key: &str,
     betas: &[f32],
 ) -> serde_json::Value {
     let clips: Vec<serde_json::Value> = motions
@@ -103,14 +128,66 @@ fn frames_json(
             let frames: Vec<serde_json::Value> = check_frames(m)
                 .into_iter()
                 .map(|k| {
-                    let p: Vec<f32> = positions(&m.params(k, betas)).iter().flat_map(|v| v.to_array()).collect();
-                    serde_json::json!({ "frame": k, "time": k as f32 / getavatar_core::motion::MOTION_FPS, "positions": p })
+                    serde_json::json!({ "frame": k, "time": k as f32 / getavatar_core::motion::MOTION_FPS, key: positions(&m.params(k, betas)) })
                 })
                 .collect();
             serde_json::json!({ "name": m.name, "frames": frames })
         })
         .collect();
     serde_json::json!({ "clips": clips })
+}
+
+/// Vertex positions as one flat JSON array.
+fn flat(points: &[glam::Vec3]) -> serde_json::Value {
+    points.iter().flat_map(|v| v.to_array()).collect()
+}
+
+/// The body's joints at `params`, moved by `offset` (VRM's frame), keyed by VRM bone.
+fn vrm_joints(model: &BodyModel, params: &BodyParams, offset: glam::Vec3) -> serde_json::Value {
+    let rest = model.regress_joints(&model.shaped_vertices(&params.betas));
+    let posed = forward_kinematics(&model.parents, &rest, params).posed_joints;
+    let bones: serde_json::Map<String, serde_json::Value> = HUMANOID_BONES
+        .iter()
+        .zip(posed)
+        .filter_map(|(b, p)| b.vrm.map(|v| (v.to_string(), serde_json::json!((p + offset).to_array()))))
+        .collect();
+    serde_json::Value::Object(bones)
+}
+
+/// `--frames-json` of a .vrm: the rest joints in VRM's frame and the frame's offset.
+fn vrm_rest_json(model: &BodyModel, betas: &[f32], offset: glam::Vec3) -> serde_json::Value {
+    let rest = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
+    serde_json::json!({ "offset": offset.to_array(), "joints": vrm_joints(model, &rest, offset) })
+}
+
+/// `--format vrma`: each motion as a VRM animation on the skeleton of the body at
+/// `params.betas`; no avatar is generated.
+fn export_vrma(a: &ExportArgs, model: &BodyModel, params: &BodyParams, motions: &[Motion]) -> Result<()> {
+    if motions.is_empty() {
+        bail!("--format vrma needs at least one --motion");
+    }
+    let frame = vrm_frame(model, &params.betas)?;
+    let stem = a.out.file_stem().map_or_else(|| "motion".into(), |s| s.to_string_lossy().into_owned());
+    for m in motions {
+        let path =
+            if motions.len() == 1 { a.out.clone() } else { a.out.with_file_name(format!("{stem}_{}.vrma", m.name)) };
+        let bytes = motion_vrma(model, &params.betas, m, a.skeleton)?;
+        crate::atomic::write_atomic(&path, &bytes)?;
+        println!(
+            "wrote {} ({:.2} MB): VRM animation `{}`, {} frames, {:.1} s",
+            path.display(),
+            bytes.len() as f64 / 1e6,
+            m.name,
+            m.len(),
+            m.duration()
+        );
+    }
+    if let Some(path) = &a.frames_json {
+        let mut json = frames_json(motions, |p| vrm_joints(model, p, frame.offset), "joints", &params.betas);
+        json["offset"] = serde_json::json!(frame.offset.to_array());
+        crate::atomic::write_atomic(path, json.to_string().as_bytes())?;
+    }
+    Ok(())
 }
 
 /// A clip by name or file.
@@ -175,10 +252,39 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         }
     };
     let motions = a.motions.iter().map(|m| load_motion(m)).collect::<Result<Vec<_>>>()?;
+    let vrm = match a.format {
+        Format::Vrma => return export_vrma(a, &model, &params, &motions),
+        Format::Vrm if !motions.is_empty() => {
+            bail!("a .vrm holds no animations (VRM keeps them in .vrma files): export the motions with --format vrma")
+        }
+        Format::Vrm if a.r#static || a.pose.is_some() => {
+            bail!("a .vrm shows its rest T-pose: --static and --pose do not apply (--fit gives the body shape)")
+        }
+        Format::Vrm => {
+            let origin = if a.body_only {
+                AvatarOrigin::Body
+            } else if a.inverted.is_some() {
+                AvatarOrigin::Photo
+            } else {
+                AvatarOrigin::Generated
+            };
+            let name = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
+            Some(VrmMeta { name, origin })
+        }
+        Format::Glb => None,
+    };
     let stem = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
     let mut expected: Option<serde_json::Value> = None;
     let (glb, what) = if a.body_only {
-        if a.r#static {
+        if let Some(meta) = &vrm {
+            if a.frames_json.is_some() {
+                expected = Some(vrm_rest_json(&model, &params.betas, vrm_frame(&model, &params.betas)?.offset));
+            }
+            (
+                body_vrm(&model, &params.betas, meta, a.skeleton)?,
+                format!("the body as VRM 1.0, {} vertices", model.num_vertices()),
+            )
+        } else if a.r#static {
             let posed = pose_body(&model, &params);
             let mesh = ExportMesh {
                 normals: vertex_normals(&posed.vertices, &model.faces),
@@ -190,10 +296,11 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
         } else {
             if a.frames_json.is_some() {
-                expected = Some(frames_json(&motions, |p| pose_body(&model, p).vertices, &params.betas));
+                expected =
+                    Some(frames_json(&motions, |p| flat(&pose_body(&model, p).vertices), "positions", &params.betas));
             }
             (
-                animated_body_glb(&model, &params, &motions, &stem)?,
+                animated_body_glb(&model, &params, &motions, &stem, a.skeleton)?,
                 format!("the body, {} vertices", model.num_vertices()),
             )
         }
@@ -258,7 +365,16 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             Some(t) => t.atlas.source.clone(),
             None => (0..n as u32).collect(),
         };
-        if a.r#static {
+        if let Some(meta) = &vrm {
+            if a.frames_json.is_some() {
+                let offset = rigged.vrm_frame(&ctx, &params.betas)?.offset;
+                expected = Some(vrm_rest_json(&ctx.model, &params.betas, offset));
+            }
+            (
+                rigged.vrm(&ctx, &params.betas, texture.as_ref(), meta, a.skeleton)?,
+                format!("{} as VRM 1.0, {n} vertices", what_avatar(a)),
+            )
+        } else if a.r#static {
             (
                 rigged.posed_glb(&ctx, &params, texture.as_ref(), &stem)?,
                 format!("{}, static, {n} vertices", what_avatar(a)),
@@ -267,12 +383,12 @@ pub fn export(a: &ExportArgs) -> Result<()> {
             if a.frames_json.is_some() {
                 let at = |p: &BodyParams| {
                     let v = rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
-                    order.iter().map(|i| v[*i as usize]).collect()
+                    flat(&order.iter().map(|i| v[*i as usize]).collect::<Vec<_>>())
                 };
-                expected = Some(frames_json(&motions, at, &params.betas));
+                expected = Some(frames_json(&motions, at, "positions", &params.betas));
             }
             (
-                rigged.animated_glb(&ctx, &params, &motions, texture.as_ref(), &stem)?,
+                rigged.animated_glb(&ctx, &params, &motions, texture.as_ref(), &stem, a.skeleton)?,
                 format!("{}, {n} vertices", what_avatar(a)),
             )
         }
@@ -289,6 +405,8 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         glb.len() as f64 / 1e6,
         if a.r#static {
             "no skin".to_string()
+        } else if vrm.is_some() {
+            format!("rest T-pose, soles at y = 0, {:?} node names", a.skeleton)
         } else if clips.is_empty() {
             "skinned, no animations".into()
         } else {
@@ -407,7 +525,14 @@ pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
             let t_png = t.elapsed().as_secs_f64();
             let baked = getavatar_core::rigging::BakedTexture { atlas, res, rgb, png, covered: texels.len() };
             let t = std::time::Instant::now();
-            let glb = rigged.animated_glb(&ctx, &params, std::slice::from_ref(&walk), Some(&baked), "bench")?;
+            let glb = rigged.animated_glb(
+                &ctx,
+                &params,
+                std::slice::from_ref(&walk),
+                Some(&baked),
+                "bench",
+                SkeletonNames::Smpl,
+            )?;
             let t_write = t.elapsed().as_secs_f64();
             let total = t_atlas + t_texels + t_query + t_image + t_png + t_write;
             println!(

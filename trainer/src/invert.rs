@@ -24,6 +24,7 @@ use getavatar_core::checkpoint::{self, save_inverted};
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
+use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::inversion::{
     choose_start, comparison_image, mask_iou, masked_psnr, render_images, start_candidates, InversionOptions,
     InversionTarget, Inverter, Phase,
@@ -475,7 +476,8 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     );
     let tex = if a.no_projection { plain } else { projected };
     let walk = Motion::builtin("walk")?;
-    let glb = rigged.animated_glb(&ctx, &target.view.body, &[walk], Some(&tex), "inverted avatar")?;
+    let glb =
+        rigged.animated_glb(&ctx, &target.view.body, &[walk], Some(&tex), "inverted avatar", SkeletonNames::Smpl)?;
     write_atomic(&a.out.join("avatar.glb"), &glb)?;
     let mut extra = BTreeMap::new();
     extra.insert("inversion/source".into(), source.clone());

@@ -169,8 +169,9 @@ enum Command {
     Variety(variety::VarietyArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample(sample::SampleArgs),
-    /// Export an avatar (or the bare body) as an animatable .glb: skinned to the 24 SMPL
-    /// joints, with motion clips (built-in walk/turn/wave or SMPL/AMASS .npz) as animations.
+    /// Export an avatar (or the bare body) as an animatable .glb (skinned to the 24 SMPL
+    /// joints, with motion clips as animations), as a VRM 1.0 avatar (`--format vrm`), or
+    /// motion clips as VRM animations (`--format vrma`).
     Export(export::ExportArgs),
     /// Train the RGB discriminator of a frozen generator against its training data (the
     /// inversion's perceptual term uses its features); resumes from --out.

@@ -76,3 +76,44 @@ fn export_writes_a_textured_animated_avatar_and_refuses_bad_motions() {
     bad(&["--static", "--frames-json", s(&dir.join("f.json"))], "--frames-json needs a skinned export");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn export_writes_vrm_and_one_vrma_per_motion_and_refuses_what_vrm_forbids() {
+    let dir = tmp("export_vrm");
+    let vrm = dir.join("body.vrm");
+    let run = trainer(&["export", "--format", "vrm", "--body-only", "--skeleton", "humanoid", "--out", s(&vrm)]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let json = glb_json(&std::fs::read(&vrm).unwrap());
+    let ext = &json["extensions"]["VRMC_vrm"];
+    assert_eq!(ext["specVersion"], "1.0");
+    assert_eq!(ext["meta"]["avatarPermission"], "everyone", "the bare body is open");
+    let hips = ext["humanoid"]["humanBones"]["hips"]["node"].as_u64().unwrap() as usize;
+    assert_eq!(json["nodes"][hips]["name"], "Hips");
+    assert!(json["animations"].is_null(), "no animations in a .vrm");
+
+    let out = dir.join("motion.vrma");
+    let run = trainer(&["export", "--format", "vrma", "--motion", "walk", "--motion", "wave", "--out", s(&out)]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    for clip in ["walk", "wave"] {
+        let json = glb_json(&std::fs::read(dir.join(format!("motion_{clip}.vrma"))).unwrap());
+        assert_eq!(json["extensionsUsed"][0], "VRMC_vrm_animation");
+        assert_eq!(json["animations"][0]["name"], clip);
+        assert!(json["meshes"].is_null());
+    }
+    assert!(!out.exists(), "several clips: one file each, named after the clip");
+
+    let bad = |args: &[&str], expect: &str| {
+        let target = dir.join("bad.vrm");
+        let mut all = vec!["export", "--out", s(&target), "--body-only"];
+        all.extend_from_slice(args);
+        let run = trainer(&all);
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(!run.status.success() && err.contains(expect), "{args:?}: {err}");
+        assert!(!target.exists(), "nothing written for {args:?}");
+    };
+    bad(&["--format", "vrm", "--motion", "walk"], "a .vrm holds no animations");
+    bad(&["--format", "vrm", "--pose", "walking"], "rest T-pose");
+    bad(&["--format", "vrma"], "needs at least one --motion");
+    bad(&["--skeleton", "mixamo"], "smpl or humanoid");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -224,9 +224,10 @@ fn test(native: bool, browser: bool) -> Result<()> {
     Ok(())
 }
 
-/// The animatable export (issue #22): `trainer export` writes a static, a skinned and an
-/// animated file; the Khronos validator checks all three and three.js (GLTFLoader +
-/// AnimationMixer in headless Chromium) plays the animated one against the project's LBS.
+/// The animatable export: `trainer export` writes a static, a skinned and an animated file
+/// (and one with humanoid node names); the Khronos validator checks them all and three.js
+/// (GLTFLoader + AnimationMixer in headless Chromium) plays the animated one against the
+/// project's LBS. Then the VRM files: three-vrm loads the .vrm and plays the .vrma on it.
 fn export_checks(e2e: &Path) -> Result<()> {
     let out = e2e.join("out/export");
     std::fs::create_dir_all(&out)?;
@@ -253,12 +254,38 @@ fn export_checks(e2e: &Path) -> Result<()> {
     ])?;
     export(&["--static", "--pose", "walking", "--out", &p("avatar_posed.glb")])?;
     export(&["--body-only", "--pose", "T", "--out", &p("body_skinned.glb")])?;
+    export(&["--skeleton", "humanoid", "--texture-res", "0", "--motion", "wave", "--out", &p("avatar_humanoid.glb")])?;
     run(Command::new("node").current_dir(e2e).args([
         "three_skinning.e2e.mjs",
         &p("avatar_animated.glb"),
         &p("avatar_animated.frames.json"),
         &p("avatar_posed.glb"),
         &p("body_skinned.glb"),
+        &p("avatar_humanoid.glb"),
+    ]))?;
+    // VRM 1.0 (#63): the avatar as .vrm, a built-in clip and an AMASS file as .vrma, the body
+    // as .vrm with humanoid node names; three-vrm loads and plays them in Chromium.
+    export(&[
+        "--format",
+        "vrm",
+        "--texture-res",
+        "256",
+        "--out",
+        &p("avatar.vrm"),
+        "--frames-json",
+        &p("avatar.vrm.json"),
+    ])?;
+    export(&["--format", "vrma", "--motion", "walk", "--out", &p("walk.vrma"), "--frames-json", &p("walk.vrma.json")])?;
+    export(&["--format", "vrma", "--motion", &amass.to_string_lossy(), "--out", &p("amass.vrma")])?;
+    export(&["--format", "vrm", "--body-only", "--skeleton", "humanoid", "--out", &p("body.vrm")])?;
+    run(Command::new("node").current_dir(e2e).args([
+        "vrm.e2e.mjs",
+        &p("avatar.vrm"),
+        &p("avatar.vrm.json"),
+        &p("walk.vrma"),
+        &p("walk.vrma.json"),
+        &p("amass.vrma"),
+        &p("body.vrm"),
     ]))
 }
 

@@ -22,6 +22,7 @@
 //! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
 //! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
 //! | mesh download (.glb): textured, skinned, animated | [`gltf_export`] |
+//! | VRM 1.0 avatars (.vrm) and VRM animations (.vrma); the SMPL joints as humanoid bones | [`vrm_export`], [`humanoid`] |
 //! | motion clips (built-in keyframed, SMPL/AMASS .npz) | [`motion`] |
 //! | texture atlas (the body's UVs transferred, own charts off the body) and the bake | [`uv_atlas`] |
 //! | Sec. 5 data: scans (OBJ), procedural textures, dataset cameras and labels | [`scan`], `dataset` (feature `dataset`) |
@@ -54,6 +55,7 @@ pub mod fields;
 pub mod generator;
 pub mod geometry;
 pub mod gltf_export;
+pub mod humanoid;
 pub mod id_map;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod inversion;
@@ -81,6 +83,7 @@ pub mod skin_export;
 pub mod skinning;
 pub mod spatial;
 pub mod uv_atlas;
+pub mod vrm_export;
 
 pub use body_model::{BodyModel, BodyModelError, JOINT_NAMES, NUM_JOINTS};
 /// The burn version the networks are written against, re-exported for callers.

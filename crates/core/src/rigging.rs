@@ -11,13 +11,15 @@ use crate::generator::{recolor_async, Avatar, Generator, Styles};
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
 use crate::gltf_export::{write_glb_full, ExportError, ExportMesh};
+use crate::humanoid::SkeletonNames;
 use crate::motion::Motion;
 use crate::network::synthesis::Triplanes;
 use crate::photo_projection::{PhotoProjection, SourcePhoto};
 use crate::readback::ReadbackError;
-use crate::skin_export::{motion_clip, smpl_skin};
+use crate::skin_export::{motion_clip, smpl_skin, vrm_frame, vrm_rest_skin};
 use crate::skinning::{pose_body, BodyParams, PosedBody};
 use crate::uv_atlas::{bake_image_async, texel_points, transfer_body_uvs_async, AtlasError, BodyUvs, UvAtlas};
+use crate::vrm_export::{write_vrm, VrmMeta};
 use burn::tensor::Device;
 
 /// An avatar extracted in the canonical pose and rigged to the body.
@@ -154,7 +156,7 @@ impl RiggedAvatar {
 
     /// The avatar as an animated .glb: bound in the rest pose, showing `params` (pose, shape,
     /// translation), with one animation per motion; textured when `texture` is given, else
-    /// vertex-coloured.
+    /// vertex-coloured; the joints' nodes named by `names`.
     pub fn animated_glb(
         &self,
         ctx: &BodyContext,
@@ -162,13 +164,60 @@ impl RiggedAvatar {
         motions: &[Motion],
         texture: Option<&BakedTexture>,
         name: &str,
+        names: SkeletonNames,
     ) -> Result<Vec<u8>, ExportError> {
+        let (mesh, skin) = self.skinned_mesh(ctx, params, texture, name, names)?;
+        let clips: Vec<_> = motions.iter().map(motion_clip).collect();
+        write_glb_full(&mesh, texture.map(|t| t.png.as_slice()), Some(&skin), &clips)
+    }
+
+    /// The mesh bound in the rest pose at `params.betas` and its skin showing `params`.
+    fn skinned_mesh(
+        &self,
+        ctx: &BodyContext,
+        params: &BodyParams,
+        texture: Option<&BakedTexture>,
+        name: &str,
+        names: SkeletonNames,
+    ) -> Result<(ExportMesh, crate::gltf_export::ExportSkin), ExportError> {
         let (positions, normals) = self.bind_pose(ctx, &params.betas);
         let (mesh, source) = self.export_mesh(positions, normals, texture, name)?;
         let weights = source.iter().map(|v| &ctx.model.weights[self.body_vertex[*v as usize] as usize]);
-        let skin = smpl_skin(&ctx.model, params, weights);
-        let clips: Vec<_> = motions.iter().map(motion_clip).collect();
-        write_glb_full(&mesh, texture.map(|t| t.png.as_slice()), Some(&skin), &clips)
+        Ok((mesh, smpl_skin(&ctx.model, params, weights, names)))
+    }
+
+    /// Where the avatar stands in VRM's frame at shape `betas`: the body's frame
+    /// ([`vrm_frame`]), but with the avatar's own lowest rest vertex at y = 0 (its shoes
+    /// reach below the body's soles).
+    pub fn vrm_frame(&self, ctx: &BodyContext, betas: &[f32]) -> Result<crate::skin_export::VrmFrame, ExportError> {
+        let mut frame = vrm_frame(&ctx.model, betas)?;
+        let lowest = self.bind_pose(ctx, betas).0.iter().map(|v| v.y).fold(f32::INFINITY, f32::min);
+        if !lowest.is_finite() {
+            return Err(ExportError::Empty);
+        }
+        frame.offset = glam::Vec3::new(0.0, -lowest, 0.0);
+        Ok(frame)
+    }
+
+    /// The avatar as a VRM 1.0 file: the body's rest T-pose at shape `betas`, its lowest
+    /// vertex at y = 0, the humanoid bone map, `meta`'s licence; textured when `texture` is
+    /// given. No animations (VRM keeps them in `.vrma` files).
+    pub fn vrm(
+        &self,
+        ctx: &BodyContext,
+        betas: &[f32],
+        texture: Option<&BakedTexture>,
+        meta: &VrmMeta,
+        names: SkeletonNames,
+    ) -> Result<Vec<u8>, ExportError> {
+        let frame = self.vrm_frame(ctx, betas)?;
+        let rest = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
+        let (mut mesh, skin) = self.skinned_mesh(ctx, &rest, texture, &meta.name, names)?;
+        for p in &mut mesh.positions {
+            *p += frame.offset;
+        }
+        let skin = vrm_rest_skin(skin, &frame);
+        write_vrm(&mesh, texture.map(|t| t.png.as_slice()), &skin, meta, frame.eyes_from_head)
     }
 }
 

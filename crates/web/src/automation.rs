@@ -60,7 +60,7 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
 /// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`,
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
-/// `{"download_animated":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
+/// `{"download_animated":true}`, `{"download_vrm":true}`, `{"download_vrma":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
 /// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
 /// `{"reconstruct_cancel":true}`, `{"save_reconstruction":true}`,
 /// `{"open_reconstruction":{"url":"inverted.safetensors"}}`. Photo bytes come through `window.getavatar.photo(uint8Array,
@@ -113,6 +113,12 @@ pub enum Command {
     },
     DownloadAnimated {
         download_animated: bool,
+    },
+    DownloadVrm {
+        download_vrm: bool,
+    },
+    DownloadVrma {
+        download_vrma: bool,
     },
     TextureRes {
         texture_res: usize,
@@ -338,6 +344,10 @@ pub enum Action {
     },
     /// Download the avatar (or body) as a skinned .glb with the chosen clips.
     DownloadAnimated,
+    /// Download the avatar (or body) as a VRM 1.0 avatar.
+    DownloadVrm,
+    /// Download each chosen clip as a VRM animation (.vrma).
+    DownloadVrma,
     /// Side of the avatar's baked texture in the downloads (0: vertex colours).
     TextureRes(usize),
     /// Reconstruct an avatar from the fitted photo.
@@ -452,6 +462,8 @@ impl Command {
                 Action::Motion(motion)
             }
             Command::DownloadAnimated { .. } => Action::DownloadAnimated,
+            Command::DownloadVrm { .. } => Action::DownloadVrm,
+            Command::DownloadVrma { .. } => Action::DownloadVrma,
             Command::TextureRes { texture_res } => {
                 if !TEXTURE_RESOLUTIONS.contains(&texture_res) {
                     return Err(format!(
@@ -781,6 +793,10 @@ pub struct MotionStatus {
     /// Animated downloads and the last one's size, bytes.
     pub animated_downloads: u64,
     pub last_animated_bytes: usize,
+    /// VRM avatar downloads, VRM animation files downloaded, and the last file's size, bytes.
+    pub vrm_downloads: u64,
+    pub vrma_downloads: u64,
+    pub last_vrm_bytes: usize,
     /// The downloads' texture side (0: vertex colours), finished bakes, whether one runs,
     /// the last one's milliseconds and its atlas (vertices, and triangles in own charts).
     pub texture_res: usize,
@@ -926,6 +942,8 @@ mod tests {
         assert!(parse_command(r#"{"motion":{"time":-1}}"#).is_err());
         assert!(parse_command(r#"{"motion":{"tempo":1}}"#).is_err());
         assert_eq!(parse_command(r#"{"download_animated":true}"#), Ok(Action::DownloadAnimated));
+        assert_eq!(parse_command(r#"{"download_vrm":true}"#), Ok(Action::DownloadVrm));
+        assert_eq!(parse_command(r#"{"download_vrma":true}"#), Ok(Action::DownloadVrma));
         assert_eq!(parse_command(r#"{"texture_res":512}"#), Ok(Action::TextureRes(512)));
         assert!(parse_command(r#"{"texture_res":300}"#).is_err());
         assert!(matches!(

@@ -281,6 +281,8 @@ impl GetAvatarApp {
             Action::Motion(a) => self.apply_motion(a),
             Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
             Action::DownloadAnimated => self.request_download(motion_panel::DownloadKind::Animated),
+            Action::DownloadVrm => self.request_download(motion_panel::DownloadKind::Vrm),
+            Action::DownloadVrma => self.download_vrma(),
             Action::TextureRes(r) => self.texture_res = r,
         }
     }

@@ -1,16 +1,19 @@
 //! Motion playback: the built-in clips (walk, turn, wave) and loaded SMPL/AMASS `.npz` files
 //! play on the avatar and the bare body — each frame changes only the pose, so a rigged
 //! avatar is re-posed on the GPU (new bone transforms, no generation) — with play / pause /
-//! scrub / speed / loop, and the downloads: the posed .glb and the animated .glb (skinned,
-//! with the chosen clips), named after what they hold.
+//! scrub / speed / loop, and the downloads: the posed .glb, the animated .glb (skinned,
+//! with the chosen clips), the VRM 1.0 avatar (.vrm) and the chosen clips as VRM animations
+//! (.vrma), named after what they hold.
 
 use std::rc::Rc;
 
 use eframe::egui;
 use glam::Vec3;
 
+use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::motion::{Motion, BUILTIN_CLIPS, MOTION_FPS};
-use getavatar_core::skin_export::animated_body_glb;
+use getavatar_core::skin_export::{animated_body_glb, body_vrm, motion_vrma};
+use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta};
 
 use super::GetAvatarApp;
 use crate::automation::{Action, MotionArgs, MAX_MOTION_SPEED, TEXTURE_RESOLUTIONS};
@@ -21,6 +24,7 @@ use crate::platform::{download_bytes, now_ms, open_file_picker, MOTION_INPUT_ID}
 pub(super) enum DownloadKind {
     Posed,
     Animated,
+    Vrm,
 }
 
 /// Longest step one frame may advance a clip, seconds (a backgrounded tab does not jump).
@@ -292,6 +296,21 @@ impl GetAvatarApp {
                 self.apply(Action::DownloadAnimated);
             }
         });
+        ui.horizontal(|ui| {
+            if ui
+                .button("⬇ .vrm")
+                .on_hover_text(
+                    "VRM 1.0 for avatar apps and engines: T-pose, humanoid bones, licence (a photo's avatar: \
+                     only the person photographed may use it)",
+                )
+                .clicked()
+            {
+                self.apply(Action::DownloadVrm);
+            }
+            if ui.button("⬇ .vrma").on_hover_text("the chosen clips as VRM animations, one file each").clicked() {
+                self.apply(Action::DownloadVrma);
+            }
+        });
         ui.collapsing("clips in the animated .glb", |ui| {
             for (m, inc) in self.motion.clips.iter().zip(self.motion.include.iter_mut()) {
                 ui.checkbox(inc, format!("{} ({:.1} s)", m.name, m.duration()));
@@ -324,6 +343,7 @@ impl GetAvatarApp {
         match kind {
             DownloadKind::Posed => self.download_glb(),
             DownloadKind::Animated => self.download_animated(),
+            DownloadKind::Vrm => self.download_vrm(),
         }
     }
 
@@ -381,11 +401,11 @@ impl GetAvatarApp {
             Some((r, ctx)) => {
                 let what = self.avatar_name.clone();
                 let name = format!("getavatar_{what}_{clip_names}");
-                (what, r.animated_glb(ctx, &self.params, &clips, self.baked.as_ref(), &name))
+                (what, r.animated_glb(ctx, &self.params, &clips, self.baked.as_ref(), &name, SkeletonNames::Smpl))
             }
             None => {
                 let name = format!("getavatar_body_{clip_names}");
-                ("body".to_string(), animated_body_glb(body, &self.params, &clips, &name))
+                ("body".to_string(), animated_body_glb(body, &self.params, &clips, &name, SkeletonNames::Smpl))
             }
         };
         match bytes {
@@ -401,6 +421,67 @@ impl GetAvatarApp {
                 }
             }
             Err(e) => self.messages.push(format!("glTF export failed: {e}")),
+        }
+    }
+
+    /// "⬇ .vrm": the avatar shown (or the bare body) as a VRM 1.0 avatar in its rest T-pose
+    /// at the shape shown; a photo's avatar carries the most restrictive licence.
+    pub(super) fn download_vrm(&mut self) {
+        let Some(body) = self.body.as_ref() else {
+            self.messages.push("no body to export".into());
+            return;
+        };
+        let rig = super::shown_rig(&self.rigged, &self.engine, self.show_avatar);
+        let what = if rig.is_some() { self.avatar_name.clone() } else { "body".to_string() };
+        let origin = match &rig {
+            None => AvatarOrigin::Body,
+            Some(_) if self.avatar_name == "reconstruction" => AvatarOrigin::Photo,
+            Some(_) => AvatarOrigin::Generated,
+        };
+        let meta = VrmMeta { name: format!("getavatar_{what}"), origin };
+        let bytes = match rig {
+            Some((r, ctx)) => r.vrm(ctx, &self.params.betas, self.baked.as_ref(), &meta, SkeletonNames::Smpl),
+            None => body_vrm(body, &self.params.betas, &meta, SkeletonNames::Smpl),
+        };
+        match bytes {
+            Ok(bytes) => match download_bytes(&format!("getavatar_{what}.vrm"), &bytes, "model/gltf-binary") {
+                Ok(()) => {
+                    self.status.motion.vrm_downloads += 1;
+                    self.status.motion.last_vrm_bytes = bytes.len();
+                    self.status.motion.last_textured = self.baked.is_some();
+                }
+                Err(e) => self.messages.push(format!("download failed: {e}")),
+            },
+            Err(e) => self.messages.push(format!("VRM export failed: {e}")),
+        }
+    }
+
+    /// "⬇ .vrma": each chosen clip as a VRM animation on the skeleton of the body shape shown
+    /// (the .vrm's), one file each.
+    pub(super) fn download_vrma(&mut self) {
+        let Some(body) = self.body.as_ref() else {
+            self.messages.push("no body to export".into());
+            return;
+        };
+        let clips: Vec<Motion> = self.motion.chosen().into_iter().cloned().collect();
+        if clips.is_empty() {
+            self.messages.push("choose a motion clip for the .vrma".into());
+            return;
+        }
+        for m in &clips {
+            let result = motion_vrma(body, &self.params.betas, m, SkeletonNames::Smpl)
+                .map_err(|e| format!("VRM animation export failed: {e}"))
+                .and_then(|bytes| {
+                    download_bytes(&format!("getavatar_{}.vrma", m.name), &bytes, "model/gltf-binary")
+                        .map_err(|e| format!("download failed: {e}"))
+                });
+            match result {
+                Ok(()) => self.status.motion.vrma_downloads += 1,
+                Err(e) => {
+                    self.messages.push(e);
+                    return;
+                }
+            }
         }
     }
 
