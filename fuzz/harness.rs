@@ -1,4 +1,4 @@
-//! The fuzz targets' bodies, one per parser of outside bytes (#23): each takes arbitrary
+//! The fuzz targets' bodies, one per parser of outside bytes: each takes arbitrary
 //! bytes, parses them the way the app or the trainer does and uses what comes back; none may
 //! panic, hang or allocate far beyond the input's size. The same file is compiled into the
 //! cargo-fuzz crate (`fuzz/`, libFuzzer, nightly) and into `getavatar-tests`, whose

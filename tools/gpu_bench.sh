@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue #28's figures on a real GPU (docs/benchmarks.md, "On a real GPU"): the generator's
+# The figures on a real GPU (docs/benchmarks.md, "On a real GPU"): the generator's
 # stage table (`trainer bench`, wgpu and NdArray), and the training step (`trainer bench-train`,
 # NdArray vs wgpu at 128², wgpu at 256² and 512²), all in one run, with the adapter printed.
 #

@@ -1,4 +1,4 @@
-// Real-detector fixtures of the body fit (issue #20): runs the app's person detector
+// Real-detector fixtures of the body fit: runs the app's person detector
 // (www/pose_detect.js: MediaPipe Pose from the pinned npm package, in headless Chromium on
 // SwiftShader, exactly as the app runs it) on every PNG of a folder and writes, per photo,
 // `<name>.kp.json` (MediaPipe's result object without the mask) and `<name>.mask.png`
@@ -12,7 +12,7 @@
 // Needs Chromium (/usr/bin/chromium or GETAVATAR_CHROMIUM), as the browser e2e test does.
 //
 // With `--front` the PNGs are front renders (`trainer variety` writes them to `seeds/` and
-// `subjects/`; issue #25's faces criterion): a photo without a person is a finding, not a
+// `subjects/`; the model card's faces figure): a photo without a person is a finding, not a
 // failure, and the script ends with how many renders MediaPipe found a person in and how
 // many of those it saw facing the camera — the person's left shoulder and hip on the image's
 // right of their right ones, which a detector gets right only where the face and front tell

@@ -1,6 +1,6 @@
-// The page's side of person detection (issue #20): the photo's bytes go to a dedicated worker
+// The page's side of person detection: the photo's bytes go to a dedicated worker
 // (`pose_worker.js`, MediaPipe Pose + Selfie Segmentation), so detection never blocks the UI
-// thread (issue #23); the app awaits the answer.
+// thread; the app awaits the answer.
 //
 // detectPose(bytes, previewSide) → JSON string: the detector's answer (see pose_worker.js) or
 //   {"error": "<one sentence for the user>"}.

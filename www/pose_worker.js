@@ -1,6 +1,6 @@
-// Person detection for the photo → body fit (issue #20), in a dedicated worker so that
+// Person detection for the photo → body fit, in a dedicated worker so that
 // MediaPipe's synchronous WebGL inference (seconds on a software GPU) never holds the page's UI
-// thread (issue #23). A classic worker: MediaPipe's legacy solutions load their runtimes with
+// thread. A classic worker: MediaPipe's legacy solutions load their runtimes with
 // importScripts, which module workers lack. `pose_detect.js` is the page's side.
 //
 // MediaPipe Pose (BlazePose GHUM, Apache-2.0, see NOTICE) from the pinned npm package

@@ -19,8 +19,8 @@
 //    photo's alpha ≥ 0.8, the keypoint residual ≤ 3 % of the person's height; Download fit
 //    gives fit.json + kp.json; beside a smaller copy of itself at 4.7 MP, two people are
 //    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
-//  - Reconstruct (#21): a short reconstruction of the fitted photo on WebGPU, in the
-//    reconstruction worker (#23: no step on the UI thread), lowers the loss,
+//  - Reconstruct: a short reconstruction of the fitted photo on WebGPU, in the
+//    reconstruction worker (no step on the UI thread), lowers the loss,
 //    gives an avatar whose mask overlaps the photo's person (IoU ≥ 0.6 at the photo's camera),
 //    makes no network request and no console error; Cancel keeps the avatar; "Save
 //    reconstruction" downloads one .safetensors (generator, codes, photo) that "Open
@@ -30,7 +30,7 @@
 //    animated .glb (walk + wave) passes the validator with 2 animations and a skin; with the
 //    texture at 256² the avatar is baked once and both downloads carry the image;
 //    re-posing with the walk playing uploads no mesh and the same bytes per frame for avatar and
-//    bare body; their median frame times at 1024² are printed (#28).
+//    bare body; their median frame times at 1024² are printed.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -61,13 +61,13 @@ const browser = await chromium.launch({
 });
 const context = await browser.newContext({ viewport: { width: 1280, height: 800 }, deviceScaleFactor: 1, acceptDownloads: true });
 const page = await context.newPage();
-// The page's clock (performance.now), and the windows of the jobs #23 bounds:
+// The page's clock (performance.now), and the windows of the jobs the e2e bounds:
 // [name, from, to, why it is only measured (absent: checked)].
 const pageNow = () => page.evaluate(() => performance.now());
 const jobs = [];
-// Every GPU device the page creates, so the device-loss check can destroy it (#23).
+// Every GPU device the page creates, so the device-loss check can destroy it.
 await page.addInitScript(() => {
-  // The UI thread's long tasks (> 50 ms), for #23's "no job blocks the UI over 100 ms".
+  // The UI thread's long tasks (> 50 ms), for "no job blocks the UI over 100 ms".
   window.__longTasks = [];
   new PerformanceObserver((list) => {
     for (const e of list.getEntries()) window.__longTasks.push([e.startTime, e.duration]);
@@ -267,7 +267,7 @@ try {
   jobs.push(['generate', jGen, await pageNow()]);
   await page.waitForTimeout(800);
   console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
-  // Issue #28's stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
+  // The stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
   const stageRows = s.last_generation_stages?.stages ?? [];
   console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}  dispatches ${x.dispatches}`).join('\n'));
   const names = stageRows.map((x) => x.stage).join(',');
@@ -275,7 +275,7 @@ try {
   check(names === 'mapping,synthesis,posed grid,grid decode,DMTet,normals & colours,rigging,upload'
     && sum <= s.last_generation_ms + 100,
     `the generation's stage breakdown covers its stages (${names}; ${sum.toFixed(0)} ms of ${s.last_generation_ms.toFixed(0)})`);
-  // Issue #28's target: at most 2 GPU→CPU read-backs per new identity (the grid's geometry
+  // The target: at most 2 GPU→CPU read-backs per new identity (the grid's geometry
   // fields, then the mesh vertices' normals and colours together).
   const readbacks = stageRows.reduce((a, x) => a + x.readbacks, 0);
   check(readbacks === 2, `a new identity takes 2 read-backs (${readbacks})`);
@@ -416,7 +416,7 @@ try {
   const fj = files['fit.json'], kj = files['kp.json'];
   check(fj?.format === 'getavatar-body-fit/1' && fj.body_pose.length === 69 && fj.camera.length === 16 && kj?.poseLandmarks?.length === 33,
     `Download fit: fit.json (${fj?.format}, ${fj?.body_pose?.length} pose numbers) and kp.json (${kj?.poseLandmarks?.length} landmarks)`);
-  // --- reconstruct the avatar from the fitted photo (#21) ---------------------------------
+  // --- reconstruct the avatar from the fitted photo ---------------------------------
   // A short run on SwiftShader (≈ 1 min per step here): 3 W+ + 1 PTI steps at 64² from w_avg
   // (the search over the model's 16 subjects costs a render each), a preview after every
   // step. The photo never leaves the page: no request at all while it runs.
@@ -429,7 +429,7 @@ try {
   check(recErr === '' || recErr == null, `the reconstruct command is accepted (${recErr})`);
   let rec = (await waitFor((s) => ['done', 'failed', 'cancelled'].includes(s.reconstruct.state), 'the reconstruction', 900000)).reconstruct;
   // The steps run in the reconstruction worker (its own WebGPU device): the page only shows
-  // progress and rigs the result, in slices, so the job is checked like the others (#23).
+  // progress and rigs the result, in slices, so the job is checked like the others.
   jobs.push(['reconstruction, the first', jRec, await pageNow()]);
   page.off('request', onRequest);
   console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s (${rec.finish_detail}); losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
@@ -531,7 +531,7 @@ try {
   s = await status();
   check(s.motion.playing && s.renders - rendersBefore >= 5 && s.motion.time !== 0.55,
     `playing re-poses every frame: ${s.renders - rendersBefore} renders in 1.5 s, now at ${s.motion.time.toFixed(2)} s of ${s.motion.duration.toFixed(2)} s`);
-  // Re-pose at the cost of a plain draw (#28). What must hold is structural: while the walk
+  // Re-pose at the cost of a plain draw. What must hold is structural: while the walk
   // plays (a new pose every frame), a frame of the avatar uploads no mesh and writes exactly
   // the bytes a frame of the bare body writes (24 joint transforms and the uniforms).
   // The frame times are a measurement, printed (docs/benchmarks.md), not a check: host times
@@ -650,7 +650,7 @@ try {
   check(consoleErrors.length === 0, `zero console errors (${consoleErrors.length}: ${consoleErrors.slice(0, 3).join(' | ')})`);
   fs.writeFileSync(path.join(out, 'status.json'), JSON.stringify(await status(), null, 1));
   await page.screenshot({ path: path.join(out, 'app.png') });
-  // #23: no job blocks the UI thread over 100 ms at a time (PerformanceObserver long tasks
+  // No job blocks the UI thread over 100 ms at a time (PerformanceObserver long tasks
   // overlapping each job's window). Over the whole run they include 1024² frames drawn by
   // SwiftShader, which are no job's.
   const long = await page.evaluate(() => window.__longTasks);
@@ -664,7 +664,7 @@ try {
     else check(longest <= 100, `no task of the job over 100 ms: ${what}`);
   }
 
-  // GPU device loss (#23), last since it ends the app: the page says so over the canvas and
+  // GPU device loss, last since it ends the app: the page says so over the canvas and
   // offers a reload instead of a frozen canvas.
   const devices = await page.evaluate(() => { window.__gpuDevices.forEach((d) => d.destroy()); return window.__gpuDevices.length; });
   const box = await page.waitForSelector('#fatal', { state: 'visible', timeout: 30000 });

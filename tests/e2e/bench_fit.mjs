@@ -1,4 +1,4 @@
-// Browser benchmark of the photo → body fit (issue #20): the same photo and schedule fitted on
+// Browser benchmark of the photo → body fit: the same photo and schedule fitted on
 // the CPU (burn NdArray in wasm, the app's default) and on the page's WebGPU device (burn
 // wgpu), in one run; prints ms per Adam step of each and their ratio.
 //

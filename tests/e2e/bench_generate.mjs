@@ -1,4 +1,4 @@
-// Browser benchmark of a new identity (issue #28): the app's generation stage table (host ms,
+// Browser benchmark of a new identity: the app's generation stage table (host ms,
 // waits on GPU read-backs, read-backs, dispatches) for several seed pairs after a warm-up,
 // and the median host time per new identity.
 //

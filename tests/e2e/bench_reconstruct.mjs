@@ -1,4 +1,4 @@
-// Browser benchmark of the single-image reconstruction (issue #21): the e2e photo is fitted,
+// Browser benchmark of the single-image reconstruction: the e2e photo is fitted,
 // then reconstructed in the reconstruction worker's own WebGPU device (burn wgpu + autodiff) at each render size;
 // prints milliseconds per W+ step and per PTI step, the start (model loading, start choice)
 // and the finish (extraction, rigging, projection), and the result's mask IoU / masked PSNR.

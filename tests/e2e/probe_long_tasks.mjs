@@ -1,4 +1,4 @@
-// Long tasks on the UI thread per job (issue #23), with optional CPU profiles to find what
+// Long tasks on the UI thread per job, with optional CPU profiles to find what
 // holds the thread: phases run in order on one page, each reporting its wall time and the
 // PerformanceObserver long tasks (> 50 ms) that fell in it.
 //

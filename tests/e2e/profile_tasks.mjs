@@ -1,4 +1,4 @@
-// What held the UI thread in a phase of `probe_long_tasks.mjs PROFILE=1` (issue #23): reads the
+// What held the UI thread in a phase of `probe_long_tasks.mjs PROFILE=1`: reads the
 // phase's CPU profile and long tasks from out/long_tasks/ and prints
 //   1. the offset between the profile's clock and the page's (the samples ran 50–95 ms behind
 //      `performance.now()`), found as the shift that puts the fewest idle samples inside long

@@ -1,4 +1,4 @@
-// Random-action soak of the GETAvatar web app (#23) in headless Chromium (WebGPU on SwiftShader).
+// Random-action soak of the GETAvatar web app in headless Chromium (WebGPU on SwiftShader).
 //
 //   cargo xtask serve            # another shell; or any server of dist/
 //   cd tests/e2e && node soak.e2e.mjs [actions, default 300] [seed, default 1]

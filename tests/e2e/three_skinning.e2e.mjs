@@ -1,4 +1,4 @@
-// three.js plays the exported animated avatar as the project does (issue #22), in headless
+// three.js plays the exported animated avatar as the project does, in headless
 // Chromium: GLTFLoader loads the .glb, there is one SkinnedMesh with 24 bones named as SMPL,
 // and an AnimationMixer playing each clip puts every vertex where the project's own LBS does
 // (positions from `trainer export --frames-json`) within 5 mm at 3 frames per clip. The Khronos

@@ -77,7 +77,7 @@ fn clock_ms() -> f64 {
     T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1e3
 }
 
-/// Issue #28: a profiled stage counts the GPU kernels it launched (cubecl's launch observer);
+/// A profiled stage counts the GPU kernels it launched (cubecl's launch observer);
 /// a stage that launched nothing counts none, unless another test's launches overlap it.
 #[test]
 fn profiled_stages_count_gpu_dispatches() {
@@ -97,7 +97,7 @@ fn profiled_stages_count_gpu_dispatches() {
     assert_eq!(p.dispatches(), d);
 }
 
-/// Issue #28: marching tetrahedra as GPU work (`dmtet_gpu`, on lavapipe here) gives the CPU
+/// Marching tetrahedra as GPU work (`dmtet_gpu`, on lavapipe here) gives the CPU
 /// reference's mesh from the same fields: the same triangles in the same order, each corner
 /// within 1e-5 m, on the canonical grid of a generator's band. And a new identity on the GPU
 /// then reads back twice: the surface's counts, then its rows with their normals and colours.
@@ -190,7 +190,7 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
     assert!(far < 1e-4 && normal < 1e-4 && colour < 1e-4, "{far} {normal} {colour}");
 }
 
-/// Issue #28: a large convolution on a GPU backend goes through im2col + matmul
+/// A large convolution on a GPU backend goes through im2col + matmul
 /// (`GPU_IM2COL_MIN_MACS`; burn's direct kernel was 83 % of the paper config's generation on an
 /// H200). At that size, on lavapipe, it gives burn's `conv2d` (the direct kernel) within float
 /// noise, values and gradients, for a shared and a per-sample weight.
@@ -231,7 +231,7 @@ fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
     }
 }
 
-/// Issue #28: generation's element-wise chains run as single kernels on wgpu
+/// Generation's element-wise chains run as single kernels on wgpu
 /// (`network::cube_ops`): the style affines and mapping layers, weight modulation, bias + leaky
 /// ReLU, and the synthesis's upsampling with its skip sum. They apply to untracked tensors of a
 /// cubecl device only (also of an autodiff one), and a tiny generator's triplanes, fields and
@@ -267,7 +267,7 @@ fn fused_generation_kernels_match_the_tensor_ops() {
     assert_fields_close(&a, &b, 1e-5, "fused kernels and tensor ops");
 }
 
-/// Issue #28: DMTet's prefix sum as cubecl kernels on wgpu (`dmtet_gpu::inclusive_scan`,
+/// DMTet's prefix sum as cubecl kernels on wgpu (`dmtet_gpu::inclusive_scan`,
 /// three launches) is the running sum, at block edges and past them; the compaction built on
 /// it is covered by `marching_tets_on_the_gpu_gives_the_cpu_mesh`.
 #[test]

@@ -1,4 +1,4 @@
-//! Photo → body (#20): the differentiable body model against the CPU reference (values and
+//! Photo → body: the differentiable body model against the CPU reference (values and
 //! finite-difference gradients), and the fit's synthetic round trip: bodies in poses that
 //! are neither in the pose library nor drawn by `synth-scans` (squat, lunge, kick, twisted
 //! torso, crossed arms), photographed by known cameras, detected with noise, fitted:

@@ -157,7 +157,7 @@ fn fast_repose_path_matches_the_exact_path() {
 }
 
 /// A new identity is generated in the canonical pose with the inverse skinning and grid kept
-/// in the `BodyContext` and no rotation of the normal field (#28: host time). The general
+/// in the `BodyContext` and no rotation of the normal field (host time). The general
 /// path, taken here by moving the body 1 µm, gives the same mesh, normals and colours.
 #[test]
 fn the_canonical_shortcut_matches_the_general_path() {
@@ -192,7 +192,7 @@ fn the_canonical_shortcut_matches_the_general_path() {
     assert!(worst_rotation < 1e-5, "{worst_rotation}");
 }
 
-/// Issue #28: a new identity (canonical generation and rigging) reads back from the device
+/// A new identity (canonical generation and rigging) reads back from the device
 /// twice: the geometry fields of the grid's band, then the mesh vertices' normals and colours
 /// together. The stage profile counts every read-back (`readback::read_f32`).
 #[test]
@@ -417,7 +417,7 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// texture branch; v3.2's refitted texture mapping, which picks another subject's colours for
 /// texture seed 2; v3.3's face plane, which colours the face alone), summing the glTF's POSITION, NORMAL and COLOR_0 accessors
 /// (`tools/glb_fingerprint.py` prints the figures). (The 16-subject file before it was checked the same way against commit
-/// e02b26a, to pin #26's refactor.)
+/// e02b26a, to pin a refactor.)
 #[test]
 fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
     use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
@@ -426,7 +426,7 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
     // The shipped file is the demo config with 128² texture and geometry planes, extracted
-    // on a 96³ tet grid (v3 to v3.3, #25) with a 64² face plane (v3.3), and its latent modes
+    // on a 96³ tet grid (v3 to v3.3) with a 64² face plane (v3.3), and its latent modes
     // carry W+ texture codes.
     let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
     assert_eq!((cfg.texture_res, cfg.geometry_res, cfg.tet_res), (Some(128), Some(128), 96));
@@ -448,7 +448,7 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
         // Sums over all vertices of positions, normals and colours. The release CLI and
         // this debug test may round differently (for the file before this one, positions
         // differed by ≈ 2e-5 m and colours by ≈ 5e-4 in sums over 6,224 vertices once
-        // NdArray's convolution became one operation, #28): float rounding, not another avatar.
+        // NdArray's convolution became one operation): float rounding, not another avatar.
         for ((k, (a, b)), tol) in got.2.iter().zip(want.2).enumerate().zip([1e-4, 1e-3, 2e-3]) {
             assert!((a - b).abs() < tol, "{pose}: sum {k} is {a}, was {b} ({got:?})");
         }

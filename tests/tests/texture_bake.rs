@@ -1,4 +1,4 @@
-//! The texture atlas and bake (issue #22) on the shipped demo model: the atlas covers the
+//! The texture atlas and bake on the shipped demo model: the atlas covers the
 //! avatar (UVs in the unit square, every triangle once), and the baked image sampled at a
 //! vertex's UV is the texture field at the vertex's canonical point (mean |ΔRGB| ≤ 2/255 away
 //! from seams and chart borders).
@@ -44,7 +44,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     }
     assert!(seen.iter().all(|c| *c > 0), "every avatar vertex is in the atlas");
     // Most triangles take the body's layout; garments standing off the body by more than
-    // FAR_FROM_BODY (this avatar's loose top: 19 % of its triangles on the v2 model of #25,
+    // FAR_FROM_BODY (this avatar's loose top: 19 % of its triangles on the v2 model,
     // under 10 % on the body-hugging 16-subject file before it) get charts of their own.
     assert!(
         atlas.body_faces > 3 * atlas.faces.len() / 4,
@@ -135,7 +135,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
 
     // The downloads take this bake with this avatar, and refuse it with another mesh (a bake
     // that finished after the app's avatar changed once indexed past the new mesh's vertices
-    // and panicked, #23): here the same vertices with the triangles in another order, and
+    // and panicked): here the same vertices with the triangles in another order, and
     // one vertex and its triangles fewer.
     let params = getavatar_core::skinning::BodyParams::default();
     let glb = rigged.posed_glb(&ctx, &params, Some(&baked), "own bake").expect("the avatar's own bake exports");

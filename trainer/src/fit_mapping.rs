@@ -1,6 +1,6 @@
 //! `trainer fit-mapping`: the texture mapping network refitted so that seeds' texture codes
 //! lie near the training subjects' texture codes, each within a spread of one, instead of
-//! between them (not in the paper; issue #25's "codes drawn from a learned distribution").
+//! between them (not in the paper).
 //!
 //! Why: a reconstruction-trained generator has been supervised at its subjects' codes (and a
 //! little around them), while its mapping network spreads w_tex over the space between them:

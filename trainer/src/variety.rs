@@ -1,5 +1,5 @@
 //! `trainer variety`: how different a generator's avatars are from one another, against how
-//! different its training subjects are (issue #25's variety figure).
+//! different its training subjects are (the model card's variety figure).
 //!
 //! Every avatar is rendered in the canonical pose (Da-pose) from the front at `res`², and
 //! two renders are compared by their pixel L1: the mean absolute difference over the RGB

@@ -110,7 +110,7 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
 /// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`) on the
 /// bare body in the unseen poses from two yaws → `trainer fit-pose` with the detector's mask,
-/// PA-MPJPE against the pose that was rendered. Issue #20 asks PA-MPJPE ≤ 60 mm: the mean
+/// PA-MPJPE against the pose that was rendered. The target is PA-MPJPE ≤ 60 mm: the mean
 /// over the set, as the field reports it (HMR, SPIN on 3DPW), is 48.4 mm at 2026-11-26, with
 /// the ten cases at 33–60 mm. The worst, arms crossed seen from the side (60.1 mm), is a
 /// detector error the fit can only partly undo: MediaPipe gives the hand it sees (the left,

@@ -210,7 +210,7 @@ fn test(native: bool, browser: bool) -> Result<()> {
             .env("GETAVATAR_URL", format!("http://{}/", server.addr))
             .env("GETAVATAR_OUT", e2e.join("out"));
         run(&mut c)?;
-        // The random-action soak (#23): 300 seeded actions after a warm-up, no panic, no
+        // The random-action soak: 300 seeded actions after a warm-up, no panic, no
         // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
         let mut c = Command::new("node");
         c.current_dir(&e2e)
@@ -263,7 +263,7 @@ fn export_checks(e2e: &Path) -> Result<()> {
         &p("body_skinned.glb"),
         &p("avatar_humanoid.glb"),
     ]))?;
-    // VRM 1.0 (#63): the avatar as .vrm, a built-in clip and an AMASS file as .vrma, the body
+    // VRM 1.0: the avatar as .vrm, a built-in clip and an AMASS file as .vrma, the body
     // as .vrm with humanoid node names; three-vrm loads and plays them in Chromium.
     export(&[
         "--format",

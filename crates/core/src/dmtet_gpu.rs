@@ -1,4 +1,4 @@
-//! Marching tetrahedra as device work (#28): the same surface as the CPU reference
+//! Marching tetrahedra as device work: the same surface as the CPU reference
 //! [`crate::geometry::marching_tets`], extracted where the generator's fields already are, so a
 //! new identity needs no read-back of the grid's fields and no per-tet loop on the host.
 //!
@@ -244,7 +244,7 @@ fn kept_indices(keep: Tensor<1, Bool>, scan: Tensor<1, Int>, len: usize) -> Tens
     slots.scatter(0, rank, index, IndexingUpdateOp::Add).narrow(0, 0, len)
 }
 
-/// [`inclusive_scan`] and [`kept_indices`] as cubecl kernels on wgpu/WebGPU (#28: the tensor-op
+/// [`inclusive_scan`] and [`kept_indices`] as cubecl kernels on wgpu/WebGPU (the tensor-op
 /// versions take about 20 launches per scan and 6 per compaction, and in the browser every
 /// launch is host time): a scan is three launches (block totals, their running sum in one
 /// unit, each block's running sum from its offset), a compaction one (each output slot finds

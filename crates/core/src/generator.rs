@@ -438,7 +438,7 @@ pub const WARM_SURFACE_MULTIPLES: std::ops::RangeInclusive<usize> = 16..=40;
 /// vertices) for every padded surface size in [`WARM_SURFACE_MULTIPLES`], one size per
 /// checkpoint, results dropped. The matrix-multiply kernels are chosen by the batch's size,
 /// and a size class the start-up generation did not meet compiled a ≈ 110 ms kernel in the
-/// first generation of another avatar on the software-GPU test machine (issue #23's bound
+/// first generation of another avatar on the software-GPU test machine (the 100 ms long-task bound
 /// is 100 ms). For the page's idle time after the model loads.
 pub async fn warm_surface_kernels(
     g: &Generator,

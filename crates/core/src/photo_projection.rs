@@ -1,4 +1,4 @@
-//! The photo's colours projected onto the reconstructed avatar (#21; beyond the paper, on by
+//! The photo's colours projected onto the reconstructed avatar (beyond the paper, on by
 //! default): users of single-image methods ask above all for a sharp front and a plausible
 //! back. Each surface point of the avatar, posed as in the photo, that the photo's camera sees
 //! (depth test against the avatar's own depth buffer) takes the photo's colour there; the

@@ -1,4 +1,4 @@
-//! Stage timings of a generation (issue #28): per stage, the milliseconds of our own code on
+//! Stage timings of a generation: per stage, the milliseconds of our own code on
 //! the CPU or in wasm (`host_ms`), the milliseconds spent awaiting GPU→CPU read-backs
 //! (`gpu_wait_ms`), the read-backs themselves, and in the browser the time given back to the
 //! page between slices ([`crate::cooperative`], `yield_ms`: neither host nor GPU work of ours).

@@ -646,7 +646,7 @@ pub struct Status {
     /// Milliseconds of the last generation (network + extraction + readbacks).
     pub last_generation_ms: f32,
     /// The last generation by stage (mapping … rigging, then the mesh's upload): host ms,
-    /// waits on the GPU, read-backs (issue #28; `getavatar_core::profile`).
+    /// waits on the GPU, read-backs (`getavatar_core::profile`).
     pub last_generation_stages: Option<getavatar_core::profile::StageProfile>,
     pub seed_geo: u64,
     pub seed_tex: u64,

@@ -86,7 +86,7 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
 /// compiles it (cubecl → WGSL → the browser's shader compiler), single tasks of up to ~0.8 s on
 /// this project's software-GPU test machine that cannot be sliced. Done here, no generation the
-/// user asks for pays them (issue #23). A failure only means the first generation compiles.
+/// user asks for pays them. A failure only means the first generation compiles.
 async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, device: &Device) {
     let (zg, zt) = seed_latents(cfg, 0, 0, device);
     let styles = shipped.generator.styles_with(zg, zt, default_psi(shipped.modes.as_ref()), shipped.modes.as_ref());

@@ -181,7 +181,7 @@ impl Progressing for OnPage<'_> {
 }
 
 /// Start a reconstruction; its events arrive on the returned task. It runs in the
-/// reconstruction worker (its own WebGPU device, off the UI thread: issue #23), or on the page
+/// reconstruction worker (its own WebGPU device, off the UI thread), or on the page
 /// where the browser gives workers no WebGPU.
 pub fn reconstruct(req: ReconstructRequest, repaint: egui::Context) -> ReconstructTask {
     let task = ReconstructTask::default();

@@ -1,4 +1,4 @@
-//! The reconstruction worker (issue #23): the inversion's steps each run a backward pass of
+//! The reconstruction worker: the inversion's steps each run a backward pass of
 //! hundreds of kernel launches in one call (160–360 ms of the UI thread per step, seconds of
 //! kernel compiles on the first), which no slicing can split. So the page hands the inversion
 //! to a dedicated worker: a second instance of this same wasm module (`www/reconstruct_worker.js`)

@@ -129,7 +129,7 @@ pub async fn yield_to_browser() {
 }
 
 /// How long, in milliseconds, a background stage keeps the UI thread before giving it back at
-/// its next checkpoint. Issue #23 bounds a task at 100 ms: a task is this plus the stretch to
+/// its next checkpoint. The app bounds a task at 100 ms: a task is this plus the stretch to
 /// the next checkpoint (up to ~60 ms on the test machine: a fit step's silhouette edges).
 pub const SLICE_MS: f64 = 10.0;
 

@@ -135,7 +135,7 @@ pub fn start() {
         std::panic::set_hook(Box::new(|info| crate::reconstruct_worker::post_fatal(&info.to_string())));
         return;
     }
-    // Long CPU stages of core run in slices between frames (issue #23: no task over 100 ms).
+    // Long CPU stages of core run in slices between frames (no task over 100 ms).
     crate::task::install_time_slicing(crate::task::SLICE_MS);
     // With panic = abort a panic stops the app for good: say so over the canvas (the page's
     // `getavatarFatal`, which offers a reload) and in the console, never a frozen canvas.

@@ -1,4 +1,4 @@
-//! Photo → body (issue #20, in progress): the SMPL pose, shape and camera that explain a
+//! Photo → body: the SMPL pose, shape and camera that explain a
 //! person's detected landmarks and mask, for the latent inversion that follows.
 //!
 //! - [`landmarks`]: MediaPipe Pose's 33 landmarks, their SMPL joints and the detector's

@@ -4,7 +4,7 @@
 //! Without burn's `fusion` feature (tried and dropped, docs/benchmarks.md: it compiles fused
 //! kernels for each new shape) every tensor op is its own kernel launch, and in the browser
 //! each launch from wasm costs 0.05–0.2 ms of host time. A new identity's synthesis launched
-//! 356 kernels, most of them one multiply or add each (issue #28). Four kernels take the chains
+//! 356 kernels, most of them one multiply or add each. Four kernels take the chains
 //! that the networks repeat:
 //!
 //! - [`fully_connected`]: `act(x·Wᵀ·gain + b·bias_mul)`, the mapping layers and the style

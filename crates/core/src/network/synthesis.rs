@@ -19,7 +19,7 @@ use super::layers::ModulatedConv2d;
 ///
 /// Without gradients (generation), two row gathers (`select`) straight into the upsampled
 /// size: a dimension costs five GPU launches (two gathers, two scalings, one sum) instead of
-/// the slicing, concatenating and interleaving of [`upsample_dim_by_slices`] (issue #28:
+/// the slicing, concatenating and interleaving of [`upsample_dim_by_slices`] (
 /// launches are what a GPU waits on here). The values are the same bits (same products, same
 /// sum). Training and inversion keep the sliced version: the gathers' backward is a
 /// scatter-add whose rounding differs, which changed the inversion's trajectories. burn's
