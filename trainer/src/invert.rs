@@ -23,14 +23,16 @@ use getavatar_core::camera::{OrbitCamera, View};
 use getavatar_core::checkpoint::{self, save_inverted};
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::encoder::{load_encoder, Encoder};
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
 use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::inversion::{
-    choose_start, comparison_image, mask_iou, masked_psnr, render_images, start_candidates, InversionOptions,
-    InversionTarget, Inverter, Phase,
+    choose_start, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
+    InversionOptions, InversionTarget, Inverter, Phase,
 };
 use getavatar_core::motion::Motion;
 use getavatar_core::network::discriminator::Discriminator;
+use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::{render_views_textured, Texture};
 use getavatar_core::readback::block_on_ready;
@@ -42,7 +44,7 @@ use serde::Serialize;
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
-use crate::sample::{load_body, shipped_discriminator, write_png, GeneratorArgs};
+use crate::sample::{load_body, shipped_discriminator, shipped_encoder, write_png, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct InvertArgs {
@@ -71,9 +73,19 @@ pub struct InvertArgs {
     /// from its scan and compared with the avatar's (mask IoU in metrics.json).
     #[arg(long, requires = "data")]
     pub scans: Option<PathBuf>,
-    /// fast (60 W+ + 60 PTI steps) or full (200 + 350, the references' counts).
+    /// instant (the encoder's guess, no optimisation), fast (60 W+ + 60 PTI steps) or full
+    /// (200 + 350, the references' counts).
     #[arg(long, default_value = "full")]
     pub preset: String,
+    /// The photo encoder giving the first guess (default: the shipped one, with the shipped
+    /// demo model). A file that cannot be used is reported and the latent-mode search starts
+    /// the inversion instead.
+    #[arg(long, conflicts_with = "no_encoder")]
+    pub encoder: Option<PathBuf>,
+    /// Start from the latent-mode search (the best of w_avg and the training subjects' codes)
+    /// instead of the encoder's guess.
+    #[arg(long)]
+    pub no_encoder: bool,
     /// W+ steps (overrides the preset).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -120,6 +132,11 @@ struct InvertMetrics {
     options: InversionOptions,
     start: String,
     start_losses: Vec<(String, f32)>,
+    /// At the input camera: the start (the encoder's guess, or the chosen latent mode).
+    at_start: ViewMetrics,
+    /// Seconds from the command's start to the first avatar (the start rendered at the input
+    /// camera), and to the end.
+    seconds_to_first_avatar: f64,
     perceptual: bool,
     /// At the input camera: after W+ and after PTI.
     after_w: ViewMetrics,
@@ -233,6 +250,36 @@ fn box_down(v: &[f32], size: usize, c: usize, r: usize) -> Vec<f32> {
     out
 }
 
+/// The photo encoder: `--encoder`, else the shipped one (`shipped` = the shipped generator's
+/// config). None with `--no-encoder`, without one, or when it cannot be used (said once on
+/// stderr: the latent-mode search starts the inversion instead).
+fn load_encoder_arg(
+    a: &InvertArgs,
+    g: &Generator,
+    shipped: Option<&GeneratorConfig>,
+    dev: &Device,
+) -> Option<(Encoder, PathBuf)> {
+    if a.no_encoder {
+        return None;
+    }
+    let path = a.encoder.clone().or_else(|| shipped.and_then(shipped_encoder))?;
+    let loaded =
+        std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| Ok(load_encoder(&b, dev)?)).and_then(|e| {
+            e.check(g)?;
+            Ok(e)
+        });
+    match loaded {
+        Ok(enc) => Some((enc, path)),
+        Err(e) => {
+            eprintln!(
+                "the encoder {} cannot be used ({e:#}); starting from the latent-mode search instead",
+                path.display()
+            );
+            None
+        }
+    }
+}
+
 /// The RGB discriminator of a training state (`d0/…`, its run's config) or of a file written
 /// by `trainer train-discriminator`.
 fn load_discriminator(path: &Path, device: &Device) -> Result<Discriminator> {
@@ -302,8 +349,8 @@ fn render_at(
 
 pub fn invert(a: &InvertArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
-    let mut opts =
-        InversionOptions::preset(&a.preset).with_context(|| format!("unknown --preset `{}` (fast, full)", a.preset))?;
+    let mut opts = InversionOptions::preset(&a.preset)
+        .with_context(|| format!("unknown --preset `{}` (instant, fast, full)", a.preset))?;
     if let Some(json) = &a.options {
         let mut v = serde_json::to_value(&opts)?;
         let over: serde_json::Value = serde_json::from_str(json).context("--options is not JSON")?;
@@ -323,9 +370,6 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     }
     if let Some(n) = a.pti_steps {
         opts.pti_steps = n;
-    }
-    if opts.steps + opts.pti_steps == 0 {
-        bail!("nothing to do: --steps and --pti-steps are both 0");
     }
     if !(64..=4096).contains(&a.texture_res) {
         bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
@@ -351,21 +395,33 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let ctx = BodyContext::new(model, &cfg);
     write_png(&a.out.join("input.png"), &rgba(&target.rgb, &target.mask), target.res, 4)?;
 
-    // The start: the latent mode (or w_avg) that explains the image best.
+    // The start: the encoder's guess, or the latent mode (or w_avg) that explains the image best.
     let ts = std::time::Instant::now();
-    let cands = start_candidates(&g, modes.as_ref());
-    let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev)?;
+    let encoder = load_encoder_arg(a, &g, shipped_g.then_some(&cfg), &dev);
+    let (start, start_styles, start_losses) = match encoder {
+        Some((enc, path)) => {
+            let styles = encoder_start(&enc, &g, &ctx.model, &target, &dev)
+                .with_context(|| format!("the encoder {}", path.display()))?;
+            ("encoder".to_string(), styles, Vec::new())
+        }
+        None => {
+            let cands = start_candidates(&g, modes.as_ref());
+            let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev)?;
+            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
+            (cands[best].name.clone(), cands[best].styles.clone(), all)
+        }
+    };
     let seconds_start = ts.elapsed().as_secs_f64();
+    let (rgb0, mask0) = render_at(&g, &ctx, &start_styles, &target.view, target.res, &dev)?;
+    let at_start = view_metrics(&target, &rgb0, &mask0);
+    let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
+    write_png(&a.out.join("input_view_start.png"), &rgba(&rgb0, &mask0), target.res, 4)?;
     eprintln!(
-        "start: {} (loss {:.4}; {} candidates, {:.1} s)",
-        cands[best].name,
-        losses[best],
-        cands.len(),
-        seconds_start
+        "start: {start} ({seconds_start:.1} s); first avatar after {seconds_to_first_avatar:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
+        at_start.mask_iou, at_start.psnr_db
     );
-    let start_losses = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
 
-    let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &cands[best].styles, opts.clone(), &dev)?;
+    let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &start_styles, opts.clone(), &dev)?;
     let perceptual = inv.has_perceptual();
     let (_, all) = inv.progress();
     let bar = crate::progress::bar(all as u64, "steps");
@@ -377,7 +433,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let tw = std::time::Instant::now();
     let mut tp = None;
     loop {
-        if after_w.is_none() && inv.phase() != Phase::Latent {
+        if after_w.is_none() && opts.steps > 0 && inv.phase() != Phase::Latent {
             // The W+ result, before tuning.
             t_w = Some(tw.elapsed().as_secs_f64() / opts.steps.max(1) as f64);
             let (rgb, mask) = render_images(&inv.render()?)?;
@@ -491,10 +547,12 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         source,
         res: r,
         options: opts.clone(),
-        start: cands[best].name.clone(),
+        start,
         start_losses,
+        at_start,
+        seconds_to_first_avatar,
         perceptual,
-        after_w: after_w.unwrap_or(final_m),
+        after_w: if opts.steps > 0 { after_w.unwrap_or(final_m) } else { at_start },
         after_pti: (opts.pti_steps > 0).then_some(final_m),
         baked: baked_m,
         projected: projected_m,

@@ -21,6 +21,7 @@ mod sample;
 mod synth_scans;
 mod train;
 mod train_discriminator;
+mod train_encoder;
 mod variety;
 
 use std::path::PathBuf;
@@ -176,6 +177,9 @@ enum Command {
     /// Train the RGB discriminator of a frozen generator against its training data (the
     /// inversion's perceptual term uses its features); resumes from --out.
     TrainDiscriminator(train_discriminator::TrainDiscriminatorArgs),
+    /// Train the photo encoder (the reconstruction's first guess) on the generator's own
+    /// renders: `--out runs/enc`, resumable.
+    TrainEncoder(train_encoder::TrainEncoderArgs),
     /// Reconstruct an avatar from one image (paper Sec. 5.4): W+ inversion of the latent codes
     /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned
     /// generator and codes, and metrics go to --out.
@@ -281,6 +285,7 @@ fn main() -> Result<()> {
         Command::FitCodes(args) => fit_codes::fit_codes(&args)?,
         Command::FitMapping(args) => fit_mapping::fit_mapping(&args)?,
         Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
+        Command::TrainEncoder(args) => train_encoder::train_encoder(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,

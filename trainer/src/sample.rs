@@ -76,6 +76,9 @@ pub const SHIPPED_DEMO_MODEL: &str = "assets/models/demo.safetensors";
 /// Where its RGB discriminator lives (the inversion's perceptual term).
 pub const SHIPPED_DEMO_DISCRIMINATOR: &str = "assets/models/demo_d_rgb.safetensors";
 
+/// Where its photo encoder lives (the reconstruction's first guess).
+pub const SHIPPED_DEMO_ENCODER: &str = "assets/models/encoder.safetensors";
+
 /// The shipped demo model, if this is the `demo` config and the file is there (looked up in
 /// the working directory, then in the source tree this binary was built from).
 pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
@@ -85,6 +88,11 @@ pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
 /// The shipped demo model's RGB discriminator, found like [`shipped_model`].
 pub fn shipped_discriminator(cfg: &GeneratorConfig) -> Option<PathBuf> {
     shipped_file(cfg, SHIPPED_DEMO_DISCRIMINATOR)
+}
+
+/// The shipped demo model's photo encoder, found like [`shipped_model`].
+pub fn shipped_encoder(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_ENCODER)
 }
 
 fn shipped_file(cfg: &GeneratorConfig, rel: &str) -> Option<PathBuf> {

@@ -459,16 +459,9 @@ fn skirt(lm: &Landmarks, y_top: f32, y_bottom: f32, flare: f32, rng: &mut Rng, t
 // ---------------------------------------------------------------------------------------
 // The scan
 
-/// Build scan `id` of the dataset with `seed` (deterministic); in pose θ = `pose` when given,
-/// else in a drawn library pose with variation.
-pub fn make_scan(
-    model: &BodyModel,
-    seed: u64,
-    id: &str,
-    texture_size: usize,
-    pose: Option<&[Vec3; NUM_JOINTS]>,
-) -> Result<SynthScan> {
-    let mut rng = Rng::new(seed, hash_str(id));
+/// A scan's body: β (adults, heights ≈ 1.5–1.95 m) and a library pose with variation, drawn
+/// from `rng` (the `encoder` training data draws its bodies the same way).
+pub fn draw_body(model: &BodyModel, rng: &mut Rng) -> Result<BodyParams> {
     // Shape: 10 components; age is kept adult (β_age ≥ −0.3).
     // Components of the open body: 0 gender, 1 weight, 2 muscle, 3 height, 4 proportions,
     // 5 age, 6 hip width, 7 shoulder width, 8 leg length, 9 torso length. The length
@@ -482,13 +475,9 @@ pub fn make_scan(
     if betas.len() > 5 {
         betas[5] = betas[5].max(-0.3); // adults
     }
-    let rest = model.shaped_vertices(&betas);
-    let lm = landmarks(model, &rest);
-    let j = lm.joints;
-
     // Pose: a library pose plus variation.
     let lib = PoseLibrary::builtin();
-    let pose_name = pick(&mut rng, &SCAN_POSES);
+    let pose_name = pick(rng, &SCAN_POSES);
     let mut params: BodyParams = lib.params(pose_name, &betas)?;
     for (k, r) in params.pose.iter_mut().enumerate().skip(1) {
         let sigma = match k {
@@ -505,6 +494,25 @@ pub fn make_scan(
         params.pose[17] *= k;
     }
     params.pose[0] = Vec3::new(rng.normal() * 0.03, rng.normal() * 0.25, rng.normal() * 0.03);
+
+    Ok(params)
+}
+
+/// Build scan `id` of the dataset with `seed` (deterministic); in pose θ = `pose` when given,
+/// else in a drawn library pose with variation.
+pub fn make_scan(
+    model: &BodyModel,
+    seed: u64,
+    id: &str,
+    texture_size: usize,
+    pose: Option<&[Vec3; NUM_JOINTS]>,
+) -> Result<SynthScan> {
+    let mut rng = Rng::new(seed, hash_str(id));
+    let mut params = draw_body(model, &mut rng)?;
+    let betas = params.betas.clone();
+    let rest = model.shaped_vertices(&betas);
+    let lm = landmarks(model, &rest);
+    let j = lm.joints;
 
     if let Some(p) = pose {
         params.pose = *p;

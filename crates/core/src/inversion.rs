@@ -209,10 +209,12 @@ impl Default for InversionOptions {
 }
 
 impl InversionOptions {
-    /// `full` (the defaults: 200 W+ and 350 PTI steps) or `fast` (60 + 60, locality every 4
-    /// steps): what the app's quality preset picks.
+    /// `full` (the defaults: 200 W+ and 350 PTI steps), `fast` (60 + 60, locality every 4
+    /// steps) or `instant` (no steps: the start, the encoder's guess, is the avatar): what the
+    /// app's quality preset picks.
     pub fn preset(name: &str) -> Option<Self> {
         match name {
+            "instant" => Some(Self { steps: 0, pti_steps: 0, ..Self::default() }),
             "full" => Some(Self::default()),
             "fast" => Some(Self { steps: 60, pti_steps: 60, locality_every: 4, ..Self::default() }),
             _ => None,
@@ -675,6 +677,21 @@ pub fn masked_psnr(a: &[f32], b: &[f32], mask: &[f32]) -> f32 {
 pub struct StartCandidate {
     pub name: String,
     pub styles: Styles,
+}
+
+/// The photo encoder's first guess for `target` ([`crate::encoder`]): W+ styles of both
+/// branches, without gradients; the start of the refinement, or the avatar itself (`instant`).
+pub fn encoder_start(
+    enc: &crate::encoder::Encoder,
+    g: &Generator,
+    model: &crate::body_model::BodyModel,
+    target: &InversionTarget,
+    device: &Device,
+) -> Result<Styles, crate::encoder::EncoderError> {
+    let res = enc.config().res;
+    let image = crate::encoder::EncoderImage::new(&target.rgb, &target.mask, target.res, &target.view, model, res)?;
+    let s = enc.styles(g, &[&image.patchify()], device)?;
+    Ok(Styles { geo: s.geo.detach(), tex: s.tex.detach() })
 }
 
 /// The start candidates of a checkpoint: w_avg of both branches, and each latent mode (the

@@ -50,6 +50,8 @@ pub mod diff;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod dmtet_gpu;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod encoder;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod fields;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod generator;

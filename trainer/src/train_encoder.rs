@@ -1,0 +1,596 @@
+//! `trainer train-encoder`: the photo encoder (`getavatar_core::encoder`) trained on the
+//! generator's own renders (E3DGE / GOAE's recipe; no outside data).
+//!
+//! **Pairs** (`OUT/pairs/shard_NNNN.{bin,safetensors}`, 64 per shard, deterministic in
+//! `--seed` and the shard's number, so an interrupted run renders only the missing shards):
+//! z of both branches, ψ uniform in [0, 1] towards the checkpoint's latent modes (so every
+//! training subject and the blends between them occur); a body drawn as `synth-scans` draws
+//! one (β, a library pose with variation); a data-protocol camera (`prepare`'s) with its
+//! distance and aim jittered as photo framings vary. The avatar's RGB and mask are rendered
+//! there; the body the encoder is shown is a **perturbed fit**: θ, β and the camera jittered by
+//! about the errors `fit-pose` makes on MediaPipe detections (docs/benchmarks.md), so the
+//! encoder tolerates a fit that is a few pixels off. `.bin` holds the 11 u8 images of each
+//! pair (render RGB, mask, the perturbed body's normals, canonical coordinates, silhouette);
+//! `.safetensors` the true W+ codes and views. The last shard is held out.
+//!
+//! **Training**: code regression (mean squared error of the W+ offsets from w_avg), Adam.
+//! Each step composes the renders over a random background (solid, noise, or a blurred other
+//! render) and erodes or dilates the person mask by up to 2 px before the input is built, as a
+//! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
+//! the step and the random state) is written atomically every `--snapshot-every` steps and a
+//! rerun resumes from it bit-identically; `OUT/encoder.safetensors` is the encoder alone,
+//! `OUT/log.jsonl` the held-out code error against w_avg's, `OUT/snapshots/step_NNNNNN.png`
+//! held-out rows of input | the encoder's avatar | the truth.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::camera::{from_row_major, sample_data_camera, to_row_major, View};
+use getavatar_core::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
+use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::encoder::{
+    batch_tensor, load_encoder, save_encoder, BodyMaps, Encoder, EncoderConfig, EncoderImage, EncoderInput,
+    ENCODER_FORMAT,
+};
+use getavatar_core::generator::{BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::inversion::render_images;
+use getavatar_core::optim::Adam;
+use getavatar_core::readback::read_f32_now;
+use getavatar_core::rng::Rng;
+use getavatar_core::skinning::{pose_body, BodyParams};
+use getavatar_core::NUM_JOINTS;
+use glam::Vec3;
+
+use crate::atomic::{write_atomic, write_atomic_keeping_previous};
+use crate::sample::{load_body, GeneratorArgs};
+
+#[derive(clap::Args, Debug)]
+pub struct TrainEncoderArgs {
+    #[command(flatten)]
+    pub model: GeneratorArgs,
+    /// Pairs rendered from the generator (rounded up to shards of 64, or two halves below 128
+    /// pairs; the last shard is held out).
+    #[arg(long, default_value_t = 1024)]
+    pub pairs: usize,
+    /// Training steps (the total: a rerun with more continues).
+    #[arg(long, default_value_t = 3000)]
+    pub steps: u64,
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Adam's learning rate (equalised-learning-rate weights).
+    #[arg(long, default_value_t = 0.002)]
+    pub lr: f32,
+    /// Steps between checkpoints, held-out figures and snapshot grids.
+    #[arg(long, default_value_t = 100)]
+    pub snapshot_every: u64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Body model .npz in the SMPL layout (default: the embedded open body).
+    #[arg(long)]
+    pub body: Option<PathBuf>,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+const SHARD: usize = 64;
+
+/// Pairs per shard: 64, or half the pairs for small runs (tests), so one shard is held out.
+fn shard_size(pairs: usize) -> usize {
+    if pairs >= 2 * SHARD {
+        SHARD
+    } else {
+        pairs / 2
+    }
+}
+/// Pairs drawn with one body (different codes and cameras).
+const PER_BODY: usize = 4;
+/// u8 images per pair: render RGB (3), mask (1), body normals (3), canonical (3), silhouette (1).
+const PLANES: usize = 11;
+const STATE: &str = "state.safetensors";
+
+/// One shard of pairs in memory.
+struct Shard {
+    res: usize,
+    count: usize,
+    /// `[count, res, res, PLANES]` u8.
+    images: Vec<u8>,
+    /// W+ codes `[count, n, w_dim]` per branch, flattened.
+    geo: Vec<f32>,
+    tex: Vec<f32>,
+    views: Vec<View>,
+}
+
+pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
+    if a.batch == 0 || a.snapshot_every == 0 || a.pairs < 4 {
+        bail!("--batch and --snapshot-every must be at least 1 and --pairs at least 4");
+    }
+    let device = a.backend.device()?;
+    let ad = device.clone().autodiff();
+    let (cfg, g, modes) = a.model.load(&device)?;
+    let model = load_body(&a.body)?;
+    let ctx = BodyContext::new(model.clone(), &cfg);
+    let ecfg = EncoderConfig::for_generator(g.num_ws(), cfg.w_dim);
+    std::fs::create_dir_all(a.out.join("pairs")).with_context(|| format!("creating {}", a.out.display()))?;
+    let shards = a.pairs.div_ceil(shard_size(a.pairs));
+    render_pairs(a, &g, modes.as_ref(), &ctx, &model, ecfg.res, shards, &device)?;
+    let data: Vec<Shard> =
+        (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
+    let (train, held) = data.split_at(shards - 1);
+    train_loop(a, &g, &ctx, &ecfg, train, &held[0], &ad)
+}
+
+fn shard_path(out: &Path, s: usize) -> PathBuf {
+    out.join("pairs").join(format!("shard_{s:04}"))
+}
+
+/// Render the shards that are not on disk yet.
+#[allow(clippy::too_many_arguments)]
+fn render_pairs(
+    a: &TrainEncoderArgs,
+    g: &Generator,
+    modes: Option<&LatentModes>,
+    ctx: &BodyContext,
+    model: &BodyModel,
+    res: usize,
+    shards: usize,
+    dev: &Device,
+) -> Result<()> {
+    let todo: Vec<usize> =
+        (0..shards).filter(|s| !shard_path(&a.out, *s).with_extension("safetensors").is_file()).collect();
+    if todo.is_empty() {
+        return Ok(());
+    }
+    let size = shard_size(a.pairs);
+    let bar = crate::progress::bar((todo.len() * size) as u64, "pairs");
+    let grids = PosedGridCache::new(4);
+    for s in todo {
+        let mut rng = Rng::new(a.seed, 0xe2c0_0000 + s as u64);
+        let (mut images, mut geo, mut tex, mut views) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut body = crate::synth_scans::draw_body(model, &mut rng)?;
+        while views.len() < size {
+            // A body serves PER_BODY pairs in a row (its posed grid is cached).
+            if views.len() % PER_BODY == 0 && !views.is_empty() {
+                body = crate::synth_scans::draw_body(model, &mut rng)?;
+            }
+            let Some((img, styles, view)) = draw_pair(g, modes, ctx, model, &body, &mut rng, res, &grids, dev)? else {
+                continue; // an empty surface: draw again
+            };
+            images.extend(img);
+            geo.extend(read_f32_now(styles.geo)?);
+            tex.extend(read_f32_now(styles.tex)?);
+            views.push(view);
+            bar.inc(1);
+        }
+        let p = shard_path(&a.out, s);
+        write_atomic(&p.with_extension("bin"), &images)?;
+        // The codes last: a shard counts as rendered once they are on disk.
+        write_atomic(&p.with_extension("safetensors"), &shard_codes(&views, &geo, &tex, g.num_ws(), res)?)?;
+    }
+    bar.finish_and_clear();
+    Ok(())
+}
+
+/// One pair: the images (`res²·PLANES` u8, HWC), the true styles and the true view. None when
+/// the avatar's surface is empty there.
+#[allow(clippy::too_many_arguments)]
+fn draw_pair(
+    g: &Generator,
+    modes: Option<&LatentModes>,
+    ctx: &BodyContext,
+    model: &BodyModel,
+    body: &BodyParams,
+    rng: &mut Rng,
+    res: usize,
+    grids: &PosedGridCache,
+    dev: &Device,
+) -> Result<Option<(Vec<u8>, Styles, View)>> {
+    let z_dim = g.mapping_geo.z_dim();
+    let z = |rng: &mut Rng| Tensor::<2>::from_data(TensorData::new(rng.normals(z_dim), [1, z_dim]), dev);
+    let (zg, zt) = (z(rng), z(rng));
+    let psi = rng.uniform();
+    let styles = g.styles_with(zg, zt, psi, modes);
+    let styles = Styles { geo: styles.geo.detach(), tex: styles.tex.detach() };
+    let posed = pose_body(model, body);
+    let (lo, hi) = posed.vertices.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), v| (l.min(v.y), h.max(v.y)));
+    let mut cam = sample_data_camera(rng, 0.5 * (lo + hi));
+    // Photo framings: the torso-based crop lands a little nearer or farther and off-centre.
+    cam.radius *= rng.range(0.93, 1.07);
+    cam.target += Vec3::new(rng.range(-0.04, 0.04), rng.range(-0.04, 0.04), 0.0);
+    let view = View { world_to_camera: cam.world_to_camera(), body: body.clone() };
+    let f = render_avatars(g, ctx, &styles, std::slice::from_ref(&view), res, grids, dev)?;
+    if f.triangles.first().copied().unwrap_or(0) == 0 {
+        return Ok(None);
+    }
+    let (rgb, mask) = render_images(&f)?;
+    // The perturbed fit the encoder is shown.
+    let mut fit = body.clone();
+    fit.pose[0] += jitter(rng, 0.03);
+    for r in fit.pose.iter_mut().skip(1) {
+        *r += jitter(rng, 0.04);
+    }
+    for b in fit.betas.iter_mut() {
+        *b += rng.normal() * 0.15;
+    }
+    let mut fcam = cam;
+    fcam.yaw += rng.normal() * 0.02;
+    fcam.pitch += rng.normal() * 0.015;
+    fcam.radius *= 1.0 + rng.normal() * 0.02;
+    fcam.target += jitter(rng, 0.01);
+    let maps = BodyMaps::render(model, &View { world_to_camera: fcam.world_to_camera(), body: fit }, res);
+    let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    let mut img = Vec::with_capacity(res * res * PLANES);
+    for k in 0..res * res {
+        img.extend((0..3).map(|c| q(rgb[3 * k + c])));
+        img.push(q(mask[k]));
+        img.extend((0..3).map(|c| q(0.5 * maps.normal[3 * k + c] + 0.5)));
+        img.extend((0..3).map(|c| q(0.5 * maps.canonical[3 * k + c] + 0.5)));
+        img.push(q(maps.mask[k]));
+    }
+    Ok(Some((img, styles, view)))
+}
+
+fn jitter(rng: &mut Rng, sigma: f32) -> Vec3 {
+    Vec3::new(rng.normal(), rng.normal(), rng.normal()) * sigma
+}
+
+fn shard_codes(views: &[View], geo: &[f32], tex: &[f32], (ng, nt): (usize, usize), res: usize) -> Result<Vec<u8>> {
+    let n = views.len();
+    let w = geo.len() / (n * ng);
+    let nb = views.iter().map(|v| v.body.betas.len()).max().unwrap_or(0);
+    let mut cams = Vec::new();
+    let mut pose = Vec::new();
+    let mut betas = Vec::new();
+    let mut transl = Vec::new();
+    for v in views {
+        cams.extend(to_row_major(v.world_to_camera));
+        pose.extend(v.body.pose.iter().flat_map(|p| p.to_array()));
+        betas.extend((0..nb).map(|k| v.body.betas.get(k).copied().unwrap_or(0.0)));
+        transl.extend(v.body.transl.to_array());
+    }
+    let tensors: Vec<NamedTensor> = vec![
+        ("geo".into(), vec![n, ng, w], geo.to_vec()),
+        ("tex".into(), vec![n, nt, w], tex.to_vec()),
+        ("world_to_camera".into(), vec![n, 16], cams),
+        ("pose".into(), vec![n, NUM_JOINTS * 3], pose),
+        ("betas".into(), vec![n, nb], betas),
+        ("transl".into(), vec![n, 3], transl),
+    ];
+    let mut meta = BTreeMap::new();
+    meta.insert("format".into(), "getavatar-encoder-pairs/1".into());
+    meta.insert("res".into(), res.to_string());
+    Ok(write_safetensors(&meta, &tensors)?)
+}
+
+fn read_shard(p: &Path, (ng, nt): (usize, usize), w: usize) -> Result<Shard> {
+    let sp = p.with_extension("safetensors");
+    let bytes = std::fs::read(&sp).with_context(|| format!("reading {}", sp.display()))?;
+    let st = parse_safetensors(&bytes).with_context(|| format!("{} is not a pairs shard", sp.display()))?;
+    let res: usize = st.metadata.get("res").and_then(|r| r.parse().ok()).context("the shard has no `res`")?;
+    let get = |k: &str| st.tensors.get(k).with_context(|| format!("{} lacks `{k}`", sp.display()));
+    let (gs, geo) = get("geo")?;
+    let (_, tex) = get("tex")?;
+    let n = gs[0];
+    if geo.len() != n * ng * w || tex.len() != n * nt * w {
+        bail!("{}: codes for another generator ({:?}); delete the pairs to render them again", sp.display(), gs);
+    }
+    let (_, cams) = get("world_to_camera")?;
+    let (_, pose) = get("pose")?;
+    let (bs, betas) = get("betas")?;
+    let (_, transl) = get("transl")?;
+    let nb = bs.get(1).copied().unwrap_or(0);
+    if cams.len() != 16 * n || pose.len() != n * NUM_JOINTS * 3 || betas.len() != n * nb || transl.len() != 3 * n {
+        bail!("{}: cameras or bodies for another number of pairs than {n}", sp.display());
+    }
+    let views = (0..n)
+        .map(|i| {
+            let mut m = [0.0f32; 16];
+            m.copy_from_slice(&cams[16 * i..16 * i + 16]);
+            let mut p = [Vec3::ZERO; NUM_JOINTS];
+            for (j, r) in p.iter_mut().enumerate() {
+                *r = Vec3::from_slice(&pose[(i * NUM_JOINTS + j) * 3..]);
+            }
+            let body = BodyParams {
+                pose: p,
+                betas: betas[i * nb..(i + 1) * nb].to_vec(),
+                transl: Vec3::from_slice(&transl[3 * i..]),
+            };
+            View { world_to_camera: from_row_major(&m), body }
+        })
+        .collect();
+    let bp = p.with_extension("bin");
+    let images = std::fs::read(&bp).with_context(|| format!("reading {}", bp.display()))?;
+    if images.len() != n * res * res * PLANES {
+        bail!("{}: {} bytes, {n} pairs at {res}² need {}", bp.display(), images.len(), n * res * res * PLANES);
+    }
+    Ok(Shard { res, count: n, images, geo: geo.clone(), tex: tex.clone(), views })
+}
+
+impl Shard {
+    /// Pair `i`'s render (RGB HWC, mask) in [0, 1] and its body maps.
+    fn pair(&self, i: usize) -> (Vec<f32>, Vec<f32>, BodyMaps) {
+        let n = self.res * self.res;
+        let px = &self.images[i * n * PLANES..(i + 1) * n * PLANES];
+        let f = |v: u8| v as f32 / 255.0;
+        let (mut rgb, mut mask) = (Vec::with_capacity(3 * n), Vec::with_capacity(n));
+        let mut maps =
+            BodyMaps { normal: Vec::with_capacity(3 * n), canonical: Vec::with_capacity(3 * n), mask: Vec::new() };
+        for p in px.chunks_exact(PLANES) {
+            rgb.extend(p[..3].iter().map(|v| f(*v)));
+            mask.push(f(p[3]));
+            maps.normal.extend(p[4..7].iter().map(|v| 2.0 * f(*v) - 1.0));
+            maps.canonical.extend(p[7..10].iter().map(|v| 2.0 * f(*v) - 1.0));
+            maps.mask.push(f(p[10]));
+        }
+        (rgb, mask, maps)
+    }
+
+    fn codes(&self, i: usize, ng: usize, nt: usize, w: usize) -> (&[f32], &[f32]) {
+        (&self.geo[i * ng * w..(i + 1) * ng * w], &self.tex[i * nt * w..(i + 1) * nt * w])
+    }
+}
+
+/// Pair `i` of `shard` as the encoder sees it in training: over a random background, with its
+/// mask eroded or dilated (`rng` draws both; `other` is another render for a blurred backdrop).
+fn augmented_input(shard: &Shard, i: usize, other: &[f32], rng: &mut Rng) -> (EncoderInput, Vec<f32>) {
+    let res = shard.res;
+    let (rgb, mask, maps) = shard.pair(i);
+    let bg = background(res, other, rng);
+    let shown: Vec<f32> = (0..res * res * 3).map(|k| rgb[k] * mask[k / 3] + bg[k] * (1.0 - mask[k / 3])).collect();
+    let r = rng.below(5) as i32 - 2; // −2 … 2 px
+    let m = morph(&mask, res, r);
+    (EncoderImage::from_parts(&shown, &m, &maps, res).patchify(), shown)
+}
+
+/// A backdrop: a solid colour, coloured noise, or `other` blurred and tinted.
+fn background(res: usize, other: &[f32], rng: &mut Rng) -> Vec<f32> {
+    let c = [rng.uniform(), rng.uniform(), rng.uniform()];
+    match rng.below(3) {
+        0 => (0..res * res * 3).map(|k| c[k % 3]).collect(),
+        1 => (0..res * res * 3).map(|k| (c[k % 3] + 0.25 * rng.normal()).clamp(0.0, 1.0)).collect(),
+        _ => {
+            let small = getavatar_core::encoder::resample(other, res, 3, res / 8);
+            let big = getavatar_core::encoder::resample(&small, res / 8, 3, res);
+            big.iter().enumerate().map(|(k, v)| 0.6 * v + 0.4 * c[k % 3]).collect()
+        }
+    }
+}
+
+/// The mask dilated (r > 0) or eroded (r < 0) by |r| pixels (max / min over a square).
+fn morph(mask: &[f32], res: usize, r: i32) -> Vec<f32> {
+    if r == 0 {
+        return mask.to_vec();
+    }
+    let k = r.unsigned_abs() as i64;
+    let mut out = vec![0.0; mask.len()];
+    for y in 0..res as i64 {
+        for x in 0..res as i64 {
+            let mut v: f32 = if r > 0 { 0.0 } else { 1.0 };
+            for yy in (y - k).max(0)..=(y + k).min(res as i64 - 1) {
+                for xx in (x - k).max(0)..=(x + k).min(res as i64 - 1) {
+                    let m = mask[(yy * res as i64 + xx) as usize];
+                    v = if r > 0 { v.max(m) } else { v.min(m) };
+                }
+            }
+            out[(y * res as i64 + x) as usize] = v;
+        }
+    }
+    out
+}
+
+/// The encoder's training state on disk: weights, Adam's moments, step and random state.
+fn save_state(path: &Path, enc: &Encoder, adam: &Adam, step: u64, rng: &Rng, ecfg: &EncoderConfig) -> Result<()> {
+    let mut tensors: Vec<NamedTensor> =
+        collect_params(enc)?.into_iter().map(|(n, s, v)| (format!("enc/{n}"), s, v)).collect();
+    tensors.extend(adam.moment_tensors("adam/")?);
+    let mut meta = BTreeMap::new();
+    meta.insert("format".into(), ENCODER_FORMAT.into());
+    meta.insert("encoder".into(), serde_json::to_string(ecfg)?);
+    meta.insert("step".into(), step.to_string());
+    meta.insert("adam_step".into(), adam.step.to_string());
+    let (s, inc) = rng.state();
+    meta.insert("rng".into(), format!("{s} {inc}"));
+    let prev = path.with_extension("previous.safetensors");
+    write_atomic_keeping_previous(path, &prev, &write_safetensors(&meta, &tensors)?)
+}
+
+fn load_state(path: &Path, ad: &Device) -> Result<(Encoder, Adam, u64, Rng)> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", path.display()))?;
+    let st = parse_safetensors(&bytes)?;
+    let num = |k: &str| -> Result<u64> {
+        st.metadata.get(k).and_then(|v| v.parse().ok()).with_context(|| format!("{} lacks `{k}`", path.display()))
+    };
+    let mut adam = Adam::new(0.9, 0.99, 1e-8)
+        .with_moments(&st.tensors, "adam/", &ad.clone().inner())
+        .map_err(anyhow::Error::msg)?;
+    adam.step = num("adam_step")?;
+    let rng = st
+        .metadata
+        .get("rng")
+        .and_then(|r| {
+            let mut it = r.split(' ').map(|x| x.parse::<u64>().ok());
+            Some(Rng::from_state(it.next()??, it.next()??))
+        })
+        .with_context(|| format!("{} lacks the random state", path.display()))?;
+    Ok((enc, adam, num("step")?, rng))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn train_loop(
+    a: &TrainEncoderArgs,
+    g: &Generator,
+    ctx: &BodyContext,
+    ecfg: &EncoderConfig,
+    train: &[Shard],
+    held: &Shard,
+    ad: &Device,
+) -> Result<()> {
+    let state = a.out.join(STATE);
+    let (mut enc, mut adam, mut step, mut rng) = if state.is_file() {
+        let s = load_state(&state, ad)?;
+        eprintln!("resuming from {} at step {}", state.display(), s.2);
+        s
+    } else {
+        (Encoder::new(ecfg, a.seed, ad), Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
+    };
+    enc.check(g)?;
+    let (ng, nt) = g.num_ws();
+    let w = ecfg.w_dim;
+    let avg = |t: Tensor<2>| -> Result<Vec<f32>> { Ok(read_f32_now(t)?) };
+    let (avg_g, avg_t) = (avg(g.mapping_geo.w_avg_tensor())?, avg(g.mapping_tex.w_avg_tensor())?);
+    let offsets = |shard: &Shard, i: usize| -> Vec<f32> {
+        let (cg, ct) = shard.codes(i, ng, nt, w);
+        let og = cg.iter().enumerate().map(|(k, v)| v - avg_g[k % w]);
+        let ot = ct.iter().enumerate().map(|(k, v)| v - avg_t[k % w]);
+        og.chain(ot).collect()
+    };
+    let n_train: usize = train.iter().map(|s| s.count).sum();
+    let locate = |mut i: usize| -> (usize, usize) {
+        for (s, sh) in train.iter().enumerate() {
+            if i < sh.count {
+                return (s, i);
+            }
+            i -= sh.count;
+        }
+        unreachable!("index within the training pairs")
+    };
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("log.jsonl"))?;
+    let bar = crate::progress::bar(a.steps, "steps");
+    bar.set_position(step.min(a.steps));
+    let (mut loss_sum, mut loss_n) = (0.0f64, 0usize);
+    let t0 = std::time::Instant::now();
+    while step < a.steps {
+        let mut inputs = Vec::with_capacity(a.batch);
+        let mut targets = Vec::with_capacity(a.batch * (ng + nt) * w);
+        for _ in 0..a.batch {
+            let (s, i) = locate(rng.below(n_train));
+            let (os, oi) = locate(rng.below(n_train));
+            let other = train[os].pair(oi).0;
+            inputs.push(augmented_input(&train[s], i, &other, &mut rng).0);
+            targets.extend(offsets(&train[s], i));
+        }
+        let refs: Vec<&EncoderInput> = inputs.iter().collect();
+        let x = batch_tensor(&refs, ad)?;
+        let (pg, pt) = enc.forward(x);
+        let b = a.batch;
+        let pred = Tensor::cat(vec![pg.reshape([b, ng * w]), pt.reshape([b, nt * w])], 1);
+        let target = Tensor::<2>::from_data(TensorData::new(targets, [b, (ng + nt) * w]), ad);
+        let loss = (pred - target).powf_scalar(2.0).mean();
+        let lv = read_f32_now(loss.clone())?[0];
+        if !lv.is_finite() {
+            bail!("the loss became {lv} at step {}", step + 1);
+        }
+        let grads = loss.backward();
+        enc = adam.step(a.lr, enc, &grads);
+        step += 1;
+        loss_sum += lv as f64;
+        loss_n += 1;
+        bar.set_position(step);
+        bar.set_message(format!("code MSE {lv:.4}"));
+        if step % a.snapshot_every == 0 || step == a.steps {
+            let (val, val_avg) = held_out_error(&enc, held, &offsets, ad)?;
+            snapshot(a, g, ctx, &enc, held, step, ad)?;
+            save_state(&state, &enc, &adam, step, &rng, ecfg)?;
+            let mut extra = BTreeMap::new();
+            extra.insert("step".into(), step.to_string());
+            write_atomic(&a.out.join("encoder.safetensors"), &save_encoder(&collect_params(&enc)?, ecfg, &extra)?)?;
+            let line = serde_json::json!({
+                "step": step, "train_mse": loss_sum / loss_n.max(1) as f64,
+                "held_out_mse": val, "held_out_mse_w_avg": val_avg,
+                "seconds_per_step": t0.elapsed().as_secs_f64() / loss_n.max(1) as f64,
+            });
+            writeln!(log, "{line}")?;
+            bar.println(format!("step {step}: held-out code MSE {val:.4} (w_avg {val_avg:.4})"));
+            (loss_sum, loss_n) = (0.0, 0);
+        }
+    }
+    bar.finish_and_clear();
+    println!("wrote {} (step {step})", a.out.join("encoder.safetensors").display());
+    Ok(())
+}
+
+/// Mean squared code error of the encoder and of w_avg (zero offsets) on the held-out pairs,
+/// as the app sees them (white backdrop, the detector's mask = the render's).
+fn held_out_error(
+    enc: &Encoder,
+    held: &Shard,
+    offsets: &dyn Fn(&Shard, usize) -> Vec<f32>,
+    ad: &Device,
+) -> Result<(f64, f64)> {
+    let (mut se, mut se0, mut n) = (0.0f64, 0.0f64, 0usize);
+    let all: Vec<usize> = (0..held.count).collect();
+    for chunk in all.chunks(16) {
+        let inputs: Vec<EncoderInput> = chunk.iter().map(|&i| clean_input(held, i)).collect();
+        let refs: Vec<&EncoderInput> = inputs.iter().collect();
+        let (pg, pt) = enc.forward(batch_tensor(&refs, ad)?);
+        let b = chunk.len();
+        let (pg, pt) = (read_f32_now(pg.detach())?, read_f32_now(pt.detach())?);
+        let (lg, lt) = (pg.len() / b, pt.len() / b);
+        for (j, &i) in chunk.iter().enumerate() {
+            let t = offsets(held, i);
+            let p = pg[j * lg..(j + 1) * lg].iter().chain(&pt[j * lt..(j + 1) * lt]);
+            for (pv, tv) in p.zip(&t) {
+                se += ((pv - tv) as f64).powi(2);
+                se0 += (*tv as f64).powi(2);
+            }
+            n += t.len();
+        }
+    }
+    Ok((se / n.max(1) as f64, se0 / n.max(1) as f64))
+}
+
+/// Pair `i` as a photo's input: on white, with the render's own mask.
+fn clean_input(shard: &Shard, i: usize) -> EncoderInput {
+    let (rgb, mask, maps) = shard.pair(i);
+    EncoderImage::from_parts(&rgb, &mask, &maps, shard.res).patchify()
+}
+
+/// `OUT/snapshots/step_NNNNNN.png`: rows of held-out pairs, input (on white) | the encoder's
+/// avatar at the true view | the truth.
+fn snapshot(
+    a: &TrainEncoderArgs,
+    g: &Generator,
+    ctx: &BodyContext,
+    enc: &Encoder,
+    held: &Shard,
+    step: u64,
+    ad: &Device,
+) -> Result<()> {
+    let res = held.res;
+    let rows = held.count.min(4);
+    let grids = PosedGridCache::new(2);
+    let mut img = vec![255u8; rows * res * 3 * res * 3];
+    for i in 0..rows {
+        let input = clean_input(held, i);
+        let (og, ot) = enc.forward(batch_tensor(&[&input], ad)?);
+        let dev = g.mapping_geo.w_avg_tensor().device();
+        let on = |t: Tensor<3>| Tensor::<3>::from_data(t.detach().into_data(), &dev);
+        let w = |t: Tensor<2>| t.unsqueeze_dim::<3>(1);
+        let styles =
+            Styles { geo: on(og) + w(g.mapping_geo.w_avg_tensor()), tex: on(ot) + w(g.mapping_tex.w_avg_tensor()) };
+        let f = render_avatars(g, ctx, &styles, std::slice::from_ref(&held.views[i]), res, &grids, &dev)?;
+        let (out, out_mask) = render_images(&f)?;
+        let (rgb, mask, _) = held.pair(i);
+        let on_white = |c: &[f32], m: &[f32], k: usize, ch: usize| c[3 * k + ch] * m[k] + 1.0 - m[k];
+        for y in 0..res {
+            for x in 0..res {
+                let k = y * res + x;
+                for ch in 0..3 {
+                    let cells = [on_white(&rgb, &mask, k, ch), on_white(&out, &out_mask, k, ch), rgb[3 * k + ch]];
+                    for (col, v) in cells.iter().enumerate() {
+                        let o = ((i * res + y) * 3 * res + col * res + x) * 3 + ch;
+                        img[o] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                    }
+                }
+            }
+        }
+    }
+    let png = getavatar_core::dataset::encode_png(3 * res, rows * res, 3, &img)?;
+    write_atomic(&a.out.join("snapshots").join(format!("step_{step:06}.png")), &png)
+}

@@ -1,0 +1,110 @@
+//! `trainer train-encoder` and the encoder's use by `trainer invert` (tiny generator, a few
+//! pairs and steps): resuming is bit-identical to not stopping; `invert --preset instant`
+//! starts from the encoder and optimises nothing; an unusable encoder file is reported once
+//! and the latent-mode search starts the inversion instead.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
+
+mod common;
+
+use common::{s, tmp, trainer};
+use std::path::Path;
+
+fn ok(o: std::process::Output) -> std::process::Output {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+fn train_encoder(out: &Path, steps: u64) -> std::process::Output {
+    let steps = steps.to_string();
+    trainer(&[
+        "train-encoder",
+        "--config",
+        "tiny",
+        "--random-weights",
+        "--pairs",
+        "8",
+        "--batch",
+        "2",
+        "--snapshot-every",
+        "1",
+        "--steps",
+        &steps,
+        "--out",
+        s(out),
+    ])
+}
+
+fn metrics(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("metrics.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
+    let root = tmp("encoder");
+    let (a, b) = (root.join("a"), root.join("b"));
+    // 8 pairs: 2 shards of 4, the second held out.
+    ok(train_encoder(&a, 2));
+    for f in ["pairs/shard_0000.bin", "pairs/shard_0001.safetensors", "encoder.safetensors", "state.safetensors"] {
+        assert!(a.join(f).is_file(), "{f} missing");
+    }
+    assert!(a.join("snapshots/step_000002.png").is_file());
+    let log: Vec<serde_json::Value> = std::fs::read_to_string(a.join("log.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(log.len(), 2);
+    // The untrained head answers w_avg: the first figures are near w_avg's, and finite.
+    for l in &log {
+        let (e, e0) = (l["held_out_mse"].as_f64().unwrap(), l["held_out_mse_w_avg"].as_f64().unwrap());
+        assert!(e.is_finite() && e0 > 0.0 && e < 10.0 * e0, "{l}");
+    }
+    // 1 step, stop, rerun to 2 steps == 2 steps at once (the pairs are rendered again in
+    // the other directory: rendering is deterministic too).
+    ok(train_encoder(&b, 1));
+    let o = ok(train_encoder(&b, 2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("resuming"), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in ["pairs/shard_0000.bin", "pairs/shard_0001.safetensors", "encoder.safetensors", "state.safetensors"] {
+        assert!(std::fs::read(a.join(f)).unwrap() == std::fs::read(b.join(f)).unwrap(), "{f} differs after resuming");
+    }
+
+    // `invert --preset instant` from this encoder: one generation at the start, no steps.
+    let (scans, data, inv) = (root.join("scans"), root.join("data"), root.join("inv"));
+    ok(trainer(&["synth-scans", "--out", s(&scans), "--count", "1", "--seed", "1", "--texture-size", "128"]));
+    ok(trainer(&["prepare", "--scans", s(&scans), "--out", s(&data), "--views", "1", "--res", "64"]));
+    let base = ["invert", "--config", "tiny", "--random-weights", "--data", s(&data), "--entry", "0000/000.png"];
+    let quick = ["--preset", "instant", "--texture-res", "64"];
+    let enc = a.join("encoder.safetensors");
+    let o = ok(trainer(&[&base[..], &quick[..], &["--encoder", s(&enc), "--out", s(&inv)]].concat()));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("start: encoder"), "{err}");
+    let m = metrics(&inv);
+    assert_eq!(m["start"], "encoder");
+    assert_eq!(m["options"]["steps"], 0);
+    assert!(m["after_pti"].is_null(), "{m}");
+    // With no optimisation the W+ result is the start.
+    assert_eq!(m["after_w"], m["at_start"]);
+    let iou = m["at_start"]["mask_iou"].as_f64().unwrap();
+    assert!((0.2..=1.0).contains(&iou), "{m}");
+    let t = m["seconds_to_first_avatar"].as_f64().unwrap();
+    assert!(t > 0.0 && t <= m["seconds_total"].as_f64().unwrap(), "{m}");
+    let steps = std::fs::read_to_string(inv.join("steps.jsonl")).unwrap_or_default();
+    assert_eq!(steps.lines().count(), 0, "instant optimises nothing");
+    for f in ["input_view_start.png", "input_view.png", "avatar.glb", "inverted.safetensors"] {
+        assert!(inv.join(f).is_file(), "{f} missing");
+    }
+
+    // An unusable encoder file: one message naming it, and the latent-mode search instead.
+    let bad = root.join("bad.safetensors");
+    std::fs::write(&bad, b"not an encoder").unwrap();
+    let inv2 = root.join("inv2");
+    let o = ok(trainer(&[&base[..], &quick[..], &["--encoder", s(&bad), "--out", s(&inv2)]].concat()));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("bad.safetensors") && err.contains("cannot be used") && err.contains("latent-mode search"),
+        "{err}"
+    );
+    assert_eq!(err.matches("cannot be used").count(), 1, "{err}");
+    assert_ne!(metrics(&inv2)["start"], "encoder");
+    let _ = std::fs::remove_dir_all(&root);
+}
