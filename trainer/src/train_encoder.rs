@@ -2,7 +2,8 @@
 //! generator's own renders (E3DGE / GOAE's recipe; no outside data).
 //!
 //! **Pairs** (`OUT/pairs/shard_NNNN.{bin,safetensors}`, 64 per shard, deterministic in
-//! `--seed` and the shard's number, so an interrupted run renders only the missing shards):
+//! `--seed` and the shard's number, so an interrupted run renders only the missing shards;
+//! below 128 pairs, two shards of half each):
 //! z of both branches, ψ uniform in [0, 1] towards the checkpoint's latent modes (so every
 //! training subject and the blends between them occur); a body drawn as `synth-scans` draws
 //! one (β, a library pose with variation); a data-protocol camera (`prepare`'s) with its
@@ -14,6 +15,8 @@
 //! `.safetensors` the true W+ codes and views. The last shard is held out.
 //!
 //! **Training**: code regression (mean squared error of the W+ offsets from w_avg), Adam.
+//! With latent modes in the checkpoint the encoder's dictionaries start at the training
+//! subjects' codes (one per subject and branch), which the samples are truncated towards.
 //! Each step composes the renders over a random background (solid, noise, or a blurred other
 //! render) and erodes or dilates the person mask by up to 2 px before the input is built, as a
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
@@ -115,14 +118,34 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     let (cfg, g, modes) = a.model.load(&device)?;
     let model = load_body(&a.body)?;
     let ctx = BodyContext::new(model.clone(), &cfg);
-    let ecfg = EncoderConfig::for_generator(g.num_ws(), cfg.w_dim);
+    // One dictionary code per training subject (where the checkpoint has latent modes).
+    let atoms = modes.as_ref().map_or(0, |m| m.count());
+    let ecfg = EncoderConfig { atoms, ..EncoderConfig::for_generator(g.num_ws(), cfg.w_dim) };
     std::fs::create_dir_all(a.out.join("pairs")).with_context(|| format!("creating {}", a.out.display()))?;
     let shards = a.pairs.div_ceil(shard_size(a.pairs));
     render_pairs(a, &g, modes.as_ref(), &ctx, &model, ecfg.res, shards, &device)?;
     let data: Vec<Shard> =
         (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
     let (train, held) = data.split_at(shards - 1);
-    train_loop(a, &g, &ctx, &ecfg, train, &held[0], &ad)
+    let dictionary = modes.as_ref().map(|m| subject_offsets(&g, m)).transpose()?;
+    train_loop(a, &g, &ctx, &ecfg, dictionary, train, &held[0], &ad)
+}
+
+/// The training subjects' codes as offsets from w_avg, `[subjects, n·w_dim]` per branch: the
+/// encoder's dictionaries at the start.
+fn subject_offsets(g: &Generator, m: &LatentModes) -> Result<(Tensor<2>, Tensor<2>)> {
+    let (ng, nt) = g.num_ws();
+    let (mut geo, mut tex) = (Vec::new(), Vec::new());
+    for k in 0..m.count() {
+        let s = g.subject_styles(m, k, k).with_context(|| format!("subject {k} of the latent modes"))?;
+        let off = |t: Tensor<3>, avg: Tensor<2>, n: usize| {
+            let w = avg.dims()[1];
+            (t - avg.unsqueeze_dim::<3>(1)).reshape([1, n * w])
+        };
+        geo.push(off(s.geo, g.mapping_geo.w_avg_tensor(), ng));
+        tex.push(off(s.tex, g.mapping_tex.w_avg_tensor(), nt));
+    }
+    Ok((Tensor::cat(geo, 0), Tensor::cat(tex, 0)))
 }
 
 fn shard_path(out: &Path, s: usize) -> PathBuf {
@@ -427,6 +450,7 @@ fn train_loop(
     g: &Generator,
     ctx: &BodyContext,
     ecfg: &EncoderConfig,
+    dictionary: Option<(Tensor<2>, Tensor<2>)>,
     train: &[Shard],
     held: &Shard,
     ad: &Device,
@@ -437,7 +461,12 @@ fn train_loop(
         eprintln!("resuming from {} at step {}", state.display(), s.2);
         s
     } else {
-        (Encoder::new(ecfg, a.seed, ad), Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
+        let mut enc = Encoder::new(ecfg, a.seed, ad);
+        if let Some((geo, tex)) = dictionary {
+            let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), ad);
+            enc = enc.with_dictionary(on(geo), on(tex))?;
+        }
+        (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     };
     enc.check(g)?;
     let (ng, nt) = g.num_ws();
@@ -464,7 +493,7 @@ fn train_loop(
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(step.min(a.steps));
     let (mut loss_sum, mut loss_n) = (0.0f64, 0usize);
-    let t0 = std::time::Instant::now();
+    let mut t0 = std::time::Instant::now();
     while step < a.steps {
         let mut inputs = Vec::with_capacity(a.batch);
         let mut targets = Vec::with_capacity(a.batch * (ng + nt) * w);
@@ -507,7 +536,7 @@ fn train_loop(
             });
             writeln!(log, "{line}")?;
             bar.println(format!("step {step}: held-out code MSE {val:.4} (w_avg {val_avg:.4})"));
-            (loss_sum, loss_n) = (0.0, 0);
+            (loss_sum, loss_n, t0) = (0.0, 0, std::time::Instant::now());
         }
     }
     bar.finish_and_clear();

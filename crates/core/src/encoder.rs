@@ -12,7 +12,11 @@
 //! **Network** ([`Encoder`]): the discriminator's residual blocks
 //! ([`DiscriminatorBlock`]) from res/4 down to 4², a hidden fully connected layer, and a head
 //! giving the W+ **offsets from w_avg** of both branches (`[B, n_geo, w_dim]`,
-//! `[B, n_tex, w_dim]`). The head starts at zero, so an untrained encoder answers w_avg.
+//! `[B, n_tex, w_dim]`). With `atoms > 0` each branch also has a dictionary of codes (the
+//! trainer starts it at the checkpoint's training subjects', whose neighbourhoods the
+//! generator draws best) and the offsets are a softmax-weighted mix of it plus the head's
+//! residual. The head and the logits start at zero: an untrained encoder answers w_avg, or
+//! the dictionary's mean.
 //!
 //! **File**: safetensors, `format = getavatar-encoder/1`, the [`EncoderConfig`] as JSON in the
 //! metadata; the config's layer counts and w_dim must be the generator's ([`Encoder::check`]).
@@ -40,6 +44,8 @@ pub const ENCODER_FORMAT: &str = "getavatar-encoder/1";
 pub const INPUT_CHANNELS: usize = 11;
 /// Side of the patches the input is cut into.
 pub const PATCH: usize = 4;
+/// Learning-rate multiplier of the dictionary logits (equalised learning rate).
+const LOGIT_LR_MUL: f32 = 16.0;
 
 /// The encoder's sizes, stored in its file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -54,6 +60,10 @@ pub struct EncoderConfig {
     pub num_ws_geo: usize,
     pub num_ws_tex: usize,
     pub w_dim: usize,
+    /// Codes in each branch's dictionary (0: none; the shipped encoder's are the
+    /// checkpoint's training subjects' codes, learned further).
+    #[serde(default)]
+    pub atoms: usize,
 }
 
 impl EncoderConfig {
@@ -66,6 +76,7 @@ impl EncoderConfig {
             num_ws_geo: num_ws.0,
             num_ws_tex: num_ws.1,
             w_dim,
+            atoms: 0,
         }
     }
 
@@ -85,6 +96,9 @@ impl EncoderConfig {
         if !(1..=64).contains(&self.num_ws_geo) || !(1..=64).contains(&self.num_ws_tex) {
             return Err(format!("style layers {} / {} outside 1..=64", self.num_ws_geo, self.num_ws_tex));
         }
+        if self.atoms > 1024 {
+            return Err(format!("{} dictionary codes (at most 1024)", self.atoms));
+        }
         Ok(())
     }
 
@@ -98,7 +112,13 @@ impl EncoderConfig {
         let last = *self.channels.last()?;
         n = n.checked_add(last.checked_mul(16)?.checked_mul(self.hidden)? + self.hidden)?;
         let out = (self.num_ws_geo + self.num_ws_tex).checked_mul(self.w_dim)?;
-        n.checked_add(self.hidden.checked_mul(out)? + out)
+        n = n.checked_add(self.hidden.checked_mul(out)? + out)?;
+        if self.atoms > 0 {
+            // Two logit layers and the two dictionaries.
+            n = n.checked_add(2 * (self.hidden.checked_mul(self.atoms)? + self.atoms))?;
+            n = n.checked_add(self.atoms.checked_mul(out)?)?;
+        }
+        Some(n)
     }
 }
 
@@ -122,6 +142,12 @@ pub struct Encoder {
     pub blocks: Vec<DiscriminatorBlock>,
     pub hidden: FullyConnected,
     pub out: FullyConnected,
+    /// Dictionary weights' logits per branch (with `atoms > 0`).
+    pub logits_geo: Option<FullyConnected>,
+    pub logits_tex: Option<FullyConnected>,
+    /// The dictionaries: `[atoms, n_geo·w_dim]` and `[atoms, n_tex·w_dim]` offsets from w_avg.
+    pub dict_geo: Option<Param<Tensor<2>>>,
+    pub dict_tex: Option<Param<Tensor<2>>>,
     pub num_ws_geo: usize,
     pub num_ws_tex: usize,
     pub w_dim: usize,
@@ -147,15 +173,50 @@ impl Encoder {
         let mut out = FullyConnected::new(&mut rng, cfg.hidden, n_out, 1.0, 0.0, false, device);
         // The head starts at zero: an untrained encoder answers w_avg.
         out.weight = Param::from_tensor(full([n_out, cfg.hidden], 0.0, device));
+        // Logits start at zero (the dictionary's mean); the dictionaries at zero until
+        // [`Encoder::with_dictionary`] sets them.
+        let mut logits = || {
+            (cfg.atoms > 0).then(|| {
+                // A faster rate (lr_mul): a code is picked once its logit leads by a few units.
+                let mut l = FullyConnected::new(&mut rng, cfg.hidden, cfg.atoms, LOGIT_LR_MUL, 0.0, false, device);
+                l.weight = Param::from_tensor(full([cfg.atoms, cfg.hidden], 0.0, device));
+                l
+            })
+        };
+        let (logits_geo, logits_tex) = (logits(), logits());
+        let dict =
+            |n: usize| (cfg.atoms > 0).then(|| Param::from_tensor(full([cfg.atoms, n * cfg.w_dim], 0.0, device)));
         Self {
             from_patches,
             blocks,
             hidden,
             out,
+            logits_geo,
+            logits_tex,
+            dict_geo: dict(cfg.num_ws_geo),
+            dict_tex: dict(cfg.num_ws_tex),
             num_ws_geo: cfg.num_ws_geo,
             num_ws_tex: cfg.num_ws_tex,
             w_dim: cfg.w_dim,
         }
+    }
+
+    /// This encoder with its dictionaries set to `geo` `[atoms, n_geo·w_dim]` and `tex`
+    /// `[atoms, n_tex·w_dim]` (offsets from w_avg, e.g. the training subjects' codes).
+    pub fn with_dictionary(mut self, geo: Tensor<2>, tex: Tensor<2>) -> Result<Self, EncoderError> {
+        let want = |d: &Option<Param<Tensor<2>>>| d.as_ref().map(|p| p.val().dims());
+        if want(&self.dict_geo) != Some(geo.dims()) || want(&self.dict_tex) != Some(tex.dims()) {
+            return Err(EncoderError::Input(format!(
+                "dictionaries {:?} / {:?} for an encoder with {:?} / {:?}",
+                geo.dims(),
+                tex.dims(),
+                want(&self.dict_geo),
+                want(&self.dict_tex)
+            )));
+        }
+        self.dict_geo = Some(Param::from_tensor(geo));
+        self.dict_tex = Some(Param::from_tensor(tex));
+        Ok(self)
     }
 
     /// W+ offsets from w_avg of patchified inputs `[B, 11·16, res/4, res/4]`:
@@ -166,11 +227,23 @@ impl Encoder {
             x = b.forward(x);
         }
         let [b, c, h, w] = x.dims();
-        let y = self.out.forward(self.hidden.forward(x.reshape([b, c * h * w])));
+        let hid = self.hidden.forward(x.reshape([b, c * h * w]));
+        let y = self.out.forward(hid.clone());
         let (ng, nt, d) = (self.num_ws_geo, self.num_ws_tex, self.w_dim);
-        let geo = y.clone().narrow(1, 0, ng * d).reshape([b, ng, d]);
-        let tex = y.narrow(1, ng * d, nt * d).reshape([b, nt, d]);
-        (geo, tex)
+        let mut geo = y.clone().narrow(1, 0, ng * d);
+        let mut tex = y.narrow(1, ng * d, nt * d);
+        // Plus a softmax-weighted mix of each branch's dictionary.
+        let mix = |l: &Option<FullyConnected>, dict: &Option<Param<Tensor<2>>>| {
+            let (l, dict) = (l.as_ref()?, dict.as_ref()?);
+            Some(burn::tensor::activation::softmax(l.forward(hid.clone()), 1).matmul(dict.val()))
+        };
+        if let Some(m) = mix(&self.logits_geo, &self.dict_geo) {
+            geo = geo + m;
+        }
+        if let Some(m) = mix(&self.logits_tex, &self.dict_tex) {
+            tex = tex + m;
+        }
+        (geo.reshape([b, ng, d]), tex.reshape([b, nt, d]))
     }
 
     /// The generator's styles for `inputs` (one per row): w_avg plus the predicted offsets.
@@ -203,6 +276,7 @@ impl Encoder {
             num_ws_geo: self.num_ws_geo,
             num_ws_tex: self.num_ws_tex,
             w_dim: self.w_dim,
+            atoms: self.dict_geo.as_ref().map_or(0, |d| d.val().dims()[0]),
         }
     }
 }
@@ -453,8 +527,15 @@ mod tests {
 
     #[test]
     fn config_counts_match_the_network() {
-        let cfg =
-            EncoderConfig { res: 64, channels: vec![8, 12, 16], hidden: 10, num_ws_geo: 3, num_ws_tex: 4, w_dim: 6 };
+        let cfg = EncoderConfig {
+            res: 64,
+            channels: vec![8, 12, 16],
+            hidden: 10,
+            num_ws_geo: 3,
+            num_ws_tex: 4,
+            w_dim: 6,
+            atoms: 0,
+        };
         cfg.validate().unwrap();
         #[allow(deprecated)]
         let dev = Device::ndarray();
@@ -468,6 +549,23 @@ mod tests {
         assert_eq!(t.dims(), [2, 4, 6]);
         // The head starts at zero.
         assert!(crate::readback::read_f32_now(t).unwrap().iter().all(|v| *v == 0.0));
+        // With dictionaries: their parameters counted, and an untrained encoder answers
+        // each dictionary's mean.
+        let cfg = EncoderConfig { atoms: 2, ..cfg };
+        let e = Encoder::new(&cfg, 1, &dev);
+        assert_eq!(e.config(), cfg);
+        let n: usize = crate::checkpoint::collect_params(&e).unwrap().iter().map(|(_, _, v)| v.len()).sum();
+        assert_eq!(Some(n), cfg.num_params());
+        let dict = |n: usize, v: f32| {
+            let rows: Vec<f32> = (0..2).flat_map(|r| vec![v * (1 + 2 * r) as f32; n]).collect();
+            Tensor::<2>::from_data(TensorData::new(rows, [2, n]), &dev)
+        };
+        let e = e.with_dictionary(dict(18, 1.0), dict(24, -0.5)).unwrap();
+        let (g, t) = e.forward(Tensor::<4>::ones([1, INPUT_CHANNELS * 16, 16, 16], &dev));
+        let read = |x: Tensor<3>| crate::readback::read_f32_now(x).unwrap();
+        assert!(read(g).iter().all(|v| (v - 2.0).abs() < 1e-6));
+        assert!(read(t).iter().all(|v| (v + 1.0).abs() < 1e-6));
+        assert!(Encoder::new(&cfg, 1, &dev).with_dictionary(dict(17, 1.0), dict(24, 1.0)).is_err());
     }
 
     #[test]
