@@ -4,8 +4,9 @@
 //!
 //! DIR receives: `input.png` (the target as the inversion sees it, and its mask),
 //! `input_view.png` (RGBA render at the input camera and resolution, alpha = the avatar's
-//! mask), `comparison.png` (input | render | overlay), `back_view.png` (the opposite camera),
-//! `pose_<name>.png` (three other poses, front camera), `avatar.glb` (skinned, textured, the
+//! mask), `comparison.png` (input | render | overlay), `back_view.png` (the exported avatar
+//! at the opposite camera), `pose_<name>.png` (the exported avatar in three other poses, front
+//! camera), `input_view_projected.png` (the exported avatar at the input camera), `avatar.glb` (skinned, textured, the
 //! input's pose shown, the built-in `walk` clip), `inverted.safetensors` (the tuned generator
 //! and the codes: `trainer sample --inverted DIR` reloads it), `steps.jsonl` (every step's
 //! terms) and `metrics.json` (mask IoU and masked PSNR at the input camera after W+ and after
@@ -463,49 +464,19 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let styles = inv.styles();
     let g = inv.generator().clone();
 
-    // Renders: the input camera (RGBA at the input's resolution), the opposite camera, poses.
-    let (rgb, mask) = render_at(&g, &ctx, &styles, &target.view, target.res, &dev)?;
+    // The input camera (RGBA at the input's resolution): with no step taken, the start's render.
+    let (rgb, mask) = if opts.steps + opts.pti_steps == 0 {
+        (rgb0, mask0)
+    } else {
+        render_at(&g, &ctx, &styles, &target.view, target.res, &dev)?
+    };
     let final_m = view_metrics(&target, &rgb, &mask);
     write_png(&a.out.join("input_view.png"), &rgba(&rgb, &mask), target.res, 4)?;
     let r = target.res;
     let png = getavatar_core::dataset::encode_png(3 * r, r, 3, &comparison_image(&target, &rgb, &mask))?;
     write_atomic(&a.out.join("comparison.png"), &png)?;
-    let back = View { world_to_camera: opposite(target.view.world_to_camera), body: target.view.body.clone() };
-    let (brgb, bmask) = render_at(&g, &ctx, &styles, &back, r, &dev)?;
-    write_png(&a.out.join("back_view.png"), &rgba(&brgb, &bmask), r, 4)?;
-    let back_view_iou = match &scan {
-        Some((scan, prepared)) => {
-            let vp = OrbitCamera::default().projection_gl(1.0) * back.world_to_camera;
-            let albedo =
-                |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
-            let truth = render_views_textured(
-                &prepared.vertices,
-                &prepared.triangles,
-                &prepared.normals,
-                &prepared.attributes,
-                vp,
-                r,
-                2,
-                albedo,
-            )
-            .unwrap_or_else(|never| match never {});
-            let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
-            write_png(&a.out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
-            Some(mask_iou(&bmask, &tm))
-        }
-        None => None,
-    };
-    let lib = PoseLibrary::builtin();
-    let front = OrbitCamera::default();
-    for name in ["walking", "arms_up", "sitting"] {
-        let mut body = lib.params(name, &target.view.body.betas)?;
-        body.betas = target.view.body.betas.clone();
-        let v = View { world_to_camera: front.world_to_camera(), body };
-        let (prgb, pmask) = render_at(&g, &ctx, &styles, &v, r, &dev)?;
-        write_png(&a.out.join(format!("pose_{name}.png")), &rgba(&prgb, &pmask), r, 4)?;
-    }
 
-    // The animatable avatar and the reloadable result.
+    // The animatable avatar, its baked textures, and what it looks like at the input camera.
     let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &dev))?;
     if rigged.canonical.mesh.faces.is_empty() {
         bail!("the inverted generator produced an empty surface");
@@ -520,7 +491,8 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let projection = rigged.photo_projection(&ctx, &photo);
     let plain = bake(None)?;
     let projected = bake(Some((&projection, body)))?;
-    let vp = OrbitCamera::default().projection_gl(1.0) * target.view.world_to_camera;
+    let proj = OrbitCamera::default().projection_gl(1.0);
+    let vp = proj * target.view.world_to_camera;
     let (prgb, pmask) = render_baked(&rigged, &ctx, &plain, body, vp, r)?;
     let baked_m = view_metrics(&target, &prgb, &pmask);
     let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r)?;
@@ -531,6 +503,42 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         baked_m.psnr_db, projected_m.psnr_db
     );
     let tex = if a.no_projection { plain } else { projected };
+
+    // The exported avatar from behind and in other poses (the rigged mesh re-posed and its
+    // texture: what an engine shows, and milliseconds where a generation takes seconds).
+    let back = opposite(target.view.world_to_camera);
+    let (brgb, bmask) = render_baked(&rigged, &ctx, &tex, body, proj * back, r)?;
+    write_png(&a.out.join("back_view.png"), &rgba(&brgb, &bmask), r, 4)?;
+    let back_view_iou = match &scan {
+        Some((scan, prepared)) => {
+            let albedo =
+                |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
+            let truth = render_views_textured(
+                &prepared.vertices,
+                &prepared.triangles,
+                &prepared.normals,
+                &prepared.attributes,
+                proj * back,
+                r,
+                2,
+                albedo,
+            )
+            .unwrap_or_else(|never| match never {});
+            let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
+            write_png(&a.out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
+            Some(mask_iou(&bmask, &tm))
+        }
+        None => None,
+    };
+    let lib = PoseLibrary::builtin();
+    let front = proj * OrbitCamera::default().world_to_camera();
+    for name in ["walking", "arms_up", "sitting"] {
+        let mut pose = lib.params(name, &body.betas)?;
+        pose.betas = body.betas.clone();
+        let (prgb, pmask) = render_baked(&rigged, &ctx, &tex, &pose, front, r)?;
+        write_png(&a.out.join(format!("pose_{name}.png")), &rgba(&prgb, &pmask), r, 4)?;
+    }
+
     let walk = Motion::builtin("walk")?;
     let glb =
         rigged.animated_glb(&ctx, &target.view.body, &[walk], Some(&tex), "inverted avatar", SkeletonNames::Smpl)?;

@@ -138,11 +138,14 @@ fn build_web() -> Result<()> {
     // The trained demo model, fetched by the app at start-up (kept out of the wasm bundle),
     // and `models/manifest.json` saying which models are there (so the app never asks for a
     // missing file).
-    // The demo model's RGB discriminator (the reconstruction's perceptual term) goes with it.
+    // The demo model's RGB discriminator (the reconstruction's perceptual term) and the photo
+    // encoder (its first guess) go with it.
     let models = root().join("assets/models");
     std::fs::create_dir_all(dist.join("models"))?;
     let mut manifest = Vec::new();
-    for (key, file) in [("demo", "demo.safetensors"), ("demo_d", "demo_d_rgb.safetensors")] {
+    for (key, file) in
+        [("demo", "demo.safetensors"), ("demo_d", "demo_d_rgb.safetensors"), ("encoder", "encoder.safetensors")]
+    {
         if models.join(file).is_file() {
             std::fs::copy(models.join(file), dist.join("models").join(file))?;
             manifest.push(format!("\"{key}\": \"{file}\""));

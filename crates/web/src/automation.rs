@@ -174,8 +174,9 @@ pub struct PhotoArgs {
     pub device: Option<String>,
 }
 
-/// A reconstruction from the fitted photo: the quality preset (`fast`: 60 W+ + 60 PTI steps,
-/// `full`: 200 + 350) and overrides.
+/// A reconstruction from the fitted photo: the quality preset (`instant`: the photo encoder's
+/// guess, no steps; `fast`: 60 W+ + 60 PTI steps; `full`: 200 + 350) and overrides. With the
+/// encoder's start and steps to run, the guess is shown as the avatar first, then refined.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructArgs {
@@ -191,9 +192,40 @@ pub struct ReconstructArgs {
     pub perceptual: Option<bool>,
     /// Project the photo's colours onto the result (default true).
     pub projection: Option<bool>,
-    /// Where the codes start: `best` (default: the model's subject, or the average, whose
+    /// Where the codes start: `encoder` (default: the photo encoder's guess; without a usable
+    /// encoder, `best` with a message), `best` (the model's subject, or the average, whose
     /// render explains the photo best; one render each) or `average` (w_avg, no search).
     pub start: Option<String>,
+    /// Where the reconstruction worker computes: `auto` (default: WebGPU on a GPU adapter,
+    /// the CPU on a software one), `cpu` (burn NdArray in the worker) or `webgpu`.
+    pub device: Option<String>,
+}
+
+/// Where a reconstruction's codes start.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StartChoice {
+    /// The photo encoder's guess (one forward pass; `getavatar_core::encoder`); without a
+    /// usable encoder, the search below, with a message.
+    Encoder,
+    /// The model's subject (or w_avg) whose render explains the photo best: one render each.
+    Search,
+    /// w_avg, no search.
+    Average,
+}
+
+/// Which device the reconstruction worker computes on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Compute {
+    /// WebGPU where the worker's adapter is a GPU; burn's NdArray on the CPU (this wasm module,
+    /// in the worker) where the adapter is a software one (SwiftShader: a W+ step 34.7 s
+    /// there) or where the worker has no WebGPU.
+    Auto,
+    /// burn's NdArray in the worker.
+    Cpu,
+    /// The worker's own WebGPU device.
+    WebGpu,
 }
 
 /// Most steps per phase a reconstruction may ask for.
@@ -205,7 +237,7 @@ pub const DEFAULT_RECONSTRUCT_RES: usize = 128;
 pub const DEFAULT_PREVIEW_EVERY: usize = 5;
 
 /// The quality presets (`getavatar_core::inversion::InversionOptions::preset`).
-pub const RECONSTRUCT_PRESETS: [&str; 2] = ["fast", "full"];
+pub const RECONSTRUCT_PRESETS: [&str; 3] = ["instant", "fast", "full"];
 
 /// A validated reconstruction request.
 #[derive(Clone, Debug, PartialEq)]
@@ -218,8 +250,8 @@ pub struct Reconstruction {
     pub res: usize,
     pub preview_every: usize,
     pub projection: bool,
-    /// Search the model's subjects for the start (else w_avg).
-    pub search_start: bool,
+    pub start: StartChoice,
+    pub compute: Compute,
 }
 
 impl ReconstructArgs {
@@ -227,20 +259,24 @@ impl ReconstructArgs {
     pub fn validate(self) -> Result<Reconstruction, String> {
         let preset = self.preset.unwrap_or_else(|| "fast".into());
         if !RECONSTRUCT_PRESETS.contains(&preset.as_str()) {
-            return Err(format!("reconstruct: preset `{preset}` (fast, full)"));
+            return Err(format!("reconstruct: preset `{preset}` (instant, fast, full)"));
         }
         for n in [self.steps, self.pti_steps].into_iter().flatten() {
             if n > MAX_RECONSTRUCT_STEPS {
                 return Err(format!("reconstruct: at most {MAX_RECONSTRUCT_STEPS} steps per phase"));
             }
         }
-        if self.steps == Some(0) && self.pti_steps == Some(0) {
-            return Err("reconstruct: steps and pti_steps are both 0".into());
-        }
-        let search_start = match self.start.as_deref() {
-            None | Some("best") => true,
-            Some("average") => false,
-            Some(other) => return Err(format!("reconstruct: start `{other}` (best, average)")),
+        let start = match self.start.as_deref() {
+            None | Some("encoder") => StartChoice::Encoder,
+            Some("best") => StartChoice::Search,
+            Some("average") => StartChoice::Average,
+            Some(other) => return Err(format!("reconstruct: start `{other}` (encoder, best, average)")),
+        };
+        let compute = match self.device.as_deref() {
+            None | Some("auto") => Compute::Auto,
+            Some("cpu") => Compute::Cpu,
+            Some("webgpu") => Compute::WebGpu,
+            Some(other) => return Err(format!("reconstruct: device `{other}` (auto, cpu, webgpu)")),
         };
         let res = self.res.unwrap_or(DEFAULT_RECONSTRUCT_RES);
         if !RECONSTRUCT_RES.contains(&res) {
@@ -254,7 +290,8 @@ impl ReconstructArgs {
             res,
             preview_every: self.preview_every.unwrap_or(DEFAULT_PREVIEW_EVERY),
             projection: self.projection.unwrap_or(true),
-            search_start,
+            start,
+            compute,
         })
     }
 }
@@ -733,9 +770,18 @@ pub struct ReconstructStatus {
     pub candidates: usize,
     /// Whether the perceptual term (the shipped discriminator's features) is on.
     pub perceptual: bool,
-    /// Where the steps run: "worker" (the reconstruction worker's own WebGPU device, off the
-    /// UI thread) or "page" (where workers have no WebGPU).
+    /// Where the steps run: "worker" (the reconstruction worker, off the UI thread) or "page"
+    /// (where the worker cannot start).
     pub runs_in: String,
+    /// The device they run on, in words ("CPU (burn NdArray in the worker; …)", "WebGPU: …").
+    pub device: String,
+    /// Milliseconds from "Reconstruct" to the first avatar on screen (the start's, shown
+    /// before any refinement), and its mask IoU and masked PSNR (dB) at the photo's camera.
+    pub first_avatar_ms: f32,
+    pub first_mask_iou: f32,
+    pub first_psnr_db: f32,
+    /// Cancelled after this many steps, the avatar being that state (0: not).
+    pub stopped_at: usize,
     /// Every step's weighted loss, in order (this run's).
     pub losses: Vec<f32>,
     /// The last step's mask IoU with the person mask.
@@ -845,7 +891,8 @@ mod tests {
                 res: DEFAULT_RECONSTRUCT_RES,
                 preview_every: DEFAULT_PREVIEW_EVERY,
                 projection: true,
-                search_start: true,
+                start: StartChoice::Encoder,
+                compute: Compute::Auto,
             }))
         );
         let r =
@@ -871,12 +918,18 @@ mod tests {
             r#"{"reconstruct":{"preset":"best"}}"#,
             r#"{"reconstruct":{"res":8}}"#,
             r#"{"reconstruct":{"res":512}}"#,
-            r#"{"reconstruct":{"steps":0,"pti_steps":0}}"#,
+            r#"{"reconstruct":{"device":"tpu"}}"#,
             r#"{"reconstruct":{"steps":99999}}"#,
             r#"{"reconstruct":{"lr":1}}"#,
             r#"{"reconstruct":{"start":"mode 3"}}"#,
         ] {
             assert!(parse_command(bad).is_err(), "{bad}");
+        }
+        match parse_command(r#"{"reconstruct":{"preset":"instant","start":"average","device":"cpu"}}"#) {
+            Ok(Action::Reconstruct(r)) => {
+                assert_eq!((r.preset.as_str(), r.start, r.compute), ("instant", StartChoice::Average, Compute::Cpu))
+            }
+            other => panic!("{other:?}"),
         }
     }
 

@@ -33,6 +33,8 @@ pub const MODEL_URL: &str = "models/demo.safetensors";
 pub const MANIFEST_URL: &str = "models/manifest.json";
 /// The demo model's RGB discriminator (the reconstruction's perceptual term), when it ships.
 pub const DISCRIMINATOR_URL: &str = "models/demo_d_rgb.safetensors";
+/// The photo encoder trained for the demo model (the reconstruction's first guess), when it ships.
+pub const ENCODER_URL: &str = "models/encoder.safetensors";
 
 /// Which weights the generator has.
 #[derive(Clone, Debug, PartialEq)]
@@ -80,7 +82,11 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
         Some(_) => fetch_bytes(DISCRIMINATOR_URL).await.map(Rc::new),
         None => Err("no discriminator ships with this build".into()),
     };
-    Ok(Shipped { generator: g, cfg, modes, bytes: Rc::new(bytes), discriminator: disc })
+    let encoder = match manifest.get("encoder") {
+        Some(_) => fetch_bytes(ENCODER_URL).await.map(Rc::new),
+        None => Err("no photo encoder ships with this build".into()),
+    };
+    Ok(Shipped { generator: g, cfg, modes, bytes: Rc::new(bytes), discriminator: disc, encoder })
 }
 
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
@@ -104,6 +110,17 @@ async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, de
     }
 }
 
+/// The files a reconstruction loads.
+pub struct ModelFiles {
+    /// The checkpoint's bytes (None: random weights).
+    pub checkpoint: Option<Rc<Vec<u8>>>,
+    /// The RGB discriminator's bytes (the perceptual term) and the photo encoder's (the first
+    /// guess), or why there are none.
+    pub discriminator: Result<Rc<Vec<u8>>, String>,
+    pub encoder: Result<Rc<Vec<u8>>, String>,
+    pub cfg: GeneratorConfig,
+}
+
 /// Colours of a texture-field query, or why it failed.
 type TextureColours = Result<Vec<glam::Vec3>, String>;
 /// A finished bake: the texture field it was baked from (which avatar and colours it
@@ -119,6 +136,7 @@ struct Shipped {
     modes: Option<LatentModes>,
     bytes: Rc<Vec<u8>>,
     discriminator: Result<Rc<Vec<u8>>, String>,
+    encoder: Result<Rc<Vec<u8>>, String>,
 }
 
 type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
@@ -201,6 +219,8 @@ pub struct GenEngine {
     /// The checkpoint's bytes (None: random weights) and its discriminator's (or why none).
     checkpoint: Option<Rc<Vec<u8>>>,
     discriminator: Result<Rc<Vec<u8>>, String>,
+    /// The photo encoder's bytes (or why none).
+    encoder: Result<Rc<Vec<u8>>, String>,
     ctx: Option<Rc<BodyContext>>,
     slot: Rc<RefCell<Option<Result<Finished, String>>>>,
     /// The fetched checkpoint, parsed, and the body context (taken by [`GenEngine::poll`]).
@@ -268,6 +288,7 @@ impl GenEngine {
             modes: Rc::new(None),
             checkpoint: None,
             discriminator: Err("the model is loading".into()),
+            encoder: Err("the model is loading".into()),
             ctx: None,
             slot: Rc::new(RefCell::new(None)),
             weights_slot,
@@ -364,10 +385,12 @@ impl GenEngine {
                     let n = shipped.bytes.len();
                     self.checkpoint = Some(shipped.bytes);
                     self.discriminator = shipped.discriminator;
+                    self.encoder = shipped.encoder;
                     Weights::Trained(n, k)
                 }
                 Err(e) => {
                     self.discriminator = Err("no trained model ships with this build".into());
+                    self.encoder = Err("no trained model ships with this build".into());
                     Weights::Random(e)
                 }
             };
@@ -452,15 +475,16 @@ impl GenEngine {
         }
     }
 
-    /// What a reconstruction loads: the checkpoint's bytes (None: random weights; an error
-    /// while they load), the discriminator's bytes or why there are none, and the config.
-    #[allow(clippy::type_complexity)]
-    pub fn model_files(&self) -> Result<(Option<Rc<Vec<u8>>>, Result<Rc<Vec<u8>>, String>, GeneratorConfig), String> {
+    /// What a reconstruction loads (an error while the model loads).
+    pub fn model_files(&self) -> Result<ModelFiles, String> {
         match &self.weights {
             Weights::Loading => Err("the model is still loading".into()),
-            Weights::Trained(..) | Weights::Random(_) => {
-                Ok((self.checkpoint.clone(), self.discriminator.clone(), self.cfg.clone()))
-            }
+            Weights::Trained(..) | Weights::Random(_) => Ok(ModelFiles {
+                checkpoint: self.checkpoint.clone(),
+                discriminator: self.discriminator.clone(),
+                encoder: self.encoder.clone(),
+                cfg: self.cfg.clone(),
+            }),
         }
     }
 }

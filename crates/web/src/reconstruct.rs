@@ -20,10 +20,11 @@ use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::landmarks::SegmentationMask;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors};
+use getavatar_core::encoder::load_encoder;
 use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
 use getavatar_core::inversion::{
-    choose_start_async, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
-    InversionTarget, Inverter, Phase, StepReport,
+    choose_start_async, encoder_start, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
+    InversionTarget, Inverter, StartCandidate, StepReport,
 };
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::photo_projection::SourcePhoto;
@@ -31,6 +32,7 @@ use getavatar_core::rigging::RiggedAvatar;
 use getavatar_core::skinning::pose_body;
 
 use crate::automation::PhotoSource;
+pub use crate::automation::{Compute, StartChoice};
 use crate::generate::{Projected, TextureField};
 use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
@@ -50,8 +52,13 @@ pub struct InversionJob {
     pub options: InversionOptions,
     /// A preview every this many steps (0: only the final one).
     pub preview_every: usize,
-    /// Search the model's subjects (and w_avg) for the start; else start at w_avg.
-    pub search_start: bool,
+    /// Where the codes start.
+    pub start: StartChoice,
+    /// The shipped photo encoder's bytes (None: none ships; `StartChoice::Encoder` then
+    /// searches the model's subjects and says so).
+    pub encoder: Option<Rc<Vec<u8>>>,
+    /// Where the worker computes (the page's fallback always uses the page's WebGPU device).
+    pub compute: Compute,
 }
 
 /// The photo as the app holds it, with its body fit and person mask: the colour projection's
@@ -123,6 +130,8 @@ pub struct Reconstructed {
     pub finish_ms: f64,
     /// Where the finish's time went (one line for the status; empty if not measured).
     pub finish_detail: String,
+    /// Cancelled after this many steps: the result is the state at the last preview.
+    pub stopped_at: Option<usize>,
 }
 
 /// What a reconstruction reports.
@@ -136,6 +145,10 @@ pub enum ReconstructEvent {
         millis: f64,
         /// In the reconstruction worker (else on the page).
         in_worker: bool,
+        /// The device the steps run on, in words ("CPU (NdArray) …", "WebGPU …").
+        device: String,
+        /// Why the start is not the one asked for ("" when it is).
+        note: String,
     },
     Step(Box<Progress>),
     Preview(Box<Preview>),
@@ -211,7 +224,7 @@ pub(crate) fn run_on_page(req: ReconstructRequest, t: ReconstructTask, repaint: 
 
 async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Reconstructed>, String> {
     let (job, dev) = (&req.job, &req.device.clone().autodiff());
-    let Some(inv) = invert(job, &req.ctx, dev, out).await? else { return Ok(None) };
+    let Some(inv) = invert(job, &req.ctx, dev, "WebGPU (the page's device)", out).await? else { return Ok(None) };
     let t_finish = now_ms();
     // The avatar: extracted, rigged, the photo's colours on what the photo sees.
     let ctx = req.ctx.as_ref();
@@ -243,6 +256,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
             inv.finish_ms / 1000.0,
             (now_ms() - t_finish) / 1000.0
         ),
+        stopped_at: inv.stopped_at,
     }))
 }
 
@@ -255,6 +269,8 @@ pub(crate) struct Inverted {
     pub fit: (f32, f32),
     /// Milliseconds of the final preview and figures (the last step's render read back).
     pub finish_ms: f64,
+    /// Cancelled after this many steps (None: all done).
+    pub stopped_at: Option<usize>,
 }
 
 /// The inversion itself (start, W+ and PTI steps, the final figures): `Ok(None)` when cancelled.
@@ -262,6 +278,7 @@ pub(crate) async fn invert(
     job: &InversionJob,
     ctx: &BodyContext,
     dev: &Device,
+    device_label: &str,
     out: &dyn Progressing,
 ) -> Result<Option<Inverted>, String> {
     let t0 = now_ms();
@@ -276,33 +293,36 @@ pub(crate) async fn invert(
         Some(bytes) => Some(load_discriminator(bytes, dev).map_err(|e| format!("the discriminator: {e}"))?),
         None => None,
     };
-    let candidates = start_candidates(&g, modes.as_ref());
     yield_to_browser().await;
     if out.cancelled() {
         return Ok(None);
     }
-    // Candidate 0 is w_avg.
-    let best = if job.search_start {
-        choose_start_async(&g, ctx, &job.target, &candidates, dev).await.map_err(|e| e.to_string())?.0
-    } else {
-        0
-    };
-    let start = &candidates[best];
+    let (start, candidates, note) = choose_start(job, &g, modes.as_ref(), ctx, dev).await?;
     let mut inv = Inverter::new(g, ctx, disc, job.target.clone(), &start.styles, job.options.clone(), dev)
         .map_err(|e| e.to_string())?;
     out.push(ReconstructEvent::Started {
         start: start.name.clone(),
-        candidates: candidates.len(),
+        candidates,
         perceptual: inv.has_perceptual(),
         millis: now_ms() - t0,
         in_worker: crate::reconstruct_worker::in_worker(),
+        device: device_label.to_string(),
+        note,
     });
     let t_steps = now_ms();
+    let mut stopped_at = None;
     loop {
         // Hand the page a frame between steps: it repaints, shows progress and sees Cancel.
         yield_to_browser().await;
         if out.cancelled() {
-            return Ok(None);
+            // Cancel keeps the last preview's state as the avatar (nothing done: no avatar).
+            match inv.progress().0 {
+                0 => return Ok(None),
+                done => {
+                    stopped_at = Some(done);
+                    break;
+                }
+            }
         }
         let Some(report) = inv.step_async().await.map_err(|e| e.to_string())? else { break };
         let (done, total) = inv.progress();
@@ -314,7 +334,6 @@ pub(crate) async fn invert(
             }
         }
     }
-    debug_assert_eq!(inv.phase(), Phase::Done);
 
     // The result at the photo's camera: the final preview and the figures, from the last
     // step's render (the codes and weights before that step's update), which costs a
@@ -330,14 +349,47 @@ pub(crate) async fn invert(
     };
     let t = &job.target;
     let fit = (mask_iou(&mask, &t.mask), masked_psnr(&rgb, &t.rgb, &t.mask));
-    let (_, total) = inv.progress();
-    out.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done: total })));
+    let (done, _) = inv.progress();
+    out.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })));
     yield_to_browser().await;
-    if out.cancelled() {
+    if stopped_at.is_none() && out.cancelled() {
         return Ok(None);
     }
     let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
-    Ok(Some(Inverted { generator, styles, fit, finish_ms: now_ms() - t_finish }))
+    Ok(Some(Inverted { generator, styles, fit, finish_ms: now_ms() - t_finish, stopped_at }))
+}
+
+/// The start the job asks for: the candidate, how many were weighed, and why it is not the
+/// one asked for ("" when it is). A missing or unreadable encoder falls back to the search.
+async fn choose_start(
+    job: &InversionJob,
+    g: &Generator,
+    modes: Option<&getavatar_core::generator::LatentModes>,
+    ctx: &BodyContext,
+    dev: &Device,
+) -> Result<(StartCandidate, usize, String), String> {
+    let mut note = String::new();
+    if job.start == StartChoice::Encoder {
+        let guess = match &job.encoder {
+            Some(bytes) => load_encoder(bytes, dev)
+                .and_then(|enc| encoder_start(&enc, g, &ctx.model, &job.target, dev))
+                .map_err(|e| format!("the photo encoder cannot be used ({e})")),
+            None => Err("no photo encoder ships with this build".to_string()),
+        };
+        match guess {
+            Ok(styles) => return Ok((StartCandidate { name: "the encoder's guess".into(), styles }, 1, note)),
+            Err(why) => note = format!("{why}: searched the model's subjects instead"),
+        }
+    }
+    let mut candidates = start_candidates(g, modes);
+    let n = candidates.len();
+    // Candidate 0 is w_avg.
+    let best = if job.start == StartChoice::Average {
+        0
+    } else {
+        choose_start_async(g, ctx, &job.target, &candidates, dev).await.map_err(|e| e.to_string())?.0
+    };
+    Ok((candidates.swap_remove(best), n, note))
 }
 
 /// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
@@ -429,6 +481,7 @@ pub(crate) async fn rig_saved(
         millis: 0.0,
         finish_ms: 0.0,
         finish_detail: String::new(),
+        stopped_at: None,
     })
 }
 

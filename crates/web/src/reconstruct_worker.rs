@@ -34,8 +34,8 @@ use wasm_bindgen::JsCast;
 
 use crate::platform::{js_message, now_ms};
 use crate::reconstruct::{
-    invert, rig_saved, run_on_page, InversionJob, Preview, Progress, Progressing, ProjectionSource, ReconstructEvent,
-    ReconstructRequest, ReconstructTask,
+    invert, rig_saved, run_on_page, Compute, InversionJob, Preview, Progress, Progressing, ProjectionSource,
+    ReconstructEvent, ReconstructRequest, ReconstructTask, StartChoice,
 };
 
 /// The worker's script, next to the page (`cargo xtask build-web` copies `www/` into dist/).
@@ -69,10 +69,10 @@ extern "C" {
 #[serde(rename_all = "snake_case")]
 enum ToWorker {
     /// Run an inversion; the arrays `target_rgb`, `target_mask`, and optionally `checkpoint`,
-    /// `discriminator` and `photo_rgb` (the projection's photo) come with it.
+    /// `discriminator`, `encoder` and `photo_rgb` (the projection's photo) come with it.
     Start(Box<JobMeta>),
     /// The model files the next jobs use, sent ahead of the job in a message of their own
-    /// (arrays `checkpoint` and/or `discriminator`: the ones the worker does not hold yet).
+    /// (arrays `checkpoint`, `discriminator`, `encoder`: the ones the worker does not hold yet).
     Files,
     /// Stop the running inversion at its next step.
     Cancel,
@@ -85,9 +85,11 @@ struct JobMeta {
     /// The checkpoint (the discriminator) is the previous job's: the page sends each file once.
     checkpoint_kept: bool,
     discriminator_kept: bool,
+    encoder_kept: bool,
     options: InversionOptions,
     preview_every: usize,
-    search_start: bool,
+    start: StartChoice,
+    compute: Compute,
     world_to_camera: [f32; 16],
     body: BodyParams,
     res: usize,
@@ -115,6 +117,8 @@ enum FromWorker {
         candidates: usize,
         perceptual: bool,
         millis: f64,
+        device: String,
+        note: String,
     },
     Step {
         report: StepReport,
@@ -133,6 +137,8 @@ enum FromWorker {
         psnr: Option<f32>,
         figures_ms: f64,
         file_ms: f64,
+        /// Cancelled after this many steps (the result is the last preview's state).
+        stopped_at: Option<usize>,
     },
     Failed {
         message: String,
@@ -151,15 +157,40 @@ enum FromWorker {
 // ---------------------------------------------------------------------------------------------
 // The page's side.
 
-/// A checkpoint's and a discriminator's bytes.
-type FilePair = (Option<Rc<Vec<u8>>>, Option<Rc<Vec<u8>>>);
+/// The model files: a checkpoint's, a discriminator's and an encoder's bytes.
+#[derive(Clone, Default)]
+struct ModelFiles {
+    checkpoint: Option<Rc<Vec<u8>>>,
+    discriminator: Option<Rc<Vec<u8>>>,
+    encoder: Option<Rc<Vec<u8>>>,
+}
+
+impl ModelFiles {
+    const NAMES: [&'static str; 3] = ["checkpoint", "discriminator", "encoder"];
+
+    fn of(job: &InversionJob) -> Self {
+        Self {
+            checkpoint: job.checkpoint.clone(),
+            discriminator: job.discriminator.clone(),
+            encoder: job.encoder.clone(),
+        }
+    }
+
+    fn slot(&mut self, name: &str) -> &mut Option<Rc<Vec<u8>>> {
+        match name {
+            "checkpoint" => &mut self.checkpoint,
+            "discriminator" => &mut self.discriminator,
+            _ => &mut self.encoder,
+        }
+    }
+}
 
 /// The page's worker and the reconstruction it runs.
 struct Client {
     worker: JsWorker,
     running: RefCell<Option<Running>>,
-    /// The checkpoint and discriminator the worker holds (sent with an earlier job).
-    sent: RefCell<FilePair>,
+    /// The model files the worker holds (sent with an earlier job).
+    sent: RefCell<ModelFiles>,
     _onmessage: Closure<dyn FnMut(JsValue)>,
     _onerror: Closure<dyn FnMut(JsValue)>,
 }
@@ -312,7 +343,7 @@ fn client() -> Result<Rc<Client>, String> {
     let c = Rc::new(Client {
         worker,
         running: RefCell::new(None),
-        sent: RefCell::new((None, None)),
+        sent: RefCell::new(ModelFiles::default()),
         _onmessage: onmessage,
         _onerror: onerror,
     });
@@ -328,15 +359,14 @@ fn holds(held: &Option<Rc<Vec<u8>>>, file: &Rc<Vec<u8>>) -> bool {
 /// The model files of `job` the worker does not hold yet (`None`: it holds both).
 fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>, String> {
     let mut sent = client.sent.borrow_mut();
-    let (checkpoint, discriminator) = &mut *sent;
+    let mut wanted = ModelFiles::of(job);
     let mut arrays: Vec<(&str, JsValue)> = Vec::new();
-    for (name, file, held) in
-        [("checkpoint", &job.checkpoint, checkpoint), ("discriminator", &job.discriminator, discriminator)]
-    {
-        if let Some(b) = file {
-            if !holds(held, b) {
+    for name in ModelFiles::NAMES {
+        let held = sent.slot(name);
+        if let Some(b) = wanted.slot(name).clone() {
+            if !holds(held, &b) {
                 arrays.push((name, js_sys::Uint8Array::from(&b[..]).into()));
-                *held = Some(b.clone());
+                *held = Some(b);
             }
         }
     }
@@ -353,14 +383,18 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
     let t = &job.target;
     let same = |file: &Option<Rc<Vec<u8>>>, held: &Option<Rc<Vec<u8>>>| file.as_ref().is_some_and(|f| holds(held, f));
     let sent = client.sent.borrow().clone();
-    let (checkpoint_kept, discriminator_kept) = (same(&job.checkpoint, &sent.0), same(&job.discriminator, &sent.1));
+    let checkpoint_kept = same(&job.checkpoint, &sent.checkpoint);
+    let discriminator_kept = same(&job.discriminator, &sent.discriminator);
+    let encoder_kept = same(&job.encoder, &sent.encoder);
     let meta = JobMeta {
         cfg: job.cfg.clone(),
         checkpoint_kept,
         discriminator_kept,
+        encoder_kept,
         options: job.options.clone(),
         preview_every: job.preview_every,
-        search_start: job.search_start,
+        start: job.start,
+        compute: job.compute,
         world_to_camera: t.view.world_to_camera.to_cols_array(),
         body: t.view.body.clone(),
         res: t.res,
@@ -384,11 +418,14 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
     if let (Some(b), false) = (&job.discriminator, discriminator_kept) {
         arrays.push(("discriminator", js_sys::Uint8Array::from(&b[..]).into()));
     }
+    if let (Some(b), false) = (&job.encoder, encoder_kept) {
+        arrays.push(("encoder", js_sys::Uint8Array::from(&b[..]).into()));
+    }
     if let Some(p) = &job.projection {
         arrays.push(("photo_rgb", js_sys::Float32Array::from(&p.rgb[..]).into()));
         arrays.push(("photo_mask", js_sys::Float32Array::from(&p.mask.data[..]).into()));
     }
-    *client.sent.borrow_mut() = (job.checkpoint.clone(), job.discriminator.clone());
+    *client.sent.borrow_mut() = ModelFiles::of(job);
     let json = serde_json::to_string(&ToWorker::Start(Box::new(meta))).map_err(|e| e.to_string())?;
     Ok(object(&json, &arrays))
 }
@@ -446,9 +483,9 @@ fn on_message(data: JsValue) {
     let mut slot = client.running.borrow_mut();
     let Some(r) = slot.as_mut() else { return };
     match event {
-        FromWorker::Started { start, candidates, perceptual, millis } => {
+        FromWorker::Started { start, candidates, perceptual, millis, device, note } => {
             r.fallback = None;
-            let e = ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker: true };
+            let e = ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker: true, device, note };
             r.task.push(e, &r.repaint);
         }
         FromWorker::Step { report, done, total, elapsed_ms } => {
@@ -460,12 +497,12 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, figures_ms, file_ms } => {
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at } => {
             let Some(r) = slot.take() else { return };
             match u8_array(&data, "bytes") {
                 Some(bytes) => {
                     let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
-                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms)));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at));
                     release_when_idle();
                 }
                 None => {
@@ -515,13 +552,20 @@ fn fall_back_to_page(why: String) {
 }
 
 /// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
-async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (figures_ms, file_ms): (f64, f64)) {
+async fn finish(
+    r: Running,
+    bytes: Vec<u8>,
+    fit: (f32, f32),
+    (figures_ms, file_ms): (f64, f64),
+    stopped_at: Option<usize>,
+) {
     // Not in the task that copied the file out of the message.
     crate::task::yield_to_browser().await;
     let t = now_ms();
     let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
         Ok(mut done) => {
             done.fit = Some(fit);
+            done.stopped_at = stopped_at;
             done.millis = now_ms() - r.t0;
             let rig_ms = now_ms() - t;
             done.finish_ms = figures_ms + file_ms + rig_ms;
@@ -541,17 +585,19 @@ async fn finish(r: Running, bytes: Vec<u8>, fit: (f32, f32), (figures_ms, file_m
 // ---------------------------------------------------------------------------------------------
 // The worker's side.
 
-/// What the worker keeps between reconstructions: its device and the body's context.
+/// What the worker keeps between reconstructions: the body's context (its devices are
+/// kept in [`WEBGPU`]).
 struct WorkerState {
-    device: Device,
     ctx: Rc<BodyContext>,
     cfg: GeneratorConfig,
 }
 
 thread_local! {
     static STATE: RefCell<Option<Rc<WorkerState>>> = const { RefCell::new(None) };
+    /// The worker's WebGPU device and its adapter in words, or why there is none (asked once).
+    static WEBGPU: RefCell<Option<Result<(Device, String, bool), String>>> = const { RefCell::new(None) };
     /// The model files of the last job (the page sends each once).
-    static FILES: RefCell<FilePair> = const { RefCell::new((None, None)) };
+    static FILES: RefCell<Option<ModelFiles>> = const { RefCell::new(None) };
     static CANCEL: Cell<bool> = const { Cell::new(false) };
 }
 
@@ -589,11 +635,11 @@ pub fn reconstruct_worker_message(data: JsValue) {
         Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
         Ok(ToWorker::Files) => FILES.with(|f| {
             let mut f = f.borrow_mut();
-            if let Some(b) = u8_array(&data, "checkpoint") {
-                f.0 = Some(Rc::new(b));
-            }
-            if let Some(b) = u8_array(&data, "discriminator") {
-                f.1 = Some(Rc::new(b));
+            let f = f.get_or_insert_with(ModelFiles::default);
+            for name in ModelFiles::NAMES {
+                if let Some(b) = u8_array(&data, name) {
+                    *f.slot(name) = Some(Rc::new(b));
+                }
             }
         }),
         Ok(ToWorker::Start(meta)) => {
@@ -610,8 +656,8 @@ struct ToPage;
 impl Progressing for ToPage {
     fn push(&self, e: ReconstructEvent) {
         match e {
-            ReconstructEvent::Started { start, candidates, perceptual, millis, .. } => {
-                post(&FromWorker::Started { start, candidates, perceptual, millis }, &[])
+            ReconstructEvent::Started { start, candidates, perceptual, millis, device, note, .. } => {
+                post(&FromWorker::Started { start, candidates, perceptual, millis, device, note }, &[])
             }
             ReconstructEvent::Step(p) => {
                 let Progress { report, done, total, elapsed_ms } = *p;
@@ -638,10 +684,14 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Ok(s) => s,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
-    match job(meta, &data, &state).await {
-        Ok(Some((bytes, (iou, psnr), figures_ms, file_ms))) => {
+    let device = match device(meta.compute).await {
+        Ok(d) => d,
+        Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
+    };
+    match job(meta, &data, &state, &device).await {
+        Ok(Some((bytes, (iou, psnr), figures_ms, file_ms, stopped_at))) => {
             let finite = |x: f32| Some(x).filter(|x| x.is_finite());
-            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), figures_ms, file_ms };
+            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), figures_ms, file_ms, stopped_at };
             post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
         }
         Ok(None) => post(&FromWorker::Cancelled, &[]),
@@ -649,10 +699,16 @@ async fn run_job(meta: JobMeta, data: JsValue) {
     }
 }
 
-/// The result file, IoU and PSNR, milliseconds of the final figures and of the file.
-type Outcome = (Vec<u8>, (f32, f32), f64, f64);
+/// The result file, IoU and PSNR, milliseconds of the final figures and of the file, and the
+/// steps done when cancelled.
+type Outcome = (Vec<u8>, (f32, f32), f64, f64, Option<usize>);
 
-async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Option<Outcome>, String> {
+async fn job(
+    meta: JobMeta,
+    data: &JsValue,
+    state: &WorkerState,
+    device: &(Device, String),
+) -> Result<Option<Outcome>, String> {
     let (Some(rgb), Some(mask)) = (f32_array(data, "target_rgb"), f32_array(data, "target_mask")) else {
         return Err("the job came without its photo".into());
     };
@@ -669,18 +725,19 @@ async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Optio
         None => None,
     };
     // A file sent now, or the one kept from an earlier job.
-    let file = |name: &str, kept: bool, slot: fn(&mut FilePair) -> &mut Option<Rc<Vec<u8>>>| {
+    let file = |name: &str, kept: bool| {
         FILES.with(|f| {
             let mut f = f.borrow_mut();
-            let s = slot(&mut f);
+            let s = f.get_or_insert_with(ModelFiles::default).slot(name);
             if !kept {
                 *s = u8_array(data, name).map(Rc::new);
             }
             s.clone()
         })
     };
-    let checkpoint = file("checkpoint", meta.checkpoint_kept, |f| &mut f.0);
-    let discriminator = file("discriminator", meta.discriminator_kept, |f| &mut f.1);
+    let checkpoint = file("checkpoint", meta.checkpoint_kept);
+    let discriminator = file("discriminator", meta.discriminator_kept);
+    let encoder = file("encoder", meta.encoder_kept);
     if meta.checkpoint_kept && checkpoint.is_none() {
         return Err("the worker lost the model's file".into());
     }
@@ -692,9 +749,11 @@ async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Optio
         projection,
         options: meta.options,
         preview_every: meta.preview_every,
-        search_start: meta.search_start,
+        start: meta.start,
+        encoder,
+        compute: meta.compute,
     };
-    let Some(inv) = invert(&job, &state.ctx, &state.device, &ToPage).await? else { return Ok(None) };
+    let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage).await? else { return Ok(None) };
     let t = now_ms();
     let photo = match &job.projection {
         Some(source) => {
@@ -708,28 +767,49 @@ async fn job(meta: JobMeta, data: &JsValue, state: &WorkerState) -> Result<Optio
     let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
-    Ok(Some((bytes, inv.fit, inv.finish_ms, now_ms() - t)))
+    Ok(Some((bytes, inv.fit, inv.finish_ms, now_ms() - t, inv.stopped_at)))
 }
 
-/// The worker's device and body context, made on its first job (and again for another config).
+/// The worker's body context, made on its first job (and again for another config).
 async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
     if let Some(s) = STATE.with(|s| s.borrow().clone()).filter(|s| &s.cfg == cfg) {
         return Ok(s);
     }
-    let device = match STATE.with(|s| s.borrow().as_ref().map(|s| s.device.clone())) {
-        Some(d) => d,
-        None => webgpu_device().await?,
-    };
     let body = BodyModel::default_body().map_err(|e| format!("the embedded body model: {e}"))?;
     let ctx = Rc::new(BodyContext::new_async(body, cfg).await);
-    let s = Rc::new(WorkerState { device, ctx, cfg: cfg.clone() });
+    let s = Rc::new(WorkerState { ctx, cfg: cfg.clone() });
     STATE.with(|slot| *slot.borrow_mut() = Some(s.clone()));
     Ok(s)
 }
 
+/// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none).
+/// `Auto` takes the CPU (burn's NdArray in this module) where the adapter is a software one:
+/// on SwiftShader a W+ step takes 34.7 s, natively on NdArray 0.5 s on the same cores.
+/// Also the device in words, for the status.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn device(compute: Compute) -> Result<(Device, String), String> {
+    let cpu = |why: &str| (Device::ndarray().autodiff(), format!("CPU (burn NdArray in the worker{why})"));
+    if compute == Compute::Cpu {
+        return Ok(cpu(""));
+    }
+    if WEBGPU.with(|w| w.borrow().is_none()) {
+        let made = webgpu_device().await;
+        WEBGPU.with(|w| *w.borrow_mut() = Some(made));
+    }
+    let webgpu = WEBGPU.with(|w| w.borrow().clone()).unwrap_or_else(|| Err("no WebGPU device".into()));
+    match (compute, webgpu) {
+        (Compute::WebGpu, Ok((d, name, _))) => Ok((d, format!("WebGPU: {name}"))),
+        (Compute::WebGpu, Err(e)) => Err(e),
+        (_, Ok((d, name, false))) => Ok((d, format!("WebGPU: {name}"))),
+        (_, Ok((_, name, true))) => Ok(cpu(&format!("; the WebGPU adapter {name} is a software one"))),
+        (_, Err(e)) => Ok(cpu(&format!("; {e}"))),
+    }
+}
+
 /// burn's autodiff device on a WebGPU device of the worker's own (with the adapter's limits,
-/// as the page's: burn's kernels need more storage buffers per stage than the defaults).
-async fn webgpu_device() -> Result<Device, String> {
+/// as the page's: burn's kernels need more storage buffers per stage than the defaults), the
+/// adapter in words, and whether it is a CPU (software) one.
+async fn webgpu_device() -> Result<(Device, String, bool), String> {
     use eframe::egui_wgpu::wgpu;
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::BROWSER_WEBGPU;
@@ -747,11 +827,13 @@ async fn webgpu_device() -> Result<Device, String> {
         })
         .await
         .map_err(|e| format!("no WebGPU device in the worker: {e}"))?;
-    let backend = adapter.get_info().backend;
-    let setup = WgpuSetup { instance, adapter, device, queue, backend };
+    let info = adapter.get_info();
+    let software = info.device_type == wgpu::DeviceType::Cpu;
+    let name = format!("{} ({:?})", if info.name.is_empty() { "WebGPU adapter" } else { &info.name }, info.device_type);
+    let setup = WgpuSetup { instance, adapter, device, queue, backend: info.backend };
     let device = Device::wgpu_options()
         .setup(setup)
         .init()
         .map_err(|e| format!("burn cannot use the worker's WebGPU device: {e:?}"))?;
-    Ok(device.autodiff())
+    Ok((device.autodiff(), name, software))
 }

@@ -1,8 +1,11 @@
 //! "Reconstruct avatar": after the photo's body fit, the avatar is reconstructed from the
-//! photo (`crate::reconstruct`) with a quality preset, a progress bar (phase, step, loss,
-//! ETA), a live preview (photo | current render | overlay, at the inversion's camera) and
-//! Cancel, which leaves the shown avatar as it was. The result replaces the shown avatar: the
-//! pose and camera controls, motion playback and the downloads work on it right away.
+//! photo (`crate::reconstruct`) with a quality preset. The photo encoder's guess comes first
+//! (`instant`: one forward pass and one generation) and is shown as the avatar; `fast` and
+//! `full` then refine it from that guess with a progress bar (phase, step, loss, ETA) and a
+//! live preview (photo | current render | overlay, at the inversion's camera). Cancel keeps
+//! the last preview's state as the avatar (before any step: the avatar as it was). The result
+//! replaces the shown avatar: the pose and camera controls, motion playback and the downloads
+//! work on it right away.
 
 use std::rc::Rc;
 
@@ -11,7 +14,7 @@ use eframe::egui;
 use getavatar_core::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
 
 use super::GetAvatarApp;
-use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, RECONSTRUCT_PRESETS};
+use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, StartChoice, RECONSTRUCT_PRESETS};
 use crate::generate::TextureField;
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
 use crate::reconstruct::{
@@ -32,11 +35,23 @@ pub(super) struct ReconstructPanel {
     preset: String,
     /// W+ steps done and their milliseconds (the phases' step times).
     latent: (usize, f64),
+    /// The refinement to run once the encoder's guess is shown (None: none follows).
+    refine: Option<Reconstruction>,
+    /// When "Reconstruct" was pressed (ms, the page's clock), for the time to the first avatar.
+    t_click: f64,
 }
 
 impl Default for ReconstructPanel {
     fn default() -> Self {
-        Self { task: None, target: None, preview: None, preset: "fast".into(), latent: (0, 0.0) }
+        Self {
+            task: None,
+            target: None,
+            preview: None,
+            preset: "fast".into(),
+            latent: (0, 0.0),
+            refine: None,
+            t_click: 0.0,
+        }
     }
 }
 
@@ -45,8 +60,9 @@ impl ReconstructPanel {
         self.task.is_some()
     }
 
-    /// Stop the running reconstruction (it reports its cancellation).
-    pub(super) fn cancel(&self) -> bool {
+    /// Stop the running reconstruction (it reports its cancellation); no refinement follows.
+    pub(super) fn cancel(&mut self) -> bool {
+        self.refine = None;
         match &self.task {
             Some(t) => {
                 t.cancel();
@@ -86,7 +102,7 @@ impl GetAvatarApp {
             return;
         };
         let cfg = match engine.model_files() {
-            Ok((_, _, cfg)) => cfg,
+            Ok(f) => f.cfg,
             Err(e) => {
                 self.messages.push(format!("cannot save yet: {e}"));
                 return;
@@ -107,7 +123,7 @@ impl GetAvatarApp {
             return;
         };
         let cfg = match engine.model_files() {
-            Ok((_, _, cfg)) => cfg,
+            Ok(f) => f.cfg,
             Err(e) => {
                 self.fail_reconstruct(format!("cannot open a reconstruction yet: {e}"));
                 return;
@@ -128,6 +144,7 @@ impl GetAvatarApp {
     }
 
     fn fail_reconstruct(&mut self, message: String) {
+        self.recon.refine = None;
         let s = &mut self.status.reconstruct;
         s.state = "failed".into();
         s.message = message.clone();
@@ -139,6 +156,13 @@ impl GetAvatarApp {
             self.messages.push("a reconstruction is running: cancel it first".into());
             return;
         }
+        self.recon.t_click = crate::platform::now_ms();
+        self.start_stage(r, true);
+    }
+
+    /// Start one stage: with the encoder's start and steps to run, the `first` stage is the
+    /// guess alone (shown as the avatar) and the refinement follows from the same guess.
+    fn start_stage(&mut self, r: Reconstruction, first: bool) {
         let Some((p, fit)) = self.photo.fitted() else {
             self.fail_reconstruct("open a photo and let the body fit finish first".into());
             return;
@@ -151,7 +175,7 @@ impl GetAvatarApp {
             self.fail_reconstruct("the generator is not available (no WebGPU device for burn)".into());
             return;
         };
-        let (checkpoint, discriminator, cfg) = match engine.model_files() {
+        let files = match engine.model_files() {
             Ok(f) => f,
             Err(e) => {
                 self.fail_reconstruct(format!("cannot reconstruct yet: {e}"));
@@ -190,7 +214,7 @@ impl GetAvatarApp {
             num_betas: body.num_betas,
         });
         let Some(mut options) = InversionOptions::preset(&r.preset) else {
-            self.fail_reconstruct(format!("unknown quality preset `{}` (fast, full)", r.preset));
+            self.fail_reconstruct(format!("unknown quality preset `{}` (instant, fast, full)", r.preset));
             return;
         };
         if let Some(n) = r.steps {
@@ -199,8 +223,14 @@ impl GetAvatarApp {
         if let Some(n) = r.pti_steps {
             options.pti_steps = n;
         }
+        // The encoder's guess first, as an avatar of its own, then the refinement from it.
+        let guess_first = first && r.start == StartChoice::Encoder && options.steps + options.pti_steps > 0;
+        self.recon.refine = guess_first.then(|| r.clone());
+        if guess_first {
+            (options.steps, options.pti_steps) = (0, 0);
+        }
         let mut note = String::new();
-        let discriminator = match (r.perceptual, discriminator) {
+        let discriminator = match (r.perceptual, files.discriminator) {
             (true, Ok(d)) => Some(d),
             (true, Err(why)) => {
                 note = format!(" (perceptual term off: {why})");
@@ -212,31 +242,41 @@ impl GetAvatarApp {
             options.perceptual = 0.0;
         }
         let s = &mut self.status.reconstruct;
-        *s = ReconstructStatus {
-            state: "starting".into(),
-            message: if r.search_start {
-                format!("choosing the start among the model's subjects…{note}")
-            } else {
-                format!("starting from the average…{note}")
-            },
-            steps_total: options.steps + options.pti_steps,
-            res: r.res,
-            done: s.done,
-            opened: s.opened,
-            saved: s.saved,
-            saved_bytes: s.saved_bytes,
-            has_photo: s.has_photo,
-            ..ReconstructStatus::default()
+        let message = match r.start {
+            _ if !first => format!("refining the encoder's guess…{note}"),
+            StartChoice::Encoder => format!("the photo encoder's guess…{note}"),
+            StartChoice::Search => format!("choosing the start among the model's subjects…{note}"),
+            StartChoice::Average => format!("starting from the average…{note}"),
+        };
+        let steps_total = options.steps + options.pti_steps;
+        *s = if first {
+            ReconstructStatus {
+                state: "starting".into(),
+                message,
+                steps_total,
+                res: r.res,
+                done: s.done,
+                opened: s.opened,
+                saved: s.saved,
+                saved_bytes: s.saved_bytes,
+                has_photo: s.has_photo,
+                ..ReconstructStatus::default()
+            }
+        } else {
+            // The refinement keeps the first avatar's figures.
+            ReconstructStatus { state: "starting".into(), message, steps_total, steps_done: 0, ..s.clone() }
         };
         let job = InversionJob {
-            checkpoint,
+            checkpoint: files.checkpoint,
             discriminator,
-            cfg,
+            cfg: files.cfg,
             target: target.clone(),
             projection,
             options,
             preview_every: r.preview_every,
-            search_start: r.search_start,
+            start: r.start,
+            encoder: files.encoder.ok(),
+            compute: r.compute,
         };
         let req = ReconstructRequest { job, ctx, device };
         self.recon.target = Some(target);
@@ -250,16 +290,19 @@ impl GetAvatarApp {
         let Some(task) = self.recon.task.clone() else { return };
         for event in task.drain() {
             match event {
-                ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker } => {
+                ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker, device, note } => {
                     let s = &mut self.status.reconstruct;
+                    let of = if candidates > 1 { format!(" (best of {candidates})") } else { String::new() };
+                    let note = if note.is_empty() { String::new() } else { format!(" — {note}") };
                     s.message = format!(
-                        "starting from {start} (best of {candidates}); perceptual term {}; {}",
+                        "starting from {start}{of}; perceptual term {}; {} on {device}{note}",
                         if perceptual { "on" } else { "off" },
                         if in_worker { "in a worker" } else { "on the page" }
                     );
                     (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
                     s.start_ms = millis as f32;
                     s.runs_in = if in_worker { "worker" } else { "page" }.into();
+                    s.device = device;
                     s.state = "latent".into();
                 }
                 ReconstructEvent::Step(p) => {
@@ -297,6 +340,7 @@ impl GetAvatarApp {
                     self.status.reconstruct.preview_step = pv.done;
                 }
                 ReconstructEvent::Finished(r) => {
+                    let refine = self.recon.refine.take();
                     self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
                     self.rigged = Some(r.rigged);
                     let has_photo = r.projection.is_some();
@@ -322,14 +366,43 @@ impl GetAvatarApp {
                         }
                         (None, fit) => {
                             let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
-                            (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, r.millis as f32);
+                            let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
+                            if s.first_avatar_ms == 0.0 {
+                                (s.first_avatar_ms, s.first_mask_iou, s.first_psnr_db) = (since_click, iou, psnr);
+                            }
+                            (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, since_click);
                             s.finish_ms = r.finish_ms as f32;
                             s.finish_detail = r.finish_detail.clone();
-                            s.done += 1;
-                            s.message = format!(
-                                "reconstructed in {:.0} s: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera (last step)",
-                                r.millis / 1000.0,
-                            );
+                            let figures = format!("mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera");
+                            match (r.stopped_at, &refine) {
+                                (Some(k), _) => {
+                                    s.state = "cancelled".into();
+                                    s.stopped_at = k;
+                                    s.message = format!(
+                                        "cancelled after {k} of {} steps: the avatar is the last preview ({figures})",
+                                        s.steps_total
+                                    );
+                                }
+                                (None, Some(_)) => {
+                                    s.state = "starting".into();
+                                    s.message = format!(
+                                        "the encoder's guess in {:.1} s ({figures}); refining it…",
+                                        since_click / 1000.0
+                                    );
+                                }
+                                (None, None) => {
+                                    s.done += 1;
+                                    s.message = format!(
+                                        "reconstructed in {:.0} s: {figures} (last step)",
+                                        since_click / 1000.0
+                                    );
+                                }
+                            }
+                        }
+                    }
+                    if let Some(next) = refine {
+                        if r.stopped_at.is_none() && r.opened.is_none() {
+                            self.start_stage(next, false);
                         }
                     }
                 }
@@ -348,7 +421,11 @@ impl GetAvatarApp {
                 ReconstructEvent::Cancelled => {
                     let s = &mut self.status.reconstruct;
                     s.state = "cancelled".into();
-                    s.message = "cancelled: the avatar is as it was".into();
+                    s.message = if s.first_avatar_ms > 0.0 {
+                        "cancelled before the first step: the avatar is the encoder's guess".into()
+                    } else {
+                        "cancelled: the avatar is as it was".into()
+                    };
                 }
             }
         }
@@ -370,9 +447,10 @@ impl GetAvatarApp {
         });
         ui.horizontal(|ui| {
             let running = self.recon.running();
-            let go = ui
-                .add_enabled(ready && !running, egui::Button::new("Reconstruct"))
-                .on_hover_text("fast: 60 + 60 steps; full: 200 latent + 350 tuning steps (the references' counts)");
+            let go = ui.add_enabled(ready && !running, egui::Button::new("Reconstruct")).on_hover_text(
+                "instant: the photo encoder's guess (seconds); fast: the guess, then 60 + 60 refining steps; \
+                     full: then 200 latent + 350 tuning steps (the references' counts)",
+            );
             if go.clicked() {
                 let args = ReconstructArgs { preset: Some(self.recon.preset.clone()), ..Default::default() };
                 match args.validate() {
@@ -382,7 +460,7 @@ impl GetAvatarApp {
             }
             if running {
                 super::busy_indicator(ui);
-                if ui.button("Cancel").on_hover_text("stop; the avatar stays as it was").clicked() {
+                if ui.button("Cancel").on_hover_text("stop; the avatar is the last preview").clicked() {
                     self.apply(Action::ReconstructCancel);
                 }
             }
