@@ -1,10 +1,13 @@
-// Browser benchmark of the single-image reconstruction: the e2e photo is fitted,
-// then reconstructed in the reconstruction worker's own WebGPU device (burn wgpu + autodiff) at each render size;
-// prints milliseconds per W+ step and per PTI step, the start (model loading, start choice)
-// and the finish (extraction, rigging, projection), and the result's mask IoU / masked PSNR.
+// Browser benchmark of the single-image reconstruction: the e2e photo is fitted, then
+// reconstructed in the reconstruction worker, from the photo encoder's guess, on each device
+// (`cpu`: burn NdArray in the worker's wasm; `webgpu`: the worker's WebGPU device) at each
+// render size; prints the time to the first avatar (the encoder's guess on screen),
+// milliseconds per W+ step and per PTI step, the start (model loading, the encoder) and the
+// finish (extraction, rigging, projection), the result's mask IoU / masked PSNR, and the
+// devices' ratio per step.
 //
 //   cargo xtask serve            # another shell; or any server of dist/
-//   cd tests/e2e && node bench_reconstruct.mjs [sizes, default 64,128] [W+ steps, default 4] [PTI steps, default 3]
+//   cd tests/e2e && node bench_reconstruct.mjs [sizes, default 64,128] [W+ steps, default 4] [PTI steps, default 3] [devices, default cpu,webgpu]
 //
 // GETAVATAR_URL (default http://127.0.0.1:8080/) and GETAVATAR_CHROMIUM as for app.e2e.mjs.
 // Headless Chromium runs WebGPU on SwiftShader (a CPU); on a real GPU the figures are the
@@ -20,6 +23,7 @@ fs.mkdirSync(out, { recursive: true });
 const sizes = (process.argv[2] ?? '64,128').split(',').map(Number);
 const steps = Number(process.argv[3] ?? 4);
 const ptiSteps = Number(process.argv[4] ?? 3);
+const devices = (process.argv[5] ?? 'cpu,webgpu').split(',');
 const browser = await launchChromium();
 const page = await (await browser.newContext({ viewport: { width: 1280, height: 800 } })).newPage();
 page.on('console', (m) => { if (m.type() === 'error') console.log(`console error: ${m.text()}`); });
@@ -34,28 +38,40 @@ const err = await page.evaluate((b) => window.getavatar.command({
 if (err) throw new Error(err);
 const p = (await waitFor((s) => s.photo.fits > 0 || s.photo.state === 'failed', 'the fit')).photo;
 if (p.state !== 'fitted') throw new Error(p.message);
+console.log(`photo fitted: ${p.message}`);
 
 const rows = [];
+for (const device of devices) {
+  for (const res of sizes) {
+    const before = (await status()).reconstruct.done;
+    const t0 = Date.now();
+    const e = await page.evaluate(([res, steps, pti, device]) => window.getavatar.command({
+      reconstruct: { res, steps, pti_steps: pti, preview_every: 0, device },
+    }), [res, steps, ptiSteps, device]);
+    if (e) throw new Error(e);
+    let said = 0;
+    const r = (await waitFor((s) => {
+      if (Date.now() - said > 30000) {
+        said = Date.now();
+        console.log(`  ${device} ${res}²: ${s.reconstruct.state} ${s.reconstruct.steps_done}/${s.reconstruct.steps_total} after ${((Date.now() - t0) / 1000).toFixed(0)} s: ${s.reconstruct.message}`);
+      }
+      return s.reconstruct.done > before || s.reconstruct.state === 'failed';
+    }, `the ${res}² reconstruction on ${device}`, 3600000)).reconstruct;
+    if (r.state !== 'done') throw new Error(`${device} ${res}²: ${r.message}`);
+    rows.push({ device, res, r, wallS: (Date.now() - t0) / 1000 });
+    await page.screenshot({ path: path.join(out, `bench_reconstruct_${device}_${res}.png`) });
+  }
+}
+console.log(`reconstruction in the browser (page adapter ${st.adapter}, ${st.backend}), ${steps} W+ + ${ptiSteps} PTI steps from the encoder's guess, perceptual term ${rows[0]?.r.perceptual ? 'on' : 'off'}:`);
+console.log('| device | render size | first avatar s | ms per W+ step | ms per PTI step | start (load, encoder) s | finish s | total s | mask IoU first → last | masked PSNR first → last |');
+console.log('|---|---|---|---|---|---|---|---|---|---|');
+for (const { device, res, r, wallS } of rows) {
+  console.log(`| ${device} (${r.device}) | ${res}² | ${(r.first_avatar_ms / 1000).toFixed(1)} | ${r.ms_per_latent_step.toFixed(0)} | ${r.ms_per_pivotal_step.toFixed(0)} | ${(r.start_ms / 1000).toFixed(1)} | ${(r.finish_ms / 1000).toFixed(1)} | ${wallS.toFixed(1)} | ${r.first_mask_iou.toFixed(3)} → ${r.mask_iou.toFixed(3)} | ${r.first_psnr_db.toFixed(2)} → ${r.psnr_db.toFixed(2)} dB |`);
+}
 for (const res of sizes) {
-  const before = (await status()).reconstruct.done;
-  const t0 = Date.now();
-  const e = await page.evaluate(([res, steps, pti]) => window.getavatar.command({
-    reconstruct: { res, steps, pti_steps: pti, preview_every: 0 },
-  }), [res, steps, ptiSteps]);
-  if (e) throw new Error(e);
-  const r = (await waitFor((s) => s.reconstruct.done > before || s.reconstruct.state === 'failed', `the ${res}² reconstruction`)).reconstruct;
-  if (r.state !== 'done') throw new Error(`${res}²: ${r.message}`);
-  rows.push({ res, r, wallS: (Date.now() - t0) / 1000 });
-  await page.screenshot({ path: path.join(out, `bench_reconstruct_${res}.png`) });
-}
-console.log(`reconstruction in the browser (${st.adapter}, ${st.backend}), ${steps} W+ + ${ptiSteps} PTI steps, perceptual term ${rows[0]?.r.perceptual ? 'on' : 'off'}:`);
-console.log('| render size | ms per W+ step | ms per PTI step | start (load, choice) s | finish s | total s | mask IoU | masked PSNR |');
-console.log('|---|---|---|---|---|---|---|---|');
-for (const { res, r, wallS } of rows) {
-  console.log(`| ${res}² | ${r.ms_per_latent_step.toFixed(0)} | ${r.ms_per_pivotal_step.toFixed(0)} | ${(r.start_ms / 1000).toFixed(1)} | ${(r.finish_ms / 1000).toFixed(1)} | ${wallS.toFixed(1)} | ${r.mask_iou.toFixed(3)} | ${r.psnr_db.toFixed(2)} dB |`);
-}
-if (rows.length > 1) {
-  const [a, b] = [rows[0], rows[rows.length - 1]];
-  console.log(`ratio ${b.res}²/${a.res}² ms per W+ step: ${(b.r.ms_per_latent_step / a.r.ms_per_latent_step).toFixed(2)}`);
+  const [c, w] = ['cpu', 'webgpu'].map((d) => rows.find((x) => x.device === d && x.res === res));
+  if (c && w) {
+    console.log(`${res}²: WebGPU / CPU ms per W+ step ${(w.r.ms_per_latent_step / c.r.ms_per_latent_step).toFixed(1)}×, per PTI step ${(w.r.ms_per_pivotal_step / c.r.ms_per_pivotal_step).toFixed(1)}×, first avatar ${(w.r.first_avatar_ms / c.r.first_avatar_ms).toFixed(1)}×`);
+  }
 }
 await browser.close();

@@ -196,8 +196,8 @@ pub struct ReconstructArgs {
     /// encoder, `best` with a message), `best` (the model's subject, or the average, whose
     /// render explains the photo best; one render each) or `average` (w_avg, no search).
     pub start: Option<String>,
-    /// Where the reconstruction worker computes: `auto` (default: WebGPU on a GPU adapter,
-    /// the CPU on a software one), `cpu` (burn NdArray in the worker) or `webgpu`.
+    /// Where the reconstruction worker computes: `auto` (default: WebGPU) or `webgpu`, or
+    /// `cpu` (burn NdArray in the worker; slower in wasm today, for measurements).
     pub device: Option<String>,
 }
 
@@ -218,9 +218,8 @@ pub enum StartChoice {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Compute {
-    /// WebGPU where the worker's adapter is a GPU; burn's NdArray on the CPU (this wasm module,
-    /// in the worker) where the adapter is a software one (SwiftShader: a W+ step 34.7 s
-    /// there) or where the worker has no WebGPU.
+    /// The worker's WebGPU device (the page's where the worker has none): on a software
+    /// adapter too, where it is still faster than NdArray in wasm (docs/benchmarks.md).
     Auto,
     /// burn's NdArray in the worker.
     Cpu,

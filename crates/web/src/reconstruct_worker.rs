@@ -783,27 +783,23 @@ async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
 }
 
 /// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none).
-/// `Auto` takes the CPU (burn's NdArray in this module) where the adapter is a software one:
-/// on SwiftShader a W+ step takes 34.7 s, natively on NdArray 0.5 s on the same cores.
+/// `Auto` is WebGPU (and the page's device where the worker has none): even on a software
+/// adapter (SwiftShader) it is the faster of the two today. NdArray in this wasm module (one
+/// thread, no SIMD, optimised for size) took over 4 minutes for a W+ step at 64² where
+/// SwiftShader takes 1–2.5 (docs/benchmarks.md); `Cpu` is there to measure it.
 /// Also the device in words, for the status.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
 async fn device(compute: Compute) -> Result<(Device, String), String> {
-    let cpu = |why: &str| (Device::ndarray().autodiff(), format!("CPU (burn NdArray in the worker{why})"));
     if compute == Compute::Cpu {
-        return Ok(cpu(""));
+        return Ok((Device::ndarray().autodiff(), "CPU (burn NdArray in the worker)".into()));
     }
     if WEBGPU.with(|w| w.borrow().is_none()) {
         let made = webgpu_device().await;
         WEBGPU.with(|w| *w.borrow_mut() = Some(made));
     }
     let webgpu = WEBGPU.with(|w| w.borrow().clone()).unwrap_or_else(|| Err("no WebGPU device".into()));
-    match (compute, webgpu) {
-        (Compute::WebGpu, Ok((d, name, _))) => Ok((d, format!("WebGPU: {name}"))),
-        (Compute::WebGpu, Err(e)) => Err(e),
-        (_, Ok((d, name, false))) => Ok((d, format!("WebGPU: {name}"))),
-        (_, Ok((_, name, true))) => Ok(cpu(&format!("; the WebGPU adapter {name} is a software one"))),
-        (_, Err(e)) => Ok(cpu(&format!("; {e}"))),
-    }
+    let (d, name, software) = webgpu?;
+    Ok((d, format!("WebGPU{}: {name}", if software { " (a software adapter)" } else { "" })))
 }
 
 /// burn's autodiff device on a WebGPU device of the worker's own (with the adapter's limits,
@@ -829,7 +825,11 @@ async fn webgpu_device() -> Result<(Device, String, bool), String> {
         .map_err(|e| format!("no WebGPU device in the worker: {e}"))?;
     let info = adapter.get_info();
     let software = info.device_type == wgpu::DeviceType::Cpu;
-    let name = format!("{} ({:?})", if info.name.is_empty() { "WebGPU adapter" } else { &info.name }, info.device_type);
+    // Browsers may hide the adapter's name.
+    let name = match info.name.as_str() {
+        "" => format!("{:?} adapter", info.device_type),
+        n => format!("{n} ({:?})", info.device_type),
+    };
     let setup = WgpuSetup { instance, adapter, device, queue, backend: info.backend };
     let device = Device::wgpu_options()
         .setup(setup)
