@@ -111,7 +111,8 @@ async function command(cmd, pred = () => true) {
 async function grab(name) {
   const s = await status();
   const [x, y, w, h] = s.viewport.map(Math.round);
-  const buf = await page.screenshot({ clip: { x, y, width: w, height: h } });
+  // A 1024² frame on SwiftShader can keep the page busy for a while: wait for it.
+  const buf = await page.screenshot({ clip: { x, y, width: w, height: h }, timeout: 120000 });
   fs.writeFileSync(path.join(out, `${name}.png`), buf);
   const png = PNG.sync.read(buf);
   return { w: png.width, h: png.height, data: png.data };

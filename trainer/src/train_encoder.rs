@@ -22,6 +22,8 @@
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
 //! the step and the random state) is written atomically every `--snapshot-every` steps and a
 //! rerun resumes from it bit-identically; `OUT/encoder.safetensors` is the encoder alone,
+//! `OUT/encoder_best.safetensors` the one with the lowest held-out code error so far (its
+//! `step` and `held_out_mse` in the metadata: the one to ship, as longer runs overfit),
 //! `OUT/log.jsonl` the held-out code error against w_avg's, `OUT/snapshots/step_NNNNNN.png`
 //! held-out rows of input | the encoder's avatar | the truth.
 
@@ -489,6 +491,7 @@ fn train_loop(
         }
         unreachable!("index within the training pairs")
     };
+    let mut best = best_logged(&a.out.join("log.jsonl"), step)?;
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("log.jsonl"))?;
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(step.min(a.steps));
@@ -528,7 +531,14 @@ fn train_loop(
             save_state(&state, &enc, &adam, step, &rng, ecfg)?;
             let mut extra = BTreeMap::new();
             extra.insert("step".into(), step.to_string());
-            write_atomic(&a.out.join("encoder.safetensors"), &save_encoder(&collect_params(&enc)?, ecfg, &extra)?)?;
+            let file = save_encoder(&collect_params(&enc)?, ecfg, &extra)?;
+            write_atomic(&a.out.join("encoder.safetensors"), &file)?;
+            if val < best {
+                best = val;
+                extra.insert("held_out_mse".into(), val.to_string());
+                let file = save_encoder(&collect_params(&enc)?, ecfg, &extra)?;
+                write_atomic(&a.out.join("encoder_best.safetensors"), &file)?;
+            }
             let line = serde_json::json!({
                 "step": step, "train_mse": loss_sum / loss_n.max(1) as f64,
                 "held_out_mse": val, "held_out_mse_w_avg": val_avg,
@@ -582,6 +592,26 @@ fn clean_input(shard: &Shard, i: usize) -> EncoderInput {
 
 /// `OUT/snapshots/step_NNNNNN.png`: rows of held-out pairs, input (on white) | the encoder's
 /// avatar at the true view | the truth.
+/// The lowest held-out code error `log` records up to `step` (a resumed run's earlier
+/// snapshots; infinity without any).
+fn best_logged(log: &Path, step: u64) -> Result<f64> {
+    let text = match std::fs::read_to_string(log) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(f64::INFINITY),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", log.display())),
+    };
+    let mut best = f64::INFINITY;
+    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let v: serde_json::Value =
+            serde_json::from_str(line).with_context(|| format!("{} line {}", log.display(), i + 1))?;
+        let at = v["step"].as_u64().unwrap_or(u64::MAX);
+        if let Some(e) = v["held_out_mse"].as_f64().filter(|_| at <= step) {
+            best = best.min(e);
+        }
+    }
+    Ok(best)
+}
+
 fn snapshot(
     a: &TrainEncoderArgs,
     g: &Generator,

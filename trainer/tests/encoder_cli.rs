@@ -59,12 +59,25 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
         let (e, e0) = (l["held_out_mse"].as_f64().unwrap(), l["held_out_mse_w_avg"].as_f64().unwrap());
         assert!(e.is_finite() && e0 > 0.0 && e < 10.0 * e0, "{l}");
     }
+    // The best snapshot by held-out error is kept beside the latest, its error in the metadata.
+    let lowest = log.iter().map(|l| l["held_out_mse"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
+    let best = std::fs::read(a.join("encoder_best.safetensors")).unwrap();
+    let n = u64::from_le_bytes(best[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&best[8..8 + n]).unwrap();
+    let kept: f64 = header["__metadata__"]["held_out_mse"].as_str().unwrap().parse().unwrap();
+    assert_eq!(kept, lowest, "{header}");
     // 1 step, stop, rerun to 2 steps == 2 steps at once (the pairs are rendered again in
     // the other directory: rendering is deterministic too).
     ok(train_encoder(&b, 1));
     let o = ok(train_encoder(&b, 2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("resuming"), "{}", String::from_utf8_lossy(&o.stderr));
-    for f in ["pairs/shard_0000.bin", "pairs/shard_0001.safetensors", "encoder.safetensors", "state.safetensors"] {
+    for f in [
+        "pairs/shard_0000.bin",
+        "pairs/shard_0001.safetensors",
+        "encoder.safetensors",
+        "encoder_best.safetensors",
+        "state.safetensors",
+    ] {
         assert!(std::fs::read(a.join(f)).unwrap() == std::fs::read(b.join(f)).unwrap(), "{f} differs after resuming");
     }
 
