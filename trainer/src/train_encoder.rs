@@ -531,12 +531,11 @@ fn train_loop(
             save_state(&state, &enc, &adam, step, &rng, ecfg)?;
             let mut extra = BTreeMap::new();
             extra.insert("step".into(), step.to_string());
+            extra.insert("held_out_mse".into(), val.to_string());
             let file = save_encoder(&collect_params(&enc)?, ecfg, &extra)?;
             write_atomic(&a.out.join("encoder.safetensors"), &file)?;
             if val < best {
                 best = val;
-                extra.insert("held_out_mse".into(), val.to_string());
-                let file = save_encoder(&collect_params(&enc)?, ecfg, &extra)?;
                 write_atomic(&a.out.join("encoder_best.safetensors"), &file)?;
             }
             let line = serde_json::json!({
