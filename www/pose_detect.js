@@ -2,8 +2,9 @@
 // (`pose_worker.js`, MediaPipe Pose + Selfie Segmentation), so detection never blocks the UI
 // thread; the app awaits the answer.
 //
-// detectPose(bytes, previewSide) → JSON string: the detector's answer (see pose_worker.js) or
-//   {"error": "<one sentence for the user>"}.
+// detectPose(bytes, previewSide, person = -1) → JSON string: the detector's answer (see
+//   pose_worker.js) or {"error": "<one sentence for the user>"}; person ≥ 0 reads only that
+//   region (0 = the largest).
 // photoPreview() → the last successfully detected photo at most previewSide pixels on its long
 //   side, {width, height, data: Uint8Array (RGBA, row-major from the top left)}, or null.
 
@@ -37,7 +38,7 @@ function detector() {
   return w;
 }
 
-export async function detectPose(bytes, previewSide) {
+export async function detectPose(bytes, previewSide, person = -1) {
   if (!bytes || bytes.length === 0) return fail('the file is empty');
   lastPreview = null;
   let w;
@@ -50,7 +51,7 @@ export async function detectPose(bytes, previewSide) {
   const id = nextId++;
   const reply = await new Promise((resolve) => {
     pending.set(id, resolve);
-    w.postMessage({ id, bytes: copy, previewSide }, [copy.buffer]);
+    w.postMessage({ id, bytes: copy, previewSide, person }, [copy.buffer]);
   });
   lastPreview = reply.preview ?? null;
   return reply.json;

@@ -7,18 +7,30 @@
 // `@mediapipe/pose`, whose runtime and models `cargo xtask build-web` copies into
 // dist/mediapipe/ (nothing is fetched from a CDN), and MediaPipe Selfie Segmentation
 // (`@mediapipe/selfie_segmentation`, Apache-2.0, in dist/mediapipe/selfie_segmentation/),
-// which sees everyone: Pose tracks one person, so with several the largest is cropped out
-// for Pose.
+// which sees everyone: each connected region of its mask is a person candidate.
 //
-// Messages: {id, bytes: Uint8Array, previewSide} in; {id, json, preview?} out, where json is
-//   {"width", "height", "detectedWidth", "detectedHeight", "poseLandmarks": [33 × {x, y, z, visibility}],
-//    "poseWorldLandmarks": [...], "segmentationMask": {"width", "height", "data": [0..1]},
-//    "people": <number of people selfie segmentation sees; with several, the largest is fitted>}
+// Finding the person tries before it fails: Pose runs on a crop around every region (largest
+// first), then on the whole photo, until a reading agrees with its region (most landmarks in
+// it, spanning it) and is upright; when none is, the same candidates are tried on the photo
+// turned 180°, 90° and 270° (a person read lying or upside down first at the turn that makes
+// them upright). A turned reading is returned in the turned photo's frame: the preview, the
+// sizes, the landmarks and the mask are all of the turned photo, and `rotation` says by how
+// much it was turned, so the fit sees an upright person and its camera is that of the turned
+// photo (the original's camera rolled by `rotation`, docs/conventions.md).
+//
+// Messages: {id, bytes: Uint8Array, previewSide, person?} in (person: 0-based region to read,
+// the largest first; absent: search all); {id, json, preview?} out, where json is
+//   {"width", "height", "detectedWidth", "detectedHeight", "rotation": 0|90|180|270,
+//    "poseLandmarks": [33 × {x, y, z, visibility}], "poseWorldLandmarks": [...],
+//    "segmentationMask": {"width", "height", "data": [0..1]},
+//    "people": <number of regions selfie segmentation sees; absent when it could not tell>,
+//    "persons": [{x, y, w, h} per region, normalised, largest first], "person": <the fitted
+//    region's index or null>, "tries": <Pose runs>}
 //   or {"error": "<one sentence for the user>"},
-// and preview (on success) is the detected photo at most previewSide on its long side:
+// and preview (on success) is the detected (turned) photo at most previewSide on its long side:
 // {width, height, data: Uint8Array RGBA, row-major from the top left}.
-// Landmarks are normalised to the photo (so they hold for the original size, also after the
-// downscale above 4 MP); the mask is at most 256 px on its long side.
+// Landmarks are normalised to the (turned) photo, so they hold for its original size, also
+// after the downscale above 4 MP; the mask is at most 256 px on its long side.
 
 const MAX_PIXELS = 40e6; // refused above this
 const DETECT_PIXELS = 4e6; // downscaled above this before detection
@@ -195,8 +207,149 @@ function maskValues(mask) {
   return { width: w, height: h, data };
 }
 
+/**
+ * A canvas turned `deg` (0, 90, 180, 270) clockwise, and the map of a point of the original
+ * (pixels) into it.
+ */
+function turned(canvas, deg) {
+  const W = canvas.width, H = canvas.height;
+  const map = {
+    0: (x, y) => [x, y],
+    90: (x, y) => [H - y, x],
+    180: (x, y) => [W - x, H - y],
+    270: (x, y) => [y, W - x],
+  }[deg];
+  if (deg === 0) return { canvas, map };
+  const swap = deg % 180 !== 0;
+  const c = newCanvas(swap ? H : W, swap ? W : H);
+  const ctx = c.getContext('2d');
+  ctx.translate(c.width / 2, c.height / 2);
+  ctx.rotate((deg * Math.PI) / 180);
+  ctx.drawImage(canvas, -W / 2, -H / 2);
+  return { canvas: c, map };
+}
+
+/** A box {x, y, w, h} of the original through a turn's point map. */
+function turnedBox(r, map) {
+  const [ax, ay] = map(r.x, r.y);
+  const [bx, by] = map(r.x + r.w, r.y + r.h);
+  return { x: Math.min(ax, bx), y: Math.min(ay, by), w: Math.abs(bx - ax), h: Math.abs(by - ay) };
+}
+
+// A reading counts when at least this share of the landmarks Pose saw lies in its person's
+// box (grown 10 %), the landmarks span this share of the box's long side, and the torso
+// (mid-hip → mid-shoulder) points within UPRIGHT_DEG of up: the fit and the framing assume an
+// upright person, so one seen lying or upside down is read again on the turned photo.
+const IN_BOX = 0.7;
+const SPAN = 0.35;
+const UPRIGHT_DEG = 50;
+const SEEN = 0.5;
+
+/**
+ * How Pose's landmarks (photo pixels, `pts`) agree with a person's box: {ok, why, turn},
+ * where turn is the clockwise turn (90, 180, 270) that would make a non-upright reading upright.
+ */
+function judge(pts, vis, box) {
+  const seen = pts.filter((_, i) => vis[i] >= SEEN);
+  if (seen.length < 8) return { ok: false, why: 'too few landmarks seen' };
+  if (box) {
+    const gx = 0.1 * box.w, gy = 0.1 * box.h;
+    const inside = seen.filter(([x, y]) => x >= box.x - gx && x <= box.x + box.w + gx && y >= box.y - gy && y <= box.y + box.h + gy);
+    if (inside.length < IN_BOX * seen.length) return { ok: false, why: 'the landmarks are outside the person' };
+    const xs = seen.map((p) => p[0]), ys = seen.map((p) => p[1]);
+    const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys));
+    if (span < SPAN * Math.max(box.w, box.h)) return { ok: false, why: 'the landmarks cover a small part of the person' };
+  }
+  const mid = (a, b) => [(pts[a][0] + pts[b][0]) / 2, (pts[a][1] + pts[b][1]) / 2];
+  const [sx, sy] = mid(11, 12), [hx, hy] = mid(23, 24);
+  // Image y points down: "up" is −y. Angle of the torso from up, clockwise positive.
+  const angle = (Math.atan2(sx - hx, hy - sy) * 180) / Math.PI;
+  if (Math.abs(angle) <= UPRIGHT_DEG) return { ok: true };
+  // Turning the photo by −angle (rounded to a quarter) makes the torso point up.
+  const turn = (((Math.round(-angle / 90) * 90) % 360) + 360) % 360;
+  return { ok: false, why: `the person is not upright (torso ${Math.round(angle)}° from up)`, turn };
+}
+
+/**
+ * Pose on one candidate: `source` is the turned photo (a canvas), `crop` a box of it or null
+ * for all of it, `box` the person's box in it (for the agreement) or null. Returns
+ * {results, crop, verdict} or null when Pose saw no one.
+ */
+async function readCandidate(pose, source, crop, box) {
+  let image = source;
+  if (crop) {
+    image = newCanvas(crop.w, crop.h);
+    image.getContext('2d').drawImage(source, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
+  }
+  const results = await runSolution(pose, image);
+  if (!results.poseLandmarks || results.poseLandmarks.length !== 33) return null;
+  const [ox, oy] = crop ? [crop.x, crop.y] : [0, 0];
+  const [sw, sh] = crop ? [crop.w, crop.h] : [source.width, source.height];
+  const pts = results.poseLandmarks.map((l) => [ox + l.x * sw, oy + l.y * sh]);
+  const vis = results.poseLandmarks.map((l) => l.visibility ?? 1);
+  return { results, crop, verdict: judge(pts, vis, box), pts };
+}
+
+/** The region (index) most of a reading's seen landmarks fall in, or -1. */
+function regionOf(pts, vis, boxes) {
+  let best = -1, most = 0;
+  boxes.forEach((b, k) => {
+    const n = pts.filter(([x, y], i) => vis[i] >= SEEN && x >= b.x && x <= b.x + b.w && y >= b.y && y <= b.y + b.h).length;
+    if (n > most) { most = n; best = k; }
+  });
+  return best;
+}
+
+/**
+ * Find the person: Pose on every selfie-segmentation region (largest first), then on the
+ * whole photo, then, when nothing upright was read, on the same candidates turned 180°, 90°
+ * and 270° (a reading seen lying or upside down is tried at the turn that makes it upright
+ * first). `want` (0-based) restricts the search to that region. Returns
+ * {found: {results, crop, turn, region}, boxes, tried, seen} or {error}.
+ */
+async function findPerson(pose, canvas, regions, want) {
+  const boxes = regions.map((r) => ({ x: r.x, y: r.y, w: r.w, h: r.h }));
+  const order = want === null ? boxes.map((_, k) => k) : [want];
+  if (want !== null && !boxes[want]) {
+    return { error: `there is no person ${want + 1} in the photo (${boxes.length} found)` };
+  }
+  let tried = 0;
+  const hints = new Set();
+  const attempt = async (turn) => {
+    const { canvas: src, map } = turned(canvas, turn);
+    const tb = boxes.map((b) => turnedBox(b, map));
+    const candidates = order.map((k) => ({ region: k, crop: padded(tb[k], src.width, src.height), box: tb[k] }));
+    // The whole photo: with one region or none (the mask missed the person), or after the regions.
+    if (want === null) candidates.push({ region: null, crop: null, box: null });
+    for (const c of candidates) {
+      tried++;
+      const r = await readCandidate(pose, src, c.crop, c.box);
+      if (!r) continue;
+      if (r.verdict.turn !== undefined && turn === 0) hints.add(r.verdict.turn);
+      if (!r.verdict.ok) continue;
+      const vis = r.results.poseLandmarks.map((l) => l.visibility ?? 1);
+      const region = c.region ?? (tb.length ? regionOf(r.pts, vis, tb) : null);
+      return { results: r.results, crop: r.crop, turn, region: region === -1 ? null : region, src, boxes: tb };
+    }
+    return null;
+  };
+  let found = await attempt(0);
+  if (!found) {
+    const turns = [...hints, ...[180, 90, 270].filter((t) => !hints.has(t))];
+    for (const t of turns) {
+      found = await attempt(t);
+      if (found) break;
+    }
+  }
+  if (!found) {
+    const who = want !== null ? `person ${want + 1} could not be read` : boxes.length ? `${boxes.length === 1 ? 'a person-like region was seen but' : `${boxes.length} person-like regions were seen but`} no person could be read in it, upright or turned` : 'no person found in the photo';
+    return { error: `${who} (${tried} tries)` };
+  }
+  return { found, tried };
+}
+
 /** The detection itself: bytes → {json} ({json, preview} on success, see the header). */
-async function detect(bytes, previewSide) {
+async function detect(bytes, previewSide, person) {
   if (!bytes || bytes.length === 0) return failed('the file is empty');
   let bitmap;
   try {
@@ -219,28 +372,23 @@ async function detect(bytes, previewSide) {
   } catch (e) {
     return failed(`the person detector could not start: ${e.message ?? e}`);
   }
-  // How many people: the connected regions of selfie segmentation's mask (it segments
-  // everyone; Pose tracks one). With several, Pose runs on a crop around the largest.
-  let people = null;
-  let crop = null;
+  // The people: connected regions of selfie segmentation's mask (it segments everyone; Pose
+  // tracks one), each a candidate for Pose.
+  let regions = [];
+  let counted = true;
   try {
-    const regions = await personRegions(canvas);
-    people = regions.length;
-    if (regions.length > 1) crop = padded(regions[0], canvas.width, canvas.height);
+    regions = await personRegions(canvas);
   } catch (e) {
+    counted = false;
     console.warn(`people count unavailable: ${e.message ?? e}`);
   }
-  let source = canvas;
-  if (crop) {
-    source = newCanvas(crop.w, crop.h);
-    source.getContext('2d').drawImage(canvas, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
-  }
-  const results = await runSolution(pose, source).catch((e) => ({ error: e }));
-  if (results.error) return failed(`the person detector failed: ${results.error.message ?? results.error}`);
-  if (!results.poseLandmarks || results.poseLandmarks.length !== 33) return failed('no person found in the photo');
-  // Crop-normalised → photo-normalised coordinates.
+  const want = Number.isInteger(person) && person >= 0 ? person : null;
+  const search = await findPerson(pose, canvas, regions, want).catch((e) => ({ error: `the person detector failed: ${e.message ?? e}` }));
+  if (search.error) return failed(search.error);
+  const { results, crop, turn, region, src, boxes } = search.found;
+  // Crop-normalised → normalised coordinates of the (turned) photo.
   const [ox, oy, sx, sy] = crop
-    ? [crop.x / canvas.width, crop.y / canvas.height, crop.w / canvas.width, crop.h / canvas.height]
+    ? [crop.x / src.width, crop.y / src.height, crop.w / src.width, crop.h / src.height]
     : [0, 0, 1, 1];
   const plain = (list, toPhoto) => (list ?? []).map((l) => ({
     x: toPhoto ? ox + l.x * sx : l.x,
@@ -248,39 +396,43 @@ async function detect(bytes, previewSide) {
     z: l.z,
     visibility: l.visibility ?? 1,
   }));
+  const swap = turn % 180 !== 0;
   const out = {
-    width,
-    height,
-    detectedWidth: canvas.width,
-    detectedHeight: canvas.height,
+    width: swap ? height : width,
+    height: swap ? width : height,
+    detectedWidth: src.width,
+    detectedHeight: src.height,
+    rotation: turn,
     poseLandmarks: plain(results.poseLandmarks, true),
     poseWorldLandmarks: plain(results.poseWorldLandmarks, false),
+    persons: boxes.map((b) => ({ x: b.x / src.width, y: b.y / src.height, w: b.w / src.width, h: b.h / src.height })),
+    person: region,
+    tries: search.tried,
   };
-  if (people !== null) out.people = people;
+  if (counted) out.people = regions.length;
   if (out.poseWorldLandmarks.length !== 33) delete out.poseWorldLandmarks;
   if (results.segmentationMask) {
     let mask = results.segmentationMask;
     if (crop) {
       // The crop's mask placed in the whole photo.
-      const full = newCanvas(canvas.width, canvas.height);
+      const full = newCanvas(src.width, src.height);
       full.getContext('2d').drawImage(mask, crop.x, crop.y, crop.w, crop.h);
       mask = full;
     }
     out.segmentationMask = maskValues(mask);
   }
-  const { width: pw, height: ph, rgba } = pixelsAtMost(canvas, previewSide);
+  const { width: pw, height: ph, rgba } = pixelsAtMost(src, previewSide);
   return { json: JSON.stringify(out), preview: { width: pw, height: ph, data: new Uint8Array(rgba.buffer) } };
 }
-
 
 // One detection at a time: the solutions' result callbacks are shared state.
 let queue = Promise.resolve();
 self.onmessage = (e) => {
-  const { id, bytes, previewSide } = e.data;
+  const { id, bytes, previewSide, person } = e.data;
   queue = queue.then(async () => {
     let reply;
     try {
-      reply = await detect(bytes, previewSide);
+      reply = await detect(bytes, previewSide, person);
     } catch (err) {
       reply = failed(`the person detector failed: ${err?.message ?? err}`);
     }

@@ -12,6 +12,7 @@ use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, S
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
 use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body_fit::turn;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::readback::block_on_ready;
@@ -82,11 +83,13 @@ fn run_fit(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: 
 
 pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     let photo = open_image(&args.image)?;
-    let (w, h) = (photo.width() as usize, photo.height() as usize);
     let text =
         std::fs::read_to_string(&args.keypoints).with_context(|| format!("reading {}", args.keypoints.display()))?;
     let result = PoseResult::from_json(&text).with_context(|| format!("{}", args.keypoints.display()))?;
-    let mask = args.mask.as_deref().map(load_mask).transpose()?;
+    // A detection on the photo turned to read its person upright: the fit works on the
+    // turned photo (the landmarks' frame), the overlay goes back onto the photo as taken.
+    let (w, h) = turn::turned_size(result.rotation, photo.width() as usize, photo.height() as usize);
+    let mask = args.mask.as_deref().map(load_mask).transpose()?.map(|m| turned_mask(m, result.rotation));
     let model = Arc::new(load_body(&args.body)?);
     let [a, b, c] = args.iterations[..] else { bail!("--iterations takes three numbers: torso,body,silhouette") };
     let options = FitOptions { iterations: [a, b, c], num_betas: args.betas, ..FitOptions::default() };
@@ -116,11 +119,18 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     Ok(())
 }
 
-/// The photo with the fitted body tinted over it, detected keypoints (green) joined to the
-/// fitted ones (red).
+/// A person mask of the photo as taken, turned as the detection turned the photo.
+pub(crate) fn turned_mask(m: SegmentationMask, deg: u16) -> SegmentationMask {
+    let (data, width, height) = turn::turn_image(&m.data, m.width, m.height, 1, deg);
+    SegmentationMask { width, height, data }
+}
+
+/// The photo as taken with the fitted body tinted over it, detected keypoints (green) joined
+/// to the fitted ones (red); a fit on a turned photo is drawn through its camera rolled back.
 fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<Vec<u8>> {
     let (w, h) = (photo.width() as usize, photo.height() as usize);
-    let view_proj = fit.photo_view_proj();
+    let view_proj = fit.original_photo_view_proj();
+    let back = |p: [f32; 2]| turn::point_to_original(fit.rotation, w, h, p);
     let posed = pose_body(model, &fit.body_params());
     let clip: Vec<glam::Vec4> = posed.vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
     let raster = getavatar_core::rasterize::rasterize(&clip, &model.faces, w, h);
@@ -145,15 +155,16 @@ fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<
         }
     };
     for kp in fit.keypoints.iter().filter(|k| k.visibility >= 0.5) {
-        if let Some(f) = kp.fitted {
+        let observed = back(kp.observed);
+        if let Some(f) = kp.fitted.map(back) {
             for s in 0..=16 {
                 let t = s as f32 / 16.0;
-                let q = [kp.observed[0] + t * (f[0] - kp.observed[0]), kp.observed[1] + t * (f[1] - kp.observed[1])];
+                let q = [observed[0] + t * (f[0] - observed[0]), observed[1] + t * (f[1] - observed[1])];
                 dot(q, [255, 255, 0]);
             }
             dot(f, [230, 30, 30]);
         }
-        dot(kp.observed, [30, 220, 30]);
+        dot(observed, [30, 220, 30]);
     }
     Ok(getavatar_core::dataset::encode_png(w, h, 3, &px)?)
 }

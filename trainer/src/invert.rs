@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::landmarks::PoseResult;
+use getavatar_core::body_fit::turn;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::{OrbitCamera, View};
 use getavatar_core::checkpoint::{self, save_inverted};
@@ -210,17 +211,20 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
     let fit = BodyFit::from_json(&text)
         .map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", fit_path.display()))?;
     let photo = open_image(image)?;
-    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    // A fit on the photo turned to read its person upright (fit.json's `rotation`) works on
+    // the turned photo.
+    let (w, h) = turn::turned_size(fit.rotation, photo.width() as usize, photo.height() as usize);
     if (w, h) != (fit.framing.photo_width, fit.framing.photo_height) {
         bail!(
-            "{} is {w}×{h} pixels but the fit was made on a {}×{} photo",
+            "{} is {w}×{h} pixels (turned by {}°) but the fit was made on a {}×{} photo",
             image.display(),
+            fit.rotation,
             fit.framing.photo_width,
             fit.framing.photo_height
         );
     }
     let mask = match (&a.mask, &a.keypoints) {
-        (Some(m), _) => load_mask(m)?,
+        (Some(m), _) => crate::fit_pose::turned_mask(load_mask(m)?, fit.rotation),
         (None, Some(k)) => {
             let text = std::fs::read_to_string(k).with_context(|| format!("reading {}", k.display()))?;
             PoseResult::from_json(&text)
@@ -231,6 +235,7 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) ->
         (None, None) => bail!("a photo needs a person mask: --mask PNG, or --keypoints with a segmentationMask"),
     };
     let rgb: Vec<f32> = photo.to_rgb8().as_raw().iter().map(|v| *v as f32 / 255.0).collect();
+    let (rgb, _, _) = turn::turn_image(&rgb, photo.width() as usize, photo.height() as usize, 3, fit.rotation);
     let target = InversionTarget::from_photo(&fit, &rgb, w, h, &mask, res, model.num_betas)
         .with_context(|| format!("{} with {}", image.display(), fit_path.display()))?;
     Ok((target, image.display().to_string(), None))

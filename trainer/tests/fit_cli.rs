@@ -10,6 +10,7 @@ use std::path::Path;
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::metrics::pa_mpjpe;
 use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body_fit::turn;
 use getavatar_core::dataset::{decode_png, encode_png};
 use getavatar_core::rng::Rng;
 use getavatar_core::skinning::pose_body;
@@ -76,6 +77,37 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
     let person = mask.iter().filter(|m| **m > 0).count();
     assert!(tinted as f32 > 0.8 * person as f32, "{tinted} of {person} person pixels tinted");
 
+    // The same person lying in the photo as taken (turned 90° counter-clockwise), detected
+    // on the photo turned back upright (`rotation` 90, what the app's person finder writes):
+    // the same fit on the turned photo, and the overlay drawn through the camera rolled back
+    // lands on the person in the photo as taken.
+    let (taken, tw, th) = turn::turn_image(&photo, w, h, 3, 270);
+    let (taken_mask, _, _) = turn::turn_image(&mask, w, h, 1, 270);
+    assert_eq!((tw, th), (h, w));
+    let (taken_p, taken_mask_p, kp90_p) = (dir.join("taken.png"), dir.join("taken_mask.png"), dir.join("kp90.json"));
+    std::fs::write(&taken_p, encode_png(tw, th, 3, &taken).unwrap()).unwrap();
+    std::fs::write(&taken_mask_p, encode_png(tw, th, 1, &taken_mask).unwrap()).unwrap();
+    let mut turned = result.clone();
+    turned.rotation = 90;
+    std::fs::write(&kp90_p, serde_json::to_string(&turned).unwrap()).unwrap();
+    let (out90, ov90) = (dir.join("fit90.json"), dir.join("overlay90.png"));
+    let args = ["fit-pose", "--image", s(&taken_p), "--keypoints", s(&kp90_p), "--mask", s(&taken_mask_p)];
+    let run = trainer(&[&args[..], &["--out", s(&out90), "--overlay", s(&ov90)]].concat());
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let fit90: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out90).unwrap()).unwrap();
+    assert_eq!(fit90.rotation, 90);
+    assert_eq!((fit90.framing.photo_width, fit90.framing.photo_height), (w, h), "the fit is of the turned photo");
+    let same = fit90.body_pose.iter().zip(&fit.body_pose).chain(fit90.camera.iter().zip(&fit.camera));
+    assert!(same.clone().all(|(a, b)| (a - b).abs() < 1e-4), "{:?}", same.collect::<Vec<_>>());
+    let img = decode_png(&std::fs::read(&ov90).unwrap()).unwrap();
+    assert_eq!((img.width, img.height), (tw, th), "the overlay is of the photo as taken");
+    let tinted = (0..tw * th).filter(|k| img.pixels[k * img.channels + 2] > 150 && taken_mask[*k] > 0).count();
+    let stray = (0..tw * th).filter(|k| img.pixels[k * img.channels + 2] > 150 && taken_mask[*k] == 0).count();
+    assert!(
+        tinted as f32 > 0.8 * person as f32 && (stray as f32) < 0.2 * person as f32,
+        "{tinted} tinted on, {stray} off the person"
+    );
+
     // Bad input: one clear message each, no fit written.
     let bad = |extra: &[&str], what: &str| {
         let o = dir.join("bad.json");
@@ -104,6 +136,10 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
     std::fs::write(&headless, serde_json::to_string(&hidden).unwrap()).unwrap();
     bad(&["--image", s(&photo_p), "--keypoints", s(&headless)], "no torso found");
     bad(&["--image", s(&photo_p), "--keypoints", s(&dir.join("missing.json"))], "missing.json");
+    let askew = dir.join("askew.json");
+    std::fs::write(&askew, serde_json::to_string(&turned).unwrap().replace("\"rotation\":90", "\"rotation\":45"))
+        .unwrap();
+    bad(&["--image", s(&photo_p), "--keypoints", s(&askew)], "`rotation` is 45°");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

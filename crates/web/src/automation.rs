@@ -58,7 +58,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
 /// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}`,
 /// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
-/// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`,
+/// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`, `{"photo_fit":{"person":2}}` (fit the
+/// photo's 2nd person by size),
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
 /// `{"download_animated":true}`, `{"download_vrm":true}`, `{"download_vrma":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
 /// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
@@ -106,7 +107,7 @@ pub enum Command {
         photo: PhotoArgs,
     },
     PhotoFit {
-        photo_fit: String,
+        photo_fit: PhotoFitArg,
     },
     Motion {
         motion: MotionArgs,
@@ -333,6 +334,8 @@ pub const MAX_FIT_ITERATIONS: usize = 5000;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PhotoFitAction {
     Cancel,
+    /// Find the person again and fit the `k`-th by size (1 = the largest) of the people seen.
+    Person(usize),
     /// Fit again, starting from the current pose and shape (after the user corrected joints).
     Refit,
     /// Download `fit.json` and `kp.json`.
@@ -340,6 +343,17 @@ pub enum PhotoFitAction {
     /// Put the photo away.
     Close,
 }
+
+/// `photo_fit`'s argument: a word, or which person to fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged, deny_unknown_fields)]
+pub enum PhotoFitArg {
+    Word(String),
+    Person { person: usize },
+}
+
+/// The most people `{"photo_fit":{"person":k}}` may name.
+pub const MAX_PEOPLE: usize = 64;
 
 /// A command validated against the app's vocabulary.
 #[derive(Clone, Debug, PartialEq)]
@@ -517,13 +531,21 @@ impl Command {
                 }
                 Action::OpenReconstruction(PhotoSource::Url(open_reconstruction.url))
             }
-            Command::PhotoFit { photo_fit } => Action::PhotoFit(match photo_fit.as_str() {
+            Command::PhotoFit { photo_fit: PhotoFitArg::Word(w) } => Action::PhotoFit(match w.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
                 "download" => PhotoFitAction::Download,
                 "close" => PhotoFitAction::Close,
-                other => return Err(format!("photo_fit: `{other}` (cancel, refit, download, close)")),
+                other => {
+                    return Err(format!("photo_fit: `{other}` (cancel, refit, download, close, or {{\"person\": k}})"))
+                }
             }),
+            Command::PhotoFit { photo_fit: PhotoFitArg::Person { person } } => {
+                if !(1..=MAX_PEOPLE).contains(&person) {
+                    return Err(format!("photo_fit: person {person} (1 = the largest … {MAX_PEOPLE})"));
+                }
+                Action::PhotoFit(PhotoFitAction::Person(person))
+            }
         })
     }
 }
@@ -726,9 +748,18 @@ pub struct PhotoStatus {
     pub detected_height: usize,
     /// The last message about the photo (why it failed, which joints are missing, …).
     pub message: String,
-    /// People in the photo (selfie segmentation's regions; null when it could not tell); with
-    /// several, the largest is fitted.
+    /// People in the photo (selfie segmentation's regions; null when it could not tell).
     pub people: Option<usize>,
+    /// The fitted one of them by size (1 = the largest; null: read on the whole photo outside
+    /// every region), and each one's box in the shown photo, normalised [x, y, w, h],
+    /// largest first.
+    pub person: Option<usize>,
+    pub persons: Vec<[f32; 4]>,
+    /// Degrees clockwise the photo was turned to read the person upright (0, 90, 180, 270);
+    /// the shown photo, the keypoints and the fit are of the turned photo.
+    pub rotation: u16,
+    /// Pose runs the person finder made (candidates tried).
+    pub tries: usize,
     /// Body joints the detector did not see (visibility < ½), SMPL names.
     pub missing_joints: Vec<String>,
     /// Milliseconds of the detection (decode, MediaPipe, mask read-back).
@@ -978,6 +1009,10 @@ mod tests {
         assert!(parse_command(r#"{"photo":{"url":"p.png","iterations":[1,99999,0]}}"#).is_err());
         assert!(parse_command(r#"{"photo":{"path":"p.png"}}"#).is_err());
         assert!(parse_command(r#"{"photo_fit":"again"}"#).is_err());
+        assert_eq!(parse_command(r#"{"photo_fit":{"person":2}}"#), Ok(Action::PhotoFit(PhotoFitAction::Person(2))));
+        assert!(parse_command(r#"{"photo_fit":{"person":0}}"#).is_err());
+        assert!(parse_command(r#"{"photo_fit":{"person":-1}}"#).is_err());
+        assert!(parse_command(r#"{"photo_fit":{"who":1}}"#).is_err());
         let m = parse_command(r#"{"motion":{"clip":"walk","play":true,"time":0.5,"speed":2,"loop":false}}"#);
         assert_eq!(
             m,

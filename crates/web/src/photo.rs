@@ -31,8 +31,9 @@ extern "C" {
     /// MediaPipe Pose on a photo's bytes, in a worker: a JSON string (the result, or
     /// `{"error": …}`); the photo is kept for [`photo_preview`] at most `preview_side` pixels
     /// on its long side.
+    /// `person` ≥ 0 reads only that person (0 = the largest region); -1 searches them all.
     #[wasm_bindgen(catch, js_name = detectPose)]
-    async fn detect_pose(bytes: &js_sys::Uint8Array, preview_side: u32) -> Result<JsValue, JsValue>;
+    async fn detect_pose(bytes: &js_sys::Uint8Array, preview_side: u32, person: i32) -> Result<JsValue, JsValue>;
     /// The last detected photo, downscaled: `{width, height, data}` or null.
     #[wasm_bindgen(catch, js_name = photoPreview)]
     fn photo_preview() -> Result<JsValue, JsValue>;
@@ -56,9 +57,22 @@ pub struct Photo {
     /// The photo downscaled to at most [`PREVIEW_SIDE`].
     pub preview: egui::ColorImage,
     pub detect_ms: f64,
-    /// People in the photo (selfie segmentation's regions), when it could tell; with several,
-    /// the detection is the largest one's.
+    /// People in the photo (selfie segmentation's regions), when it could tell.
     pub people: Option<usize>,
+    /// Each person's box in the shown (turned) photo, normalised [x, y, w, h], largest first.
+    pub persons: Vec<[f32; 4]>,
+    /// The detected one of them (0 = the largest), None when read on the whole photo outside
+    /// every region.
+    pub person: Option<usize>,
+    /// Whether the user chose that person (else the finder did).
+    pub chosen: bool,
+    /// Degrees clockwise the photo was turned to read the person upright: the preview, the
+    /// sizes and the detection are of the turned photo.
+    pub rotation: u16,
+    /// Candidates the finder tried.
+    pub tries: usize,
+    /// The photo's bytes, to find another of its people.
+    pub bytes: std::rc::Rc<Vec<u8>>,
 }
 
 /// What a task reports.
@@ -95,10 +109,27 @@ struct DetectorAnswer {
     #[serde(rename = "detectedHeight")]
     detected_height: Option<usize>,
     people: Option<usize>,
+    #[serde(default)]
+    persons: Vec<PersonBox>,
+    person: Option<usize>,
+    #[serde(default)]
+    rotation: u16,
+    #[serde(default)]
+    tries: usize,
 }
 
-/// Detect the person in a photo (PNG, JPEG or WebP; bytes, or a URL fetched first).
-pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
+/// A person's box, normalised to the photo.
+#[derive(Deserialize)]
+struct PersonBox {
+    x: f32,
+    y: f32,
+    w: f32,
+    h: f32,
+}
+
+/// Detect the person in a photo (PNG, JPEG or WebP; bytes, or a URL fetched first): the
+/// finder's choice, or the `person`-th by size (0 = the largest) when given.
+pub fn detect(source: PhotoSource, person: Option<usize>, repaint: egui::Context) -> PhotoTask {
     let task = PhotoTask::default();
     let t = task.clone();
     wasm_bindgen_futures::spawn_local(async move {
@@ -108,7 +139,7 @@ pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
             PhotoSource::Url(url) => fetch_bytes(&url).await.map(|b| (url, b)),
         };
         let detected = match fetched {
-            Ok((name, bytes)) => detect_async(&bytes, name, t0).await,
+            Ok((name, bytes)) => detect_async(bytes, name, person, t0).await,
             Err(e) => Err(format!("cannot fetch the photo: {e}")),
         };
         let event = match detected {
@@ -120,9 +151,10 @@ pub fn detect(source: PhotoSource, repaint: egui::Context) -> PhotoTask {
     task
 }
 
-async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, String> {
-    let array = js_sys::Uint8Array::from(bytes);
-    let answer = detect_pose(&array, PREVIEW_SIDE)
+async fn detect_async(bytes: Vec<u8>, name: String, person: Option<usize>, t0: f64) -> Result<Photo, String> {
+    let array = js_sys::Uint8Array::from(&bytes[..]);
+    let want = person.map_or(-1, |k| i32::try_from(k).unwrap_or(i32::MAX));
+    let answer = detect_pose(&array, PREVIEW_SIDE, want)
         .await
         .map_err(|e| format!("the person detector failed: {}", js_message(&e)))?;
     let json = answer.as_string().ok_or("the person detector returned no answer")?;
@@ -148,6 +180,12 @@ async fn detect_async(bytes: &[u8], name: String, t0: f64) -> Result<Photo, Stri
         preview,
         detect_ms: now_ms() - t0,
         people: head.people,
+        persons: head.persons.iter().map(|b| [b.x, b.y, b.w, b.h]).collect(),
+        person: head.person,
+        chosen: person.is_some(),
+        rotation: head.rotation,
+        tries: head.tries,
+        bytes: std::rc::Rc::new(bytes),
     })
 }
 

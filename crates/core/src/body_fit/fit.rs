@@ -91,6 +91,9 @@ pub struct FitInput {
     pub world: Option<Vec<Vec3>>,
     /// The person mask in the crop, `silhouette_size²`, 0..1.
     pub mask: Option<Vec<f32>>,
+    /// Degrees clockwise the photo was turned for the detection ([`super::turn`]): the
+    /// framing and the points are of the turned photo.
+    pub rotation: u16,
 }
 
 /// The landmarks of the hands, as (left, right) pairs: wrist, pinky, index, thumb.
@@ -143,7 +146,7 @@ impl FitInput {
             Some(m) => Some(framing.resample_mask(&m.data, m.width, m.height, options.silhouette_size)),
             None => None,
         };
-        Ok(Self { framing, points, world, mask })
+        Ok(Self { framing, points, world, mask, rotation: result.rotation })
     }
 }
 
@@ -177,6 +180,11 @@ pub struct BodyFit {
     #[serde(default)]
     pub relabelled: Vec<String>,
     pub options: FitOptions,
+    /// Degrees clockwise the photo was turned to read the person upright ([`super::turn`]):
+    /// `camera`, `framing` and `keypoints` are of the turned photo;
+    /// [`BodyFit::original_photo_view_proj`] draws on the photo as taken.
+    #[serde(default)]
+    pub rotation: u16,
 }
 
 pub const BODY_FIT_FORMAT: &str = "getavatar-body-fit/1";
@@ -270,6 +278,7 @@ impl BodyFit {
         if self.framing.side <= 0.0 {
             return Err(format!("`framing.side` {} is not positive", self.framing.side));
         }
+        super::turn::check(self.rotation).map_err(|e| e.to_string())?;
         Ok(())
     }
 
@@ -288,6 +297,13 @@ impl BodyFit {
     pub fn photo_view_proj(&self) -> Mat4 {
         let proj = Mat4::perspective_rh_gl(self.fov_y, 1.0, NEAR, FAR);
         self.framing.crop_to_photo_clip() * proj * self.world_to_camera()
+    }
+
+    /// World → OpenGL clip space of the photo as taken, before it was turned for the
+    /// detection: [`Self::photo_view_proj`] with the turn undone (the camera rolled about its
+    /// axis by `rotation`).
+    pub fn original_photo_view_proj(&self) -> Mat4 {
+        super::turn::clip_to_original(self.rotation) * self.photo_view_proj()
     }
 }
 
@@ -902,6 +918,7 @@ impl BodyFitter {
                 Vec::new()
             },
             options: self.options.clone(),
+            rotation: self.input.rotation,
         })
     }
 }
@@ -1015,7 +1032,7 @@ mod tests {
         vis[16] = 0.2;
         let points: Vec<([f32; 2], f32)> = (0..NUM_LANDMARKS).map(|i| ([i as f32, 0.0], vis[i])).collect();
         let world = Some((0..NUM_LANDMARKS).map(|i| Vec3::splat(i as f32)).collect());
-        let input = FitInput { framing, points, world, mask: None };
+        let input = FitInput { framing, points, world, mask: None, rotation: 0 };
         assert!(!input.hands_in_doubt(), "both wrists hidden");
         let mut input = input;
         input.points[16].1 = 0.9;

@@ -117,6 +117,14 @@ pub struct PoseResult {
     /// The person mask (`enableSegmentation`), as the app's glue serialises it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub segmentation_mask: Option<SegmentationMask>,
+    /// Degrees clockwise the photo was turned for the detector to read the person upright
+    /// ([`super::turn`]); the landmarks and the mask are of the turned photo.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub rotation: u16,
+}
+
+fn is_zero(v: &u16) -> bool {
+    *v == 0
 }
 
 /// A person mask: `width × height` probabilities in [0, 1], row-major from the top left.
@@ -140,6 +148,8 @@ pub enum LandmarkError {
     Visibility { index: usize, name: &'static str, value: f32 },
     #[error("`segmentationMask`: {0}")]
     Mask(String),
+    #[error(transparent)]
+    Turn(#[from] super::turn::TurnError),
 }
 
 impl PoseResult {
@@ -152,6 +162,7 @@ impl PoseResult {
 
     /// 33 landmarks in each list, finite coordinates, visibilities in [0, 1].
     pub fn validate(&self) -> Result<(), LandmarkError> {
+        super::turn::check(self.rotation)?;
         let lists = std::iter::once(("poseLandmarks", &self.pose_landmarks))
             .chain(self.pose_world_landmarks.as_ref().map(|w| ("poseWorldLandmarks", w)));
         for (field, list) in lists {

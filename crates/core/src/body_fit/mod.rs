@@ -7,6 +7,8 @@
 //!   this body).
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 //! - [`options`]: the fit's settings (term weights, stages).
+//! - [`turn`]: a photo turned by quarter turns so that its person is upright, and the map
+//!   back to the photo as taken.
 
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod fit;
@@ -18,3 +20,4 @@ pub mod metrics;
 pub mod options;
 pub mod surface;
 pub mod synthetic;
+pub mod turn;

@@ -68,7 +68,12 @@ pub fn detect(
     let proj = Mat4::perspective_rh_gl(reference_fov_y(), 1.0, 0.1, 100.0) * world_to_camera;
     let mask = body_mask(&posed.vertices, &model.faces, proj, size);
     Ok(SyntheticDetection {
-        result: PoseResult { pose_landmarks: image, pose_world_landmarks: Some(world), segmentation_mask: None },
+        result: PoseResult {
+            pose_landmarks: image,
+            pose_world_landmarks: Some(world),
+            segmentation_mask: None,
+            rotation: 0,
+        },
         mask,
         size,
     })

@@ -59,8 +59,8 @@ type DroppedFile = Result<(String, Vec<u8>), String>;
 /// The photo panel's state.
 pub(super) struct PhotoPanel {
     task: Option<(TaskKind, PhotoTask)>,
-    /// A photo that waits for the running detection.
-    queued: Option<(PhotoSource, Option<FitOptions>, bool)>,
+    /// A photo (and the person to read in it) that waits for the running detection.
+    queued: Option<(PhotoSource, Option<FitOptions>, bool, Option<usize>)>,
     /// Fit settings asked for with the photo (automation), else the fit's defaults, and
     /// whether to fit on the WebGPU device.
     options: Option<FitOptions>,
@@ -123,7 +123,8 @@ impl GetAvatarApp {
     /// Apply a photo action (widgets and automation).
     pub(super) fn apply_photo(&mut self, action: Action) {
         match action {
-            Action::Photo { source, options, on_gpu } => self.open_photo(source, options, on_gpu),
+            Action::Photo { source, options, on_gpu } => self.open_photo(source, options, on_gpu, None),
+            Action::PhotoFit(PhotoFitAction::Person(k)) => self.choose_person(k),
             Action::PhotoFit(PhotoFitAction::Cancel) => match &self.photo.task {
                 Some((_, t)) => t.cancel(),
                 None => self.messages.push("no photo fit is running".into()),
@@ -146,11 +147,30 @@ impl GetAvatarApp {
         }
     }
 
-    fn open_photo(&mut self, source: PhotoSource, options: Option<FitOptions>, on_gpu: bool) {
+    /// Fit the `k`-th person by size (1 = the largest) of the shown photo: the finder reads
+    /// that person again (turning the photo if it must) and the fit starts over.
+    fn choose_person(&mut self, k: usize) {
+        let Some(p) = &self.photo.photo else {
+            self.messages.push("open a photo first".into());
+            return;
+        };
+        if k == 0 || k > p.persons.len() {
+            let n = p.persons.len();
+            let message = format!("there is no person {k} in the photo ({n} seen)");
+            self.messages.push(message.clone());
+            self.status.errors.push(message);
+            return;
+        }
+        let source = PhotoSource::Bytes { name: p.name.clone(), bytes: p.bytes.as_ref().clone() };
+        let (options, on_gpu) = (self.photo.options.clone(), self.photo.on_gpu);
+        self.open_photo(source, options, on_gpu, Some(k - 1));
+    }
+
+    fn open_photo(&mut self, source: PhotoSource, options: Option<FitOptions>, on_gpu: bool, person: Option<usize>) {
         match &self.photo.task {
             // One detection at a time (the detector keeps the last photo for its preview).
             Some((TaskKind::Detect, _)) => {
-                self.photo.queued = Some((source, options, on_gpu));
+                self.photo.queued = Some((source, options, on_gpu, person));
                 return;
             }
             Some((TaskKind::Fit, t)) => t.cancel(),
@@ -165,7 +185,7 @@ impl GetAvatarApp {
         self.status.photo.message = "looking for the person…".into();
         self.photo.options = options;
         self.photo.on_gpu = on_gpu;
-        self.photo.task = Some((TaskKind::Detect, photo::detect(source, ctx)));
+        self.photo.task = Some((TaskKind::Detect, photo::detect(source, person, ctx)));
     }
 
     /// Fit the body to the current photo's detection (from `start` for a re-fit).
@@ -220,8 +240,8 @@ impl GetAvatarApp {
             self.apply_fit(fit, ms);
         }
         let Some((_, task)) = self.photo.task.clone() else {
-            if let Some((s, o, g)) = self.photo.queued.take() {
-                self.open_photo(s, o, g);
+            if let Some((s, o, g, k)) = self.photo.queued.take() {
+                self.open_photo(s, o, g, k);
             }
             return;
         };
@@ -263,10 +283,11 @@ impl GetAvatarApp {
         [s.detected_width, s.detected_height] = p.detected;
         s.missing_joints = missing.clone();
         s.people = p.people;
-        let who = match p.people {
-            Some(n) if n > 1 => format!("{n} people in the photo: fitting the largest"),
-            _ => "person found".into(),
-        };
+        s.person = p.person.map(|k| k + 1);
+        s.persons = p.persons.clone();
+        s.rotation = p.rotation;
+        s.tries = p.tries;
+        let who = who_was_found(&p);
         s.message = if missing.is_empty() {
             format!("{who}; fitting the body…")
         } else {
@@ -314,8 +335,10 @@ impl GetAvatarApp {
         if !s.missing_joints.is_empty() {
             s.message += &format!("; not seen: {}", s.missing_joints.join(", "));
         }
-        if let Some(n) = s.people.filter(|n| *n > 1) {
-            s.message += &format!("; {n} people in the photo, the largest fitted");
+        if let Some(p) = &self.photo.photo {
+            if p.people.is_some_and(|n| n > 1) || p.rotation != 0 {
+                s.message += &format!("; {}", who_was_found(p));
+            }
         }
         if !fit.relabelled.is_empty() {
             s.message += "; the detector's left and right hands were swapped back";
@@ -448,7 +471,7 @@ impl GetAvatarApp {
         let [pw, ph] = p.preview.size;
         let k = (avail.width() / pw as f32).min(avail.height() / ph as f32);
         let rect = Rect::from_center_size(avail.center(), egui::vec2(pw as f32 * k, ph as f32 * k));
-        ui.allocate_rect(avail, egui::Sense::hover());
+        let response = ui.allocate_rect(avail, egui::Sense::click());
         self.status.photo_view = [rect.min.x, rect.min.y, rect.width(), rect.height()];
         let uv = Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0));
         let painter = ui.painter_at(avail);
@@ -462,6 +485,51 @@ impl GetAvatarApp {
             if let Some(t) = &self.photo.body {
                 painter.image(t.id(), rect, uv, Color32::WHITE);
             }
+        }
+        // Every person seen, numbered by size; a click on another one fits that one.
+        if p.persons.len() > 1 {
+            let boxes: Vec<Rect> = p
+                .persons
+                .iter()
+                .map(|b| {
+                    let at = |u: f32, v: f32| Pos2::new(rect.min.x + u * rect.width(), rect.min.y + v * rect.height());
+                    Rect::from_min_max(at(b[0], b[1]), at(b[0] + b[2], b[1] + b[3]))
+                })
+                .collect();
+            let hover = response.hover_pos();
+            for (k, b) in boxes.iter().enumerate() {
+                let fitted = p.person == Some(k);
+                let hot = !fitted && hover.is_some_and(|h| b.contains(h));
+                let colour = match (fitted, hot) {
+                    (true, _) => Color32::from_rgb(255, 150, 40),
+                    (false, true) => Color32::WHITE,
+                    (false, false) => Color32::from_rgb(120, 200, 255),
+                };
+                painter.rect_stroke(
+                    *b,
+                    4.0,
+                    Stroke::new(if fitted { 2.5 } else { 1.5 }, colour),
+                    egui::StrokeKind::Outside,
+                );
+                painter.text(
+                    b.min + egui::vec2(4.0, 2.0),
+                    egui::Align2::LEFT_TOP,
+                    format!("{}", k + 1),
+                    egui::FontId::proportional(16.0),
+                    colour,
+                );
+            }
+            if let Some(at) = response.interact_pointer_pos().filter(|_| response.clicked()) {
+                // The smallest box under the click (a person in front of a larger one).
+                let hit = (0..boxes.len())
+                    .filter(|k| boxes[*k].contains(at))
+                    .min_by(|a, b| boxes[*a].area().total_cmp(&boxes[*b].area()));
+                if let Some(k) = hit.filter(|k| p.person != Some(*k)) {
+                    self.apply(Action::PhotoFit(PhotoFitAction::Person(k + 1)));
+                    return;
+                }
+            }
+            response.on_hover_text("click a person to fit that one");
         }
         if !self.photo.show_keypoints {
             return;
@@ -500,6 +568,36 @@ fn fit_device() -> Device {
     // The project's CPU backend (as natively); burn 0.22 marks it deprecated in favour of flex.
     #[allow(deprecated)]
     Device::ndarray().autodiff()
+}
+
+/// "person found", or who of the people seen was found and how ("3 people; fitted the
+/// largest that could be read, the 2nd by size; read with the photo turned 180°").
+fn who_was_found(p: &Photo) -> String {
+    let ordinal = |k: usize| {
+        let suffix = match (k % 10, k % 100) {
+            (_, 11..=13) => "th",
+            (1, _) => "st",
+            (2, _) => "nd",
+            (3, _) => "rd",
+            _ => "th",
+        };
+        format!("{k}{suffix}")
+    };
+    let mut who = match (p.people, p.person) {
+        (Some(n), Some(k)) if n > 1 && p.chosen => {
+            format!("{n} people; fitted the {} by size, as chosen", ordinal(k + 1))
+        }
+        (Some(n), Some(0)) if n > 1 => format!("{n} people; fitted the largest"),
+        (Some(n), Some(k)) if n > 1 => {
+            format!("{n} people; fitted the largest that could be read, the {} by size", ordinal(k + 1))
+        }
+        (Some(n), None) if n > 1 => format!("{n} people; fitted a person read on the whole photo"),
+        _ => "person found".into(),
+    };
+    if p.rotation != 0 {
+        who += &format!("; read with the photo turned {}°", p.rotation);
+    }
+    who
 }
 
 /// SMPL joints whose landmark the detector did not see.
