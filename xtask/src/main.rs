@@ -213,6 +213,13 @@ fn test(native: bool, browser: bool) -> Result<()> {
             .env("GETAVATAR_URL", format!("http://{}/", server.addr))
             .env("GETAVATAR_OUT", e2e.join("out"));
         run(&mut c)?;
+        // Person finding on hard photos (several people, upside down, lying, backlit, none).
+        let mut c = Command::new("node");
+        c.current_dir(&e2e)
+            .arg("people.e2e.mjs")
+            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
+            .env("GETAVATAR_OUT", e2e.join("out"));
+        run(&mut c)?;
         // The random-action soak: 300 seeded actions after a warm-up, no panic, no
         // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
         let mut c = Command::new("node");

@@ -156,9 +156,7 @@ impl GetAvatarApp {
         };
         if k == 0 || k > p.persons.len() {
             let n = p.persons.len();
-            let message = format!("there is no person {k} in the photo ({n} seen)");
-            self.messages.push(message.clone());
-            self.status.errors.push(message);
+            self.messages.push(format!("there is no person {k} in the photo ({n} seen)"));
             return;
         }
         let source = PhotoSource::Bytes { name: p.name.clone(), bytes: p.bytes.as_ref().clone() };
