@@ -10,7 +10,9 @@
 //! input's pose shown, the built-in `walk` clip), `inverted.safetensors` (the tuned generator
 //! and the codes: `trainer sample --inverted DIR` reloads it), `steps.jsonl` (every step's
 //! terms) and `metrics.json` (mask IoU and masked PSNR at the input camera after W+ and after
-//! PTI, the back view's IoU against the subject's own scan with `--scans`, timings).
+//! PTI, the back view's IoU against the subject's own scan with `--scans`, timings; with
+//! `--pck`, PCK@0.1 of MediaPipe on the avatar at the photo's camera against the photo's
+//! keypoints, its render in `pck/`).
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -112,6 +114,11 @@ pub struct InvertArgs {
     /// Leave the perceptual term off.
     #[arg(long)]
     pub no_perceptual: bool,
+    /// PCK@0.1 (the paper's pose metric) into metrics.json: MediaPipe on the avatar rendered
+    /// at the photo's camera without the photo projected, against `--keypoints` (runs
+    /// tools/mediapipe_fixtures.mjs in headless Chromium; about a minute).
+    #[arg(long, requires = "keypoints", requires = "image")]
+    pub pck: bool,
     /// Leave the photo's colours off the .glb's texture (by default they are projected onto
     /// the surface the photo sees and blended with the generated texture at grazing angles
     /// and on the hidden side).
@@ -149,6 +156,9 @@ struct InvertMetrics {
     projected: ViewMetrics,
     /// Mask IoU at the opposite camera vs the subject's scan (with `--scans`).
     back_view_iou: Option<f32>,
+    /// With `--pck`: the pose metric on the photo.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pck: Option<crate::pck::Pck>,
     seconds_start: f64,
     seconds_per_w_step: f64,
     seconds_per_pti_step: Option<f64>,
@@ -332,6 +342,34 @@ fn render_baked(
     Ok((v.rgb.iter().map(|c| *c as f32 / 255.0).collect(), v.mask.iter().map(|m| *m as f32 / 255.0).collect()))
 }
 
+/// `--pck`: the avatar with its plain texture rendered at the photo's camera, MediaPipe on it
+/// against the photo's detection (in OUT/pck/).
+fn photo_pck(
+    a: &InvertArgs,
+    rigged: &RiggedAvatar,
+    ctx: &BodyContext,
+    plain: &BakedTexture,
+    body: &BodyParams,
+    view_proj: Mat4,
+) -> Result<crate::pck::Pck> {
+    let (Some(kp), Some(fit)) = (&a.keypoints, &a.fit) else { bail!("--pck needs --keypoints and --fit") };
+    let text = std::fs::read_to_string(kp).with_context(|| format!("reading {}", kp.display()))?;
+    let photo = PoseResult::from_json(&text).with_context(|| format!("{}", kp.display()))?;
+    let text = std::fs::read_to_string(fit).with_context(|| format!("reading {}", fit.display()))?;
+    let fit = BodyFit::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", fit.display()))?;
+    let res = crate::pck::RENDER_RES;
+    let (rgb, mask) = render_baked(rigged, ctx, plain, body, view_proj, res)?;
+    let p = crate::pck::render_pck(&a.out.join("pck"), &rgba(&rgb, &mask), res, &photo, &fit.framing)?;
+    eprintln!(
+        "PCK@0.1 on the photo: {:.3} of {} landmarks (within {:.1} px){}",
+        p.pck_0_1,
+        p.compared,
+        p.threshold_px,
+        if p.render_detected { "" } else { "; MediaPipe found no person in the render" }
+    );
+    Ok(p)
+}
+
 /// The camera opposite `w2c` about the body's vertical axis (x = z = 0).
 fn opposite(w2c: Mat4) -> Mat4 {
     w2c * Mat4::from_rotation_y(std::f32::consts::PI)
@@ -502,6 +540,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let baked_m = view_metrics(&target, &prgb, &pmask);
     let (prgb, pmask) = render_baked(&rigged, &ctx, &projected, body, vp, r)?;
     let projected_m = view_metrics(&target, &prgb, &pmask);
+    let pck = if a.pck { Some(photo_pck(a, &rigged, &ctx, &plain, body, vp)?) } else { None };
     write_png(&a.out.join("input_view_projected.png"), &rgba(&prgb, &pmask), r, 4)?;
     eprintln!(
         "exported avatar at the input camera: masked PSNR {:.2} dB, {:.2} dB with the photo projected",
@@ -570,6 +609,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         baked: baked_m,
         projected: projected_m,
         back_view_iou,
+        pck,
         seconds_start,
         seconds_per_w_step: t_w.unwrap_or(0.0),
         seconds_per_pti_step: t_pti,

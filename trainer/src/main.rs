@@ -14,6 +14,7 @@ mod fit_mapping;
 mod fit_pose;
 mod inception;
 mod invert;
+mod pck;
 mod plot;
 mod prepare;
 mod progress;

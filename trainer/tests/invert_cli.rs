@@ -202,3 +202,83 @@ fn a_trained_discriminator_resumes_and_gives_the_inversion_its_perceptual_term()
     );
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `--pck`: the photo's detection against the detector's reading of the avatar rendered at the
+/// photo's camera, in the photo's pixels. A stand-in detector (`GETAVATAR_MEDIAPIPE`) answers
+/// with the photo's own landmarks moved into the render's crop (PCK 1: the crop → photo map
+/// is right), then with no person (PCK 0, said).
+#[test]
+fn pck_compares_the_renders_detection_with_the_photos_in_photo_pixels() {
+    use getavatar_core::body_fit::fit::BodyFit;
+    use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+    use getavatar_core::dataset::encode_png;
+    use getavatar_core::rng::Rng;
+    use getavatar_core::BodyModel;
+    use std::os::unix::fs::PermissionsExt;
+
+    let root = tmp("invert-pck");
+    let model = BodyModel::default_body().unwrap();
+    let (_, truth) = unseen_poses().into_iter().next().unwrap();
+    let size = 256;
+    let det =
+        detect(&model, &truth, UNSEEN_POSE_CAMERAS[0].camera().world_to_camera(), size, 0.0, 0.0, &mut Rng::new(1, 1))
+            .unwrap();
+    let photo: Vec<u8> = det.mask.iter().flat_map(|m| if *m > 0.5 { [200, 160, 140] } else { [60, 60, 70] }).collect();
+    let mask: Vec<u8> = det.mask.iter().map(|m| if *m > 0.5 { 255 } else { 0 }).collect();
+    let (photo_p, mask_p, kp_p, fit_p) =
+        (root.join("photo.png"), root.join("mask.png"), root.join("kp.json"), root.join("fit.json"));
+    std::fs::write(&photo_p, encode_png(size, size, 3, &photo).unwrap()).unwrap();
+    std::fs::write(&mask_p, encode_png(size, size, 1, &mask).unwrap()).unwrap();
+    std::fs::write(&kp_p, serde_json::to_string(&det.result).unwrap()).unwrap();
+    let fit = ["fit-pose", "--image", s(&photo_p), "--keypoints", s(&kp_p), "--mask", s(&mask_p)];
+    let o = trainer(&[&fit[..], &["--iterations", "10", "10", "0", "--out", s(&fit_p)]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let framing = BodyFit::from_json(&std::fs::read_to_string(&fit_p).unwrap()).unwrap().framing;
+
+    // The photo's landmarks in the render's crop (normalised), as the stand-in's answer.
+    let mut in_crop = det.result.clone();
+    in_crop.segmentation_mask = None;
+    for l in in_crop.pose_landmarks.iter_mut() {
+        let ndc = framing.to_ndc([l.x * size as f32, l.y * size as f32]);
+        (l.x, l.y) = ((ndc[0] + 1.0) / 2.0, (1.0 - ndc[1]) / 2.0);
+    }
+    let answer = root.join("answer.kp.json");
+    std::fs::write(&answer, serde_json::to_string(&in_crop).unwrap()).unwrap();
+    let stand_in = |name: &str, body: &str| {
+        let p = root.join(name);
+        std::fs::write(&p, format!("#!/bin/sh\n{body}\n")).unwrap();
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o755)).unwrap();
+        p
+    };
+    let reads =
+        stand_in("reads.sh", &format!("test -f \"$1/render.png\" && cp '{}' \"$1/render.kp.json\"", s(&answer)));
+    let blind = stand_in("blind.sh", "echo \"render.png: no person found in the photo\" >&2; exit 1");
+    let run = |detector: &std::path::Path, out: &std::path::Path| {
+        let args = ["invert", "--config", "tiny", "--image", s(&photo_p), "--fit", s(&fit_p), "--mask", s(&mask_p)];
+        let more = ["--keypoints", s(&kp_p), "--pck", "--preset", "instant", "--res", "32", "--texture-res", "64"];
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"))
+            .args(args)
+            .args(more)
+            .args(["--out", s(out)])
+            .env("GETAVATAR_MEDIAPIPE", detector)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(png_size(&out.join("pck/render.png")), (512, 512, png::ColorType::Rgb));
+        m["pck"].clone()
+    };
+    let seen = det.result.pose_landmarks.iter().filter(|l| l.visibility >= 0.5).count() as u64;
+    let p = run(&reads, &root.join("reads"));
+    assert_eq!(
+        (p["pck_0_1"].as_f64(), p["compared"].as_u64(), p["render_detected"].as_bool()),
+        (Some(1.0), Some(seen), Some(true)),
+        "{p}"
+    );
+    let t = p["threshold_px"].as_f64().unwrap();
+    assert!(t > 10.0 && t < 0.1 * size as f64 * 1.5, "0.1 × the person's size in a {size}² photo: {t}");
+    let p = run(&blind, &root.join("blind"));
+    assert_eq!((p["pck_0_1"].as_f64(), p["render_detected"].as_bool()), (Some(0.0), Some(false)), "{p}");
+    let _ = std::fs::remove_dir_all(&root);
+}

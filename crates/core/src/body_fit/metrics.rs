@@ -1,9 +1,11 @@
 //! How well a fitted body matches the truth: MPJPE after Procrustes alignment (PA-MPJPE,
 //! the standard 3D pose error: the fitted joints are scaled, rotated and translated onto the
 //! true ones before the mean joint distance is taken, so the camera's depth ambiguity and a
-//! global turn do not count).
+//! global turn do not count); masks and their IoU; PCK between two detections.
 
 use glam::{DMat4, DQuat, DVec4, Mat3, Mat4, Vec3, Vec4};
+
+use super::landmarks::VISIBLE;
 
 /// The similarity transform (scale `s`, rotation `r`, translation `t`) minimising
 /// Σ‖s·r·aᵢ + t − bᵢ‖². The rotation is Horn's closed form (the unit quaternion of the largest
@@ -95,6 +97,36 @@ pub fn mask_iou(a: &[f32], b: &[f32]) -> f32 {
     }
 }
 
+/// PCK, the paper's pose metric (Sec. 4.1): the share of the reference detection's seen
+/// landmarks (visibility ≥ ½) that the test detection puts within `threshold` × the reference
+/// person's size (the long side of the box around its seen landmarks); a landmark the test did
+/// not see counts as wrong, and without a test detection every landmark does. Points are in
+/// one image's pixels. Returns (share, landmarks compared, distance threshold in pixels), or
+/// None when the reference saw fewer than two landmarks.
+pub fn pck(
+    reference: &[([f32; 2], f32)],
+    test: Option<&[([f32; 2], f32)]>,
+    threshold: f32,
+) -> Option<(f32, usize, f32)> {
+    let seen: Vec<(usize, [f32; 2])> =
+        reference.iter().enumerate().filter(|(_, (_, v))| *v >= VISIBLE).map(|(i, (p, _))| (i, *p)).collect();
+    if seen.len() < 2 {
+        return None;
+    }
+    let (lo, hi) = seen.iter().fold(([f32::MAX; 2], [f32::MIN; 2]), |(lo, hi), (_, p)| {
+        ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])])
+    });
+    let limit = threshold * (hi[0] - lo[0]).max(hi[1] - lo[1]);
+    let correct = seen
+        .iter()
+        .filter(|(i, p)| {
+            test.and_then(|t| t.get(*i))
+                .is_some_and(|(q, v)| *v >= VISIBLE && (q[0] - p[0]).hypot(q[1] - p[1]) <= limit)
+        })
+        .count();
+    Some((correct as f32 / seen.len() as f32, seen.len(), limit))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -127,6 +159,22 @@ mod tests {
         assert!((0.015..0.035).contains(&e), "{e}");
         // A different pose is not aligned away.
         assert!(pa_mpjpe(&joints("sitting"), &truth) > 0.05);
+    }
+
+    #[test]
+    fn pck_counts_the_seen_landmarks_within_a_tenth_of_the_persons_size() {
+        // A person 200 px tall: the threshold is 20 px.
+        let reference: Vec<([f32; 2], f32)> =
+            (0..5).map(|i| ([100.0, 100.0 + 50.0 * i as f32], 0.9)).chain([([0.0, 0.0], 0.1)]).collect();
+        let (share, n, limit) = pck(&reference, Some(&reference), 0.1).unwrap();
+        assert_eq!((share, n, limit), (1.0, 5, 20.0), "the hidden landmark is not compared");
+        let mut test = reference.clone();
+        test[0].0[0] += 19.0; // within
+        test[1].0[1] += 21.0; // outside
+        test[2].1 = 0.2; // not seen by the test: wrong
+        assert_eq!(pck(&reference, Some(&test), 0.1).unwrap().0, 3.0 / 5.0, "0, 3 and 4 are correct");
+        assert_eq!(pck(&reference, None, 0.1).unwrap().0, 0.0, "no detection: nothing correct");
+        assert!(pck(&reference[..1], Some(&test), 0.1).is_none());
     }
 
     #[test]
