@@ -7,7 +7,7 @@
 //   trainer body-photos --out trainer/tests/fixtures/mediapipe
 //   (cd www && npm ci) && (cd tests/e2e && npm ci)
 //   node tools/mediapipe_fixtures.mjs trainer/tests/fixtures/mediapipe
-//   rm trainer/tests/fixtures/mediapipe/*_yaw?.png   # the test re-renders the photos
+//   rm trainer/tests/fixtures/mediapipe/*_yaw?.png trainer/tests/fixtures/mediapipe/*_view?.png   # the tests re-render them
 //
 // Needs Chromium (/usr/bin/chromium or GETAVATAR_CHROMIUM), as the browser e2e test does.
 //

@@ -11,7 +11,9 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
 use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
-use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body_fit::synthetic::{
+    detect, unseen_poses, wide_camera, wide_poses, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
+};
 use getavatar_core::body_fit::turn;
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
@@ -235,13 +237,22 @@ pub fn bench_fit(args: &BenchFitArgs) -> Result<()> {
 /// Yaws (radians, added to each unseen pose's own camera) of the bare-body photos.
 pub const BODY_PHOTO_YAWS: [f32; 2] = [0.0, -0.9];
 
-/// The bare body in every unseen pose, from each of [`BODY_PHOTO_YAWS`]: skin-coloured,
-/// Lambert-shaded (a light from the upper left of the camera plus ambient), white
-/// background, `size`² PNGs named `<pose>_yaw<k>.png`. The input of the real-detector
+/// The bare body in every unseen pose from each of [`BODY_PHOTO_YAWS`] (`<pose>_yaw<k>.png`)
+/// and in every wider-set pose from each of [`WIDE_YAWS`] (`<pose>_view<k>.png`):
+/// skin-coloured, Lambert-shaded (a light from the upper left of the camera plus ambient),
+/// white background, `size`² PNGs. The input of the real-detector
 /// fixtures (`tools/mediapipe_fixtures.mjs` runs MediaPipe on them).
 pub fn body_photos(out: &std::path::Path, size: usize) -> Result<Vec<PathBuf>> {
     let model = BodyModel::default_body()?;
     let mut written = Vec::new();
+    for (name, params) in wide_poses() {
+        for (k, yaw) in WIDE_YAWS.iter().enumerate() {
+            let png = body_photo(&model, &params, wide_camera(*yaw).camera(), size)?;
+            let path = out.join(format!("{name}_view{k}.png"));
+            crate::atomic::write_atomic(&path, &png)?;
+            written.push(path);
+        }
+    }
     for ((name, params), base) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS) {
         for (k, dyaw) in BODY_PHOTO_YAWS.iter().enumerate() {
             let cam = getavatar_core::body_fit::synthetic::TestCamera { yaw: base.yaw + dyaw, ..base }.camera();

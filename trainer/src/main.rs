@@ -200,8 +200,8 @@ enum Command {
     FitPose(fit_pose::FitPoseArgs),
     /// Time the body fit per stage on synthetic detections of unseen poses, with its accuracy.
     BenchFit(fit_pose::BenchFitArgs),
-    /// Render the bare body in the unseen test poses from two yaws (PNGs for the real-detector
-    /// fixtures, `tools/mediapipe_fixtures.mjs`).
+    /// Render the bare body in the unseen test poses from two yaws and in the wider set from
+    /// four (PNGs for the real-detector fixtures, `tools/mediapipe_fixtures.mjs`).
     #[command(hide = true)]
     BodyPhotos {
         #[arg(long)]

@@ -9,12 +9,12 @@ use std::path::Path;
 
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::metrics::pa_mpjpe;
-use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body_fit::synthetic::{detect, unseen_poses, wide_poses, UNSEEN_POSE_CAMERAS, WIDE_YAWS};
 use getavatar_core::body_fit::turn;
 use getavatar_core::dataset::{decode_png, encode_png};
 use getavatar_core::rng::Rng;
 use getavatar_core::skinning::pose_body;
-use getavatar_core::BodyModel;
+use getavatar_core::{BodyModel, BodyParams};
 
 mod common;
 use common::{s, tmp, trainer};
@@ -164,29 +164,10 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     let mut report = Vec::new();
     let mut worst = 0.0f32;
     let mut errors = Vec::new();
-    // FIT_DEBUG=1 prints each joint's error after the Procrustes alignment.
     for (name, truth) in unseen_poses() {
         for k in 0..2 {
             let stem = format!("{name}_yaw{k}");
-            let out = dir.join(format!("{stem}.fit.json"));
-            let kp = fixtures.join(format!("{stem}.kp.json"));
-            let mask = fixtures.join(format!("{stem}.mask.png"));
-            let photo = dir.join(format!("{stem}.png"));
-            let run = trainer(&[
-                "fit-pose",
-                "--image",
-                s(&photo),
-                "--keypoints",
-                s(&kp),
-                "--mask",
-                s(&mask),
-                "--out",
-                s(&out),
-            ]);
-            assert!(run.status.success(), "{stem}: {}", String::from_utf8_lossy(&run.stderr));
-            let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
-            let fitted = pose_body(&model, &fit.body_params()).kinematics.posed_joints;
-            let err = pa_mpjpe(&fitted, &pose_body(&model, &truth).kinematics.posed_joints);
+            let (fit, err) = fit_fixture(&dir, &fixtures, &stem, &model, &truth);
             worst = worst.max(err);
             errors.push(err);
             // Only a fit whose wrists disagree on visibility may swap the hands; the side view
@@ -196,23 +177,6 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
             }
             let wrists_seen = [15, 16].map(|l| fit.keypoints[l].visibility >= 0.5);
             assert!(fit.relabelled.is_empty() || wrists_seen[0] != wrists_seen[1], "{stem}: {:?}", fit.relabelled);
-            if std::env::var("FIT_DEBUG").is_ok() {
-                let tj = pose_body(&model, &truth).kinematics.posed_joints;
-                let (sc, r, t) = getavatar_core::body_fit::metrics::procrustes(&fitted, &tj);
-                let per: Vec<String> = fitted
-                    .iter()
-                    .zip(&tj)
-                    .enumerate()
-                    .map(|(j, (a, b))| {
-                        format!(
-                            "{}:{:.0}",
-                            getavatar_core::JOINT_NAMES[j],
-                            ((sc * (r * *a) + t) - *b).length() * 1000.0
-                        )
-                    })
-                    .collect();
-                eprintln!("{stem}: {}", per.join(" "));
-            }
             report.push(format!(
                 "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
                 err * 1000.0,
@@ -231,4 +195,76 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
         report.join("\n")
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The wider fixture set (made the same way): eight more poses outside the pose library
+/// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
+/// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
+/// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
+/// 90 mm; measured 2026-11-29: mean 67.6 mm, worst 143.5 mm, eight cases over 90 mm. The worst
+/// are detector errors the fit follows: the jumping jack from the front (120.7 mm) has both
+/// wrists put over the head, and MediaPipe's own person mask follows that reading, so the
+/// silhouette cannot correct it; kneeling from behind (143.5 mm) has the legs' sides mixed;
+/// the raised knee from the front (101.9 mm) is bent the wrong way in depth. So this guards the
+/// measured state (mean ≤ 70 mm, worst ≤ 150 mm) until the fit closes the gap.
+#[test]
+fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
+    let dir = tmp("fit-wide");
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe");
+    let run = trainer(&["body-photos", "--out", s(&dir)]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let model = BodyModel::default_body().unwrap();
+    let mut report = Vec::new();
+    let mut errors = Vec::new();
+    for (name, truth) in wide_poses() {
+        for k in 0..WIDE_YAWS.len() {
+            let stem = format!("{name}_view{k}");
+            let (fit, err) = fit_fixture(&dir, &fixtures, &stem, &model, &truth);
+            errors.push(err);
+            report.push(format!(
+                "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
+                err * 1000.0,
+                100.0 * fit.residuals.relative_to_height,
+                fit.residuals.mask_iou.unwrap_or(f32::NAN)
+            ));
+        }
+    }
+    let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+    let worst = errors.iter().copied().fold(0.0f32, f32::max);
+    eprintln!(
+        "{}\nPA-MPJPE over the wider set: mean {:.1} mm, worst {:.1} mm",
+        report.join("\n"),
+        mean * 1000.0,
+        worst * 1000.0
+    );
+    assert!(mean <= 0.070 && worst <= 0.150, "mean {mean}, worst {worst}\n{}", report.join("\n"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `trainer fit-pose` on a committed MediaPipe fixture (`fixtures/STEM.kp.json`,
+/// `STEM.mask.png`) of the photo `dir/STEM.png`: the fit and its PA-MPJPE against `truth`.
+/// FIT_DEBUG=1 prints each joint's error after the Procrustes alignment.
+fn fit_fixture(dir: &Path, fixtures: &Path, stem: &str, model: &BodyModel, truth: &BodyParams) -> (BodyFit, f32) {
+    let out = dir.join(format!("{stem}.fit.json"));
+    let (kp, mask) = (fixtures.join(format!("{stem}.kp.json")), fixtures.join(format!("{stem}.mask.png")));
+    let photo = dir.join(format!("{stem}.png"));
+    let run = trainer(&["fit-pose", "--image", s(&photo), "--keypoints", s(&kp), "--mask", s(&mask), "--out", s(&out)]);
+    assert!(run.status.success(), "{stem}: {}", String::from_utf8_lossy(&run.stderr));
+    let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let fitted = pose_body(model, &fit.body_params()).kinematics.posed_joints;
+    let tj = pose_body(model, truth).kinematics.posed_joints;
+    let err = pa_mpjpe(&fitted, &tj);
+    if std::env::var("FIT_DEBUG").is_ok() {
+        let (sc, r, t) = getavatar_core::body_fit::metrics::procrustes(&fitted, &tj);
+        let per: Vec<String> = fitted
+            .iter()
+            .zip(&tj)
+            .enumerate()
+            .map(|(j, (a, b))| {
+                format!("{}:{:.0}", getavatar_core::JOINT_NAMES[j], ((sc * (r * *a) + t) - *b).length() * 1000.0)
+            })
+            .collect();
+        eprintln!("{stem}: {}", per.join(" "));
+    }
+    (fit, err)
 }
