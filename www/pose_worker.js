@@ -244,6 +244,7 @@ const IN_BOX = 0.7;
 const SPAN = 0.35;
 const UPRIGHT_DEG = 50;
 const SEEN = 0.5;
+const OUTSIDE_VISIBILITY = 0.1;
 
 /**
  * How Pose's landmarks (photo pixels, `pts`) agree with a person's box: {ok, why, turn},
@@ -390,12 +391,14 @@ async function detect(bytes, previewSide, person) {
   const [ox, oy, sx, sy] = crop
     ? [crop.x / src.width, crop.y / src.height, crop.w / src.width, crop.h / src.height]
     : [0, 0, 1, 1];
-  const plain = (list, toPhoto) => (list ?? []).map((l) => ({
-    x: toPhoto ? ox + l.x * sx : l.x,
-    y: toPhoto ? oy + l.y * sy : l.y,
-    z: l.z,
-    visibility: l.visibility ?? 1,
-  }));
+  // A landmark outside the photo (a person cut off by its edge) is the detector's guess: it
+  // counts as unseen (visibility at most OUTSIDE_VISIBILITY), so the fit names it missing.
+  const plain = (list, toPhoto) => (list ?? []).map((l) => {
+    const [x, y] = toPhoto ? [ox + l.x * sx, oy + l.y * sy] : [l.x, l.y];
+    const outside = toPhoto && (x < 0 || x > 1 || y < 0 || y > 1);
+    const v = l.visibility ?? 1;
+    return { x, y, z: l.z, visibility: outside ? Math.min(v, OUTSIDE_VISIBILITY) : v };
+  });
   const swap = turn % 180 !== 0;
   const out = {
     width: swap ? height : width,

@@ -8,6 +8,7 @@
 //  - three people: the largest is fitted; a click on the 2nd one's box in the photo refits on
 //    it, `{"photo_fit":{"person":3}}` on the 3rd;
 //  - a person against a bright, low-contrast gradient: fitted;
+//  - a person cut off below the knees by the photo's edge: fitted, the unseen joints named;
 //  - no person: one clear message, the app as it was;
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the
 // fit explains the person's mask (IoU), and no console error. Prints, per case, the
@@ -93,6 +94,10 @@ for (const { name, expect } of photos.values()) {
   await checkFitted(p, name, expect.person, expect.rotation);
   if (expect.person > 1 && expect.people > 1) {
     check(/the largest that could be read, the 2nd by size/.test(p.message), `${name}: the message says who was fitted ("${p.message}")`);
+  }
+  if (expect.missing) {
+    check(p.missing_joints.some((j) => expect.missing.test(j)) && /not seen/.test(p.message),
+      `${name}: the joints the photo cuts off are named (${p.missing_joints.join(', ')}; "${p.message}")`);
   }
   if (expect.rotation) check(new RegExp(`turned ${expect.rotation}°`).test(p.message), `${name}: the message names the turn ("${p.message}")`);
   if (expect.chooses) {

@@ -3,7 +3,8 @@
 // sizes and turns, so the person finder's choice can be checked against the truth.
 //
 //   cases() → [{name, png: Buffer, expect}], where expect is
-//     {people, person (1-based, the fitted one by size), rotation, chooses?} or {error: RegExp}.
+//     {people, person (1-based, the fitted one by size), rotation, chooses?, missing?: RegExp
+//     (joints named as unseen)} or {error: RegExp}.
 //   node people_cases.mjs DIR   writes the PNGs into DIR (to look at them, or for
 //                               tools/mediapipe_fixtures.mjs).
 
@@ -103,6 +104,11 @@ export function cases() {
   });
   paste(p, { scale: 1.05, ox: 20, oy: 60, tone: (c, bg) => c.map((v, k) => 0.45 * v * 0.7 + 0.55 * bg[k]) });
   add('backlit.png', p, { people: 1, person: 1, rotation: 0 });
+
+  // Cut off by the photo's bottom edge below the knees: fitted, the unseen joints named.
+  p = wall(560, 400, 6);
+  paste(p, { scale: 1.05, ox: 20, oy: 40 });
+  add('cut_off.png', p, { people: 1, person: 1, rotation: 0, missing: /ankle/ });
 
   // No person: only a background (the wall with a bright window).
   p = wall(640, 480, 5);

@@ -8,6 +8,8 @@
 //! [`unseen_poses`] are poses outside the pose library and `synth-scans`' draws, for the fit's
 //! round-trip test and `trainer bench-fit`.
 
+use std::f32::consts::{FRAC_PI_2, PI};
+
 use glam::{Mat4, Vec3};
 
 use super::landmarks::{Landmark, PoseResult, JOINT_LANDMARKS, NUM_LANDMARKS};
@@ -293,7 +295,7 @@ pub fn wide_poses() -> Vec<(&'static str, BodyParams)> {
 
 /// The camera yaws of [`wide_poses`]' fixtures, radians: front, 40° and 90° to the body's
 /// left, behind.
-pub const WIDE_YAWS: [f32; 4] = [0.0, 0.698, 1.571, 3.142];
+pub const WIDE_YAWS: [f32; 4] = [0.0, 2.0 * PI / 9.0, FRAC_PI_2, PI];
 
 /// The camera of a [`wide_poses`] fixture at `yaw`.
 pub fn wide_camera(yaw: f32) -> TestCamera {
