@@ -109,6 +109,7 @@ for (const { name, expect } of photos.values()) {
     let q = await fitDone(b2, `${name} (2nd, clicked)`);
     await checkFitted(q, name, 2, 0, ' (clicked the 2nd)');
     check(/fitted the 2nd by size, as chosen/.test(q.message), `${name}: the message says the chosen one ("${q.message}")`);
+    await page.screenshot({ path: `${process.env.GETAVATAR_OUT ?? 'out'}/people_three_chosen.png` }).catch(() => {});
     // The automation hook: the 3rd.
     b2 = (await status()).photo;
     const e = await page.evaluate(() => window.getavatar.command({ photo_fit: { person: 3 } }));
