@@ -207,27 +207,21 @@ fn test(native: bool, browser: bool) -> Result<()> {
         build_web()?;
         let server = serve::Server::start(&dist_dir(), 0)?;
         let e2e = root().join("tests/e2e");
-        let mut c = Command::new("node");
-        c.current_dir(&e2e)
-            .arg("app.e2e.mjs")
-            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
-            .env("GETAVATAR_OUT", e2e.join("out"));
-        run(&mut c)?;
+        // A browser test against the served app, its files under tests/e2e/out.
+        let node = |args: &[&str]| -> Result<()> {
+            let mut c = Command::new("node");
+            c.current_dir(&e2e)
+                .args(args)
+                .env("GETAVATAR_URL", format!("http://{}/", server.addr))
+                .env("GETAVATAR_OUT", e2e.join("out"));
+            run(&mut c)
+        };
+        node(&["app.e2e.mjs"])?;
         // Person finding on hard photos (several people, upside down, lying, backlit, none).
-        let mut c = Command::new("node");
-        c.current_dir(&e2e)
-            .arg("people.e2e.mjs")
-            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
-            .env("GETAVATAR_OUT", e2e.join("out"));
-        run(&mut c)?;
+        node(&["people.e2e.mjs"])?;
         // The random-action soak: 300 seeded actions after a warm-up, no panic, no
         // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
-        let mut c = Command::new("node");
-        c.current_dir(&e2e)
-            .args(["soak.e2e.mjs", "300", "1"])
-            .env("GETAVATAR_URL", format!("http://{}/", server.addr))
-            .env("GETAVATAR_OUT", e2e.join("out"));
-        run(&mut c)?;
+        node(&["soak.e2e.mjs", "300", "1"])?;
         export_checks(&e2e)?;
     }
     println!("xtask test: all requested suites passed");
