@@ -161,3 +161,26 @@ fn builtin_clips_move_as_named_and_smoothly() {
     assert!(span > 0.15, "the hand swings {span} m");
     assert_eq!(walk.len() as f32, (1.1 * MOTION_FPS).round());
 }
+
+#[test]
+fn a_written_amass_file_reads_back_as_the_same_clip() {
+    let walk = Motion::builtin("walk").unwrap();
+    let mut clip = walk.clone();
+    for (k, t) in clip.trans.iter_mut().enumerate() {
+        *t += Vec3::new(0.02 * k as f32, 0.0, -0.01 * k as f32);
+    }
+    let bytes = clip.to_amass_npz(Some(&[0.5, -0.2])).unwrap();
+    let back = Motion::from_amass_npz(&bytes, "walk").unwrap();
+    assert_eq!(back.len(), clip.len());
+    for k in 0..clip.len() {
+        for j in 0..24 {
+            let (a, b) = (quat(clip.poses[k][j]), quat(back.poses[k][j]));
+            assert!(a.dot(b).abs() > 1.0 - 1e-6, "frame {k} joint {j}: {a} vs {b}");
+        }
+        let want = clip.trans[k] - clip.trans[0];
+        assert!((back.trans[k] - want).length() < 1e-5, "frame {k}: {} vs {want}", back.trans[k]);
+    }
+    // Joint positions agree too, so the z-up turn went onto the root and back.
+    assert!((joints(&back, 7)[7] - joints(&clip, 7)[7] + clip.trans[0]).length() < 1e-4);
+    assert!(matches!(Motion { poses: vec![], trans: vec![], ..walk }.to_amass_npz(None), Err(MotionError::Empty)));
+}

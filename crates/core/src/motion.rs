@@ -204,6 +204,36 @@ impl Motion {
     }
 }
 
+impl Motion {
+    /// The clip as an SMPL/AMASS `.npz` that [`Motion::from_amass_npz`] reads back: `poses`
+    /// N×72 and `trans` N×3 (z-up, as AMASS), `mocap_framerate` ([`MOTION_FPS`]), and `betas`
+    /// when given (the body the motion was fitted on; players use their own).
+    pub fn to_amass_npz(&self, betas: Option<&[f32]>) -> Result<Vec<u8>, MotionError> {
+        if self.poses.is_empty() {
+            return Err(MotionError::Empty);
+        }
+        // y-up → z-up: a turn of +90° about x (the reader turns back by −90°).
+        let down = Quat::from_rotation_x(std::f32::consts::FRAC_PI_2);
+        let mut poses = Vec::with_capacity(self.len() * 72);
+        let mut trans = Vec::with_capacity(self.len() * 3);
+        for (p, t) in self.poses.iter().zip(&self.trans) {
+            for (j, r) in p.iter().enumerate() {
+                let r = if j == 0 { to_axis_angle(down * quat(*r)) } else { *r };
+                poses.extend(r.to_array().map(f64::from));
+            }
+            trans.extend((down * *t).to_array().map(f64::from));
+        }
+        let mut arrays = std::collections::BTreeMap::new();
+        arrays.insert("poses".to_string(), NpyArray::f64(vec![self.len(), 72], poses));
+        arrays.insert("trans".to_string(), NpyArray::f64(vec![self.len(), 3], trans));
+        arrays.insert("mocap_framerate".to_string(), NpyArray::f64(vec![], vec![f64::from(MOTION_FPS)]));
+        if let Some(b) = betas {
+            arrays.insert("betas".to_string(), NpyArray::f32(vec![b.len()], b.to_vec()));
+        }
+        Ok(crate::npz::write_npz(&arrays)?)
+    }
+}
+
 /// A 0-d or one-element array's number.
 fn scalar(a: &NpyArray) -> Option<f64> {
     (a.len() == 1).then(|| a.to_f64()[0])
@@ -211,7 +241,7 @@ fn scalar(a: &NpyArray) -> Option<f64> {
 
 /// Resample poses (slerp) and translations (lerp) from `src_fps` to `dst_fps`, first frame
 /// kept, last frame not passed.
-fn resample(
+pub(crate) fn resample(
     poses: &[[Vec3; NUM_JOINTS]],
     trans: &[Vec3],
     src_fps: f32,

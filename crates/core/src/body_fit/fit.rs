@@ -133,6 +133,19 @@ impl FitInput {
     ) -> Result<Self, FitError> {
         result.validate()?;
         let framing = Framing::from_landmarks(&result.pose_landmarks, width, height, model)?;
+        Self::framed(result, framing, mask, options)
+    }
+
+    /// From a detector result seen through a given crop of its photo (a video's frames share
+    /// one crop, so that the camera, and with it the root's path, is the same in all of them).
+    pub fn framed(
+        result: &PoseResult,
+        framing: Framing,
+        mask: Option<&SegmentationMask>,
+        options: &FitOptions,
+    ) -> Result<Self, FitError> {
+        result.validate()?;
+        let (width, height) = (framing.photo_width, framing.photo_height);
         let points = result
             .pose_landmarks
             .iter()
@@ -395,6 +408,18 @@ pub struct BodyFitter {
     alternative: Option<Box<BodyFitter>>,
     /// This fit's input has the hands swapped.
     hands_swapped: bool,
+    /// β held at its value (a video's shape, fitted once for the clip).
+    shape_held: bool,
+    /// A pull of θ `[24, 3]` towards a neighbouring frame's, and its weight (radians²).
+    temporal: Option<(Tensor<2>, f32)>,
+}
+
+/// The fit's own parameters: θ with the body's whole turn in it (not yet split into the
+/// camera, as [`BodyFit`] has it) and the camera's translation (world → camera).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitState {
+    pub params: BodyParams,
+    pub camera: Vec3,
 }
 
 /// Limb bones of the 3D direction term: (parent joint, child joint, landmarks). Ordered so
@@ -551,6 +576,8 @@ impl BodyFitter {
             stage_loss: [None; 3],
             alternative: None,
             hands_swapped: false,
+            shape_held: false,
+            temporal: None,
         })
     }
 
@@ -576,6 +603,51 @@ impl BodyFitter {
         (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
         // The user's corrected pose says which arm is which.
         self.alternative = None;
+    }
+
+    /// Continue from a neighbouring frame's parameters as they are (camera included), with
+    /// one hand labelling (the neighbour's says which arm is which), β held at `state`'s, and
+    /// θ pulled towards `state`'s with `temporal` (0: no pull).
+    pub fn warm_start(&mut self, state: &FitState, temporal: f32) {
+        let dev = &self.device;
+        let nb = self.skeleton.num_betas.max(1);
+        let theta: Vec<f32> = state.params.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let mut betas = state.params.betas.clone();
+        betas.resize(nb, 0.0);
+        self.params = FitParams {
+            orient: Param::from_tensor(matrix(state.params.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
+            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, dev).require_grad()),
+            betas: Param::from_tensor(matrix(betas, 1, nb, dev).require_grad()),
+            camera: Param::from_tensor(matrix(state.camera.to_array().to_vec(), 1, 3, dev).require_grad()),
+        };
+        self.adam = Adam::new(0.9, 0.999, 1e-8);
+        (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
+        self.alternative = None;
+        self.shape_held = true;
+        let all: Vec<f32> = state.params.pose.iter().flat_map(|v| v.to_array()).collect();
+        self.temporal = (temporal > 0.0).then(|| (matrix(all, NUM_JOINTS, 3, dev), temporal));
+    }
+
+    /// Hold β at `betas` from now on (the clip's shape): the fit moves θ and the camera only.
+    pub fn hold_shape(&mut self, betas: &[f32]) {
+        let nb = self.skeleton.num_betas.max(1);
+        let mut b = betas.to_vec();
+        b.resize(nb, 0.0);
+        self.params.betas = Param::from_tensor(matrix(b, 1, nb, &self.device).require_grad());
+        self.shape_held = true;
+        if let Some(alt) = self.alternative.as_mut() {
+            alt.hold_shape(betas);
+        }
+    }
+
+    /// The current parameters.
+    pub async fn state(&self) -> Result<FitState, FitError> {
+        let orient = read_f32(self.params.orient.val()).await?;
+        let body_pose = read_f32(self.params.body_pose.val()).await?;
+        let betas = read_f32(self.params.betas.val()).await?;
+        let cam = read_f32(self.params.camera.val()).await?;
+        let betas = betas[..self.skeleton.num_betas].to_vec();
+        Ok(FitState { params: BodyParams::from_split(&orient, &body_pose, &betas), camera: Vec3::from_slice(&cam) })
     }
 
     /// Steps of all stages (the silhouette stage only with a mask).
@@ -661,6 +733,7 @@ impl BodyFitter {
         } else {
             (self.params.body_pose.val(), self.params.betas.val())
         };
+        let betas = if self.shape_held { betas.detach() } else { betas };
         (Tensor::cat(vec![self.params.orient.val(), pose], 0), betas)
     }
 
@@ -699,7 +772,7 @@ impl BodyFitter {
     async fn loss(&mut self, stage: usize) -> Result<Tensor<1>, FitError> {
         let wts = self.options.weights.clone();
         let (theta, betas) = self.theta(stage);
-        let posed = self.skeleton.forward(theta, &betas);
+        let posed = self.skeleton.forward(theta.clone(), &betas);
         let dev = self.device.clone();
         let torso = stage == 0;
         let mut loss = self.data_term(&posed, &betas, torso).await;
@@ -716,8 +789,10 @@ impl BodyFitter {
             let side = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.side, 1).reshape([1]);
             loss = loss + side.clone() * side * wts.hinge_side;
         }
-        let b = self.params.betas.val();
-        loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;
+        if !self.shape_held {
+            let b = self.params.betas.val();
+            loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;
+        }
         if let Some((from, to, dirs, w)) = &self.bones {
             let a = posed.joints.clone().select(0, joint_index(from, &dev));
             let c = posed.joints.clone().select(0, joint_index(to, &dev));
@@ -733,6 +808,10 @@ impl BodyFitter {
             let target = pose.clone().select(0, seen.clone()).detach() * flip;
             let d = pose.clone().select(0, hidden.clone()) - target;
             loss = loss + ((d.clone() * d).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.symmetry;
+        }
+        if let Some((previous, w)) = &self.temporal {
+            let d = theta.clone() - previous.clone();
+            loss = loss + (d.clone() * d).sum().reshape([1]) * *w;
         }
         if stage == 2 {
             if let Some(mask) = self.input.mask.clone() {

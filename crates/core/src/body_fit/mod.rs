@@ -7,6 +7,9 @@
 //!   this body).
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 //! - [`options`]: the fit's settings (term weights, stages).
+//! - [`temporal`]: a video's per-frame fits as one motion (lost frames filled, smoothed
+//!   without lag) and the yardsticks of a motion against its truth.
+//! - [`video`]: a clip's detections → one body shape and a warm-started fit per frame.
 //! - [`turn`]: a photo turned by quarter turns so that its person is upright, and the map
 //!   back to the photo as taken.
 
@@ -20,4 +23,7 @@ pub mod metrics;
 pub mod options;
 pub mod surface;
 pub mod synthetic;
+pub mod temporal;
 pub mod turn;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod video;

@@ -330,3 +330,46 @@ pub const UNSEEN_POSE_CAMERAS: [TestCamera; 5] = [
     TestCamera { yaw: 0.4, pitch: 0.0, radius: 3.0 },
     TestCamera { yaw: 0.0, pitch: 0.08, radius: 2.4 },
 ];
+
+/// A 2-second dance outside the pose library and the built-in clips, for the video path's
+/// test with known truth: a squat, a jump with a sharp quarter turn to the body's left (over
+/// frames 24…28 at 30 fps), a landing with a side step, the arms swinging sideways and
+/// forward throughout; the root's translation is the body's path (metres).
+pub fn dance(frames: usize, fps: f32) -> Vec<BodyParams> {
+    let smooth = |x: f32| {
+        let x = x.clamp(0.0, 1.0);
+        x * x * (3.0 - 2.0 * x)
+    };
+    (0..frames)
+        .map(|k| {
+            let t = k as f32 / fps;
+            let mut p = BodyParams { betas: vec![0.4, -0.3], ..BodyParams::default() };
+            // Squat down and up over the first 0.8 s, again after landing.
+            let squat =
+                (PI * (t / 0.8).min(1.0)).sin().max(0.0) * 0.8 + (PI * ((t - 1.3) / 0.7).clamp(0.0, 1.0)).sin() * 0.5;
+            p.pose[1] = Vec3::new(-1.1 * squat, 0.0, 0.1);
+            p.pose[2] = Vec3::new(-1.1 * squat, 0.0, -0.1);
+            p.pose[4] = Vec3::new(1.7 * squat, 0.0, 0.0);
+            p.pose[5] = Vec3::new(1.7 * squat, 0.0, 0.0);
+            p.pose[7] = Vec3::new(-0.5 * squat, 0.0, 0.0);
+            p.pose[8] = Vec3::new(-0.5 * squat, 0.0, 0.0);
+            p.pose[3] = Vec3::new(0.3 * squat, 0.0, 0.0);
+            // Arms: sideways from down to near level and forward, elbows bending.
+            let swing = 0.5 - 0.5 * (2.0 * PI * 1.2 * t).cos();
+            let fwd = 0.5 * (2.0 * PI * 0.9 * t).sin();
+            p.pose[16] = Vec3::new(fwd, 0.0, -1.2 + 1.0 * swing);
+            p.pose[17] = Vec3::new(-fwd, 0.0, 1.2 - 1.0 * swing);
+            p.pose[18] = Vec3::new(0.0, -0.3 - 0.8 * swing, 0.0);
+            p.pose[19] = Vec3::new(0.0, 0.3 + 0.8 * (1.0 - swing), 0.0);
+            p.pose[15] = Vec3::new(0.15 * fwd, 0.3 * fwd, 0.0);
+            // The turn, over 4 frames, mid-jump.
+            let turn = smooth((t * fps - 24.0) / 4.0);
+            p.pose[0] = Vec3::new(0.0, FRAC_PI_2 * turn, 0.0);
+            // The path: down with the squat, up in the jump (0.75…1.15 s), a side step after.
+            let jump = ((t - 0.75) / 0.4).clamp(0.0, 1.0);
+            let y = -0.3 * squat + 4.0 * 0.22 * jump * (1.0 - jump);
+            p.transl = Vec3::new(0.35 * smooth((t - 1.2) / 0.5), y, 0.1 * smooth(t / 2.0));
+            p
+        })
+        .collect()
+}
