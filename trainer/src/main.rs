@@ -14,6 +14,7 @@ mod fit_mapping;
 mod fit_pose;
 mod inception;
 mod invert;
+mod motion_from_video;
 mod pck;
 mod plot;
 mod prepare;
@@ -198,6 +199,9 @@ enum Command {
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
     /// mask): the app's photo → body step, scriptable. Writes fit.json.
     FitPose(fit_pose::FitPoseArgs),
+    /// A clip of a person → an SMPL/AMASS motion file (.npz) for `export --motion` and the
+    /// app: MediaPipe per frame (or --keypoints), one body shape, a fit per frame, smoothed.
+    MotionFromVideo(motion_from_video::MotionFromVideoArgs),
     /// Time the body fit per stage on synthetic detections of unseen poses, with its accuracy.
     BenchFit(fit_pose::BenchFitArgs),
     /// Render the bare body in the unseen test poses from two yaws and in the wider set from
@@ -289,6 +293,7 @@ fn main() -> Result<()> {
         Command::TrainEncoder(args) => train_encoder::train_encoder(&args)?,
         Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
+        Command::MotionFromVideo(args) => motion_from_video::motion_from_video(&args)?,
         Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
         Command::BodyPhotos { out, size } => {
             for p in fit_pose::body_photos(&out, size)? {

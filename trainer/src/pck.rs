@@ -40,7 +40,7 @@ pub struct Pck {
 }
 
 /// The detector's command for `dir`.
-fn detector(dir: &Path) -> Result<Command> {
+pub(crate) fn detector(dir: &Path) -> Result<Command> {
     if let Some(program) = std::env::var_os("GETAVATAR_MEDIAPIPE") {
         let mut c = Command::new(program);
         c.arg(dir);

@@ -105,10 +105,11 @@ pub fn chromium() -> Result<String> {
     Ok("/usr/bin/chromium".into())
 }
 
-/// A Vulkan driver for the native wgpu tests: Mesa's lavapipe (software) where none exists.
+/// A Vulkan driver for the native wgpu tests: Mesa's lavapipe (software) where none exists;
+/// ffmpeg for `trainer motion-from-video` and its test.
 pub fn native_test_deps() -> Result<()> {
     if Path::new("/usr/bin/apt-get").exists() {
-        apt_install(&["mesa-vulkan-drivers"])?;
+        apt_install(&["mesa-vulkan-drivers", "ffmpeg"])?;
     }
     Ok(())
 }
@@ -149,6 +150,7 @@ fn npm_ci(dir: &Path) -> Result<()> {
 pub fn setup(verbose: bool) -> Result<()> {
     let tc = wasm_toolchain()?;
     browser_test_deps()?;
+    native_test_deps()?;
     web_deps()?;
     if verbose {
         println!("wasm toolchain: {tc:?}; chromium: {}; node packages: tests/e2e/node_modules", chromium()?);
