@@ -1,6 +1,6 @@
 #!/bin/bash
 # The figures on a real GPU (docs/benchmarks.md, "On a real GPU"): the generator's
-# stage table (`trainer bench`, wgpu and NdArray), and the training step (`trainer bench-train`,
+# stage table (`trainer bench generator`, wgpu and NdArray), and the training step (`trainer bench train`,
 # NdArray vs wgpu at 128², wgpu at 256² and 512²), all in one run, with the adapter printed.
 #
 # Run from the repository root of a Linux machine with a GPU and its Vulkan driver, with .gl/
@@ -24,7 +24,7 @@ ls /usr/share/vulkan/icd.d /etc/vulkan/icd.d /usr/local/nvidia/share/vulkan/icd.
 # Find the NVIDIA adapter: the default search first, then the driver's own ICD files.
 for icd in "" /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/share/vulkan/icd.d/nvidia_icd.json /etc/vulkan/icd.d/nvidia_icd.json; do
   if [ -n "$icd" ]; then [ -f "$icd" ] || continue; export VK_DRIVER_FILES=$icd; fi
-  VK_LOADER_DEBUG=error timeout 90 $T bench --configs tiny --backend wgpu > $OUT/probe.txt 2>&1
+  VK_LOADER_DEBUG=error timeout 90 $T bench generator --configs tiny --backend wgpu > $OUT/probe.txt 2>&1
   grep "^wgpu adapter" $OUT/probe.txt | tee -a $OUT/machine.txt
   if grep -q "^wgpu adapter:" $OUT/probe.txt && ! grep -q SOFTWARE $OUT/probe.txt; then break; fi
 done
@@ -42,25 +42,25 @@ echo "VK_DRIVER_FILES=$VK_DRIVER_FILES" | tee -a $OUT/machine.txt
 PARTS=${PARTS:-stages,train128,traingpu}
 has() { [[ ",$PARTS," == *",$1,"* ]]; }
 if has stages; then
-  timeout 170 $T bench --configs demo,paper --backend wgpu --repeats 2 2>&1 | tee $OUT/bench_wgpu.txt
-  timeout 60 $T bench --configs demo --backend ndarray 2>&1 | tee $OUT/bench_ndarray.txt
+  timeout 170 $T bench generator --configs demo,paper --backend wgpu --repeats 2 2>&1 | tee $OUT/bench_wgpu.txt
+  timeout 60 $T bench generator --configs demo --backend ndarray 2>&1 | tee $OUT/bench_ndarray.txt
 fi
-has train128 && timeout 130 $T bench-train --configs demo --backends ndarray,wgpu --res 128 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_128.txt
-has traingpu && timeout 160 $T bench-train --configs demo,paper --backends wgpu --res 256,512 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_gpu.txt
+has train128 && timeout 130 $T bench train --configs demo --backends ndarray,wgpu --res 128 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_128.txt
+has traingpu && timeout 160 $T bench train --configs demo,paper --backends wgpu --res 256,512 --steps 2 --work /tmp/bt 2>&1 | tee $OUT/bench_train_gpu.txt
 if has compare; then
   B=/tmp/trainer_b
   gzip -dc .gl/trainer_b.gz > $B && chmod +x $B || { echo 'no .gl/trainer_b.gz'; exit 1; }
   for round in $(seq ${ROUNDS:-2}); do
     for t in $T $B; do
       tag=$(basename $t)_$round
-      timeout 120 $t bench --configs demo,paper --backend wgpu > $OUT/compare_bench_$tag.txt 2>&1
-      timeout 100 $t bench-train --configs demo --backends wgpu --res 128 --steps 2 --work /tmp/bt > $OUT/compare_train_$tag.txt 2>&1
+      timeout 120 $t bench generator --configs demo,paper --backend wgpu > $OUT/compare_bench_$tag.txt 2>&1
+      timeout 100 $t bench train --configs demo --backends wgpu --res 128 --steps 2 --work /tmp/bt > $OUT/compare_train_$tag.txt 2>&1
       tail -3 $OUT/compare_train_$tag.txt
     done
   done
 fi
 if has paper512; then
-  timeout 200 $T bench-train --configs paper --backends wgpu --res 512 --batch 1 --steps 1 --work /tmp/bt 2>&1 | tee $OUT/bench_train_paper512.txt
+  timeout 200 $T bench train --configs paper --backends wgpu --res 512 --batch 1 --steps 1 --work /tmp/bt 2>&1 | tee $OUT/bench_train_paper512.txt
   echo "exit ${PIPESTATUS[0]}" | tee -a $OUT/bench_train_paper512.txt
   dmesg 2>&1 | tail -20 > $OUT/dmesg_tail.txt
 fi

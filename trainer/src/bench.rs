@@ -1,4 +1,4 @@
-//! `trainer bench`: timings of the generator stages, measured in one run, printed as a table
+//! `trainer bench generator`: timings of the generator stages, measured in one run, printed as a table
 //! with ratios (no assertions: performance claims live here, not in tests).
 
 use std::time::Instant;
@@ -214,7 +214,7 @@ fn clock_ms() -> f64 {
     T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0
 }
 
-/// What `trainer bench-train` measures.
+/// What `trainer bench train` measures.
 pub struct TrainBenchArgs {
     pub configs: Vec<String>,
     pub backends: Vec<String>,
@@ -293,7 +293,7 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
         GeneratorConfig::preset(config).with_context(|| format!("unknown config `{config}`"))?;
         for backend in &a.backends {
             for &res in &a.resolutions {
-                eprintln!("bench-train: {config} on {backend} at {res}² …");
+                eprintln!("bench train: {config} on {backend} at {res}² …");
                 let out = std::process::Command::new(&exe)
                     .args(["bench-train-case", "--data"])
                     .arg(a.work.join(format!("ds{res}")))
@@ -308,14 +308,14 @@ pub fn bench_train(a: &TrainBenchArgs) -> Result<()> {
                         let r: CaseReport = serde_json::from_str(json)?;
                         // Each case as it finishes, so a run cut short still reports.
                         eprintln!(
-                            "bench-train: {config} on {backend} at {res}²: {:.2} s/step, R1 step {:.2} s, peak {} MiB",
+                            "bench train: {config} on {backend} at {res}²: {:.2} s/step, R1 step {:.2} s, peak {} MiB",
                             r.timings.step_s,
                             r.timings.r1_step_s,
                             r.peak_mib.map_or("-".into(), |m| format!("{m:.0}"))
                         );
                         rows.push((config.clone(), backend.clone(), res, r))
                     }
-                    _ => eprintln!("bench-train: {config} on {backend} at {res}² failed ({}); skipped", out.status),
+                    _ => eprintln!("bench train: {config} on {backend} at {res}² failed ({}); skipped", out.status),
                 }
             }
         }

@@ -483,7 +483,7 @@ pub struct BenchExportArgs {
     pub seed_tex: u64,
 }
 
-/// `bench-export`: the export's stages timed one by one (atlas, texel points, texture-field
+/// `bench export`: the export's stages timed one by one (atlas, texel points, texture-field
 /// queries, image + dilation, PNG, glTF writing) and the file sizes, per config and texture
 /// side, on `--backend`.
 pub fn bench_export(a: &BenchExportArgs) -> Result<()> {

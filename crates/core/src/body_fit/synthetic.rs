@@ -6,7 +6,7 @@
 //! eyes) are reported at the pelvis with visibility 0.
 //!
 //! [`unseen_poses`] are poses outside the pose library and `synth-scans`' draws, for the fit's
-//! round-trip test and `trainer bench-fit`.
+//! round-trip test and `trainer bench fit`.
 
 use std::f32::consts::{FRAC_PI_2, PI};
 

@@ -37,7 +37,7 @@ pub fn is_ndarray(device: &Device) -> bool {
 /// The one convolution of the networks (StyleGAN2's modulated convs use per-sample weights,
 /// the discriminators a shared one). On NdArray it is im2col + matmul as one operation with
 /// its own backward pass ([`super::ndarray_ops`]): burn-ndarray's `conv2d` backward is
-/// 25–35× slower at the sizes we train (see `trainer bench`). On GPU backends it is burn's
+/// 25–35× slower at the sizes we train (see `trainer bench generator`). On GPU backends it is burn's
 /// grouped `conv2d` for small convolutions and the same im2col + matmul for large ones
 /// ([`GPU_IM2COL_MIN_MACS`]).
 pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
