@@ -8,6 +8,9 @@
 //! - the root's path is within 10 cm of the truth's after scale alignment;
 //! - frames without a person are filled in and reported; a clip without one is an error.
 //!
+//! The same on the real detector's reading of the rendered dance (a fixture), at its measured
+//! errors.
+//!
 //! The settings can be varied for measurements (docs/benchmarks.md, "Motion from a video"):
 //! `VIDEO_WARM=10,60,0` (warm steps per stage), `VIDEO_SMOOTHING=1.5` (σ, frames),
 //! `VIDEO_TEMPORAL=0` (pull towards the previous frame), `VIDEO_DEBUG=1` (per-frame yaw and
@@ -17,7 +20,7 @@ use std::sync::Arc;
 
 use getavatar_core::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body_fit::metrics::pa_mpjpe;
-use getavatar_core::body_fit::synthetic::{dance, detect, TestCamera};
+use getavatar_core::body_fit::synthetic::{dance, detect, TestCamera, DANCE_CAMERA};
 use getavatar_core::body_fit::temporal::{acceleration_error, lag_at_half_change};
 use getavatar_core::body_fit::video::{VideoDetections, VideoError, VideoFitOptions, VideoFitter, VideoMotion};
 use getavatar_core::readback::block_on_ready;
@@ -34,7 +37,7 @@ const FRAMES: usize = 60;
 const SIZE: usize = 256;
 
 fn camera() -> TestCamera {
-    TestCamera { yaw: 0.3, pitch: 0.05, radius: 3.2 }
+    DANCE_CAMERA
 }
 
 fn detections(model: &BodyModel, truth: &[BodyParams], lose: &[usize]) -> VideoDetections {
@@ -51,6 +54,21 @@ fn detections(model: &BodyModel, truth: &[BodyParams], lose: &[usize]) -> VideoD
         })
         .collect();
     VideoDetections { results, width: SIZE, height: SIZE, fps: FPS }
+}
+
+/// A `getavatar-video-keypoints/1` file.
+fn read_keypoints(path: &str) -> VideoDetections {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let header: serde_json::Value = serde_json::from_str(lines.next().unwrap()).unwrap();
+    let results = lines
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            serde_json::from_value(v["result"].clone()).unwrap()
+        })
+        .collect();
+    let n = |k: &str| header[k].as_u64().unwrap() as usize;
+    VideoDetections { results, width: n("width"), height: n("height"), fps: header["fps"].as_f64().unwrap() as f32 }
 }
 
 fn run(model: &Arc<BodyModel>, det: &VideoDetections, options: VideoFitOptions) -> (VideoFitter, VideoMotion) {
@@ -94,13 +112,33 @@ fn yaws(orients: impl Iterator<Item = glam::Quat>) -> Vec<f32> {
     out.iter().map(|a| a - first).collect()
 }
 
-#[test]
-fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
-    let model = Arc::new(BodyModel::default_body().unwrap());
-    let truth = dance(FRAMES, FPS);
-    let lose = [40, 41];
-    let det = detections(&model, &truth, &lose);
-    let start = std::time::Instant::now();
+/// How a video's motion compares with the dance's truth.
+struct Scores {
+    seconds: f32,
+    /// PA-MPJPE per frame, metres.
+    errors: Vec<f32>,
+    /// Acceleration error of the smoothed and the unsmoothed motion, metres per frame².
+    accel: f32,
+    accel_raw: f32,
+    /// Frames the root's yaw trails the truth's through the turn.
+    lag: f32,
+    /// Largest error of the pelvis path after scale alignment, metres; the scale.
+    path_error: f32,
+    scale: f32,
+}
+
+impl Scores {
+    fn worst(&self) -> f32 {
+        self.errors.iter().copied().fold(0.0f32, f32::max)
+    }
+    fn mean(&self) -> f32 {
+        self.errors.iter().sum::<f32>() / self.errors.len() as f32
+    }
+}
+
+/// The settings of a measurement run (`VIDEO_WARM`, `VIDEO_SMOOTHING`, `VIDEO_TEMPORAL`), or
+/// the defaults.
+fn options() -> VideoFitOptions {
     let mut options = VideoFitOptions::default();
     if let Ok(w) = std::env::var("VIDEO_WARM") {
         let v: Vec<usize> = w.split(',').map(|x| x.parse().unwrap()).collect();
@@ -112,11 +150,20 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
     if let Ok(w) = std::env::var("VIDEO_TEMPORAL") {
         options.temporal = w.parse().unwrap();
     }
-    let (mut fitter, video) = run(&model, &det, options);
+    options
+}
+
+/// Fit `det` and score the motion against the dance; `lost`: the frames without a person.
+fn fit_and_score(name: &str, det: &VideoDetections, lost: &[usize]) -> Scores {
+    let model = Arc::new(BodyModel::default_body().unwrap());
+    let truth = dance(FRAMES, FPS);
+    let start = std::time::Instant::now();
+    let (mut fitter, video) = run(&model, det, options());
     let seconds = start.elapsed().as_secs_f32();
-    assert_eq!(video.lost, lose);
+    assert_eq!(video.lost, lost);
     assert_eq!(video.motion.len(), FRAMES);
-    assert!(video.motion.notes.iter().any(|n| n.contains("2 of 60 frames")), "{:?}", video.motion.notes);
+    let note = format!("{} of 60 frames", lost.len());
+    assert!(lost.is_empty() || video.motion.notes.iter().any(|n| n.contains(&note)), "{:?}", video.motion.notes);
     fitter.set_smoothing(0.0);
     let raw = fitter.finish("dance").unwrap();
 
@@ -127,42 +174,22 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
     let fitted =
         |m: &VideoMotion| camera_joints(&model, (0..FRAMES).map(|k| m.motion.params(k, &betas)), glam::Mat3::IDENTITY);
     let (smoothed, unsmoothed) = (fitted(&video), fitted(&raw));
-
     let errors: Vec<f32> = smoothed.iter().zip(&true_joints).map(|(a, b)| pa_mpjpe(a, b)).collect();
-    let worst = errors.iter().copied().fold(0.0f32, f32::max);
-    let mean = errors.iter().sum::<f32>() / errors.len() as f32;
-    let accel = acceleration_error(&smoothed, &true_joints);
-    let accel_raw = acceleration_error(&unsmoothed, &true_joints);
 
     let true_yaw = yaws(truth.iter().map(|p| glam::Quat::from_mat3(&to_camera) * axis_angle_to_quat(p.pose[0])));
     let fit_yaw = yaws(video.motion.poses.iter().map(|p| axis_angle_to_quat(p[0])));
     let lag = lag_at_half_change(&fit_yaw, &true_yaw).expect("the turn is seen");
     if std::env::var_os("VIDEO_DEBUG").is_some() {
         for k in 0..FRAMES {
-            let p = &video.motion.poses[k];
-            eprintln!(
-                "{k}: yaw {:.2} truth {:.2} error {:.1} mm; spine {:.2} {:.2} {:.2} hips {:.2} {:.2}",
-                fit_yaw[k],
-                true_yaw[k],
-                errors[k] * 1000.0,
-                p[3].y,
-                p[6].y,
-                p[9].y,
-                p[1].y,
-                p[2].y
-            );
+            eprintln!("{k}: yaw {:.2} truth {:.2} error {:.1} mm", fit_yaw[k], true_yaw[k], errors[k] * 1000.0);
         }
     }
 
     // The root's path in the camera's axes (pelvis), both from their means, scale-aligned.
     let true_root: Vec<Vec3> =
         truth.iter().map(|p| view.transform_point3(pose_body(&model, p).kinematics.posed_joints[0])).collect();
-    let fit_root: Vec<Vec3> = (0..FRAMES)
-        .map(|k| {
-            let p = video.motion.params(k, &betas);
-            pose_body(&model, &p).kinematics.posed_joints[0]
-        })
-        .collect();
+    let fit_root: Vec<Vec3> =
+        (0..FRAMES).map(|k| pose_body(&model, &video.motion.params(k, &betas)).kinematics.posed_joints[0]).collect();
     let centre = |v: &[Vec3]| {
         let m = v.iter().copied().sum::<Vec3>() / v.len() as f32;
         v.iter().map(|x| *x - m).collect::<Vec<_>>()
@@ -171,20 +198,54 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
     let scale =
         g.iter().zip(&r).map(|(a, b)| a.dot(*b)).sum::<f32>() / r.iter().map(|b| b.length_squared()).sum::<f32>();
     let path_error = g.iter().zip(&r).map(|(a, b)| (*a - *b * scale).length()).fold(0.0f32, f32::max);
-
+    let scores = Scores {
+        seconds,
+        errors,
+        accel: acceleration_error(&smoothed, &true_joints),
+        accel_raw: acceleration_error(&unsmoothed, &true_joints),
+        lag,
+        path_error,
+        scale,
+    };
     eprintln!(
-        "video fit of {FRAMES} frames in {seconds:.1} s: PA-MPJPE mean {:.1} mm, worst {:.1} mm; accel error {:.2} mm/frame² \
-         (unsmoothed {:.2}); lag at the turn {lag:.2} frames; root path within {:.1} cm (scale {scale:.2})",
-        mean * 1000.0,
-        worst * 1000.0,
-        accel * 1000.0,
-        accel_raw * 1000.0,
-        path_error * 100.0
+        "{name}: video fit of {FRAMES} frames in {:.1} s: PA-MPJPE mean {:.1} mm, worst {:.1} mm; accel error {:.2} \
+         mm/frame² (unsmoothed {:.2}); lag at the turn {:.2} frames; root path within {:.1} cm (scale {:.2})",
+        scores.seconds,
+        scores.mean() * 1000.0,
+        scores.worst() * 1000.0,
+        scores.accel * 1000.0,
+        scores.accel_raw * 1000.0,
+        scores.lag,
+        scores.path_error * 100.0,
+        scores.scale
     );
-    assert!(worst <= 0.060, "worst frame {} mm: {errors:?}", worst * 1000.0);
-    assert!(accel < accel_raw, "smoothing made the acceleration error {accel} from {accel_raw}");
-    assert!(lag.abs() <= 2.0, "the turn lags by {lag} frames");
-    assert!(path_error <= 0.10, "root path off by {path_error} m");
+    scores
+}
+
+#[test]
+fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
+    let model = BodyModel::default_body().unwrap();
+    let lost = [40, 41];
+    let s = fit_and_score("synthetic detections", &detections(&model, &dance(FRAMES, FPS), &lost), &lost);
+    assert!(s.worst() <= 0.060, "worst frame {} mm: {:?}", s.worst() * 1000.0, s.errors);
+    assert!(s.accel < s.accel_raw, "smoothing made the acceleration error {} from {}", s.accel, s.accel_raw);
+    assert!(s.lag.abs() <= 2.0, "the turn lags by {} frames", s.lag);
+    assert!(s.path_error <= 0.10, "root path off by {} m", s.path_error);
+}
+
+/// The same dance rendered (`trainer body-photos --dance 60 --size 384`), encoded by ffmpeg
+/// and read by the real MediaPipe Pose (`trainer motion-from-video --keypoints-out`): the
+/// fixture `tests/fixtures/video/dance.keypoints.jsonl`. Bounds at the measured figures
+/// (mean 51 mm, worst 68 mm in the deepest squat: above the 60 mm goal; accel 7.2 against
+/// 22.1 unsmoothed; lag 1.2 frames; path 10.2 cm at scale 0.90).
+#[test]
+fn the_real_detectors_reading_of_the_dance_stays_within_its_measured_errors() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/video/dance.keypoints.jsonl");
+    let s = fit_and_score("MediaPipe", &read_keypoints(path), &[]);
+    assert!(s.mean() <= 0.055 && s.worst() <= 0.072, "PA-MPJPE mean {} worst {}: {:?}", s.mean(), s.worst(), s.errors);
+    assert!(s.accel < 0.5 * s.accel_raw, "smoothing made the acceleration error {} from {}", s.accel, s.accel_raw);
+    assert!(s.lag.abs() <= 2.0, "the turn lags by {} frames", s.lag);
+    assert!(s.path_error <= 0.12, "root path off by {} m", s.path_error);
 }
 
 #[test]

@@ -12,7 +12,7 @@ use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, S
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
 use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body_fit::synthetic::{
-    dance, detect, unseen_poses, wide_camera, wide_poses, TestCamera, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
+    dance, detect, unseen_poses, wide_camera, wide_poses, DANCE_CAMERA, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
 };
 use getavatar_core::body_fit::turn;
 use getavatar_core::body_model::BodyModel;
@@ -264,9 +264,6 @@ pub fn body_photos(out: &std::path::Path, size: usize) -> Result<Vec<PathBuf>> {
     }
     Ok(written)
 }
-
-/// The camera that films [`dance`] (the video path's tests use the same).
-pub const DANCE_CAMERA: TestCamera = TestCamera { yaw: 0.3, pitch: 0.05, radius: 3.2 };
 
 /// The first `frames` frames of the synthetic [`dance`] at 30 fps as bare-body photos
 /// (`dance_000.png`, …), filmed by [`DANCE_CAMERA`]; the number written.

@@ -9,7 +9,7 @@
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 
-use getavatar_core::body_fit::synthetic::{dance, detect, TestCamera};
+use getavatar_core::body_fit::synthetic::{dance, detect, DANCE_CAMERA};
 use getavatar_core::dataset::encode_png;
 use getavatar_core::motion::Motion;
 use getavatar_core::rng::Rng;
@@ -45,7 +45,7 @@ fn run(args: &[&str], detector: Option<&Path>) -> std::process::Output {
 fn a_filmed_dance_becomes_a_motion_file_from_keypoints_and_from_the_video() {
     let root = tmp("motion-video");
     let model = BodyModel::default_body().unwrap();
-    let view = TestCamera { yaw: 0.3, pitch: 0.05, radius: 3.2 }.camera().world_to_camera();
+    let view = DANCE_CAMERA.camera().world_to_camera();
     let mut rng = Rng::new(7, 1);
     let truth = dance(FRAMES, 30.0);
     let dets: Vec<_> = truth.iter().map(|p| detect(&model, p, view, SIZE, 2.0, 0.02, &mut rng).unwrap()).collect();

@@ -331,6 +331,9 @@ pub const UNSEEN_POSE_CAMERAS: [TestCamera; 5] = [
     TestCamera { yaw: 0.0, pitch: 0.08, radius: 2.4 },
 ];
 
+/// The fixed camera that films [`dance`] (tests, `trainer body-photos --dance`).
+pub const DANCE_CAMERA: TestCamera = TestCamera { yaw: 0.3, pitch: 0.05, radius: 3.2 };
+
 /// A 2-second dance outside the pose library and the built-in clips, for the video path's
 /// test with known truth: a squat, a jump with a sharp quarter turn to the body's left (over
 /// frames 24…28 at 30 fps), a landing with a side step, the arms swinging sideways and
