@@ -31,12 +31,17 @@ const { PNG } = require('pngjs');
 
 const args = process.argv.slice(2);
 const front = args.includes('--front');
+// `--video`: the PNGs are a video's frames in name order, read by Pose's tracking mode in one
+// page (www/pose_detect.js detectVideoFrame), as `trainer motion-from-video` asks.
+const video = args.includes('--video');
 const dir = path.resolve(args.find((a) => !a.startsWith('--')) ?? '.');
 const photos = fs.readdirSync(dir).filter((f) => f.endsWith('.png') && !f.endsWith('.mask.png')).sort();
 const mime = { '.js': 'text/javascript', '.wasm': 'application/wasm', '.html': 'text/html', '.png': 'image/png' };
 const page = `<!DOCTYPE html><html><body><script type="module">
-import { detectPose } from './pose_detect.js';
-window.detect = async (name) => detectPose(new Uint8Array(await (await fetch('photos/' + name)).arrayBuffer()), 256);
+import { detectPose, detectVideoFrame } from './pose_detect.js';
+const bytesOf = async (name) => new Uint8Array(await (await fetch('photos/' + name)).arrayBuffer());
+window.detect = async (name) => detectPose(await bytesOf(name), 256);
+window.detectFrame = async (name, first) => detectVideoFrame(await bytesOf(name), first);
 window.ready = true;
 </script></body></html>`;
 const server = http.createServer((req, res) => {
@@ -76,9 +81,18 @@ const openTab = async () => {
   await tab.waitForFunction(() => window.ready);
   onTab = 0;
 };
+let firstFrame = true;
 const detect = async (name) => {
   for (let attempt = 0; ; attempt++) {
     try {
+      if (video) {
+        // One page for the clip (the tracker's state lives in its worker); a new page
+        // starts the tracker afresh.
+        if (!tab) { await openTab(); firstFrame = true; }
+        const r = JSON.parse(await tab.evaluate(([n, f]) => window.detectFrame(n, f), [name, firstFrame]));
+        firstFrame = false;
+        return r;
+      }
       if (!tab || onTab >= PAGE_PHOTOS) await openTab();
       onTab++;
       return JSON.parse(await tab.evaluate((n) => window.detect(n), name));
@@ -109,11 +123,13 @@ for (const name of photos) {
   const m = r.segmentationMask;
   delete r.segmentationMask;
   fs.writeFileSync(path.join(dir, `${stem}.kp.json`), JSON.stringify(r) + '\n');
-  const png = new PNG({ width: m.width, height: m.height, colorType: 0, inputColorType: 0, inputHasAlpha: false });
-  png.data = Buffer.from(m.data.map((v) => Math.round(v * 255)));
-  fs.writeFileSync(path.join(dir, `${stem}.mask.png`), PNG.sync.write(png, { colorType: 0, inputColorType: 0, inputHasAlpha: false }));
+  if (m) {
+    const png = new PNG({ width: m.width, height: m.height, colorType: 0, inputColorType: 0, inputHasAlpha: false });
+    png.data = Buffer.from(m.data.map((v) => Math.round(v * 255)));
+    fs.writeFileSync(path.join(dir, `${stem}.mask.png`), PNG.sync.write(png, { colorType: 0, inputColorType: 0, inputHasAlpha: false }));
+  }
   const vis = r.poseLandmarks.filter((l) => l.visibility >= 0.5).length;
-  console.log(`${name}: ${vis}/33 landmarks visible, mask ${m.width}×${m.height}`);
+  console.log(`${name}: ${vis}/33 landmarks visible${m ? `, mask ${m.width}×${m.height}` : ''}${r.tracked ? ', tracked' : ''}`);
 }
 await browser.close();
 server.close();

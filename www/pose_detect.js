@@ -5,6 +5,8 @@
 // detectPose(bytes, previewSide, person = -1) → JSON string: the detector's answer (see
 //   pose_worker.js) or {"error": "<one sentence for the user>"}; person ≥ 0 reads only that
 //   region (0 = the largest).
+// detectVideoFrame(bytes, first) → the same JSON for a video's frame, read by Pose's tracking
+//   mode (frames in order; `first` starts a clip).
 // photoPreview() → the last successfully detected photo at most previewSide pixels on its long
 //   side, {width, height, data: Uint8Array (RGBA, row-major from the top left)}, or null.
 
@@ -54,6 +56,25 @@ export async function detectPose(bytes, previewSide, person = -1) {
     w.postMessage({ id, bytes: copy, previewSide, person }, [copy.buffer]);
   });
   lastPreview = reply.preview ?? null;
+  return reply.json;
+}
+
+/** A video's frame (PNG/JPEG bytes) through Pose's tracking mode, in order: `first` starts a
+ * new clip. → JSON string as detectPose's (no preview). */
+export async function detectVideoFrame(bytes, first) {
+  if (!bytes || bytes.length === 0) return fail('the frame is empty');
+  let w;
+  try {
+    w = detector();
+  } catch (e) {
+    return fail(`the person detector could not start: ${e.message ?? e}`);
+  }
+  const copy = bytes.slice();
+  const id = nextId++;
+  const reply = await new Promise((resolve) => {
+    pending.set(id, resolve);
+    w.postMessage({ id, bytes: copy, track: first ? 'first' : 'next' }, [copy.buffer]);
+  });
   return reply.json;
 }
 

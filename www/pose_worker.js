@@ -27,6 +27,8 @@
 //    "persons": [{x, y, w, h} per region, normalised, largest first], "person": <the fitted
 //    region's index or null>, "tries": <Pose runs>}
 //   or {"error": "<one sentence for the user>"},
+// {id, bytes, track: 'first' | 'next'} in: a video's frame in order (see `track`), answered
+// with the same json (plus "tracked": true when the tracker read it; no preview);
 // and preview (on success) is the detected (turned) photo at most previewSide on its long side:
 // {width, height, data: Uint8Array RGBA, row-major from the top left}.
 // Landmarks are normalised to the (turned) photo, so they hold for its original size, also
@@ -428,14 +430,63 @@ async function detect(bytes, previewSide, person) {
   return { json: JSON.stringify(out), preview: { width: pw, height: ph, data: new Uint8Array(rgba.buffer) } };
 }
 
+// A video's frames: Pose in its tracking mode on the whole frame (the first frame, or one
+// after the tracker lost the person, starts afresh); a frame the tracker finds nobody in goes
+// through the person finder above, and the tracker starts afresh on the next.
+let trackerFresh = true;
+async function track(bytes, first) {
+  if (!bytes || bytes.length === 0) return failed('the frame is empty');
+  let bitmap;
+  try {
+    bitmap = await createImageBitmap(new Blob([bytes]));
+  } catch (e) {
+    return failed('the frame is not an image the browser can read');
+  }
+  const { width, height } = bitmap;
+  const k = Math.min(1, Math.sqrt(DETECT_PIXELS / (width * height)));
+  const canvas = newCanvas(Math.max(1, Math.round(width * k)), Math.max(1, Math.round(height * k)));
+  canvas.getContext('2d').drawImage(bitmap, 0, 0, canvas.width, canvas.height);
+  bitmap.close();
+  const pose = await poseSolution();
+  const results = await new Promise((resolve, reject) => {
+    if (first || trackerFresh) pose.reset();
+    pose.onResults(resolve);
+    pose.send({ image: canvas }).catch(reject);
+  });
+  trackerFresh = false;
+  if (!results.poseLandmarks) {
+    trackerFresh = true;
+    const found = await detect(bytes, 0, -1);
+    return { json: found.json };
+  }
+  const plain = (list, image) => (list ?? []).map((l) => {
+    const outside = image && (l.x < 0 || l.x > 1 || l.y < 0 || l.y > 1);
+    const v = l.visibility ?? 1;
+    return { x: l.x, y: l.y, z: l.z, visibility: outside ? Math.min(v, OUTSIDE_VISIBILITY) : v };
+  });
+  const out = {
+    width,
+    height,
+    detectedWidth: canvas.width,
+    detectedHeight: canvas.height,
+    rotation: 0,
+    poseLandmarks: plain(results.poseLandmarks, true),
+    poseWorldLandmarks: plain(results.poseWorldLandmarks, false),
+    tracked: true,
+  };
+  if (out.poseWorldLandmarks.length !== 33) delete out.poseWorldLandmarks;
+  if (results.segmentationMask) out.segmentationMask = maskValues(results.segmentationMask);
+  return { json: JSON.stringify(out) };
+}
+
 // One detection at a time: the solutions' result callbacks are shared state.
 let queue = Promise.resolve();
 self.onmessage = (e) => {
-  const { id, bytes, previewSide, person } = e.data;
+  const { id, bytes, previewSide, person, track: frame } = e.data;
   queue = queue.then(async () => {
     let reply;
     try {
-      reply = await detect(bytes, previewSide, person);
+      reply = frame ? await track(bytes, frame === 'first') : await detect(bytes, previewSide, person);
     } catch (err) {
       reply = failed(`the person detector failed: ${err?.message ?? err}`);
     }

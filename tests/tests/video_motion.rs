@@ -234,10 +234,10 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
 }
 
 /// The same dance rendered (`trainer body-photos --dance 60 --size 384`), encoded by ffmpeg
-/// and read by the real MediaPipe Pose (`trainer motion-from-video --keypoints-out`): the
-/// fixture `tests/fixtures/video/dance.keypoints.jsonl`. Bounds at the measured figures
-/// (mean 51 mm, worst 68 mm in the deepest squat: above the 60 mm goal; accel 7.2 against
-/// 22.1 unsmoothed; lag 1.2 frames; path 10.2 cm at scale 0.90).
+/// and read by the real MediaPipe Pose in its tracking mode (`trainer motion-from-video
+/// --keypoints-out`): the fixture `tests/fixtures/video/dance.keypoints.jsonl`. Bounds at the
+/// measured figures (mean 51 mm, worst 70 mm in the deepest squat: above the 60 mm goal; accel
+/// 7.4 against 22.6 unsmoothed; lag 1.0 frame; path 11.4 cm at scale 0.90).
 #[test]
 fn the_real_detectors_reading_of_the_dance_stays_within_its_measured_errors() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/video/dance.keypoints.jsonl");

@@ -3,10 +3,11 @@
 //!
 //! The frames are decoded by ffmpeg (`ffprobe` for the size, rate and length; `cargo xtask
 //! setup` installs both from Debian), every `--stride`-th kept and scaled to at most
-//! [`MAX_SIDE`] pixels; MediaPipe Pose runs on them through `tools/mediapipe_fixtures.mjs`
-//! (the app's detector in headless Chromium), or the program named by `GETAVATAR_MEDIAPIPE`
-//! (called with the frames' folder; it writes `<frame>.kp.json` next to each `<frame>.png` it
-//! finds a person in). `--keypoints` skips both and reads the detections from a
+//! [`MAX_SIDE`] pixels; MediaPipe Pose runs on them in its tracking mode through
+//! `tools/mediapipe_fixtures.mjs --video` (the app's detector worker in headless Chromium; a
+//! frame the tracker finds nobody in goes through the app's person finder), or the program
+//! named by `GETAVATAR_MEDIAPIPE` (called with the frames' folder and `--video`; it writes
+//! `<frame>.kp.json` next to each `<frame>.png` it finds a person in). `--keypoints` skips both and reads the detections from a
 //! `getavatar-video-keypoints/1` file (what `--keypoints-out` writes):
 //!
 //! ```text
@@ -260,7 +261,8 @@ fn detect_video(video: &Path, stride: usize, max_seconds: f32) -> Result<VideoDe
         bail!("{} has no frames ffmpeg could decode", video.display());
     }
     eprintln!("running MediaPipe on {} frames", frames.len());
-    let out = crate::pck::detector(dir.path())?.output().context(
+    // The frames in order through Pose's tracking mode (`--video`; a stand-in may ignore it).
+    let out = crate::pck::detector(dir.path())?.arg("--video").output().context(
         "running MediaPipe (node and Chromium, as `cargo xtask test` installs them, or GETAVATAR_MEDIAPIPE)",
     )?;
     let stderr = String::from_utf8_lossy(&out.stderr);
