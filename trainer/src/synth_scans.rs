@@ -30,6 +30,7 @@ use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rng::{hash_str, Rng};
 use getavatar_core::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh, SmplParams};
 use getavatar_core::skinning::{blend_transform, forward_kinematics, vertex_normals, BodyParams};
+use getavatar_core::uv_atlas;
 use glam::{Vec2, Vec3};
 
 /// Poses drawn for scans (from the built-in library), with random variation added.
@@ -767,32 +768,7 @@ fn bake_texture(layers: &[(Layer, Paint)], size: usize, face: &Face) -> Vec<u8> 
     }
     // Dilate 4 texels so bilinear lookups near island borders never see the background.
     for _ in 0..4 {
-        let prev = filled.clone();
-        let src = img.clone();
-        for y in 0..size {
-            for x in 0..size {
-                if prev[y * size + x] {
-                    continue;
-                }
-                let (mut sum, mut n) = (Vec3::ZERO, 0);
-                for (dx, dy) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
-                    let (xx, yy) = (x as i64 + dx, y as i64 + dy);
-                    if xx >= 0
-                        && yy >= 0
-                        && (xx as usize) < size
-                        && (yy as usize) < size
-                        && prev[yy as usize * size + xx as usize]
-                    {
-                        sum += src[yy as usize * size + xx as usize];
-                        n += 1;
-                    }
-                }
-                if n > 0 {
-                    img[y * size + x] = sum / n as f32;
-                    filled[y * size + x] = true;
-                }
-            }
-        }
+        uv_atlas::dilate_ring(&mut img, &mut filled, size, &uv_atlas::NEIGHBOURS_4);
     }
     img.iter().flat_map(|c| c.to_array().map(|x| (x * 255.0).round() as u8)).collect()
 }

@@ -513,6 +513,43 @@ pub fn texel_points(atlas: &UvAtlas, attribute: &[Vec3], res: usize) -> (Vec<u32
     (texels, points)
 }
 
+/// The 8 neighbours of a texel, row by row from the top left (the order their colours are
+/// summed in).
+pub const NEIGHBOURS_8: [(i32, i32); 8] = [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)];
+/// The 4 edge neighbours of a texel: left, right, up, down.
+pub const NEIGHBOURS_4: [(i32, i32); 4] = [(-1, 0), (1, 0), (0, -1), (0, 1)];
+
+/// One ring of dilation of a `res × res` image: every empty texel with filled `neighbours`
+/// (offsets) takes their mean colour and becomes filled, all from the ring's start; `false`
+/// when no texel changed.
+pub fn dilate_ring(rgb: &mut [Vec3], filled: &mut [bool], res: usize, neighbours: &[(i32, i32)]) -> bool {
+    let mut next = Vec::new();
+    for y in 0..res {
+        for x in 0..res {
+            if filled[y * res + x] {
+                continue;
+            }
+            let (mut sum, mut n) = (Vec3::ZERO, 0);
+            for (dx, dy) in neighbours {
+                let (u, v) = (x as i32 + dx, y as i32 + dy);
+                if u >= 0 && v >= 0 && (u as usize) < res && (v as usize) < res && filled[v as usize * res + u as usize]
+                {
+                    sum += rgb[v as usize * res + u as usize];
+                    n += 1;
+                }
+            }
+            if n > 0 {
+                next.push((y * res + x, sum / n as f32));
+            }
+        }
+    }
+    for &(k, c) in &next {
+        rgb[k] = c;
+        filled[k] = true;
+    }
+    !next.is_empty()
+}
+
 /// The baked RGB image (`res × res`, 8-bit sRGB, row-major from the top left): `colors`
 /// (linear RGB per covered texel of [`texel_points`]) encoded, then [`DILATE_TEXELS`] rings
 /// of empty texels filled with the mean of their filled 8-neighbours.
@@ -531,38 +568,8 @@ pub async fn bake_image_async(res: usize, texels: &[u32], colors: &[Vec3]) -> Ve
         filled[*k as usize] = true;
     }
     for _ in 0..DILATE_TEXELS {
-        let mut next = Vec::new();
-        for y in 0..res {
-            for x in 0..res {
-                if filled[y * res + x] {
-                    continue;
-                }
-                let (mut sum, mut n) = (Vec3::ZERO, 0);
-                for dy in -1i32..=1 {
-                    for dx in -1i32..=1 {
-                        let (u, v) = (x as i32 + dx, y as i32 + dy);
-                        if u >= 0
-                            && v >= 0
-                            && (u as usize) < res
-                            && (v as usize) < res
-                            && filled[v as usize * res + u as usize]
-                        {
-                            sum += rgb[v as usize * res + u as usize];
-                            n += 1;
-                        }
-                    }
-                }
-                if n > 0 {
-                    next.push((y * res + x, sum / n as f32));
-                }
-            }
-        }
-        if next.is_empty() {
+        if !dilate_ring(&mut rgb, &mut filled, res, &NEIGHBOURS_8) {
             break;
-        }
-        for (k, c) in next {
-            rgb[k] = c;
-            filled[k] = true;
         }
         crate::cooperative::checkpoint().await;
     }
