@@ -48,7 +48,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub data: PathBuf,
     #[command(flatten)]
-    pub model: crate::sample::GeneratorArgs,
+    pub model: crate::model_io::GeneratorArgs,
     /// Labels to evaluate (spread evenly over the dataset).
     #[arg(long, default_value_t = 32)]
     pub count: usize,
@@ -279,7 +279,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     } else {
         None
     };
-    let modes = crate::sample::truncation_modes(&modes, a.mean_truncation);
+    let modes = crate::model_io::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
     let grids = PosedGridCache::default();

@@ -20,7 +20,7 @@ use getavatar_core::skin_export::{animated_body_glb, body_vrm, motion_vrma, vrm_
 use getavatar_core::skinning::{forward_kinematics, pose_body, vertex_normals, BodyParams};
 use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta};
 
-use crate::sample::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
+use crate::model_io::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {

@@ -51,7 +51,7 @@ pub struct FitCodesArgs {
     #[arg(long)]
     pub data: PathBuf,
     #[command(flatten)]
-    pub model: crate::sample::GeneratorArgs,
+    pub model: crate::model_io::GeneratorArgs,
     /// Output folder: `generator.safetensors` (the checkpoint with the fitted codes),
     /// `state.safetensors` and `surfaces.safetensors` (to resume), `metrics.jsonl`, `compare.png`.
     #[arg(long)]
@@ -185,7 +185,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     }
     let faces = match (&a.scans, a.lambda_face > 0.0) {
         (Some(dir), true) => {
-            let ctx = BodyContext::new(crate::sample::load_body(&None)?, &cfg);
+            let ctx = BodyContext::new(crate::model_io::load_body(&None)?, &cfg);
             crate::train::canonical_scan_samples(dir, &ds, &ctx, a.seed, (false, true))?.face
         }
         _ => Vec::new(),
@@ -325,10 +325,10 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
 
 /// The metadata of the file `model` loads (its training step, kimg, earlier fits' records)
 /// that a file derived from it carries over; none for random weights.
-pub(crate) fn source_metadata(model: &crate::sample::GeneratorArgs) -> Result<BTreeMap<String, String>> {
+pub(crate) fn source_metadata(model: &crate::model_io::GeneratorArgs) -> Result<BTreeMap<String, String>> {
     let source = match (&model.checkpoint, model.random) {
         (Some(p), _) => Some(p.clone()),
-        (None, false) => crate::sample::shipped_model(&model.config()?),
+        (None, false) => crate::model_io::shipped_model(&model.config()?),
         (None, true) => None,
     };
     let mut meta = BTreeMap::new();
@@ -363,7 +363,7 @@ fn load_grown(
             Some(f) if f.res == res => f.clone(),
             Some(f) => bail!("the checkpoint has a {}² face plane; --face-res {res} differs", f.res),
             None => {
-                let model = crate::sample::load_body(&None)?;
+                let model = crate::model_io::load_body(&None)?;
                 getavatar_core::network::face_plane::face_window(&model, res)
                     .map_err(|e| anyhow::anyhow!("--face-res needs a face on the body model: {e}"))?
             }
@@ -375,7 +375,7 @@ fn load_grown(
     let path = match (&a.model.checkpoint, a.model.random) {
         (Some(p), _) => p.clone(),
         (None, false) => {
-            crate::sample::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?
+            crate::model_io::shipped_model(&cfg).context("no shipped model for this config: give --checkpoint")?
         }
         (None, true) => bail!("--texture-res and --face-res grow a checkpoint: give --checkpoint"),
     };
@@ -450,7 +450,7 @@ fn surface_pools(
         println!("the subjects' surface points from {}", path.display());
         return Ok(pools);
     }
-    let ctx = BodyContext::new(crate::sample::load_body(&None)?, cfg);
+    let ctx = BodyContext::new(crate::model_io::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
     let res = ds.resolution;
     let bar = crate::progress::bar(n as u64, "subjects' views rendered");
@@ -598,7 +598,7 @@ fn compare_png(
     let bytes = std::fs::read(out.join("generator.safetensors"))?;
     let (g_after, after) = getavatar_core::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
     let after = after.context("the fitted file has latent modes")?;
-    let ctx = BodyContext::new(crate::sample::load_body(&None)?, cfg);
+    let ctx = BodyContext::new(crate::model_io::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
     let r = ds.resolution;
     let shown: Vec<usize> = (0..4.min(n)).map(|k| k * n / 4.min(n)).collect();

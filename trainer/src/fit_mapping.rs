@@ -38,7 +38,7 @@ use crate::atomic::write_atomic;
 #[derive(clap::Args, Debug)]
 pub struct FitMappingArgs {
     #[command(flatten)]
-    pub model: crate::sample::GeneratorArgs,
+    pub model: crate::model_io::GeneratorArgs,
     /// Output folder: `generator.safetensors` and `metrics.jsonl`.
     #[arg(long)]
     pub out: PathBuf,

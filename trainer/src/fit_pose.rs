@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use crate::sample::load_body;
+use crate::model_io::load_body;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};

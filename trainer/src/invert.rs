@@ -48,7 +48,7 @@ use serde::Serialize;
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
-use crate::sample::{load_body, shipped_discriminator, shipped_encoder, write_png, GeneratorArgs};
+use crate::model_io::{load_body, shipped_discriminator, shipped_encoder, write_png, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct InvertArgs {

@@ -14,6 +14,7 @@ mod fit_mapping;
 mod fit_pose;
 mod inception;
 mod invert;
+mod model_io;
 mod motion_from_video;
 mod pck;
 mod plot;

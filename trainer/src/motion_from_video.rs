@@ -31,7 +31,7 @@ use getavatar_core::body_fit::video::{VideoDetections, VideoFitOptions, VideoFit
 use getavatar_core::readback::block_on_ready;
 use serde::{Deserialize, Serialize};
 
-use crate::sample::load_body;
+use crate::model_io::load_body;
 
 /// Frames are scaled to at most this many pixels on their long side before detection.
 pub const MAX_SIDE: usize = 1280;

@@ -28,7 +28,7 @@ use getavatar_core::readback::read_f32_now;
 use getavatar_core::rng::Rng;
 
 use crate::atomic::write_atomic;
-use crate::sample::{load_body, GeneratorArgs};
+use crate::model_io::{load_body, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct TrainDiscriminatorArgs {

@@ -51,7 +51,7 @@ use getavatar_core::NUM_JOINTS;
 use glam::Vec3;
 
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
-use crate::sample::{load_body, GeneratorArgs};
+use crate::model_io::{load_body, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct TrainEncoderArgs {

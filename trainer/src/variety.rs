@@ -17,7 +17,7 @@ use getavatar_core::generator::{generate_avatar, BodyContext, Styles};
 use getavatar_core::pose_library::PoseLibrary;
 use serde::Serialize;
 
-use crate::sample::{load_body, render_avatar, seed_styles, GeneratorArgs};
+use crate::model_io::{load_body, render_avatar, seed_styles, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct VarietyArgs {

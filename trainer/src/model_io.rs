@@ -1,0 +1,203 @@
+//! What the trainer's commands share: the shipped model files, the generator arguments and
+//! loading (a checkpoint, the shipped model or a random one), the body model, seed styles,
+//! an avatar's rendered views, PNG writing and reconstruction files.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use getavatar_core::body_model::BodyModel;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::camera::OrbitCamera;
+use getavatar_core::checkpoint::{
+    config_with_saved_resolutions, load_generator_and_modes, load_inverted, InvertedAvatar,
+};
+use getavatar_core::dataset::encode_png;
+use getavatar_core::generator::recolor_async;
+use getavatar_core::generator::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
+use getavatar_core::network::GeneratorConfig;
+use getavatar_core::rasterize::{render_views_textured, RenderedViews};
+use getavatar_core::readback::block_on_ready;
+
+pub fn write_png(path: &Path, data: &[u8], size: usize, channels: usize) -> Result<()> {
+    let png = encode_png(size, size, channels, data).with_context(|| format!("encoding {}", path.display()))?;
+    crate::atomic::write_atomic(path, &png)
+}
+
+/// Where the shipped demo model lives (see `assets/models/MODEL_CARD.md`).
+pub const SHIPPED_DEMO_MODEL: &str = "assets/models/demo.safetensors";
+/// Where its RGB discriminator lives (the inversion's perceptual term).
+pub const SHIPPED_DEMO_DISCRIMINATOR: &str = "assets/models/demo_d_rgb.safetensors";
+
+/// Where its photo encoder lives (the reconstruction's first guess).
+pub const SHIPPED_DEMO_ENCODER: &str = "assets/models/encoder.safetensors";
+
+/// The shipped demo model, if this is the `demo` config and the file is there (looked up in
+/// the working directory, then in the source tree this binary was built from).
+pub fn shipped_model(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_MODEL)
+}
+
+/// The shipped demo model's RGB discriminator, found like [`shipped_model`].
+pub fn shipped_discriminator(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_DISCRIMINATOR)
+}
+
+/// The shipped demo model's photo encoder, found like [`shipped_model`].
+pub fn shipped_encoder(cfg: &GeneratorConfig) -> Option<PathBuf> {
+    shipped_file(cfg, SHIPPED_DEMO_ENCODER)
+}
+
+fn shipped_file(cfg: &GeneratorConfig, rel: &str) -> Option<PathBuf> {
+    if cfg.name != "demo" {
+        return None;
+    }
+    [PathBuf::from(rel), Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rel)].into_iter().find(|p| p.is_file())
+}
+
+/// Which generator a command runs: `--config`, `--checkpoint`, `--random-weights` (shared by
+/// `sample` and `eval`).
+#[derive(clap::Args, Debug)]
+pub struct GeneratorArgs {
+    /// Generator size: paper, demo or tiny.
+    #[arg(long, default_value = "demo")]
+    pub config: String,
+    /// Trained generator (`generator.safetensors`; default: the shipped demo model for
+    /// `--config demo`, random weights otherwise).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Use deterministic random weights even where a trained model ships.
+    #[arg(long = "random-weights", conflicts_with = "checkpoint")]
+    pub random: bool,
+    /// Extract the surface on an N³ tet grid instead of the model's own (`tet_res` of its
+    /// config; no weight depends on it). Finer grids resolve narrow gaps and grazing
+    /// outlines at the cost of time and memory.
+    #[arg(long = "tet-res", value_name = "N")]
+    pub tet_res: Option<usize>,
+}
+
+impl GeneratorArgs {
+    /// The config preset, the generator (see [`generator_or_random`]) and its latent modes.
+    /// A checkpoint's config replaces the preset where the two differ only in resolutions
+    /// (a generator grown with `trainer train --texture-res`, a finer tet grid).
+    /// `--tet-res` replaces the loaded config's tet grid.
+    pub fn load(&self, device: &Device) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
+        let (mut cfg, mut g, modes) =
+            generator_or_random(self.checkpoint.as_deref(), self.random, &self.config()?, device)?;
+        if let Some(n) = self.tet_res {
+            cfg.tet_res = n;
+            cfg.validate().map_err(|e| anyhow::anyhow!("--tet-res {n}: {e}"))?;
+            g.decoders.tet_res = n;
+        }
+        Ok((cfg, g, modes))
+    }
+}
+
+impl GeneratorArgs {
+    /// The config preset alone.
+    pub fn config(&self) -> Result<GeneratorConfig> {
+        GeneratorConfig::preset(&self.config)
+            .with_context(|| format!("unknown --config `{}` (paper, demo, tiny)", self.config))
+    }
+}
+
+/// An inverted avatar: `trainer invert`'s output directory or its `inverted.safetensors`, with
+/// the config it loads under (`cfg`, or the file's where it differs only in resolutions,
+/// as [`generator_or_random`]).
+pub fn load_inverted_file(
+    path: &Path,
+    cfg: &GeneratorConfig,
+    device: &Device,
+) -> Result<(GeneratorConfig, InvertedAvatar)> {
+    let file = if path.is_dir() { path.join("inverted.safetensors") } else { path.to_path_buf() };
+    let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    let cfg = config_with_saved_resolutions(&bytes, cfg);
+    let inv = load_inverted(&bytes, &cfg, device)
+        .with_context(|| format!("loading the inverted avatar {}", file.display()))?;
+    Ok((cfg, inv))
+}
+
+/// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
+/// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
+/// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
+/// the checkpoint's where it is `cfg` with other detail planes or tet grid
+/// ([`config_with_saved_resolutions`]).
+pub fn generator_or_random(
+    checkpoint: Option<&Path>,
+    random: bool,
+    cfg: &GeneratorConfig,
+    device: &Device,
+) -> Result<(GeneratorConfig, Generator, Option<LatentModes>)> {
+    let shipped = if random { None } else { shipped_model(cfg) };
+    Ok(match checkpoint.map(Path::to_path_buf).or(shipped) {
+        Some(p) => {
+            if checkpoint.is_none() {
+                eprintln!("using the shipped demo model {}", p.display());
+            }
+            let bytes = std::fs::read(&p).with_context(|| format!("reading checkpoint {}", p.display()))?;
+            let loading = || format!("loading checkpoint {}", p.display());
+            let cfg = config_with_saved_resolutions(&bytes, cfg);
+            let (g, modes) = load_generator_and_modes(&bytes, &cfg, device).with_context(loading)?;
+            (cfg, g, modes)
+        }
+        None => {
+            eprintln!(
+                "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
+                cfg.name
+            );
+            (cfg.clone(), Generator::new(cfg, 0, device), None)
+        }
+    })
+}
+
+/// The body model in `path` (SMPL-layout .npz), or the embedded open body.
+pub fn load_body(path: &Option<PathBuf>) -> Result<BodyModel> {
+    Ok(match path {
+        Some(p) => BodyModel::from_npz_bytes(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("loading the body model {}", p.display()))?,
+        None => BodyModel::default_body()?,
+    })
+}
+
+/// The styles of the seeds' latents, truncated by ψ (`None`: the model's default) towards
+/// the checkpoint's latent modes (w_avg where it has none or `mean_truncation`).
+pub fn seed_styles(
+    g: &Generator,
+    cfg: &GeneratorConfig,
+    modes: &Option<LatentModes>,
+    (seed_geo, seed_tex): (u64, u64),
+    psi: Option<f32>,
+    mean_truncation: bool,
+    device: &Device,
+) -> Styles {
+    let (zg, zt) = seed_latents(cfg, seed_geo, seed_tex, device);
+    let modes = truncation_modes(modes, mean_truncation);
+    g.styles_with(zg, zt, psi.unwrap_or_else(|| default_psi(modes)), modes)
+}
+
+/// The modes to truncate towards: the checkpoint's unless `mean_truncation` (then w_avg).
+pub fn truncation_modes(modes: &Option<LatentModes>, mean_truncation: bool) -> Option<&LatentModes> {
+    modes.as_ref().filter(|_| !mean_truncation)
+}
+
+/// RGB, normal and mask views of a generated avatar from the reference orbit camera at
+/// `yaw` (radians, 0 = front), `res`²; RGB is the texture field queried at every pixel's
+/// canonical coordinate (paper Sec. 4.4).
+pub fn render_avatar(
+    g: &Generator,
+    styles: &Styles,
+    avatar: &Avatar,
+    yaw: f32,
+    res: usize,
+    device: &Device,
+) -> Result<RenderedViews> {
+    if avatar.mesh.faces.is_empty() {
+        bail!("the generator produced an empty surface");
+    }
+    let cam = OrbitCamera { yaw, ..OrbitCamera::default() };
+    let vp = cam.projection_gl(1.0) * cam.world_to_camera();
+    let planes = g.triplanes(styles);
+    let m = &avatar.mesh;
+    Ok(render_views_textured(&m.vertices, &m.faces, &avatar.normals, &m.attributes, vp, res, 2, |pts| {
+        block_on_ready(recolor_async(g, &planes, styles, pts, device))
+    })?)
+}
