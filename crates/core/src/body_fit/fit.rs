@@ -38,17 +38,15 @@ use std::sync::Arc;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
-use serde::{Deserialize, Serialize};
 
-use super::framing::{Framing, FramingError, MAX_PHOTO_PIXELS};
-use super::init::{camera_axes, camera_translation, pose_from_image, pose_from_world, posed_joints};
-use super::landmarks::{
-    LandmarkError, PoseResult, SegmentationMask, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS,
-    VISIBLE,
-};
+use super::framing::FramingError;
+use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
+pub use super::input::{FitInput, HAND_SWAP};
+use super::landmarks::{LandmarkError, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
 use super::limits::HINGES;
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{FitOptions, FitWeights};
+pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
 use super::surface::{surface_landmarks, SurfaceError, SurfaceLandmark};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::camera::{reference_fov_y, to_row_major};
@@ -61,8 +59,8 @@ use crate::skinning::{axis_angle_to_matrix, BodyParams};
 /// Residuals are in pixels of a crop this wide.
 const UNIT_PX: f32 = 128.0;
 /// Clip planes of the fit's camera, metres.
-const NEAR: f32 = 0.1;
-const FAR: f32 = 100.0;
+pub(crate) const NEAR: f32 = 0.1;
+pub(crate) const FAR: f32 = 100.0;
 
 /// Why a fit cannot run.
 #[derive(Debug, thiserror::Error)]
@@ -79,245 +77,6 @@ pub enum FitError {
     MaskSize { got: usize, width: usize, height: usize },
     #[error("too few landmarks to fit: {0}")]
     TooFew(String),
-}
-
-/// What the fit observes, in the reference camera's NDC of a [`Framing`].
-#[derive(Clone, Debug)]
-pub struct FitInput {
-    pub framing: Framing,
-    /// Per MediaPipe landmark: NDC position and visibility.
-    pub points: Vec<([f32; 2], f32)>,
-    /// MediaPipe's world landmarks in camera axes, if the detector gave them.
-    pub world: Option<Vec<Vec3>>,
-    /// The person mask in the crop, `silhouette_size²`, 0..1.
-    pub mask: Option<Vec<f32>>,
-    /// Degrees clockwise the photo was turned for the detection ([`super::turn`]): the
-    /// framing and the points are of the turned photo.
-    pub rotation: u16,
-}
-
-/// The landmarks of the hands, as (left, right) pairs: wrist, pinky, index, thumb.
-pub const HAND_SWAP: [(usize, usize); 4] = [(15, 16), (17, 18), (19, 20), (21, 22)];
-
-impl FitInput {
-    /// Whether the detector's hand sides are in doubt: one wrist hidden, the other seen.
-    /// A hand that crosses the body (arms folded, a hand on the far shoulder) seen from the
-    /// side is often given the hidden hand's label.
-    pub fn hands_in_doubt(&self) -> bool {
-        let seen = |l: usize| self.points[l].1 >= VISIBLE;
-        self.points.len() == NUM_LANDMARKS && seen(15) != seen(16)
-    }
-
-    /// The same observations with the hands' sides swapped ([`HAND_SWAP`]).
-    pub fn with_hands_swapped(&self) -> Self {
-        let mut out = self.clone();
-        for (a, b) in HAND_SWAP {
-            out.points.swap(a, b);
-            if let Some(w) = out.world.as_mut() {
-                w.swap(a, b);
-            }
-        }
-        out
-    }
-
-    /// From a detector result on a `width × height` photo and, optionally, a person mask
-    /// (any resolution, covering the photo); without one, the result's own
-    /// `segmentationMask` is used when it has one.
-    pub fn from_detection(
-        result: &PoseResult,
-        width: usize,
-        height: usize,
-        mask: Option<&SegmentationMask>,
-        model: &BodyModel,
-        options: &FitOptions,
-    ) -> Result<Self, FitError> {
-        result.validate()?;
-        let framing = Framing::from_landmarks(&result.pose_landmarks, width, height, model)?;
-        Self::framed(result, framing, mask, options)
-    }
-
-    /// From a detector result seen through a given crop of its photo (a video's frames share
-    /// one crop, so that the camera, and with it the root's path, is the same in all of them).
-    pub fn framed(
-        result: &PoseResult,
-        framing: Framing,
-        mask: Option<&SegmentationMask>,
-        options: &FitOptions,
-    ) -> Result<Self, FitError> {
-        result.validate()?;
-        let (width, height) = (framing.photo_width, framing.photo_height);
-        let points = result
-            .pose_landmarks
-            .iter()
-            .map(|l| (framing.to_ndc([l.x * width as f32, l.y * height as f32]), l.visibility))
-            .collect();
-        let world = result.pose_world_landmarks.as_ref().map(|w| w.iter().map(camera_axes).collect());
-        let mask = match mask.or(result.segmentation_mask.as_ref()) {
-            Some(m) if m.data.len() != m.width * m.height || m.data.is_empty() => {
-                return Err(FitError::MaskSize { got: m.data.len(), width: m.width, height: m.height });
-            }
-            Some(m) => Some(framing.resample_mask(&m.data, m.width, m.height, options.silhouette_size)),
-            None => None,
-        };
-        Ok(Self { framing, points, world, mask, rotation: result.rotation })
-    }
-}
-
-/// The fitted body: pose, shape and camera, with what it was fitted to and how well.
-/// `fit.json` of `trainer fit-pose` and the app's "Download fit".
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct BodyFit {
-    /// `getavatar-body-fit/1`.
-    pub format: String,
-    /// θ₀, axis-angle, radians (upright: the turn about the vertical is in the camera).
-    pub global_orient: [f32; 3],
-    /// θ₁…θ₂₃, 69 numbers.
-    pub body_pose: Vec<f32>,
-    pub betas: Vec<f32>,
-    /// World → camera, 16 numbers row-major (the dataset label layout), reference
-    /// intrinsics (`fov_y`) on the square crop of `framing`.
-    pub camera: [f32; 16],
-    /// Vertical field of view, radians.
-    pub fov_y: f32,
-    pub framing: Framing,
-    /// Every landmark: where it was seen, where the fitted body puts it (photo pixels).
-    pub keypoints: Vec<FitKeypoint>,
-    pub residuals: FitResiduals,
-    /// The landmark → joint/vertex table used.
-    pub table: Vec<FitTarget>,
-    /// Landmarks the detector did not see (visibility < 0.5); the fit ignores them.
-    pub missing: Vec<String>,
-    /// Landmarks the fit took with their sides swapped (`"left_wrist↔right_wrist"`, …):
-    /// the detector's labels of a hidden hand and a seen one, when swapping them explained
-    /// the photo better ([`HAND_SWAP`]). `keypoints` report the swapped labels.
-    #[serde(default)]
-    pub relabelled: Vec<String>,
-    pub options: FitOptions,
-    /// Degrees clockwise the photo was turned to read the person upright ([`super::turn`]):
-    /// `camera`, `framing` and `keypoints` are of the turned photo;
-    /// [`BodyFit::original_photo_view_proj`] draws on the photo as taken.
-    #[serde(default)]
-    pub rotation: u16,
-}
-
-pub const BODY_FIT_FORMAT: &str = "getavatar-body-fit/1";
-
-/// One landmark of [`BodyFit::keypoints`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitKeypoint {
-    pub name: String,
-    /// Detected, photo pixels.
-    pub observed: [f32; 2],
-    /// The fitted body's joint or surface point, projected, photo pixels (absent for
-    /// landmarks the fit has no body point for).
-    pub fitted: Option<[f32; 2]>,
-    pub visibility: f32,
-}
-
-/// One row of [`BodyFit::table`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitTarget {
-    pub landmark: String,
-    /// SMPL joint name, for joint landmarks.
-    pub joint: Option<String>,
-    /// Body vertex, for surface landmarks.
-    pub vertex: Option<u32>,
-    pub weight: f32,
-}
-
-/// How well the fit explains what it saw.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitResiduals {
-    /// Visibility-weighted mean distance between detected and fitted keypoints, photo pixels.
-    pub mean_px: f32,
-    /// `mean_px` over the fitted body's height in the photo.
-    pub relative_to_height: f32,
-    /// IoU of the fitted body's mask and the person mask (threshold ½), when there was one.
-    pub mask_iou: Option<f32>,
-    /// Final loss of each stage (`null` for a stage that did not run).
-    pub stage_loss: [Option<f32>; 3],
-}
-
-impl BodyFit {
-    pub fn to_json(&self) -> Result<String, serde_json::Error> {
-        serde_json::to_string_pretty(self)
-    }
-
-    /// Parse and check a fit.json: its format, 69 pose numbers, at most 300 betas, finite
-    /// numbers, a field of view in (0, π), an invertible camera, and a framing of a non-empty
-    /// photo of at most 40 MP with a positive crop side (what the inversion and the export
-    /// compute with).
-    pub fn from_json(text: &str) -> Result<Self, String> {
-        let fit: BodyFit = serde_json::from_str(text).map_err(|e| e.to_string())?;
-        fit.validate()?;
-        Ok(fit)
-    }
-
-    pub fn validate(&self) -> Result<(), String> {
-        if self.format != BODY_FIT_FORMAT {
-            return Err(format!("`format` is {:?}, expected {BODY_FIT_FORMAT:?}", self.format));
-        }
-        if self.body_pose.len() != (NUM_JOINTS - 1) * 3 {
-            return Err(format!("`body_pose` has {} numbers, expected {}", self.body_pose.len(), (NUM_JOINTS - 1) * 3));
-        }
-        if self.betas.len() > 300 {
-            return Err(format!("`betas` has {} numbers (at most 300)", self.betas.len()));
-        }
-        let numbers = [
-            ("global_orient", &self.global_orient[..]),
-            ("body_pose", &self.body_pose[..]),
-            ("betas", &self.betas[..]),
-            ("camera", &self.camera[..]),
-            ("fov_y", &[self.fov_y][..]),
-            ("framing.centre", &self.framing.centre[..]),
-            ("framing.side", &[self.framing.side][..]),
-        ];
-        for (name, v) in numbers {
-            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-                return Err(format!("`{name}[{i}]` is not a finite number"));
-            }
-        }
-        if !(self.fov_y > 0.0 && self.fov_y < std::f32::consts::PI) {
-            return Err(format!("`fov_y` {} is not in (0, π)", self.fov_y));
-        }
-        let det = self.world_to_camera().determinant();
-        if !det.is_finite() || det.abs() < 1e-6 {
-            return Err("`camera` is not an invertible matrix".into());
-        }
-        let (w, h) = (self.framing.photo_width, self.framing.photo_height);
-        if w == 0 || h == 0 || (w as u64) * (h as u64) > MAX_PHOTO_PIXELS {
-            return Err(format!("`framing` is of a {w}×{h} photo (1 pixel … {} MP)", MAX_PHOTO_PIXELS / 1_000_000));
-        }
-        if self.framing.side <= 0.0 {
-            return Err(format!("`framing.side` {} is not positive", self.framing.side));
-        }
-        super::turn::check(self.rotation).map_err(|e| e.to_string())?;
-        Ok(())
-    }
-
-    /// The fitted body as body parameters (no translation).
-    pub fn body_params(&self) -> BodyParams {
-        BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas)
-    }
-
-    /// World → camera.
-    pub fn world_to_camera(&self) -> Mat4 {
-        crate::camera::from_row_major(&self.camera)
-    }
-
-    /// World → OpenGL clip space of the whole photo: the fit's camera on its square crop,
-    /// the crop placed in the photo by the framing (for overlays and masks in the photo).
-    pub fn photo_view_proj(&self) -> Mat4 {
-        let proj = Mat4::perspective_rh_gl(self.fov_y, 1.0, NEAR, FAR);
-        self.framing.crop_to_photo_clip() * proj * self.world_to_camera()
-    }
-
-    /// World → OpenGL clip space of the photo as taken, before it was turned for the
-    /// detection: [`Self::photo_view_proj`] with the turn undone (the camera rolled about its
-    /// axis by `rotation`).
-    pub fn original_photo_view_proj(&self) -> Mat4 {
-        super::turn::clip_to_original(self.rotation) * self.photo_view_proj()
-    }
 }
 
 /// Progress of one step.
@@ -1030,6 +789,7 @@ pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::body_fit::framing::Framing;
 
     #[test]
     fn the_upright_split_keeps_every_posed_point_in_view() {

@@ -17,10 +17,14 @@
 pub mod fit;
 pub mod framing;
 pub mod init;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod input;
 pub mod landmarks;
 pub mod limits;
 pub mod metrics;
 pub mod options;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod result;
 pub mod surface;
 pub mod synthetic;
 pub mod temporal;
