@@ -40,21 +40,27 @@ function detector() {
   return w;
 }
 
-export async function detectPose(bytes, previewSide, person = -1) {
-  if (!bytes || bytes.length === 0) return fail('the file is empty');
-  lastPreview = null;
+/** The worker's reply to `message` plus the image's bytes (copied, then transferred), or a
+ * reply with the error when the worker cannot start. */
+async function ask(bytes, message) {
   let w;
   try {
     w = detector();
   } catch (e) {
-    return fail(`the person detector could not start: ${e.message ?? e}`);
+    return { json: fail(`the person detector could not start: ${e.message ?? e}`) };
   }
   const copy = bytes.slice();
   const id = nextId++;
-  const reply = await new Promise((resolve) => {
+  return new Promise((resolve) => {
     pending.set(id, resolve);
-    w.postMessage({ id, bytes: copy, previewSide, person }, [copy.buffer]);
+    w.postMessage({ id, bytes: copy, ...message }, [copy.buffer]);
   });
+}
+
+export async function detectPose(bytes, previewSide, person = -1) {
+  if (!bytes || bytes.length === 0) return fail('the file is empty');
+  lastPreview = null;
+  const reply = await ask(bytes, { previewSide, person });
   lastPreview = reply.preview ?? null;
   return reply.json;
 }
@@ -63,19 +69,7 @@ export async function detectPose(bytes, previewSide, person = -1) {
  * new clip. → JSON string as detectPose's (no preview). */
 export async function detectVideoFrame(bytes, first) {
   if (!bytes || bytes.length === 0) return fail('the frame is empty');
-  let w;
-  try {
-    w = detector();
-  } catch (e) {
-    return fail(`the person detector could not start: ${e.message ?? e}`);
-  }
-  const copy = bytes.slice();
-  const id = nextId++;
-  const reply = await new Promise((resolve) => {
-    pending.set(id, resolve);
-    w.postMessage({ id, bytes: copy, track: first ? 'first' : 'next' }, [copy.buffer]);
-  });
-  return reply.json;
+  return (await ask(bytes, { track: first ? 'first' : 'next' })).json;
 }
 
 export function photoPreview() {

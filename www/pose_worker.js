@@ -351,24 +351,36 @@ async function findPerson(pose, canvas, regions, want) {
   return { found, tried };
 }
 
+/** An image's bitmap, or null when the browser cannot read it. */
+async function decode(bytes) {
+  try {
+    return await createImageBitmap(new Blob([bytes]));
+  } catch (e) {
+    return null;
+  }
+}
+
+/** `bitmap` on a canvas of at most DETECT_PIXELS pixels (the bitmap is closed). */
+function detectionCanvas(bitmap) {
+  const { width, height } = bitmap;
+  const k = Math.min(1, Math.sqrt(DETECT_PIXELS / (width * height)));
+  const canvas = newCanvas(Math.max(1, Math.round(width * k)), Math.max(1, Math.round(height * k)));
+  canvas.getContext('2d').drawImage(bitmap, 0, 0, canvas.width, canvas.height);
+  bitmap.close();
+  return canvas;
+}
+
 /** The detection itself: bytes → {json} ({json, preview} on success, see the header). */
 async function detect(bytes, previewSide, person) {
   if (!bytes || bytes.length === 0) return failed('the file is empty');
-  let bitmap;
-  try {
-    bitmap = await createImageBitmap(new Blob([bytes]));
-  } catch (e) {
-    return failed('the file is not an image the browser can read (or it is corrupt)');
-  }
+  const bitmap = await decode(bytes);
+  if (!bitmap) return failed('the file is not an image the browser can read (or it is corrupt)');
   const { width, height } = bitmap;
   if (width * height > MAX_PIXELS) {
     return failed(`the photo is ${width}×${height} pixels, over the 40 MP limit`);
   }
   if (width < 32 || height < 32) return failed(`the photo is ${width}×${height} pixels, too small to find a person in`);
-  const k = Math.min(1, Math.sqrt(DETECT_PIXELS / (width * height)));
-  const canvas = newCanvas(Math.max(1, Math.round(width * k)), Math.max(1, Math.round(height * k)));
-  canvas.getContext('2d').drawImage(bitmap, 0, 0, canvas.width, canvas.height);
-  bitmap.close();
+  const canvas = detectionCanvas(bitmap);
   let pose;
   try {
     pose = await poseSolution();
@@ -436,17 +448,10 @@ async function detect(bytes, previewSide, person) {
 let trackerFresh = true;
 async function track(bytes, first) {
   if (!bytes || bytes.length === 0) return failed('the frame is empty');
-  let bitmap;
-  try {
-    bitmap = await createImageBitmap(new Blob([bytes]));
-  } catch (e) {
-    return failed('the frame is not an image the browser can read');
-  }
+  const bitmap = await decode(bytes);
+  if (!bitmap) return failed('the frame is not an image the browser can read');
   const { width, height } = bitmap;
-  const k = Math.min(1, Math.sqrt(DETECT_PIXELS / (width * height)));
-  const canvas = newCanvas(Math.max(1, Math.round(width * k)), Math.max(1, Math.round(height * k)));
-  canvas.getContext('2d').drawImage(bitmap, 0, 0, canvas.width, canvas.height);
-  bitmap.close();
+  const canvas = detectionCanvas(bitmap);
   const pose = await poseSolution();
   const results = await new Promise((resolve, reject) => {
     if (first || trackerFresh) pose.reset();

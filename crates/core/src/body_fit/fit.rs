@@ -344,47 +344,39 @@ impl BodyFitter {
     /// controls after a first fit): its θ and β become the parameters, the camera is placed
     /// on the torso again, and the stages run from the first.
     pub fn start_from(&mut self, start: &BodyParams) {
-        let dev = &self.device;
-        let nb = self.skeleton.num_betas;
         let mut init = start.clone();
-        init.betas.resize(nb, 0.0);
+        init.betas.resize(self.skeleton.num_betas, 0.0);
         let cam = initial_camera(&self.model, &self.input, &init);
-        let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
-        let mut betas = init.betas.clone();
-        betas.resize(nb.max(1), 0.0);
-        self.params = FitParams {
-            orient: Param::from_tensor(matrix(init.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
-            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, dev).require_grad()),
-            betas: Param::from_tensor(matrix(betas, 1, nb.max(1), dev).require_grad()),
-            camera: Param::from_tensor(matrix(cam.to_array().to_vec(), 1, 3, dev).require_grad()),
-        };
-        self.adam = Adam::new(0.9, 0.999, 1e-8);
-        (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
-        // The user's corrected pose says which arm is which.
-        self.alternative = None;
+        self.restart(&init, cam);
     }
 
     /// Continue from a neighbouring frame's parameters as they are (camera included), with
     /// one hand labelling (the neighbour's says which arm is which), β held at `state`'s, and
     /// θ pulled towards `state`'s with `temporal` (0: no pull).
     pub fn warm_start(&mut self, state: &FitState, temporal: f32) {
+        self.restart(&state.params, state.camera);
+        self.shape_held = true;
+        let all: Vec<f32> = state.params.pose.iter().flat_map(|v| v.to_array()).collect();
+        self.temporal = (temporal > 0.0).then(|| (matrix(all, NUM_JOINTS, 3, &self.device), temporal));
+    }
+
+    /// `params` and `camera` become the parameters, and the stages run again from the first
+    /// with one hand labelling (a given pose says which arm is which).
+    fn restart(&mut self, params: &BodyParams, camera: Vec3) {
         let dev = &self.device;
         let nb = self.skeleton.num_betas.max(1);
-        let theta: Vec<f32> = state.params.pose[1..].iter().flat_map(|v| v.to_array()).collect();
-        let mut betas = state.params.betas.clone();
+        let theta: Vec<f32> = params.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let mut betas = params.betas.clone();
         betas.resize(nb, 0.0);
         self.params = FitParams {
-            orient: Param::from_tensor(matrix(state.params.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
+            orient: Param::from_tensor(matrix(params.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
             body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, dev).require_grad()),
             betas: Param::from_tensor(matrix(betas, 1, nb, dev).require_grad()),
-            camera: Param::from_tensor(matrix(state.camera.to_array().to_vec(), 1, 3, dev).require_grad()),
+            camera: Param::from_tensor(matrix(camera.to_array().to_vec(), 1, 3, dev).require_grad()),
         };
         self.adam = Adam::new(0.9, 0.999, 1e-8);
         (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
         self.alternative = None;
-        self.shape_held = true;
-        let all: Vec<f32> = state.params.pose.iter().flat_map(|v| v.to_array()).collect();
-        self.temporal = (temporal > 0.0).then(|| (matrix(all, NUM_JOINTS, 3, dev), temporal));
     }
 
     /// Hold β at `betas` from now on (the clip's shape): the fit moves θ and the camera only.
