@@ -35,8 +35,10 @@ const front = args.includes('--front');
 // page (www/pose_detect.js detectVideoFrame), as `trainer motion-from-video` asks.
 const video = args.includes('--video');
 const dir = path.resolve(args.find((a) => !a.startsWith('--')) ?? '.');
-const photos = fs.readdirSync(dir).filter((f) => f.endsWith('.png') && !f.endsWith('.mask.png')).sort();
-const mime = { '.js': 'text/javascript', '.wasm': 'application/wasm', '.html': 'text/html', '.png': 'image/png' };
+// PNG photos (not the masks this script writes) and JPEG frames (what `trainer
+// motion-from-video` decodes a video into).
+const photos = fs.readdirSync(dir).filter((f) => (f.endsWith('.png') && !f.endsWith('.mask.png')) || f.endsWith('.jpg')).sort();
+const mime = { '.js': 'text/javascript', '.wasm': 'application/wasm', '.html': 'text/html', '.png': 'image/png', '.jpg': 'image/jpeg' };
 const page = `<!DOCTYPE html><html><body><script type="module">
 import { detectPose, detectVideoFrame } from './pose_detect.js';
 const bytesOf = async (name) => new Uint8Array(await (await fetch('photos/' + name)).arrayBuffer());
@@ -108,7 +110,7 @@ let failed = 0;
 const seen = { renders: photos.length, person: 0, facing: 0, missed: [], backwards: [] };
 for (const name of photos) {
   const r = await detect(name);
-  const stem = name.replace(/\.png$/, '');
+  const stem = name.replace(/\.(png|jpg)$/, '');
   if (r.error || !r.poseLandmarks) {
     console.error(`${name}: ${r.error ?? 'no landmarks'}`);
     if (front) seen.missed.push(name); else failed++;

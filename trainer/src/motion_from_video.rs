@@ -7,7 +7,7 @@
 //! `tools/mediapipe_fixtures.mjs --video` (the app's detector worker in headless Chromium; a
 //! frame the tracker finds nobody in goes through the app's person finder), or the program
 //! named by `GETAVATAR_MEDIAPIPE` (called with the frames' folder and `--video`; it writes
-//! `<frame>.kp.json` next to each `<frame>.png` it finds a person in). `--keypoints` skips both and reads the detections from a
+//! `<frame>.kp.json` next to each `<frame>.jpg` it finds a person in). `--keypoints` skips both and reads the detections from a
 //! `getavatar-video-keypoints/1` file (what `--keypoints-out` writes):
 //!
 //! ```text
@@ -246,7 +246,9 @@ fn detect_video(video: &Path, stride: usize, max_seconds: f32) -> Result<VideoDe
         .args(["-v", "error", "-nostdin", "-i"])
         .arg(video)
         .args(["-vf", &filter, "-fps_mode", "passthrough"])
-        .arg(dir.path().join("frame_%06d.png"))
+        // JPEG (quality 2 of 31): a minute of frames stays around 200 MB where PNGs take GBs.
+        .args(["-q:v", "2"])
+        .arg(dir.path().join("frame_%06d.jpg"))
         .output()
         .context("running ffmpeg (install it: `apt install ffmpeg`, or `cargo xtask setup`)")?;
     if !out.status.success() {
@@ -254,7 +256,7 @@ fn detect_video(video: &Path, stride: usize, max_seconds: f32) -> Result<VideoDe
     }
     let mut frames: Vec<String> = std::fs::read_dir(dir.path())?
         .filter_map(|e| e.ok()?.file_name().into_string().ok())
-        .filter(|n| n.ends_with(".png"))
+        .filter(|n| n.ends_with(".jpg"))
         .collect();
     frames.sort();
     if frames.is_empty() {
@@ -268,14 +270,14 @@ fn detect_video(video: &Path, stride: usize, max_seconds: f32) -> Result<VideoDe
     let stderr = String::from_utf8_lossy(&out.stderr);
     let mut results = Vec::with_capacity(frames.len());
     for f in &frames {
-        let kp = dir.path().join(f.replace(".png", ".kp.json"));
+        let kp = dir.path().join(f.replace(".jpg", ".kp.json"));
         if !kp.is_file() {
             results.push(None);
             continue;
         }
         let text = std::fs::read_to_string(&kp).with_context(|| format!("reading {}", kp.display()))?;
         let mut r = PoseResult::from_json(&text).with_context(|| format!("{}", kp.display()))?;
-        let mask = dir.path().join(f.replace(".png", ".mask.png"));
+        let mask = dir.path().join(f.replace(".jpg", ".mask.png"));
         if mask.is_file() {
             r.segmentation_mask = Some(crate::fit_pose::load_mask(&mask)?);
         }

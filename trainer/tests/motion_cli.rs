@@ -95,8 +95,8 @@ fn a_filmed_dance_becomes_a_motion_file_from_keypoints_and_from_the_video() {
         .output()
         .expect("ffmpeg (cargo xtask setup installs it)");
     assert!(enc.status.success(), "{}", String::from_utf8_lossy(&enc.stderr));
-    // The stand-in detector: decoded frame i (frame_<i+1>.png) is video frame 2i; it finds
-    // no one in frame_000008.png, and says so as the real script does.
+    // The stand-in detector: decoded frame i (frame_<i+1>.jpg) is video frame 2i; it finds
+    // no one in frame_000008.jpg, and says so as the real script does.
     let answers = root.join("answers");
     std::fs::create_dir_all(&answers).unwrap();
     for i in 0..FRAMES / 2 {
@@ -110,8 +110,8 @@ fn a_filmed_dance_becomes_a_motion_file_from_keypoints_and_from_the_video() {
     }
     let detector = root.join("detector.sh");
     let script = format!(
-        "#!/bin/sh\nfor f in \"$1\"/*.png; do n=$(basename \"$f\" .png); \
-         if [ -f '{a}'/$n.kp.json ]; then cp '{a}'/$n.kp.json \"$1/$n.kp.json\"; else echo \"$n.png: no person\" >&2; miss=1; fi; done\n\
+        "#!/bin/sh\nfor f in \"$1\"/*.jpg; do n=$(basename \"$f\" .jpg); \
+         if [ -f '{a}'/$n.kp.json ]; then cp '{a}'/$n.kp.json \"$1/$n.kp.json\"; else echo \"$n.jpg: no person\" >&2; miss=1; fi; done\n\
          exit ${{miss:-0}}\n",
         a = s(&answers)
     );
@@ -158,7 +158,7 @@ fn a_filmed_dance_becomes_a_motion_file_from_keypoints_and_from_the_video() {
     let blind = root.join("blind.sh");
     std::fs::write(
         &blind,
-        "#!/bin/sh\nfor f in \"$1\"/*.png; do echo \"$(basename $f): no person\" >&2; done\nexit 1\n",
+        "#!/bin/sh\nfor f in \"$1\"/*.jpg; do echo \"$(basename $f): no person\" >&2; done\nexit 1\n",
     )
     .unwrap();
     std::fs::set_permissions(&blind, std::fs::Permissions::from_mode(0o755)).unwrap();
