@@ -5,7 +5,7 @@
 //! setup` installs both from Debian), every `--stride`-th kept and scaled to at most
 //! [`MAX_SIDE`] pixels; MediaPipe Pose runs on them in its tracking mode through
 //! `tools/mediapipe_fixtures.mjs --video` (the app's detector worker in headless Chromium; a
-//! frame the tracker finds nobody in goes through the app's person finder), or the program
+//! frame the tracker finds nobody in is lost, filled in from its neighbours), or the program
 //! named by `GETAVATAR_MEDIAPIPE` (called with the frames' folder and `--video`; it writes
 //! `<frame>.kp.json` next to each `<frame>.jpg` it finds a person in). `--keypoints` skips both and reads the detections from a
 //! `getavatar-video-keypoints/1` file (what `--keypoints-out` writes):

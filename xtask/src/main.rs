@@ -219,6 +219,8 @@ fn test(native: bool, browser: bool) -> Result<()> {
         node(&["app.e2e.mjs"])?;
         // Person finding on hard photos (several people, upside down, lying, backlit, none).
         node(&["people.e2e.mjs"])?;
+        // Motion from a video: bad files, the dance clip read, fitted, played, exported, cut.
+        node(&["video.e2e.mjs"])?;
         // The random-action soak: 300 seeded actions after a warm-up, no panic, no
         // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
         node(&["soak.e2e.mjs", "300", "1"])?;

@@ -14,6 +14,8 @@ use serde::{Deserialize, Serialize};
 use getavatar_core::body_fit::options::FitOptions;
 use getavatar_core::body_model::joint_index;
 
+pub use crate::status::{MotionStatus, PhotoStatus, ReconstructStatus, Status, VideoStatus};
+
 /// What the viewport shows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
@@ -63,7 +65,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
 /// `{"download_animated":true}`, `{"download_vrm":true}`, `{"download_vrma":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
 /// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
-/// `{"reconstruct_cancel":true}`, `{"save_reconstruction":true}`,
+/// `{"reconstruct_cancel":true}`, `{"save_reconstruction":true}`, `{"video":{"url":"clip.webm","fps":10}}`,
+/// `{"video_cancel":true}`,
 /// `{"open_reconstruction":{"url":"inverted.safetensors"}}`. Photo bytes come through `window.getavatar.photo(uint8Array,
 /// name)`, motion files through `window.getavatar.motion(uint8Array, name)`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -135,6 +138,12 @@ pub enum Command {
     },
     OpenReconstruction {
         open_reconstruction: FileArgs,
+    },
+    Video {
+        video: VideoArgs,
+    },
+    VideoCancel {
+        video_cancel: bool,
     },
     /// Last: every field is optional, so it must not swallow the other shapes.
     Camera {
@@ -408,6 +417,23 @@ pub enum Action {
     SaveReconstruction,
     /// Open a saved reconstruction (the app's or `trainer invert`'s `inverted.safetensors`).
     OpenReconstruction(PhotoSource),
+    /// Make a motion clip from a video, reading `fps` frames per second of it (None: the
+    /// rate chosen in the panel).
+    Video {
+        source: PhotoSource,
+        fps: Option<u32>,
+    },
+    /// Stop making the clip (the frames fitted so far become a shorter clip).
+    VideoCancel,
+}
+
+/// `{"video":{"url":"clip.webm","fps":10}}`: motion from the video at `url` (default: the
+/// rate chosen in the panel, at first [`crate::video_clip::DEFAULT_READ_FPS`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VideoArgs {
+    pub url: String,
+    pub fps: Option<u32>,
 }
 
 /// Texture sizes offered for the downloads (0: vertex colours, no texture).
@@ -531,6 +557,16 @@ impl Command {
                 }
                 Action::OpenReconstruction(PhotoSource::Url(open_reconstruction.url))
             }
+            Command::Video { video } => {
+                if video.url.trim().is_empty() {
+                    return Err("video: empty url".into());
+                }
+                if let Some(f) = video.fps {
+                    crate::video_clip::check_read_fps(f).map_err(|e| format!("video: {e}"))?;
+                }
+                Action::Video { source: PhotoSource::Url(video.url), fps: video.fps }
+            }
+            Command::VideoCancel { .. } => Action::VideoCancel,
             Command::PhotoFit { photo_fit: PhotoFitArg::Word(w) } => Action::PhotoFit(match w.as_str() {
                 "cancel" => PhotoFitAction::Cancel,
                 "refit" => PhotoFitAction::Refit,
@@ -657,234 +693,6 @@ fn percent_decode(s: &str) -> String {
         i += 1;
     }
     String::from_utf8_lossy(&out).into_owned()
-}
-
-/// What the app publishes every frame for tests and tools (`window.getavatar.status()`).
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct Status {
-    /// The app has drawn at least one frame of the body.
-    pub ready: bool,
-    /// Graphics adapter name and backend (e.g. "BrowserWebGpu").
-    pub adapter: String,
-    pub backend: String,
-    /// Number of 3D renders so far.
-    pub renders: u64,
-    /// Frames per second of the UI over the last second.
-    pub fps: f32,
-    /// Milliseconds of CPU time of the last pose + upload + render.
-    pub last_render_ms: f32,
-    /// Milliseconds from the start of the last frame whose GPU work has completed to that
-    /// completion: host time, the GPU's queue and its work (0 before the first).
-    pub last_frame_ms: f32,
-    /// Bytes the last 3D render wrote to GPU buffers (mesh, joint transforms, uniforms).
-    pub last_frame_upload_bytes: u64,
-    /// Meshes uploaded to the viewport so far (new avatar, shape or body; not a new pose).
-    pub mesh_uploads: u64,
-    pub pose: String,
-    pub view: String,
-    pub res: u32,
-    pub yaw_deg: f32,
-    pub pitch_deg: f32,
-    pub radius: f32,
-    pub vertices: usize,
-    pub triangles: usize,
-    /// Viewport image rectangle in CSS pixels: [x, y, width, height].
-    pub viewport: [f32; 4],
-    /// Number of .glb downloads triggered.
-    pub downloads: u64,
-    /// Size in bytes of the last .glb.
-    pub last_glb_bytes: usize,
-    /// Which generator weights are in use ("trained demo model …", "loading …" or
-    /// "untrained demo generator (random weights): why").
-    pub model: String,
-    /// Whether a generation is running.
-    pub generating: bool,
-    /// Completed generations (full or texture-only).
-    pub generations: u64,
-    /// Milliseconds of the last generation (network + extraction + readbacks).
-    pub last_generation_ms: f32,
-    /// The last generation by stage (mapping … rigging, then the mesh's upload): host ms,
-    /// waits on the GPU, read-backs (`getavatar_core::profile`).
-    pub last_generation_stages: Option<getavatar_core::profile::StageProfile>,
-    pub seed_geo: u64,
-    pub seed_tex: u64,
-    pub psi: f32,
-    /// "body" or "avatar": what the viewport shows.
-    pub showing: String,
-    pub avatar_vertices: usize,
-    /// Per-pixel texture images finished (view `texture`), and the pixels of the last one
-    /// and its time (rasterise canonical coordinates, read back, query the texture field).
-    pub texture_images: u64,
-    pub texture_pixels: usize,
-    pub last_texture_ms: f32,
-    /// The photo → body flow.
-    pub photo: PhotoStatus,
-    /// The photo's rectangle in CSS pixels when it is shown: [x, y, width, height].
-    pub photo_view: [f32; 4],
-    /// Motion playback and the animated download.
-    pub motion: MotionStatus,
-    /// The reconstruction from the photo.
-    pub reconstruct: ReconstructStatus,
-    /// The "Open photo…" button's rectangle in CSS pixels (for the test that clicks it).
-    pub open_photo_button: [f32; 4],
-    /// Messages about rejected commands / parameters (the last 50, most recent last).
-    pub errors: Vec<String>,
-    /// How many messages there were in all.
-    pub errors_total: u64,
-}
-
-/// The photo panel's state (`status().photo`).
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct PhotoStatus {
-    /// "none", "detecting", "fitting", "fitted", "failed" or "cancelled".
-    pub state: String,
-    /// Where the photo came from (file name or URL).
-    pub name: String,
-    /// The photo's size, pixels.
-    pub width: usize,
-    pub height: usize,
-    /// The size the detector ran at: the photo downscaled to at most 4 MP.
-    pub detected_width: usize,
-    pub detected_height: usize,
-    /// The last message about the photo (why it failed, which joints are missing, …).
-    pub message: String,
-    /// People in the photo (selfie segmentation's regions; null when it could not tell).
-    pub people: Option<usize>,
-    /// The fitted one of them by size (1 = the largest; null: read on the whole photo outside
-    /// every region), and each one's box in the shown photo, normalised [x, y, w, h],
-    /// largest first.
-    pub person: Option<usize>,
-    pub persons: Vec<[f32; 4]>,
-    /// Degrees clockwise the photo was turned to read the person upright (0, 90, 180, 270);
-    /// the shown photo, the keypoints and the fit are of the turned photo.
-    pub rotation: u16,
-    /// Pose runs the person finder made (candidates tried).
-    pub tries: usize,
-    /// Body joints the detector did not see (visibility < ½), SMPL names.
-    pub missing_joints: Vec<String>,
-    /// Milliseconds of the detection (decode, MediaPipe, mask read-back).
-    pub detect_ms: f32,
-    /// Fit progress: stage ("torso", "body", "silhouette"), steps done and total, loss.
-    pub stage: String,
-    pub steps_done: usize,
-    pub steps_total: usize,
-    pub loss: f32,
-    /// Milliseconds of the last fit and its steps per second.
-    pub fit_ms: f32,
-    /// Completed fits (re-fits included) and failed photos.
-    pub fits: u64,
-    pub failures: u64,
-    /// The last fit's residuals: mean keypoint distance in photo pixels and over the
-    /// person's height, and the IoU of the fitted body with the person mask.
-    pub mean_px: f32,
-    pub relative_to_height: f32,
-    pub mask_iou: Option<f32>,
-    /// Downloads of fit.json + kp.json.
-    pub fit_downloads: u64,
-}
-
-/// The reconstruction's state (`status().reconstruct`).
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct ReconstructStatus {
-    /// "none", "starting", "latent" (W+), "pivotal" (PTI), "finishing", "done", "failed" or
-    /// "cancelled".
-    pub state: String,
-    pub message: String,
-    /// The preset's or the request's steps: done in both phases, and in all.
-    pub steps_done: usize,
-    pub steps_total: usize,
-    /// The render size the photo is compared at.
-    pub res: usize,
-    /// The start (latent mode or w_avg) and of how many candidates.
-    pub start: String,
-    pub candidates: usize,
-    /// Whether the perceptual term (the shipped discriminator's features) is on.
-    pub perceptual: bool,
-    /// Where the steps run: "worker" (the reconstruction worker, off the UI thread) or "page"
-    /// (where the worker cannot start).
-    pub runs_in: String,
-    /// The device they run on, in words ("CPU (burn NdArray in the worker; …)", "WebGPU: …").
-    pub device: String,
-    /// Milliseconds from "Reconstruct" to the first avatar on screen (the start's, shown
-    /// before any refinement), and its mask IoU and masked PSNR (dB) at the photo's camera.
-    pub first_avatar_ms: f32,
-    pub first_mask_iou: f32,
-    pub first_psnr_db: f32,
-    /// Cancelled after this many steps, the avatar being that state (0: not).
-    pub stopped_at: usize,
-    /// Every step's weighted loss, in order (this run's).
-    pub losses: Vec<f32>,
-    /// The last step's mask IoU with the person mask.
-    pub step_mask_iou: f32,
-    /// Milliseconds per step so far (all, W+ steps, PTI steps), and the estimated seconds left.
-    pub ms_per_step: f32,
-    pub ms_per_latent_step: f32,
-    pub ms_per_pivotal_step: f32,
-    pub eta_s: f32,
-    /// Milliseconds to load the model and choose the start, and of the finish (the final
-    /// figures from the last step's render, the result file, extraction, rigging, the photo's
-    /// projection).
-    pub start_ms: f32,
-    pub finish_ms: f32,
-    /// Where the finish's time went, e.g. "worker: final figures 0.4 s, result file 3.1 s;
-    /// page: rigging 9.0 s".
-    pub finish_detail: String,
-    /// Previews shown, and the steps done at the latest.
-    pub previews: u64,
-    pub preview_step: usize,
-    /// The finished result at the photo's camera (the last step's render, before its update):
-    /// mask IoU with the person mask and masked PSNR (dB); and its total milliseconds.
-    pub mask_iou: f32,
-    pub psnr_db: f32,
-    pub total_ms: f32,
-    /// Completed reconstructions.
-    pub done: u64,
-    /// Reconstructions opened from files, and saved ("Save reconstruction"; the last file's
-    /// size in bytes).
-    pub opened: u64,
-    pub saved: u64,
-    pub saved_bytes: usize,
-    /// Whether the shown reconstruction keeps its photo (projected onto its texture).
-    pub has_photo: bool,
-}
-
-/// Motion playback, for the tests.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct MotionStatus {
-    /// Clips available (built-ins, then loaded files), by name.
-    pub clips: Vec<String>,
-    /// The selected clip ("" for none), whether it plays, where, and its length.
-    pub clip: String,
-    pub playing: bool,
-    pub time: f32,
-    pub duration: f32,
-    pub frames: usize,
-    pub speed: f32,
-    pub looping: bool,
-    /// Clips the animated download holds.
-    pub include: Vec<String>,
-    /// Motion files loaded, and what loading the last one changed (resampled, cut, …).
-    pub files_loaded: u64,
-    pub notes: Vec<String>,
-    /// Animated downloads and the last one's size, bytes.
-    pub animated_downloads: u64,
-    pub last_animated_bytes: usize,
-    /// VRM avatar downloads, VRM animation files downloaded, and the last file's size, bytes.
-    pub vrm_downloads: u64,
-    pub vrma_downloads: u64,
-    pub last_vrm_bytes: usize,
-    /// The downloads' texture side (0: vertex colours), finished bakes, whether one runs,
-    /// the last one's milliseconds and its atlas (vertices, and triangles in own charts).
-    pub texture_res: usize,
-    pub bakes: u64,
-    pub baking: bool,
-    pub last_bake_ms: f32,
-    pub atlas_vertices: usize,
-    pub atlas_own_chart_faces: usize,
-    /// Bakes dropped because the avatar or its colours changed while they ran.
-    pub stale_bakes: u64,
-    /// Whether the last download (posed or animated) carried a texture.
-    pub last_textured: bool,
 }
 
 #[cfg(test)]
@@ -1047,6 +855,22 @@ mod tests {
         }
         assert!(parse_command(r#"{"photo":{"url":"p.png","options":{"weights":{"silhouete":1}}}}"#).is_err());
         assert!(parse_command(r#"{"photo":{"url":"p.png","options":{"learning_rate":-1}}}"#).is_err());
+    }
+
+    #[test]
+    fn video_commands_name_a_url_and_a_read_rate_offered() {
+        assert_eq!(
+            parse_command(r#"{"video":{"url":"clip.webm","fps":10}}"#),
+            Ok(Action::Video { source: PhotoSource::Url("clip.webm".into()), fps: Some(10) })
+        );
+        assert_eq!(
+            parse_command(r#"{"video":{"url":"clip.webm"}}"#),
+            Ok(Action::Video { source: PhotoSource::Url("clip.webm".into()), fps: None })
+        );
+        assert_eq!(parse_command(r#"{"video_cancel":true}"#), Ok(Action::VideoCancel));
+        for bad in [r#"{"video":{"url":" "}}"#, r#"{"video":{"url":"a.mp4","fps":24}}"#, r#"{"video":{"path":"a"}}"#] {
+            assert!(parse_command(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

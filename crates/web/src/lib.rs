@@ -4,7 +4,8 @@
 //! (later: generated avatars), with pose, shape, camera and view controls and a .glb
 //! download. Everything model-related comes from `getavatar-core`.
 //!
-//! - [`automation`]: URL parameters and the JS hook's commands/status (pure, tested natively)
+//! - [`automation`]: URL parameters and the JS hook's commands (pure, tested natively)
+//! - [`status`]: what `window.getavatar.status()` returns, one struct per panel (pure)
 //! - `app` (wasm32): the egui application state and per-frame flow; `app::panels`, `app::texture_job`
 //! - `generate` (wasm32): the generator on burn's wgpu backend sharing egui's WebGPU device
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
@@ -14,11 +15,16 @@
 //!   the shared WebGPU device) from the photo and its body fit
 //! - `reconstruct_worker` (wasm32): the reconstruction in a dedicated worker (this module again,
 //!   its own WebGPU device: no step holds the UI thread), the page's side and the worker's
+//! - [`video_clip`]: what "Motion from video…" accepts and which frames it reads (pure)
+//! - `video` (wasm32): motion from a video: frames decoded in the page (`www/video_frames.js`),
+//!   MediaPipe's tracking mode, the warm-started clip fit of `getavatar_core::body_fit::video`
 //! - `task` (wasm32): background tasks' event queues, Cancel, yielding to the browser
 //! - `platform` (wasm32): clock and file downloads
 //! - `web` (wasm32): entry point owning the app, JS automation hook
 
 pub mod automation;
+pub mod status;
+pub mod video_clip;
 
 #[cfg(target_arch = "wasm32")]
 mod app;
@@ -34,6 +40,8 @@ mod reconstruct;
 mod reconstruct_worker;
 #[cfg(target_arch = "wasm32")]
 mod task;
+#[cfg(target_arch = "wasm32")]
+mod video;
 #[cfg(target_arch = "wasm32")]
 mod viewer;
 #[cfg(target_arch = "wasm32")]

@@ -282,6 +282,15 @@ fn bits(values: &[f32]) -> String {
     values.iter().map(|v| if *v >= 0.5 { '1' } else { '0' }).collect()
 }
 
+/// Where the browser runs the fit: NdArray (CPU) with autodiff. Its tensors are small (24
+/// joints, 33 landmarks, one 128² mask), so GPU dispatches and read-backs cost more than the
+/// arithmetic: see docs/benchmarks.md for the measured steps per second of both.
+pub fn fit_device() -> Device {
+    // The project's CPU backend (as natively); burn 0.22 marks it deprecated in favour of flex.
+    #[allow(deprecated)]
+    Device::ndarray().autodiff()
+}
+
 /// Fit the body to a detection, one step per await.
 pub fn fit(req: FitRequest, repaint: egui::Context) -> PhotoTask {
     let task = PhotoTask::default();

@@ -78,11 +78,12 @@ pub fn download_bytes(name: &str, bytes: &[u8], mime: &str) -> Result<(), String
     Ok(())
 }
 
-/// The ids of the page's hidden file inputs (made by [`install_file_input`]): photos and
-/// motion files.
+/// The ids of the page's hidden file inputs (made by [`install_file_input`]): photos,
+/// motion files, reconstructions and videos.
 pub const PHOTO_INPUT_ID: &str = "getavatar_photo_input";
 pub const MOTION_INPUT_ID: &str = "getavatar_motion_input";
 pub const RECONSTRUCTION_INPUT_ID: &str = "getavatar_reconstruction_input";
+pub const VIDEO_INPUT_ID: &str = "getavatar_video_input";
 
 /// Add a hidden `<input type=file>` (`id`, accepting `accept`) behind an "Open…" button;
 /// each chosen file's bytes go to `on_file(name, bytes)`, an unreadable one's error to

@@ -93,6 +93,18 @@ fn queue_motion(name: String, bytes: Vec<u8>) {
     request_repaint();
 }
 
+/// JS: hand the app a video's bytes, as "Motion from video…" does (read at the panel's rate).
+#[wasm_bindgen]
+pub fn getavatar_video(bytes: Vec<u8>, name: String) {
+    queue_video(name, bytes);
+}
+
+fn queue_video(name: String, bytes: Vec<u8>) {
+    let action = Action::Video { source: PhotoSource::Bytes { name, bytes }, fps: None };
+    COMMANDS.with(|q| q.borrow_mut().push_back(Ok(action)));
+    request_repaint();
+}
+
 fn queue_reconstruction(name: String, bytes: Vec<u8>) {
     let action = Action::OpenReconstruction(PhotoSource::Bytes { name, bytes });
     COMMANDS.with(|q| q.borrow_mut().push_back(Ok(action)));
@@ -191,6 +203,8 @@ async fn run() -> Result<(), JsValue> {
     crate::platform::install_file_input(&document, crate::platform::PHOTO_INPUT_ID, photos, queue_photo, report)?;
     // "Load motion…": SMPL/AMASS .npz files.
     crate::platform::install_file_input(&document, crate::platform::MOTION_INPUT_ID, ".npz", queue_motion, report)?;
+    // "Motion from video…": any video the browser can decode.
+    crate::platform::install_file_input(&document, crate::platform::VIDEO_INPUT_ID, "video/*", queue_video, report)?;
     // "Open reconstruction…": a saved reconstruction (.safetensors).
     let recon = crate::platform::RECONSTRUCTION_INPUT_ID;
     crate::platform::install_file_input(&document, recon, ".safetensors", queue_reconstruction, report)?;

@@ -8,12 +8,14 @@
 //! - `motion_panel`: motion playback (built-in clips, SMPL/AMASS files) and the downloads
 //! - `reconstruct_panel`: "Reconstruct avatar" from the fitted photo (preset, progress,
 //!   preview, Cancel)
+//! - `video_panel`: "Motion from video…" (progress, ETA, Cancel; the clip joins the motions)
 
 mod motion_panel;
 mod panels;
 mod photo_panel;
 mod reconstruct_panel;
 mod texture_job;
+mod video_panel;
 
 use std::rc::Rc;
 use std::sync::Arc;
@@ -117,6 +119,8 @@ pub struct GetAvatarApp {
     avatar_name: String,
     /// Motion playback.
     motion: MotionPlayer,
+    /// Motion from a video.
+    video: video_panel::VideoPanel,
     /// The downloads' texture side (0: vertex colours), the shown avatar's bake at it, and a
     /// download waiting for the bake.
     texture_res: usize,
@@ -206,6 +210,7 @@ impl GetAvatarApp {
             recon: ReconstructPanel::default(),
             avatar_name: "avatar".into(),
             motion: MotionPlayer::default(),
+            video: Default::default(),
             texture_res: 1024,
             baked: None,
             pending_download: None,
@@ -280,6 +285,7 @@ impl GetAvatarApp {
             | Action::OpenReconstruction(_)) => self.apply_reconstruct(a),
             Action::Motion(a) => self.apply_motion(a),
             Action::MotionFile { name, bytes } => self.load_motion_file(name, bytes),
+            a @ (Action::Video { .. } | Action::VideoCancel) => self.apply_video(a),
             Action::DownloadAnimated => self.request_download(motion_panel::DownloadKind::Animated),
             Action::DownloadVrm => self.request_download(motion_panel::DownloadKind::Vrm),
             Action::DownloadVrma => self.download_vrma(),
@@ -555,6 +561,7 @@ impl GetAvatarApp {
         let ctx = ui.ctx().clone();
         self.take_dropped(&ctx);
         self.poll_photo(&ctx);
+        self.poll_video();
         self.poll_reconstruct(&ctx);
         self.poll_generation();
         self.start_queued(&ui.ctx().clone());

@@ -1,4 +1,5 @@
-//! Motion playback: the built-in clips (walk, turn, wave) and loaded SMPL/AMASS `.npz` files
+//! Motion playback: the built-in clips (walk, turn, wave), loaded SMPL/AMASS `.npz` files and
+//! clips made from videos (`video_panel`)
 //! play on the avatar and the bare body — each frame changes only the pose, so a rigged
 //! avatar is re-posed on the GPU (new bone transforms, no generation) — with play / pause /
 //! scrub / speed / loop, and the downloads: the posed .glb, the animated .glb (skinned,
@@ -157,23 +158,29 @@ impl GetAvatarApp {
         let stem = stem.strip_suffix(".npz").unwrap_or(stem).to_string();
         match Motion::from_amass_npz(&bytes, &stem) {
             Ok(m) => {
-                self.motion.notes = m.notes.iter().map(|n| format!("{stem}: {n}")).collect();
                 self.motion.files_loaded += 1;
-                let i = match self.motion.clips.iter().position(|c| c.name == m.name) {
-                    Some(i) => {
-                        self.motion.clips[i] = m;
-                        i
-                    }
-                    None => {
-                        self.motion.clips.push(m);
-                        self.motion.include.push(false);
-                        self.motion.clips.len() - 1
-                    }
-                };
-                self.select_clip(i);
+                self.add_clip(m);
             }
             Err(e) => self.messages.push(format!("{name}: {e}")),
         }
+    }
+
+    /// A new clip (a motion file's, a video's) joins the clips, replacing one of its name,
+    /// and is selected; its notes show under the controls.
+    pub(super) fn add_clip(&mut self, m: Motion) {
+        self.motion.notes = m.notes.iter().map(|n| format!("{}: {n}", m.name)).collect();
+        let i = match self.motion.clips.iter().position(|c| c.name == m.name) {
+            Some(i) => {
+                self.motion.clips[i] = m;
+                i
+            }
+            None => {
+                self.motion.clips.push(m);
+                self.motion.include.push(false);
+                self.motion.clips.len() - 1
+            }
+        };
+        self.select_clip(i);
     }
 
     /// Pose the body (and avatar) at the selected clip's current time.
@@ -234,6 +241,7 @@ impl GetAvatarApp {
         if let Some(name) = pick {
             self.apply(Action::Motion(MotionArgs { clip: Some(name), play: Some(true), ..Default::default() }));
         }
+        self.video_section(ui);
         if self.motion.selected.is_some() {
             ui.horizontal(|ui| {
                 let label = if self.motion.playing { "⏸ Pause" } else { "▶ Play" };

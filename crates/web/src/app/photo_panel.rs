@@ -14,7 +14,6 @@ use egui::{Color32, Pos2, Rect, Stroke};
 use getavatar_core::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
 use getavatar_core::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
 use getavatar_core::body_model::JOINT_NAMES;
-use getavatar_core::burn::tensor::Device;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, PhotoFitAction, PhotoSource};
@@ -203,7 +202,7 @@ impl GetAvatarApp {
         let model = body.clone();
         let options = self.photo.options.clone().unwrap_or_default();
         let device = match (self.photo.on_gpu, self.engine.as_ref()) {
-            (false, _) => fit_device(),
+            (false, _) => photo::fit_device(),
             (true, Some(e)) => e.device().clone().autodiff(),
             (true, None) => {
                 self.fail_photo("no WebGPU device for burn: the fit runs on the CPU only".into());
@@ -364,15 +363,20 @@ impl GetAvatarApp {
         }
     }
 
-    /// A file dropped on the page becomes the photo (the first, if several): its bytes are
+    /// A file dropped on the page opens by its kind (the first, if several): its bytes are
     /// read asynchronously, then opened like a chosen file.
     pub(super) fn take_dropped(&mut self, ctx: &egui::Context) {
         let arrived: Vec<_> = self.photo.dropped.borrow_mut().drain(..).collect();
         for r in arrived {
             match r {
-                // Motion files go to the motion player, reconstructions to the avatar, the rest is a photo.
+                // Motion files go to the motion player, videos make clips, reconstructions become
+                // the avatar, the rest is a photo.
                 Ok((name, bytes)) if name.to_ascii_lowercase().ends_with(".npz") => {
                     self.apply(Action::MotionFile { name, bytes })
+                }
+                // Videos become motion clips.
+                Ok((name, bytes)) if crate::video_clip::is_video_name(&name) => {
+                    self.apply(Action::Video { source: PhotoSource::Bytes { name, bytes }, fps: None })
                 }
                 // Saved reconstructions open as the avatar.
                 Ok((name, bytes)) if name.to_ascii_lowercase().ends_with(".safetensors") => {
@@ -557,15 +561,6 @@ impl GetAvatarApp {
             }
         }
     }
-}
-
-/// Where the browser runs the fit: NdArray (CPU) with autodiff. Its tensors are small (24
-/// joints, 33 landmarks, one 128² mask), so GPU dispatches and read-backs cost more than the
-/// arithmetic: see docs/benchmarks.md for the measured steps per second of both.
-fn fit_device() -> Device {
-    // The project's CPU backend (as natively); burn 0.22 marks it deprecated in favour of flex.
-    #[allow(deprecated)]
-    Device::ndarray().autodiff()
 }
 
 /// "person found", or who of the people seen was found and how ("3 people; fitted the
