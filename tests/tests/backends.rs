@@ -106,9 +106,9 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
     use getavatar_core::cooperative::run_blocking;
     use getavatar_core::dmtet_gpu::{extract, mesh_from_rows, DmtetTopology, SURFACE_COLUMNS};
     use getavatar_core::fields::{aligned_points, band_fields, band_rows, points_tensor};
-    use getavatar_core::generator::generate_rigged_async;
     use getavatar_core::geometry::marching_tets;
     use getavatar_core::readback::{block_on_ready, read_f32_now};
+    use getavatar_core::rigging::generate_rigged_async;
 
     let gpu = common::gpu();
     let cfg = GeneratorConfig::tiny();

@@ -4,10 +4,11 @@
 use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Param;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, Avatar, BodyContext, Generator};
+use getavatar_core::generator::{generate_avatar, seed_latents, Avatar, BodyContext, Generator};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::readback::block_on_ready;
+use getavatar_core::rigging::generate_rigged_async;
 use getavatar_core::skinning::{pose_body, vertex_normals};
 use getavatar_core::spatial::KdTree;
 use glam::Vec3;

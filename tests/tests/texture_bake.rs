@@ -6,10 +6,11 @@
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
 use getavatar_core::colour::linear_to_srgb;
-use getavatar_core::generator::{default_psi, generate_rigged_async, recolor_async, seed_latents, BodyContext};
+use getavatar_core::generator::{default_psi, recolor_async, seed_latents, BodyContext};
 use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::readback::block_on_ready;
+use getavatar_core::rigging::generate_rigged_async;
 use getavatar_core::uv_atlas::texel_points;
 use getavatar_core::BodyModel;
 use glam::Vec3;

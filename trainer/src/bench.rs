@@ -16,13 +16,14 @@ use getavatar_core::body_model::BodyModel;
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::camera::OrbitCamera;
-use getavatar_core::generator::{generate_avatar, generate_rigged_async, seed_latents, BodyContext, Generator};
+use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
 use getavatar_core::geometry::{InverseSkinning, PosedGrid};
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::profile::StageProfile;
 use getavatar_core::rasterize::render_views;
 use getavatar_core::readback::{block_on_ready, read_f32_now};
+use getavatar_core::rigging::generate_rigged_async;
 use getavatar_core::skinning::pose_body;
 
 fn secs<T>(f: impl FnOnce() -> T) -> (T, f64) {

@@ -28,7 +28,7 @@ use getavatar_core::checkpoint::{self, save_inverted};
 use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::encoder::{load_encoder, Encoder};
-use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
+use getavatar_core::generator::{BodyContext, Generator, Styles};
 use getavatar_core::humanoid::SkeletonNames;
 use getavatar_core::inversion::{
     choose_start, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
@@ -40,6 +40,7 @@ use getavatar_core::network::GeneratorConfig;
 use getavatar_core::pose_library::PoseLibrary;
 use getavatar_core::rasterize::{render_views_textured, Texture};
 use getavatar_core::readback::block_on_ready;
+use getavatar_core::rigging::generate_rigged_async;
 use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
 use getavatar_core::scan::RenderableScan;
 use getavatar_core::skinning::{pose_body, BodyParams};

@@ -198,6 +198,9 @@ fn copy_mediapipe(dist: &Path) -> Result<()> {
 fn test(native: bool, browser: bool) -> Result<()> {
     if native {
         setup::native_test_deps()?;
+        // Core's files import each other without circles (ARCHITECTURE.md).
+        run(Command::new("python3").current_dir(root()).args(["tools/import_cycles.py", "crates/core/src"]))
+            .context("core has an import circle (or python3 is missing)")?;
         let mut c = Command::new(cargo());
         c.current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]);
         run(&mut c)?;

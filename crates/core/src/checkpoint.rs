@@ -21,8 +21,7 @@ use crate::readback::ReadbackError;
 
 pub const FORMAT: &str = "getavatar-generator/1";
 
-/// A tensor as stored: name, shape and row-major values.
-pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
+pub use crate::named_tensor::{unique_name, NamedTensor};
 
 /// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
 pub const MODES_GEO: &str = "latent_modes/geo";
@@ -48,19 +47,6 @@ pub enum CheckpointError {
 
 fn fmt_err(m: impl Into<String>) -> CheckpointError {
     CheckpointError::Format(m.into())
-}
-
-/// Parameter name from the module path; a repeated path gets a `#k` suffix (traversal order
-/// is the same when saving and loading, so names match).
-pub fn unique_name(path: &[String], seen: &mut BTreeMap<String, usize>) -> String {
-    let base = path.join(".");
-    let k = seen.entry(base.clone()).or_insert(0);
-    *k += 1;
-    if *k == 1 {
-        base
-    } else {
-        format!("{base}#{}", *k - 1)
-    }
 }
 
 /// Serialise generator `g` (built with `cfg`) to safetensors bytes. Native only: it reads

@@ -561,27 +561,6 @@ pub fn mesh_from_rows(
     mesh
 }
 
-/// Device topologies kept per device (a `BodyContext` keeps its canonical grid's here).
-#[derive(Default)]
-pub struct TopologyCache(std::sync::Mutex<Vec<std::sync::Arc<DeviceTopology>>>);
-
-impl TopologyCache {
-    /// The topology kept for `device`, or `make`'s, then kept.
-    pub async fn get_or_make(
-        &self,
-        device: &Device,
-        make: impl std::future::Future<Output = DeviceTopology>,
-    ) -> std::sync::Arc<DeviceTopology> {
-        let lock = || self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        if let Some(t) = lock().iter().find(|t| t.device() == *device) {
-            return t.clone();
-        }
-        let made = std::sync::Arc::new(make.await);
-        lock().push(made.clone());
-        made
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

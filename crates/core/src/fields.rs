@@ -7,8 +7,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
-use crate::generator::{Generator, Styles};
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
+use crate::network::generator_network::{Generator, Styles};
 use crate::network::synthesis::Triplanes;
 use crate::readback::{read_f32, ReadbackError};
 

@@ -162,7 +162,7 @@ mod tests {
     fn left_bones_are_on_the_bodys_left() {
         let model = BodyModel::default_body().unwrap();
         let joints = model.regress_joints(&model.v_template);
-        let nose = crate::body_fit::surface::surface_landmarks(&model).unwrap()[0].vertex;
+        let nose = crate::body_surface::surface_landmarks(&model).unwrap()[0].vertex;
         let head = joints[joint_index("head").unwrap()];
         assert!(model.v_template[nose as usize].z > head.z + 0.05, "the body faces +z");
         for (b, p) in HUMANOID_BONES.iter().zip(joints) {

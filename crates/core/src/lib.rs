@@ -6,6 +6,7 @@
 //! | paper                                   | module |
 //! |-----------------------------------------|--------|
 //! | Sec. 3, SMPL body model (layout, β)     | [`body_model`] (+ [`npz`] for the file format) |
+//! | the body's surface landmarks (nose, eyes, ears, heels, toes as vertices) | [`body_surface`] |
 //! | Sec. 3 eq. 1, LBS; eq. 2 blended transforms | [`skinning`] |
 //! | canonical "Da-pose", named poses        | [`pose_library`] |
 //! | Sec. 4.4 camera                         | [`camera`] |
@@ -18,6 +19,7 @@
 //! | eq. 4 normal field (∇SDF rotated by skinning) | `normal_field` |
 //! | re-posing an extracted avatar by LBS (the app's fast path) | `rigging` |
 //! | tensor read-backs as `Result` (never empty vectors) | `readback` |
+//! | tensors by name (checkpoints, optimiser state) | [`named_tensor`] |
 //! | Sec. 4.4 rendering (nvdiffrast-style rasterize / interpolate, CPU reference) | [`rasterize`] |
 //! | Sec. 4.3–4.5 differentiable DMTet, interpolate, antialias (burn tensors) | `diff` |
 //! | Sec. 4.5 objective: adversarial, R1 (finite differences), eikonal, SDF cross-entropy | `losses` (+ `network::discriminator`) |
@@ -38,6 +40,7 @@
 
 pub mod body_fit;
 pub mod body_model;
+pub mod body_surface;
 pub mod camera;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod checkpoint;
@@ -64,6 +67,7 @@ pub mod inversion;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod losses;
 pub mod motion;
+pub mod named_tensor;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod network;
 #[cfg(any(feature = "generator", feature = "wgpu"))]

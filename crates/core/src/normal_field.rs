@@ -7,8 +7,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{Mat3, Vec3};
 
-use crate::generator::{Generator, Styles};
 use crate::geometry::TemplateSdf;
+use crate::network::generator_network::{Generator, Styles};
 use crate::network::synthesis::Triplanes;
 
 /// Directions of the central-difference probes, in the order ±x, ±y, ±z.

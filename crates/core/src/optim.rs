@@ -8,9 +8,9 @@ use std::collections::BTreeMap;
 use burn::module::{Module, ModuleMapper, Param};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 
-use crate::checkpoint::unique_name as param_name;
+use crate::named_tensor::unique_name as param_name;
 #[cfg(not(target_arch = "wasm32"))]
-use crate::checkpoint::NamedTensor;
+use crate::named_tensor::NamedTensor;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::readback::{read_f32_now, ReadbackError};
 

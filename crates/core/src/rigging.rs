@@ -369,3 +369,17 @@ impl RiggedAvatar {
         Ok(BakedTexture { atlas, res, rgb, png, covered: texels.len() })
     }
 }
+
+/// Generate in the canonical pose and rig (the fast path's one-off cost).
+pub async fn generate_rigged_async(
+    g: &crate::generator::Generator,
+    ctx: &BodyContext,
+    s: &crate::generator::Styles,
+    device: &Device,
+) -> Result<RiggedAvatar, crate::readback::ReadbackError> {
+    let params = crate::skinning::BodyParams { pose: crate::pose_library::da_pose(), ..Default::default() };
+    let a = crate::generator::generate_avatar_async(g, ctx, s, &params, device).await?;
+    crate::cooperative::checkpoint().await;
+    crate::profile::stage("rigging");
+    Ok(RiggedAvatar::new(a, ctx))
+}

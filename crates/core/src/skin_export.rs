@@ -120,7 +120,7 @@ pub struct VrmFrame {
 pub fn vrm_frame(model: &BodyModel, betas: &[f32]) -> Result<VrmFrame, ExportError> {
     let rest = pose_body(model, &BodyParams { betas: betas.to_vec(), ..BodyParams::default() });
     let floor = rest.vertices.iter().map(|v| v.y).fold(f32::INFINITY, f32::min);
-    let marks = crate::body_fit::surface::surface_landmarks(model).map_err(|e| ExportError::Skin(e.to_string()))?;
+    let marks = crate::body_surface::surface_landmarks(model).map_err(|e| ExportError::Skin(e.to_string()))?;
     // MediaPipe's left and right eye (landmarks 2 and 5).
     let eye = |landmark| marks.iter().find(|m| m.landmark == landmark).map(|m| rest.vertices[m.vertex as usize]);
     let head = joint_index("head").map(|j| rest.kinematics.rest_joints[j]);

@@ -17,13 +17,13 @@ use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator_and_modes, save_inverted_async};
 use getavatar_core::generator::{
-    default_psi, generate_rigged_async, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator,
-    LatentModes, Styles,
+    default_psi, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator, LatentModes, Styles,
 };
 use getavatar_core::network::synthesis::Triplanes;
 use getavatar_core::network::GeneratorConfig;
 use getavatar_core::photo_projection::{PhotoProjection, SourcePhoto};
 use getavatar_core::profile;
+use getavatar_core::rigging::generate_rigged_async;
 use getavatar_core::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
 
 /// Where the page finds the trained demo model (relative to the page).

@@ -15,13 +15,14 @@ use std::rc::Rc;
 
 use eframe::egui;
 use getavatar_core::burn::module::Module;
+use getavatar_core::rigging::generate_rigged_async;
 
 use getavatar_core::body_fit::fit::BodyFit;
 use getavatar_core::body_fit::landmarks::SegmentationMask;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::checkpoint::{inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors};
 use getavatar_core::encoder::load_encoder;
-use getavatar_core::generator::{generate_rigged_async, BodyContext, Generator, Styles};
+use getavatar_core::generator::{BodyContext, Generator, Styles};
 use getavatar_core::inversion::{
     choose_start_async, encoder_start, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
     InversionTarget, Inverter, StartCandidate, StepReport,

@@ -39,45 +39,26 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
 
-use super::framing::FramingError;
+pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
 pub use super::input::{FitInput, HAND_SWAP};
-use super::landmarks::{LandmarkError, JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
+use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
 use super::limits::HINGES;
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{FitOptions, FitWeights};
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
-use super::surface::{surface_landmarks, SurfaceError, SurfaceLandmark};
+use super::result::{FAR, NEAR};
+use super::surface::{surface_landmarks, SurfaceLandmark};
 use crate::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::camera::{reference_fov_y, to_row_major};
 use crate::diff::body_model::{joint_index, PosedSkeleton, Skeleton, VertexSet};
 use crate::diff::{matrix, rasterize as diff_raster};
 use crate::optim::Adam;
-use crate::readback::{read_f32, ReadbackError};
+use crate::readback::read_f32;
 use crate::skinning::{axis_angle_to_matrix, BodyParams};
 
 /// Residuals are in pixels of a crop this wide.
 const UNIT_PX: f32 = 128.0;
-/// Clip planes of the fit's camera, metres.
-pub(crate) const NEAR: f32 = 0.1;
-pub(crate) const FAR: f32 = 100.0;
-
-/// Why a fit cannot run.
-#[derive(Debug, thiserror::Error)]
-pub enum FitError {
-    #[error(transparent)]
-    Landmarks(#[from] LandmarkError),
-    #[error(transparent)]
-    Framing(#[from] FramingError),
-    #[error(transparent)]
-    Surface(#[from] SurfaceError),
-    #[error(transparent)]
-    Readback(#[from] ReadbackError),
-    #[error("the mask has {got} values, its size {width}×{height} needs {}", width * height)]
-    MaskSize { got: usize, width: usize, height: usize },
-    #[error("too few landmarks to fit: {0}")]
-    TooFew(String),
-}
 
 /// Progress of one step.
 #[derive(Clone, Debug, PartialEq)]

@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use super::fit::FitError;
+use super::error::FitError;
 use super::framing::Framing;
 use super::init::camera_axes;
 use super::landmarks::{PoseResult, SegmentationMask, NUM_LANDMARKS, VISIBLE};

@@ -14,6 +14,8 @@
 //!   back to the photo as taken.
 
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod error;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod fit;
 pub mod framing;
 pub mod init;
@@ -25,7 +27,8 @@ pub mod metrics;
 pub mod options;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod result;
-pub mod surface;
+/// The surface landmarks live with the body ([`crate::body_surface`]); this path stays.
+pub use crate::body_surface as surface;
 pub mod synthetic;
 pub mod temporal;
 pub mod turn;

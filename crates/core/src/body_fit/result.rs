@@ -4,11 +4,14 @@
 use glam::Mat4;
 use serde::{Deserialize, Serialize};
 
-use super::fit::{FAR, NEAR};
 use super::framing::{Framing, MAX_PHOTO_PIXELS};
 use super::options::FitOptions;
 use crate::body_model::NUM_JOINTS;
 use crate::skinning::BodyParams;
+
+/// Clip planes of the fit's camera, metres.
+pub(crate) const NEAR: f32 = 0.1;
+pub(crate) const FAR: f32 = 100.0;
 
 /// The fitted body: pose, shape and camera, with what it was fitted to and how well.
 /// `fit.json` of `trainer fit-pose` and the app's "Download fit".

@@ -22,8 +22,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
-use crate::body_fit::surface::{nose_on, SurfaceError};
 use crate::body_model::BodyModel;
+use crate::body_surface::{nose_on, SurfaceError};
 use crate::colour::{encode_srgb, encode_srgb_tensor};
 use crate::generator::{BodyContext, Generator, Styles};
 use crate::geometry::InverseSkinning;
@@ -95,7 +95,7 @@ impl CanonicalSamples {
 }
 
 /// The front of the head in canonical space: within 7.5 cm of the canonical body's nose
-/// (`body_fit::surface`: the most forward midline vertex of the head) across, from 7.5 cm
+/// (`body_surface`: the most forward midline vertex of the head) across, from 7.5 cm
 /// below it to 8.5 cm above, and in front of a plane 7 cm behind it. That holds the eyes
 /// (3.3 cm either side, 3.5 cm up), brows and mouth of the synthetic scans and the skin
 /// around them, not the ears or the back of the head.

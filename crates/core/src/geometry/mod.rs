@@ -7,6 +7,8 @@
 
 pub mod dmtet;
 pub mod inverse_skinning;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+pub mod per_device;
 pub mod posed_grid;
 pub mod template_sdf;
 pub mod tet_grid;

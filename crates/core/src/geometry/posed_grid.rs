@@ -35,9 +35,9 @@ pub struct BodyContext {
     /// ([`BodyContext::canonical_inverse`]).
     canonical_inverse: std::sync::OnceLock<InverseSkinning>,
     /// The canonical grid's DMTet topology on each device that extracted a surface there
-    /// (`crate::dmtet_gpu`).
+    /// (`crate::dmtet_gpu::DeviceTopology`).
     #[cfg(any(feature = "generator", feature = "wgpu"))]
-    pub canonical_dmtet: crate::dmtet_gpu::TopologyCache,
+    pub canonical_dmtet: super::per_device::PerDevice,
 }
 
 impl BodyContext {

@@ -23,8 +23,8 @@ use super::config::{FacePlaneConfig, GeneratorConfig};
 use super::init::{full, Rng};
 use super::layers::ModulatedConv2d;
 use super::triplane::sample_triplanes;
-use crate::body_fit::surface::{nose_on, SurfaceError};
 use crate::body_model::BodyModel;
+use crate::body_surface::{nose_on, SurfaceError};
 use crate::geometry::inverse_skinning::canonical_body;
 use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 

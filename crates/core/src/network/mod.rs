@@ -10,6 +10,7 @@
 //! - [`synthesis`]: the triplane backbone (w_geo) with to-geometry (w_geo) / to-texture (w_tex) outputs
 //! - [`triplane`]: plane sampling at canonical points (xy, yz, xz; bilinear; summed)
 //! - [`face_plane`]: a fine texture-feature plane over the canonical face alone (not in the paper)
+//! - [`generator_network`]: all of the above as the generator's one module, and its styles (W+)
 //! - [`decoders`]: SDF residual, DMTet offset and texture decoders, to-RGB
 //! - [`discriminator`]: the camera-conditioned StyleGAN2 residual discriminator (RGB, normal, mask)
 //!
@@ -22,6 +23,7 @@ pub mod cube_ops;
 pub mod decoders;
 pub mod discriminator;
 pub mod face_plane;
+pub mod generator_network;
 pub mod init;
 pub mod layers;
 pub mod mapping;

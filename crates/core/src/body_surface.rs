@@ -19,7 +19,7 @@ use crate::skinning::PosedBody;
 /// A surface landmark: the MediaPipe index and the weight of its reprojection term.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct SurfaceLandmark {
-    /// Index into [`super::landmarks::LANDMARK_NAMES`].
+    /// Index into [`crate::body_fit::landmarks::LANDMARK_NAMES`].
     pub landmark: usize,
     /// The body vertex it corresponds to.
     pub vertex: u32,
