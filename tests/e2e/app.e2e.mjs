@@ -422,7 +422,7 @@ try {
   // The default start (the shipped encoder), no steps, in the worker on its WebGPU device.
   // The photo never leaves the page: no request at all while it runs but the worker's own
   // module files (GET, same origin: its script, the wasm module and the JS glue it imports).
-  const own = /\/(reconstruct_worker\.js|getavatar_web\.js|getavatar_web_bg\.wasm|pose_detect\.js)$/;
+  const own = /\/(reconstruct_worker\.js|getavatar_web\.js|getavatar_web_bg\.wasm|pose_detect\.js|video_frames\.js)$/;
   const origin = new URL(url).origin;
   const requests = [];
   const onRequest = (r) => requests.push([r.url(), r.method()]);
