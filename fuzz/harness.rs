@@ -5,18 +5,18 @@
 //! `fuzz_regressions` test replays every kept corpus and crash file through it on stable,
 //! in CI. docs/reliability.md has the commands and the runs.
 
-use getavatar_core::body_fit::fit::BodyFit;
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::motion::Motion;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint;
-use getavatar_core::dataset;
-use getavatar_core::motion::Motion;
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::npz;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::scan::{self, SmplParams};
-use getavatar_core::skinning::pose_body;
+use getavatar_core::generator::checkpoint;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::io::dataset;
+use getavatar_core::io::npz;
+use getavatar_core::io::scan::{self, SmplParams};
 
 /// A target's body: arbitrary bytes in, nothing out (a panic is the finding).
 pub type Body = fn(&[u8]);

@@ -38,6 +38,38 @@ def file_of(segments):
     return None
 
 
+def expand(code, i):
+    """The module paths of the use tree starting at `code[i]` (`a::b`, `a::{b, c::{d}}`)."""
+    segs = []
+    while True:
+        m = re.match(r'\s*([A-Za-z_][A-Za-z_0-9]*)', code[i:])
+        if m:
+            segs.append(m.group(1))
+            i += m.end()
+            n = re.match(r'\s*::', code[i:])
+            if not n:
+                return [segs]
+            i += n.end()
+            continue
+        if re.match(r'\s*\{', code[i:]):
+            i = code.index('{', i) + 1
+            out, depth, start = [], 0, i
+            while i < len(code):
+                c = code[i]
+                if c == '{':
+                    depth += 1
+                elif c == '}' and depth:
+                    depth -= 1
+                elif (c == ',' or c == '}') and depth == 0:
+                    out += [segs + sub for sub in expand(code[start:i] + ' ', 0)]
+                    start = i + 1
+                    if c == '}':
+                        break
+                i += 1
+            return out or [segs]
+        return [segs]
+
+
 edges = {}
 for mod, p in files.items():
     src = open(p).read()
@@ -46,14 +78,16 @@ for mod, p in files.items():
         src = src[:i]
     code = '\n'.join(line.split('//')[0] for line in src.split('\n'))
     targets = set()
-    for m in re.finditer(r'\bcrate((?:::[a-z_][a-z_0-9]*)+)', code):
-        targets.add(file_of(m.group(1).split('::')[1:]))
     is_mod_file = os.path.basename(p) in ('mod.rs', 'lib.rs')
     parent = list(mod) if is_mod_file else list(mod[:-1])
-    for m in re.finditer(r'\b((?:super::)+)([a-z_][a-z_0-9]*(?:::[a-z_][a-z_0-9]*)*)', code):
-        ups = m.group(1).count('super::')
-        base = parent[: len(parent) - (ups - 1)] if is_mod_file else list(mod[: len(mod) - ups])
-        targets.add(file_of(base + m.group(2).split('::')))
+    for m in re.finditer(r'\b(crate|(?:super::)*super)::', code):
+        if m.group(1) == 'crate':
+            base = []
+        else:
+            ups = m.group(1).count('super')
+            base = parent[: len(parent) - (ups - 1)] if is_mod_file else list(mod[: len(mod) - ups])
+        for path in expand(code, m.end()):
+            targets.add(file_of(base + path))
     edges[p] = {t for t in targets if t and t != p and not t.endswith(('lib.rs', 'mod.rs'))}
 
 index, low, stack, on, sccs, counter = {}, {}, [], set(), [], [0]

@@ -1,16 +1,16 @@
 //! One model code on two backends: the generator gives the same fields and meshes on NdArray
 //! (CPU) and on Wgpu (natively: Vulkan, on CI Mesa's lavapipe software rasteriser).
 
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::spatial::KdTree;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::geometry::spatial::KdTree;
 
 mod common;
 use common::{assert_close, values};
-use getavatar_core::profile;
+use getavatar_core::util::profile;
 
 #[test]
 fn ndarray_and_wgpu_give_the_same_fields_and_meshes() {
@@ -103,12 +103,12 @@ fn profiled_stages_count_gpu_dispatches() {
 /// then reads back twice: the surface's counts, then its rows with their normals and colours.
 #[test]
 fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
-    use getavatar_core::cooperative::run_blocking;
-    use getavatar_core::dmtet_gpu::{extract, mesh_from_rows, DmtetTopology, SURFACE_COLUMNS};
-    use getavatar_core::fields::{aligned_points, band_fields, band_rows, points_tensor};
+    use getavatar_core::generator::dmtet_gpu::{extract, mesh_from_rows, DmtetTopology, SURFACE_COLUMNS};
+    use getavatar_core::generator::fields::{aligned_points, band_fields, band_rows, points_tensor};
+    use getavatar_core::generator::readback::{block_on_ready, read_f32_now};
+    use getavatar_core::generator::rigging::generate_rigged_async;
     use getavatar_core::geometry::marching_tets;
-    use getavatar_core::readback::{block_on_ready, read_f32_now};
-    use getavatar_core::rigging::generate_rigged_async;
+    use getavatar_core::util::cooperative::run_blocking;
 
     let gpu = common::gpu();
     let cfg = GeneratorConfig::tiny();
@@ -198,8 +198,8 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
 fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
     use getavatar_core::burn::tensor::module::conv2d;
     use getavatar_core::burn::tensor::ops::ConvOptions;
-    use getavatar_core::network::layers::{conv2d_im2col, conv2d_same, GPU_IM2COL_MIN_MACS};
-    use getavatar_core::rng::Rng;
+    use getavatar_core::generator::network::layers::{conv2d_im2col, conv2d_same, GPU_IM2COL_MIN_MACS};
+    use getavatar_core::util::rng::Rng;
     let dev = common::gpu().autodiff();
     let mut rng = Rng::new(8, 1);
     let (c, o, k, r) = (128usize, 128usize, 3usize, 64usize);
@@ -239,7 +239,7 @@ fn a_large_gpu_convolution_through_im2col_matches_burn_conv2d() {
 /// parameters tracked, on wgpu too) within float noise.
 #[test]
 fn fused_generation_kernels_match_the_tensor_ops() {
-    use getavatar_core::network::cube_ops;
+    use getavatar_core::generator::network::cube_ops;
     let gpu = common::gpu();
     #[allow(deprecated)]
     let cpu = Device::ndarray();
@@ -273,8 +273,8 @@ fn fused_generation_kernels_match_the_tensor_ops() {
 #[test]
 fn the_gpu_prefix_sum_is_the_running_sum() {
     use getavatar_core::burn::tensor::Int;
-    use getavatar_core::dmtet_gpu::inclusive_scan;
-    use getavatar_core::rng::Rng;
+    use getavatar_core::generator::dmtet_gpu::inclusive_scan;
+    use getavatar_core::util::rng::Rng;
     let gpu = common::gpu();
     let mut rng = Rng::new(6, 0);
     for n in [1usize, 255, 256, 257, 513, 300_000] {

@@ -7,16 +7,16 @@
 
 use std::sync::Arc;
 
-use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions};
-use getavatar_core::body_fit::landmarks::SegmentationMask;
-use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
-use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions};
+use getavatar_core::body::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
+use getavatar_core::body::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+use getavatar_core::body::skinning::{axis_angle_to_matrix, pose_body};
 use getavatar_core::burn::tensor::{Tensor, TensorData};
-use getavatar_core::camera::reference_fov_y;
-use getavatar_core::diff::body_model::{rodrigues, Skeleton, VertexSet};
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::{axis_angle_to_matrix, pose_body};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::render::camera::reference_fov_y;
+use getavatar_core::render::diff::body_model::{rodrigues, Skeleton, VertexSet};
+use getavatar_core::util::rng::Rng;
 use getavatar_core::{BodyModel, BodyParams, NUM_JOINTS};
 use glam::Vec3;
 

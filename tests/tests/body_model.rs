@@ -2,10 +2,10 @@
 
 use std::collections::HashMap;
 
-use getavatar_core::body_model::{joint_index, BodyModel, NUM_JOINTS, SMPL_PARENTS};
-use getavatar_core::npz;
-use getavatar_core::pose_library::{da_pose, PoseLibrary, BUILTIN_POSE_NAMES};
-use getavatar_core::skinning::{pose_body, BodyParams};
+use getavatar_core::body::body_model::{joint_index, BodyModel, NUM_JOINTS, SMPL_PARENTS};
+use getavatar_core::body::pose_library::{da_pose, PoseLibrary, BUILTIN_POSE_NAMES};
+use getavatar_core::body::skinning::{pose_body, BodyParams};
+use getavatar_core::io::npz;
 use glam::Vec3;
 
 fn body() -> BodyModel {

@@ -2,12 +2,12 @@
 //! analytic normals, mask areas against projected areas, texture colours), the camera
 //! protocol's statistics, and the dataset reader's validation.
 
-use getavatar_core::camera::{reference_fov_y, sample_data_camera, DATA_ELEVATION_STD};
-use getavatar_core::dataset::{encode_png, labels_to_json, Dataset, Label};
-use getavatar_core::rasterize::{RenderedViews, Texture};
-use getavatar_core::rng::Rng;
-use getavatar_core::scan::{parse_obj, render_scan, RenderableScan, Scan, SmplParams};
-use getavatar_core::skinning::BodyParams;
+use getavatar_core::body::skinning::BodyParams;
+use getavatar_core::io::dataset::{encode_png, labels_to_json, Dataset, Label};
+use getavatar_core::io::scan::{parse_obj, render_scan, RenderableScan, Scan, SmplParams};
+use getavatar_core::render::camera::{reference_fov_y, sample_data_camera, DATA_ELEVATION_STD};
+use getavatar_core::render::rasterize::{RenderedViews, Texture};
+use getavatar_core::util::rng::Rng;
 use getavatar_core::OrbitCamera;
 use glam::{Vec2, Vec3};
 
@@ -228,7 +228,7 @@ fn box_scan_is_flat_shaded_and_covers_its_projected_hull() {
     assert!(mean < 2.0, "mean normal error {mean:.3}° (shared corners must not smooth the faces)");
     // Untextured material: the Kd colour, sRGB-encoded.
     let centre = (size / 2) * size + size / 2;
-    let want = getavatar_core::colour::linear_to_srgb(Vec3::new(0.2, 0.6, 0.4)) * 255.0;
+    let want = getavatar_core::render::colour::linear_to_srgb(Vec3::new(0.2, 0.6, 0.4)) * 255.0;
     let p = &v.rgb[3 * centre..3 * centre + 3];
     assert!((p[1] as f32 - want.y).abs() <= 1.0, "{p:?} vs {want}");
 }

@@ -4,14 +4,14 @@
 //! change; DMTet vertex gradients against finite differences.
 
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::diff::dmtet::{surface_points, EdgeIndex};
-use getavatar_core::diff::rasterize::{
+use getavatar_core::geometry::{marching_tets, TetGrid};
+use getavatar_core::render::camera::OrbitCamera;
+use getavatar_core::render::diff::dmtet::{surface_points, EdgeIndex};
+use getavatar_core::render::diff::rasterize::{
     antialias, compose, interpolate, silhouette_pairs, silhouette_pairs_of, Coverage, MeshEdges,
 };
-use getavatar_core::geometry::{marching_tets, TetGrid};
-use getavatar_core::rasterize::{interpolate as cpu_interpolate, rasterize};
-use getavatar_core::rng::Rng;
+use getavatar_core::render::rasterize::{interpolate as cpu_interpolate, rasterize};
+use getavatar_core::util::rng::Rng;
 use glam::{Mat4, Vec3, Vec4};
 
 mod common;

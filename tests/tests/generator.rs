@@ -1,16 +1,16 @@
 //! Generator inference end to end on NdArray (tiny config): determinism, texture/geometry
 //! separation, watertight output, the normal field, and zero residual ⇒ the posed body.
 
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, vertex_normals};
 use getavatar_core::burn::module::Param;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::generator::{generate_avatar, seed_latents, Avatar, BodyContext, Generator};
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::skinning::{pose_body, vertex_normals};
-use getavatar_core::spatial::KdTree;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{generate_avatar, seed_latents, Avatar, BodyContext, Generator};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::geometry::spatial::KdTree;
 use glam::Vec3;
 
 #[allow(deprecated)]
@@ -170,7 +170,7 @@ fn the_canonical_shortcut_matches_the_general_path() {
     let s = g.styles(zg, zt, 0.7);
     let params = PoseLibrary::builtin().params("Da", &[]).expect("pose");
     let fast = generate_avatar(&g, &ctx, &s, &params, &dev).expect("generation reads back");
-    let moved = getavatar_core::skinning::BodyParams { transl: Vec3::new(0.0, 1e-6, 0.0), ..params };
+    let moved = getavatar_core::body::skinning::BodyParams { transl: Vec3::new(0.0, 1e-6, 0.0), ..params };
     let general = generate_avatar(&g, &ctx, &s, &moved, &dev).expect("generation reads back");
     assert!(!fast.mesh.vertices.is_empty());
     assert_eq!(
@@ -198,7 +198,7 @@ fn the_canonical_shortcut_matches_the_general_path() {
 /// together. The stage profile counts every read-back (`readback::read_f32`).
 #[test]
 fn a_new_identity_reads_back_from_the_device_twice() {
-    use getavatar_core::profile;
+    use getavatar_core::util::profile;
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &cfg);
     let dev = device();
@@ -215,7 +215,7 @@ fn a_new_identity_reads_back_from_the_device_twice() {
     assert_eq!(per_stage, [0, 0, 1, 0, 1, 0], "{stages:?}");
     assert!(rigged.canonical.mesh.vertices.len() > 500);
     // The folded read-back gives each vertex its own colour and normal.
-    let colors = block_on_ready(getavatar_core::generator::recolor_async(
+    let colors = block_on_ready(getavatar_core::generator::pipeline::recolor_async(
         &g,
         &g.triplanes(&s),
         &s,
@@ -229,7 +229,7 @@ fn a_new_identity_reads_back_from_the_device_twice() {
 
 #[test]
 fn checkpoints_round_trip_and_reject_other_configs() {
-    use getavatar_core::checkpoint::{load_generator, parse_safetensors, save_generator};
+    use getavatar_core::generator::checkpoint::{load_generator, parse_safetensors, save_generator};
     let cfg = GeneratorConfig::tiny();
     let dev = device();
     let g = Generator::new(&cfg, 42, &dev);
@@ -266,11 +266,11 @@ fn checkpoints_round_trip_and_reject_other_configs() {
 #[test]
 fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     use getavatar_core::burn::tensor::TensorData;
-    use getavatar_core::checkpoint::{
+    use getavatar_core::generator::checkpoint::{
         load_generator, load_generator_and_modes, load_latent_modes, save_generator, save_generator_with_modes,
     };
-    use getavatar_core::generator::{LatentModes, ModePairing};
-    use getavatar_core::network::mapping::{truncate_toward_modes, truncate_toward_subject};
+    use getavatar_core::generator::network::mapping::{truncate_toward_modes, truncate_toward_subject};
+    use getavatar_core::generator::pipeline::{LatentModes, ModePairing};
     let dev = device();
     let t2 = |v: Vec<f32>, r: usize| Tensor::<2>::from_data(TensorData::new(v, [r, 2]), &dev);
     let vals = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().expect("f32");
@@ -335,7 +335,7 @@ fn latent_modes_truncate_towards_the_nearest_mode_and_round_trip() {
     // is refused.
     let (z1, z3) = seed_latents(&cfg, 1, 3, &dev);
     let (z2, z4) = seed_latents(&cfg, 2, 4, &dev);
-    let w = |m: &getavatar_core::network::mapping::MappingNetwork, a: &Tensor<2>, b: &Tensor<2>| {
+    let w = |m: &getavatar_core::generator::network::mapping::MappingNetwork, a: &Tensor<2>, b: &Tensor<2>| {
         m.forward(Tensor::cat(vec![a.clone(), b.clone()], 0))
     };
     let two = LatentModes {
@@ -421,8 +421,8 @@ fn fingerprint(a: &Avatar) -> Fingerprint {
 /// e02b26a, to pin a refactor.)
 #[test]
 fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
-    use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
-    use getavatar_core::generator::default_psi;
+    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
+    use getavatar_core::generator::pipeline::default_psi;
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/demo.safetensors");
     let bytes = std::fs::read(path).unwrap();
     let dev = device();
@@ -462,8 +462,10 @@ fn shipped_demo_model_generates_the_avatars_its_cli_exported() {
 /// not the texture branch's, and they take w_geo styles of their own.
 #[test]
 fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_generator() {
-    use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator_growing, save_generator};
-    use getavatar_core::generator::is_texture_param;
+    use getavatar_core::generator::checkpoint::{
+        config_with_saved_resolutions, load_generator_growing, save_generator,
+    };
+    use getavatar_core::generator::pipeline::is_texture_param;
     let dev = device();
     let cfg = GeneratorConfig { texture_res: Some(32), ..GeneratorConfig::tiny() };
     let fine = GeneratorConfig { geometry_res: Some(2 * cfg.plane_res), ..cfg.clone() };
@@ -496,7 +498,7 @@ fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_gener
     let scale = ra.iter().map(|v| v.abs()).fold(0f32, f32::max);
     let diff = ra.iter().zip(&rb).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
     assert!(scale > 0.0 && diff < 0.5 * scale, "residual moved by {diff} (scale {scale})");
-    let names: Vec<String> = getavatar_core::checkpoint::collect_params(&grown)
+    let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&grown)
         .unwrap()
         .into_iter()
         .map(|(n, _, _)| n)
@@ -515,8 +517,8 @@ fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_gener
 /// texture branch.
 #[test]
 fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generator() {
-    use getavatar_core::checkpoint::{load_generator, load_generator_growing, save_generator};
-    use getavatar_core::generator::is_texture_param;
+    use getavatar_core::generator::checkpoint::{load_generator, load_generator_growing, save_generator};
+    use getavatar_core::generator::pipeline::is_texture_param;
     let dev = device();
     let cfg = GeneratorConfig::tiny();
     let fine = GeneratorConfig { texture_res: Some(2 * cfg.plane_res), ..cfg.clone() };
@@ -549,7 +551,7 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     let got = tb[(c * 2 * r + 2 * i) * 2 * r + 2 * j];
     assert!((got - want).abs() < 1e-5, "{got} vs {want}");
     // The detail block's weights are the texture branch's (its own learning rate).
-    let names: Vec<String> = getavatar_core::checkpoint::collect_params(&grown)
+    let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&grown)
         .unwrap()
         .into_iter()
         .map(|(n, _, _)| n)
@@ -559,7 +561,7 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
     // A file with finer texture planes names its own config for the preset it grew from
     // (the app and the CLI load the shipped file that way), and for no other.
-    use getavatar_core::checkpoint::config_with_saved_resolutions;
+    use getavatar_core::generator::checkpoint::config_with_saved_resolutions;
     let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
     assert_eq!(config_with_saved_resolutions(&grown_bytes, &cfg), fine);
     assert_eq!(config_with_saved_resolutions(&grown_bytes, &GeneratorConfig::demo()), GeneratorConfig::demo());
@@ -567,13 +569,13 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     // A file claiming absurd texture planes is not adopted, and cannot size a model.
     let huge = GeneratorConfig { texture_res: Some(1 << 20), ..cfg.clone() };
     let meta = [
-        ("format".to_string(), getavatar_core::checkpoint::FORMAT.to_string()),
+        ("format".to_string(), getavatar_core::generator::checkpoint::FORMAT.to_string()),
         ("config".to_string(), serde_json::to_string(&huge).unwrap()),
     ]
     .into_iter()
     .collect();
-    let params = getavatar_core::checkpoint::collect_params(&grown).unwrap();
-    let forged = getavatar_core::checkpoint::write_safetensors(&meta, &params).unwrap();
+    let params = getavatar_core::generator::checkpoint::collect_params(&grown).unwrap();
+    let forged = getavatar_core::generator::checkpoint::write_safetensors(&meta, &params).unwrap();
     assert_eq!(config_with_saved_resolutions(&forged, &cfg), cfg);
     let e = load_generator(&forged, &huge, &dev).expect_err("refused").to_string();
     assert!(e.contains("texture_res"), "{e}");
@@ -592,7 +594,7 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
 /// same body. A file claiming an absurd grid is not adopted and cannot size a model.
 #[test]
 fn a_checkpoint_brings_its_tet_grid_and_no_weight_depends_on_it() {
-    use getavatar_core::checkpoint::{
+    use getavatar_core::generator::checkpoint::{
         collect_params, config_with_saved_resolutions, load_generator, load_generator_growing, save_generator,
         write_safetensors, FORMAT,
     };
@@ -663,8 +665,8 @@ fn a_checkpoint_brings_its_tet_grid_and_no_weight_depends_on_it() {
 #[test]
 fn texture_modes_grow_with_the_texture_detail_blocks() {
     use getavatar_core::burn::tensor::TensorData;
-    use getavatar_core::checkpoint::{load_generator_growing, save_generator};
-    use getavatar_core::generator::{LatentModes, ModePairing};
+    use getavatar_core::generator::checkpoint::{load_generator_growing, save_generator};
+    use getavatar_core::generator::pipeline::{LatentModes, ModePairing};
     let dev = device();
     let cfg = GeneratorConfig { texture_res: Some(2 * GeneratorConfig::tiny().plane_res), ..GeneratorConfig::tiny() };
     let fine = GeneratorConfig { texture_res: Some(4 * cfg.plane_res), ..cfg.clone() };
@@ -711,12 +713,12 @@ fn texture_modes_grow_with_the_texture_detail_blocks() {
 #[test]
 fn the_face_plane_colours_the_face_alone_and_grows_from_a_saved_generator() {
     use getavatar_core::burn::tensor::TensorData;
-    use getavatar_core::checkpoint::{
+    use getavatar_core::generator::checkpoint::{
         config_with_saved_resolutions, load_generator, load_generator_growing, save_generator,
     };
-    use getavatar_core::generator::{is_face_param, is_texture_param};
-    use getavatar_core::network::config::FacePlaneConfig;
-    use getavatar_core::network::face_plane::face_window;
+    use getavatar_core::generator::network::config::FacePlaneConfig;
+    use getavatar_core::generator::network::face_plane::face_window;
+    use getavatar_core::generator::pipeline::{is_face_param, is_texture_param};
     let dev = device();
     let cfg = GeneratorConfig::tiny();
     let body = BodyModel::default_body().expect("body");
@@ -770,7 +772,7 @@ fn the_face_plane_colours_the_face_alone_and_grows_from_a_saved_generator() {
     assert_eq!(moved(3), 0.0, "beside the window");
     assert!(moved(4) > 0.0 && moved(4) < moved(0), "the edge fades: {} of {}", moved(4), moved(0));
     let names: Vec<String> =
-        getavatar_core::checkpoint::collect_params(&grown).unwrap().into_iter().map(|(n, _, _)| n).collect();
+        getavatar_core::generator::checkpoint::collect_params(&grown).unwrap().into_iter().map(|(n, _, _)| n).collect();
     let faces: Vec<&String> = names.iter().filter(|n| is_face_param(n)).collect();
     assert!(faces.len() >= 3 && faces.iter().all(|n| is_texture_param(n)), "{faces:?}");
     // The file keeps the window: loaders take it from there, and it cannot be dropped.

@@ -1,14 +1,14 @@
 //! Generator geometry: DMTet on analytic shapes, template SDF, normal field, inverse skinning,
 //! and "zero residual ⇒ the avatar is the posed body".
 
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, vertex_normals};
 use getavatar_core::geometry::inverse_skinning::{canonical_body, nearest_rotation};
+use getavatar_core::geometry::spatial::KdTree;
 use getavatar_core::geometry::template_sdf::central_difference_normal;
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use getavatar_core::geometry::{marching_tets, InverseSkinning, TemplateSdf, TetGrid, TriMesh};
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::skinning::{pose_body, vertex_normals};
-use getavatar_core::spatial::KdTree;
 use glam::Vec3;
 
 fn extract(grid: &TetGrid, f: impl Fn(Vec3) -> f32) -> TriMesh {
@@ -265,9 +265,9 @@ fn zero_residual_avatar_is_the_posed_body() {
 /// grids lose wrists, hands and feet (40 cells: IoU ≈ 0.80–0.85).
 #[test]
 fn demo_grid_resolves_the_posed_body() {
-    use getavatar_core::camera::OrbitCamera;
-    use getavatar_core::network::GeneratorConfig;
-    use getavatar_core::rasterize::render_views;
+    use getavatar_core::generator::network::GeneratorConfig;
+    use getavatar_core::render::camera::OrbitCamera;
+    use getavatar_core::render::rasterize::render_views;
     let model = body();
     let cfg = GeneratorConfig::demo();
     let cano = canonical_body(&model);
@@ -310,8 +310,8 @@ fn demo_grid_resolves_the_posed_body() {
 /// cannot turn it inside and leave floating fragments. The Da-pose vacates nothing.
 #[test]
 fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
+    use getavatar_core::generator::network::GeneratorConfig;
     use getavatar_core::geometry::posed_grid::{field_band, BodyContext};
-    use getavatar_core::network::GeneratorConfig;
     // The demo grid (3.6 cm cells); vacated space near the body needs cells this fine.
     let ctx = BodyContext::new(body(), &GeneratorConfig { tet_res: 64, template_res: 128, ..GeneratorConfig::tiny() });
     let lib = PoseLibrary::builtin();
@@ -346,8 +346,8 @@ fn the_residual_is_not_evaluated_in_space_the_pose_vacated() {
 /// surface are those of un-warping every vertex.
 #[test]
 fn skipping_far_grid_vertices_keeps_the_band_and_the_surface() {
+    use getavatar_core::generator::network::GeneratorConfig;
     use getavatar_core::geometry::posed_grid::{far_from_body, BodyContext, PosedGrid};
-    use getavatar_core::network::GeneratorConfig;
     let model = body();
     let lib = PoseLibrary::builtin();
     for cfg in [GeneratorConfig::demo(), GeneratorConfig::tiny()] {
@@ -389,7 +389,7 @@ fn skipping_far_grid_vertices_keeps_the_band_and_the_surface() {
 #[test]
 fn nearest_rotation_is_the_polar_factor_of_the_svd() {
     use glam::{Mat3, Quat};
-    let mut rng = getavatar_core::rng::Rng::new(7, 3);
+    let mut rng = getavatar_core::util::rng::Rng::new(7, 3);
     let mut worst = 0.0f32;
     for case in 0..200 {
         let mut axis = || Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize_or(Vec3::Y);

@@ -1,10 +1,10 @@
 //! glTF export: the .glb parses with the `gltf` crate and carries exactly the mesh given.
 
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::gltf_export::{write_glb, ExportError, ExportMesh};
-use getavatar_core::humanoid::SkeletonNames;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::skinning::{pose_body, vertex_normals};
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::humanoid::SkeletonNames;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, vertex_normals};
+use getavatar_core::export::gltf_export::{write_glb, ExportError, ExportMesh};
 use glam::Vec3;
 
 fn posed_body_mesh() -> ExportMesh {
@@ -131,9 +131,9 @@ fn skinned_positions_at(bytes: &[u8], at: Option<(usize, usize)>) -> Vec<Vec3> {
 
 #[test]
 fn animated_body_plays_the_projects_lbs() {
-    use getavatar_core::motion::Motion;
-    use getavatar_core::skin_export::animated_body_glb;
-    use getavatar_core::skinning::BodyParams;
+    use getavatar_core::body::motion::Motion;
+    use getavatar_core::body::skinning::BodyParams;
+    use getavatar_core::export::skin_export::animated_body_glb;
     let model = BodyModel::default_body().expect("body");
     let betas = vec![0.8, -0.5, 0.3];
     let shown = PoseLibrary::builtin().params("walking", &betas).expect("pose");
@@ -171,10 +171,10 @@ fn glb_json(bytes: &[u8]) -> serde_json::Value {
 
 #[test]
 fn the_body_as_vrm_stands_in_t_pose_on_the_floor_with_every_humanoid_bone_on_its_side() {
-    use getavatar_core::humanoid::{HUMANOID_BONES, VRM_REQUIRED_BONES};
-    use getavatar_core::skin_export::body_vrm;
-    use getavatar_core::skinning::BodyParams;
-    use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta, VRM_LICENSE_URL};
+    use getavatar_core::body::humanoid::{HUMANOID_BONES, VRM_REQUIRED_BONES};
+    use getavatar_core::body::skinning::BodyParams;
+    use getavatar_core::export::skin_export::body_vrm;
+    use getavatar_core::export::vrm_export::{AvatarOrigin, VrmMeta, VRM_LICENSE_URL};
     let model = BodyModel::default_body().expect("body");
     let betas = vec![0.8, -0.5, 0.3];
     let meta = VrmMeta { name: "body".into(), origin: AvatarOrigin::Body };
@@ -229,9 +229,9 @@ fn the_body_as_vrm_stands_in_t_pose_on_the_floor_with_every_humanoid_bone_on_its
 
 #[test]
 fn a_vrma_clip_moves_the_skeleton_as_the_projects_forward_kinematics() {
-    use getavatar_core::motion::Motion;
-    use getavatar_core::skin_export::motion_vrma;
-    use getavatar_core::skinning::BodyParams;
+    use getavatar_core::body::motion::Motion;
+    use getavatar_core::body::skinning::BodyParams;
+    use getavatar_core::export::skin_export::motion_vrma;
     let model = BodyModel::default_body().expect("body");
     let betas = vec![-0.4, 0.6];
     let walk = Motion::builtin("walk").unwrap();
@@ -259,8 +259,8 @@ fn a_vrma_clip_moves_the_skeleton_as_the_projects_forward_kinematics() {
 
 #[test]
 fn a_vrm_refuses_a_skin_that_is_not_in_its_rest_pose() {
-    use getavatar_core::skin_export::{smpl_skin, vrm_frame, vrm_rest_skin};
-    use getavatar_core::vrm_export::{write_vrm, AvatarOrigin, VrmMeta};
+    use getavatar_core::export::skin_export::{smpl_skin, vrm_frame, vrm_rest_skin};
+    use getavatar_core::export::vrm_export::{write_vrm, AvatarOrigin, VrmMeta};
     let model = BodyModel::default_body().expect("body");
     let walking = PoseLibrary::builtin().params("walking", &[]).expect("pose");
     let mesh = posed_body_mesh();
@@ -275,8 +275,8 @@ fn a_vrm_refuses_a_skin_that_is_not_in_its_rest_pose() {
 
 #[test]
 fn a_humanoid_skeleton_names_the_joints_as_retargeting_tools_expect() {
-    use getavatar_core::skin_export::animated_body_glb;
-    use getavatar_core::skinning::BodyParams;
+    use getavatar_core::body::skinning::BodyParams;
+    use getavatar_core::export::skin_export::animated_body_glb;
     let model = BodyModel::default_body().expect("body");
     let bytes = animated_body_glb(&model, &BodyParams::default(), &[], "body", SkeletonNames::Humanoid).expect("glb");
     let doc = gltf::Gltf::from_slice(&bytes).expect("valid glb");

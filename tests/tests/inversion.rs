@@ -2,16 +2,16 @@
 //! generator recovers it; gradients reach both branches' codes; pivotal tuning changes the
 //! weights and lowers the loss, and leaves the caller's generator as it was.
 
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::camera::{OrbitCamera, View};
-use getavatar_core::checkpoint::collect_params;
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{seed_latents, BodyContext, Generator, Styles};
-use getavatar_core::inversion::{
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::generator::checkpoint::collect_params;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{seed_latents, BodyContext, Generator, Styles};
+use getavatar_core::reconstruction::inversion::{
     choose_start, render_images, start_candidates, InversionError, InversionOptions, InversionTarget, Inverter, Phase,
 };
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::render::camera::{OrbitCamera, View};
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
 
 mod common;
 use common::{cpu, values};
@@ -98,7 +98,7 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     // The result at the photo's camera: mask IoU ≥ 0.95 and colours close to the target's.
     let f = inv.render().unwrap();
     let (rgb, mask) = render_images(&f).unwrap();
-    let iou = getavatar_core::inversion::mask_iou(&mask, &target.mask);
+    let iou = getavatar_core::reconstruction::inversion::mask_iou(&mask, &target.mask);
     let start_f =
         render_avatars(&g, &ctx, &start, std::slice::from_ref(&target.view), RES, &PosedGridCache::default(), &dev)
             .unwrap();
@@ -111,14 +111,15 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     // caller's untouched (what a cancelled reconstruction keeps).
     let after = collect_params(inv.generator()).unwrap();
     let unchanged = collect_params(&g).unwrap();
-    let diff =
-        |a: &[getavatar_core::checkpoint::NamedTensor], b: &[getavatar_core::checkpoint::NamedTensor], pre: &str| {
-            a.iter()
-                .zip(b)
-                .filter(|(x, _)| x.0.starts_with(pre))
-                .map(|(x, y)| x.2.iter().zip(&y.2).map(|(p, q)| (p - q).abs()).sum::<f32>())
-                .sum::<f32>()
-        };
+    let diff = |a: &[getavatar_core::generator::checkpoint::NamedTensor],
+                b: &[getavatar_core::generator::checkpoint::NamedTensor],
+                pre: &str| {
+        a.iter()
+            .zip(b)
+            .filter(|(x, _)| x.0.starts_with(pre))
+            .map(|(x, y)| x.2.iter().zip(&y.2).map(|(p, q)| (p - q).abs()).sum::<f32>())
+            .sum::<f32>()
+    };
     assert!(diff(&after, &before, "synthesis.") > 0.0, "PTI left the synthesis weights as they were");
     assert!(diff(&after, &before, "decoders.") > 0.0);
     assert_eq!(diff(&after, &before, "mapping_"), 0.0, "PTI changed the mapping networks");
@@ -132,8 +133,11 @@ fn the_start_is_the_candidate_that_explains_the_image() {
     let g = Generator::new(&cfg, 0, &dev);
     let mut cands = start_candidates(&g, None);
     let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
-    cands.push(getavatar_core::inversion::StartCandidate { name: "other".into(), styles: g.styles(zg, zt, 1.0) });
-    cands.push(getavatar_core::inversion::StartCandidate { name: "truth".into(), styles: truth });
+    cands.push(getavatar_core::reconstruction::inversion::StartCandidate {
+        name: "other".into(),
+        styles: g.styles(zg, zt, 1.0),
+    });
+    cands.push(getavatar_core::reconstruction::inversion::StartCandidate { name: "truth".into(), styles: truth });
     let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev).unwrap();
     assert_eq!(cands[best].name, "truth", "losses {losses:?}");
     assert!(losses[best] < 1e-3, "{losses:?}");
@@ -170,9 +174,9 @@ fn bad_targets_are_refused_with_reasons() {
 /// matches the render better.
 #[test]
 fn the_shipped_encoder_guesses_known_codes_better_than_w_avg() {
-    use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
-    use getavatar_core::encoder::load_encoder;
-    use getavatar_core::inversion::{encoder_start, mask_iou, masked_psnr};
+    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
+    use getavatar_core::reconstruction::encoder::load_encoder;
+    use getavatar_core::reconstruction::inversion::{encoder_start, mask_iou, masked_psnr};
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/");
     let bytes = std::fs::read(format!("{root}demo.safetensors")).unwrap();
     let dev = cpu();

@@ -3,11 +3,11 @@
 
 use std::collections::BTreeMap;
 
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::motion::{Motion, MotionError, MAX_FRAMES, MOTION_FPS};
-use getavatar_core::npz::{write_npz, NpyArray};
-use getavatar_core::skinning::axis_angle_to_quat as quat;
-use getavatar_core::skinning::{pose_body, BodyParams};
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::motion::{Motion, MotionError, MAX_FRAMES, MOTION_FPS};
+use getavatar_core::body::skinning::axis_angle_to_quat as quat;
+use getavatar_core::body::skinning::{pose_body, BodyParams};
+use getavatar_core::io::npz::{write_npz, NpyArray};
 use glam::{Quat, Vec3};
 
 const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/motion/amass_sample");
@@ -121,7 +121,7 @@ fn joints(m: &Motion, k: usize) -> [Vec3; 24] {
 
 #[test]
 fn builtin_clips_move_as_named_and_smoothly() {
-    for name in getavatar_core::motion::BUILTIN_CLIPS {
+    for name in getavatar_core::body::motion::BUILTIN_CLIPS {
         let m = Motion::builtin(name).unwrap();
         assert!(m.len() >= 30, "{name}: {} frames", m.len());
         assert!(m.poses.iter().flatten().all(|v| v.is_finite() && v.length() <= std::f32::consts::PI + 1e-4));

@@ -4,10 +4,10 @@
 
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::losses::{discriminator_loss, eikonal_loss, r1_penalty, sdf_cross_entropy};
-use getavatar_core::network::discriminator::{minibatch_std, Discriminator, DiscriminatorConfig};
-use getavatar_core::optim::Adam;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::losses::{discriminator_loss, eikonal_loss, r1_penalty, sdf_cross_entropy};
+use getavatar_core::generator::network::discriminator::{minibatch_std, Discriminator, DiscriminatorConfig};
+use getavatar_core::generator::optim::Adam;
+use getavatar_core::util::rng::Rng;
 
 mod common;
 use common::{assert_close, cpu, values};
@@ -142,7 +142,7 @@ fn eikonal_and_cross_entropy_values() {
 fn conv2d_same_matches_burn_conv2d() {
     use getavatar_core::burn::tensor::module::conv2d;
     use getavatar_core::burn::tensor::ops::ConvOptions;
-    use getavatar_core::network::layers::{conv2d_im2col, conv2d_same};
+    use getavatar_core::generator::network::layers::{conv2d_im2col, conv2d_same};
     let dev = cpu().autodiff();
     let mut rng = Rng::new(5, 5);
     for &(b, c, o, k, r, shared) in
@@ -192,7 +192,7 @@ fn conv2d_same_matches_burn_conv2d() {
 fn ndarray_avg_pool2x2_matches_burn_avg_pool2d() {
     use getavatar_core::burn::tensor::module::avg_pool2d;
     use getavatar_core::burn::tensor::ops::AvgPoolOptions;
-    use getavatar_core::network::ndarray_ops::avg_pool2x2;
+    use getavatar_core::generator::network::ndarray_ops::avg_pool2x2;
     let dev = cpu().autodiff();
     let mut rng = Rng::new(6, 6);
     for shape in [[2usize, 3usize, 8usize, 6usize], [1, 2, 5, 7]] {
@@ -211,7 +211,7 @@ fn ndarray_avg_pool2x2_matches_burn_avg_pool2d() {
 /// backward) equal the bias add and `lrelu_gain` as tensor ops, values and both gradients.
 #[test]
 fn ndarray_bias_lrelu_matches_the_tensor_ops() {
-    use getavatar_core::network::layers::{bias_lrelu, lrelu_gain};
+    use getavatar_core::generator::network::layers::{bias_lrelu, lrelu_gain};
     let dev = cpu().autodiff();
     let mut rng = Rng::new(7, 7);
     let x = randn4(&mut rng, [2, 3, 5, 4], &dev).require_grad();
@@ -234,14 +234,18 @@ fn ndarray_bias_lrelu_matches_the_tensor_ops() {
 
 /// Every float parameter of `m` by checkpoint path.
 fn named_params<M: Module>(m: &M) -> std::collections::BTreeMap<String, Vec<f32>> {
-    getavatar_core::checkpoint::collect_params(m).unwrap().into_iter().map(|(name, _, v)| (name, v)).collect()
+    getavatar_core::generator::checkpoint::collect_params(m)
+        .unwrap()
+        .into_iter()
+        .map(|(name, _, v)| (name, v))
+        .collect()
 }
 
 #[test]
 fn the_texture_branch_learns_at_its_own_rate() {
     use getavatar_core::burn::module::{ModuleVisitor, Param};
-    use getavatar_core::generator::{is_texture_param, Generator};
-    use getavatar_core::network::GeneratorConfig;
+    use getavatar_core::generator::network::GeneratorConfig;
+    use getavatar_core::generator::pipeline::{is_texture_param, Generator};
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::preset("tiny").expect("tiny preset");
     let g = Generator::new(&cfg, 0, &dev);

@@ -3,15 +3,15 @@
 //! vertex's UV is the texture field at the vertex's canonical point (mean |ΔRGB| ≤ 2/255 away
 //! from seams and chart borders).
 
+use getavatar_core::body::humanoid::SkeletonNames;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
-use getavatar_core::colour::linear_to_srgb;
-use getavatar_core::generator::{default_psi, recolor_async, seed_latents, BodyContext};
-use getavatar_core::humanoid::SkeletonNames;
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::uv_atlas::texel_points;
+use getavatar_core::export::uv_atlas::texel_points;
+use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{default_psi, recolor_async, seed_latents, BodyContext};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::render::colour::linear_to_srgb;
 use getavatar_core::BodyModel;
 use glam::Vec3;
 
@@ -138,7 +138,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
     // that finished after the app's avatar changed once indexed past the new mesh's vertices
     // and panicked): here the same vertices with the triangles in another order, and
     // one vertex and its triangles fewer.
-    let params = getavatar_core::skinning::BodyParams::default();
+    let params = getavatar_core::body::skinning::BodyParams::default();
     let glb = rigged.posed_glb(&ctx, &params, Some(&baked), "own bake").expect("the avatar's own bake exports");
     assert!(glb.len() > baked.png.len());
     let mut shuffled = rigged.clone();
@@ -158,7 +158,7 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
         ] {
             let e = r.expect_err("another mesh's bake is refused");
             assert!(
-                matches!(e, getavatar_core::gltf_export::ExportError::TextureMismatch(_)),
+                matches!(e, getavatar_core::export::gltf_export::ExportError::TextureMismatch(_)),
                 "refused as a mismatch: {e}"
             );
         }
@@ -170,8 +170,8 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
 /// outside the body layout, overlapping neither the body's charts nor each other.
 #[test]
 fn surface_off_the_body_gets_its_own_charts() {
-    use getavatar_core::skinning::vertex_normals;
-    use getavatar_core::uv_atlas::{transfer_body_uvs, BodyUvs, BODY_REGION};
+    use getavatar_core::body::skinning::vertex_normals;
+    use getavatar_core::export::uv_atlas::{transfer_body_uvs, BodyUvs, BODY_REGION};
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
     let body = &ctx.canonical;
@@ -229,7 +229,7 @@ fn surface_off_the_body_gets_its_own_charts() {
     let mut count = vec![0u16; res * res];
     let pts: Vec<Vec3> = atlas.source.iter().map(|v| verts[*v as usize]).collect();
     for f in &atlas.faces {
-        let one = getavatar_core::uv_atlas::UvAtlas {
+        let one = getavatar_core::export::uv_atlas::UvAtlas {
             source: atlas.source.clone(),
             uvs: atlas.uvs.clone(),
             faces: vec![*f],

@@ -1,18 +1,18 @@
 //! Rendering generated avatars for training: images follow the posed body and camera of the
 //! label, and each loss term's gradient reaches exactly the parameters it should.
 
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, vertex_normals};
 use getavatar_core::burn::module::{Module, ModuleVisitor, Param};
 use getavatar_core::burn::tensor::{Gradients, Tensor, TensorData};
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::dataset::Label;
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{recolor_async, seed_latents, BodyContext, Generator};
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::{render_views, render_views_textured};
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::skinning::{pose_body, vertex_normals};
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{recolor_async, seed_latents, BodyContext, Generator};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::io::dataset::Label;
+use getavatar_core::render::camera::OrbitCamera;
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::render::rasterize::{render_views, render_views_textured};
 use glam::Vec3;
 
 mod common;
@@ -23,7 +23,7 @@ use common::{cpu, values};
 const DARK_SHIFT: f32 = 4.0;
 
 /// The renderer's views of dataset labels.
-fn views(labels: &[Label]) -> Vec<getavatar_core::camera::View> {
+fn views(labels: &[Label]) -> Vec<getavatar_core::render::camera::View> {
     labels.iter().map(Label::view).collect()
 }
 
@@ -104,7 +104,7 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
     let g2 = Generator::new(&cfg, 0, &plain);
     let (a, b) = seed_latents(&cfg, 1, 2, &plain);
     let styles2 = g2.styles(a, b, 1.0);
-    let av = getavatar_core::generator::generate_avatar(&g2, &ctx, &styles2, &params, &plain).unwrap();
+    let av = getavatar_core::generator::pipeline::generate_avatar(&g2, &ctx, &styles2, &params, &plain).unwrap();
     let gen = render_views(&av.mesh.vertices, &av.mesh.faces, &av.normals, &av.normals, vp, res, 2);
     let iou = |x: &[bool], y: &[bool]| {
         let i = x.iter().zip(y).filter(|(a, b)| **a && **b).count() as f32;
@@ -127,7 +127,7 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
         let mut g2 = Generator::new(&cfg, 0, &plain);
         g2.decoders.to_rgb.bias = g2.decoders.to_rgb.bias.clone().map(|b| b - shift);
         let styles2 = g2.styles(seed_latents(&cfg, 1, 2, &plain).0, seed_latents(&cfg, 1, 2, &plain).1, 1.0);
-        let av = getavatar_core::generator::generate_avatar(&g2, &ctx, &styles2, &params, &plain).unwrap();
+        let av = getavatar_core::generator::pipeline::generate_avatar(&g2, &ctx, &styles2, &params, &plain).unwrap();
         let planes = g2.triplanes(&styles2);
         let shown = render_views_textured(
             &av.mesh.vertices,
@@ -195,9 +195,9 @@ fn fakes_follow_the_label_and_gradients_reach_the_right_networks() {
 /// non-saturating G loss on the same latents and labels.
 #[test]
 fn one_generator_step_lowers_the_generator_loss_against_a_frozen_discriminator() {
-    use getavatar_core::losses::generator_loss;
-    use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
-    use getavatar_core::optim::Adam;
+    use getavatar_core::generator::losses::generator_loss;
+    use getavatar_core::generator::network::discriminator::{Discriminator, DiscriminatorConfig};
+    use getavatar_core::generator::optim::Adam;
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -218,7 +218,8 @@ fn one_generator_step_lowers_the_generator_loss_against_a_frozen_discriminator()
             Label::new(cam.world_to_camera(), &params)
         })
         .collect();
-    let cams: Vec<f32> = labels.iter().flat_map(|l| getavatar_core::camera::to_row_major(l.world_to_camera)).collect();
+    let cams: Vec<f32> =
+        labels.iter().flat_map(|l| getavatar_core::render::camera::to_row_major(l.world_to_camera)).collect();
     let c = Tensor::<2>::from_data(getavatar_core::burn::tensor::TensorData::new(cams, [2, 16]), &dev);
     let (zg, zt) = seed_latents(&cfg, 3, 4, &dev);
     let (zg, zt) = (zg.repeat_dim(0, 2), zt.repeat_dim(0, 2));
@@ -300,7 +301,7 @@ fn mask_loss_gradient_on_the_sdf_matches_finite_differences_at_sub_pixel_tets() 
 /// regularisers and parameter gradients as rendering each view as its own avatar.
 #[test]
 fn views_of_one_avatar_equal_separate_renders() {
-    use getavatar_core::diff::avatar::render_avatar_views;
+    use getavatar_core::render::diff::avatar::render_avatar_views;
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -330,7 +331,8 @@ fn views_of_one_avatar_equal_separate_renders() {
     close(values(one.cross_entropy.clone()), values(sep.cross_entropy.clone()), "cross-entropy");
     // The views differ (three cameras), and the gradients agree.
     assert!(values(one.mask.clone().narrow(0, 0, 1) - one.mask.clone().narrow(0, 1, 1)).iter().any(|d| d.abs() > 1.0));
-    let loss = |f: getavatar_core::diff::avatar::FakeViews| f.rgb.mean() + f.mask.mean() + f.normal.mean() + f.eikonal;
+    let loss =
+        |f: getavatar_core::render::diff::avatar::FakeViews| f.rgb.mean() + f.mask.mean() + f.normal.mean() + f.eikonal;
     let (ga, gb) = (loss(one).backward(), loss(sep).backward());
     for prefix in ["mapping_geo", "mapping_tex", "synthesis", "decoders"] {
         let (a, b) = (grad_mass(&g, &ga, prefix), grad_mass(&g, &gb, prefix));
@@ -344,8 +346,8 @@ fn views_of_one_avatar_equal_separate_renders() {
 /// those points.
 #[test]
 fn rgb_pixels_are_the_texture_field_at_the_views_surface_points() {
-    use getavatar_core::colour::encode_srgb_tensor;
-    use getavatar_core::diff::avatar::render_avatar_views;
+    use getavatar_core::render::colour::encode_srgb_tensor;
+    use getavatar_core::render::diff::avatar::render_avatar_views;
     let dev = cpu();
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -392,8 +394,8 @@ fn rgb_pixels_are_the_texture_field_at_the_views_surface_points() {
 /// that place the surface.
 #[test]
 fn retextured_views_keep_the_surface_and_train_only_the_colours() {
-    use getavatar_core::diff::avatar::render_avatar_views_retextured;
-    use getavatar_core::generator::Styles;
+    use getavatar_core::generator::pipeline::Styles;
+    use getavatar_core::render::diff::avatar::render_avatar_views_retextured;
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -447,9 +449,9 @@ fn retextured_views_keep_the_surface_and_train_only_the_colours() {
 /// surface, and each term trains exactly its branch.
 #[test]
 fn scan_terms_map_to_canonical_space_and_train_their_branch() {
-    use getavatar_core::diff::scan_supervision::{scan_losses, CanonicalSamples};
-    use getavatar_core::optim::Adam;
-    use getavatar_core::scan::SurfaceSample;
+    use getavatar_core::generator::optim::Adam;
+    use getavatar_core::io::scan::SurfaceSample;
+    use getavatar_core::render::diff::scan_supervision::{scan_losses, CanonicalSamples};
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::tiny();
     let model = BodyModel::default_body().unwrap();
@@ -492,7 +494,7 @@ fn scan_terms_map_to_canonical_space_and_train_their_branch() {
     // the untrained generator's term is the residual's size, well under a centimetre.
     let first = losses(&g);
     let (tex0, sdf0) = (values(first.texture)[0], values(first.sdf)[0]);
-    assert!(sdf0 * getavatar_core::diff::scan_supervision::SDF_UNIT < 0.02, "SDF error {sdf0}");
+    assert!(sdf0 * getavatar_core::render::diff::scan_supervision::SDF_UNIT < 0.02, "SDF error {sdf0}");
     // A few Adam steps on the texture term pull the colour to the scan's red.
     let mut adam = Adam::new(0.9, 0.99, 1e-8);
     for _ in 0..15 {

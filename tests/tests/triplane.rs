@@ -5,9 +5,9 @@
 //! tracked lookup is its own operation, checked against the row table.
 
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
+use getavatar_core::generator::network::triplane::{sample_triplanes, sample_triplanes_native, sample_triplanes_rows};
 use getavatar_core::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
-use getavatar_core::network::triplane::{sample_triplanes, sample_triplanes_native, sample_triplanes_rows};
-use getavatar_core::rng::Rng;
+use getavatar_core::util::rng::Rng;
 
 mod common;
 use common::{cpu, gpu, linear_fd_error, smooth_fd_error, values, SmoothFd};

@@ -18,14 +18,14 @@
 
 use std::sync::Arc;
 
-use getavatar_core::body_fit::landmarks::SegmentationMask;
-use getavatar_core::body_fit::metrics::pa_mpjpe;
-use getavatar_core::body_fit::synthetic::{dance, detect, TestCamera, DANCE_CAMERA};
-use getavatar_core::body_fit::temporal::{acceleration_error, lag_at_half_change};
-use getavatar_core::body_fit::video::{VideoDetections, VideoError, VideoFitOptions, VideoFitter, VideoMotion};
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::{axis_angle_to_quat, pose_body};
+use getavatar_core::body::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body::body_fit::synthetic::{dance, detect, TestCamera, DANCE_CAMERA};
+use getavatar_core::body::body_fit::temporal::{acceleration_error, lag_at_half_change};
+use getavatar_core::body::body_fit::video::{VideoDetections, VideoError, VideoFitOptions, VideoFitter, VideoMotion};
+use getavatar_core::body::skinning::{axis_angle_to_quat, pose_body};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::util::rng::Rng;
 use getavatar_core::{BodyModel, BodyParams};
 use glam::Vec3;
 

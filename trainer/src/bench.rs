@@ -6,25 +6,25 @@ use std::time::Instant;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::dataset::Dataset;
-use getavatar_core::diff::avatar::PosedGridCache;
+use getavatar_core::io::dataset::Dataset;
+use getavatar_core::render::diff::avatar::PosedGridCache;
 use serde::{Deserialize, Serialize};
 
 use crate::backend::device_for;
 use crate::train::{train_step, RunConfig, ScanPools, State, StepInputs};
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::generator::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{generate_avatar, seed_latents, BodyContext, Generator};
+use getavatar_core::generator::readback::{block_on_ready, read_f32_now};
+use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::geometry::{InverseSkinning, PosedGrid};
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::profile::StageProfile;
-use getavatar_core::rasterize::render_views;
-use getavatar_core::readback::{block_on_ready, read_f32_now};
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::skinning::pose_body;
+use getavatar_core::render::camera::OrbitCamera;
+use getavatar_core::render::rasterize::render_views;
+use getavatar_core::util::profile::StageProfile;
 
 fn secs<T>(f: impl FnOnce() -> T) -> (T, f64) {
     let t = Instant::now();
@@ -115,7 +115,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         // synced at each stage's end (each stage's own GPU time; the pipelined run charges it
         // to the next read-back's wait), and seeds 5/6 (another new identity: kernels compiled
         // or tuned for the first one's shapes only show up here).
-        use getavatar_core::profile::dispatch_count;
+        use getavatar_core::util::profile::dispatch_count;
         let before = dispatch_count::by_kernel();
         let stages = profile_identity((&g, &cfg, &ctx), &device, (3, 4), false)?;
         // The new identity's launches per kernel: the counts now minus those before it.
@@ -186,7 +186,7 @@ fn profile_identity(
     let sync_error = std::rc::Rc::new(std::cell::RefCell::new(None));
     if synced {
         let (device, error) = (device.clone(), sync_error.clone());
-        getavatar_core::profile::start_synced(
+        getavatar_core::util::profile::start_synced(
             clock_ms,
             Box::new(move || {
                 if let Err(e) = device.sync() {
@@ -195,13 +195,13 @@ fn profile_identity(
             }),
         );
     } else {
-        getavatar_core::profile::start(clock_ms);
+        getavatar_core::util::profile::start(clock_ms);
     }
-    getavatar_core::profile::stage("mapping");
+    getavatar_core::util::profile::stage("mapping");
     let (zg, zt) = seed_latents(cfg, seed_geo, seed_tex, device);
     let styles = g.styles(zg, zt, 0.7);
     let run = block_on_ready(generate_rigged_async(g, ctx, &styles, device));
-    let stages = getavatar_core::profile::finish().context("the stage recording was lost")?;
+    let stages = getavatar_core::util::profile::finish().context("the stage recording was lost")?;
     run?;
     if let Some(e) = sync_error.borrow_mut().take() {
         bail!("waiting for the device failed: {e}");
@@ -402,14 +402,14 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
     let (next, first) = train_step(st, &inputs)?;
     st = next;
     let mut plain_s = Vec::new();
-    let counting = getavatar_core::profile::dispatch_count::observe();
-    let d0 = getavatar_core::profile::dispatch_count::total();
+    let counting = getavatar_core::util::profile::dispatch_count::observe();
+    let d0 = getavatar_core::util::profile::dispatch_count::total();
     for _ in 0..steps.max(1) {
         let (next, m) = train_step(st, &inputs)?;
         st = next;
         plain_s.push(m.seconds);
     }
-    let dispatches = getavatar_core::profile::dispatch_count::total() - d0;
+    let dispatches = getavatar_core::util::profile::dispatch_count::total() - d0;
     drop(counting);
     st.step = rc.r1_every * (st.step / rc.r1_every + 1);
     let (_, r1) = train_step(st, &inputs)?;

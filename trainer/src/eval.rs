@@ -28,14 +28,14 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::{seed_latents, BodyContext};
-use getavatar_core::rasterize::render_views;
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::skinning::{pose_body, vertex_normals};
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::skinning::{pose_body, vertex_normals};
+use getavatar_core::generator::pipeline::{seed_latents, BodyContext};
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::io::dataset::{encode_png, Dataset, Label};
+use getavatar_core::render::camera::OrbitCamera;
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::render::rasterize::render_views;
 use serde::Serialize;
 
 use crate::inception::ImageChw;

@@ -8,18 +8,18 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::fit::BodyFit;
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::generator::BodyContext;
-use getavatar_core::gltf_export::{write_glb, ExportMesh};
-use getavatar_core::humanoid::{SkeletonNames, HUMANOID_BONES};
-use getavatar_core::motion::{Motion, BUILTIN_CLIPS};
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::skin_export::{animated_body_glb, body_vrm, motion_vrma, vrm_frame};
-use getavatar_core::skinning::{forward_kinematics, pose_body, vertex_normals, BodyParams};
-use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta};
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::humanoid::{SkeletonNames, HUMANOID_BONES};
+use getavatar_core::body::motion::{Motion, BUILTIN_CLIPS};
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{forward_kinematics, pose_body, vertex_normals, BodyParams};
+use getavatar_core::export::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::export::skin_export::{animated_body_glb, body_vrm, motion_vrma, vrm_frame};
+use getavatar_core::export::vrm_export::{AvatarOrigin, VrmMeta};
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::generator::rigging::generate_rigged_async;
 
 use crate::model_io::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
@@ -129,7 +129,7 @@ fn frames_json(
             let frames: Vec<serde_json::Value> = check_frames(m)
                 .into_iter()
                 .map(|k| {
-                    serde_json::json!({ "frame": k, "time": k as f32 / getavatar_core::motion::MOTION_FPS, key: positions(&m.params(k, betas)) })
+                    serde_json::json!({ "frame": k, "time": k as f32 / getavatar_core::body::motion::MOTION_FPS, key: positions(&m.params(k, betas)) })
                 })
                 .collect();
             serde_json::json!({ "name": m.name, "frames": frames })
@@ -424,10 +424,10 @@ fn write_obj_files(
     out: &std::path::Path,
     positions: &[glam::Vec3],
     normals: &[glam::Vec3],
-    rigged: &getavatar_core::rigging::RiggedAvatar,
-    texture: Option<&getavatar_core::rigging::BakedTexture>,
+    rigged: &getavatar_core::generator::rigging::RiggedAvatar,
+    texture: Option<&getavatar_core::generator::rigging::BakedTexture>,
 ) -> Result<()> {
-    use getavatar_core::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh};
+    use getavatar_core::io::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh};
     let stem = out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
     let dir = out.parent().unwrap_or(std::path::Path::new("."));
     let (source, uvs, faces): (Vec<u32>, Vec<glam::Vec2>, Vec<[u32; 3]>) = match texture {
@@ -488,9 +488,9 @@ pub struct BenchExportArgs {
 /// queries, image + dilation, PNG, glTF writing) and the file sizes, per config and texture
 /// side, on `--backend`.
 pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
-    use getavatar_core::generator::recolor_async;
-    use getavatar_core::rigging::encode_rgb_png;
-    use getavatar_core::uv_atlas::{bake_image, texel_points};
+    use getavatar_core::export::uv_atlas::{bake_image, texel_points};
+    use getavatar_core::generator::pipeline::recolor_async;
+    use getavatar_core::generator::rigging::encode_rgb_png;
     let device = a.backend.device()?;
     let walk = Motion::builtin("walk")?;
     let params = PoseLibrary::builtin().params("standing", &[])?;
@@ -524,7 +524,8 @@ pub fn bench_export(a: &BenchExportArgs) -> Result<()> {
             let t = std::time::Instant::now();
             let png = encode_rgb_png(&rgb, res, res).map_err(anyhow::Error::msg)?;
             let t_png = t.elapsed().as_secs_f64();
-            let baked = getavatar_core::rigging::BakedTexture { atlas, res, rgb, png, covered: texels.len() };
+            let baked =
+                getavatar_core::generator::rigging::BakedTexture { atlas, res, rgb, png, covered: texels.len() };
             let t = std::time::Instant::now();
             let glb = rigged.animated_glb(
                 &ctx,

@@ -11,7 +11,7 @@
 //!   `kernel_inception_distance` (100 subsets of at most 1000 samples by default).
 
 use anyhow::{bail, Result};
-use getavatar_core::rng::Rng;
+use getavatar_core::util::rng::Rng;
 use nalgebra::{DMatrix, DVector, SymmetricEigen};
 
 /// Mean and unbiased covariance of a feature set.

@@ -26,17 +26,19 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::burn;
 use getavatar_core::burn::module::{Module, Param};
 use getavatar_core::burn::tensor::{Device, Int, Tensor, TensorData};
-use getavatar_core::checkpoint::{
+use getavatar_core::generator::checkpoint::{
     collect_params, load_params, parse_safetensors, save_generator_with_modes, write_safetensors, NamedTensor,
 };
-use getavatar_core::colour::decode_srgb;
-use getavatar_core::dataset::Dataset;
-use getavatar_core::diff::avatar::{render_avatar_views, PixelSurface, PosedGridCache};
-use getavatar_core::diff::scan_supervision::{texture_loss, CanonicalSamples};
-use getavatar_core::generator::{is_face_param, is_texture_param, BodyContext, Generator, LatentModes, Styles};
-use getavatar_core::optim::{trainable_where, Adam};
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::optim::{trainable_where, Adam};
+use getavatar_core::generator::pipeline::{
+    is_face_param, is_texture_param, BodyContext, Generator, LatentModes, Styles,
+};
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::io::dataset::Dataset;
+use getavatar_core::render::colour::decode_srgb;
+use getavatar_core::render::diff::avatar::{render_avatar_views, PixelSurface, PosedGridCache};
+use getavatar_core::render::diff::scan_supervision::{texture_loss, CanonicalSamples};
+use getavatar_core::util::rng::Rng;
 use glam::Vec3;
 
 use crate::atomic::write_atomic;
@@ -349,7 +351,7 @@ pub(crate) fn source_metadata(model: &crate::model_io::GeneratorArgs) -> Result<
 fn load_grown(
     a: &FitCodesArgs,
     device: &Device,
-) -> Result<(getavatar_core::network::GeneratorConfig, Generator, Option<LatentModes>)> {
+) -> Result<(getavatar_core::generator::network::GeneratorConfig, Generator, Option<LatentModes>)> {
     let (cfg, g, modes) = a.model.load(device)?;
     if a.texture_res.is_some() && a.lr_texture <= 0.0 {
         bail!("--texture-res grows a texture detail block that only --lr-texture trains: give a rate > 0");
@@ -364,7 +366,7 @@ fn load_grown(
             Some(f) => bail!("the checkpoint has a {}² face plane; --face-res {res} differs", f.res),
             None => {
                 let model = crate::model_io::load_body(&None)?;
-                getavatar_core::network::face_plane::face_window(&model, res)
+                getavatar_core::generator::network::face_plane::face_window(&model, res)
                     .map_err(|e| anyhow::anyhow!("--face-res needs a face on the body model: {e}"))?
             }
         });
@@ -381,14 +383,16 @@ fn load_grown(
     };
     grown.validate().map_err(|e| anyhow::anyhow!("--texture-res / --face-res: {e}"))?;
     let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    let g = getavatar_core::checkpoint::load_generator_growing(&bytes, &grown, 0, device).with_context(|| {
-        format!(
-            "growing {} to {}² texture planes and face plane {:?}",
-            path.display(),
-            grown.texture_plane_res(),
-            grown.face
-        )
-    })?;
+    let g = getavatar_core::generator::checkpoint::load_generator_growing(&bytes, &grown, 0, device).with_context(
+        || {
+            format!(
+                "growing {} to {}² texture planes and face plane {:?}",
+                path.display(),
+                grown.texture_plane_res(),
+                grown.face
+            )
+        },
+    )?;
     let modes = modes.map(|m| g.grown_modes(m)).transpose().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     Ok((grown, g, modes))
 }
@@ -413,7 +417,7 @@ fn surface_pools(
     subject_of: &[usize],
     n: usize,
     g: &Generator,
-    cfg: &getavatar_core::network::GeneratorConfig,
+    cfg: &getavatar_core::generator::network::GeneratorConfig,
     modes: &LatentModes,
     plain: &Device,
 ) -> Result<Vec<CanonicalSamples>> {
@@ -591,12 +595,12 @@ fn compare_png(
     subject_of: &[usize],
     n: usize,
     g: &Generator,
-    cfg: &getavatar_core::network::GeneratorConfig,
+    cfg: &getavatar_core::generator::network::GeneratorConfig,
     before: &LatentModes,
     plain: &Device,
 ) -> Result<()> {
     let bytes = std::fs::read(out.join("generator.safetensors"))?;
-    let (g_after, after) = getavatar_core::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
+    let (g_after, after) = getavatar_core::generator::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
     let after = after.context("the fitted file has latent modes")?;
     let ctx = BodyContext::new(crate::model_io::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
@@ -611,7 +615,7 @@ fn compare_png(
         let mut cols: Vec<Vec<f32>> = vec![data.rgb.iter().map(|v| v * 2.0 - 1.0).collect()];
         for (g, m) in [(g, before), (&g_after, &after)] {
             let styles = g.subject_styles(m, s, s).context("a subject inside the count")?;
-            let f = getavatar_core::diff::avatar::render_avatars(
+            let f = getavatar_core::render::diff::avatar::render_avatars(
                 g,
                 &ctx,
                 &styles,
@@ -634,5 +638,5 @@ fn compare_png(
             }
         }
     }
-    write_atomic(&out.join("compare.png"), &getavatar_core::dataset::encode_png(w, h, 3, &px)?)
+    write_atomic(&out.join("compare.png"), &getavatar_core::io::dataset::encode_png(w, h, 3, &px)?)
 }

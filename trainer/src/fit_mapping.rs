@@ -26,12 +26,12 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::checkpoint::save_generator_with_modes;
-use getavatar_core::generator::Generator;
-use getavatar_core::network::mapping::nearest_mode;
-use getavatar_core::optim::{trainable_where, Adam};
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::checkpoint::save_generator_with_modes;
+use getavatar_core::generator::network::mapping::nearest_mode;
+use getavatar_core::generator::optim::{trainable_where, Adam};
+use getavatar_core::generator::pipeline::Generator;
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::util::rng::Rng;
 
 use crate::atomic::write_atomic;
 

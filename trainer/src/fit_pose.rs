@@ -8,18 +8,18 @@ use std::time::Instant;
 
 use crate::model_io::load_body;
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
-use getavatar_core::body_fit::landmarks::{PoseResult, SegmentationMask};
-use getavatar_core::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
-use getavatar_core::body_fit::synthetic::{
+use getavatar_core::body::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, STAGE_NAMES};
+use getavatar_core::body::body_fit::landmarks::{PoseResult, SegmentationMask};
+use getavatar_core::body::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
+use getavatar_core::body::body_fit::synthetic::{
     dance, detect, unseen_poses, wide_camera, wide_poses, DANCE_CAMERA, UNSEEN_POSE_CAMERAS, WIDE_YAWS,
 };
-use getavatar_core::body_fit::turn;
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_fit::turn;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::pose_body;
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::util::rng::Rng;
 
 #[derive(clap::Args, Debug)]
 pub struct FitPoseArgs {
@@ -54,7 +54,7 @@ pub struct FitPoseArgs {
 
 pub(crate) fn open_image(path: &std::path::Path) -> Result<image::DynamicImage> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    getavatar_core::dataset::decode_photo(&bytes).map_err(|e| anyhow::anyhow!("{} {e}", path.display()))
+    getavatar_core::io::dataset::decode_photo(&bytes).map_err(|e| anyhow::anyhow!("{} {e}", path.display()))
 }
 
 pub(crate) fn load_mask(path: &std::path::Path) -> Result<SegmentationMask> {
@@ -135,7 +135,7 @@ fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<
     let back = |p: [f32; 2]| turn::point_to_original(fit.rotation, w, h, p);
     let posed = pose_body(model, &fit.body_params());
     let clip: Vec<glam::Vec4> = posed.vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
-    let raster = getavatar_core::rasterize::rasterize(&clip, &model.faces, w, h);
+    let raster = getavatar_core::render::rasterize::rasterize(&clip, &model.faces, w, h);
     let mut px: Vec<u8> = photo.as_raw().clone();
     for (k, t) in raster.triangle.iter().enumerate() {
         if *t >= 0 {
@@ -168,7 +168,7 @@ fn overlay(photo: &image::RgbImage, model: &BodyModel, fit: &BodyFit) -> Result<
         }
         dot(observed, [30, 220, 30]);
     }
-    Ok(getavatar_core::dataset::encode_png(w, h, 3, &px)?)
+    Ok(getavatar_core::io::dataset::encode_png(w, h, 3, &px)?)
 }
 
 #[derive(clap::Args, Debug)]
@@ -255,7 +255,7 @@ pub fn body_photos(out: &std::path::Path, size: usize) -> Result<Vec<PathBuf>> {
     }
     for ((name, params), base) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS) {
         for (k, dyaw) in BODY_PHOTO_YAWS.iter().enumerate() {
-            let cam = getavatar_core::body_fit::synthetic::TestCamera { yaw: base.yaw + dyaw, ..base }.camera();
+            let cam = getavatar_core::body::body_fit::synthetic::TestCamera { yaw: base.yaw + dyaw, ..base }.camera();
             let png = body_photo(&model, &params, cam, size)?;
             let path = out.join(format!("{name}_yaw{k}.png"));
             crate::atomic::write_atomic(&path, &png)?;
@@ -288,14 +288,21 @@ pub fn body_photo(
     size: usize,
 ) -> Result<Vec<u8>> {
     let posed = pose_body(model, params);
-    let normals = getavatar_core::skinning::vertex_normals(&posed.vertices, &model.faces);
+    let normals = getavatar_core::body::skinning::vertex_normals(&posed.vertices, &model.faces);
     let eye = cam.eye();
     let to_cam = (eye - cam.target).normalize();
     let light = (to_cam + glam::Vec3::new(-0.4, 0.6, 0.0)).normalize();
     let skin = glam::Vec3::new(0.62, 0.42, 0.32);
     let colours: Vec<glam::Vec3> = normals.iter().map(|n| skin * (0.35 + 0.75 * n.dot(light).max(0.0))).collect();
     let view_proj = cam.projection_gl(1.0) * cam.world_to_camera();
-    let r =
-        getavatar_core::rasterize::render_views(&posed.vertices, &model.faces, &normals, &colours, view_proj, size, 2);
-    Ok(getavatar_core::dataset::encode_png(size, size, 3, &r.rgb)?)
+    let r = getavatar_core::render::rasterize::render_views(
+        &posed.vertices,
+        &model.faces,
+        &normals,
+        &colours,
+        view_proj,
+        size,
+        2,
+    );
+    Ok(getavatar_core::io::dataset::encode_png(size, size, 3, &r.rgb)?)
 }

@@ -17,7 +17,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::burn::tensor::module::{avg_pool2d, conv2d, max_pool2d};
 use getavatar_core::burn::tensor::ops::{AvgPoolOptions, ConvOptions, MaxPoolOptions};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::checkpoint::parse_safetensors_lenient;
+use getavatar_core::generator::checkpoint::parse_safetensors_lenient;
 
 /// Side of the network's input.
 pub const INPUT_SIZE: usize = 299;
@@ -451,7 +451,7 @@ mod tests {
     fn a_missing_or_misshapen_tensor_is_a_clear_error() {
         #[allow(deprecated)]
         let dev = Device::ndarray();
-        let bytes = getavatar_core::checkpoint::write_safetensors(
+        let bytes = getavatar_core::generator::checkpoint::write_safetensors(
             &Default::default(),
             &[("Conv2d_1a_3x3.conv.weight".into(), vec![32, 3, 3, 2], vec![0.0; 32 * 3 * 3 * 2])],
         )
@@ -471,14 +471,14 @@ mod tests {
         let tensors: Vec<(String, Vec<usize>, Vec<f32>)> =
             parameter_shapes().into_iter().map(|(k, s)| (k.clone(), s.clone(), hash_tensor(&k, &s))).collect();
         let net = Inception::from_bytes(
-            &getavatar_core::checkpoint::write_safetensors(&Default::default(), &tensors).unwrap(),
+            &getavatar_core::generator::checkpoint::write_safetensors(&Default::default(), &tensors).unwrap(),
             &dev,
         )
         .expect("hash weights load");
         let fixture =
             std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/inception_reference.safetensors"))
                 .expect("fixture");
-        let st = getavatar_core::checkpoint::parse_safetensors(&fixture).expect("fixture parses");
+        let st = getavatar_core::generator::checkpoint::parse_safetensors(&fixture).expect("fixture parses");
         let (shape, want) = &st.tensors["features"];
         assert_eq!(shape, &vec![2, FEATURE_DIM]);
         let (h, w) = (64, 40);

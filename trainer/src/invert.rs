@@ -1,4 +1,4 @@
-//! `trainer invert`: single-image reconstruction (paper Sec. 5.4, `getavatar_core::inversion`)
+//! `trainer invert`: single-image reconstruction (paper Sec. 5.4, `getavatar_core::reconstruction::inversion`)
 //! of a photo with its body fit (`--image --fit`), or of a dataset image with its true camera
 //! and pose (`--data --entry`, which measures the inversion alone).
 //!
@@ -19,31 +19,31 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::fit::BodyFit;
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_fit::turn;
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_fit::turn;
+use getavatar_core::body::humanoid::SkeletonNames;
+use getavatar_core::body::motion::Motion;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, BodyParams};
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::{OrbitCamera, View};
-use getavatar_core::checkpoint::{self, save_inverted};
-use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::encoder::{load_encoder, Encoder};
-use getavatar_core::generator::{BodyContext, Generator, Styles};
-use getavatar_core::humanoid::SkeletonNames;
-use getavatar_core::inversion::{
+use getavatar_core::generator::checkpoint::{self, save_inverted};
+use getavatar_core::generator::network::discriminator::Discriminator;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::generator::rigging::{BakedTexture, RiggedAvatar};
+use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset};
+use getavatar_core::io::scan::RenderableScan;
+use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
+use getavatar_core::reconstruction::inversion::{
     choose_start, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
     InversionOptions, InversionTarget, Inverter, Phase,
 };
-use getavatar_core::motion::Motion;
-use getavatar_core::network::discriminator::Discriminator;
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rasterize::{render_views_textured, Texture};
-use getavatar_core::readback::block_on_ready;
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::rigging::{BakedTexture, RiggedAvatar};
-use getavatar_core::scan::RenderableScan;
-use getavatar_core::skinning::{pose_body, BodyParams};
+use getavatar_core::render::camera::{OrbitCamera, View};
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::render::rasterize::{render_views_textured, Texture};
 use glam::{Mat4, Vec3};
 use serde::Serialize;
 
@@ -173,9 +173,9 @@ struct ViewMetrics {
 }
 
 /// The target, a name for it, and (with `--scans`) the subject's scan for the back view.
-type Loaded = (InversionTarget, String, Option<(getavatar_core::scan::Scan, RenderableScan)>);
+type Loaded = (InversionTarget, String, Option<(getavatar_core::io::scan::Scan, RenderableScan)>);
 
-fn load_target(a: &InvertArgs, model: &getavatar_core::body_model::BodyModel) -> Result<Loaded> {
+fn load_target(a: &InvertArgs, model: &getavatar_core::body::body_model::BodyModel) -> Result<Loaded> {
     if let (Some(data), Some(entry)) = (&a.data, &a.entry) {
         let ds = Dataset::open(data)?;
         let i = ds.entries.iter().position(|(p, _)| p == entry).with_context(|| {
@@ -517,7 +517,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let final_m = view_metrics(&target, &rgb, &mask);
     write_png(&a.out.join("input_view.png"), &rgba(&rgb, &mask), target.res, 4)?;
     let r = target.res;
-    let png = getavatar_core::dataset::encode_png(3 * r, r, 3, &comparison_image(&target, &rgb, &mask))?;
+    let png = getavatar_core::io::dataset::encode_png(3 * r, r, 3, &comparison_image(&target, &rgb, &mask))?;
     write_atomic(&a.out.join("comparison.png"), &png)?;
 
     // The animatable avatar, its baked textures, and what it looks like at the input camera.

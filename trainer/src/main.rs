@@ -310,8 +310,10 @@ fn main() -> Result<()> {
             println!("wrote {}", run.join("losses.png").display());
         }
         Command::InceptionTestWeights { out } => {
-            let bytes =
-                getavatar_core::checkpoint::write_safetensors(&Default::default(), &inception::hashed_weights())?;
+            let bytes = getavatar_core::generator::checkpoint::write_safetensors(
+                &Default::default(),
+                &inception::hashed_weights(),
+            )?;
             atomic::write_atomic(&out, &bytes)?;
             println!("wrote {} (hash-generated stand-in weights, not a trained network)", out.display());
         }

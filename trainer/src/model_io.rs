@@ -5,18 +5,18 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::OrbitCamera;
-use getavatar_core::checkpoint::{
+use getavatar_core::generator::checkpoint::{
     config_with_saved_resolutions, load_generator_and_modes, load_inverted, InvertedAvatar,
 };
-use getavatar_core::dataset::encode_png;
-use getavatar_core::generator::recolor_async;
-use getavatar_core::generator::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::rasterize::{render_views_textured, RenderedViews};
-use getavatar_core::readback::block_on_ready;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::recolor_async;
+use getavatar_core::generator::pipeline::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::io::dataset::encode_png;
+use getavatar_core::render::camera::OrbitCamera;
+use getavatar_core::render::rasterize::{render_views_textured, RenderedViews};
 
 pub fn write_png(path: &Path, data: &[u8], size: usize, channels: usize) -> Result<()> {
     let png = encode_png(size, size, channels, data).with_context(|| format!("encoding {}", path.display()))?;

@@ -16,7 +16,7 @@
 //! {"frame":1,"result":null}
 //! ```
 //!
-//! The fit is [`getavatar_core::body_fit::video`]: one shape, a warm-started fit per frame,
+//! The fit is [`getavatar_core::body::body_fit::video`]: one shape, a warm-started fit per frame,
 //! lost frames filled in, smoothed.
 
 use std::io::Write;
@@ -26,9 +26,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_fit::video::{VideoDetections, VideoFitOptions, VideoFitter};
-use getavatar_core::readback::block_on_ready;
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_fit::video::{VideoDetections, VideoFitOptions, VideoFitter};
+use getavatar_core::generator::readback::block_on_ready;
 use serde::{Deserialize, Serialize};
 
 use crate::model_io::load_body;

@@ -13,9 +13,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_fit::framing::Framing;
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_fit::metrics::pck;
+use getavatar_core::body::body_fit::framing::Framing;
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_fit::metrics::pck;
 use serde::Serialize;
 
 /// The render's side, pixels (MediaPipe reads people well from about 256 up).
@@ -67,7 +67,7 @@ fn detect_render(dir: &Path, rgba: &[u8], res: usize) -> Result<Option<PoseResul
             [c(p[0]), c(p[1]), c(p[2])]
         })
         .collect();
-    let png = getavatar_core::dataset::encode_png(res, res, 3, &rgb)?;
+    let png = getavatar_core::io::dataset::encode_png(res, res, 3, &rgb)?;
     crate::atomic::write_atomic(&dir.join("render.png"), &png)?;
     let kp = dir.join("render.kp.json");
     let _ = std::fs::remove_file(&kp);

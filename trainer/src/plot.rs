@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use getavatar_core::dataset::encode_png;
+use getavatar_core::io::dataset::encode_png;
 
 /// Series drawn by [`loss_curves`], top to bottom, with their colours.
 pub const SERIES: [(&str, [u8; 3]); 4] = [

@@ -16,11 +16,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::camera::sample_data_camera;
-use getavatar_core::dataset::{encode_views, labels_to_json, parse_labels, Label, LABELS_FILE};
-use getavatar_core::dataset::{find_scans, load_body_fit, load_scan};
-use getavatar_core::rng::{hash_str, Rng};
-use getavatar_core::scan::{render_scan, RenderableScan};
+use getavatar_core::io::dataset::{encode_views, labels_to_json, parse_labels, Label, LABELS_FILE};
+use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan};
+use getavatar_core::io::scan::{render_scan, RenderableScan};
+use getavatar_core::render::camera::sample_data_camera;
+use getavatar_core::util::rng::{hash_str, Rng};
 
 /// Per-subject labels file of a finished subject (merged into dataset.json).
 const PART_FILE: &str = "labels.part.json";

@@ -4,9 +4,9 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::generator::{generate_avatar, BodyContext};
-use getavatar_core::gltf_export::{write_glb, ExportMesh};
-use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::export::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::generator::pipeline::{generate_avatar, BodyContext};
 
 use crate::model_io::{load_body, load_inverted_file, render_avatar, seed_styles, write_png, GeneratorArgs};
 

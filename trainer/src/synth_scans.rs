@@ -24,13 +24,13 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_model::{BodyModel, NUM_JOINTS};
-use getavatar_core::dataset::encode_png;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rng::{hash_str, Rng};
-use getavatar_core::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh, SmplParams};
-use getavatar_core::skinning::{blend_transform, forward_kinematics, vertex_normals, BodyParams};
-use getavatar_core::uv_atlas;
+use getavatar_core::body::body_model::{BodyModel, NUM_JOINTS};
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{blend_transform, forward_kinematics, vertex_normals, BodyParams};
+use getavatar_core::export::uv_atlas;
+use getavatar_core::io::dataset::encode_png;
+use getavatar_core::io::scan::{write_mtl, write_obj, Corner, ObjFace, ObjMesh, SmplParams};
+use getavatar_core::util::rng::{hash_str, Rng};
 use glam::{Vec2, Vec3};
 
 /// Poses drawn for scans (from the built-in library), with random variation added.
@@ -51,12 +51,15 @@ pub struct SynthArgs {
 
 /// θ of a pose by name: a library pose or one of the body fit's unseen test poses.
 pub fn named_pose(name: &str) -> Result<[Vec3; NUM_JOINTS]> {
-    if let Some((_, p)) = getavatar_core::body_fit::synthetic::unseen_poses().into_iter().find(|(n, _)| *n == name) {
+    if let Some((_, p)) =
+        getavatar_core::body::body_fit::synthetic::unseen_poses().into_iter().find(|(n, _)| *n == name)
+    {
         return Ok(p.pose);
     }
     let lib = PoseLibrary::builtin();
     lib.pose(name).map_err(|e| {
-        let unseen: Vec<&str> = getavatar_core::body_fit::synthetic::unseen_poses().iter().map(|(n, _)| *n).collect();
+        let unseen: Vec<&str> =
+            getavatar_core::body::body_fit::synthetic::unseen_poses().iter().map(|(n, _)| *n).collect();
         anyhow::anyhow!("--pose: {e}; the unseen test poses are {}", unseen.join(", "))
     })
 }

@@ -16,16 +16,16 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::camera::View;
-use getavatar_core::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
-use getavatar_core::dataset::{Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::BodyContext;
-use getavatar_core::losses::{discriminator_loss, r1_penalty};
-use getavatar_core::network::discriminator::{Discriminator, DiscriminatorConfig};
-use getavatar_core::optim::Adam;
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
+use getavatar_core::generator::losses::{discriminator_loss, r1_penalty};
+use getavatar_core::generator::network::discriminator::{Discriminator, DiscriminatorConfig};
+use getavatar_core::generator::optim::Adam;
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::io::dataset::{Dataset, Label};
+use getavatar_core::render::camera::View;
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::util::rng::Rng;
 
 use crate::atomic::write_atomic;
 use crate::model_io::{load_body, GeneratorArgs};

@@ -1,4 +1,4 @@
-//! `trainer train-encoder`: the photo encoder (`getavatar_core::encoder`) trained on the
+//! `trainer train-encoder`: the photo encoder (`getavatar_core::reconstruction::encoder`) trained on the
 //! generator's own renders (E3DGE / GOAE's recipe; no outside data).
 //!
 //! **Pairs** (`OUT/pairs/shard_NNNN.{bin,safetensors}`, 64 per shard, deterministic in
@@ -32,21 +32,21 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::skinning::{pose_body, BodyParams};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::camera::{from_row_major, sample_data_camera, to_row_major, View};
-use getavatar_core::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::encoder::{
+use getavatar_core::generator::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
+use getavatar_core::generator::optim::Adam;
+use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::reconstruction::encoder::{
     batch_tensor, load_encoder, save_encoder, BodyMaps, Encoder, EncoderConfig, EncoderImage, EncoderInput,
     ENCODER_FORMAT,
 };
-use getavatar_core::generator::{BodyContext, Generator, LatentModes, Styles};
-use getavatar_core::inversion::render_images;
-use getavatar_core::optim::Adam;
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::{pose_body, BodyParams};
+use getavatar_core::reconstruction::inversion::render_images;
+use getavatar_core::render::camera::{from_row_major, sample_data_camera, to_row_major, View};
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::util::rng::Rng;
 use getavatar_core::NUM_JOINTS;
 use glam::Vec3;
 
@@ -379,8 +379,8 @@ fn background(res: usize, other: &[f32], rng: &mut Rng) -> Vec<f32> {
         0 => (0..res * res * 3).map(|k| c[k % 3]).collect(),
         1 => (0..res * res * 3).map(|k| (c[k % 3] + 0.25 * rng.normal()).clamp(0.0, 1.0)).collect(),
         _ => {
-            let small = getavatar_core::encoder::resample(other, res, 3, res / 8);
-            let big = getavatar_core::encoder::resample(&small, res / 8, 3, res);
+            let small = getavatar_core::reconstruction::encoder::resample(other, res, 3, res / 8);
+            let big = getavatar_core::reconstruction::encoder::resample(&small, res / 8, 3, res);
             big.iter().enumerate().map(|(k, v)| 0.6 * v + 0.4 * c[k % 3]).collect()
         }
     }
@@ -649,6 +649,6 @@ fn snapshot(
             }
         }
     }
-    let png = getavatar_core::dataset::encode_png(3 * res, rows * res, 3, &img)?;
+    let png = getavatar_core::io::dataset::encode_png(3 * res, rows * res, 3, &img)?;
     write_atomic(&a.out.join("snapshots").join(format!("step_{step:06}.png")), &png)
 }

@@ -12,9 +12,9 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::dataset::encode_png;
-use getavatar_core::generator::{generate_avatar, BodyContext, Styles};
-use getavatar_core::pose_library::PoseLibrary;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::generator::pipeline::{generate_avatar, BodyContext, Styles};
+use getavatar_core::io::dataset::encode_png;
 use serde::Serialize;
 
 use crate::model_io::{load_body, render_avatar, seed_styles, GeneratorArgs};

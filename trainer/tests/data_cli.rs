@@ -6,8 +6,8 @@
 
 use std::path::Path;
 
-use getavatar_core::camera::project_to_pixel;
-use getavatar_core::dataset::Dataset;
+use getavatar_core::io::dataset::Dataset;
+use getavatar_core::render::camera::project_to_pixel;
 use glam::{Vec2, Vec3};
 
 mod common;

@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
 
-use getavatar_core::motion::Motion;
+use getavatar_core::body::motion::Motion;
 
 mod common;
 use common::{s, tmp, trainer};

@@ -7,13 +7,13 @@
 
 use std::path::Path;
 
-use getavatar_core::body_fit::fit::BodyFit;
-use getavatar_core::body_fit::metrics::pa_mpjpe;
-use getavatar_core::body_fit::synthetic::{detect, unseen_poses, wide_poses, UNSEEN_POSE_CAMERAS, WIDE_YAWS};
-use getavatar_core::body_fit::turn;
-use getavatar_core::dataset::{decode_png, encode_png};
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::pose_body;
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_fit::metrics::pa_mpjpe;
+use getavatar_core::body::body_fit::synthetic::{detect, unseen_poses, wide_poses, UNSEEN_POSE_CAMERAS, WIDE_YAWS};
+use getavatar_core::body::body_fit::turn;
+use getavatar_core::body::skinning::pose_body;
+use getavatar_core::io::dataset::{decode_png, encode_png};
+use getavatar_core::util::rng::Rng;
 use getavatar_core::{BodyModel, BodyParams};
 
 mod common;
@@ -255,7 +255,7 @@ fn fit_fixture(dir: &Path, fixtures: &Path, stem: &str, model: &BodyModel, truth
     let tj = pose_body(model, truth).kinematics.posed_joints;
     let err = pa_mpjpe(&fitted, &tj);
     if std::env::var("FIT_DEBUG").is_ok() {
-        let (sc, r, t) = getavatar_core::body_fit::metrics::procrustes(&fitted, &tj);
+        let (sc, r, t) = getavatar_core::body::body_fit::metrics::procrustes(&fitted, &tj);
         let per: Vec<String> = fitted
             .iter()
             .zip(&tj)

@@ -209,10 +209,10 @@ fn a_trained_discriminator_resumes_and_gives_the_inversion_its_perceptual_term()
 /// is right), then with no person (PCK 0, said).
 #[test]
 fn pck_compares_the_renders_detection_with_the_photos_in_photo_pixels() {
-    use getavatar_core::body_fit::fit::BodyFit;
-    use getavatar_core::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
-    use getavatar_core::dataset::encode_png;
-    use getavatar_core::rng::Rng;
+    use getavatar_core::body::body_fit::fit::BodyFit;
+    use getavatar_core::body::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
+    use getavatar_core::io::dataset::encode_png;
+    use getavatar_core::util::rng::Rng;
     use getavatar_core::BodyModel;
     use std::os::unix::fs::PermissionsExt;
 

@@ -9,11 +9,11 @@
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 
-use getavatar_core::body_fit::synthetic::{dance, detect, DANCE_CAMERA};
-use getavatar_core::dataset::encode_png;
-use getavatar_core::motion::Motion;
-use getavatar_core::rng::Rng;
-use getavatar_core::skinning::{axis_angle_to_quat, pose_body};
+use getavatar_core::body::body_fit::synthetic::{dance, detect, DANCE_CAMERA};
+use getavatar_core::body::motion::Motion;
+use getavatar_core::body::skinning::{axis_angle_to_quat, pose_body};
+use getavatar_core::io::dataset::encode_png;
+use getavatar_core::util::rng::Rng;
 use getavatar_core::BodyModel;
 use glam::Vec3;
 

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use getavatar_core::checkpoint::{parse_safetensors, write_safetensors};
+use getavatar_core::generator::checkpoint::{parse_safetensors, write_safetensors};
 
 mod common;
 use common::trainer;
@@ -542,10 +542,10 @@ fn reconstruction_warm_up_lowers_its_l1_and_hands_over_to_adversarial_training()
         let d = d.as_f64().unwrap();
         assert!(d == 0.0 || (d - between).abs() < 1e-6, "seed pair at {d}, subjects at {between}");
     }
-    let sheet = getavatar_core::dataset::decode_png(&std::fs::read(vdir.join("seeds.png")).unwrap()).unwrap();
+    let sheet = getavatar_core::io::dataset::decode_png(&std::fs::read(vdir.join("seeds.png")).unwrap()).unwrap();
     assert_eq!((sheet.width, sheet.height), (4 * 32, 32));
     // Each render on its own too: the sheet's first tile is seeds/000.png.
-    let one = getavatar_core::dataset::decode_png(&std::fs::read(vdir.join("seeds/000.png")).unwrap()).unwrap();
+    let one = getavatar_core::io::dataset::decode_png(&std::fs::read(vdir.join("seeds/000.png")).unwrap()).unwrap();
     assert_eq!((one.width, one.height), (32, 32));
     let tile = |y: usize| sheet.pixels[y * 4 * 32 * sheet.channels..][..32 * sheet.channels].to_vec();
     let row = |y: usize| one.pixels[y * 32 * one.channels..][..32 * one.channels].to_vec();
@@ -746,7 +746,9 @@ fn texture_res_grows_a_saved_generator_and_is_kept_in_the_run() {
     assert!(text.contains("(--train-only synthesis.texture_detail.0.constant)"), "{text}");
     let rc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(only.join("run.json")).unwrap()).unwrap();
     assert_eq!(rc["train_only"], constant, "{rc}");
-    let tensors = |p: &Path| getavatar_core::checkpoint::parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors;
+    let tensors = |p: &Path| {
+        getavatar_core::generator::checkpoint::parse_safetensors(&std::fs::read(p).unwrap()).unwrap().tensors
+    };
     let (before, after) = (tensors(&fine_init), tensors(&only.join("generator.safetensors")));
     let mut moved = Vec::new();
     for (name, (_, a)) in &before {

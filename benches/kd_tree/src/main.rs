@@ -10,12 +10,12 @@
 
 use std::time::Instant;
 
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::geometry::posed_grid::far_from_body;
 use getavatar_core::geometry::BodyContext;
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::skinning::pose_body;
-use getavatar_core::spatial::KdTree;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::pose_body;
+use getavatar_core::geometry::spatial::KdTree;
 use glam::Vec3;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;

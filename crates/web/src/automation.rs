@@ -11,8 +11,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use getavatar_core::body_fit::options::FitOptions;
-use getavatar_core::body_model::joint_index;
+use getavatar_core::body::body_fit::options::FitOptions;
+use getavatar_core::body::body_model::joint_index;
 
 pub use crate::status::{MotionStatus, PhotoStatus, ReconstructStatus, Status, VideoStatus};
 
@@ -215,7 +215,7 @@ pub struct ReconstructArgs {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum StartChoice {
-    /// The photo encoder's guess (one forward pass; `getavatar_core::encoder`); without a
+    /// The photo encoder's guess (one forward pass; `getavatar_core::reconstruction::encoder`); without a
     /// usable encoder, the search below, with a message.
     Encoder,
     /// The model's subject (or w_avg) whose render explains the photo best: one render each.
@@ -245,7 +245,7 @@ pub const RECONSTRUCT_RES: std::ops::RangeInclusive<usize> = 32..=256;
 pub const DEFAULT_RECONSTRUCT_RES: usize = 128;
 pub const DEFAULT_PREVIEW_EVERY: usize = 5;
 
-/// The quality presets (`getavatar_core::inversion::InversionOptions::preset`).
+/// The quality presets (`getavatar_core::reconstruction::inversion::InversionOptions::preset`).
 pub const RECONSTRUCT_PRESETS: [&str; 3] = ["instant", "fast", "full"];
 
 /// A validated reconstruction request.

@@ -12,19 +12,21 @@ use std::rc::Rc;
 
 use crate::platform::fetch_bytes;
 use eframe::egui_wgpu;
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{config_with_saved_resolutions, load_generator_and_modes, save_inverted_async};
-use getavatar_core::generator::{
+use getavatar_core::generator::checkpoint::{
+    config_with_saved_resolutions, load_generator_and_modes, save_inverted_async,
+};
+use getavatar_core::generator::network::synthesis::Triplanes;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{
     default_psi, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator, LatentModes, Styles,
 };
-use getavatar_core::network::synthesis::Triplanes;
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::photo_projection::{PhotoProjection, SourcePhoto};
-use getavatar_core::profile;
-use getavatar_core::rigging::generate_rigged_async;
-use getavatar_core::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
+use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
+use getavatar_core::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
+use getavatar_core::util::profile;
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -203,7 +205,7 @@ pub struct Finished {
     pub field: Rc<TextureField>,
     pub millis: f64,
     /// Its stages: host milliseconds, waits on the GPU, read-backs (`core::profile`).
-    pub stages: Option<getavatar_core::profile::StageProfile>,
+    pub stages: Option<getavatar_core::util::profile::StageProfile>,
     /// (geometry, texture) seeds of this result.
     pub seeds: (u64, u64),
     /// The truncation ψ it was generated with.

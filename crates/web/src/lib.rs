@@ -17,7 +17,7 @@
 //!   its own WebGPU device: no step holds the UI thread), the page's side and the worker's
 //! - [`video_clip`]: what "Motion from video…" accepts and which frames it reads (pure)
 //! - `video` (wasm32): motion from a video: frames decoded in the page (`www/video_frames.js`),
-//!   MediaPipe's tracking mode, the warm-started clip fit of `getavatar_core::body_fit::video`
+//!   MediaPipe's tracking mode, the warm-started clip fit of `getavatar_core::body::body_fit::video`
 //! - `task` (wasm32): background tasks' event queues, Cancel, yielding to the browser
 //! - `platform` (wasm32): clock and file downloads
 //! - `web` (wasm32): entry point owning the app, JS automation hook

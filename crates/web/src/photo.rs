@@ -1,6 +1,6 @@
 //! The photo → body flow's browser side (paper Sec. 3.4's inversion starts from it): a photo's
 //! bytes go to MediaPipe Pose (`www/pose_detect.js`, called through wasm-bindgen), its
-//! landmarks and person mask to `getavatar_core::body_fit` (burn with autodiff on the shared
+//! landmarks and person mask to `getavatar_core::body::body_fit` (burn with autodiff on the shared
 //! WebGPU device). Both run as async tasks; the fit awaits one Adam step at a time (each ends
 //! in a GPU read-back), so the page stays live, shows progress and can cancel between steps.
 //!
@@ -15,11 +15,11 @@ use serde::Deserialize;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use getavatar_core::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_fit::metrics::body_mask_rect;
+use getavatar_core::body::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_fit::metrics::body_mask_rect;
+use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::skinning::pose_body;
 use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
@@ -310,7 +310,7 @@ async fn fit_async(
     req: FitRequest,
     task: &PhotoTask,
     repaint: &egui::Context,
-) -> Result<Option<FittedView>, getavatar_core::body_fit::fit::FitError> {
+) -> Result<Option<FittedView>, getavatar_core::body::body_fit::fit::FitError> {
     let t0 = now_ms();
     let model = req.model.clone();
     // Not in the frame that asked (its own work is a task already), and a slice each for the

@@ -1,4 +1,4 @@
-//! Single-image reconstruction in the browser (paper Sec. 5.4, `getavatar_core::inversion`):
+//! Single-image reconstruction in the browser (paper Sec. 5.4, `getavatar_core::reconstruction::inversion`):
 //! the photo, resampled into its body fit's crop, is explained by the generator's codes (W+)
 //! and then by its tuned weights (PTI), all on the page's WebGPU device through burn with
 //! autodiff. The task awaits one step at a time (each ends in GPU read-backs), yields to the
@@ -15,22 +15,24 @@ use std::rc::Rc;
 
 use eframe::egui;
 use getavatar_core::burn::module::Module;
-use getavatar_core::rigging::generate_rigged_async;
+use getavatar_core::generator::rigging::generate_rigged_async;
 
-use getavatar_core::body_fit::fit::BodyFit;
-use getavatar_core::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors};
-use getavatar_core::encoder::load_encoder;
-use getavatar_core::generator::{BodyContext, Generator, Styles};
-use getavatar_core::inversion::{
+use getavatar_core::generator::checkpoint::{
+    inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors,
+};
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
+use getavatar_core::generator::rigging::RiggedAvatar;
+use getavatar_core::reconstruction::encoder::load_encoder;
+use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
     InversionTarget, Inverter, StartCandidate, StepReport,
 };
-use getavatar_core::network::GeneratorConfig;
-use getavatar_core::photo_projection::SourcePhoto;
-use getavatar_core::rigging::RiggedAvatar;
-use getavatar_core::skinning::pose_body;
+use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
 use crate::automation::PhotoSource;
 pub use crate::automation::{Compute, StartChoice};
@@ -365,7 +367,7 @@ pub(crate) async fn invert(
 async fn choose_start(
     job: &InversionJob,
     g: &Generator,
-    modes: Option<&getavatar_core::generator::LatentModes>,
+    modes: Option<&getavatar_core::generator::pipeline::LatentModes>,
     ctx: &BodyContext,
     dev: &Device,
 ) -> Result<(StartCandidate, usize, String), String> {

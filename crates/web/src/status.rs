@@ -48,8 +48,8 @@ pub struct Status {
     /// Milliseconds of the last generation (network + extraction + readbacks).
     pub last_generation_ms: f32,
     /// The last generation by stage (mapping … rigging, then the mesh's upload): host ms,
-    /// waits on the GPU, read-backs (`getavatar_core::profile`).
-    pub last_generation_stages: Option<getavatar_core::profile::StageProfile>,
+    /// waits on the GPU, read-backs (`getavatar_core::util::profile`).
+    pub last_generation_stages: Option<getavatar_core::util::profile::StageProfile>,
     pub seed_geo: u64,
     pub seed_tex: u64,
     pub psi: f32,

@@ -144,13 +144,13 @@ thread_local! {
 
 /// Give the thread back if the current slice is over: core's checkpoint, which the app's own
 /// loops (the fit's steps) use too, under the hook of [`install_time_slicing`].
-pub use getavatar_core::cooperative::checkpoint;
+pub use getavatar_core::util::cooperative::checkpoint;
 
-/// Make core's checkpoints (`getavatar_core::cooperative`) yield to the browser once a slice
+/// Make core's checkpoints (`getavatar_core::util::cooperative`) yield to the browser once a slice
 /// has run `slice_ms` ([`SLICE_MS`] on the page): the template SDF, the posed grid, generation
 /// and the fits then run in slices between frames instead of freezing the page.
 pub fn install_time_slicing(slice_ms: f64) {
-    getavatar_core::cooperative::install(Rc::new(move || {
+    getavatar_core::util::cooperative::install(Rc::new(move || {
         if crate::platform::now_ms() - SLICE_START.with(Cell::get) < slice_ms {
             return None;
         }

@@ -1,7 +1,7 @@
 //! Motion from a video, in the page: the file's frames decoded by the browser
 //! (`www/video_frames.js`: a `<video>` on a Blob URL, so the video never leaves the page),
 //! MediaPipe Pose on each in its tracking mode in the detector worker, then the clip's fit of
-//! `getavatar_core::body_fit::video` (one shape, each frame warm-started from the previous
+//! `getavatar_core::body::body_fit::video` (one shape, each frame warm-started from the previous
 //! one, smoothed) on the CPU backend, one frame per await so the page shows progress and
 //! Cancel keeps the frames fitted so far.
 
@@ -11,8 +11,8 @@ use eframe::egui;
 use serde::Deserialize;
 use wasm_bindgen::prelude::*;
 
-use getavatar_core::body_fit::landmarks::PoseResult;
-use getavatar_core::body_fit::video::{VideoDetections, VideoFitOptions, VideoFitter, VideoMotion};
+use getavatar_core::body::body_fit::landmarks::PoseResult;
+use getavatar_core::body::body_fit::video::{VideoDetections, VideoFitOptions, VideoFitter, VideoMotion};
 use getavatar_core::BodyModel;
 
 use crate::automation::PhotoSource;

@@ -58,7 +58,7 @@ pub fn joint_bones(
     rest_joints: &[glam::Vec3; getavatar_core::NUM_JOINTS],
     params: &getavatar_core::BodyParams,
 ) -> Vec<Bone> {
-    let kin = getavatar_core::skinning::forward_kinematics(parents, rest_joints, params);
+    let kin = getavatar_core::body::skinning::forward_kinematics(parents, rest_joints, params);
     kin.skinning
         .iter()
         .map(|a| {

@@ -6,11 +6,11 @@
 use anyhow::Result;
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Tensor;
-use getavatar_core::camera::View;
-use getavatar_core::dataset::Label;
-use getavatar_core::diff::avatar::render_avatars;
-use getavatar_core::losses::{discriminator_loss, generator_loss, r1_penalty};
-use getavatar_core::optim::ema_update;
+use getavatar_core::generator::losses::{discriminator_loss, generator_loss, r1_penalty};
+use getavatar_core::generator::optim::ema_update;
+use getavatar_core::io::dataset::Label;
+use getavatar_core::render::camera::View;
+use getavatar_core::render::diff::avatar::render_avatars;
 
 use super::reconstruction::subject_reconstruction;
 use super::state::State;

@@ -35,12 +35,12 @@ use std::io::Write;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::body_model::BodyModel;
+use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{load_generator_growing, save_generator_with_modes};
-use getavatar_core::dataset::Dataset;
-use getavatar_core::diff::avatar::PosedGridCache;
-use getavatar_core::generator::BodyContext;
+use getavatar_core::generator::checkpoint::{load_generator_growing, save_generator_with_modes};
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::io::dataset::Dataset;
+use getavatar_core::render::diff::avatar::PosedGridCache;
 
 pub use args::TrainArgs;
 pub(crate) use run_config::discriminator_config;
@@ -77,7 +77,7 @@ fn initial_codes(st: &State, rc: &RunConfig, ds: &Dataset, init: Option<&Path>, 
     if let Some(path) = init {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
         let plain = ad.clone().without_autodiff();
-        if let Some(modes) = getavatar_core::checkpoint::load_latent_modes(&bytes, &plain)? {
+        if let Some(modes) = getavatar_core::generator::checkpoint::load_latent_modes(&bytes, &plain)? {
             let fixed = subject_modes(&st.g_ema, None, ds, rc, &plain)?
                 .context("a reconstruction run's subjects have modes")?;
             if let Some(codes) = SubjectCodes::reaching(&modes, &fixed, layers, ad)? {
@@ -174,8 +174,10 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         println!("the dataset has no normal maps: the normal discriminator is off");
     }
     if let Some(prefix) = &rc.train_only {
-        let names: Vec<String> =
-            getavatar_core::checkpoint::collect_params(&st.g_ema)?.into_iter().map(|(name, _, _)| name).collect();
+        let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&st.g_ema)?
+            .into_iter()
+            .map(|(name, _, _)| name)
+            .collect();
         let trained = names.iter().filter(|n| n.starts_with(prefix.as_str())).count();
         if trained == 0 {
             bail!(

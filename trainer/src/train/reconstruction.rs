@@ -7,13 +7,13 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Result};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::camera::View;
-use getavatar_core::dataset::{find_scans, load_body_fit, load_scan, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatar_views_retextured, FakeViews};
-use getavatar_core::diff::scan_supervision::{scan_losses, texture_loss, CanonicalSamples, FaceRegion};
-use getavatar_core::generator::{BodyContext, Generator, LatentModes, ModePairing, Styles};
-use getavatar_core::optim::ema_update;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::optim::ema_update;
+use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, ModePairing, Styles};
+use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset, Label};
+use getavatar_core::render::camera::View;
+use getavatar_core::render::diff::avatar::{render_avatar_views_retextured, FakeViews};
+use getavatar_core::render::diff::scan_supervision::{scan_losses, texture_loss, CanonicalSamples, FaceRegion};
+use getavatar_core::util::rng::Rng;
 
 use super::run_config::{
     Objective, RunConfig, FACE_POINTS_PER_STEP, FACE_POOL_POINTS, SCAN_POINTS_PER_STEP, SCAN_POOL_POINTS,
@@ -204,13 +204,14 @@ pub(crate) fn toward(w: Tensor<2>, w_random: Tensor<2>, psi: &[f32]) -> Tensor<2
 /// [geometry, texture]; the random draws do not depend on it.
 pub(crate) fn spread_styles(g: &Generator, wg: Tensor<2>, wt: Tensor<2>, spreads: [f32; 2], rng: &mut Rng) -> Styles {
     let b = wg.dims()[0];
-    let mut branch = |mapping: &getavatar_core::network::mapping::MappingNetwork, w: Tensor<2>, spread: f32| {
-        let z = mapping.z_dim();
-        let random: Vec<f32> = rng.normals(b * z);
-        let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &w.device())).detach();
-        let psi: Vec<f32> = (0..b).map(|_| rng.uniform() * spread).collect();
-        toward(w, w_random, &psi)
-    };
+    let mut branch =
+        |mapping: &getavatar_core::generator::network::mapping::MappingNetwork, w: Tensor<2>, spread: f32| {
+            let z = mapping.z_dim();
+            let random: Vec<f32> = rng.normals(b * z);
+            let w_random = mapping.forward(Tensor::from_data(TensorData::new(random, [b, z]), &w.device())).detach();
+            let psi: Vec<f32> = (0..b).map(|_| rng.uniform() * spread).collect();
+            toward(w, w_random, &psi)
+        };
     let (w_geo, w_tex) = (branch(&g.mapping_geo, wg, spreads[0]), branch(&g.mapping_tex, wt, spreads[1]));
     g.styles_from_w(w_geo, w_tex)
 }
@@ -314,11 +315,11 @@ pub(crate) fn canonical_scan_samples(
         let obj = found.get(name).ok_or_else(|| anyhow!("no scan of subject `{name}` under {}", dir.display()))?;
         let scan = load_scan(obj)?;
         let smpl = load_body_fit(name, obj, None)?;
-        let prepared = getavatar_core::scan::RenderableScan::new(&scan, &smpl);
+        let prepared = getavatar_core::io::scan::RenderableScan::new(&scan, &smpl);
         let mut pools = (CanonicalSamples::default(), CanonicalSamples::default());
         if surface {
-            let mut rng = Rng::new(seed, getavatar_core::rng::hash_str(name));
-            let points = getavatar_core::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
+            let mut rng = Rng::new(seed, getavatar_core::util::rng::hash_str(name));
+            let points = getavatar_core::io::scan::sample_surface(&scan, &prepared, SCAN_POOL_POINTS, &mut rng);
             if points.is_empty() {
                 bail!("the scan of subject `{name}` has no surface area");
             }
@@ -326,7 +327,7 @@ pub(crate) fn canonical_scan_samples(
         }
         if let Some(region) = &region {
             // Its own stream, so that the surface pool stays what runs without it drew.
-            let mut rng = Rng::new(seed ^ FACE_STREAM, getavatar_core::rng::hash_str(name));
+            let mut rng = Rng::new(seed ^ FACE_STREAM, getavatar_core::util::rng::hash_str(name));
             let params = label.body_params();
             pools.1 = CanonicalSamples::face_of(&scan, &prepared, ctx, &params, region, FACE_POOL_POINTS, &mut rng);
             if pools.1.is_empty() {
@@ -370,7 +371,7 @@ const FACE_STREAM: u64 = 0xface;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use getavatar_core::network::GeneratorConfig;
+    use getavatar_core::generator::network::GeneratorConfig;
 
     fn values(t: Tensor<2>) -> Vec<f32> {
         t.into_data().try_to_vec::<f32>().expect("f32")
@@ -430,7 +431,7 @@ mod tests {
     /// nose, dark pupils, and nothing far from the canonical face.
     #[test]
     fn face_pools_hold_the_synthetic_scans_eyes() {
-        use getavatar_core::scan::{sample_surface, RenderableScan};
+        use getavatar_core::io::scan::{sample_surface, RenderableScan};
         let dir = tempfile::tempdir().unwrap();
         let args = crate::synth_scans::SynthArgs {
             out: dir.path().into(),
@@ -444,12 +445,12 @@ mod tests {
         let (name, obj) = find_scans(dir.path()).unwrap().into_iter().next().unwrap();
         let (scan, smpl) = (load_scan(&obj).unwrap(), load_body_fit(&name, &obj, None).unwrap());
         let prepared = RenderableScan::new(&scan, &smpl);
-        let model = getavatar_core::body_model::BodyModel::default_body().unwrap();
+        let model = getavatar_core::body::body_model::BodyModel::default_body().unwrap();
         let ctx = BodyContext::new(model, &GeneratorConfig::tiny());
         let region = FaceRegion::of(&ctx).unwrap();
         // The body frame has the fit's translation taken out (`SmplParams::scan_to_body`), and
         // the dataset's labels, which the training carries points with, have none.
-        let params = getavatar_core::skinning::BodyParams { transl: glam::Vec3::ZERO, ..smpl.body_params() };
+        let params = getavatar_core::body::skinning::BodyParams { transl: glam::Vec3::ZERO, ..smpl.body_params() };
         let n = 4096;
         let face = CanonicalSamples::face_of(&scan, &prepared, &ctx, &params, &region, n, &mut Rng::new(0, 1));
         assert_eq!(face.len(), n);

@@ -4,9 +4,9 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use getavatar_core::dataset::Dataset;
-use getavatar_core::network::discriminator::DiscriminatorConfig;
-use getavatar_core::network::GeneratorConfig;
+use getavatar_core::generator::network::discriminator::DiscriminatorConfig;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::io::dataset::Dataset;
 use serde::{Deserialize, Serialize};
 
 use super::args::TrainArgs;
@@ -303,7 +303,7 @@ impl RunConfig {
             // A generator saved with finer detail planes or another tet grid (e.g. the shipped
             // demo model's) keeps them: its config where it differs from the preset only there.
             let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
-            gcfg = getavatar_core::checkpoint::config_with_saved_resolutions(&bytes, &gcfg);
+            gcfg = getavatar_core::generator::checkpoint::config_with_saved_resolutions(&bytes, &gcfg);
         }
         if let Some(res) = a.texture_res {
             gcfg.texture_res = Some(res);

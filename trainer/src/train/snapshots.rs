@@ -3,12 +3,12 @@
 
 use anyhow::Result;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::camera::View;
-use getavatar_core::dataset::{encode_png, Dataset, Label};
-use getavatar_core::diff::avatar::{render_avatars, PosedGridCache};
-use getavatar_core::generator::BodyContext;
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::io::dataset::{encode_png, Dataset, Label};
+use getavatar_core::render::camera::View;
+use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
+use getavatar_core::util::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 use super::reconstruction::{subject_latents, subject_of_entries};

@@ -5,11 +5,11 @@ use std::collections::BTreeMap;
 
 use anyhow::{anyhow, bail, Result};
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
-use getavatar_core::generator::Generator;
-use getavatar_core::network::discriminator::Discriminator;
-use getavatar_core::optim::Adam;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::checkpoint::{collect_params, load_params, parse_safetensors, write_safetensors};
+use getavatar_core::generator::network::discriminator::Discriminator;
+use getavatar_core::generator::optim::Adam;
+use getavatar_core::generator::pipeline::Generator;
+use getavatar_core::util::rng::Rng;
 
 use super::run_config::{Objective, RunConfig};
 use super::subject_codes::SubjectCodes;

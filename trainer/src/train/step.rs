@@ -3,16 +3,16 @@
 
 use anyhow::{anyhow, Result};
 use getavatar_core::burn::tensor::{Device, Gradients, Tensor, TensorData};
-use getavatar_core::camera::to_row_major;
-use getavatar_core::dataset::{Dataset, Label};
-use getavatar_core::generator::{is_geometry_head_param, is_texture_param, Generator};
-use getavatar_core::optim::Adam;
-use getavatar_core::readback::read_f32_now;
-use getavatar_core::rng::Rng;
+use getavatar_core::generator::optim::Adam;
+use getavatar_core::generator::pipeline::{is_geometry_head_param, is_texture_param, Generator};
+use getavatar_core::generator::readback::read_f32_now;
+use getavatar_core::io::dataset::{Dataset, Label};
+use getavatar_core::render::camera::to_row_major;
+use getavatar_core::util::rng::Rng;
 use serde::Serialize;
 
-use getavatar_core::diff::avatar::PosedGridCache;
-use getavatar_core::generator::BodyContext;
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::render::diff::avatar::PosedGridCache;
 
 use super::reconstruction::ScanPools;
 use super::run_config::RunConfig;
@@ -136,13 +136,13 @@ mod tests {
 
     #[test]
     fn each_parameter_group_learns_at_its_own_factor() {
-        let ds = getavatar_core::dataset::Dataset {
+        let ds = getavatar_core::io::dataset::Dataset {
             root: "data".into(),
             entries: Vec::new(),
             resolution: 64,
             has_normals: true,
         };
-        let tiny = getavatar_core::network::GeneratorConfig::tiny();
+        let tiny = getavatar_core::generator::network::GeneratorConfig::tiny();
         let mut rc = RunConfig::with_objective(&ds, &ds.root, tiny, 4, 10.0, 0, Objective::Reconstruction);
         (rc.lr_texture_mul, rc.lr_texture_detail_mul) = (8.0, 3.0);
         (rc.lr_geometry_head_mul, rc.lr_geometry_detail_mul) = (0.25, 4.0);

@@ -24,8 +24,8 @@ use anyhow::Result;
 use getavatar_core::burn;
 use getavatar_core::burn::module::{Module, Param};
 use getavatar_core::burn::tensor::{Device, Int, Tensor, TensorData};
-use getavatar_core::generator::{Generator, LatentModes, Styles};
-use getavatar_core::readback::read_f32_now;
+use getavatar_core::generator::pipeline::{Generator, LatentModes, Styles};
+use getavatar_core::generator::readback::read_f32_now;
 
 /// Per-subject offsets: `geo` in W, `[subjects, w_dim]`; `tex` in W, `[subjects, w_dim]`, or
 /// with `codes_wplus` in W+, one offset per texture style layer, `[subjects, layers · w_dim]`
@@ -177,8 +177,8 @@ pub(crate) fn layer_modes(tex: &Tensor<2>, w_dim: usize) -> Option<Tensor<3>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use getavatar_core::network::GeneratorConfig;
-    use getavatar_core::optim::Adam;
+    use getavatar_core::generator::network::GeneratorConfig;
+    use getavatar_core::generator::optim::Adam;
 
     fn rows(t: Tensor<2>) -> Vec<Vec<f32>> {
         let [_, w] = t.dims();
@@ -197,7 +197,7 @@ mod tests {
         let codes = SubjectCodes::zeros(3, cfg.w_dim, 1, &dev);
         let z = |s: u64| {
             Tensor::<2>::from_data(
-                TensorData::new(getavatar_core::rng::Rng::new(s, 0).normals(cfg.z_dim), [1, cfg.z_dim]),
+                TensorData::new(getavatar_core::util::rng::Rng::new(s, 0).normals(cfg.z_dim), [1, cfg.z_dim]),
                 &dev,
             )
         };

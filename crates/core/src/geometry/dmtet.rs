@@ -10,7 +10,7 @@
 
 use glam::Vec3;
 
-use crate::id_map::{id_map_with_capacity, IdMap};
+use crate::geometry::id_map::{id_map_with_capacity, IdMap};
 
 /// An extracted mesh with one attribute vector per vertex.
 #[derive(Clone, Debug, Default)]

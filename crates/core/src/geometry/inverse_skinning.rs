@@ -9,10 +9,10 @@
 
 use glam::{Mat3, Mat4, Vec3};
 
-use crate::body_model::BodyModel;
-use crate::pose_library::da_pose;
-use crate::skinning::{pose_body, BodyParams, PosedBody};
-use crate::spatial::KdTree;
+use crate::body::body_model::BodyModel;
+use crate::body::pose_library::da_pose;
+use crate::body::skinning::{pose_body, BodyParams, PosedBody};
+use crate::geometry::spatial::KdTree;
 
 pub struct InverseSkinning {
     tree: KdTree,

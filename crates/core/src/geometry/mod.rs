@@ -6,10 +6,12 @@
 //! used in training are checked against them.
 
 pub mod dmtet;
+pub mod id_map;
 pub mod inverse_skinning;
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod per_device;
 pub mod posed_grid;
+pub mod spatial;
 pub mod template_sdf;
 pub mod tet_grid;
 

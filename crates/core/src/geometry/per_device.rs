@@ -1,5 +1,5 @@
 //! What later stages derive from a body context once per burn device (the canonical grid's
-//! DMTet topology as device tensors, `crate::dmtet_gpu`), kept in the context so each device
+//! DMTet topology as device tensors, `crate::generator::dmtet_gpu`), kept in the context so each device
 //! builds it once. The context stores the values without knowing their type: geometry sits
 //! below the stages that make them.
 
@@ -36,10 +36,10 @@ mod tests {
         #[allow(deprecated)]
         let cpu = Device::ndarray();
         let cache = PerDevice::default();
-        let a = crate::cooperative::run_blocking(cache.get_or_make(&cpu, async { 7u32 }));
-        let b = crate::cooperative::run_blocking(cache.get_or_make(&cpu, async { 9u32 }));
+        let a = crate::util::cooperative::run_blocking(cache.get_or_make(&cpu, async { 7u32 }));
+        let b = crate::util::cooperative::run_blocking(cache.get_or_make(&cpu, async { 9u32 }));
         assert_eq!((*a, *b), (7, 7));
-        let s = crate::cooperative::run_blocking(cache.get_or_make(&cpu, async { "x".to_string() }));
+        let s = crate::util::cooperative::run_blocking(cache.get_or_make(&cpu, async { "x".to_string() }));
         assert_eq!(*s, "x");
     }
 }

@@ -9,9 +9,9 @@ use glam::Vec3;
 use super::inverse_skinning::{canonical_body, InverseSkinning, UNWARP_SLACK};
 use super::template_sdf::TemplateSdf;
 use super::tet_grid::{TetGrid, REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
-use crate::body_model::BodyModel;
-use crate::cooperative::{checkpoint, run_blocking};
-use crate::skinning::PosedBody;
+use crate::body::body_model::BodyModel;
+use crate::body::skinning::PosedBody;
+use crate::util::cooperative::{checkpoint, run_blocking};
 
 /// Bound of the generator's SDF residual on top of the template SDF, metres: loose dresses,
 /// coats and hair reach about this far from the body. The residual decoder is softly bounded
@@ -35,7 +35,7 @@ pub struct BodyContext {
     /// ([`BodyContext::canonical_inverse`]).
     canonical_inverse: std::sync::OnceLock<InverseSkinning>,
     /// The canonical grid's DMTet topology on each device that extracted a surface there
-    /// (`crate::dmtet_gpu::DeviceTopology`).
+    /// (`crate::generator::dmtet_gpu::DeviceTopology`).
     #[cfg(any(feature = "generator", feature = "wgpu"))]
     pub canonical_dmtet: super::per_device::PerDevice,
 }
@@ -178,7 +178,7 @@ impl PosedGrid {
         #[cfg(target_arch = "wasm32")]
         let mapped = {
             let mut all = Vec::with_capacity(verts.len());
-            crate::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |c| all.extend(map(c))).await;
+            crate::util::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |c| all.extend(map(c))).await;
             all
         };
         let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
@@ -191,7 +191,7 @@ impl PosedGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cooperative::run_blocking;
+    use crate::util::cooperative::run_blocking;
 
     /// The kept canonical grid is the one [`PosedGrid::new`] makes for the canonical body, and
     /// it is made once.

@@ -12,7 +12,7 @@
 
 use glam::Vec3;
 
-use crate::cooperative::{checkpoint, run_blocking};
+use crate::util::cooperative::{checkpoint, run_blocking};
 
 /// Faces between two checkpoints (a few milliseconds of work in wasm).
 const FACES_PER_SLICE: usize = 256;
@@ -302,11 +302,11 @@ async fn parity_inside(
 #[cfg(all(test, feature = "embedded-body"))]
 mod tests {
     use super::*;
-    use crate::body_model::BodyModel;
-    use crate::cooperative::tests::{drive, pause_always};
-    use crate::cooperative::uninstall;
+    use crate::body::body_model::BodyModel;
     use crate::geometry::inverse_skinning::canonical_body;
     use crate::geometry::tet_grid::{REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
+    use crate::util::cooperative::tests::{drive, pause_always};
+    use crate::util::cooperative::uninstall;
 
     #[test]
     fn sliced_template_sdf_gives_the_thread_back_and_the_same_values() {

@@ -23,12 +23,12 @@ use std::sync::Arc;
 use eframe::egui;
 use glam::Vec3;
 
-use getavatar_core::body_model::BodyModel;
-use getavatar_core::generator::default_psi;
-use getavatar_core::gltf_export::{write_glb, ExportMesh};
-use getavatar_core::pose_library::PoseLibrary;
-use getavatar_core::rigging::RiggedAvatar;
-use getavatar_core::skinning::{pose_body, vertex_normals, BodyParams};
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::body::pose_library::PoseLibrary;
+use getavatar_core::body::skinning::{pose_body, vertex_normals, BodyParams};
+use getavatar_core::export::gltf_export::{write_glb, ExportMesh};
+use getavatar_core::generator::pipeline::default_psi;
+use getavatar_core::generator::rigging::RiggedAvatar;
 use getavatar_core::OrbitCamera;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode};
@@ -45,7 +45,7 @@ fn shown_rig<'a>(
     rigged: &'a Option<RiggedAvatar>,
     engine: &'a Option<GenEngine>,
     show: bool,
-) -> Option<(&'a RiggedAvatar, &'a getavatar_core::generator::BodyContext)> {
+) -> Option<(&'a RiggedAvatar, &'a getavatar_core::generator::pipeline::BodyContext)> {
     match (rigged, engine.as_ref().and_then(|e| e.context())) {
         (Some(r), Some(ctx)) if show => Some((r, ctx)),
         _ => None,
@@ -124,7 +124,7 @@ pub struct GetAvatarApp {
     /// The downloads' texture side (0: vertex colours), the shown avatar's bake at it, and a
     /// download waiting for the bake.
     texture_res: usize,
-    baked: Option<getavatar_core::rigging::BakedTexture>,
+    baked: Option<getavatar_core::generator::rigging::BakedTexture>,
     pending_download: Option<motion_panel::DownloadKind>,
     /// egui's context, for the repaints of background tasks.
     ctx: egui::Context,
@@ -421,7 +421,7 @@ impl GetAvatarApp {
         if self.avatar_dirty || self.uploaded.as_ref() != Some(&key) {
             let t0 = now_ms();
             let top4 = |w: &[f32; getavatar_core::NUM_JOINTS]| {
-                let (j, w) = getavatar_core::skin_export::top4(w);
+                let (j, w) = getavatar_core::export::skin_export::top4(w);
                 (j.map(u32::from), w)
             };
             let (verts, faces): (Vec<Vertex>, &[[u32; 3]]) = match rig {
@@ -476,7 +476,7 @@ impl GetAvatarApp {
             if std::mem::take(&mut self.time_upload) && rig.is_some() {
                 if let Some(p) = self.status.last_generation_stages.as_mut() {
                     let host_ms = now_ms() - t0;
-                    p.stages.push(getavatar_core::profile::StageTime {
+                    p.stages.push(getavatar_core::util::profile::StageTime {
                         stage: "upload".into(),
                         host_ms,
                         ..Default::default()

@@ -11,10 +11,10 @@ use std::rc::Rc;
 use eframe::egui;
 use glam::Vec3;
 
-use getavatar_core::humanoid::SkeletonNames;
-use getavatar_core::motion::{Motion, BUILTIN_CLIPS, MOTION_FPS};
-use getavatar_core::skin_export::{animated_body_glb, body_vrm, motion_vrma};
-use getavatar_core::vrm_export::{AvatarOrigin, VrmMeta};
+use getavatar_core::body::humanoid::SkeletonNames;
+use getavatar_core::body::motion::{Motion, BUILTIN_CLIPS, MOTION_FPS};
+use getavatar_core::export::skin_export::{animated_body_glb, body_vrm, motion_vrma};
+use getavatar_core::export::vrm_export::{AvatarOrigin, VrmMeta};
 
 use super::GetAvatarApp;
 use crate::automation::{Action, MotionArgs, MAX_MOTION_SPEED, TEXTURE_RESOLUTIONS};

@@ -4,8 +4,8 @@
 
 use eframe::egui;
 
-use getavatar_core::body_model::{JOINT_NAMES, NUM_JOINTS};
-use getavatar_core::pose_library::BUILTIN_POSE_NAMES;
+use getavatar_core::body::body_model::{JOINT_NAMES, NUM_JOINTS};
+use getavatar_core::body::pose_library::BUILTIN_POSE_NAMES;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, GenerateArgs, ViewMode, RESOLUTIONS};

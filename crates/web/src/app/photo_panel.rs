@@ -11,9 +11,9 @@ use std::rc::Rc;
 use eframe::egui;
 use egui::{Color32, Pos2, Rect, Stroke};
 
-use getavatar_core::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
-use getavatar_core::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
-use getavatar_core::body_model::JOINT_NAMES;
+use getavatar_core::body::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
+use getavatar_core::body::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
+use getavatar_core::body::body_model::JOINT_NAMES;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, PhotoFitAction, PhotoSource};

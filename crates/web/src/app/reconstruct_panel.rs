@@ -11,7 +11,7 @@ use std::rc::Rc;
 
 use eframe::egui;
 
-use getavatar_core::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
+use getavatar_core::reconstruction::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
 
 use super::GetAvatarApp;
 use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, StartChoice, RECONSTRUCT_PRESETS};

@@ -4,7 +4,7 @@
 use eframe::egui;
 use glam::Vec3;
 
-use getavatar_core::colour::linear_to_srgb;
+use getavatar_core::render::colour::linear_to_srgb;
 
 use super::GetAvatarApp;
 use crate::automation::ViewMode;

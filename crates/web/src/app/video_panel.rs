@@ -5,7 +5,7 @@
 
 use eframe::egui;
 
-use getavatar_core::motion::Motion;
+use getavatar_core::body::motion::Motion;
 
 use super::GetAvatarApp;
 use crate::automation::{Action, PhotoSource};

@@ -1,0 +1,860 @@
+//! The body fit: SMPLify-style optimisation (Bogo et al. 2016, in SPIN's staging) of the
+//! global orientation, body pose θ, shape β and camera translation that explain a person's
+//! landmarks and mask seen through the reference camera of a [`Framing`].
+//!
+//! Stages, each with a fresh Adam (SPIN restarts its optimiser per stage):
+//! 1. **torso**: orientation and camera translation from the shoulders and hips;
+//! 2. **body**: everything, all landmarks: Geman–McClure robust reprojection of the joints
+//!    ([`super::landmarks::JOINT_LANDMARKS`]) and surface points ([`super::surface`]),
+//!    SMPLify's angle prior on elbows and knees and an L2 on their sideways bend
+//!    ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
+//!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
+//!    cannot, e.g. which arm is in front) and, where an elbow or knee is hidden, its limb's
+//!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
+//!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a
+//!    joint whose bone the detector did not see is pulled towards the mirror image of its
+//!    seen counterpart's rotation);
+//! 3. **silhouette** (with a mask): the body's mask rendered by the differentiable
+//!    rasteriser ([`crate::render::diff::rasterize`]: coverage + antialias, so silhouette edges get
+//!    gradients) against the person mask, squared error, on top of stage 2's terms.
+//!
+//! When exactly one wrist is seen, the detector may have given the seen hand the hidden
+//! one's label (crossed arms from the side): both labellings are fitted through stage 2 and
+//! the one whose landmarks the body explains better (the data term) goes on
+//! ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
+//!
+//! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
+//! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
+//! back to rasterise, which a browser must await), so callers show progress and can cancel.
+//! At the end the body's turn about the vertical is moved into the camera, so the body
+//! faces +z upright as in the data and the camera orbits it ([`BodyFit::camera`]).
+//!
+//! Units: reprojection residuals are measured in pixels of a 256² crop (NDC × 128), the
+//! weights of [`FitWeights`] are relative to one such squared pixel.
+
+use crate::util::cooperative::checkpoint;
+use std::sync::Arc;
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
+use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
+
+pub use super::error::FitError;
+use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
+pub use super::input::{FitInput, HAND_SWAP};
+use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
+use super::limits::HINGES;
+use super::metrics::{body_mask, mask_iou};
+pub use super::options::{FitOptions, FitWeights};
+pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
+use super::result::{FAR, NEAR};
+use super::surface::{surface_landmarks, SurfaceLandmark};
+use crate::body::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
+use crate::body::skinning::{axis_angle_to_matrix, BodyParams};
+use crate::generator::optim::Adam;
+use crate::generator::readback::read_f32;
+use crate::render::camera::{reference_fov_y, to_row_major};
+use crate::render::diff::body_model::{joint_index, PosedSkeleton, Skeleton, VertexSet};
+use crate::render::diff::{matrix, rasterize as diff_raster};
+
+/// Residuals are in pixels of a crop this wide.
+const UNIT_PX: f32 = 128.0;
+
+/// Progress of one step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitProgress {
+    /// 0 torso, 1 body, 2 silhouette.
+    pub stage: usize,
+    /// Steps done, over all stages, and their total.
+    pub done: usize,
+    pub total: usize,
+    pub loss: f32,
+}
+
+pub const STAGE_NAMES: [&str; 3] = ["torso", "body", "silhouette"];
+
+/// The fitted quantities as a module, so [`Adam`] updates them.
+#[derive(Module, Debug)]
+struct FitParams {
+    orient: Param<Tensor<2>>,
+    body_pose: Param<Tensor<2>>,
+    betas: Param<Tensor<2>>,
+    camera: Param<Tensor<2>>,
+}
+
+/// Observations of one kind of body point (joints or surface vertices) as tensors.
+struct Targets {
+    observed: Tensor<2>,
+    /// Weight × visibility, `[N, 1]`; `torso` masks rows for stage 1.
+    weight: Tensor<2>,
+    torso_weight: Tensor<2>,
+    weight_sum: f32,
+    torso_sum: f32,
+}
+
+impl Targets {
+    fn new(rows: &[(usize, f32)], input: &FitInput, device: &Device) -> Self {
+        let n = rows.len();
+        let mut obs = Vec::with_capacity(n * 2);
+        let (mut w, mut tw) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for &(l, weight) in rows {
+            let (p, vis) = input.points[l];
+            obs.extend_from_slice(&p);
+            // Occluded landmarks still count, by their visibility: the detector's guess for a
+            // hidden arm beats the prior's T-pose arm.
+            let c = weight * vis;
+            w.push(c);
+            tw.push(if TORSO_LANDMARKS.contains(&l) { c } else { 0.0 });
+        }
+        let (weight_sum, torso_sum) = (w.iter().sum(), tw.iter().sum());
+        Self {
+            observed: matrix(obs, n, 2, device),
+            weight: matrix(w, n, 1, device),
+            torso_weight: matrix(tw, n, 1, device),
+            weight_sum,
+            torso_sum,
+        }
+    }
+}
+
+/// The fit, one Adam step at a time.
+pub struct BodyFitter {
+    model: Arc<BodyModel>,
+    input: FitInput,
+    options: FitOptions,
+    device: Device,
+    skeleton: Skeleton,
+    surface: VertexSet,
+    surface_marks: Vec<SurfaceLandmark>,
+    all_vertices: Option<VertexSet>,
+    /// The body mesh's edges, for the silhouette's pixel pairs (the faces never change).
+    edges: Option<diff_raster::MeshEdges>,
+    joints: Targets,
+    joint_ids: Vec<usize>,
+    points: Targets,
+    /// Bones (parent joint, child joint) with their observed world direction and weight.
+    bones: Option<(Vec<usize>, Vec<usize>, Tensor<2>, Tensor<2>)>,
+    /// Hidden limb joints (rows of θ₁…θ₂₃), their seen counterparts' rows and the term's
+    /// weight per row ([`mirror_rows`]).
+    symmetry: Option<(Tensor<1, burn::tensor::Int>, Tensor<1, burn::tensor::Int>, Tensor<2>)>,
+    params: FitParams,
+    adam: Adam,
+    stage: usize,
+    step_in_stage: usize,
+    done: usize,
+    stage_loss: [Option<f32>; 3],
+    /// The fit of the other hand labelling ([`FitInput::hands_in_doubt`]), stepped alongside
+    /// through the torso and body stages; the one with the lower body-stage loss goes on.
+    alternative: Option<Box<BodyFitter>>,
+    /// This fit's input has the hands swapped.
+    hands_swapped: bool,
+    /// β held at its value (a video's shape, fitted once for the clip).
+    shape_held: bool,
+    /// A pull of θ `[24, 3]` towards a neighbouring frame's, and its weight (radians²).
+    temporal: Option<(Tensor<2>, f32)>,
+}
+
+/// The fit's own parameters: θ with the body's whole turn in it (not yet split into the
+/// camera, as [`BodyFit`] has it) and the camera's translation (world → camera).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitState {
+    pub params: BodyParams,
+    pub camera: Vec3,
+}
+
+/// Limb bones of the 3D direction term: (parent joint, child joint, landmarks). Ordered so
+/// that bone `i ^ 2` is bone `i`'s left/right counterpart (the symmetry term's pairing).
+const BONES: [(usize, usize, usize, usize); 8] = [
+    (16, 18, 11, 13),
+    (18, 20, 13, 15),
+    (17, 19, 12, 14),
+    (19, 21, 14, 16),
+    (1, 4, 23, 25),
+    (4, 7, 25, 27),
+    (2, 5, 24, 26),
+    (5, 8, 26, 28),
+];
+
+/// Limb chords of the 3D direction term: (root joint, end joint, landmarks of root, middle
+/// and end). When the middle (elbow, knee) is hidden, its bones' directions are the
+/// detector's guesses, while the chord from a seen shoulder to a seen wrist still says where
+/// the hand is: across the chest or before its own shoulder, which a side view cannot tell.
+const CHORDS: [(usize, usize, usize, usize, usize); 4] =
+    [(16, 20, 11, 13, 15), (17, 21, 12, 14, 16), (1, 7, 23, 25, 27), (2, 8, 24, 26, 28)];
+
+/// The symmetry term's rows (joint, counterpart joint, weight): the parent joint of a bone
+/// whose far-end landmark the detector did not see (visibility below [`VISIBLE`]) while it
+/// saw its counterpart's ([`BONES`]`[i ^ 2]`), weighted by how hidden and how seen.
+fn mirror_rows(visibility: impl Fn(usize) -> f32) -> Vec<(usize, usize, f32)> {
+    BONES
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &(j, _, _, l))| {
+            let (cj, _, _, cl) = BONES[i ^ 2];
+            let hidden = (1.0 - visibility(l) / VISIBLE).clamp(0.0, 1.0);
+            let seen = ((visibility(cl) - VISIBLE) / (1.0 - VISIBLE)).clamp(0.0, 1.0);
+            (hidden * seen > 0.0).then_some((j, cj, hidden * seen))
+        })
+        .collect()
+}
+
+impl BodyFitter {
+    /// Prepare the fit on `device` (an autodiff device: `Device::autodiff()`).
+    ///
+    /// When the detector's hand sides are in doubt ([`FitInput::hands_in_doubt`]) both
+    /// labellings are fitted through the body stage (twice the work there) and the one whose
+    /// body-stage loss is lower goes on to the silhouette stage, as SMPLify fits both
+    /// orientations of an ambiguous torso and keeps the better.
+    pub fn new(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<Self, FitError> {
+        let alternative = if input.hands_in_doubt() {
+            let mut alt = Self::single(model.clone(), input.with_hands_swapped(), options.clone(), device)?;
+            alt.hands_swapped = true;
+            Some(Box::new(alt))
+        } else {
+            None
+        };
+        let mut fitter = Self::single(model, input, options, device)?;
+        fitter.alternative = alternative;
+        Ok(fitter)
+    }
+
+    fn single(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<Self, FitError> {
+        if input.points.len() != NUM_LANDMARKS {
+            return Err(FitError::TooFew(format!("{} landmarks, expected {NUM_LANDMARKS}", input.points.len())));
+        }
+        let seen = |l: usize| input.points[l].1 >= VISIBLE;
+        let torso_seen = TORSO_LANDMARKS.iter().filter(|l| seen(**l)).count();
+        if torso_seen < 2 {
+            return Err(FitError::TooFew(
+                "fewer than two of the shoulders and hips are visible; the torso cannot be placed".into(),
+            ));
+        }
+        let skeleton = Skeleton::new(&model, options.num_betas, device);
+        let surface_marks = surface_landmarks(&model)?;
+        let surface_ids: Vec<u32> = surface_marks.iter().map(|s| s.vertex).collect();
+        let surface = VertexSet::new(&model, &surface_ids, &skeleton, device);
+        let joint_rows: Vec<(usize, f32)> = JOINT_LANDMARKS.iter().map(|m| (m.landmark, m.weight)).collect();
+        let joint_ids: Vec<usize> = JOINT_LANDMARKS.iter().map(|m| m.joint).collect();
+        let joints = Targets::new(&joint_rows, &input, device);
+        let point_rows: Vec<(usize, f32)> = surface_marks.iter().map(|s| (s.landmark, s.weight)).collect();
+        let points = Targets::new(&point_rows, &input, device);
+
+        // Initial pose and camera.
+        let betas0 = vec![0.0f32; skeleton.num_betas];
+        let init = match &input.world {
+            Some(world) => {
+                let vis: Vec<f32> = input.points.iter().map(|p| p.1).collect();
+                pose_from_world(&model, world, &vis, &betas0)
+            }
+            None => pose_from_image(input.points[11].0, input.points[12].0, &betas0),
+        };
+        let cam = initial_camera(&model, &input, &init);
+
+        let bones = input.world.as_ref().and_then(|world| {
+            let vis = |l: usize| input.points[l].1;
+            // Every bone, weighted by its ends' visibility; and each limb's chord, weighted by
+            // how seen its ends are and how hidden its middle is.
+            let rows: Vec<((usize, usize, usize, usize), f32)> = BONES
+                .iter()
+                .map(|b| (*b, vis(b.2).min(vis(b.3))))
+                .chain(CHORDS.iter().map(|c| ((c.0, c.1, c.2, c.4), vis(c.2).min(vis(c.4)) * (1.0 - vis(c.3)))))
+                .filter(|r| r.1 > 0.0)
+                .collect();
+            if rows.is_empty() {
+                return None;
+            }
+            let dirs: Vec<f32> =
+                rows.iter().flat_map(|(b, _)| (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO).to_array()).collect();
+            let w: Vec<f32> = rows.iter().map(|r| r.1).collect();
+            let rows: Vec<_> = rows.iter().map(|r| r.0).collect();
+            let n = rows.len();
+            Some((
+                rows.iter().map(|b| b.0).collect(),
+                rows.iter().map(|b| b.1).collect(),
+                matrix(dirs, n, 3, device),
+                matrix(w, n, 1, device),
+            ))
+        });
+
+        let rows = mirror_rows(|l| input.points[l].1);
+        let symmetry = (!rows.is_empty()).then(|| {
+            (
+                joint_index(&rows.iter().map(|r| r.0 - 1).collect::<Vec<_>>(), device),
+                joint_index(&rows.iter().map(|r| r.1 - 1).collect::<Vec<_>>(), device),
+                matrix(rows.iter().map(|r| r.2).collect(), rows.len(), 1, device),
+            )
+        });
+
+        let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let nb = skeleton.num_betas.max(1);
+        let params = FitParams {
+            orient: Param::from_tensor(matrix(init.pose[0].to_array().to_vec(), 1, 3, device).require_grad()),
+            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, device).require_grad()),
+            betas: Param::from_tensor(matrix(vec![0.0; nb], 1, nb, device).require_grad()),
+            camera: Param::from_tensor(matrix(cam.to_array().to_vec(), 1, 3, device).require_grad()),
+        };
+        Ok(Self {
+            model,
+            input,
+            options,
+            device: device.clone(),
+            skeleton,
+            surface,
+            surface_marks,
+            all_vertices: None,
+            edges: None,
+            joints,
+            joint_ids,
+            points,
+            bones,
+            symmetry,
+            params,
+            adam: Adam::new(0.9, 0.999, 1e-8),
+            stage: 0,
+            step_in_stage: 0,
+            done: 0,
+            stage_loss: [None; 3],
+            alternative: None,
+            hands_swapped: false,
+            shape_held: false,
+            temporal: None,
+        })
+    }
+
+    /// Start again from `start` (the user's corrected pose and shape, e.g. the app's pose
+    /// controls after a first fit): its θ and β become the parameters, the camera is placed
+    /// on the torso again, and the stages run from the first.
+    pub fn start_from(&mut self, start: &BodyParams) {
+        let mut init = start.clone();
+        init.betas.resize(self.skeleton.num_betas, 0.0);
+        let cam = initial_camera(&self.model, &self.input, &init);
+        self.restart(&init, cam);
+    }
+
+    /// Continue from a neighbouring frame's parameters as they are (camera included), with
+    /// one hand labelling (the neighbour's says which arm is which), β held at `state`'s, and
+    /// θ pulled towards `state`'s with `temporal` (0: no pull).
+    pub fn warm_start(&mut self, state: &FitState, temporal: f32) {
+        self.restart(&state.params, state.camera);
+        self.shape_held = true;
+        let all: Vec<f32> = state.params.pose.iter().flat_map(|v| v.to_array()).collect();
+        self.temporal = (temporal > 0.0).then(|| (matrix(all, NUM_JOINTS, 3, &self.device), temporal));
+    }
+
+    /// `params` and `camera` become the parameters, and the stages run again from the first
+    /// with one hand labelling (a given pose says which arm is which).
+    fn restart(&mut self, params: &BodyParams, camera: Vec3) {
+        let dev = &self.device;
+        let nb = self.skeleton.num_betas.max(1);
+        let theta: Vec<f32> = params.pose[1..].iter().flat_map(|v| v.to_array()).collect();
+        let mut betas = params.betas.clone();
+        betas.resize(nb, 0.0);
+        self.params = FitParams {
+            orient: Param::from_tensor(matrix(params.pose[0].to_array().to_vec(), 1, 3, dev).require_grad()),
+            body_pose: Param::from_tensor(matrix(theta, NUM_JOINTS - 1, 3, dev).require_grad()),
+            betas: Param::from_tensor(matrix(betas, 1, nb, dev).require_grad()),
+            camera: Param::from_tensor(matrix(camera.to_array().to_vec(), 1, 3, dev).require_grad()),
+        };
+        self.adam = Adam::new(0.9, 0.999, 1e-8);
+        (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
+        self.alternative = None;
+    }
+
+    /// Hold β at `betas` from now on (the clip's shape): the fit moves θ and the camera only.
+    pub fn hold_shape(&mut self, betas: &[f32]) {
+        let nb = self.skeleton.num_betas.max(1);
+        let mut b = betas.to_vec();
+        b.resize(nb, 0.0);
+        self.params.betas = Param::from_tensor(matrix(b, 1, nb, &self.device).require_grad());
+        self.shape_held = true;
+        if let Some(alt) = self.alternative.as_mut() {
+            alt.hold_shape(betas);
+        }
+    }
+
+    /// The current parameters.
+    pub async fn state(&self) -> Result<FitState, FitError> {
+        let orient = read_f32(self.params.orient.val()).await?;
+        let body_pose = read_f32(self.params.body_pose.val()).await?;
+        let betas = read_f32(self.params.betas.val()).await?;
+        let cam = read_f32(self.params.camera.val()).await?;
+        let betas = betas[..self.skeleton.num_betas].to_vec();
+        Ok(FitState { params: BodyParams::from_split(&orient, &body_pose, &betas), camera: Vec3::from_slice(&cam) })
+    }
+
+    /// Steps of all stages (the silhouette stage only with a mask).
+    pub fn total_steps(&self) -> usize {
+        let [a, b, c] = self.options.iterations;
+        a + b + if self.input.mask.is_some() { c } else { 0 }
+    }
+
+    fn stage_len(&self, stage: usize) -> usize {
+        match stage {
+            2 if self.input.mask.is_none() => 0,
+            s => self.options.iterations.get(s).copied().unwrap_or(0),
+        }
+    }
+
+    /// One Adam step; `None` when the fit is complete.
+    pub async fn step(&mut self) -> Result<Option<FitProgress>, FitError> {
+        while self.stage < 3 && self.step_in_stage >= self.stage_len(self.stage) {
+            self.stage += 1;
+            self.step_in_stage = 0;
+            self.adam = Adam::new(0.9, 0.999, 1e-8);
+            if self.stage == 2 {
+                self.keep_better_hypothesis().await?;
+            }
+        }
+        if self.stage >= 3 {
+            return Ok(None);
+        }
+        // Checkpoints (`cooperative`) between the parts of a step: a silhouette step is ~100 ms
+        // of work in the browser, whose UI thread it runs on.
+        let loss = self.loss(self.stage).await?;
+        let value = read_f32(loss.clone()).await?.first().copied().unwrap_or(f32::NAN);
+        checkpoint().await;
+        let grads = loss.backward();
+        checkpoint().await;
+        // A module clone shares its tensors; Adam returns the updated parameters.
+        self.params = self.adam.step(self.options.learning_rate, self.params.clone(), &grads);
+        self.stage_loss[self.stage] = Some(value);
+        self.step_in_stage += 1;
+        self.done += 1;
+        if let (Some(alt), true) = (self.alternative.as_mut(), self.stage < 2) {
+            // Boxed: an async fn cannot await itself unboxed. The alternative has none of its own.
+            Box::pin(alt.step()).await?;
+        }
+        Ok(Some(FitProgress { stage: self.stage, done: self.done, total: self.total_steps(), loss: value }))
+    }
+
+    /// At the end of the body stage: go on with the hand labelling whose landmarks the body
+    /// explains better (the data term alone: the priors' weights follow the visibilities,
+    /// which the labellings swap, so their totals are not comparable).
+    async fn keep_better_hypothesis(&mut self) -> Result<(), FitError> {
+        // The alternative took a step with every step of this fit, so its body stage is done.
+        let Some(mut alt) = self.alternative.take() else { return Ok(()) };
+        // Checkpoints between the two: in the browser this runs on the UI thread, before the
+        // first silhouette step.
+        let mine = self.current_data_term().await?;
+        checkpoint().await;
+        let other = alt.current_data_term().await?;
+        checkpoint().await;
+        if other < mine {
+            let (stage, step_in_stage, done) = (self.stage, self.step_in_stage, self.done);
+            std::mem::swap(self, &mut *alt);
+            (self.stage, self.step_in_stage, self.done) = (stage, step_in_stage, done);
+            self.adam = Adam::new(0.9, 0.999, 1e-8);
+        }
+        Ok(())
+    }
+
+    /// The data term of the current parameters (no gradients kept).
+    async fn current_data_term(&self) -> Result<f32, FitError> {
+        let (theta, betas) = self.theta(1);
+        let (theta, betas) = (theta.detach(), betas.detach());
+        let posed = self.skeleton.forward(theta, &betas);
+        let value = self.data_term(&posed, &betas, false).await;
+        Ok(read_f32(value).await?.first().copied().unwrap_or(f32::INFINITY))
+    }
+
+    /// θ `[24, 3]` and β of the current parameters; in the torso stage only the orientation
+    /// and camera carry gradients.
+    fn theta(&self, stage: usize) -> (Tensor<2>, Tensor<2>) {
+        let (pose, betas) = if stage == 0 {
+            (self.params.body_pose.val().detach(), self.params.betas.val().detach())
+        } else {
+            (self.params.body_pose.val(), self.params.betas.val())
+        };
+        let betas = if self.shape_held { betas.detach() } else { betas };
+        (Tensor::cat(vec![self.params.orient.val(), pose], 0), betas)
+    }
+
+    /// World points `[N, 3]` → NDC `[N, 2]` through the fit's camera (translation only).
+    fn project(&self, points: Tensor<2>) -> Tensor<2> {
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let c = points + self.params.camera.val();
+        let depth = c.clone().narrow(1, 2, 1).neg().clamp_min(NEAR);
+        c.narrow(1, 0, 2) * f / depth
+    }
+
+    /// Robust reprojection: Σ w·ρ(‖π(X) − x‖²) over rows, ρ Geman–McClure.
+    fn reprojection(&self, ndc: Tensor<2>, t: &Targets, torso_only: bool) -> Tensor<1> {
+        let sigma2 = self.options.weights.robust_sigma.powi(2);
+        let e = (ndc - t.observed.clone()) * UNIT_PX;
+        let e2 = (e.clone() * e).sum_dim(1);
+        let rho = e2.clone() * sigma2 / (e2 + sigma2);
+        let w = if torso_only { t.torso_weight.clone() } else { t.weight.clone() };
+        (rho * w).sum().reshape([1])
+    }
+
+    /// The data term: robust reprojection of the joints (torso stage: the torso's only) and,
+    /// after the torso stage, the surface points, per unit of landmark weight.
+    async fn data_term(&self, posed: &PosedSkeleton, betas: &Tensor<2>, torso: bool) -> Tensor<1> {
+        let joints = posed.joints.clone().select(0, joint_index(&self.joint_ids, &self.device));
+        let norm = if torso { self.joints.torso_sum } else { self.joints.weight_sum + self.points.weight_sum };
+        let mut loss = self.reprojection(self.project(joints), &self.joints, torso);
+        if !torso {
+            let surface = self.surface.pose(posed, betas, &self.skeleton);
+            loss = loss + self.reprojection(self.project(surface), &self.points, false);
+            checkpoint().await;
+        }
+        loss / norm.max(1e-6)
+    }
+
+    async fn loss(&mut self, stage: usize) -> Result<Tensor<1>, FitError> {
+        let wts = self.options.weights.clone();
+        let (theta, betas) = self.theta(stage);
+        let posed = self.skeleton.forward(theta.clone(), &betas);
+        let dev = self.device.clone();
+        let torso = stage == 0;
+        let mut loss = self.data_term(&posed, &betas, torso).await;
+        if torso {
+            return Ok(loss);
+        }
+        // Priors.
+        let pose = self.params.body_pose.val();
+        loss = loss + (pose.clone() * pose.clone()).sum().reshape([1]) * wts.pose;
+        for h in HINGES {
+            let a = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.axis, 1).reshape([1]);
+            let e = (a * -h.bend).exp();
+            loss = loss + e.clone() * e * wts.hinge;
+            let side = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.side, 1).reshape([1]);
+            loss = loss + side.clone() * side * wts.hinge_side;
+        }
+        if !self.shape_held {
+            let b = self.params.betas.val();
+            loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;
+        }
+        if let Some((from, to, dirs, w)) = &self.bones {
+            let a = posed.joints.clone().select(0, joint_index(from, &dev));
+            let c = posed.joints.clone().select(0, joint_index(to, &dev));
+            let d = c - a;
+            let len = (d.clone() * d.clone()).sum_dim(1).sqrt().clamp_min(1e-6);
+            let diff = d / len - dirs.clone();
+            loss = loss + ((diff.clone() * diff).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.bones;
+        }
+        if let (Some((hidden, seen, w)), true) = (&self.symmetry, wts.symmetry > 0.0) {
+            // The counterpart is detached: the seen limb is not pulled towards the hidden one.
+            // Mirroring in the body's sagittal plane negates an axis-angle's y and z.
+            let flip = matrix(vec![1.0, -1.0, -1.0], 1, 3, &dev);
+            let target = pose.clone().select(0, seen.clone()).detach() * flip;
+            let d = pose.clone().select(0, hidden.clone()) - target;
+            loss = loss + ((d.clone() * d).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.symmetry;
+        }
+        if let Some((previous, w)) = &self.temporal {
+            let d = theta.clone() - previous.clone();
+            loss = loss + (d.clone() * d).sum().reshape([1]) * *w;
+        }
+        if stage == 2 {
+            if let Some(mask) = self.input.mask.clone() {
+                loss = loss + self.silhouette(&posed, &betas, &mask).await? * wts.silhouette;
+            }
+        }
+        Ok(loss)
+    }
+
+    /// Σ (rendered mask − person mask)² over the crop, in pixels of a 256² crop.
+    async fn silhouette(
+        &mut self,
+        posed: &crate::render::diff::body_model::PosedSkeleton,
+        betas: &Tensor<2>,
+        mask: &[f32],
+    ) -> Result<Tensor<1>, FitError> {
+        let size = self.options.silhouette_size;
+        let all = match &self.all_vertices {
+            Some(v) => v.clone(),
+            None => {
+                let v = VertexSet::all(&self.model, &self.skeleton, &self.device);
+                self.all_vertices = Some(v.clone());
+                v
+            }
+        };
+        // Every vertex is posed for the rasterizer without a gradient; the gradient flows only
+        // through the silhouette edges' vertices (`antialias`), posed again below with one:
+        // the backward pass then covers ~2k vertices instead of 6890 (a 70 ms task in the
+        // browser, whose UI thread a step holds).
+        let still = crate::render::diff::body_model::PosedSkeleton {
+            joints: posed.joints.clone().detach(),
+            transforms: posed.transforms.clone().detach(),
+        };
+        let clip_all = self.clip(all.pose(&still, &betas.clone().detach(), &self.skeleton)).detach();
+        let host = read_f32(clip_all).await?;
+        checkpoint().await;
+        let clip_host: Vec<Vec4> = host.chunks_exact(4).map(Vec4::from_slice).collect();
+        let raster = crate::render::rasterize::rasterize(&clip_host, &self.model.faces, size, size);
+        let cov = diff_raster::Coverage::new(&raster, &self.model.faces);
+        checkpoint().await;
+        let edges = self.edges.get_or_insert_with(|| diff_raster::MeshEdges::new(&self.model.faces));
+        let pairs = diff_raster::silhouette_pairs_of(&raster, &clip_host, &self.model.faces, edges);
+        checkpoint().await;
+        let dev = &self.device;
+        let image = if cov.is_empty() {
+            Tensor::<2>::zeros([size * size, 1], dev)
+        } else {
+            diff_raster::compose(&cov, Tensor::<2>::ones([cov.len(), 1], dev), &[0.0], dev)
+        };
+        let (ids, pairs) = pairs.compact();
+        let image = if ids.is_empty() {
+            image
+        } else {
+            let clip = self.clip(all.select(&ids).pose(posed, betas, &self.skeleton));
+            diff_raster::antialias(image, &pairs, clip, size, size, dev)
+        };
+        let target = matrix(mask.to_vec(), size * size, 1, dev);
+        let d = image - target;
+        // Body outside the person costs fully; person the body leaves uncovered (clothes,
+        // hair) costs `silhouette_uncovered` of that.
+        let outside = d.clone().clamp_min(0.0);
+        let uncovered = d.clamp_max(0.0);
+        let k = self.options.weights.silhouette_uncovered;
+        let scale = (2.0 * UNIT_PX / size as f32).powi(2);
+        Ok(((outside.clone() * outside).sum() + (uncovered.clone() * uncovered).sum() * k).reshape([1]) * scale)
+    }
+
+    /// Clip positions `[N, 4]` of world points through the fit's camera (OpenGL projection).
+    fn clip(&self, world: Tensor<2>) -> Tensor<2> {
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let c = world + self.params.camera.val();
+        let z = c.clone().narrow(1, 2, 1);
+        let a = (FAR + NEAR) / (NEAR - FAR);
+        let b = 2.0 * FAR * NEAR / (NEAR - FAR);
+        Tensor::cat(vec![c.clone().narrow(1, 0, 2) * f, z.clone() * a + b, z.neg()], 1)
+    }
+
+    /// Run every remaining step.
+    pub async fn run(&mut self) -> Result<(), FitError> {
+        while self.step().await?.is_some() {}
+        Ok(())
+    }
+
+    /// The result (after [`BodyFitter::run`], or early, with the current parameters).
+    pub async fn finish(&self) -> Result<BodyFit, FitError> {
+        let orient = read_f32(self.params.orient.val()).await?;
+        let body_pose = read_f32(self.params.body_pose.val()).await?;
+        let betas = read_f32(self.params.betas.val()).await?;
+        let cam = read_f32(self.params.camera.val()).await?;
+        let betas = betas[..self.skeleton.num_betas].to_vec();
+        let mut params = BodyParams::from_split(&orient, &body_pose, &betas);
+        let t = Vec3::from_slice(&cam);
+        let model = &self.model;
+        let posed = crate::body::skinning::pose_body(model, &params);
+        // World → camera of the fit: translation only.
+        let world_to_camera = Mat4::from_translation(t);
+        let framing = self.input.framing;
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let to_photo = |p: Vec3| {
+            let c = world_to_camera.transform_point3(p);
+            let depth = (-c.z).max(NEAR);
+            framing.to_photo([f * c.x / depth, f * c.y / depth])
+        };
+        let mut fitted: Vec<Option<[f32; 2]>> = vec![None; NUM_LANDMARKS];
+        for m in JOINT_LANDMARKS {
+            fitted[m.landmark] = Some(to_photo(posed.kinematics.posed_joints[m.joint]));
+        }
+        for s in &self.surface_marks {
+            fitted[s.landmark] = Some(to_photo(posed.vertices[s.vertex as usize]));
+        }
+        let mut keypoints = Vec::with_capacity(NUM_LANDMARKS);
+        let (mut err, mut wsum) = (0.0f32, 0.0f32);
+        for (l, (ndc, vis)) in self.input.points.iter().enumerate() {
+            let observed = framing.to_photo(*ndc);
+            if let (Some(p), true) = (fitted[l], *vis >= VISIBLE) {
+                err += vis * ((p[0] - observed[0]).powi(2) + (p[1] - observed[1]).powi(2)).sqrt();
+                wsum += vis;
+            }
+            keypoints.push(FitKeypoint {
+                name: LANDMARK_NAMES[l].into(),
+                observed,
+                fitted: fitted[l],
+                visibility: *vis,
+            });
+        }
+        let ys: Vec<f32> = posed.vertices.iter().map(|v| to_photo(*v)[1]).collect();
+        let height =
+            ys.iter().copied().fold(f32::NEG_INFINITY, f32::max) - ys.iter().copied().fold(f32::INFINITY, f32::min);
+        let mean_px = if wsum > 0.0 { err / wsum } else { f32::NAN };
+        let mask_iou = self.input.mask.as_ref().map(|m| {
+            let size = self.options.silhouette_size;
+            let proj = Mat4::perspective_rh_gl(reference_fov_y(), 1.0, NEAR, FAR) * world_to_camera;
+            let fitted = body_mask(&posed.vertices, &model.faces, proj, size);
+            mask_iou(&fitted, m)
+        });
+        // Move the body's turn about the vertical into the camera.
+        let (orient, camera) = upright(params.pose[0], posed.kinematics.rest_joints[0], world_to_camera);
+        params.pose[0] = orient;
+        let table = JOINT_LANDMARKS
+            .iter()
+            .map(|m| FitTarget {
+                landmark: LANDMARK_NAMES[m.landmark].into(),
+                joint: Some(JOINT_NAMES[m.joint].into()),
+                vertex: None,
+                weight: m.weight,
+            })
+            .chain(self.surface_marks.iter().map(|s| FitTarget {
+                landmark: LANDMARK_NAMES[s.landmark].into(),
+                joint: None,
+                vertex: Some(s.vertex),
+                weight: s.weight,
+            }))
+            .collect();
+        let missing = self
+            .input
+            .points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.1 < VISIBLE)
+            .map(|(l, _)| LANDMARK_NAMES[l].to_string())
+            .collect();
+        let theta = params.theta();
+        Ok(BodyFit {
+            format: BODY_FIT_FORMAT.into(),
+            global_orient: [theta[0], theta[1], theta[2]],
+            body_pose: theta[3..].to_vec(),
+            betas,
+            camera: to_row_major(camera),
+            fov_y: reference_fov_y(),
+            framing,
+            keypoints,
+            residuals: FitResiduals {
+                mean_px,
+                relative_to_height: mean_px / height.max(1.0),
+                mask_iou,
+                stage_loss: self.stage_loss,
+            },
+            table,
+            missing,
+            relabelled: if self.hands_swapped {
+                HAND_SWAP.iter().map(|(a, b)| format!("{}↔{}", LANDMARK_NAMES[*a], LANDMARK_NAMES[*b])).collect()
+            } else {
+                Vec::new()
+            },
+            options: self.options.clone(),
+            rotation: self.input.rotation,
+        })
+    }
+}
+
+/// The camera translation that puts the visible torso joints of the body in pose `init`
+/// on their landmarks (the reference distance when fewer than two are seen).
+fn initial_camera(model: &BodyModel, input: &FitInput, init: &BodyParams) -> Vec3 {
+    let posed = posed_joints(model, init);
+    let (tj, to): (Vec<Vec3>, Vec<([f32; 2], f32)>) = JOINT_LANDMARKS
+        .iter()
+        .filter(|m| TORSO_LANDMARKS.contains(&m.landmark) && input.points[m.landmark].1 >= VISIBLE)
+        .map(|m| (posed[m.joint], (input.points[m.landmark].0, 1.0)))
+        .unzip();
+    camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::render::camera::REFERENCE_RADIUS))
+}
+
+/// Split a global orientation into a turn about +y (moved into the camera) and an upright
+/// remainder: with `Y` the turn, posed points satisfy `p(Y·R') = Y·p(R') + (I − Y)·j₀`
+/// (SMPL rotates about the root joint `j₀`), so the camera becomes `M · [Y | (I − Y) j₀]`.
+pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) {
+    let r = axis_angle_to_matrix(orient);
+    let fwd = r * Vec3::Z;
+    let yaw = fwd.x.atan2(fwd.z);
+    let y = Mat3::from_rotation_y(yaw);
+    let rest = Quat::from_mat3(&(y.transpose() * r)).normalize().to_scaled_axis();
+    let turn = Mat4::from_translation(root) * Mat4::from_mat3(y) * Mat4::from_translation(-root);
+    (rest, world_to_camera * turn)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body::body_fit::framing::Framing;
+
+    #[test]
+    fn the_upright_split_keeps_every_posed_point_in_view() {
+        let model = BodyModel::default_body().unwrap();
+        let mut params = BodyParams::default();
+        params.pose[0] = Vec3::new(0.2, 2.0, -0.1);
+        params.pose[16] = Vec3::new(0.0, 0.0, -1.0);
+        let m = Mat4::from_translation(Vec3::new(0.1, 0.2, -2.4));
+        let before = crate::body::skinning::pose_body(&model, &params);
+        let (orient, cam) = upright(params.pose[0], before.kinematics.rest_joints[0], m);
+        let mut turned = params.clone();
+        turned.pose[0] = orient;
+        let after = crate::body::skinning::pose_body(&model, &turned);
+        for (a, b) in before.vertices.iter().zip(&after.vertices).step_by(97) {
+            let (pa, pb) = (m.transform_point3(*a), cam.transform_point3(*b));
+            assert!((pa - pb).length() < 1e-4, "{pa} vs {pb}");
+        }
+        // Upright: the body's forward axis has no sideways component left.
+        let fwd = axis_angle_to_matrix(orient) * Vec3::Z;
+        assert!(fwd.x.abs() < 1e-5 && fwd.z > 0.0, "{fwd}");
+        assert_eq!(mask_iou(&[1.0, 1.0, 0.0, 0.0], &[1.0, 0.0, 1.0, 0.0]), 1.0 / 3.0);
+    }
+
+    /// The symmetry term's target: an axis-angle with y and z negated turns the counterpart
+    /// limb into the mirror image (x negated) of the original, bone by bone.
+    #[test]
+    fn negating_y_and_z_mirrors_a_limb_in_the_sagittal_plane() {
+        let model = BodyModel::default_body().unwrap();
+        let mut params = BodyParams::default();
+        let flip = |v: Vec3| Vec3::new(v.x, -v.y, -v.z);
+        for (j, r) in [
+            (16, Vec3::new(0.4, -0.9, -1.1)),
+            (18, Vec3::new(0.1, -1.5, 0.2)),
+            (1, Vec3::new(-0.9, 0.3, 0.7)),
+            (4, Vec3::new(1.2, 0.1, 0.0)),
+        ] {
+            params.pose[j] = r;
+        }
+        for (j, c) in [(16, 17), (18, 19), (1, 2), (4, 5)] {
+            params.pose[c] = flip(params.pose[j]);
+        }
+        let p = crate::body::skinning::pose_body(&model, &params).kinematics.posed_joints;
+        for (a, b, ca, cb) in [(16, 18, 17, 19), (18, 20, 19, 21), (1, 4, 2, 5), (4, 7, 5, 8)] {
+            let (u, v) = ((p[b] - p[a]).normalize(), (p[cb] - p[ca]).normalize());
+            let mirrored = Vec3::new(-v.x, v.y, v.z);
+            assert!(u.angle_between(mirrored) < 2f32.to_radians(), "{a}→{b}: {u} vs mirrored {mirrored}");
+            // The bone has a sideways part for the mirror to flip.
+            assert!(u.x.abs() > 0.15, "{a}→{b}: {u}");
+        }
+    }
+
+    #[test]
+    fn hidden_limbs_get_mirror_rows_and_hand_doubt_swaps_both_hands() {
+        let mut vis = [1.0f32; NUM_LANDMARKS];
+        assert!(mirror_rows(|l| vis[l]).is_empty(), "every limb seen: no prior");
+        vis[13] = 0.1; // left elbow hidden: the left shoulder's rotation mirrors the right's
+        vis[15] = 0.3; // left wrist half hidden: the left elbow's, less
+        let rows = mirror_rows(|l| vis[l]);
+        assert_eq!(rows.len(), 2);
+        assert_eq!((rows[0].0, rows[0].1), (16, 17));
+        assert!((rows[0].2 - 0.8).abs() < 1e-6 && (rows[1].2 - 0.4).abs() < 1e-6, "{rows:?}");
+        vis[14] = 0.2; // both elbows hidden: nothing to mirror from
+        assert!(mirror_rows(|l| vis[l]).iter().all(|r| r.0 != 16 && r.0 != 17));
+
+        let framing = Framing::from_landmarks(
+            &(0..NUM_LANDMARKS)
+                .map(|i| super::super::landmarks::Landmark {
+                    x: 0.5,
+                    y: 0.1 + 0.8 * i as f32 / 33.0,
+                    z: 0.0,
+                    visibility: 1.0,
+                })
+                .collect::<Vec<_>>(),
+            512,
+            512,
+            &BodyModel::default_body().unwrap(),
+        )
+        .unwrap();
+        vis[16] = 0.2;
+        let points: Vec<([f32; 2], f32)> = (0..NUM_LANDMARKS).map(|i| ([i as f32, 0.0], vis[i])).collect();
+        let world = Some((0..NUM_LANDMARKS).map(|i| Vec3::splat(i as f32)).collect());
+        let input = FitInput { framing, points, world, mask: None, rotation: 0 };
+        assert!(!input.hands_in_doubt(), "both wrists hidden");
+        let mut input = input;
+        input.points[16].1 = 0.9;
+        assert!(input.hands_in_doubt());
+        let swapped = input.with_hands_swapped();
+        for (a, b) in HAND_SWAP {
+            assert_eq!((swapped.points[a], swapped.points[b]), (input.points[b], input.points[a]));
+            let w = swapped.world.as_ref().unwrap();
+            assert_eq!((w[a].x, w[b].x), (b as f32, a as f32));
+        }
+        assert_eq!(swapped.points[13], input.points[13], "elbows keep their labels");
+    }
+}

@@ -1,0 +1,90 @@
+//! Joint-angle limits of the fit: knees and elbows bend one way, and not sideways.
+//!
+//! SMPLify's angle prior penalises `exp(s · θ_axis)²` for the knees' x and the elbows' y
+//! rotation. An L2 on the third axis (neither the hinge's nor the bone's, about which the
+//! limb may twist) keeps them from bending sideways, which a hidden forearm otherwise does to
+//! reach a misplaced wrist. With this body's rest frames (T-pose, every joint frame aligned
+//! with the world axes, as SMPL's) the axes are SMPL's, checked below by posing the body: a
+//! positive x rotation takes the ankle behind the knee, the elbows' flexion brings the wrists
+//! in front of the body, and each bone lies along its hinge's remaining axis.
+
+use glam::Vec3;
+
+use crate::body::body_model::NUM_JOINTS;
+
+/// A hinge joint: the axis it bends about and the sign of a natural bend.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hinge {
+    /// Index into `body_model::JOINT_NAMES`.
+    pub joint: usize,
+    /// 0 = x, 1 = y, 2 = z (of the joint's local axis-angle vector).
+    pub axis: usize,
+    /// +1 where a natural bend is a positive rotation, −1 where it is negative.
+    pub bend: f32,
+    /// The axis of a sideways bend, which the joint does not have (neither the hinge's axis
+    /// nor the bone's, about which the limb twists): z for both, the bones lying along x
+    /// (arms) and y (legs) in the rest pose.
+    pub side: usize,
+}
+
+/// Knees flex about +x; the left elbow about −y, the right elbow about +y.
+pub const HINGES: [Hinge; 4] = [
+    Hinge { joint: 4, axis: 0, bend: 1.0, side: 2 },
+    Hinge { joint: 5, axis: 0, bend: 1.0, side: 2 },
+    Hinge { joint: 18, axis: 1, bend: -1.0, side: 2 },
+    Hinge { joint: 19, axis: 1, bend: 1.0, side: 2 },
+];
+
+/// SMPLify's angle prior on the hinges: Σ exp(−bend · θ_axis)², about 1 per straight joint,
+/// growing exponentially with hyperextension and vanishing with natural flexion.
+pub fn hinge_penalty(pose: &[Vec3; NUM_JOINTS]) -> f32 {
+    HINGES.iter().map(|h| (-h.bend * pose[h.joint][h.axis]).exp().powi(2)).sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body::body_model::BodyModel;
+    use crate::body::skinning::{pose_body, BodyParams};
+
+    fn joints(bends: &[(usize, usize, f32)]) -> [Vec3; NUM_JOINTS] {
+        let model = BodyModel::default_body().unwrap();
+        let mut params = BodyParams::default();
+        for &(j, axis, angle) in bends {
+            params.pose[j][axis] = angle;
+        }
+        pose_body(&model, &params).kinematics.posed_joints
+    }
+
+    /// A natural bend of each hinge moves the next joint (ankle, wrist) the way a body bends:
+    /// the ankle backwards (−z) and up, the wrist forwards (+z).
+    #[test]
+    fn natural_bends_move_the_limbs_the_way_bodies_bend() {
+        let rest = joints(&[]);
+        for h in HINGES {
+            let child = match h.joint {
+                4 => 7,
+                5 => 8,
+                18 => 20,
+                _ => 21,
+            };
+            let bent = joints(&[(h.joint, h.axis, 0.8 * h.bend)]);
+            let moved = bent[child] - rest[child];
+            if h.joint <= 5 {
+                assert!(moved.z < -0.1 && moved.y > 0.03, "knee {}: ankle moved {moved}", h.joint);
+            } else {
+                assert!(moved.z > 0.1, "elbow {}: wrist moved {moved}", h.joint);
+            }
+            // The bone lies along the axis that is neither the hinge's nor the side's.
+            let bone = (joints(&[])[child] - rest[h.joint]).to_array();
+            assert!(h.side != h.axis && bone[h.axis].abs() < 0.03 && bone[h.side].abs() < 0.03, "{h:?}: bone {bone:?}");
+            // Hyperextension is the other way round, and costs more than the straight limb.
+            let mut straight = [Vec3::ZERO; NUM_JOINTS];
+            let base = hinge_penalty(&straight);
+            straight[h.joint][h.axis] = 0.8 * h.bend;
+            assert!(hinge_penalty(&straight) < base - 0.7, "a natural bend is cheaper");
+            straight[h.joint][h.axis] = -0.8 * h.bend;
+            assert!(hinge_penalty(&straight) > base + 3.0, "hyperextension is dearer");
+        }
+    }
+}

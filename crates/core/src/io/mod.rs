@@ -1,0 +1,12 @@
+//! File formats read and written as bytes (shared code never touches files).
+//!
+//! - [`npz`]: NumPy .npz/.npy (SMPL, AMASS)
+//! - [`scan`]: 3D scans (OBJ + MTL + textures + fitted body) and their renders
+//! - [`named_tensor`]: tensors by name (checkpoints, optimiser state)
+//! - [`dataset`]: the training data's cameras and labels (feature `dataset`)
+
+#[cfg(feature = "dataset")]
+pub mod dataset;
+pub mod named_tensor;
+pub mod npz;
+pub mod scan;

@@ -1,0 +1,288 @@
+//! The photo's colours projected onto the reconstructed avatar (beyond the paper, on by
+//! default): users of single-image methods ask above all for a sharp front and a plausible
+//! back. Each surface point of the avatar, posed as in the photo, that the photo's camera sees
+//! (depth test against the avatar's own depth buffer) takes the photo's colour there; the
+//! weight falls to 0 at grazing angles (`cos θ` between the normal and the direction to the
+//! camera from [`GRAZING`] to [`FACING`]) and near the person mask's border (the mask eroded
+//! by one pixel), so the generated texture shows at the silhouette and on the hidden side.
+//!
+//! Colours are linear RGB (the texture field's); the photo is sRGB and decoded here.
+
+use glam::{Mat4, Vec2, Vec3, Vec4};
+
+use crate::render::camera::{OrbitCamera, View};
+use crate::render::rasterize::{rasterize, Texture};
+use crate::util::cooperative::checkpoint;
+
+/// `cos θ` below which the photo has no weight, and above which it has full weight.
+pub const GRAZING: f32 = 0.2;
+pub const FACING: f32 = 0.55;
+/// A point is visible when it lies at most this far (metres, along the view axis) behind the
+/// depth buffer's surface.
+pub const DEPTH_TOLERANCE: f32 = 0.015;
+
+/// The photo a reconstruction was made from, kept with the inverted avatar (its file,
+/// `checkpoint::save_inverted`) so that every later bake of that avatar — `trainer export
+/// --inverted`, the app opening the file — projects the same colours: the camera and body pose
+/// of the photo's crop at the reference projection, and the crop itself.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SourcePhoto {
+    pub view: View,
+    /// Side of the square crop, pixels.
+    pub res: usize,
+    /// sRGB in [0, 1], `res²·3`, row-major from the top.
+    pub rgb: Vec<f32>,
+    /// Person mask in [0, 1], `res²`.
+    pub mask: Vec<f32>,
+}
+
+impl SourcePhoto {
+    /// Sizes and values checked (a file may hold anything): one sentence on failure.
+    pub fn validate(&self) -> Result<(), String> {
+        let r = self.res;
+        if !(16..=4096).contains(&r) {
+            return Err(format!("the photo crop is {r} pixels wide (16…4096)"));
+        }
+        for (what, v, c) in [("colours", &self.rgb, 3), ("mask", &self.mask, 1)] {
+            if v.len() != r * r * c {
+                return Err(format!("the photo's {what} hold {} values, {r}² needs {}", v.len(), r * r * c));
+            }
+            if v.iter().any(|x| !x.is_finite() || !(0.0..=1.0).contains(x)) {
+                return Err(format!("the photo's {what} hold a value outside [0, 1]"));
+            }
+        }
+        if !self.view.world_to_camera.is_finite() || self.view.world_to_camera.determinant().abs() < 1e-12 {
+            return Err("the photo's camera is not a finite, invertible transform".into());
+        }
+        Ok(())
+    }
+
+    /// The projection of this photo onto a surface (`vertices`, `faces`) posed as the photo
+    /// shows it, through the reference camera's projection.
+    pub fn projection(&self, vertices: &[Vec3], faces: &[[u32; 3]]) -> PhotoProjection {
+        crate::util::cooperative::run_blocking(self.projection_async(vertices, faces))
+    }
+
+    /// [`SourcePhoto::projection`] in slices ([`crate::util::cooperative`]), for the browser.
+    pub async fn projection_async(&self, vertices: &[Vec3], faces: &[[u32; 3]]) -> PhotoProjection {
+        let proj = OrbitCamera::default().projection_gl(1.0);
+        PhotoProjection::new_async(self.view.world_to_camera, proj, self.res, &self.rgb, &self.mask, vertices, faces)
+            .await
+    }
+}
+
+/// A photo ready to be projected: the camera, the image and the avatar's depth buffer.
+pub struct PhotoProjection {
+    res: usize,
+    view: Mat4,
+    view_proj: Mat4,
+    /// The photo, linear-light (bilinear lookups).
+    photo: Texture,
+    /// The person mask eroded by one pixel (min over 3×3), `res²`.
+    mask: Vec<f32>,
+    /// View-space depth (−z, metres) of the avatar per pixel; +∞ where uncovered.
+    depth: Vec<f32>,
+}
+
+/// The 3×3 minimum of a `res²` mask, 0 outside it (and where it holds fewer values): a row
+/// pass then a column pass (the window is separable).
+fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
+    let at = |k: usize| mask.get(k).copied().unwrap_or(0.0);
+    let mut rows = vec![0.0f32; res * res];
+    for y in 0..res {
+        for x in 0..res {
+            let k = y * res + x;
+            let left = if x == 0 { 0.0 } else { at(k - 1) };
+            let right = if x + 1 == res { 0.0 } else { at(k + 1) };
+            rows[k] = at(k).min(left).min(right);
+        }
+    }
+    let mut out = vec![0.0f32; res * res];
+    for y in 0..res {
+        for x in 0..res {
+            let k = y * res + x;
+            let up = if y == 0 { 0.0 } else { rows[k - res] };
+            let down = if y + 1 == res { 0.0 } else { rows[k + res] };
+            out[k] = rows[k].min(up).min(down);
+        }
+    }
+    out
+}
+
+impl PhotoProjection {
+    /// A photo (`rgb` sRGB `res²·3`, `mask` `res²`, both in [0, 1]) seen through `world_to_camera`
+    /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it. Two
+    /// slices ([`crate::util::cooperative`]: the depth buffer; the mask and the photo's linear
+    /// colours); `run_blocking` runs it at once.
+    pub async fn new_async(
+        world_to_camera: Mat4,
+        proj: Mat4,
+        res: usize,
+        rgb: &[f32],
+        mask: &[f32],
+        vertices: &[Vec3],
+        faces: &[[u32; 3]],
+    ) -> Self {
+        let view_proj = proj * world_to_camera;
+        let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
+        let r = rasterize(&clip, faces, res, res);
+        let inv_proj = proj.inverse();
+        let depth = (0..res * res)
+            .map(|k| {
+                if r.triangle[k] < 0 {
+                    return f32::INFINITY;
+                }
+                let (x, y) = (k % res, k / res);
+                let ndc = Vec4::new(
+                    (x as f32 + 0.5) / res as f32 * 2.0 - 1.0,
+                    1.0 - (y as f32 + 0.5) / res as f32 * 2.0,
+                    r.depth[k],
+                    1.0,
+                );
+                let v = inv_proj * ndc;
+                -v.z / v.w
+            })
+            .collect();
+        checkpoint().await;
+        let eroded = erode3(mask, res);
+        let texels = rgb
+            .chunks_exact(3)
+            .map(|c| Vec3::new(c[0], c[1], c[2]).map(crate::render::colour::decode_srgb_fast))
+            .collect();
+        let photo = Texture { width: res, height: res, texels };
+        Self { res, view: world_to_camera, view_proj, photo, mask: eroded, depth }
+    }
+
+    /// The photo's linear colour at posed point `p` with unit normal `n`, and its weight in
+    /// [0, 1] (0: hidden, outside the person, or grazing).
+    pub fn sample(&self, p: Vec3, n: Vec3) -> (Vec3, f32) {
+        let none = (Vec3::ZERO, 0.0);
+        let pv = self.view.transform_point3(p);
+        if pv.z >= 0.0 {
+            return none;
+        }
+        let to_cam = (-pv).normalize_or_zero();
+        let nv = self.view.transform_vector3(n).normalize_or_zero();
+        let cos = nv.dot(to_cam);
+        let facing = ((cos - GRAZING) / (FACING - GRAZING)).clamp(0.0, 1.0);
+        let facing = facing * facing * (3.0 - 2.0 * facing);
+        if facing <= 0.0 {
+            return none;
+        }
+        let c = self.view_proj * p.extend(1.0);
+        let ndc = Vec2::new(c.x / c.w, c.y / c.w);
+        let r = self.res as f32;
+        let px = Vec2::new((ndc.x + 1.0) * 0.5 * r, (1.0 - ndc.y) * 0.5 * r);
+        if px.x < 0.0 || px.y < 0.0 || px.x >= r || px.y >= r {
+            return none;
+        }
+        let k = px.y as usize * self.res + px.x as usize;
+        // Visible: not behind the avatar's nearest surface at this pixel.
+        if -pv.z > self.depth[k] + DEPTH_TOLERANCE {
+            return none;
+        }
+        let w = facing * self.mask[k].clamp(0.0, 1.0);
+        if w <= 0.0 {
+            return none;
+        }
+        // The texture lookup's v points up from the image's bottom row.
+        (self.photo.sample(Vec2::new(px.x / r, 1.0 - px.y / r)), w)
+    }
+
+    /// Blend the photo into `colors` (linear) at posed `points` with `normals`.
+    pub fn blend(&self, points: &[Vec3], normals: &[Vec3], colors: &mut [Vec3]) {
+        for ((p, n), c) in points.iter().zip(normals).zip(colors.iter_mut()) {
+            let (photo, w) = self.sample(*p, *n);
+            if w > 0.0 {
+                *c = c.lerp(photo, w);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::camera::OrbitCamera;
+
+    fn project(
+        view: Mat4,
+        proj: Mat4,
+        res: usize,
+        rgb: &[f32],
+        mask: &[f32],
+        v: &[Vec3],
+        f: &[[u32; 3]],
+    ) -> PhotoProjection {
+        crate::util::cooperative::run_blocking(PhotoProjection::new_async(view, proj, res, rgb, mask, v, f))
+    }
+
+    /// A unit quad facing +z at z = 0 and a second one behind it at z = −0.5.
+    fn quads() -> (Vec<Vec3>, Vec<[u32; 3]>) {
+        let mut v = Vec::new();
+        let mut f = Vec::new();
+        for z in [0.0f32, -0.5] {
+            let b = v.len() as u32;
+            v.extend([
+                Vec3::new(-0.5, 0.5, z),
+                Vec3::new(0.5, 0.5, z),
+                Vec3::new(0.5, 1.5, z),
+                Vec3::new(-0.5, 1.5, z),
+            ]);
+            f.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
+        }
+        (v, f)
+    }
+
+    #[test]
+    fn erosion_is_the_three_by_three_minimum_with_zero_outside() {
+        let res = 9;
+        let mut rng = crate::util::rng::Rng::new(7, 0);
+        let mask: Vec<f32> = (0..res * res).map(|_| rng.uniform()).collect();
+        let got = erode3(&mask, res);
+        for y in 0..res as i64 {
+            for x in 0..res as i64 {
+                let mut m = f32::INFINITY;
+                for (u, v) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy))) {
+                    let inside = (0..res as i64).contains(&u) && (0..res as i64).contains(&v);
+                    m = m.min(if inside { mask[(v * res as i64 + u) as usize] } else { 0.0 });
+                }
+                assert_eq!(got[(y * res as i64 + x) as usize], m, "({x}, {y})");
+            }
+        }
+        // Interior pixels are not all zero (the check above is not trivially met).
+        assert!(got.iter().any(|v| *v > 0.0));
+    }
+
+    #[test]
+    fn visible_facing_points_take_the_photo_hidden_and_grazing_ones_do_not() {
+        let cam = OrbitCamera { target: Vec3::new(0.0, 1.0, 0.0), ..OrbitCamera::default() };
+        let res = 64;
+        // Left half red, right half blue (sRGB), everyone inside the mask.
+        let rgb: Vec<f32> =
+            (0..res * res).flat_map(|k| if k % res < res / 2 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] }).collect();
+        let mask = vec![1.0; res * res];
+        let (v, f) = quads();
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        let n = Vec3::Z;
+        let (c, w) = p.sample(Vec3::new(-0.2, 1.0, 0.0), n);
+        assert!((w - 1.0).abs() < 1e-6 && (c - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3, "{c} {w}");
+        let (c, w) = p.sample(Vec3::new(0.2, 1.0, 0.0), n);
+        assert!(w > 0.99 && (c - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-3, "{c} {w}");
+        // Behind the front quad: hidden.
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, -0.5), n).1, 0.0);
+        // Facing away, or at a grazing angle: no weight; half-way: partial.
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, 0.0), -Vec3::Z).1, 0.0);
+        assert_eq!(p.sample(Vec3::new(0.2, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.1).normalize()).1, 0.0);
+        let half = p.sample(Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.927, 0.0, 0.375)).1;
+        assert!(half > 0.0 && half < 1.0, "{half}");
+        // Outside the person mask: no weight.
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &vec![0.0; res * res], &v, &f);
+        assert_eq!(p.sample(Vec3::new(-0.2, 1.0, 0.0), n).1, 0.0);
+        // Blending keeps the generated colour where the weight is 0.
+        let mut cols = vec![Vec3::splat(0.5); 2];
+        let p = project(cam.world_to_camera(), cam.projection_gl(1.0), res, &rgb, &mask, &v, &f);
+        p.blend(&[Vec3::new(-0.2, 1.0, 0.0), Vec3::new(-0.2, 1.0, -0.5)], &[n, n], &mut cols);
+        assert!((cols[0] - Vec3::new(1.0, 0.0, 0.0)).length() < 1e-3 && cols[1] == Vec3::splat(0.5), "{cols:?}");
+    }
+}
