@@ -11,10 +11,10 @@
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
 //! - `photo` (wasm32): the photo → body flow's tasks: MediaPipe Pose (`www/pose_detect.js`)
 //!   and the body fit on the shared WebGPU device; the page's file input
-//! - `reconstruct` (wasm32): single-image reconstruction (latent inversion + pivotal tuning on
-//!   the shared WebGPU device) from the photo and its body fit
-//! - `reconstruct_worker` (wasm32): the reconstruction in a dedicated worker (this module again,
-//!   its own WebGPU device: no step holds the UI thread), the page's side and the worker's
+//! - `reconstruct/` (wasm32): single-image reconstruction (encoder guess, W+ inversion, pivotal
+//!   tuning) from the photo and its body fit: `job` (the steps), run in a dedicated worker
+//!   (`worker_client` the page's side, `worker` the worker's, `protocol` their messages; its own
+//!   WebGPU device, so no step holds the UI thread) or on the page where workers lack WebGPU
 //! - [`video_clip`]: what "Motion from video…" accepts and which frames it reads (pure)
 //! - `video` (wasm32): motion from a video: frames decoded in the page (`www/video_frames.js`),
 //!   MediaPipe's tracking mode, the warm-started clip fit of `getavatar_core::body::body_fit::video`
@@ -36,8 +36,6 @@ mod photo;
 mod platform;
 #[cfg(target_arch = "wasm32")]
 mod reconstruct;
-#[cfg(target_arch = "wasm32")]
-mod reconstruct_worker;
 #[cfg(target_arch = "wasm32")]
 mod task;
 #[cfg(target_arch = "wasm32")]

@@ -16,6 +16,11 @@ thread_local! {
 
 /// Milliseconds since the page (or worker) started (`performance.now()`); 0 where the browser
 /// has no performance timer.
+/// Whether this module runs in a worker (no `window`): the reconstruction worker.
+pub fn in_worker() -> bool {
+    web_sys::window().is_none()
+}
+
 pub fn now_ms() -> f64 {
     PERFORMANCE.with(|p| p.as_ref().map(|p| p.now()).unwrap_or(0.0))
 }

@@ -140,11 +140,11 @@ pub fn start() {
     // registrations: most of the main thread's time in a browser CPU profile of a retexture.
     // SAFETY: called once, first, before any code that reads what they register.
     unsafe { __wasm_call_ctors() };
-    if crate::reconstruct_worker::in_worker() {
+    if crate::platform::in_worker() {
         // The reconstruction worker (`www/reconstruct_worker.js`): no app, only its jobs. Its
         // steps need no slicing (nothing to draw), but its checkpoints still let Cancel in.
         crate::task::install_time_slicing(crate::task::WORKER_SLICE_MS);
-        std::panic::set_hook(Box::new(|info| crate::reconstruct_worker::post_fatal(&info.to_string())));
+        std::panic::set_hook(Box::new(|info| crate::reconstruct::worker::post_fatal(&info.to_string())));
         return;
     }
     // Long CPU stages of core run in slices between frames (no task over 100 ms).

@@ -1,15 +1,5 @@
-//! Single-image reconstruction in the browser (paper Sec. 5.4, `getavatar_core::reconstruction::inversion`):
-//! the photo, resampled into its body fit's crop, is explained by the generator's codes (W+)
-//! and then by its tuned weights (PTI), all on the page's WebGPU device through burn with
-//! autodiff. The task awaits one step at a time (each ends in GPU read-backs), yields to the
-//! browser between steps so egui keeps drawing, reports every step's terms and a preview
-//! (the step's own render, read back), and stops at the next step on Cancel, leaving the
-//! app's avatar as it was. Its result is an ordinary avatar of the app: rigged to the body,
-//! with its own (tuned) generator for the per-pixel texture and the bake, and the photo's
-//! colours projected onto the surface the photo sees.
-//!
-//! The photo never leaves the page: the task fetches nothing (the model files were fetched at
-//! start-up).
+//! The reconstruction itself, the same on the page and in the worker: the body context, the
+//! start (encoder guess or latent modes), the inversion's steps, the figures, the rig.
 
 use std::rc::Rc;
 
@@ -41,7 +31,7 @@ use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
 
 /// What the inversion runs on: plain data, so that it can be handed to the reconstruction
-/// worker (`crate::reconstruct_worker`) as well as run on the page.
+/// worker (`super::worker`) as well as run on the page.
 pub struct InversionJob {
     /// The shipped checkpoint's bytes (None: the deterministic random weights).
     pub checkpoint: Option<Rc<Vec<u8>>>,
@@ -196,18 +186,6 @@ impl Progressing for OnPage<'_> {
     }
 }
 
-/// Start a reconstruction; its events arrive on the returned task. It runs in the
-/// reconstruction worker (its own WebGPU device, off the UI thread), or on the page
-/// where the browser gives workers no WebGPU.
-pub fn reconstruct(req: ReconstructRequest, repaint: egui::Context) -> ReconstructTask {
-    let task = ReconstructTask::default();
-    match crate::reconstruct_worker::start(req, task.clone(), repaint.clone()) {
-        Ok(()) => {}
-        Err(req) => run_on_page(*req, task.clone(), repaint),
-    }
-    task
-}
-
 /// Run the whole reconstruction on the page (the UI thread, in slices between steps).
 pub(crate) fn run_on_page(req: ReconstructRequest, t: ReconstructTask, repaint: egui::Context) {
     wasm_bindgen_futures::spawn_local(async move {
@@ -308,7 +286,7 @@ pub(crate) async fn invert(
         candidates,
         perceptual: inv.has_perceptual(),
         millis: now_ms() - t0,
-        in_worker: crate::reconstruct_worker::in_worker(),
+        in_worker: crate::platform::in_worker(),
         device: device_label.to_string(),
         note,
     });

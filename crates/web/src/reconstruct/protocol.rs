@@ -1,0 +1,175 @@
+//! The messages between the page and the reconstruction worker: `{json, …typed arrays}`,
+//! the JSON holding the small fields ([`ToWorker`], [`FromWorker`]), the arrays the bulk
+//! (checkpoint, images, the result file).
+
+use std::rc::Rc;
+
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::skinning::BodyParams;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::reconstruction::inversion::{InversionOptions, StepReport};
+use serde::{Deserialize, Serialize};
+use wasm_bindgen::prelude::*;
+
+use super::job::{Compute, InversionJob, StartChoice};
+
+/// The page's message to the worker (the `json` field).
+#[derive(Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub(super) enum ToWorker {
+    /// Run an inversion; the arrays `target_rgb`, `target_mask`, and optionally `checkpoint`,
+    /// `discriminator`, `encoder` and `photo_rgb` (the projection's photo) come with it.
+    Start(Box<JobMeta>),
+    /// The model files the next jobs use, sent ahead of the job in a message of their own
+    /// (arrays `checkpoint`, `discriminator`, `encoder`: the ones the worker does not hold yet).
+    Files,
+    /// Stop the running inversion at its next step.
+    Cancel,
+}
+
+/// An [`InversionJob`] without its arrays.
+#[derive(Serialize, Deserialize)]
+pub(super) struct JobMeta {
+    pub(super) cfg: GeneratorConfig,
+    /// The checkpoint (the discriminator) is the previous job's: the page sends each file once.
+    pub(super) checkpoint_kept: bool,
+    pub(super) discriminator_kept: bool,
+    pub(super) encoder_kept: bool,
+    pub(super) options: InversionOptions,
+    pub(super) preview_every: usize,
+    pub(super) start: StartChoice,
+    pub(super) compute: Compute,
+    pub(super) world_to_camera: [f32; 16],
+    pub(super) body: BodyParams,
+    pub(super) res: usize,
+    pub(super) projection: Option<ProjectionMeta>,
+}
+
+/// A [`ProjectionSource`] without its arrays (`photo_rgb`, `photo_mask`).
+#[derive(Serialize, Deserialize)]
+pub(super) struct ProjectionMeta {
+    pub(super) fit: BodyFit,
+    pub(super) width: usize,
+    pub(super) height: usize,
+    pub(super) mask_width: usize,
+    pub(super) mask_height: usize,
+    pub(super) res: usize,
+    pub(super) num_betas: usize,
+}
+
+/// The worker's messages to the page (the `json` field).
+#[derive(Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub(super) enum FromWorker {
+    Started {
+        start: String,
+        candidates: usize,
+        perceptual: bool,
+        millis: f64,
+        device: String,
+        note: String,
+    },
+    Step {
+        report: StepReport,
+        done: usize,
+        total: usize,
+        elapsed_ms: f64,
+    },
+    /// With the arrays `rgb` and `mask`.
+    Preview {
+        done: usize,
+    },
+    /// With the array `bytes`: the reconstruction file. IoU and PSNR at the photo's camera
+    /// (None: not finite).
+    Finished {
+        iou: Option<f32>,
+        psnr: Option<f32>,
+        figures_ms: f64,
+        file_ms: f64,
+        /// Cancelled after this many steps (the result is the last preview's state).
+        stopped_at: Option<usize>,
+    },
+    Failed {
+        message: String,
+    },
+    Cancelled,
+    /// This worker has no WebGPU device: the page runs the reconstruction itself.
+    Unavailable {
+        message: String,
+    },
+    /// The worker's module stopped (a panic): it is gone; the next reconstruction starts a new one.
+    Fatal {
+        message: String,
+    },
+}
+
+/// The model files: a checkpoint's, a discriminator's and an encoder's bytes.
+#[derive(Clone, Default)]
+pub(super) struct ModelFiles {
+    pub(super) checkpoint: Option<Rc<Vec<u8>>>,
+    pub(super) discriminator: Option<Rc<Vec<u8>>>,
+    pub(super) encoder: Option<Rc<Vec<u8>>>,
+}
+
+impl ModelFiles {
+    pub(super) const NAMES: [&'static str; 3] = ["checkpoint", "discriminator", "encoder"];
+
+    pub(super) fn of(job: &InversionJob) -> Self {
+        Self {
+            checkpoint: job.checkpoint.clone(),
+            discriminator: job.discriminator.clone(),
+            encoder: job.encoder.clone(),
+        }
+    }
+
+    pub(super) fn slot(&mut self, name: &str) -> &mut Option<Rc<Vec<u8>>> {
+        match name {
+            "checkpoint" => &mut self.checkpoint,
+            "discriminator" => &mut self.discriminator,
+            _ => &mut self.encoder,
+        }
+    }
+}
+
+/// `{json, …arrays}`.
+/// A message and the buffers it hands over (moved, not copied: the arrays are made for it).
+pub(super) struct Message {
+    pub(super) data: JsValue,
+    pub(super) transfer: js_sys::Array,
+}
+
+pub(super) fn object(json: &str, arrays: &[(&str, JsValue)]) -> Message {
+    let o = js_sys::Object::new();
+    let transfer = js_sys::Array::new();
+    // Setting a field of a fresh plain object cannot fail.
+    let _ = js_sys::Reflect::set(&o, &"json".into(), &json.into());
+    for (k, v) in arrays {
+        let _ = js_sys::Reflect::set(&o, &(*k).into(), v);
+        if let Ok(b) = js_sys::Reflect::get(v, &"buffer".into()) {
+            transfer.push(&b);
+        }
+    }
+    Message { data: o.into(), transfer }
+}
+
+pub(super) fn message_of<T: Serialize>(m: &T, arrays: &[(&str, JsValue)]) -> Message {
+    // Our own enums of plain fields serialise.
+    object(&serde_json::to_string(m).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}")), arrays)
+}
+
+/// A message's JSON part (the one field every message has).
+pub(super) fn json_of(data: &JsValue) -> Result<String, String> {
+    field(data, "json").and_then(|j| j.as_string()).ok_or_else(|| "a message without its `json` field".to_string())
+}
+
+pub(super) fn field(data: &JsValue, name: &str) -> Option<JsValue> {
+    js_sys::Reflect::get(data, &name.into()).ok().filter(|v| !v.is_undefined() && !v.is_null())
+}
+
+pub(super) fn f32_array(data: &JsValue, name: &str) -> Option<Vec<f32>> {
+    field(data, name).map(|v| js_sys::Float32Array::new(&v).to_vec())
+}
+
+pub(super) fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
+    field(data, name).map(|v| js_sys::Uint8Array::new(&v).to_vec())
+}

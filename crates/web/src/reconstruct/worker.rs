@@ -1,0 +1,271 @@
+//! The worker's side of the reconstruction worker ([`super::worker_client`] is the page's):
+//! [`reconstruct_worker_message`] receives a job, runs the inversion on the worker's own WebGPU
+//! device and posts its start, steps, previews and the result file back to the page.
+
+use std::cell::{Cell, RefCell};
+use std::rc::Rc;
+
+use getavatar_core::body::body_fit::landmarks::SegmentationMask;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::burn::tensor::wgpu::WgpuSetup;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::checkpoint::save_inverted_async;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::reconstruction::inversion::InversionTarget;
+use getavatar_core::render::camera::View;
+use glam::Mat4;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+
+use super::job::{invert, Compute, InversionJob, Progress, Progressing, ProjectionSource, ReconstructEvent};
+use super::protocol::{f32_array, json_of, message_of, u8_array, FromWorker, JobMeta, ModelFiles, ToWorker};
+use crate::platform::{js_message, now_ms};
+
+/// What the worker keeps between reconstructions: the body's context (its devices are
+/// kept in [`WEBGPU`]).
+struct WorkerState {
+    ctx: Rc<BodyContext>,
+    cfg: GeneratorConfig,
+}
+
+thread_local! {
+    static STATE: RefCell<Option<Rc<WorkerState>>> = const { RefCell::new(None) };
+    /// The worker's WebGPU device and its adapter in words, or why there is none (asked once).
+    static WEBGPU: RefCell<Option<Result<(Device, String, bool), String>>> = const { RefCell::new(None) };
+    /// The model files of the last job (the page sends each once).
+    static FILES: RefCell<Option<ModelFiles>> = const { RefCell::new(None) };
+    static CANCEL: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Post a message to the page (the worker's global `postMessage`).
+fn post(m: &FromWorker, arrays: &[(&str, JsValue)]) {
+    let global = js_sys::global();
+    let posted = js_sys::Reflect::get(&global, &"postMessage".into())
+        .and_then(|f| f.dyn_into::<js_sys::Function>())
+        .and_then(|f| {
+            let m = message_of(m, arrays);
+            f.call2(&global, &m.data, &m.transfer)
+        });
+    if let Err(e) = posted {
+        web_sys::console::error_1(&JsValue::from_str(&format!(
+            "the reconstruction worker cannot post: {}",
+            js_message(&e)
+        )));
+    }
+}
+
+/// A panic in the worker: tell the page before the module aborts.
+pub fn post_fatal(message: &str) {
+    post(&FromWorker::Fatal { message: message.to_string() }, &[]);
+}
+
+/// JS (the worker's script): a message from the page.
+#[wasm_bindgen]
+pub fn reconstruct_worker_message(data: JsValue) {
+    match json_of(&data).and_then(|j| serde_json::from_str::<ToWorker>(&j).map_err(|e| e.to_string())) {
+        Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
+        Ok(ToWorker::Files) => FILES.with(|f| {
+            let mut f = f.borrow_mut();
+            let f = f.get_or_insert_with(ModelFiles::default);
+            for name in ModelFiles::NAMES {
+                if let Some(b) = u8_array(&data, name) {
+                    *f.slot(name) = Some(Rc::new(b));
+                }
+            }
+        }),
+        Ok(ToWorker::Start(meta)) => {
+            CANCEL.with(|c| c.set(false));
+            wasm_bindgen_futures::spawn_local(run_job(*meta, data));
+        }
+        Err(e) => post(&FromWorker::Failed { message: format!("the worker cannot read the job: {e}") }, &[]),
+    }
+}
+
+/// In the worker, progress goes to the page and Cancel comes from it.
+struct ToPage;
+
+impl Progressing for ToPage {
+    fn push(&self, e: ReconstructEvent) {
+        match e {
+            ReconstructEvent::Started { start, candidates, perceptual, millis, device, note, .. } => {
+                post(&FromWorker::Started { start, candidates, perceptual, millis, device, note }, &[])
+            }
+            ReconstructEvent::Step(p) => {
+                let Progress { report, done, total, elapsed_ms } = *p;
+                post(&FromWorker::Step { report, done, total, elapsed_ms }, &[])
+            }
+            ReconstructEvent::Preview(p) => post(
+                &FromWorker::Preview { done: p.done },
+                &[
+                    ("rgb", js_sys::Float32Array::from(&p.rgb[..]).into()),
+                    ("mask", js_sys::Float32Array::from(&p.mask[..]).into()),
+                ],
+            ),
+            // The outcome is the job's own message.
+            _ => {}
+        }
+    }
+    fn cancelled(&self) -> bool {
+        CANCEL.with(Cell::get)
+    }
+}
+
+async fn run_job(meta: JobMeta, data: JsValue) {
+    let state = match state(&meta.cfg).await {
+        Ok(s) => s,
+        Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
+    };
+    let device = match device(meta.compute).await {
+        Ok(d) => d,
+        Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
+    };
+    match job(meta, &data, &state, &device).await {
+        Ok(Some((bytes, (iou, psnr), figures_ms, file_ms, stopped_at))) => {
+            let finite = |x: f32| Some(x).filter(|x| x.is_finite());
+            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), figures_ms, file_ms, stopped_at };
+            post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
+        }
+        Ok(None) => post(&FromWorker::Cancelled, &[]),
+        Err(message) => post(&FromWorker::Failed { message }, &[]),
+    }
+}
+
+/// The result file, IoU and PSNR, milliseconds of the final figures and of the file, and the
+/// steps done when cancelled.
+type Outcome = (Vec<u8>, (f32, f32), f64, f64, Option<usize>);
+
+async fn job(
+    meta: JobMeta,
+    data: &JsValue,
+    state: &WorkerState,
+    device: &(Device, String),
+) -> Result<Option<Outcome>, String> {
+    let (Some(rgb), Some(mask)) = (f32_array(data, "target_rgb"), f32_array(data, "target_mask")) else {
+        return Err("the job came without its photo".into());
+    };
+    let view = View { world_to_camera: Mat4::from_cols_array(&meta.world_to_camera), body: meta.body };
+    let projection = match meta.projection {
+        Some(p) => {
+            let missing = "the job came without the projection's photo";
+            let rgb = f32_array(data, "photo_rgb").ok_or(missing)?;
+            let mask = f32_array(data, "photo_mask").ok_or(missing)?;
+            let mask = SegmentationMask { width: p.mask_width, height: p.mask_height, data: mask };
+            let (width, height, res, num_betas) = (p.width, p.height, p.res, p.num_betas);
+            Some(ProjectionSource { fit: p.fit, rgb, width, height, mask, res, num_betas })
+        }
+        None => None,
+    };
+    // A file sent now, or the one kept from an earlier job.
+    let file = |name: &str, kept: bool| {
+        FILES.with(|f| {
+            let mut f = f.borrow_mut();
+            let s = f.get_or_insert_with(ModelFiles::default).slot(name);
+            if !kept {
+                *s = u8_array(data, name).map(Rc::new);
+            }
+            s.clone()
+        })
+    };
+    let checkpoint = file("checkpoint", meta.checkpoint_kept);
+    let discriminator = file("discriminator", meta.discriminator_kept);
+    let encoder = file("encoder", meta.encoder_kept);
+    if meta.checkpoint_kept && checkpoint.is_none() {
+        return Err("the worker lost the model's file".into());
+    }
+    let job = InversionJob {
+        checkpoint,
+        discriminator,
+        cfg: meta.cfg,
+        target: InversionTarget { view, res: meta.res, rgb, mask },
+        projection,
+        options: meta.options,
+        preview_every: meta.preview_every,
+        start: meta.start,
+        encoder,
+        compute: meta.compute,
+    };
+    let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage).await? else { return Ok(None) };
+    let t = now_ms();
+    let photo = match &job.projection {
+        Some(source) => {
+            crate::task::yield_to_browser().await;
+            source.crop().map(|p| p.source_photo())
+        }
+        None => None,
+    };
+    let mut extra = std::collections::BTreeMap::new();
+    extra.insert("inversion/source".into(), "the GETAvatar web app".into());
+    let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
+        .await
+        .map_err(|e| format!("cannot write the result: {e}"))?;
+    Ok(Some((bytes, inv.fit, inv.finish_ms, now_ms() - t, inv.stopped_at)))
+}
+
+/// The worker's body context, made on its first job (and again for another config).
+async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
+    if let Some(s) = STATE.with(|s| s.borrow().clone()).filter(|s| &s.cfg == cfg) {
+        return Ok(s);
+    }
+    let body = BodyModel::default_body().map_err(|e| format!("the embedded body model: {e}"))?;
+    let ctx = Rc::new(BodyContext::new_async(body, cfg).await);
+    let s = Rc::new(WorkerState { ctx, cfg: cfg.clone() });
+    STATE.with(|slot| *slot.borrow_mut() = Some(s.clone()));
+    Ok(s)
+}
+
+/// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none).
+/// `Auto` is WebGPU (and the page's device where the worker has none): even on a software
+/// adapter (SwiftShader) it is the faster of the two today. NdArray in this wasm module (one
+/// thread, no SIMD, optimised for size) took over 4 minutes for a W+ step at 64² where
+/// SwiftShader takes 1–2.5 (docs/benchmarks.md); `Cpu` is there to measure it.
+/// Also the device in words, for the status.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn device(compute: Compute) -> Result<(Device, String), String> {
+    if compute == Compute::Cpu {
+        return Ok((Device::ndarray().autodiff(), "CPU (burn NdArray in the worker)".into()));
+    }
+    if WEBGPU.with(|w| w.borrow().is_none()) {
+        let made = webgpu_device().await;
+        WEBGPU.with(|w| *w.borrow_mut() = Some(made));
+    }
+    let webgpu = WEBGPU.with(|w| w.borrow().clone()).unwrap_or_else(|| Err("no WebGPU device".into()));
+    let (d, name, software) = webgpu?;
+    Ok((d, format!("WebGPU{}: {name}", if software { " (a software adapter)" } else { "" })))
+}
+
+/// burn's autodiff device on a WebGPU device of the worker's own (with the adapter's limits,
+/// as the page's: burn's kernels need more storage buffers per stage than the defaults), the
+/// adapter in words, and whether it is a CPU (software) one.
+async fn webgpu_device() -> Result<(Device, String, bool), String> {
+    use eframe::egui_wgpu::wgpu;
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::BROWSER_WEBGPU;
+    let instance = wgpu::Instance::new(desc);
+    let adapter = instance
+        .request_adapter(&wgpu::RequestAdapterOptions::default())
+        .await
+        .map_err(|e| format!("no WebGPU adapter in the worker: {e}"))?;
+    let (device, queue) = adapter
+        .request_device(&wgpu::DeviceDescriptor {
+            label: Some("getavatar reconstruction worker"),
+            required_features: adapter.features() - wgpu::Features::MAPPABLE_PRIMARY_BUFFERS,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| format!("no WebGPU device in the worker: {e}"))?;
+    let info = adapter.get_info();
+    let software = info.device_type == wgpu::DeviceType::Cpu;
+    // Browsers may hide the adapter's name.
+    let name = match info.name.as_str() {
+        "" => format!("{:?} adapter", info.device_type),
+        n => format!("{n} ({:?})", info.device_type),
+    };
+    let setup = WgpuSetup { instance, adapter, device, queue, backend: info.backend };
+    let device = Device::wgpu_options()
+        .setup(setup)
+        .init()
+        .map_err(|e| format!("burn cannot use the worker's WebGPU device: {e:?}"))?;
+    Ok((device.autodiff(), name, software))
+}

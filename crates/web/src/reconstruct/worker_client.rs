@@ -1,0 +1,408 @@
+//! The page's side of the reconstruction worker: the inversion's steps each run a backward
+//! pass of hundreds of kernel launches in one call (160–360 ms of the UI thread per step,
+//! seconds of kernel compiles on the first), which no slicing can split. So the page hands the
+//! inversion to a dedicated worker: a second instance of this same wasm module
+//! (`www/reconstruct_worker.js`) with its own WebGPU device, the embedded body model and the
+//! checkpoint's bytes ([`super::worker`]). It reports its start, steps and previews as it goes,
+//! and its result as a reconstruction file (the "Save reconstruction" format: tuned generator,
+//! codes, photo), which the page rigs exactly as "Open reconstruction…" does. Where a worker
+//! cannot have WebGPU (or cannot start), the page runs the reconstruction itself.
+
+use std::cell::{Cell, RefCell};
+use std::rc::Rc;
+
+use eframe::egui;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::BodyContext;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+
+use super::job::{
+    rig_saved, run_on_page, InversionJob, Preview, Progress, ReconstructEvent, ReconstructRequest, ReconstructTask,
+};
+use super::protocol::{
+    f32_array, json_of, message_of, object, u8_array, FromWorker, JobMeta, Message, ModelFiles, ProjectionMeta,
+    ToWorker,
+};
+use crate::platform::{js_message, now_ms};
+
+/// The worker's script, next to the page (`cargo xtask build-web` copies `www/` into dist/).
+const WORKER_URL: &str = "./reconstruct_worker.js";
+
+/// An idle worker is ended after this long: it holds its own GPU memory (the inversion's pool
+/// of buffers, which only ending the worker gives back); a reconstruction soon after reuses it
+/// (its device, body context, model files and compiled kernels).
+const IDLE_RELEASE_MS: i32 = 120_000;
+
+#[wasm_bindgen]
+extern "C" {
+    /// The browser's `Worker` (declared here rather than through web-sys features, which would
+    /// rebuild web-sys and everything above it).
+    #[wasm_bindgen(js_name = Worker)]
+    type JsWorker;
+    #[wasm_bindgen(constructor, js_class = "Worker", catch)]
+    fn new(url: &str, options: &JsValue) -> Result<JsWorker, JsValue>;
+    #[wasm_bindgen(method, js_class = "Worker", js_name = postMessage, catch)]
+    fn post_message(this: &JsWorker, message: &JsValue, transfer: &js_sys::Array) -> Result<(), JsValue>;
+    #[wasm_bindgen(method, js_class = "Worker", setter = onmessage)]
+    fn set_onmessage(this: &JsWorker, f: &js_sys::Function);
+    #[wasm_bindgen(method, js_class = "Worker", setter = onerror)]
+    fn set_onerror(this: &JsWorker, f: &js_sys::Function);
+    #[wasm_bindgen(method, js_class = "Worker")]
+    fn terminate(this: &JsWorker);
+}
+
+/// The page's worker and the reconstruction it runs.
+struct Client {
+    worker: JsWorker,
+    running: RefCell<Option<Running>>,
+    /// The model files the worker holds (sent with an earlier job).
+    sent: RefCell<ModelFiles>,
+    _onmessage: Closure<dyn FnMut(JsValue)>,
+    _onerror: Closure<dyn FnMut(JsValue)>,
+}
+
+/// A reconstruction handed to the worker.
+struct Running {
+    task: ReconstructTask,
+    repaint: egui::Context,
+    t0: f64,
+    /// Kept to run it on the page if the worker turns out to have no WebGPU.
+    fallback: Option<ReconstructRequest>,
+    cfg: GeneratorConfig,
+    ctx: Rc<BodyContext>,
+    device: Device,
+}
+
+thread_local! {
+    static CLIENT: RefCell<Option<Rc<Client>>> = const { RefCell::new(None) };
+    /// A worker could not run a reconstruction here (why): later ones run on the page.
+    static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
+    /// Jobs handed to a worker so far: an idle release applies only if none came since.
+    static JOBS: Cell<u64> = const { Cell::new(0) };
+}
+
+/// End the worker if it is still idle after [`IDLE_RELEASE_MS`].
+fn release_when_idle() {
+    let job = JOBS.with(Cell::get);
+    let release = Closure::once_into_js(move || {
+        let idle = CLIENT.with(|c| c.borrow().as_ref().is_some_and(|c| c.running.borrow().is_none()));
+        if idle && JOBS.with(Cell::get) == job {
+            drop_client();
+        }
+    });
+    let scheduled = crate::platform::set_timeout(release.unchecked_ref(), IDLE_RELEASE_MS);
+    if scheduled.is_err() {
+        // Without a timer the worker stays until the page closes; nothing is lost.
+        web_sys::console::warn_1(&JsValue::from_str("the reconstruction worker cannot schedule its release"));
+    }
+}
+
+/// Hand `req` to the worker (started on first use); its events arrive on `task`. `Err(req)`:
+/// no worker can run it, run it on the page.
+pub fn start(
+    req: ReconstructRequest,
+    task: ReconstructTask,
+    repaint: egui::Context,
+) -> Result<(), Box<ReconstructRequest>> {
+    if NO_WORKER.with(|n| n.borrow().is_some()) {
+        return Err(Box::new(req));
+    }
+    let client = match client() {
+        Ok(c) => c,
+        Err(e) => {
+            worker_unusable(format!("the reconstruction worker cannot start: {e}"));
+            return Err(Box::new(req));
+        }
+    };
+    let worker_task = task.clone();
+    let weak = Rc::downgrade(&client);
+    task.on_cancel(move || {
+        if let Some(c) = weak.upgrade() {
+            if c.running.borrow().as_ref().is_some_and(|r| r.task.same(&worker_task)) {
+                let m = message_of(&ToWorker::Cancel, &[]);
+                let _ = c.worker.post_message(&m.data, &m.transfer);
+            }
+        }
+    });
+    JOBS.with(|j| j.set(j.get() + 1));
+    let posted_task = task.clone();
+    let (cfg, ctx, device) = (req.job.cfg.clone(), req.ctx.clone(), req.device.clone());
+    *client.running.borrow_mut() = Some(Running { task, repaint, t0: now_ms(), fallback: Some(req), cfg, ctx, device });
+    wasm_bindgen_futures::spawn_local(hand_over(client, posted_task));
+    Ok(())
+}
+
+/// Post the running job to the worker, not in the frame that asked: the model files (≈ 7 MB
+/// copied, once per worker), then the job and its photo, each in a task of its own (together
+/// with the frame they held the UI thread ≈ 100 ms on SwiftShader's page). A job cancelled
+/// before it is posted ends here; a worker that refuses it hands it to the page.
+async fn hand_over(client: Rc<Client>, task: ReconstructTask) {
+    for files in [true, false] {
+        crate::task::yield_to_browser().await;
+        let message = {
+            let running = client.running.borrow();
+            let Some(r) = running.as_ref().filter(|r| r.task.same(&task)) else { return };
+            let Some(req) = r.fallback.as_ref() else { return };
+            if r.task.cancelled() {
+                drop(running);
+                if let Some(r) = client.running.borrow_mut().take() {
+                    r.task.push(ReconstructEvent::Cancelled, &r.repaint);
+                }
+                release_when_idle();
+                return;
+            }
+            if files {
+                files_message(&req.job, &client)
+            } else {
+                start_message(&req.job, &client)
+                    .map(Some)
+                    .map_err(|e| format!("the reconstruction cannot be handed to its worker: {e}"))
+            }
+        };
+        let posted = match message {
+            Ok(None) => Ok(()),
+            Ok(Some(m)) => client
+                .worker
+                .post_message(&m.data, &m.transfer)
+                .map_err(|e| format!("the reconstruction worker refused the job: {}", js_message(&e))),
+            Err(e) => Err(e),
+        };
+        if let Err(why) = posted {
+            return fall_back_to_page(why);
+        }
+    }
+}
+
+/// From now on reconstructions run on the page (said once in the console).
+fn worker_unusable(why: String) {
+    web_sys::console::warn_1(&JsValue::from_str(&format!("{why}; reconstructions run on the page")));
+    NO_WORKER.with(|n| *n.borrow_mut() = Some(why));
+    drop_client();
+}
+
+fn drop_client() {
+    if let Some(c) = CLIENT.with(|c| c.borrow_mut().take()) {
+        c.worker.terminate();
+    }
+}
+
+/// The page's worker, started on first use.
+fn client() -> Result<Rc<Client>, String> {
+    if let Some(c) = CLIENT.with(|c| c.borrow().clone()) {
+        return Ok(c);
+    }
+    let options = js_sys::Object::new();
+    js_sys::Reflect::set(&options, &"type".into(), &"module".into()).map_err(|e| js_message(&e))?;
+    js_sys::Reflect::set(&options, &"name".into(), &"getavatar reconstruction".into()).map_err(|e| js_message(&e))?;
+    let worker = JsWorker::new(WORKER_URL, &options).map_err(|e| js_message(&e))?;
+    let onmessage = Closure::<dyn FnMut(JsValue)>::new(|e: JsValue| {
+        let data = js_sys::Reflect::get(&e, &"data".into()).unwrap_or(JsValue::UNDEFINED);
+        on_message(data);
+    });
+    // The worker's script failed to load or threw outside a job: no worker from now on.
+    let onerror = Closure::<dyn FnMut(JsValue)>::new(|e: JsValue| {
+        let msg = js_sys::Reflect::get(&e, &"message".into()).ok().and_then(|m| m.as_string());
+        unavailable(msg.unwrap_or_else(|| "the worker's script did not load".into()));
+    });
+    worker.set_onmessage(onmessage.as_ref().unchecked_ref());
+    worker.set_onerror(onerror.as_ref().unchecked_ref());
+    let c = Rc::new(Client {
+        worker,
+        running: RefCell::new(None),
+        sent: RefCell::new(ModelFiles::default()),
+        _onmessage: onmessage,
+        _onerror: onerror,
+    });
+    CLIENT.with(|slot| *slot.borrow_mut() = Some(c.clone()));
+    Ok(c)
+}
+
+/// Whether the worker holds `file` (the page sent that very file before).
+fn holds(held: &Option<Rc<Vec<u8>>>, file: &Rc<Vec<u8>>) -> bool {
+    held.as_ref().is_some_and(|h| Rc::ptr_eq(h, file))
+}
+
+/// The model files of `job` the worker does not hold yet (`None`: it holds both).
+fn files_message(job: &InversionJob, client: &Client) -> Result<Option<Message>, String> {
+    let mut sent = client.sent.borrow_mut();
+    let mut wanted = ModelFiles::of(job);
+    let mut arrays: Vec<(&str, JsValue)> = Vec::new();
+    for name in ModelFiles::NAMES {
+        let held = sent.slot(name);
+        if let Some(b) = wanted.slot(name).clone() {
+            if !holds(held, &b) {
+                arrays.push((name, js_sys::Uint8Array::from(&b[..]).into()));
+                *held = Some(b);
+            }
+        }
+    }
+    if arrays.is_empty() {
+        return Ok(None);
+    }
+    let json = serde_json::to_string(&ToWorker::Files).map_err(|e| e.to_string())?;
+    Ok(Some(object(&json, &arrays)))
+}
+
+/// The job as the worker's `Start` message: its settings and photo, and the model files
+/// only where the worker lacks them (`files_message` went first, so normally none).
+fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String> {
+    let t = &job.target;
+    let same = |file: &Option<Rc<Vec<u8>>>, held: &Option<Rc<Vec<u8>>>| file.as_ref().is_some_and(|f| holds(held, f));
+    let sent = client.sent.borrow().clone();
+    let checkpoint_kept = same(&job.checkpoint, &sent.checkpoint);
+    let discriminator_kept = same(&job.discriminator, &sent.discriminator);
+    let encoder_kept = same(&job.encoder, &sent.encoder);
+    let meta = JobMeta {
+        cfg: job.cfg.clone(),
+        checkpoint_kept,
+        discriminator_kept,
+        encoder_kept,
+        options: job.options.clone(),
+        preview_every: job.preview_every,
+        start: job.start,
+        compute: job.compute,
+        world_to_camera: t.view.world_to_camera.to_cols_array(),
+        body: t.view.body.clone(),
+        res: t.res,
+        projection: job.projection.as_ref().map(|p| ProjectionMeta {
+            fit: p.fit.clone(),
+            width: p.width,
+            height: p.height,
+            mask_width: p.mask.width,
+            mask_height: p.mask.height,
+            res: p.res,
+            num_betas: p.num_betas,
+        }),
+    };
+    let mut arrays: Vec<(&str, JsValue)> = vec![
+        ("target_rgb", js_sys::Float32Array::from(&t.rgb[..]).into()),
+        ("target_mask", js_sys::Float32Array::from(&t.mask[..]).into()),
+    ];
+    if let (Some(b), false) = (&job.checkpoint, checkpoint_kept) {
+        arrays.push(("checkpoint", js_sys::Uint8Array::from(&b[..]).into()));
+    }
+    if let (Some(b), false) = (&job.discriminator, discriminator_kept) {
+        arrays.push(("discriminator", js_sys::Uint8Array::from(&b[..]).into()));
+    }
+    if let (Some(b), false) = (&job.encoder, encoder_kept) {
+        arrays.push(("encoder", js_sys::Uint8Array::from(&b[..]).into()));
+    }
+    if let Some(p) = &job.projection {
+        arrays.push(("photo_rgb", js_sys::Float32Array::from(&p.rgb[..]).into()));
+        arrays.push(("photo_mask", js_sys::Float32Array::from(&p.mask.data[..]).into()));
+    }
+    *client.sent.borrow_mut() = ModelFiles::of(job);
+    let json = serde_json::to_string(&ToWorker::Start(Box::new(meta))).map_err(|e| e.to_string())?;
+    Ok(object(&json, &arrays))
+}
+
+/// A message from the worker.
+fn on_message(data: JsValue) {
+    let Some(client) = CLIENT.with(|c| c.borrow().clone()) else { return };
+    let event = match json_of(&data).and_then(|j| serde_json::from_str::<FromWorker>(&j).map_err(|e| e.to_string())) {
+        Ok(e) => e,
+        Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
+    };
+    let mut slot = client.running.borrow_mut();
+    let Some(r) = slot.as_mut() else { return };
+    match event {
+        FromWorker::Started { start, candidates, perceptual, millis, device, note } => {
+            r.fallback = None;
+            let e = ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker: true, device, note };
+            r.task.push(e, &r.repaint);
+        }
+        FromWorker::Step { report, done, total, elapsed_ms } => {
+            let p = Progress { report, done, total, elapsed_ms };
+            r.task.push(ReconstructEvent::Step(Box::new(p)), &r.repaint);
+        }
+        FromWorker::Preview { done } => {
+            if let (Some(rgb), Some(mask)) = (f32_array(&data, "rgb"), f32_array(&data, "mask")) {
+                r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
+            }
+        }
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at } => {
+            let Some(r) = slot.take() else { return };
+            match u8_array(&data, "bytes") {
+                Some(bytes) => {
+                    let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at));
+                    release_when_idle();
+                }
+                None => {
+                    r.task.push(ReconstructEvent::Failed("the reconstruction worker sent no result".into()), &r.repaint)
+                }
+            }
+        }
+        FromWorker::Failed { message } => {
+            r.task.push(ReconstructEvent::Failed(format!("the reconstruction failed: {message}")), &r.repaint);
+            *slot = None;
+            release_when_idle();
+        }
+        FromWorker::Cancelled => {
+            r.task.push(ReconstructEvent::Cancelled, &r.repaint);
+            *slot = None;
+            release_when_idle();
+        }
+        FromWorker::Unavailable { message } => {
+            drop(slot);
+            unavailable(message);
+        }
+        FromWorker::Fatal { message } => {
+            r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
+            *slot = None;
+            drop(slot);
+            drop_client();
+        }
+    }
+}
+
+/// The worker cannot reconstruct here: the running job (if it has not started there) runs on
+/// the page, and so do later ones.
+fn unavailable(why: String) {
+    fall_back_to_page(format!("the reconstruction worker has no WebGPU device ({why})"));
+}
+
+/// The worker is unusable (`why`): the running job, if it has not started there, runs on the
+/// page, and so do later ones.
+fn fall_back_to_page(why: String) {
+    let running = CLIENT.with(|c| c.borrow().as_ref().and_then(|c| c.running.borrow_mut().take()));
+    worker_unusable(why.clone());
+    let Some(r) = running else { return };
+    match r.fallback {
+        Some(req) => run_on_page(req, r.task, r.repaint),
+        None => r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {why}")), &r.repaint),
+    }
+}
+
+/// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
+async fn finish(
+    r: Running,
+    bytes: Vec<u8>,
+    fit: (f32, f32),
+    (figures_ms, file_ms): (f64, f64),
+    stopped_at: Option<usize>,
+) {
+    // Not in the task that copied the file out of the message.
+    crate::task::yield_to_browser().await;
+    let t = now_ms();
+    let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
+        Ok(mut done) => {
+            done.fit = Some(fit);
+            done.stopped_at = stopped_at;
+            done.millis = now_ms() - r.t0;
+            let rig_ms = now_ms() - t;
+            done.finish_ms = figures_ms + file_ms + rig_ms;
+            done.finish_detail = format!(
+                "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s",
+                figures_ms / 1000.0,
+                file_ms / 1000.0,
+                rig_ms / 1000.0
+            );
+            ReconstructEvent::Finished(Box::new(done))
+        }
+        Err(e) => ReconstructEvent::Failed(format!("the reconstruction failed: {e}")),
+    };
+    r.task.push(event, &r.repaint);
+}
