@@ -25,6 +25,7 @@ mod adversarial;
 mod args;
 mod reconstruction;
 mod run_config;
+mod scan_pools;
 mod snapshots;
 mod state;
 mod step;
@@ -50,11 +51,11 @@ pub(crate) use step::{cameras, load_reals};
 pub use step::{Metrics, StepInputs};
 
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
-pub(crate) use reconstruction::canonical_scan_samples;
-pub(crate) use reconstruction::subject_of_entries;
-pub use reconstruction::ScanPools;
 use reconstruction::{reconstruction_step, subject_modes};
 pub(crate) use run_config::FACE_POINTS_PER_STEP;
+pub(crate) use scan_pools::canonical_scan_samples;
+pub(crate) use scan_pools::subject_of_entries;
+pub use scan_pools::ScanPools;
 use snapshots::sample_grid;
 use subject_codes::SubjectCodes;
 

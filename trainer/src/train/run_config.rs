@@ -9,6 +9,7 @@ use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::io::dataset::Dataset;
 use serde::{Deserialize, Serialize};
 
+pub use super::args::Objective;
 use super::args::TrainArgs;
 
 /// Points drawn per scan and kept for training (`--scans`).
@@ -19,22 +20,6 @@ pub const SCAN_POINTS_PER_STEP: usize = 2048;
 pub const FACE_POOL_POINTS: usize = 4096;
 /// Face points of each drawn subject used per step.
 pub const FACE_POINTS_PER_STEP: usize = 512;
-
-/// What a run optimises.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum Objective {
-    /// The paper's objective (Sec. 4.5): three discriminators, R1, eikonal, SDF cross-entropy.
-    #[default]
-    Adversarial,
-    /// A warm-up that is not in the paper: every training subject gets a fixed latent pair
-    /// (z_geo, z_tex) and G learns to reproduce that subject's views (L1 on RGB, normal map and
-    /// mask, plus the eikonal and cross-entropy terms). Dense per-pixel gradients teach garment
-    /// colours and shapes in far fewer steps than the adversarial game; an adversarial run
-    /// started from it (`--resume GENERATOR`) then spreads the latent space. Adam β₁ = 0.9 and
-    /// lr 0.0005 (a quarter of the adversarial rate) except the texture branch (0.002).
-    Reconstruction,
-}
 
 /// Settings of a run (written once to `run.json`, read back on resume).
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -137,6 +122,79 @@ pub(crate) fn one_view() -> usize {
 }
 
 impl RunConfig {
+    /// The flags that fix a run's settings and conflict with this continued run: one row per
+    /// flag (the flag, the value given, the run's value, the `run.json` field to edit instead).
+    /// Flags that were not given never conflict; the others must equal the run's value.
+    pub fn resume_conflicts(&self, args: &TrainArgs) -> Vec<String> {
+        let rc = self;
+        let num = |v: f32| v.to_string();
+        let objective = |o: Objective| format!("{o:?}").to_lowercase();
+        let plane = |r: Option<usize>| r.map_or_else(|| "(none)".to_string(), |r| r.to_string());
+        let rows: [(&str, Option<String>, String, &str); 20] = [
+            ("--config", args.config.clone(), rc.generator.name.clone(), "generator"),
+            ("--batch", args.batch.map(|b| b.to_string()), rc.batch.to_string(), "batch"),
+            ("--seed", args.seed.map(|s| s.to_string()), rc.seed.to_string(), "seed"),
+            ("--r1-gamma", args.r1_gamma.map(num), num(rc.r1_gamma), "r1_gamma"),
+            ("--objective", args.objective.map(objective), objective(rc.objective), "objective"),
+            ("--views", args.views.map(|v| v.to_string()), rc.views_per_subject.to_string(), "views_per_subject"),
+            (
+                "--scans",
+                args.scans.as_ref().map(|d| d.display().to_string()),
+                rc.scans.clone().unwrap_or_else(|| "(none)".into()),
+                "scans",
+            ),
+            ("--lambda-scan", args.lambda_scan.map(num), num(rc.lambda_scan), "lambda_scan"),
+            ("--lambda-face", args.lambda_face.map(num), num(rc.lambda_face), "lambda_face"),
+            (
+                "--lambda-reconstruction",
+                args.lambda_reconstruction.map(num),
+                num(rc.lambda_reconstruction),
+                "lambda_reconstruction",
+            ),
+            (
+                "--lambda-texture-swap",
+                args.lambda_texture_swap.map(num),
+                num(rc.lambda_texture_swap),
+                "lambda_texture_swap",
+            ),
+            ("--latent-spread", args.latent_spread.map(num), num(rc.latent_spread), "latent_spread"),
+            (
+                "--latent-spread-geo",
+                args.latent_spread_geo.map(num),
+                rc.latent_spread_geo.map_or_else(|| "(--latent-spread)".into(), num),
+                "latent_spread_geo",
+            ),
+            ("--lr-g", args.lr_g.map(num), num(rc.lr_g), "lr_g"),
+            (
+                "--train-only",
+                args.train_only.clone(),
+                rc.train_only.clone().unwrap_or_else(|| "(all)".into()),
+                "train_only",
+            ),
+            ("--lr-d", args.lr_d.map(num), num(rc.lr_d), "lr_d"),
+            ("--lr-codes", args.lr_codes.map(num), num(rc.lr_codes), "lr_codes"),
+            ("--codes-wplus", args.codes_wplus.then(|| "true".into()), rc.codes_wplus.to_string(), "codes_wplus"),
+            (
+                "--texture-res",
+                args.texture_res.map(|r| r.to_string()),
+                plane(rc.generator.texture_res),
+                "generator.texture_res",
+            ),
+            (
+                "--geometry-res",
+                args.geometry_res.map(|r| r.to_string()),
+                plane(rc.generator.geometry_res),
+                "generator.geometry_res",
+            ),
+        ];
+        rows.into_iter()
+            .filter_map(|(flag, given, run, field)| match given {
+                Some(g) if g != run => Some(format!("{flag} {g} differs from the run's {run} (field `{field}`)")),
+                _ => None,
+            })
+            .collect()
+    }
+
     /// The latent spreads of the geometry and texture branches (`latent_spread_geo`, falling
     /// back to `latent_spread`, and `latent_spread`).
     pub fn latent_spreads(&self) -> (f32, f32) {
@@ -339,7 +397,7 @@ impl RunConfig {
         let text = std::fs::read_to_string(run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
         let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
-        let conflicts = a.resume_conflicts(&rc);
+        let conflicts = rc.resume_conflicts(&a);
         if !conflicts.is_empty() {
             bail!(
                 "{}: a continued run keeps its settings (edit them in {} to change them)",

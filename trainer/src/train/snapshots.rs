@@ -11,8 +11,9 @@ use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::util::rng::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::reconstruction::{subject_latents, subject_of_entries};
+use super::reconstruction::subject_latents;
 use super::run_config::{Objective, RunConfig};
+use super::scan_pools::subject_of_entries;
 use super::state::State;
 use super::step::{latents, load_reals, scalar};
 use super::subject_codes::{subject_ws, with_layer_offsets};

@@ -14,8 +14,8 @@ use serde::Serialize;
 use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::render::diff::avatar::PosedGridCache;
 
-use super::reconstruction::ScanPools;
 use super::run_config::RunConfig;
+use super::scan_pools::ScanPools;
 
 /// What every training step reads: the data, the body, the inverse-skinning cache, the scan
 /// samples (empty without `--scans`), the run's settings and the autodiff device.
