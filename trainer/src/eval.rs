@@ -30,9 +30,10 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::body::skinning::{pose_body, vertex_normals};
+use getavatar_core::generator::pipeline::LatentModes;
 use getavatar_core::generator::pipeline::{seed_latents, BodyContext};
 use getavatar_core::generator::readback::read_f32_now;
-use getavatar_core::io::dataset::{encode_png, Dataset, Label};
+use getavatar_core::io::dataset::{encode_png, Dataset, Label, Sample};
 use getavatar_core::render::camera::OrbitCamera;
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::render::rasterize::render_views;
@@ -262,23 +263,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         None => None,
     };
     let (cfg, g, modes) = a.model.load(&dev)?;
-    let subjects = if a.subject_codes {
-        let Some(m) = &modes else {
-            bail!("--subject-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
-        };
-        let subjects = crate::train::subject_of_entries(&ds);
-        let n = subjects.iter().max().map_or(0, |s| s + 1);
-        if n > m.count() {
-            bail!(
-                "--subject-codes: {} holds {n} subjects but the checkpoint has codes for {}; use the run's training data (or its first subjects)",
-                a.data.display(),
-                m.count()
-            );
-        }
-        Some(subjects)
-    } else {
-        None
-    };
+    let subjects = eval_subjects(a, &ds, modes.as_ref())?;
     let modes = crate::model_io::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model.clone(), &cfg);
@@ -350,33 +335,9 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         };
         let rgb_l1 = match subject {
             Some(_) => {
-                // Renders are in [-1, 1] (mask too), the data in [0, 1]; normals are unit
-                // vectors in both, so their difference is halved like the others'.
-                let n = (res * res) as f64;
-                let chw_l1 = |fake: &[f32], real: &dyn Fn(usize, usize) -> f32, ch: usize, to01: bool| -> f64 {
-                    let mut sum = 0f64;
-                    for c in 0..ch {
-                        for p in 0..res * res {
-                            let v = fake[c * res * res + p];
-                            let v = if to01 { v * 0.5 + 0.5 } else { v };
-                            sum += (v - real(c, src(p))).abs() as f64;
-                        }
-                    }
-                    let d = sum / (n * ch as f64);
-                    if to01 {
-                        d
-                    } else {
-                        d / 2.0
-                    }
-                };
-                let rgb = chw_l1(&rgb, &|c, q| sample.rgb[3 * q + c], 3, true);
-                let msk = chw_l1(&mask, &|_, q| sample.mask[q], 1, true);
-                let nrm = match (&fnrm, &sample.normal) {
-                    (Some(fnrm), Some(rn)) => Some(chw_l1(fnrm, &|c, q| rn[3 * q + c], 3, false)),
-                    _ => None,
-                };
-                rec_sums.push((rgb, nrm, msk));
-                Some(rgb as f32)
+                let r = reconstruction_l1(&sample, &rgb, &mask, fnrm.as_deref(), res, &src);
+                rec_sums.push(r);
+                Some(r.0 as f32)
             }
             None => None,
         };
@@ -387,83 +348,29 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
             subject,
             rgb_l1,
         });
-        let mut pixel_angle: Vec<Option<f32>> = vec![None; res * res];
-        if let (Some(rn), Some(fnrm)) = (&sample.normal, &fnrm) {
-            let both: Vec<bool> = fake.iter().zip(&real).map(|(f, r)| *f && *r).collect();
-            let inside = interior(&both, res, EDGE_BAND);
-            for p in 0..res * res {
-                if fake[p] && real[p] {
-                    let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
-                    let q = src(p);
-                    let b3 = [rn[3 * q], rn[3 * q + 1], rn[3 * q + 2]];
-                    let dot: f32 = a3.iter().zip(&b3).map(|(x, y)| x * y).sum();
-                    let la = a3.iter().map(|x| x * x).sum::<f32>().sqrt();
-                    let lb = b3.iter().map(|x| x * x).sum::<f32>().sqrt();
-                    if la > 1e-3 && lb > 1e-3 {
-                        let angle = (dot / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees();
+        let pixel_angle: Vec<Option<f32>> = match (&sample.normal, &fnrm) {
+            (Some(rn), Some(fnrm)) => normal_angles(rn, fnrm, &fake, &real, res, &src)
+                .into_iter()
+                .map(|a| {
+                    a.map(|(angle, inside)| {
                         angle_sum += angle as f64;
                         angle_n += 1;
-                        angles.push((angle, inside[p]));
-                        pixel_angle[p] = Some(angle);
-                    }
-                }
-            }
-        }
+                        angles.push((angle, inside));
+                        angle
+                    })
+                })
+                .collect(),
+            _ => vec![None; res * res],
+        };
         if let Some(dir) = &a.images {
-            let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
-            let real_rgb: Vec<f32> = (0..res * res * 3)
-                .map(|i| {
-                    let q = src(i / 3);
-                    let m = sample.mask[q];
-                    sample.rgb[3 * q + i % 3] * m + (1.0 - m)
-                })
-                .collect();
-            let overlay: Vec<f32> = (0..res * res * 3)
-                .map(|i| match (fake[i / 3], body[i / 3], i % 3) {
-                    (true, true, _) => 1.0,
-                    (true, false, c) => [0.9, 0.1, 0.1][c],
-                    (false, true, c) => [0.1, 0.3, 0.9][c],
-                    (false, false, _) => 0.0,
-                })
-                .collect();
-            // With normal maps, a fourth panel: the angle between the normals per pixel
-            // (white 0°, red from 45°; grey where only one image covers the pixel).
-            let heat: Vec<f32> = (0..res * res * 3)
-                .map(|i| match (pixel_angle[i / 3], fake[i / 3] || real[i / 3]) {
-                    (Some(a), _) => {
-                        let t = (a / 45.0).clamp(0.0, 1.0);
-                        [1.0 - 0.2 * t, 1.0 - t, 1.0 - t][i % 3]
-                    }
-                    (None, true) => 0.6,
-                    (None, false) => 0.0,
-                })
-                .collect();
-            let mut panels: Vec<&[f32]> = vec![&fake_rgb, &overlay, &real_rgb];
-            if fnrm.is_some() {
-                panels.push(&heat);
-            }
-            write_strip(&dir.join(format!("{k:02}.png")), &panels, res)?;
+            let views = StripViews { rgb: &rgb, fake: &fake, body: &body, real: &real, pixel_angle: &pixel_angle };
+            write_label_strip(&dir.join(format!("{k:02}.png")), &sample, &views, fnrm.is_some(), res, &src)?;
         }
         bar.inc(1);
     }
     bar.finish_and_clear();
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
-    let (fid, kid) = match &inception {
-        Some(net) => {
-            println!("FID/KID: Inception features of {} generated and {} data images…", fake_rgb.len(), real_rgb.len());
-            let ff = net.features(&fake_rgb, 4)?;
-            let fr = net.features(&real_rgb, 4)?;
-            let fid = crate::fid::fid(&fr, &ff)?;
-            let kid = crate::fid::kid(&fr, &ff, 100, 1000, a.seed)?;
-            (Some(fid as f32), Some(kid as f32))
-        }
-        None => {
-            println!(
-                "FID/KID: not computed (pass --inception with the pt_inception-2015-12-05 weights as safetensors; tools/inception_weights.py converts the .pth)"
-            );
-            (None, None)
-        }
-    };
+    let (fid, kid) = fid_kid(inception.as_ref(), &fake_rgb, &real_rgb, a.seed)?;
     Ok(EvalReport {
         labels: count,
         resolution: res,
@@ -486,6 +393,173 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
         }),
         per_label,
     })
+}
+
+/// With `--subject-codes`, each dataset entry's subject (checked against the checkpoint's
+/// latent modes); else None.
+fn eval_subjects(a: &EvalArgs, ds: &Dataset, modes: Option<&LatentModes>) -> Result<Option<Vec<usize>>> {
+    if !a.subject_codes {
+        return Ok(None);
+    }
+    {
+        let Some(m) = modes else {
+            bail!("--subject-codes needs a checkpoint with latent modes (a reconstruction or anchored run's); this one has none");
+        };
+        let subjects = crate::train::subject_of_entries(ds);
+        let n = subjects.iter().max().map_or(0, |s| s + 1);
+        if n > m.count() {
+            bail!(
+                "--subject-codes: {} holds {n} subjects but the checkpoint has codes for {}; use the run's training data (or its first subjects)",
+                a.data.display(),
+                m.count()
+            );
+        }
+        Ok(Some(subjects))
+    }
+}
+
+/// Mean L1 of the render against the data image (RGB, normal where both have them, mask),
+/// each scaled to [0, 1]: renders are in [-1, 1] (mask too), the data in [0, 1]; normals are
+/// unit vectors in both, so their difference is halved like the others'.
+fn reconstruction_l1(
+    sample: &Sample,
+    rgb: &[f32],
+    mask: &[f32],
+    fnrm: Option<&[f32]>,
+    res: usize,
+    src: &dyn Fn(usize) -> usize,
+) -> (f64, Option<f64>, f64) {
+    let n = (res * res) as f64;
+    let chw_l1 = |fake: &[f32], real: &dyn Fn(usize, usize) -> f32, ch: usize, to01: bool| -> f64 {
+        let mut sum = 0f64;
+        for c in 0..ch {
+            for p in 0..res * res {
+                let v = fake[c * res * res + p];
+                let v = if to01 { v * 0.5 + 0.5 } else { v };
+                sum += (v - real(c, src(p))).abs() as f64;
+            }
+        }
+        let d = sum / (n * ch as f64);
+        if to01 {
+            d
+        } else {
+            d / 2.0
+        }
+    };
+    let rgb = chw_l1(rgb, &|c, q| sample.rgb[3 * q + c], 3, true);
+    let msk = chw_l1(mask, &|_, q| sample.mask[q], 1, true);
+    let nrm = match (fnrm, &sample.normal) {
+        (Some(fnrm), Some(rn)) => Some(chw_l1(fnrm, &|c, q| rn[3 * q + c], 3, false)),
+        _ => None,
+    };
+    (rgb, nrm, msk)
+}
+
+/// Per pixel covered by both the render and the data, the angle between their normals in
+/// degrees and whether the pixel is inside both silhouettes by [`EDGE_BAND`] pixels.
+fn normal_angles(
+    rn: &[f32],
+    fnrm: &[f32],
+    fake: &[bool],
+    real: &[bool],
+    res: usize,
+    src: &dyn Fn(usize) -> usize,
+) -> Vec<Option<(f32, bool)>> {
+    let both: Vec<bool> = fake.iter().zip(real).map(|(f, r)| *f && *r).collect();
+    let inside = interior(&both, res, EDGE_BAND);
+    (0..res * res)
+        .map(|p| {
+            if !(fake[p] && real[p]) {
+                return None;
+            }
+            let a3 = [fnrm[p], fnrm[res * res + p], fnrm[2 * res * res + p]];
+            let q = src(p);
+            let b3 = [rn[3 * q], rn[3 * q + 1], rn[3 * q + 2]];
+            let dot: f32 = a3.iter().zip(&b3).map(|(x, y)| x * y).sum();
+            let la = a3.iter().map(|x| x * x).sum::<f32>().sqrt();
+            let lb = b3.iter().map(|x| x * x).sum::<f32>().sqrt();
+            (la > 1e-3 && lb > 1e-3).then(|| ((dot / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees(), inside[p]))
+        })
+        .collect()
+}
+
+/// FID and KID of the renders against the data images, with the Inception network given.
+fn fid_kid(
+    inception: Option<&crate::inception::Inception>,
+    fake_rgb: &[ImageChw],
+    real_rgb: &[ImageChw],
+    seed: u64,
+) -> Result<(Option<f32>, Option<f32>)> {
+    match inception {
+        Some(net) => {
+            println!("FID/KID: Inception features of {} generated and {} data images…", fake_rgb.len(), real_rgb.len());
+            let ff = net.features(fake_rgb, 4)?;
+            let fr = net.features(real_rgb, 4)?;
+            let fid = crate::fid::fid(&fr, &ff)?;
+            let kid = crate::fid::kid(&fr, &ff, 100, 1000, seed)?;
+            Ok((Some(fid as f32), Some(kid as f32)))
+        }
+        None => {
+            println!(
+            "FID/KID: not computed (pass --inception with the pt_inception-2015-12-05 weights as safetensors; tools/inception_weights.py converts the .pth)"
+        );
+            Ok((None, None))
+        }
+    }
+}
+
+/// The render and its figures at one label, for the PNG strip.
+struct StripViews<'a> {
+    /// The render's RGB, `[3, res, res]` in [-1, 1].
+    rgb: &'a [f32],
+    fake: &'a [bool],
+    body: &'a [bool],
+    real: &'a [bool],
+    pixel_angle: &'a [Option<f32>],
+}
+
+/// One label's strip: render | render vs body silhouette | data (| normal angle heat map).
+fn write_label_strip(
+    path: &std::path::Path,
+    sample: &Sample,
+    v: &StripViews,
+    with_normals: bool,
+    res: usize,
+    src: &dyn Fn(usize) -> usize,
+) -> Result<()> {
+    let fake_rgb: Vec<f32> = (0..res * res * 3).map(|i| v.rgb[(i % 3) * res * res + i / 3] * 0.5 + 0.5).collect();
+    let real_rgb: Vec<f32> = (0..res * res * 3)
+        .map(|i| {
+            let q = src(i / 3);
+            let m = sample.mask[q];
+            sample.rgb[3 * q + i % 3] * m + (1.0 - m)
+        })
+        .collect();
+    let overlay: Vec<f32> = (0..res * res * 3)
+        .map(|i| match (v.fake[i / 3], v.body[i / 3], i % 3) {
+            (true, true, _) => 1.0,
+            (true, false, c) => [0.9, 0.1, 0.1][c],
+            (false, true, c) => [0.1, 0.3, 0.9][c],
+            (false, false, _) => 0.0,
+        })
+        .collect();
+    // With normal maps, a fourth panel: the angle between the normals per pixel
+    // (white 0°, red from 45°; grey where only one image covers the pixel).
+    let heat: Vec<f32> = (0..res * res * 3)
+        .map(|i| match (v.pixel_angle[i / 3], v.fake[i / 3] || v.real[i / 3]) {
+            (Some(a), _) => {
+                let t = (a / 45.0).clamp(0.0, 1.0);
+                [1.0 - 0.2 * t, 1.0 - t, 1.0 - t][i % 3]
+            }
+            (None, true) => 0.6,
+            (None, false) => 0.0,
+        })
+        .collect();
+    let mut panels: Vec<&[f32]> = vec![&fake_rgb, &overlay, &real_rgb];
+    if with_normals {
+        panels.push(&heat);
+    }
+    write_strip(path, &panels, res)
 }
 
 /// Interleaved RGB images in [0, 1] (`res²·3` each) side by side as one PNG.
