@@ -323,7 +323,7 @@ pub fn convert(wheel: &Path, out: &Path) -> Result<ConvertReport> {
     })
 }
 
-/// 1. The body group's triangles (polygons fanned) over body vertices and UVs.
+/// Step 1: The body group's triangles (polygons fanned) over body vertices and UVs.
 fn body_group(obj: &Obj) -> Result<BodyGroup> {
     let body_faces = obj.groups.get("body").ok_or_else(|| anyhow!("base.obj has no `body` group"))?;
     let mut g =
@@ -349,7 +349,7 @@ fn body_group(obj: &Obj) -> Result<BodyGroup> {
     Ok(g)
 }
 
-/// 2. Each SMPL joint's base.obj vertices (a helper cube's, or the rig's list): the joint is
+/// Step 2: Each SMPL joint's base.obj vertices (a helper cube's, or the rig's list): the joint is
 /// their mean.
 fn joint_vertex_sets(obj: &Obj, rig: &serde_json::Value) -> Result<Vec<Vec<usize>>> {
     let cube_vertices = |name: &str| -> Result<Vec<usize>> {
@@ -384,7 +384,7 @@ fn joints_of(joint_sets: &[Vec<usize>], pos: &dyn Fn(usize) -> DVec3) -> Vec<DVe
     joint_sets.iter().map(|s| s.iter().map(|&i| pos(i)).sum::<DVec3>() / s.len() as f64).collect()
 }
 
-/// 3. The shape components and their directions over all base.obj vertices, decimetres.
+/// Step 3: The shape components and their directions over all base.obj vertices, decimetres.
 type ShapeDirections = (Vec<(&'static str, Vec<String>, Vec<String>)>, Vec<Vec<DVec3>>);
 
 fn shape_directions(zip: &mut zip::ZipArchive<std::fs::File>, nv_all: usize) -> Result<ShapeDirections> {
@@ -445,7 +445,7 @@ fn skin_weights(
     Ok(weights)
 }
 
-/// 4. J_regressor `[24 × body vertices]`: per joint, K nearest body vertices; least squares
+/// Step 4: J_regressor `[24 × body vertices]`: per joint, K nearest body vertices; least squares
 /// over the base and ±1.5 along every shape direction, ridge towards uniform weights, rows
 /// summing to 1. Also the worst joint error over those samples, metres.
 fn joint_regressor(
@@ -514,7 +514,7 @@ fn regress(j_regressor: &[f64], verts: &[DVec3]) -> Vec<DVec3> {
         .collect()
 }
 
-/// 5. Re-pose into SMPL's T-pose (upper arm, forearm and hand along ±x, thighs and shins along
+/// Step 5: Re-pose into SMPL's T-pose (upper arm, forearm and hand along ±x, thighs and shins along
 /// −y) with the pelvis where SMPL's neutral template has it (x = z = 0, y = −0.22 m): the
 /// template's vertices, each vertex's re-pose rotation, and the weights as f32.
 type TPose = (Vec<DVec3>, Vec<DMat3>, Vec<[f32; NUM_JOINTS]>);

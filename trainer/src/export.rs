@@ -14,12 +14,17 @@ use getavatar_core::body::humanoid::{SkeletonNames, HUMANOID_BONES};
 use getavatar_core::body::motion::{Motion, BUILTIN_CLIPS};
 use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::body::skinning::{forward_kinematics, pose_body, vertex_normals, BodyParams};
+use getavatar_core::burn::tensor::Device;
 use getavatar_core::export::gltf_export::{write_glb, ExportMesh};
 use getavatar_core::export::skin_export::{animated_body_glb, body_vrm, motion_vrma, vrm_frame};
 use getavatar_core::export::vrm_export::{AvatarOrigin, VrmMeta};
+use getavatar_core::generator::checkpoint::InvertedAvatar;
+use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::pipeline::{Generator, Styles};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::generator::rigging::{generate_rigged_async, BakedTexture, RiggedAvatar};
+use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
 use crate::model_io::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
 
@@ -228,171 +233,18 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         None => None,
     };
     let photo = inverted.as_ref().and_then(|(inv, _)| inv.photo.clone());
-    let params: BodyParams = match (&a.fit, &a.pose, &photo) {
-        (Some(f), _, _) => {
-            let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
-            let fit = BodyFit::from_json(&text)
-                .map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", f.display()))?;
-            let mut p = fit.body_params();
-            p.betas.truncate(model.num_betas);
-            p
-        }
-        // The photo's pose and shape.
-        (None, None, Some(photo)) => photo.view.body.clone(),
-        (None, pose, _) => {
-            let pose = pose.as_deref().unwrap_or("standing");
-            let lib = PoseLibrary::builtin();
-            let mut p = lib.params(pose, &[]).with_context(|| {
-                format!("unknown pose `{pose}`; available: {}", lib.names().collect::<Vec<_>>().join(", "))
-            })?;
-            // An inverted avatar keeps the body shape of its photo.
-            if let Some(photo) = &photo {
-                p.betas = photo.view.body.betas.clone();
-            }
-            p
-        }
-    };
+    let params = export_params(a, &model, photo.as_ref())?;
     let motions = a.motions.iter().map(|m| load_motion(m)).collect::<Result<Vec<_>>>()?;
-    let vrm = match a.format {
-        Format::Vrma => return export_vrma(a, &model, &params, &motions),
-        Format::Vrm if !motions.is_empty() => {
-            bail!("a .vrm holds no animations (VRM keeps them in .vrma files): export the motions with --format vrma")
-        }
-        Format::Vrm if a.r#static || a.pose.is_some() => {
-            bail!("a .vrm shows its rest T-pose: --static and --pose do not apply (--fit gives the body shape)")
-        }
-        Format::Vrm => {
-            let origin = if a.body_only {
-                AvatarOrigin::Body
-            } else if a.inverted.is_some() {
-                AvatarOrigin::Photo
-            } else {
-                AvatarOrigin::Generated
-            };
-            let name = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
-            Some(VrmMeta { name, origin })
-        }
-        Format::Glb => None,
-    };
+    if a.format == Format::Vrma {
+        return export_vrma(a, &model, &params, &motions);
+    }
+    let vrm = vrm_meta(a, &motions)?;
     let stem = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
-    let mut expected: Option<serde_json::Value> = None;
-    let (glb, what) = if a.body_only {
-        if let Some(meta) = &vrm {
-            if a.frames_json.is_some() {
-                expected = Some(vrm_rest_json(&model, &params.betas, vrm_frame(&model, &params.betas)?.offset));
-            }
-            (
-                body_vrm(&model, &params.betas, meta, a.skeleton)?,
-                format!("the body as VRM 1.0, {} vertices", model.num_vertices()),
-            )
-        } else if a.r#static {
-            let posed = pose_body(&model, &params);
-            let mesh = ExportMesh {
-                normals: vertex_normals(&posed.vertices, &model.faces),
-                positions: posed.vertices,
-                indices: model.faces.clone(),
-                name: stem,
-                ..Default::default()
-            };
-            (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
-        } else {
-            if a.frames_json.is_some() {
-                expected =
-                    Some(frames_json(&motions, |p| flat(&pose_body(&model, p).vertices), "positions", &params.betas));
-            }
-            (
-                animated_body_glb(&model, &params, &motions, &stem, a.skeleton)?,
-                format!("the body, {} vertices", model.num_vertices()),
-            )
-        }
+    let job = Job { a, params: &params, motions: &motions, vrm: vrm.as_ref(), stem };
+    let Exported { glb, what, expected } = if a.body_only {
+        export_body(&job, &model)?
     } else {
-        let (cfg, g, styles) = match inverted {
-            Some((inv, cfg)) => (cfg, inv.generator, inv.styles),
-            None => {
-                let (cfg, g, modes) = a.model.load(&device)?;
-                if a.psi.is_some_and(|p| !p.is_finite()) {
-                    bail!("--psi must be a number");
-                }
-                let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, &device);
-                (cfg, g, styles)
-            }
-        };
-        let ctx = BodyContext::new(model, &cfg);
-        let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &device))?;
-        if rigged.canonical.mesh.faces.is_empty() {
-            bail!("the generator produced an empty surface");
-        }
-        let n = rigged.canonical.mesh.vertices.len();
-        let tb = std::time::Instant::now();
-        let texture = if a.texture_res > 0 {
-            let planes = g.triplanes(&styles);
-            let projection = match (&photo, a.no_projection) {
-                (Some(p), false) => Some((rigged.photo_projection(&ctx, p), &p.view.body)),
-                _ => None,
-            };
-            let bake = rigged.bake_texture_photo_async(
-                &g,
-                &planes,
-                &styles,
-                &ctx,
-                a.texture_res,
-                projection.as_ref().map(|(p, b)| (p, *b)),
-                &device,
-            );
-            let t = block_on_ready(bake).context("baking the texture")?;
-            if projection.is_some() {
-                eprintln!("the photo's colours projected onto the texture (--no-projection leaves them off)");
-            }
-            eprintln!(
-                "texture {r}²: {} atlas vertices ({} avatar vertices), triangles {} on the body's layout, {} across its seams, {} in their own charts; {:.0} % of the texels covered; {:.2} s",
-                t.atlas.source.len(),
-                n,
-                t.atlas.body_faces,
-                t.atlas.seam_faces,
-                t.atlas.own_chart_faces,
-                100.0 * t.covered as f64 / (t.res * t.res) as f64,
-                tb.elapsed().as_secs_f64(),
-                r = t.res
-            );
-            Some(t)
-        } else {
-            None
-        };
-        if a.obj {
-            let (positions, normals) = rigged.repose(&ctx, &pose_body(&ctx.model, &params));
-            write_obj_files(&a.out, &positions, &normals, &rigged, texture.as_ref())?;
-        }
-        let order: Vec<u32> = match &texture {
-            Some(t) => t.atlas.source.clone(),
-            None => (0..n as u32).collect(),
-        };
-        if let Some(meta) = &vrm {
-            if a.frames_json.is_some() {
-                let offset = rigged.vrm_frame(&ctx, &params.betas)?.offset;
-                expected = Some(vrm_rest_json(&ctx.model, &params.betas, offset));
-            }
-            (
-                rigged.vrm(&ctx, &params.betas, texture.as_ref(), meta, a.skeleton)?,
-                format!("{} as VRM 1.0, {n} vertices", what_avatar(a)),
-            )
-        } else if a.r#static {
-            (
-                rigged.posed_glb(&ctx, &params, texture.as_ref(), &stem)?,
-                format!("{}, static, {n} vertices", what_avatar(a)),
-            )
-        } else {
-            if a.frames_json.is_some() {
-                let at = |p: &BodyParams| {
-                    let v = rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
-                    flat(&order.iter().map(|i| v[*i as usize]).collect::<Vec<_>>())
-                };
-                expected = Some(frames_json(&motions, at, "positions", &params.betas));
-            }
-            (
-                rigged.animated_glb(&ctx, &params, &motions, texture.as_ref(), &stem, a.skeleton)?,
-                format!("{}, {n} vertices", what_avatar(a)),
-            )
-        }
+        export_avatar(&job, model, inverted, photo.as_ref(), &device)?
     };
     crate::atomic::write_atomic(&a.out, &glb)?;
     if let (Some(path), Some(json)) = (&a.frames_json, expected) {
@@ -416,6 +268,222 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// The pose and shape shown: `--fit`'s, the photo's, or a named pose (with the photo's shape).
+fn export_params(a: &ExportArgs, model: &BodyModel, photo: Option<&SourcePhoto>) -> Result<BodyParams> {
+    Ok(match (&a.fit, &a.pose, photo) {
+        (Some(f), _, _) => {
+            let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+            let fit = BodyFit::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("{} is not a usable fit.json: {e}", f.display()))?;
+            let mut p = fit.body_params();
+            p.betas.truncate(model.num_betas);
+            p
+        }
+        // The photo's pose and shape.
+        (None, None, Some(photo)) => photo.view.body.clone(),
+        (None, pose, _) => {
+            let pose = pose.as_deref().unwrap_or("standing");
+            let lib = PoseLibrary::builtin();
+            let mut p = lib.params(pose, &[]).with_context(|| {
+                format!("unknown pose `{pose}`; available: {}", lib.names().collect::<Vec<_>>().join(", "))
+            })?;
+            // An inverted avatar keeps the body shape of its photo.
+            if let Some(photo) = &photo {
+                p.betas = photo.view.body.betas.clone();
+            }
+            p
+        }
+    })
+}
+
+/// With `--format vrm`, the avatar's VRM meta (refusing what a .vrm cannot hold).
+fn vrm_meta(a: &ExportArgs, motions: &[Motion]) -> Result<Option<VrmMeta>> {
+    Ok(match a.format {
+        Format::Vrma | Format::Glb => None,
+        Format::Vrm if !motions.is_empty() => {
+            bail!("a .vrm holds no animations (VRM keeps them in .vrma files): export the motions with --format vrma")
+        }
+        Format::Vrm if a.r#static || a.pose.is_some() => {
+            bail!("a .vrm shows its rest T-pose: --static and --pose do not apply (--fit gives the body shape)")
+        }
+        Format::Vrm => {
+            let origin = if a.body_only {
+                AvatarOrigin::Body
+            } else if a.inverted.is_some() {
+                AvatarOrigin::Photo
+            } else {
+                AvatarOrigin::Generated
+            };
+            let name = a.out.file_stem().map_or_else(|| "avatar".into(), |s| s.to_string_lossy().into_owned());
+            Some(VrmMeta { name, origin })
+        }
+    })
+}
+
+/// One export's settings, shared by the body's and the avatar's.
+struct Job<'a> {
+    a: &'a ExportArgs,
+    params: &'a BodyParams,
+    motions: &'a [Motion],
+    vrm: Option<&'a VrmMeta>,
+    stem: String,
+}
+
+/// The file's bytes, what it holds in words, and with `--frames-json` the expected figures.
+struct Exported {
+    glb: Vec<u8>,
+    what: String,
+    expected: Option<serde_json::Value>,
+}
+
+/// `--body-only`: the body as .vrm, static .glb or animated .glb.
+fn export_body(job: &Job, model: &BodyModel) -> Result<Exported> {
+    let Job { a, params, motions, vrm, stem } = job;
+    let mut expected: Option<serde_json::Value> = None;
+    let (glb, what) = if let Some(meta) = vrm {
+        if a.frames_json.is_some() {
+            expected = Some(vrm_rest_json(model, &params.betas, vrm_frame(model, &params.betas)?.offset));
+        }
+        (
+            body_vrm(model, &params.betas, meta, a.skeleton)?,
+            format!("the body as VRM 1.0, {} vertices", model.num_vertices()),
+        )
+    } else if a.r#static {
+        let posed = pose_body(model, params);
+        let mesh = ExportMesh {
+            normals: vertex_normals(&posed.vertices, &model.faces),
+            positions: posed.vertices,
+            indices: model.faces.clone(),
+            name: stem.clone(),
+            ..Default::default()
+        };
+        (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
+    } else {
+        if a.frames_json.is_some() {
+            expected =
+                Some(frames_json(motions, |p| flat(&pose_body(model, p).vertices), "positions", &params.betas));
+        }
+        (
+            animated_body_glb(model, params, motions, stem, a.skeleton)?,
+            format!("the body, {} vertices", model.num_vertices()),
+        )
+    };
+    Ok(Exported { glb, what, expected })
+}
+
+/// The generated or inverted avatar as .vrm, static .glb or animated .glb (and `--obj`).
+fn export_avatar(
+    job: &Job,
+    model: BodyModel,
+    inverted: Option<(InvertedAvatar, GeneratorConfig)>,
+    photo: Option<&SourcePhoto>,
+    device: &Device,
+) -> Result<Exported> {
+    let Job { a, params, motions, vrm, stem } = job;
+    let mut expected: Option<serde_json::Value> = None;
+    let (cfg, g, styles) = match inverted {
+        Some((inv, cfg)) => (cfg, inv.generator, inv.styles),
+        None => {
+            let (cfg, g, modes) = a.model.load(device)?;
+            if a.psi.is_some_and(|p| !p.is_finite()) {
+                bail!("--psi must be a number");
+            }
+            let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, device);
+            (cfg, g, styles)
+        }
+    };
+    let ctx = BodyContext::new(model, &cfg);
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, device))?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        bail!("the generator produced an empty surface");
+    }
+    let n = rigged.canonical.mesh.vertices.len();
+    let texture = bake_texture(a, &rigged, &g, &styles, &ctx, photo, device)?;
+    if a.obj {
+        let (positions, normals) = rigged.repose(&ctx, &pose_body(&ctx.model, params));
+        write_obj_files(&a.out, &positions, &normals, &rigged, texture.as_ref())?;
+    }
+    let order: Vec<u32> = match &texture {
+        Some(t) => t.atlas.source.clone(),
+        None => (0..n as u32).collect(),
+    };
+    let (glb, what) = if let Some(meta) = vrm {
+        if a.frames_json.is_some() {
+            let offset = rigged.vrm_frame(&ctx, &params.betas)?.offset;
+            expected = Some(vrm_rest_json(&ctx.model, &params.betas, offset));
+        }
+        (
+            rigged.vrm(&ctx, &params.betas, texture.as_ref(), meta, a.skeleton)?,
+            format!("{} as VRM 1.0, {n} vertices", what_avatar(a)),
+        )
+    } else if a.r#static {
+        (rigged.posed_glb(&ctx, params, texture.as_ref(), stem)?, format!("{}, static, {n} vertices", what_avatar(a)))
+    } else {
+        if a.frames_json.is_some() {
+            let at = |p: &BodyParams| {
+                let v = rigged.repose(&ctx, &pose_body(&ctx.model, p)).0;
+                flat(&order.iter().map(|i| v[*i as usize]).collect::<Vec<_>>())
+            };
+            expected = Some(frames_json(motions, at, "positions", &params.betas));
+        }
+        (
+            rigged.animated_glb(&ctx, params, motions, texture.as_ref(), stem, a.skeleton)?,
+            format!("{}, {n} vertices", what_avatar(a)),
+        )
+    };
+    Ok(Exported { glb, what, expected })
+}
+
+/// The avatar's texture baked at `--texture-res` (None: 0, vertex colours), with the photo's
+/// colours projected where it has one (unless `--no-projection`).
+fn bake_texture(
+    a: &ExportArgs,
+    rigged: &RiggedAvatar,
+    g: &Generator,
+    styles: &Styles,
+    ctx: &BodyContext,
+    photo: Option<&SourcePhoto>,
+    device: &Device,
+) -> Result<Option<BakedTexture>> {
+    let n = rigged.canonical.mesh.vertices.len();
+    let tb = std::time::Instant::now();
+    let texture = if a.texture_res > 0 {
+        let planes = g.triplanes(styles);
+        let projection = match (&photo, a.no_projection) {
+            (Some(p), false) => Some((rigged.photo_projection(ctx, p), &p.view.body)),
+            _ => None,
+        };
+        let bake = rigged.bake_texture_photo_async(
+            g,
+            &planes,
+            styles,
+            ctx,
+            a.texture_res,
+            projection.as_ref().map(|(p, b)| (p, *b)),
+            device,
+        );
+        let t = block_on_ready(bake).context("baking the texture")?;
+        if projection.is_some() {
+            eprintln!("the photo's colours projected onto the texture (--no-projection leaves them off)");
+        }
+        eprintln!(
+            "texture {r}²: {} atlas vertices ({} avatar vertices), triangles {} on the body's layout, {} across its seams, {} in their own charts; {:.0} % of the texels covered; {:.2} s",
+            t.atlas.source.len(),
+            n,
+            t.atlas.body_faces,
+            t.atlas.seam_faces,
+            t.atlas.own_chart_faces,
+            100.0 * t.covered as f64 / (t.res * t.res) as f64,
+            tb.elapsed().as_secs_f64(),
+            r = t.res
+        );
+        Some(t)
+    } else {
+        None
+    };
+    Ok(texture)
 }
 
 /// OBJ + MTL + PNG beside `out` (same stem): the avatar in the pose shown, with the baked

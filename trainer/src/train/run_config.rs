@@ -397,7 +397,7 @@ impl RunConfig {
         let text = std::fs::read_to_string(run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
         let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
-        let conflicts = rc.resume_conflicts(&a);
+        let conflicts = rc.resume_conflicts(a);
         if !conflicts.is_empty() {
             bail!(
                 "{}: a continued run keeps its settings (edit them in {} to change them)",

@@ -117,3 +117,57 @@ pub(crate) fn canonical_scan_samples(
 
 /// Seed offset of the face pools' random stream.
 const FACE_STREAM: u64 = 0xface;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use getavatar_core::generator::network::GeneratorConfig;
+
+    /// The face pool of a synthetic scan holds its face: eye whites on both sides of the
+    /// nose, dark pupils, and nothing far from the canonical face.
+    #[test]
+    fn face_pools_hold_the_synthetic_scans_eyes() {
+        use getavatar_core::io::scan::{sample_surface, RenderableScan};
+        let dir = tempfile::tempdir().unwrap();
+        let args = crate::synth_scans::SynthArgs {
+            out: dir.path().into(),
+            count: 1,
+            seed: 0,
+            threads: 1,
+            texture_size: 1024,
+            pose: None,
+        };
+        crate::synth_scans::synth_scans(&args).unwrap();
+        let (name, obj) = find_scans(dir.path()).unwrap().into_iter().next().unwrap();
+        let (scan, smpl) = (load_scan(&obj).unwrap(), load_body_fit(&name, &obj, None).unwrap());
+        let prepared = RenderableScan::new(&scan, &smpl);
+        let model = getavatar_core::body::body_model::BodyModel::default_body().unwrap();
+        let ctx = BodyContext::new(model, &GeneratorConfig::tiny());
+        let region = FaceRegion::of(&ctx).unwrap();
+        // The body frame has the fit's translation taken out (`SmplParams::scan_to_body`), and
+        // the dataset's labels, which the training carries points with, have none.
+        let params = getavatar_core::body::skinning::BodyParams { transl: glam::Vec3::ZERO, ..smpl.body_params() };
+        let n = 4096;
+        let face = CanonicalSamples::face_of(&scan, &prepared, &ctx, &params, &region, n, &mut Rng::new(0, 1));
+        assert_eq!(face.len(), n);
+        // Points lie in triangles whose centroid is in the region: within a triangle's size.
+        for p in &face.points {
+            let d = *p - region.nose;
+            assert!(d.x.abs() < 0.09 && d.y > -0.09 && d.y < 0.1 && d.z > -0.085, "{d} from the nose");
+        }
+        // The scans' eye white is a grey 0.92 (linear); the pupils are 0.05–0.08.
+        let white = |c: &glam::Vec3| c.min_element() > 0.8 && c.max_element() - c.min_element() < 0.05;
+        let sides: Vec<f32> =
+            face.points.iter().zip(&face.colors).filter(|(_, c)| white(c)).map(|(p, _)| p.x).collect();
+        let (left, right) = (sides.iter().filter(|&&x| x > region.nose.x).count(), sides.len());
+        let right = right - left;
+        assert!(left >= n / 400 && right >= n / 400, "eye-white points: {left} left, {right} right of {n}");
+        let dark = face.colors.iter().filter(|c| c.max_element() < 0.1).count();
+        assert!(dark >= n / 1000, "{dark} pupil points of {n}");
+        // Drawn uniformly over the whole scan, few points land on the face at all.
+        let all =
+            CanonicalSamples::from_surface(&sample_surface(&scan, &prepared, n, &mut Rng::new(0, 2)), &ctx, &params);
+        let on_face = all.points.iter().filter(|p| region.contains(**p)).count();
+        assert!(on_face * 20 < n, "{on_face} of {n} uniform points on the face");
+    }
+}
