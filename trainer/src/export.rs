@@ -362,8 +362,7 @@ fn export_body(job: &Job, model: &BodyModel) -> Result<Exported> {
         (write_glb(&mesh)?, format!("the body, static, {} vertices", model.num_vertices()))
     } else {
         if a.frames_json.is_some() {
-            expected =
-                Some(frames_json(motions, |p| flat(&pose_body(model, p).vertices), "positions", &params.betas));
+            expected = Some(frames_json(motions, |p| flat(&pose_body(model, p).vertices), "positions", &params.betas));
         }
         (
             animated_body_glb(model, params, motions, stem, a.skeleton)?,

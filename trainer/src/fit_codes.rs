@@ -138,25 +138,7 @@ const SURFACES_FORMAT: &str = "getavatar-fit-codes-surfaces-1";
 const WARMUP_STEPS: f32 = 20.0;
 
 pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
-    if a.batch == 0 || a.points == 0 || a.pool == 0 || a.steps == 0 || a.snapshot_every == 0 {
-        bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
-    }
-    let finite_at_least = |x: f32, low: f32| x >= low && x.is_finite();
-    if !(finite_at_least(a.lr, 0.0)
-        && (a.lr > 0.0 || a.lr_texture > 0.0)
-        && finite_at_least(a.lambda_reg, 0.0)
-        && finite_at_least(a.lr_texture, 0.0)
-        && finite_at_least(a.lambda_texture_swap, 0.0)
-        && finite_at_least(a.lambda_face, 0.0))
-    {
-        bail!("--lr and --lr-texture must be finite rates ≥ 0, not both 0; --lambda-reg, --lambda-texture-swap and --lambda-face finite weights ≥ 0");
-    }
-    if (a.face_only || a.face_res.is_some()) && a.lr_texture <= 0.0 {
-        bail!("--face-res and --face-only need --lr-texture > 0 (the rate the face plane learns at)");
-    }
-    if a.lambda_face > 0.0 && (a.scans.is_none() || a.face_points == 0) {
-        bail!("--lambda-face needs --scans (the training scans) and --face-points ≥ 1");
-    }
+    check_args(a)?;
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     #[allow(deprecated)]
     let plain = Device::ndarray();
@@ -247,59 +229,10 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         write_atomic(&a.out.join("generator.safetensors"), &bytes)
     };
     while fit.step < a.steps {
+        let (next, figures) = fit_step(a, fit, &pools, &faces, &modes_geo, &modes_tex, (n, nt, w_dim), &ad)?;
+        fit = next;
+        let StepFigures { l1, reg, swap, face, drawn, warm } = figures;
         let step = fit.step;
-        // Each subject equally often: the steps walk through a shuffled order of them.
-        let per = a.batch.min(n);
-        let drawn: Vec<usize> =
-            (0..per).map(|i| order(n, a.seed, (step * per + i) / n)[(step * per + i) % n]).collect();
-        let rng = &mut fit.rng;
-        let batch: Vec<(&CanonicalSamples, Vec<usize>)> = drawn
-            .iter()
-            .map(|&s| (&pools[s], (0..a.points).map(|_| rng.below(pools[s].points.len())).collect()))
-            .collect();
-        let idx: Vec<i64> = drawn.iter().map(|&s| s as i64).collect();
-        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [per]), &ad);
-        let offsets = fit.codes.tex.val().select(0, idx.clone());
-        let base = fit.g.styles_from_w(modes_geo.clone().select(0, idx.clone()), modes_tex.clone().select(0, idx));
-        let styles = Styles { geo: base.geo, tex: base.tex + offsets.clone().reshape([per, nt, w_dim]) };
-        let planes = fit.g.triplanes(&styles);
-        let l1 = texture_loss(&fit.g, &planes, &styles, &batch, &ad);
-        let reg = offsets.powf_scalar(2.0).mean();
-        let mut loss = l1.clone() + reg.clone() * a.lambda_reg;
-        let swap = (a.lambda_texture_swap > 0.0 && per > 1).then(|| {
-            // The next drawn subject's geometry styles under each subject's texture styles.
-            let geo =
-                Tensor::cat(vec![styles.geo.clone().narrow(0, 1, per - 1), styles.geo.clone().narrow(0, 0, 1)], 0);
-            let swapped = Styles { geo, tex: styles.tex.clone() };
-            texture_loss(&fit.g, &fit.g.triplanes(&swapped), &swapped, &batch, &ad)
-        });
-        if let Some(t) = &swap {
-            loss = loss + t.clone() * a.lambda_texture_swap;
-        }
-        let face = (!faces.is_empty()).then(|| {
-            let rng = &mut fit.rng;
-            let batch: Vec<(&CanonicalSamples, Vec<usize>)> = drawn
-                .iter()
-                .map(|&s| (&faces[s], (0..a.face_points).map(|_| rng.below(faces[s].points.len())).collect()))
-                .collect();
-            texture_loss(&fit.g, &planes, &styles, &batch, &ad)
-        });
-        if let Some(t) = &face {
-            loss = loss + t.clone() * a.lambda_face;
-        }
-        let grads = loss.backward();
-        let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
-        if a.lr > 0.0 {
-            fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
-        }
-        if a.lr_texture > 0.0 {
-            fit.g = fit.adam_g.step(a.lr_texture * warm, fit.g, &grads);
-        }
-        fit.step += 1;
-        let step = fit.step;
-        let (l1, reg) = (read_f32_now(l1)?[0], read_f32_now(reg)?[0]);
-        let swap = swap.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
-        let face = face.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
         if !l1.is_finite() {
             bail!("step {step}: non-finite loss; the last snapshot is intact");
         }
@@ -323,6 +256,105 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
         a.out.join("generator.safetensors").display()
     );
     Ok(())
+}
+
+/// The flags' values checked before any work.
+fn check_args(a: &FitCodesArgs) -> Result<()> {
+    if a.batch == 0 || a.points == 0 || a.pool == 0 || a.steps == 0 || a.snapshot_every == 0 {
+        bail!("--batch, --points, --pool, --steps and --snapshot-every must be at least 1");
+    }
+    let finite_at_least = |x: f32, low: f32| x >= low && x.is_finite();
+    if !(finite_at_least(a.lr, 0.0)
+        && (a.lr > 0.0 || a.lr_texture > 0.0)
+        && finite_at_least(a.lambda_reg, 0.0)
+        && finite_at_least(a.lr_texture, 0.0)
+        && finite_at_least(a.lambda_texture_swap, 0.0)
+        && finite_at_least(a.lambda_face, 0.0))
+    {
+        bail!("--lr and --lr-texture must be finite rates ≥ 0, not both 0; --lambda-reg, --lambda-texture-swap and --lambda-face finite weights ≥ 0");
+    }
+    if (a.face_only || a.face_res.is_some()) && a.lr_texture <= 0.0 {
+        bail!("--face-res and --face-only need --lr-texture > 0 (the rate the face plane learns at)");
+    }
+    if a.lambda_face > 0.0 && (a.scans.is_none() || a.face_points == 0) {
+        bail!("--lambda-face needs --scans (the training scans) and --face-points ≥ 1");
+    }
+    Ok(())
+}
+
+/// One step's figures: L1, the offsets' regulariser, the swap and face terms where on, the
+/// subjects drawn and the warm-up factor of the rates.
+struct StepFigures {
+    l1: f32,
+    reg: f32,
+    swap: Option<f32>,
+    face: Option<f32>,
+    drawn: Vec<usize>,
+    warm: f32,
+}
+
+/// One step of the fit: draw subjects and points, the texture L1 (+ swap, face, regulariser),
+/// Adam on the codes (and the texture branch or face plane where it learns).
+#[allow(clippy::too_many_arguments)]
+fn fit_step(
+    a: &FitCodesArgs,
+    mut fit: FitState,
+    pools: &[CanonicalSamples],
+    faces: &[CanonicalSamples],
+    modes_geo: &Tensor<2>,
+    modes_tex: &Tensor<2>,
+    (n, nt, w_dim): (usize, usize, usize),
+    ad: &Device,
+) -> Result<(FitState, StepFigures)> {
+    let step = fit.step;
+    // Each subject equally often: the steps walk through a shuffled order of them.
+    let per = a.batch.min(n);
+    let drawn: Vec<usize> = (0..per).map(|i| order(n, a.seed, (step * per + i) / n)[(step * per + i) % n]).collect();
+    let rng = &mut fit.rng;
+    let batch: Vec<(&CanonicalSamples, Vec<usize>)> =
+        drawn.iter().map(|&s| (&pools[s], (0..a.points).map(|_| rng.below(pools[s].points.len())).collect())).collect();
+    let idx: Vec<i64> = drawn.iter().map(|&s| s as i64).collect();
+    let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [per]), ad);
+    let offsets = fit.codes.tex.val().select(0, idx.clone());
+    let base = fit.g.styles_from_w(modes_geo.clone().select(0, idx.clone()), modes_tex.clone().select(0, idx));
+    let styles = Styles { geo: base.geo, tex: base.tex + offsets.clone().reshape([per, nt, w_dim]) };
+    let planes = fit.g.triplanes(&styles);
+    let l1 = texture_loss(&fit.g, &planes, &styles, &batch, ad);
+    let reg = offsets.powf_scalar(2.0).mean();
+    let mut loss = l1.clone() + reg.clone() * a.lambda_reg;
+    let swap = (a.lambda_texture_swap > 0.0 && per > 1).then(|| {
+        // The next drawn subject's geometry styles under each subject's texture styles.
+        let geo = Tensor::cat(vec![styles.geo.clone().narrow(0, 1, per - 1), styles.geo.clone().narrow(0, 0, 1)], 0);
+        let swapped = Styles { geo, tex: styles.tex.clone() };
+        texture_loss(&fit.g, &fit.g.triplanes(&swapped), &swapped, &batch, ad)
+    });
+    if let Some(t) = &swap {
+        loss = loss + t.clone() * a.lambda_texture_swap;
+    }
+    let face = (!faces.is_empty()).then(|| {
+        let rng = &mut fit.rng;
+        let batch: Vec<(&CanonicalSamples, Vec<usize>)> = drawn
+            .iter()
+            .map(|&s| (&faces[s], (0..a.face_points).map(|_| rng.below(faces[s].points.len())).collect()))
+            .collect();
+        texture_loss(&fit.g, &planes, &styles, &batch, ad)
+    });
+    if let Some(t) = &face {
+        loss = loss + t.clone() * a.lambda_face;
+    }
+    let grads = loss.backward();
+    let warm = ((step + 1) as f32 / WARMUP_STEPS).min(1.0);
+    if a.lr > 0.0 {
+        fit.codes = fit.adam.step(a.lr * warm, fit.codes, &grads);
+    }
+    if a.lr_texture > 0.0 {
+        fit.g = fit.adam_g.step(a.lr_texture * warm, fit.g, &grads);
+    }
+    fit.step += 1;
+    let (l1, reg) = (read_f32_now(l1)?[0], read_f32_now(reg)?[0]);
+    let swap = swap.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
+    let face = face.map(|t| read_f32_now(t).map(|v| v[0])).transpose()?;
+    Ok((fit, StepFigures { l1, reg, swap, face, drawn, warm }))
 }
 
 /// The metadata of the file `model` loads (its training step, kimg, earlier fits' records)
