@@ -394,28 +394,7 @@ fn render_at(
 
 pub fn invert(a: &InvertArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
-    let mut opts = InversionOptions::preset(&a.preset)
-        .with_context(|| format!("unknown --preset `{}` (instant, fast, full)", a.preset))?;
-    if let Some(json) = &a.options {
-        let mut v = serde_json::to_value(&opts)?;
-        let over: serde_json::Value = serde_json::from_str(json).context("--options is not JSON")?;
-        let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
-            bail!("--options must be a JSON object")
-        };
-        for (k, x) in over {
-            if !base.contains_key(k) {
-                bail!("--options: unknown field `{k}`");
-            }
-            base.insert(k.clone(), x.clone());
-        }
-        opts = serde_json::from_value(v).context("--options")?;
-    }
-    if let Some(n) = a.steps {
-        opts.steps = n;
-    }
-    if let Some(n) = a.pti_steps {
-        opts.pti_steps = n;
-    }
+    let opts = invert_options(a)?;
     if !(64..=4096).contains(&a.texture_res) {
         bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
     }
@@ -426,16 +405,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let (cfg, g, modes) = a.model.load(&dev)?;
     // The shipped discriminator goes with the shipped generator only.
     let shipped_g = a.model.checkpoint.is_none() && !a.model.random;
-    let d_path = match (&a.discriminator, a.no_perceptual) {
-        (_, true) => None,
-        (Some(p), _) => Some(p.clone()),
-        (None, false) => shipped_g.then(|| shipped_discriminator(&cfg)).flatten(),
-    };
-    let disc = d_path.as_deref().map(|p| load_discriminator(p, &dev)).transpose()?;
-    match (&disc, &d_path) {
-        (Some(_), Some(p)) => eprintln!("perceptual term: the features of {}", p.display()),
-        _ => eprintln!("no discriminator: the perceptual term is off"),
-    }
+    let disc = discriminator_arg(a, &cfg, shipped_g, &dev)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let ctx = BodyContext::new(model, &cfg);
     write_png(&a.out.join("input.png"), &rgba(&target.rgb, &target.mask), target.res, 4)?;
@@ -468,43 +438,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
 
     let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &start_styles, opts.clone(), &dev)?;
     let perceptual = inv.has_perceptual();
-    let (_, all) = inv.progress();
-    let bar = crate::progress::bar(all as u64, "steps");
-    let mut log = std::io::BufWriter::new(
-        std::fs::File::create(a.out.join("steps.jsonl"))
-            .with_context(|| format!("creating {}/steps.jsonl", a.out.display()))?,
-    );
-    let (mut after_w, mut t_w, mut t_pti) = (None, None, None);
-    let tw = std::time::Instant::now();
-    let mut tp = None;
-    loop {
-        if after_w.is_none() && opts.steps > 0 && inv.phase() != Phase::Latent {
-            // The W+ result, before tuning.
-            t_w = Some(tw.elapsed().as_secs_f64() / opts.steps.max(1) as f64);
-            let (rgb, mask) = render_images(&inv.render()?)?;
-            let m = view_metrics(&target, &rgb, &mask);
-            eprintln!("after W+: mask IoU {:.3}, masked PSNR {:.2} dB", m.mask_iou, m.psnr_db);
-            write_png(&a.out.join("input_view_w.png"), &rgba(&rgb, &mask), target.res, 4)?;
-            after_w = Some(m);
-            tp = Some(std::time::Instant::now());
-        }
-        let Some(r) = inv.step()? else { break };
-        writeln!(log, "{}", serde_json::to_string(&r)?)?;
-        log.flush()?; // every step on disk: a killed run leaves its log
-        let (done, _) = inv.progress();
-        bar.set_position(done as u64);
-        bar.set_message(format!(
-            "{} loss {:.4} IoU {:.3}",
-            if r.phase == Phase::Latent { "W+" } else { "PTI" },
-            r.terms.total,
-            r.terms.mask_iou
-        ));
-    }
-    log.flush()?;
-    bar.finish_and_clear();
-    if let Some(tp) = tp.filter(|_| opts.pti_steps > 0) {
-        t_pti = Some(tp.elapsed().as_secs_f64() / opts.pti_steps as f64);
-    }
+    let (after_w, t_w, t_pti) = run_steps(&mut inv, &opts, &target, &a.out)?;
     let styles = inv.styles();
     let g = inv.generator().clone();
 
@@ -555,34 +489,10 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let (brgb, bmask) = render_baked(&rigged, &ctx, &tex, body, proj * back, r)?;
     write_png(&a.out.join("back_view.png"), &rgba(&brgb, &bmask), r, 4)?;
     let back_view_iou = match &scan {
-        Some((scan, prepared)) => {
-            let albedo =
-                |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
-            let truth = render_views_textured(
-                &prepared.vertices,
-                &prepared.triangles,
-                &prepared.normals,
-                &prepared.attributes,
-                proj * back,
-                r,
-                2,
-                albedo,
-            )
-            .unwrap_or_else(|never| match never {});
-            let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
-            write_png(&a.out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
-            Some(mask_iou(&bmask, &tm))
-        }
+        Some((scan, prepared)) => Some(back_view_truth(scan, prepared, proj * back, &bmask, r, &a.out)?),
         None => None,
     };
-    let lib = PoseLibrary::builtin();
-    let front = proj * OrbitCamera::default().world_to_camera();
-    for name in ["walking", "arms_up", "sitting"] {
-        let mut pose = lib.params(name, &body.betas)?;
-        pose.betas = body.betas.clone();
-        let (prgb, pmask) = render_baked(&rigged, &ctx, &tex, &pose, front, r)?;
-        write_png(&a.out.join(format!("pose_{name}.png")), &rgba(&prgb, &pmask), r, 4)?;
-    }
+    write_pose_views(&rigged, &ctx, &tex, body, r, &a.out)?;
 
     let walk = Motion::builtin("walk")?;
     let glb =
@@ -625,5 +535,148 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         back_view_iou.map_or(String::new(), |i| format!(", back view IoU {i:.3}")),
         t0.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+/// The preset's options with `--options` (JSON fields) and `--steps` / `--pti-steps` over them.
+fn invert_options(a: &InvertArgs) -> Result<InversionOptions> {
+    let mut opts = InversionOptions::preset(&a.preset)
+        .with_context(|| format!("unknown --preset `{}` (instant, fast, full)", a.preset))?;
+    if let Some(json) = &a.options {
+        let mut v = serde_json::to_value(&opts)?;
+        let over: serde_json::Value = serde_json::from_str(json).context("--options is not JSON")?;
+        let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
+            bail!("--options must be a JSON object")
+        };
+        for (k, x) in over {
+            if !base.contains_key(k) {
+                bail!("--options: unknown field `{k}`");
+            }
+            base.insert(k.clone(), x.clone());
+        }
+        opts = serde_json::from_value(v).context("--options")?;
+    }
+    if let Some(n) = a.steps {
+        opts.steps = n;
+    }
+    if let Some(n) = a.pti_steps {
+        opts.pti_steps = n;
+    }
+    Ok(opts)
+}
+
+/// The discriminator of the perceptual term: `--discriminator`, or the shipped one with the
+/// shipped generator; none with `--no-perceptual`.
+fn discriminator_arg(
+    a: &InvertArgs,
+    cfg: &GeneratorConfig,
+    shipped_g: bool,
+    dev: &Device,
+) -> Result<Option<Discriminator>> {
+    let d_path = match (&a.discriminator, a.no_perceptual) {
+        (_, true) => None,
+        (Some(p), _) => Some(p.clone()),
+        (None, false) => shipped_g.then(|| shipped_discriminator(cfg)).flatten(),
+    };
+    let disc = d_path.as_deref().map(|p| load_discriminator(p, dev)).transpose()?;
+    match (&disc, &d_path) {
+        (Some(_), Some(p)) => eprintln!("perceptual term: the features of {}", p.display()),
+        _ => eprintln!("no discriminator: the perceptual term is off"),
+    }
+    Ok(disc)
+}
+
+/// The inversion's steps with a progress bar and `steps.jsonl`: the figures after W+ (its
+/// render written as `input_view_w.png`), seconds per W+ step and per PTI step.
+fn run_steps(
+    inv: &mut Inverter,
+    opts: &InversionOptions,
+    target: &InversionTarget,
+    out: &Path,
+) -> Result<(Option<ViewMetrics>, Option<f64>, Option<f64>)> {
+    let (_, all) = inv.progress();
+    let bar = crate::progress::bar(all as u64, "steps");
+    let mut log = std::io::BufWriter::new(
+        std::fs::File::create(out.join("steps.jsonl"))
+            .with_context(|| format!("creating {}/steps.jsonl", out.display()))?,
+    );
+    let (mut after_w, mut t_w, mut t_pti) = (None, None, None);
+    let tw = std::time::Instant::now();
+    let mut tp = None;
+    loop {
+        if after_w.is_none() && opts.steps > 0 && inv.phase() != Phase::Latent {
+            // The W+ result, before tuning.
+            t_w = Some(tw.elapsed().as_secs_f64() / opts.steps.max(1) as f64);
+            let (rgb, mask) = render_images(&inv.render()?)?;
+            let m = view_metrics(target, &rgb, &mask);
+            eprintln!("after W+: mask IoU {:.3}, masked PSNR {:.2} dB", m.mask_iou, m.psnr_db);
+            write_png(&out.join("input_view_w.png"), &rgba(&rgb, &mask), target.res, 4)?;
+            after_w = Some(m);
+            tp = Some(std::time::Instant::now());
+        }
+        let Some(r) = inv.step()? else { break };
+        writeln!(log, "{}", serde_json::to_string(&r)?)?;
+        log.flush()?; // every step on disk: a killed run leaves its log
+        let (done, _) = inv.progress();
+        bar.set_position(done as u64);
+        bar.set_message(format!(
+            "{} loss {:.4} IoU {:.3}",
+            if r.phase == Phase::Latent { "W+" } else { "PTI" },
+            r.terms.total,
+            r.terms.mask_iou
+        ));
+    }
+    log.flush()?;
+    bar.finish_and_clear();
+    if let Some(tp) = tp.filter(|_| opts.pti_steps > 0) {
+        t_pti = Some(tp.elapsed().as_secs_f64() / opts.pti_steps as f64);
+    }
+    Ok((after_w, t_w, t_pti))
+}
+
+/// The mask IoU at the back camera against the scan's own render (written as
+/// `back_view_truth.png`).
+fn back_view_truth(
+    scan: &getavatar_core::io::scan::Scan,
+    prepared: &RenderableScan,
+    vp: Mat4,
+    bmask: &[f32],
+    r: usize,
+    out: &Path,
+) -> Result<f32> {
+    let albedo = |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
+    let truth = render_views_textured(
+        &prepared.vertices,
+        &prepared.triangles,
+        &prepared.normals,
+        &prepared.attributes,
+        vp,
+        r,
+        2,
+        albedo,
+    )
+    .unwrap_or_else(|never| match never {});
+    let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
+    write_png(&out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
+    Ok(mask_iou(bmask, &tm))
+}
+
+/// The exported avatar in three library poses from the front (`pose_<name>.png`).
+fn write_pose_views(
+    rigged: &RiggedAvatar,
+    ctx: &BodyContext,
+    tex: &BakedTexture,
+    body: &BodyParams,
+    r: usize,
+    out: &Path,
+) -> Result<()> {
+    let lib = PoseLibrary::builtin();
+    let front = OrbitCamera::default().projection_gl(1.0) * OrbitCamera::default().world_to_camera();
+    for name in ["walking", "arms_up", "sitting"] {
+        let mut pose = lib.params(name, &body.betas)?;
+        pose.betas = body.betas.clone();
+        let (prgb, pmask) = render_baked(rigged, ctx, tex, &pose, front, r)?;
+        write_png(&out.join(format!("pose_{name}.png")), &rgba(&prgb, &pmask), r, 4)?;
+    }
     Ok(())
 }
