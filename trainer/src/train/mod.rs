@@ -96,6 +96,73 @@ fn initial_codes(st: &State, rc: &RunConfig, ds: &Dataset, init: Option<&Path>, 
     Ok(SubjectCodes::zeros(n, w_dim, layers, ad))
 }
 
+/// The run's state: the latest checkpoint (or the previous one where the latest does not load)
+/// of a continued run; else a new state, its generator taken from `--resume FILE` if given.
+fn start_state(
+    a: &TrainArgs,
+    rc: &RunConfig,
+    continuing: bool,
+    (state_path, prev_path): (&Path, &Path),
+    ad: &Device,
+    plain: &Device,
+) -> Result<State> {
+    Ok(if continuing && (state_path.exists() || prev_path.exists()) {
+        let load = |p: &Path| -> Result<State> {
+            let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+            State::load(&bytes, rc, ad, plain).with_context(|| format!("loading {}", p.display()))
+        };
+        match load(state_path) {
+            Ok(st) => st,
+            Err(latest) if prev_path.exists() => {
+                let st = load(prev_path).map_err(|prev| {
+                    anyhow::anyhow!("neither checkpoint loads: {latest:#}; the previous one: {prev:#}")
+                })?;
+                eprintln!(
+                    "the latest checkpoint cannot be used ({latest:#}); resuming from the previous one, {} (step {})",
+                    prev_path.display(),
+                    st.step
+                );
+                st
+            }
+            Err(e) => return Err(e),
+        }
+    } else {
+        let mut st = State::new(rc, ad, plain);
+        if let Some(Some(init)) = &a.resume {
+            // Transfer learning (paper Sec. 5.3): start G from a trained generator.
+            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+            // A generator saved with coarser texture planes grows into the run's config.
+            st.g = load_generator_growing(&bytes, &rc.generator, rc.seed, ad)?;
+            st.g_ema = load_generator_growing(&bytes, &rc.generator, rc.seed, plain)?;
+            println!("initialised the generator from {}", init.display());
+        }
+        st
+    })
+}
+
+/// `--train-only PREFIX`: how many of the generator's parameters it trains (none: an error).
+fn report_train_only(st: &State, prefix: &str) -> Result<()> {
+    let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&st.g_ema)?
+        .into_iter()
+        .map(|(name, _, _)| name)
+        .collect();
+    let trained = names.iter().filter(|n| n.starts_with(prefix)).count();
+    if trained == 0 {
+        bail!(
+            "--train-only {prefix}: no generator parameter's path starts with it (they start with {})",
+            names
+                .iter()
+                .filter_map(|n| n.split('.').next())
+                .collect::<std::collections::BTreeSet<_>>()
+                .into_iter()
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    println!("training {trained} of the generator's {} parameters (--train-only {prefix})", names.len());
+    Ok(())
+}
+
 pub fn train(a: &TrainArgs) -> Result<()> {
     let ds = Dataset::open(&a.data).with_context(|| format!("opening dataset {}", a.data.display()))?;
     if !ds.resolution.is_power_of_two() || ds.resolution < 16 {
@@ -125,38 +192,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     }
     let rc = RunConfig { use_normals: rc.use_normals && ds.has_normals, ..rc };
     let prev_path = a.out.join("state.prev.safetensors");
-    let mut st = if continuing && (state_path.exists() || prev_path.exists()) {
-        let load = |p: &Path| -> Result<State> {
-            let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
-            State::load(&bytes, &rc, &ad, &plain).with_context(|| format!("loading {}", p.display()))
-        };
-        match load(&state_path) {
-            Ok(st) => st,
-            Err(latest) if prev_path.exists() => {
-                let st = load(&prev_path).map_err(|prev| {
-                    anyhow::anyhow!("neither checkpoint loads: {latest:#}; the previous one: {prev:#}")
-                })?;
-                eprintln!(
-                    "the latest checkpoint cannot be used ({latest:#}); resuming from the previous one, {} (step {})",
-                    prev_path.display(),
-                    st.step
-                );
-                st
-            }
-            Err(e) => return Err(e),
-        }
-    } else {
-        let mut st = State::new(&rc, &ad, &plain);
-        if let Some(Some(init)) = &a.resume {
-            // Transfer learning (paper Sec. 5.3): start G from a trained generator.
-            let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
-            // A generator saved with coarser texture planes grows into the run's config.
-            st.g = load_generator_growing(&bytes, &rc.generator, rc.seed, &ad)?;
-            st.g_ema = load_generator_growing(&bytes, &rc.generator, rc.seed, &plain)?;
-            println!("initialised the generator from {}", init.display());
-        }
-        st
-    };
+    let mut st = start_state(a, &rc, continuing, (&state_path, &prev_path), &ad, &plain)?;
     if let Some(c) = &st.codes {
         if (c.tex_layers() > 1) != rc.codes_wplus {
             bail!(
@@ -175,24 +211,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         println!("the dataset has no normal maps: the normal discriminator is off");
     }
     if let Some(prefix) = &rc.train_only {
-        let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&st.g_ema)?
-            .into_iter()
-            .map(|(name, _, _)| name)
-            .collect();
-        let trained = names.iter().filter(|n| n.starts_with(prefix.as_str())).count();
-        if trained == 0 {
-            bail!(
-                "--train-only {prefix}: no generator parameter's path starts with it (they start with {})",
-                names
-                    .iter()
-                    .filter_map(|n| n.split('.').next())
-                    .collect::<std::collections::BTreeSet<_>>()
-                    .into_iter()
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-        }
-        println!("training {trained} of the generator's {} parameters (--train-only {prefix})", names.len());
+        report_train_only(&st, prefix)?;
     }
     let model = BodyModel::default_body()?;
     let ctx = BodyContext::new(model, &rc.generator);
