@@ -30,7 +30,7 @@ use crate::generator::pipeline::{BodyContext, Generator, Styles};
 use crate::generator::readback::block_on_ready;
 use crate::generator::readback::{read_f32, ReadbackError};
 use crate::geometry::inverse_skinning::InverseSkinning;
-use crate::geometry::{marching_tets, PosedGrid};
+use crate::geometry::{marching_tets, PosedGrid, TriMesh};
 use crate::render::camera::{OrbitCamera, View};
 use crate::render::colour::encode_srgb_tensor;
 use crate::render::rasterize::rasterize;
@@ -219,13 +219,8 @@ pub async fn render_avatar_views_async(
     grids: &PosedGridCache,
     device: &Device,
 ) -> Result<FakeViews, ReadbackError> {
-    let proj = OrbitCamera::default().projection_gl(1.0);
     let n = ctx.grid.vertices.len();
-    let (mut rgbs, mut normals, mut masks) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut eik, mut ce): (Vec<Tensor<1>>, Vec<Tensor<1>>) = (Vec::new(), Vec::new());
-    let mut triangles = Vec::new();
-    let mut retextured = Vec::new();
-    let mut surfaces = Vec::new();
+    let mut out = Gathered::default();
     // Stage timings on stderr with GETAVATAR_PROFILE set (native only: no clock on wasm32).
     #[cfg(not(target_arch = "wasm32"))]
     let t0 = std::env::var_os("GETAVATAR_PROFILE").is_some().then(std::time::Instant::now);
@@ -270,58 +265,31 @@ pub async fn render_avatar_views_async(
         lap("band fields (values)");
         crate::util::cooperative::checkpoint().await;
         let mesh = marching_tets(&pos_v, &ctx.grid.tets, &sdf_v, canon);
-        triangles.extend(cams.iter().map(|_| mesh.faces.len()));
+        out.triangles.extend(cams.iter().map(|_| mesh.faces.len()));
         lap("marching tets");
         crate::util::cooperative::checkpoint().await;
         if mesh.faces.is_empty() {
             let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
             for _ in cams {
-                surfaces.push(None);
-                rgbs.push(bg(1.0, 3));
-                normals.push(bg(0.0, 3));
-                masks.push(bg(-1.0, 1));
+                out.surfaces.push(None);
+                out.rgbs.push(bg(1.0, 3));
+                out.normals.push(bg(0.0, 3));
+                out.masks.push(bg(-1.0, 1));
                 if re.is_some() {
-                    retextured.push(bg(1.0, 3));
+                    out.retextured.push(bg(1.0, 3));
                 }
             }
             continue;
         }
         let edges = EdgeIndex::new(&mesh);
 
-        // Pass 2, with gradients: only the endpoints of sign-changing edges reach the losses
-        // (surface points, cross-entropy), so the fields are re-evaluated there alone; the
-        // values equal pass 1's, the rest of the grid is constant.
-        let mut in_band = vec![false; n];
-        for &i in &grid.band {
-            in_band[i as usize] = true;
-        }
-        let mut seen = vec![false; n];
-        let mut ends: Vec<u32> = Vec::new();
-        for &i in edges.a.iter().chain(&edges.b) {
-            if in_band[i as usize] && !seen[i as usize] {
-                seen[i as usize] = true;
-                ends.push(i);
-            }
-        }
-        let mut sdf = Tensor::<1>::from_data(TensorData::new(sdf_v.clone(), [n]), device);
-        let pos_flat: Vec<f32> = pos_v.iter().flat_map(|p| p.to_array()).collect();
-        let mut positions = Tensor::<2>::from_data(TensorData::new(pos_flat, [n, 3]), device);
-        if !ends.is_empty() {
-            let m = ends.len();
-            let idx = index_tensor(&ends, device);
-            let pts = canon_t.clone().select(0, idx.clone()).unsqueeze_dim::<3>(0);
-            let (r, o) = g.geometry_fields(&planes, &s, pts);
-            let r0: Vec<f32> = ends.iter().map(|&i| fields.residual[i as usize]).collect();
-            let o0: Vec<f32> = ends.iter().flat_map(|&i| fields.offset_of(i as usize)).collect();
-            let dr = r.reshape([m]) - Tensor::<1>::from_data(TensorData::new(r0, [m]), device);
-            let d_o = o.reshape([m, 3]) - Tensor::<2>::from_data(TensorData::new(o0, [m, 3]), device);
-            sdf = sdf.select_assign(0, idx.clone(), dr, IndexingUpdateOp::Add);
-            positions = positions.select_assign(0, idx, d_o, IndexingUpdateOp::Add);
-        }
+        // Pass 2, with gradients (see [`surface_fields`]).
+        let (sdf, positions) =
+            surface_fields(g, &planes, &s, &canon_t, &fields, &grid.band, &edges, (&sdf_v, &pos_v), device);
         lap("surface fields (gradients)");
         crate::util::cooperative::checkpoint().await;
         let (ia, ib) = (index_tensor(&edges.a, device), index_tensor(&edges.b, device));
-        ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
+        out.ce.push(sdf_cross_entropy(sdf.clone().select(0, ia), sdf.clone().select(0, ib)));
         let verts = surface_points(&edges, positions, sdf.clone(), device);
         let vcanon = surface_points(&edges, canon_t, sdf, device);
         let nv = mesh.vertices.len();
@@ -339,65 +307,9 @@ pub async fn render_avatar_views_async(
         lap("surface");
         crate::util::cooperative::checkpoint().await;
 
+        let surf = Surface { mesh: &mesh, verts, vcanon, rot, ones };
         for view in cams {
-            // Camera and rasterisation.
-            let vp = proj * view.world_to_camera;
-            let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
-            let clip = Tensor::cat(vec![verts.clone(), Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
-            let clip_v: Vec<Vec4> = read_f32(clip.clone()).await?.chunks_exact(4).map(Vec4::from_slice).collect();
-            let r = rasterize(&clip_v, &mesh.faces, res, res);
-            let cov = Coverage::new(&r, &mesh.faces);
-            if cov.is_empty() {
-                let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
-                surfaces.push(None);
-                rgbs.push(bg(1.0, 3));
-                normals.push(bg(0.0, 3));
-                if re.is_some() {
-                    retextured.push(bg(1.0, 3));
-                }
-                // Keep the silhouette path alive (zero contribution) for a consistent graph.
-                masks.push(bg(-1.0, 1) + ones.clone().sum().reshape([1, 1, 1, 1]) * 0.0);
-                continue;
-            }
-            lap("rasterize");
-            crate::util::cooperative::checkpoint().await;
-            let p = cov.len();
-            let pix_canon = interpolate(&cov, clip.clone(), vcanon.clone(), device); // [P, 3]
-            surfaces.push(Some(PixelSurface { pixels: cov.pixels.clone(), canonical: pix_canon.clone() }));
-
-            // RGB: texture field at each pixel's canonical coordinate.
-            let color = g.texture_field(&planes, &s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
-            let color = encode_srgb_tensor(color);
-            let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
-            if let Some((rp, rs)) = &re {
-                let c = g.texture_field(rp, rs, pix_canon.clone().detach().unsqueeze_dim::<3>(0)).reshape([p, 3]);
-                let c = encode_srgb_tensor(c);
-                retextured.push(to_nchw(compose(&cov, c * 2.0 - 1.0, &[1.0, 1.0, 1.0], device), res));
-            }
-
-            lap("texture field");
-
-            crate::util::cooperative::checkpoint().await;
-            // Normal field (eq. 4): ∇(template + residual) at each pixel's canonical point,
-            // rotated to posed space by the interpolated skinning rotation.
-            let pc: Vec<Vec3> = read_f32(pix_canon.clone()).await?.chunks_exact(3).map(Vec3::from_slice).collect();
-            let grad = sdf_gradient(g, &planes, &s, &ctx.template, pix_canon, &pc, device);
-            eik.push(eikonal_loss(grad.clone()));
-            let rpix = interpolate(&cov, clip.clone().detach(), rot.clone(), device).reshape([p, 3, 3]);
-            let nworld = posed_normals(rpix, grad);
-            let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
-
-            lap("normal field");
-
-            crate::util::cooperative::checkpoint().await;
-            // Mask with silhouette gradients.
-            let cover = compose(&cov, interpolate(&cov, clip.clone(), ones.clone(), device), &[0.0], device);
-            let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &mesh.faces), clip, res, res, device);
-            lap("antialiased mask");
-            crate::util::cooperative::checkpoint().await;
-            rgbs.push(to_nchw(rgb, res));
-            normals.push(to_nchw(normal, res));
-            masks.push(to_nchw(mask * 2.0 - 1.0, res));
+            render_view(g, ctx, (&planes, &s), re.as_ref(), &surf, view, res, device, &mut out, &lap).await?;
         }
     }
     let mean = |v: Vec<Tensor<1>>| {
@@ -405,17 +317,166 @@ pub async fn render_avatar_views_async(
         v.into_iter().reduce(|a, b| a + b).map(|t| t / k).unwrap_or_else(|| Tensor::zeros([1], device))
     };
     Ok(FakeViews {
-        rgb: Tensor::cat(rgbs, 0),
-        normal: Tensor::cat(normals, 0),
-        mask: Tensor::cat(masks, 0),
-        eikonal: mean(eik),
-        cross_entropy: mean(ce),
-        triangles,
-        rgb_retextured: (!retextured.is_empty()).then(|| Tensor::cat(retextured, 0)),
+        rgb: Tensor::cat(out.rgbs, 0),
+        normal: Tensor::cat(out.normals, 0),
+        mask: Tensor::cat(out.masks, 0),
+        eikonal: mean(out.eik),
+        cross_entropy: mean(out.ce),
+        triangles: out.triangles,
+        rgb_retextured: (!out.retextured.is_empty()).then(|| Tensor::cat(out.retextured, 0)),
         planes: Triplanes {
             geometry: Tensor::cat(all_planes.iter().map(|p| p.geometry.clone()).collect(), 0),
             texture: Tensor::cat(all_planes.into_iter().map(|p| p.texture).collect(), 0),
         },
-        surfaces,
+        surfaces: out.surfaces,
     })
+}
+
+/// What the views of a batch render to, gathered in order.
+#[derive(Default)]
+struct Gathered {
+    rgbs: Vec<Tensor<4>>,
+    normals: Vec<Tensor<4>>,
+    masks: Vec<Tensor<4>>,
+    eik: Vec<Tensor<1>>,
+    ce: Vec<Tensor<1>>,
+    triangles: Vec<usize>,
+    retextured: Vec<Tensor<4>>,
+    surfaces: Vec<Option<PixelSurface>>,
+}
+
+/// One avatar's extracted surface as the views render it: the DMTet mesh (topology, CPU),
+/// its posed and canonical vertices with gradients, per-vertex skinning rotations (row-major
+/// 3×3) and a column of ones (for coverage).
+struct Surface<'a> {
+    mesh: &'a TriMesh,
+    verts: Tensor<2>,
+    vcanon: Tensor<2>,
+    rot: Tensor<2>,
+    ones: Tensor<2>,
+}
+
+/// Pass 2 of the fields, with gradients: only the endpoints of sign-changing edges reach the
+/// losses (surface points, cross-entropy), so the fields are re-evaluated there alone; the
+/// values equal pass 1's (`sdf_v`, `pos_v`), the rest of the grid is constant.
+#[allow(clippy::too_many_arguments)]
+fn surface_fields(
+    g: &Generator,
+    planes: &Triplanes,
+    s: &Styles,
+    canon_t: &Tensor<2>,
+    fields: &GridFields,
+    band: &[u32],
+    edges: &EdgeIndex,
+    (sdf_v, pos_v): (&[f32], &[Vec3]),
+    device: &Device,
+) -> (Tensor<1>, Tensor<2>) {
+    let n = pos_v.len();
+    let mut in_band = vec![false; n];
+    for &i in band {
+        in_band[i as usize] = true;
+    }
+    let mut seen = vec![false; n];
+    let mut ends: Vec<u32> = Vec::new();
+    for &i in edges.a.iter().chain(&edges.b) {
+        if in_band[i as usize] && !seen[i as usize] {
+            seen[i as usize] = true;
+            ends.push(i);
+        }
+    }
+    let mut sdf = Tensor::<1>::from_data(TensorData::new(sdf_v.to_vec(), [n]), device);
+    let pos_flat: Vec<f32> = pos_v.iter().flat_map(|p| p.to_array()).collect();
+    let mut positions = Tensor::<2>::from_data(TensorData::new(pos_flat, [n, 3]), device);
+    if !ends.is_empty() {
+        let m = ends.len();
+        let idx = index_tensor(&ends, device);
+        let pts = canon_t.clone().select(0, idx.clone()).unsqueeze_dim::<3>(0);
+        let (r, o) = g.geometry_fields(planes, s, pts);
+        let r0: Vec<f32> = ends.iter().map(|&i| fields.residual[i as usize]).collect();
+        let o0: Vec<f32> = ends.iter().flat_map(|&i| fields.offset_of(i as usize)).collect();
+        let dr = r.reshape([m]) - Tensor::<1>::from_data(TensorData::new(r0, [m]), device);
+        let d_o = o.reshape([m, 3]) - Tensor::<2>::from_data(TensorData::new(o0, [m, 3]), device);
+        sdf = sdf.select_assign(0, idx.clone(), dr, IndexingUpdateOp::Add);
+        positions = positions.select_assign(0, idx, d_o, IndexingUpdateOp::Add);
+    }
+    (sdf, positions)
+}
+
+/// One view of one avatar's surface: rasterised, RGB from the texture field (and the
+/// retexturing styles' where given), normals from the normal field (eq. 4), the antialiased
+/// mask; appended to `out` (background images where nothing is covered).
+#[allow(clippy::too_many_arguments)]
+async fn render_view(
+    g: &Generator,
+    ctx: &BodyContext,
+    (planes, s): (&Triplanes, &Styles),
+    re: Option<&(Triplanes, Styles)>,
+    surf: &Surface<'_>,
+    view: &View,
+    res: usize,
+    device: &Device,
+    out: &mut Gathered,
+    lap: &dyn Fn(&str),
+) -> Result<(), ReadbackError> {
+    let proj = OrbitCamera::default().projection_gl(1.0);
+    let nv = surf.mesh.vertices.len();
+    // Camera and rasterisation.
+    let vp = proj * view.world_to_camera;
+    let m = matrix(vp.transpose().to_cols_array().to_vec(), 4, 4, device); // rows of vp
+    let clip = Tensor::cat(vec![surf.verts.clone(), Tensor::ones([nv, 1], device)], 1).matmul(m.transpose());
+    let clip_v: Vec<Vec4> = read_f32(clip.clone()).await?.chunks_exact(4).map(Vec4::from_slice).collect();
+    let r = rasterize(&clip_v, &surf.mesh.faces, res, res);
+    let cov = Coverage::new(&r, &surf.mesh.faces);
+    if cov.is_empty() {
+        let bg = |v: f32, c: usize| Tensor::<4>::ones([1, c, res, res], device) * v;
+        out.surfaces.push(None);
+        out.rgbs.push(bg(1.0, 3));
+        out.normals.push(bg(0.0, 3));
+        if re.is_some() {
+            out.retextured.push(bg(1.0, 3));
+        }
+        // Keep the silhouette path alive (zero contribution) for a consistent graph.
+        out.masks.push(bg(-1.0, 1) + surf.ones.clone().sum().reshape([1, 1, 1, 1]) * 0.0);
+        return Ok(());
+    }
+    lap("rasterize");
+    crate::util::cooperative::checkpoint().await;
+    let p = cov.len();
+    let pix_canon = interpolate(&cov, clip.clone(), surf.vcanon.clone(), device); // [P, 3]
+    out.surfaces.push(Some(PixelSurface { pixels: cov.pixels.clone(), canonical: pix_canon.clone() }));
+
+    // RGB: texture field at each pixel's canonical coordinate.
+    let color = g.texture_field(planes, s, pix_canon.clone().unsqueeze_dim::<3>(0)).reshape([p, 3]);
+    let color = encode_srgb_tensor(color);
+    let rgb = compose(&cov, color * 2.0 - 1.0, &[1.0, 1.0, 1.0], device);
+    if let Some((rp, rs)) = re {
+        let c = g.texture_field(rp, rs, pix_canon.clone().detach().unsqueeze_dim::<3>(0)).reshape([p, 3]);
+        let c = encode_srgb_tensor(c);
+        out.retextured.push(to_nchw(compose(&cov, c * 2.0 - 1.0, &[1.0, 1.0, 1.0], device), res));
+    }
+
+    lap("texture field");
+
+    crate::util::cooperative::checkpoint().await;
+    // Normal field (eq. 4): ∇(template + residual) at each pixel's canonical point,
+    // rotated to posed space by the interpolated skinning rotation.
+    let pc: Vec<Vec3> = read_f32(pix_canon.clone()).await?.chunks_exact(3).map(Vec3::from_slice).collect();
+    let grad = sdf_gradient(g, planes, s, &ctx.template, pix_canon, &pc, device);
+    out.eik.push(eikonal_loss(grad.clone()));
+    let rpix = interpolate(&cov, clip.clone().detach(), surf.rot.clone(), device).reshape([p, 3, 3]);
+    let nworld = posed_normals(rpix, grad);
+    let normal = compose(&cov, nworld, &[0.0, 0.0, 0.0], device);
+
+    lap("normal field");
+
+    crate::util::cooperative::checkpoint().await;
+    // Mask with silhouette gradients.
+    let cover = compose(&cov, interpolate(&cov, clip.clone(), surf.ones.clone(), device), &[0.0], device);
+    let mask = antialias(cover, &silhouette_pairs(&r, &clip_v, &surf.mesh.faces), clip, res, res, device);
+    lap("antialiased mask");
+    crate::util::cooperative::checkpoint().await;
+    out.rgbs.push(to_nchw(rgb, res));
+    out.normals.push(to_nchw(normal, res));
+    out.masks.push(to_nchw(mask * 2.0 - 1.0, res));
+    Ok(())
 }
