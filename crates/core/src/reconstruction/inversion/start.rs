@@ -1,0 +1,113 @@
+//! Where the inversion starts: the encoder's guess, or the latent mode (or w_avg) whose
+//! render explains the photo best.
+
+use burn::tensor::Device;
+
+use super::target::*;
+use crate::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
+#[cfg(not(target_arch = "wasm32"))]
+use crate::generator::readback::block_on_ready;
+use crate::generator::readback::read_f32;
+use crate::render::diff::avatar::{render_avatars_async, PosedGridCache};
+
+/// A candidate start: the codes and where they come from.
+#[derive(Clone, Debug)]
+pub struct StartCandidate {
+    pub name: String,
+    pub styles: Styles,
+}
+
+/// The photo encoder's first guess for `target` ([`crate::reconstruction::encoder`]): W+ styles of both
+/// branches, without gradients; the start of the refinement, or the avatar itself (`instant`).
+pub fn encoder_start(
+    enc: &crate::reconstruction::encoder::Encoder,
+    g: &Generator,
+    model: &crate::body::body_model::BodyModel,
+    target: &InversionTarget,
+    device: &Device,
+) -> Result<Styles, crate::reconstruction::encoder::EncoderError> {
+    let res = enc.config().res;
+    let image = crate::reconstruction::encoder::EncoderImage::new(
+        &target.rgb,
+        &target.mask,
+        target.res,
+        &target.view,
+        model,
+        res,
+    )?;
+    let s = enc.styles(g, &[&image.patchify()], device)?;
+    Ok(Styles { geo: s.geo.detach(), tex: s.tex.detach() })
+}
+
+/// The start candidates of a checkpoint: w_avg of both branches, and each latent mode (the
+/// training subjects' codes: their pairs, or with `pairing: branch` each geometry mode with
+/// the w_avg texture and each texture mode with the w_avg geometry — the choice then combines
+/// the best of each).
+pub fn start_candidates(g: &Generator, modes: Option<&LatentModes>) -> Vec<StartCandidate> {
+    let (ag, at) = (g.mapping_geo.w_avg_tensor(), g.mapping_tex.w_avg_tensor());
+    let mut out = vec![StartCandidate { name: "w_avg".into(), styles: g.styles_from_w(ag.clone(), at.clone()) }];
+    if let Some(m) = modes {
+        for k in 0..m.count() {
+            if let Some(styles) = g.subject_styles(m, k, k) {
+                out.push(StartCandidate { name: format!("mode {k}"), styles });
+            }
+        }
+    }
+    out
+}
+
+/// The start whose render at the target's camera has the lowest image loss (RGB L1 + MSE +
+/// silhouette), with each candidate's loss. Renders without gradients.
+#[cfg(not(target_arch = "wasm32"))]
+pub fn choose_start(
+    g: &Generator,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    candidates: &[StartCandidate],
+    device: &Device,
+) -> Result<(usize, Vec<f32>), InversionError> {
+    block_on_ready(choose_start_async(g, ctx, target, candidates, device))
+}
+
+/// [`choose_start`], awaiting its read-backs.
+pub async fn choose_start_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    candidates: &[StartCandidate],
+    device: &Device,
+) -> Result<(usize, Vec<f32>), InversionError> {
+    target.validate()?;
+    let grids = PosedGridCache::new(2);
+    let mut losses = Vec::new();
+    for c in candidates {
+        let s = Styles { geo: c.styles.geo.clone().detach(), tex: c.styles.tex.clone().detach() };
+        let view = std::slice::from_ref(&target.view);
+        let f = render_avatars_async(g, ctx, &s, view, target.res, &grids, device).await?;
+        let rgb: Vec<f32> = read_f32(f.rgb).await?;
+        let mask: Vec<f32> = read_f32(f.mask).await?;
+        losses.push(image_loss_cpu(target, &rgb, &mask));
+    }
+    let best = losses.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
+    Ok((best, losses))
+}
+
+/// The image terms (RGB L1 + MSE inside the person mask, silhouette squared error) of a render
+/// given as CHW RGB and mask in [−1, 1], on the CPU.
+fn image_loss_cpu(t: &InversionTarget, rgb_chw: &[f32], mask: &[f32]) -> f32 {
+    let r2 = t.res * t.res;
+    let (mut l1, mut mse, mut msum, mut sil) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for k in 0..r2 {
+        let m = t.mask[k] as f64;
+        msum += m;
+        for c in 0..3 {
+            let d = ((rgb_chw[c * r2 + k] + 1.0) * 0.5 - t.rgb[3 * k + c]) as f64;
+            l1 += m * d.abs();
+            mse += m * d * d;
+        }
+        let s = ((mask[k] + 1.0) * 0.5 - t.mask[k]) as f64;
+        sil += s * s;
+    }
+    let msum = msum.max(1.0);
+    (l1 / (3.0 * msum) + mse / (3.0 * msum) + sil / r2 as f64) as f32
+}
