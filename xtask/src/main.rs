@@ -198,9 +198,14 @@ fn copy_mediapipe(dist: &Path) -> Result<()> {
 fn test(native: bool, browser: bool) -> Result<()> {
     if native {
         setup::native_test_deps()?;
-        // Core's files import each other without circles (ARCHITECTURE.md).
-        run(Command::new("python3").current_dir(root()).args(["tools/import_cycles.py", "crates/core/src"]))
-            .context("core has an import circle (or python3 is missing)")?;
+        // The crates' files import each other without circles, and no file or function is
+        // longer than the limits (ARCHITECTURE.md).
+        for src in ["crates/core/src", "crates/web/src", "trainer/src"] {
+            run(Command::new("python3").current_dir(root()).args(["tools/import_cycles.py", src]))
+                .with_context(|| format!("{src} has an import circle (or python3 is missing)"))?;
+        }
+        run(Command::new("python3").current_dir(root()).args(["tools/code_size.py"]))
+            .context("a file or function is over the size limits (tools/code_size.py lists them)")?;
         let mut c = Command::new(cargo());
         c.current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]);
         run(&mut c)?;
