@@ -148,6 +148,7 @@ enum Command {
     },
     /// Train GETAvatar (the paper's adversarial objective with RGB, normal and mask
     /// discriminators) on a prepared dataset; checkpoints, sample grids and metrics go to --out.
+    #[command(args_override_self = true)]
     Train(train::TrainArgs),
     /// Evaluate a generator on a (held-out) dataset's labels: mask IoU vs the posed body
     /// silhouette, normal-map angular error vs the data, and FID/KID with `--inception`.
@@ -246,7 +247,11 @@ enum BenchWhat {
 }
 
 fn main() -> Result<()> {
-    let cli = Cli::parse();
+    let known: Vec<String> = <Cli as clap::CommandFactory>::command()
+        .find_subcommand("train")
+        .map(|t| t.get_arguments().filter_map(|a| a.get_long().map(String::from)).collect())
+        .ok_or_else(|| anyhow::anyhow!("the CLI has no train command"))?;
+    let cli = Cli::parse_from(train::cfg::expand(std::env::args_os().collect(), &known)?);
     match cli.command {
         Command::BodyModel { wheel, out } => {
             let bar = indicatif::ProgressBar::new_spinner()

@@ -149,6 +149,69 @@ fn resume_is_bit_identical_and_outputs_are_complete() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// A named config (`--cfg`) with a schedule equals the same flags run step by step with
+/// `run.json` edited by hand between the parts, byte for byte; its run.json keeps the schedule.
+#[test]
+fn a_named_config_with_a_schedule_equals_stopping_and_editing_run_json() {
+    let root = tmp("cfg");
+    let data = dataset(&root);
+    let (a, b) = (root.join("a"), root.join("b"));
+    let cfg = root.join("c.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[train]\ndata = {:?}\nconfig = \"tiny\"\nbatch = 2\nsteps = 3\nsnapshot_every = 1\n\n\
+             [[schedule]]\nafter_step = 1\nset = {{ lr_g = 0.001 }}\n\n\
+             [[schedule]]\nafter_step = 2\nset = {{ ema_kimg = 0.05, generator = {{ tet_res = 20 }} }}\n",
+            data.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let text = ok(trainer(&["train", "--cfg", cfg.to_str().unwrap(), "--out", a.to_str().unwrap()]));
+    assert_eq!(text.matches("the schedule changes the run's settings").count(), 2, "{text}");
+    let run: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["schedule"].as_array().map(Vec::len), Some(2), "{run}");
+
+    let edit = |f: &dyn Fn(&mut serde_json::Value)| {
+        let mut run: serde_json::Value = serde_json::from_slice(&std::fs::read(b.join("run.json")).unwrap()).unwrap();
+        f(&mut run);
+        std::fs::write(b.join("run.json"), serde_json::to_string_pretty(&run).unwrap()).unwrap();
+    };
+    train(&data, &b, 1, &[]);
+    edit(&|r| r["lr_g"] = serde_json::json!(0.001));
+    train(&data, &b, 2, &["--resume"]);
+    edit(&|r| {
+        r["ema_kimg"] = serde_json::json!(0.05);
+        r["generator"]["tet_res"] = serde_json::json!(20);
+    });
+    train(&data, &b, 3, &["--resume"]);
+    same_files(&a, &b, &["generator.safetensors"], "the schedule == stop, edit run.json, resume");
+    let losses = |d: &Path| -> Vec<String> {
+        let text = std::fs::read_to_string(d.join("metrics.jsonl")).unwrap();
+        text.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss_g"].to_string()).collect()
+    };
+    assert_eq!(losses(&a), losses(&b), "the same G loss at each of the 3 steps");
+
+    // A flag on the command line wins over the file's; a schedule that names a field run.json
+    // lacks is refused before any step.
+    let c = root.join("c");
+    ok(trainer(&["train", "--cfg", cfg.to_str().unwrap(), "--out", c.to_str().unwrap(), "--steps", "1"]));
+    assert_eq!(std::fs::read_to_string(c.join("metrics.jsonl")).unwrap().lines().count(), 1);
+    std::fs::write(&cfg, "[train]\nconfig = \"tiny\"\n[[schedule]]\nafter_step = 1\nset = { lr_gg = 1 }\n").unwrap();
+    let o = trainer(&[
+        "train",
+        "--cfg",
+        cfg.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        root.join("d").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("no field `lr_gg`"), "{err}");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// The `tiny` config trains 20 steps (R1 on steps 1 and 17): every step logged with finite
 /// losses, the generated avatars keep their surface, and the result samples.
 #[test]

@@ -23,6 +23,7 @@
 
 mod adversarial;
 mod args;
+pub mod cfg;
 mod reconstruction;
 mod run_config;
 mod scan_pools;
@@ -109,7 +110,9 @@ fn start_state(
     Ok(if continuing && (state_path.exists() || prev_path.exists()) {
         let load = |p: &Path| -> Result<State> {
             let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
-            State::load(&bytes, rc, ad, plain).with_context(|| format!("loading {}", p.display()))
+            // The settings at the checkpoint's step (the schedule's changes so far).
+            let rc = rc.at_step(State::step_of(&bytes).with_context(|| format!("loading {}", p.display()))?)?;
+            State::load(&bytes, &rc, ad, plain).with_context(|| format!("loading {}", p.display()))
         };
         match load(state_path) {
             Ok(st) => st,
@@ -193,6 +196,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let rc = RunConfig { use_normals: rc.use_normals && ds.has_normals, ..rc };
     let prev_path = a.out.join("state.prev.safetensors");
     let mut st = start_state(a, &rc, continuing, (&state_path, &prev_path), &ad, &plain)?;
+    // The schedule's changes so far (`--cfg`): a continued run takes up the settings of its step.
+    let rc = rc.at_step(st.step)?;
     if let Some(c) = &st.codes {
         if (c.tex_layers() > 1) != rc.codes_wplus {
             bail!(
@@ -249,6 +254,16 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         write_atomic(&a.out.join("losses.png"), &crate::plot::loss_plot(&a.out.join("metrics.jsonl"))?)
     };
     while st.step < a.steps {
+        if st.step > start && rc.changes_after(st.step) {
+            // The schedule changes the settings here: checkpoint (unless just done) and continue
+            // as `--resume` would, with the changed settings.
+            if st.step % a.snapshot_every != 0 {
+                snapshot(&st, st.step)?;
+            }
+            bar.finish_and_clear();
+            println!("after step {}: the schedule changes the run's settings ({})", st.step, run_path.display());
+            return train(&TrainArgs { resume: Some(None), ..a.clone() });
+        }
         let inputs = StepInputs { ds: &ds, ctx: &ctx, grids: &grids, scans: &scans, rc: &rc, ad: &ad };
         let (next, m) = train_step(st, &inputs)?;
         st = next;

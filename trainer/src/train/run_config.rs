@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 
 pub use super::args::Objective;
 use super::args::TrainArgs;
+use super::cfg::Scheduled;
 
 /// Points drawn per scan and kept for training (`--scans`).
 pub const SCAN_POOL_POINTS: usize = 16384;
@@ -115,6 +116,10 @@ pub struct RunConfig {
     /// (`TrainArgs::codes_wplus`). Absent: false. Fixed once the run has codes.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub codes_wplus: bool,
+    /// Changes of these settings by step (`--cfg`'s `[[schedule]]`); the fields above are the
+    /// settings before the first. Absent: none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub schedule: Vec<Scheduled>,
 }
 
 pub(crate) fn one_view() -> usize {
@@ -266,6 +271,7 @@ impl RunConfig {
             lr_codes: 0.0,
             lr_codes_geo_mul: 1.0,
             codes_wplus: false,
+            schedule: Vec::new(),
         }
     }
 }
@@ -373,7 +379,7 @@ impl RunConfig {
         }
         let defaults =
             RunConfig::with_objective(ds, &a.data, gcfg, a.batch_size(), r1_gamma, a.seed.unwrap_or(0), objective);
-        Ok(RunConfig {
+        let rc = RunConfig {
             lr_g: a.lr_g.unwrap_or(defaults.lr_g),
             lr_d: a.lr_d.unwrap_or(defaults.lr_d),
             lambda_reconstruction,
@@ -387,8 +393,32 @@ impl RunConfig {
             train_only: a.train_only.clone(),
             lr_codes,
             codes_wplus: a.codes_wplus,
+            schedule: match &a.cfg {
+                Some(p) => super::cfg::schedule(p)?,
+                None => Vec::new(),
+            },
             ..defaults
-        })
+        };
+        // Every change applies (fields that exist, values of their types).
+        if let Some(last) = rc.schedule.last() {
+            rc.at_step(last.after_step).context("--cfg")?;
+        }
+        Ok(rc)
+    }
+
+    /// The settings once `step` steps are done: the schedule's changes up to it applied.
+    pub fn at_step(&self, step: u64) -> Result<Self> {
+        let mut run = serde_json::to_value(self)?;
+        for e in self.schedule.iter().filter(|e| e.after_step <= step) {
+            run = super::cfg::apply(run, &e.set)
+                .with_context(|| format!("the schedule's change after step {}", e.after_step))?;
+        }
+        serde_json::from_value(run).context("run.json after the schedule's changes")
+    }
+
+    /// Whether the schedule changes the settings once `step` steps are done.
+    pub fn changes_after(&self, step: u64) -> bool {
+        self.schedule.iter().any(|e| e.after_step == step)
     }
 
     /// A continued run's settings, read from `run_path`; flags that differ from them are
@@ -397,6 +427,11 @@ impl RunConfig {
         let text = std::fs::read_to_string(run_path)
             .with_context(|| format!("--resume: no run to continue in {} (run.json missing)", a.out.display()))?;
         let rc = serde_json::from_str::<RunConfig>(&text).context("run.json")?;
+        if let Some(p) = &a.cfg {
+            if super::cfg::schedule(p)? != rc.schedule {
+                bail!("--cfg {}: its schedule differs from the run's (edit it in {})", p.display(), run_path.display());
+            }
+        }
         let conflicts = rc.resume_conflicts(a);
         if !conflicts.is_empty() {
             bail!(

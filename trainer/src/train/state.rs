@@ -97,6 +97,12 @@ impl State {
         Ok(write_safetensors(&meta, &tensors)?)
     }
 
+    /// The step a saved state was taken at (read from its metadata alone).
+    pub fn step_of(bytes: &[u8]) -> Result<u64> {
+        let st = parse_safetensors(bytes)?;
+        st.metadata.get("step").and_then(|v| v.parse().ok()).ok_or_else(|| anyhow!("state metadata lacks `step`"))
+    }
+
     pub fn load(bytes: &[u8], rc: &RunConfig, ad: &Device, plain: &Device) -> Result<Self> {
         let st = parse_safetensors(bytes)?;
         if st.metadata.get("format").map(String::as_str) != Some(STATE_FORMAT) {
