@@ -31,16 +31,14 @@ use crate::model_io::{load_body, load_inverted_file, seed_styles, GeneratorArgs}
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
     #[command(flatten)]
-    pub backend: crate::backend::BackendArg,
-    #[command(flatten)]
-    pub model: GeneratorArgs,
-    #[arg(long, default_value_t = 0)]
-    pub seed_geo: u64,
-    #[arg(long, default_value_t = 0)]
-    pub seed_tex: u64,
+    pub seeds: crate::model_io::SeedArgs,
     /// Truncation ψ (default: the model's, as `sample`).
     #[arg(long)]
     pub psi: Option<f32>,
+    #[command(flatten)]
+    pub model: GeneratorArgs,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// The pose the file shows (a library pose; the animations start from their own).
     /// Default: `standing`; with `--inverted`, the pose of the photo it was made from.
     #[arg(long)]
@@ -111,7 +109,7 @@ pub enum Format {
 fn what_avatar(a: &ExportArgs) -> String {
     match &a.inverted {
         Some(p) => format!("inverted avatar {}", p.display()),
-        None => format!("avatar {}/{}", a.seed_geo, a.seed_tex),
+        None => format!("avatar {}/{}", a.seeds.seed_geo, a.seeds.seed_tex),
     }
 }
 
@@ -389,7 +387,7 @@ fn export_avatar(
             if a.psi.is_some_and(|p| !p.is_finite()) {
                 bail!("--psi must be a number");
             }
-            let styles = seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, false, device);
+            let styles = seed_styles(&g, &cfg, &modes, a.seeds.pair(), a.psi, false, device);
             (cfg, g, styles)
         }
     };

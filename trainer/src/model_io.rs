@@ -54,6 +54,24 @@ fn shipped_file(cfg: &GeneratorConfig, rel: &str) -> Option<PathBuf> {
     [PathBuf::from(rel), Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rel)].into_iter().find(|p| p.is_file())
 }
 
+/// The seeds of a generated avatar's two latents (`sample`, `export`).
+#[derive(clap::Args, Debug)]
+pub struct SeedArgs {
+    /// Seed of the geometry latent z_geo.
+    #[arg(long, default_value_t = 0)]
+    pub seed_geo: u64,
+    /// Seed of the texture latent z_tex.
+    #[arg(long, default_value_t = 0)]
+    pub seed_tex: u64,
+}
+
+impl SeedArgs {
+    /// (geometry, texture).
+    pub fn pair(&self) -> (u64, u64) {
+        (self.seed_geo, self.seed_tex)
+    }
+}
+
 /// Which generator a command runs: `--config`, `--checkpoint`, `--random-weights` (shared by
 /// `sample` and `eval`).
 #[derive(clap::Args, Debug)]

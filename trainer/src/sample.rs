@@ -16,10 +16,8 @@ pub struct SampleArgs {
     pub backend: crate::backend::BackendArg,
     #[command(flatten)]
     pub model: GeneratorArgs,
-    #[arg(long, default_value_t = 0)]
-    pub seed_geo: u64,
-    #[arg(long, default_value_t = 0)]
-    pub seed_tex: u64,
+    #[command(flatten)]
+    pub seeds: crate::model_io::SeedArgs,
     /// Truncation ψ (1 = none; default: 0 for a checkpoint with latent modes, i.e. its training
     /// subjects, else 0.7).
     #[arg(long)]
@@ -103,7 +101,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
                 format!("--subject {spec}: the checkpoint has {} subjects (0…{})", modes.count(), modes.count() - 1)
             })?
         }
-        (None, None) => seed_styles(&g, &cfg, &modes, (a.seed_geo, a.seed_tex), a.psi, a.mean_truncation, &device),
+        (None, None) => seed_styles(&g, &cfg, &modes, a.seeds.pair(), a.psi, a.mean_truncation, &device),
     };
     let t1 = std::time::Instant::now();
     let avatar = generate_avatar(&g, &ctx, &styles, &params, &device)?;
@@ -119,7 +117,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         colors: avatar.colors.clone(),
         uvs: Vec::new(),
         indices: avatar.mesh.faces.clone(),
-        name: format!("getavatar_{}_{}_{}", a.seed_geo, a.seed_tex, a.pose),
+        name: format!("getavatar_{}_{}_{}", a.seeds.seed_geo, a.seeds.seed_tex, a.pose),
     })?;
     crate::atomic::write_atomic(&a.out.join("avatar.glb"), &glb)?;
     println!(

@@ -74,11 +74,11 @@ pub struct TrainEncoderArgs {
     pub snapshot_every: u64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub backend: crate::backend::BackendArg,
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
-    #[command(flatten)]
-    pub backend: crate::backend::BackendArg,
     #[arg(long)]
     pub out: PathBuf,
 }

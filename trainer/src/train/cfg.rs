@@ -146,6 +146,8 @@ pub fn expand(argv: Vec<OsString>, known: &[String]) -> Result<Vec<OsString>> {
 mod tests {
     use super::*;
 
+    /// `[train]`'s keys become flags ahead of the command line's own; a key that is no flag
+    /// is refused with the file named.
     #[test]
     fn the_files_flags_come_before_the_command_lines_and_bad_keys_are_named() {
         let dir = tempfile::tempdir().unwrap();
@@ -191,22 +193,8 @@ mod tests {
         let mut files: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
         files.retain(|p| p.extension().is_some_and(|e| e == "toml"));
         assert!(files.len() >= 3, "{files:?}");
-        let ds = getavatar_core::io::dataset::Dataset {
-            root: "data".into(),
-            entries: Vec::new(),
-            resolution: 64,
-            has_normals: true,
-        };
         let demo = getavatar_core::generator::network::GeneratorConfig::demo();
-        let rc = crate::train::RunConfig::with_objective(
-            &ds,
-            &ds.root,
-            demo,
-            4,
-            10.0,
-            0,
-            crate::train::Objective::Reconstruction,
-        );
+        let rc = crate::train::RunConfig::for_tests(demo, crate::train::Objective::Reconstruction);
         for f in files {
             let argv: Vec<OsString> = vec!["trainer".into(), "train".into(), "--cfg".into(), f.clone().into()];
             assert!(expand(argv, &known).unwrap().len() > 4, "{}: no flags", f.display());

@@ -416,6 +416,13 @@ impl RunConfig {
         serde_json::from_value(run).context("run.json after the schedule's changes")
     }
 
+    /// The settings of a run on an empty 64² dataset with normals (for tests).
+    #[cfg(test)]
+    pub fn for_tests(generator: GeneratorConfig, objective: Objective) -> Self {
+        let ds = Dataset { root: "data".into(), entries: Vec::new(), resolution: 64, has_normals: true };
+        Self::with_objective(&ds, &ds.root, generator, 4, 10.0, 0, objective)
+    }
+
     /// Whether the schedule changes the settings once `step` steps are done.
     pub fn changes_after(&self, step: u64) -> bool {
         self.schedule.iter().any(|e| e.after_step == step)

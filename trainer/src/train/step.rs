@@ -136,14 +136,8 @@ mod tests {
 
     #[test]
     fn each_parameter_group_learns_at_its_own_factor() {
-        let ds = getavatar_core::io::dataset::Dataset {
-            root: "data".into(),
-            entries: Vec::new(),
-            resolution: 64,
-            has_normals: true,
-        };
         let tiny = getavatar_core::generator::network::GeneratorConfig::tiny();
-        let mut rc = RunConfig::with_objective(&ds, &ds.root, tiny, 4, 10.0, 0, Objective::Reconstruction);
+        let mut rc = RunConfig::for_tests(tiny, Objective::Reconstruction);
         (rc.lr_texture_mul, rc.lr_texture_detail_mul) = (8.0, 3.0);
         (rc.lr_geometry_head_mul, rc.lr_geometry_detail_mul) = (0.25, 4.0);
         let cases = [
