@@ -1,4 +1,4 @@
-// The reconstruction worker (`crates/web/src/reconstruct_worker.rs`): a module
+// The reconstruction worker (`crates/web/src/reconstruct/worker.rs`): a module
 // worker that runs a second instance of the app's wasm module, whose start-up sees no window
 // and so only waits for jobs. The page posts {json, ...typed arrays}; the module answers the
 // same way through this scope's postMessage. Messages that arrive while the module loads wait

@@ -9,7 +9,7 @@ use wasm_bindgen_futures::JsFuture;
 
 thread_local! {
     /// The global scope's timer: the page's, or the reconstruction worker's
-    /// (`crate::reconstruct_worker`), which has no `window`.
+    /// (`crate::reconstruct::worker`), which has no `window`.
     static PERFORMANCE: Option<web_sys::Performance> =
         js_sys::Reflect::get(&js_sys::global(), &JsValue::from_str("performance")).ok().and_then(|p| p.dyn_into().ok());
 }
