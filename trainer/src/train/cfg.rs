@@ -52,6 +52,9 @@ fn read(path: &Path) -> Result<CfgFile> {
 /// The schedule of the config at `path`, in step order.
 pub fn schedule(path: &Path) -> Result<Vec<Scheduled>> {
     let mut s = read(path)?.schedule;
+    if s.iter().any(|e| e.after_step == 0) {
+        bail!("--cfg {}: a schedule's after_step is at least 1 (a run's first settings are its flags)", path.display());
+    }
     s.sort_by_key(|e| e.after_step);
     Ok(s)
 }
@@ -106,7 +109,11 @@ const OPTIONAL: [&str; 2] = ["latent_spread_geo", "train_only"];
 /// after `train` (so the command line's own flags, which come later, win). `known` holds the
 /// train command's long flag names; a key that is none of them is an error naming the file.
 pub fn expand(argv: Vec<OsString>, known: &[String]) -> Result<Vec<OsString>> {
-    let Some(train_at) = argv.iter().position(|a| a == "train") else { return Ok(argv) };
+    // The subcommand is the first argument (the CLI has no global flags before it).
+    let train_at = 1;
+    if argv.get(train_at).is_none_or(|a| a != "train") {
+        return Ok(argv);
+    }
     let mut path = None;
     for (i, a) in argv.iter().enumerate().skip(train_at + 1) {
         let a = a.to_string_lossy();
@@ -160,6 +167,14 @@ mod tests {
         let want = ["trainer", "train", "--codes-wplus", "--data", "d", "--steps", "7", "--views", "4", "--cfg"];
         assert_eq!(&got[..want.len()], want);
         assert_eq!(&got[want.len() + 1..], ["--steps", "9"]);
+
+        // Another command's `--cfg`-like arguments are left alone.
+        let other: Vec<OsString> = ["trainer", "sample", "--out", "train", "--cfg", "x"].map(OsString::from).to_vec();
+        assert_eq!(expand(other.clone(), &known).unwrap(), other);
+
+        std::fs::write(&p, "[[schedule]]\nafter_step = 0\nset = { lr_g = 0.1 }\n").unwrap();
+        let e = schedule(&p).unwrap_err().to_string();
+        assert!(e.contains("at least 1"), "{e}");
 
         std::fs::write(&p, "[train]\nstepz = 7\n").unwrap();
         let argv: Vec<OsString> = ["trainer", "train", "--cfg", p.to_str().unwrap()].map(OsString::from).to_vec();
