@@ -12,7 +12,7 @@ use getavatar_core::body::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body::body_fit::metrics::{body_mask, mask_iou, pa_mpjpe};
 use getavatar_core::body::body_fit::synthetic::{detect, unseen_poses, UNSEEN_POSE_CAMERAS};
 use getavatar_core::body::skinning::{axis_angle_to_matrix, pose_body};
-use getavatar_core::burn::tensor::{Tensor, TensorData};
+use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::render::camera::reference_fov_y;
 use getavatar_core::render::diff::body_model::{rodrigues, Skeleton, VertexSet};
@@ -140,12 +140,15 @@ fn fitted_mask_in_photo(model: &BodyModel, fit: &BodyFit, size: usize) -> Vec<f3
     body_mask(&posed.vertices, &model.faces, fit.photo_view_proj(), size)
 }
 
+/// The default body, the CPU autodiff device and the detector-noise stream of `seed`.
+fn fit_setup(seed: u64) -> (Arc<BodyModel>, Device, Rng) {
+    (Arc::new(BodyModel::default_body().unwrap()), cpu().autodiff(), Rng::new(seed, 1))
+}
+
 #[test]
 fn synthetic_round_trip_recovers_unseen_poses() {
-    let model = Arc::new(BodyModel::default_body().unwrap());
-    let dev = cpu().autodiff();
+    let (model, dev, mut rng) = fit_setup(20);
     let size = 512;
-    let mut rng = Rng::new(20, 1);
     let mut report = Vec::new();
     for ((name, truth), cam) in unseen_poses().into_iter().zip(UNSEEN_POSE_CAMERAS.map(|c| c.camera())) {
         let det = detect(&model, &truth, cam.world_to_camera(), size, 2.0, 0.02, &mut rng).unwrap();
@@ -182,10 +185,8 @@ fn synthetic_round_trip_recovers_unseen_poses() {
 /// stages run again from the first.
 #[test]
 fn refit_starts_from_the_corrected_pose() {
-    let model = Arc::new(BodyModel::default_body().unwrap());
-    let dev = cpu().autodiff();
+    let (model, dev, mut rng) = fit_setup(21);
     let size = 256;
-    let mut rng = Rng::new(21, 1);
     let (name, truth) = unseen_poses().into_iter().find(|(n, _)| *n == "arms_crossed").unwrap();
     let cam = UNSEEN_POSE_CAMERAS[4].camera();
     let det = detect(&model, &truth, cam.world_to_camera(), size, 2.0, 0.02, &mut rng).unwrap();

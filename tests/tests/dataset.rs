@@ -77,6 +77,15 @@ fn pixel_ray(cam: &OrbitCamera, x: usize, y: usize, size: usize) -> (Vec3, Vec3)
     (cam.eye(), inv.transform_vector3(Vec3::new(nx, ny, -1.0)).normalize())
 }
 
+/// The fully covered pixels of a `size`² mask: their index and the camera ray through them.
+fn covered_rays<'a>(
+    mask: &'a [u8],
+    cam: &'a OrbitCamera,
+    size: usize,
+) -> impl Iterator<Item = (usize, (Vec3, Vec3))> + 'a {
+    (0..size * size).filter(|&k| mask[k] == 255).map(move |k| (k, pixel_ray(cam, k % size, k / size, size)))
+}
+
 fn decode_normal(v: &RenderedViews, k: usize) -> Vec3 {
     Vec3::new(v.normal[3 * k] as f32, v.normal[3 * k + 1] as f32, v.normal[3 * k + 2] as f32) / 127.5 - Vec3::ONE
 }
@@ -107,36 +116,29 @@ fn sphere_scan_normals_mask_area_and_texture_match_the_analytic_sphere() {
     // Normals vs the analytic normal at the ray's hit; colours vs the texture half.
     let (mut sum, mut n, mut worst) = (0.0f32, 0, 0.0f32);
     let (mut colour_ok, mut colour_n) = (0, 0);
-    for y in 0..size {
-        for x in 0..size {
-            let k = y * size + x;
-            if v.mask[k] != 255 {
-                continue;
-            }
-            let (o, dir) = pixel_ray(&cam, x, y, size);
-            let oc = o - c;
-            let b = oc.dot(dir);
-            let disc = b * b - (oc.length_squared() - r * r);
-            if disc < 0.0 {
-                continue;
-            }
-            let hit = o + dir * (-b - disc.sqrt());
-            let nrm = (hit - c) / r;
-            let e = angle_deg(decode_normal(&v, k), nrm);
-            sum += e;
-            worst = worst.max(e);
-            n += 1;
-            // Longitude of the hit: atan2(x, z) in [0, 2π); stay away from the seams.
-            let lon = nrm.x.atan2(nrm.z).rem_euclid(std::f32::consts::TAU);
-            let margin = 0.1;
-            let red = lon > margin && lon < std::f32::consts::PI - margin;
-            let blue = lon > std::f32::consts::PI + margin && lon < std::f32::consts::TAU - margin;
-            if red || blue {
-                colour_n += 1;
-                let p = &v.rgb[3 * k..3 * k + 3];
-                let ok = if red { p[0] >= 250 && p[2] <= 5 } else { p[2] >= 250 && p[0] <= 5 };
-                colour_ok += ok as usize;
-            }
+    for (k, (o, dir)) in covered_rays(&v.mask, &cam, size) {
+        let oc = o - c;
+        let b = oc.dot(dir);
+        let disc = b * b - (oc.length_squared() - r * r);
+        if disc < 0.0 {
+            continue;
+        }
+        let hit = o + dir * (-b - disc.sqrt());
+        let nrm = (hit - c) / r;
+        let e = angle_deg(decode_normal(&v, k), nrm);
+        sum += e;
+        worst = worst.max(e);
+        n += 1;
+        // Longitude of the hit: atan2(x, z) in [0, 2π); stay away from the seams.
+        let lon = nrm.x.atan2(nrm.z).rem_euclid(std::f32::consts::TAU);
+        let margin = 0.1;
+        let red = lon > margin && lon < std::f32::consts::PI - margin;
+        let blue = lon > std::f32::consts::PI + margin && lon < std::f32::consts::TAU - margin;
+        if red || blue {
+            colour_n += 1;
+            let p = &v.rgb[3 * k..3 * k + 3];
+            let ok = if red { p[0] >= 250 && p[2] <= 5 } else { p[2] >= 250 && p[0] <= 5 };
+            colour_ok += ok as usize;
         }
     }
     let mean = sum / n as f32;
@@ -200,28 +202,21 @@ fn box_scan_is_flat_shaded_and_covers_its_projected_hull() {
 
     // Every fully covered pixel's normal is the analytic face normal of the ray's hit.
     let (mut sum, mut n) = (0.0f32, 0);
-    for y in 0..size {
-        for x in 0..size {
-            let k = y * size + x;
-            if v.mask[k] != 255 {
-                continue;
-            }
-            let (o, d) = pixel_ray(&cam, x, y, size);
-            // Slab test: the entry face is the axis of the largest t_near.
-            let (t0, t1) = ((lo - o) / d, (hi - o) / d);
-            let near = t0.min(t1);
-            let axis = if near.x >= near.y && near.x >= near.z {
-                0
-            } else if near.y >= near.z {
-                1
-            } else {
-                2
-            };
-            let mut nrm = Vec3::ZERO;
-            nrm[axis] = -d[axis].signum();
-            sum += angle_deg(decode_normal(&v, k), nrm);
-            n += 1;
-        }
+    for (k, (o, d)) in covered_rays(&v.mask, &cam, size) {
+        // Slab test: the entry face is the axis of the largest t_near.
+        let (t0, t1) = ((lo - o) / d, (hi - o) / d);
+        let near = t0.min(t1);
+        let axis = if near.x >= near.y && near.x >= near.z {
+            0
+        } else if near.y >= near.z {
+            1
+        } else {
+            2
+        };
+        let mut nrm = Vec3::ZERO;
+        nrm[axis] = -d[axis].signum();
+        sum += angle_deg(decode_normal(&v, k), nrm);
+        n += 1;
     }
     let mean = sum / n as f32;
     assert!(n > 3000, "{n}");

@@ -26,6 +26,31 @@ fn generate(g: &Generator, ctx: &BodyContext, cfg: &GeneratorConfig, seeds: (u64
     generate_avatar(g, ctx, &s, &params, &dev).expect("generation reads back")
 }
 
+/// The checkpoint names of `g`'s parameters that start with `prefix`.
+fn param_names_under(g: &Generator, prefix: &str) -> Vec<String> {
+    let all = getavatar_core::generator::checkpoint::collect_params(g).expect("parameters read back");
+    all.into_iter().map(|(n, _, _)| n).filter(|n| n.starts_with(prefix)).collect()
+}
+
+/// The tiny generator (weights of seed 0) on the default body, on the test device, and the
+/// styles of latent seeds `seeds` at ψ = 0.7.
+fn tiny_identity(seeds: (u64, u64)) -> (BodyContext, Device, Generator, getavatar_core::generator::pipeline::Styles) {
+    identity(&GeneratorConfig::tiny(), seeds)
+}
+
+/// [`tiny_identity`] of another generator config.
+fn identity(
+    cfg: &GeneratorConfig,
+    seeds: (u64, u64),
+) -> (BodyContext, Device, Generator, getavatar_core::generator::pipeline::Styles) {
+    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), cfg);
+    let dev = device();
+    let g = Generator::new(cfg, 0, &dev);
+    let (zg, zt) = seed_latents(cfg, seeds.0, seeds.1, &dev);
+    let s = g.styles(zg, zt, 0.7);
+    (ctx, dev, g, s)
+}
+
 #[test]
 fn texture_seed_changes_colours_not_geometry_and_generation_is_deterministic() {
     let cfg = GeneratorConfig::tiny();
@@ -130,15 +155,11 @@ fn config_presets_are_valid() {
 #[test]
 fn fast_repose_path_matches_the_exact_path() {
     let cfg = GeneratorConfig { tet_res: 40, template_res: 96, ..GeneratorConfig::tiny() };
-    let model = BodyModel::default_body().expect("body");
-    let ctx = BodyContext::new(model.clone(), &cfg);
-    let dev = device();
-    let g = Generator::new(&cfg, 0, &dev);
-    let (zg, zt) = seed_latents(&cfg, 11, 12, &dev);
-    let s = g.styles(zg, zt, 0.7);
+    let (ctx, dev, g, s) = identity(&cfg, (11, 12));
+    let model = &ctx.model;
     let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
     // Re-posing to the canonical pose is the identity.
-    let cano = pose_body(&model, &PoseLibrary::builtin().params("Da", &[]).expect("pose"));
+    let cano = pose_body(model, &PoseLibrary::builtin().params("Da", &[]).expect("pose"));
     let (v, n) = rigged.repose(&ctx, &cano);
     for (a, b) in v.iter().zip(&rigged.canonical.mesh.vertices) {
         assert!((*a - *b).length() < 1e-4);
@@ -146,7 +167,7 @@ fn fast_repose_path_matches_the_exact_path() {
     assert!(n.iter().all(|x| (x.length() - 1.0).abs() < 1e-3));
     // In another pose, the LBS-reposed avatar is close to the exact posed-space extraction.
     let params = PoseLibrary::builtin().params("standing", &[]).expect("pose");
-    let posed = pose_body(&model, &params);
+    let posed = pose_body(model, &params);
     let (v, _) = rigged.repose(&ctx, &posed);
     let exact = generate_avatar(&g, &ctx, &s, &params, &dev).expect("generation reads back");
     let (ta, tb) = (KdTree::new(&v), KdTree::new(&exact.mesh.vertices));
@@ -162,12 +183,7 @@ fn fast_repose_path_matches_the_exact_path() {
 /// path, taken here by moving the body 1 µm, gives the same mesh, normals and colours.
 #[test]
 fn the_canonical_shortcut_matches_the_general_path() {
-    let cfg = GeneratorConfig::tiny();
-    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &cfg);
-    let dev = device();
-    let g = Generator::new(&cfg, 0, &dev);
-    let (zg, zt) = seed_latents(&cfg, 5, 6, &dev);
-    let s = g.styles(zg, zt, 0.7);
+    let (ctx, dev, g, s) = tiny_identity((5, 6));
     let params = PoseLibrary::builtin().params("Da", &[]).expect("pose");
     let fast = generate_avatar(&g, &ctx, &s, &params, &dev).expect("generation reads back");
     let moved = getavatar_core::body::skinning::BodyParams { transl: Vec3::new(0.0, 1e-6, 0.0), ..params };
@@ -199,12 +215,7 @@ fn the_canonical_shortcut_matches_the_general_path() {
 #[test]
 fn a_new_identity_reads_back_from_the_device_twice() {
     use getavatar_core::util::profile;
-    let cfg = GeneratorConfig::tiny();
-    let ctx = BodyContext::new(BodyModel::default_body().expect("body"), &cfg);
-    let dev = device();
-    let g = Generator::new(&cfg, 0, &dev);
-    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
-    let s = g.styles(zg, zt, 0.7);
+    let (ctx, dev, g, s) = tiny_identity((1, 2));
     static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
     profile::start(|| T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0);
     let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
@@ -498,12 +509,7 @@ fn geometry_detail_blocks_refine_the_geometry_planes_and_grow_from_a_saved_gener
     let scale = ra.iter().map(|v| v.abs()).fold(0f32, f32::max);
     let diff = ra.iter().zip(&rb).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
     assert!(scale > 0.0 && diff < 0.5 * scale, "residual moved by {diff} (scale {scale})");
-    let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&grown)
-        .unwrap()
-        .into_iter()
-        .map(|(n, _, _)| n)
-        .filter(|n| n.starts_with("synthesis.geometry_detail."))
-        .collect();
+    let names = param_names_under(&grown, "synthesis.geometry_detail.");
     assert!(names.len() >= 4 && names.iter().all(|n| !is_texture_param(n)), "{names:?}");
     let grown_bytes = save_generator(&grown, &fine, &Default::default()).unwrap();
     assert_eq!(config_with_saved_resolutions(&grown_bytes, &GeneratorConfig::tiny()), fine);
@@ -551,12 +557,7 @@ fn texture_detail_blocks_refine_the_texture_planes_and_grow_from_a_saved_generat
     let got = tb[(c * 2 * r + 2 * i) * 2 * r + 2 * j];
     assert!((got - want).abs() < 1e-5, "{got} vs {want}");
     // The detail block's weights are the texture branch's (its own learning rate).
-    let names: Vec<String> = getavatar_core::generator::checkpoint::collect_params(&grown)
-        .unwrap()
-        .into_iter()
-        .map(|(n, _, _)| n)
-        .filter(|n| n.starts_with("synthesis.texture_detail."))
-        .collect();
+    let names = param_names_under(&grown, "synthesis.texture_detail.");
     assert!(names.len() >= 4, "{names:?}");
     assert!(names.iter().all(|n| is_texture_param(n)), "{names:?}");
     // A file with finer texture planes names its own config for the preset it grew from

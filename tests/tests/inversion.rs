@@ -7,8 +7,10 @@ use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::generator::checkpoint::collect_params;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{seed_latents, BodyContext, Generator, Styles};
+use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::reconstruction::inversion::{
-    choose_start, render_images, start_candidates, InversionError, InversionOptions, InversionTarget, Inverter, Phase,
+    choose_start_async, render_images, start_candidates, InversionError, InversionOptions, InversionTarget, Inverter,
+    Phase,
 };
 use getavatar_core::render::camera::{OrbitCamera, View};
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
@@ -138,7 +140,7 @@ fn the_start_is_the_candidate_that_explains_the_image() {
         styles: g.styles(zg, zt, 1.0),
     });
     cands.push(getavatar_core::reconstruction::inversion::StartCandidate { name: "truth".into(), styles: truth });
-    let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev).unwrap();
+    let (best, losses) = block_on_ready(choose_start_async(&g, &ctx, &target, &cands, &dev)).unwrap();
     assert_eq!(cands[best].name, "truth", "losses {losses:?}");
     assert!(losses[best] < 1e-3, "{losses:?}");
 }

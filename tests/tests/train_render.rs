@@ -395,7 +395,7 @@ fn rgb_pixels_are_the_texture_field_at_the_views_surface_points() {
 #[test]
 fn retextured_views_keep_the_surface_and_train_only_the_colours() {
     use getavatar_core::generator::pipeline::Styles;
-    use getavatar_core::render::diff::avatar::render_avatar_views_retextured;
+    use getavatar_core::render::diff::avatar::render_avatar_views_async;
     let dev = cpu().autodiff();
     let cfg = GeneratorConfig::tiny();
     let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
@@ -410,7 +410,8 @@ fn retextured_views_keep_the_surface_and_train_only_the_colours() {
     let (zg2, _) = seed_latents(&cfg, 7, 8, &dev);
     let own = g.styles(zg.clone(), zt.clone(), 1.0);
     let same =
-        render_avatar_views_retextured(&g, &ctx, &own, Some(&own), &[views(&labels)], res, &grids, &dev).unwrap();
+        block_on_ready(render_avatar_views_async(&g, &ctx, &own, Some(&own), &[views(&labels)], res, &grids, &dev))
+            .unwrap();
     let rgb = values(same.rgb.clone());
     let max_diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
     assert!(max_diff(&rgb, &values(same.rgb_retextured.clone().unwrap())) < 1e-6);
@@ -421,7 +422,8 @@ fn retextured_views_keep_the_surface_and_train_only_the_colours() {
     assert!(max_diff(&values(same.planes.geometry.clone()), &values(planes.geometry)) < 1e-6);
     let swapped = Styles { geo: g.styles(zg2, zt.clone(), 1.0).geo, tex: own.tex.clone() };
     let f =
-        render_avatar_views_retextured(&g, &ctx, &own, Some(&swapped), &[views(&labels)], res, &grids, &dev).unwrap();
+        block_on_ready(render_avatar_views_async(&g, &ctx, &own, Some(&swapped), &[views(&labels)], res, &grids, &dev))
+            .unwrap();
     let re = values(f.rgb_retextured.clone().unwrap());
     assert_eq!(re.len(), rgb.len());
     let (mask, n) = (values(f.mask.clone()), res * res);

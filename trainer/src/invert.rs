@@ -38,7 +38,7 @@ use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset}
 use getavatar_core::io::scan::RenderableScan;
 use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
 use getavatar_core::reconstruction::inversion::{
-    choose_start, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
+    choose_start_async, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
     InversionOptions, InversionTarget, Inverter, Phase,
 };
 use getavatar_core::render::camera::{OrbitCamera, View};
@@ -421,7 +421,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         }
         None => {
             let cands = start_candidates(&g, modes.as_ref());
-            let (best, losses) = choose_start(&g, &ctx, &target, &cands, &dev)?;
+            let (best, losses) = block_on_ready(choose_start_async(&g, &ctx, &target, &cands, &dev))?;
             let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
             (cands[best].name.clone(), cands[best].styles.clone(), all)
         }

@@ -59,15 +59,7 @@ fn export_writes_a_textured_animated_avatar_and_refuses_bad_motions() {
     assert_eq!(&std::fs::read(dir.join("hero.png")).unwrap()[..4], b"\x89PNG");
 
     // Bad motions: a missing file, an unknown clip, a file that is not an npz.
-    let bad = |args: &[&str], expect: &str| {
-        let target = dir.join("bad.glb");
-        let mut all = vec!["export", "--out", s(&target)];
-        all.extend_from_slice(args);
-        let run = trainer(&all);
-        let err = String::from_utf8_lossy(&run.stderr);
-        assert!(!run.status.success() && err.contains(expect), "{args:?}: {err}");
-        assert!(!target.exists(), "nothing written for {args:?}");
-    };
+    let bad = |args: &[&str], expect: &str| export_refused(&dir.join("bad.glb"), &[], args, expect);
     bad(&["--texture-res", "0", "--motion", "moonwalk"], "neither a built-in clip");
     let junk = dir.join("junk.npz");
     std::fs::write(&junk, b"not a zip").unwrap();
@@ -102,18 +94,22 @@ fn export_writes_vrm_and_one_vrma_per_motion_and_refuses_what_vrm_forbids() {
     }
     assert!(!out.exists(), "several clips: one file each, named after the clip");
 
-    let bad = |args: &[&str], expect: &str| {
-        let target = dir.join("bad.vrm");
-        let mut all = vec!["export", "--out", s(&target), "--body-only"];
-        all.extend_from_slice(args);
-        let run = trainer(&all);
-        let err = String::from_utf8_lossy(&run.stderr);
-        assert!(!run.status.success() && err.contains(expect), "{args:?}: {err}");
-        assert!(!target.exists(), "nothing written for {args:?}");
-    };
+    let bad = |args: &[&str], expect: &str| export_refused(&dir.join("bad.vrm"), &["--body-only"], args, expect);
     bad(&["--format", "vrm", "--motion", "walk"], "a .vrm holds no animations");
     bad(&["--format", "vrm", "--pose", "walking"], "rest T-pose");
     bad(&["--format", "vrma"], "needs at least one --motion");
     bad(&["--skeleton", "mixamo"], "smpl or humanoid");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `trainer export --out target <first> <args>` fails with a message containing `expect`
+/// and writes nothing.
+fn export_refused(target: &std::path::Path, first: &[&str], args: &[&str], expect: &str) {
+    let mut all = vec!["export", "--out", s(target)];
+    all.extend_from_slice(first);
+    all.extend_from_slice(args);
+    let run = trainer(&all);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && err.contains(expect), "{args:?}: {err}");
+    assert!(!target.exists(), "nothing written for {args:?}");
 }

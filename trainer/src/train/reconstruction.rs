@@ -6,9 +6,10 @@ use anyhow::{bail, Result};
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::generator::optim::ema_update;
 use getavatar_core::generator::pipeline::{Generator, LatentModes, ModePairing, Styles};
+use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::io::dataset::Dataset;
 use getavatar_core::render::camera::View;
-use getavatar_core::render::diff::avatar::{render_avatar_views_retextured, FakeViews};
+use getavatar_core::render::diff::avatar::{render_avatar_views_async, FakeViews};
 use getavatar_core::render::diff::scan_supervision::{scan_losses, texture_loss, CanonicalSamples};
 use getavatar_core::util::rng::Rng;
 
@@ -129,7 +130,8 @@ pub(crate) fn subject_reconstruction<'a>(
         geo: Tensor::cat(vec![styles.geo.clone().narrow(0, 1, b - 1), styles.geo.clone().narrow(0, 0, 1)], 0),
         tex: styles.tex.clone(),
     });
-    let fakes = render_avatar_views_retextured(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad)?;
+    let fakes =
+        block_on_ready(render_avatar_views_async(g, ctx, &styles, swap.as_ref(), &views, rc.resolution, grids, ad))?;
     let l1 = |a: Tensor<4>, b: Tensor<4>| (a - b).abs().mean();
     let mut texture_swap = None;
     let mut swap_loss = None;

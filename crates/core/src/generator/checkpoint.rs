@@ -9,7 +9,7 @@
 
 use std::collections::BTreeMap;
 
-use burn::module::{Module, ModuleMapper, Param};
+use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::generator::network::GeneratorConfig;
@@ -21,6 +21,7 @@ use crate::reconstruction::photo_projection::SourcePhoto;
 
 pub const FORMAT: &str = "getavatar-generator/1";
 
+use crate::io::named_tensor::{map_named, visit_named, MapNamed, VisitNamed};
 pub use crate::io::named_tensor::{unique_name, NamedTensor};
 
 /// Names of the optional latent modes (`[K, w_dim]` each) in a generator checkpoint.
@@ -406,8 +407,6 @@ fn config_difference(a: &GeneratorConfig, b: &GeneratorConfig) -> String {
 }
 
 struct Load<'a> {
-    path: Vec<String>,
-    seen: BTreeMap<String, usize>,
     tensors: &'a BTreeMap<String, (Vec<usize>, Vec<f32>)>,
     device: Device,
     error: Option<CheckpointError>,
@@ -417,15 +416,8 @@ struct Load<'a> {
     keep_missing: &'a [&'a str],
 }
 
-impl ModuleMapper for Load<'_> {
-    fn enter_module(&mut self, name: &str, _container_type: &str) {
-        self.path.push(name.to_string());
-    }
-    fn exit_module(&mut self, _name: &str, _container_type: &str) {
-        self.path.pop();
-    }
-    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-        let name = unique_name(&self.path, &mut self.seen);
+impl MapNamed for Load<'_> {
+    fn map<const D: usize>(&mut self, name: String, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
         let want = param.val().dims().to_vec();
         match self.tensors.get(&name) {
             Some((shape, vals)) if *shape == want => {
@@ -561,16 +553,8 @@ fn load_into(
     keep_missing: &[&str],
     device: &Device,
 ) -> Result<Generator, CheckpointError> {
-    let mut l = Load {
-        path: Vec::new(),
-        seen: BTreeMap::new(),
-        tensors: &st.tensors,
-        device: device.clone(),
-        error: None,
-        used: 0,
-        keep_missing,
-    };
-    let g = g.map(&mut l);
+    let mut l = Load { tensors: &st.tensors, device: device.clone(), error: None, used: 0, keep_missing };
+    let g = map_named(g, &mut l);
     if let Some(e) = l.error {
         return Err(e);
     }
@@ -606,26 +590,18 @@ pub fn collect_params<M: Module>(module: &M) -> Result<Vec<NamedTensor>, Checkpo
 pub async fn collect_params_async<M: Module>(module: &M) -> Result<Vec<NamedTensor>, CheckpointError> {
     /// The parameters flattened (the visitor cannot await), read back afterwards.
     struct Flat {
-        path: Vec<String>,
-        seen: BTreeMap<String, usize>,
         out: Vec<(String, Vec<usize>, Tensor<1>)>,
     }
-    impl burn::module::ModuleVisitor for Flat {
-        fn enter_module(&mut self, name: &str, _container_type: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container_type: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+    impl VisitNamed for Flat {
+        fn visit<const D: usize>(&mut self, name: String, param: &Param<Tensor<D>>) {
             let tensor = param.val();
             let shape = tensor.dims().to_vec();
             let n = shape.iter().product::<usize>();
-            self.out.push((unique_name(&self.path, &mut self.seen), shape, tensor.reshape([n])));
+            self.out.push((name, shape, tensor.reshape([n])));
         }
     }
-    let mut f = Flat { path: Vec::new(), seen: BTreeMap::new(), out: Vec::new() };
-    module.visit(&mut f);
+    let mut f = Flat { out: Vec::new() };
+    visit_named(module, &mut f);
     if f.out.is_empty() {
         return Ok(Vec::new());
     }
@@ -656,16 +632,8 @@ pub fn load_params<M: Module>(
 ) -> Result<M, CheckpointError> {
     let sub: BTreeMap<String, (Vec<usize>, Vec<f32>)> =
         tensors.iter().filter_map(|(k, v)| k.strip_prefix(prefix).map(|rest| (rest.to_string(), v.clone()))).collect();
-    let mut l = Load {
-        path: Vec::new(),
-        seen: BTreeMap::new(),
-        tensors: &sub,
-        device: device.clone(),
-        error: None,
-        used: 0,
-        keep_missing: &[],
-    };
-    let m = module.map(&mut l);
+    let mut l = Load { tensors: &sub, device: device.clone(), error: None, used: 0, keep_missing: &[] };
+    let m = map_named(module, &mut l);
     match l.error {
         Some(e) => Err(e),
         None => Ok(m),

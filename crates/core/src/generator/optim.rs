@@ -5,14 +5,14 @@
 
 use std::collections::BTreeMap;
 
-use burn::module::{Module, ModuleMapper, Param};
+use burn::module::{Module, Param};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 
 #[cfg(not(target_arch = "wasm32"))]
 use crate::generator::readback::{read_f32_now, ReadbackError};
-use crate::io::named_tensor::unique_name as param_name;
 #[cfg(not(target_arch = "wasm32"))]
 use crate::io::named_tensor::NamedTensor;
+use crate::io::named_tensor::{map_named, visit_named, MapNamed, VisitNamed};
 
 /// Adam hyper-parameters and per-parameter moments (flattened, on the parameters' device).
 #[derive(Clone, Debug)]
@@ -82,8 +82,7 @@ impl Adam {
         lr_factor: &dyn Fn(&str) -> f32,
     ) -> M {
         self.step += 1;
-        let mut m = AdamMapper { adam: self, lr, lr_factor, grads, path: Vec::new(), seen: BTreeMap::new() };
-        module.map(&mut m)
+        map_named(module, &mut AdamMapper { adam: self, lr, lr_factor, grads })
     }
 }
 
@@ -92,19 +91,10 @@ struct AdamMapper<'a> {
     lr: f32,
     lr_factor: &'a dyn Fn(&str) -> f32,
     grads: &'a Gradients,
-    path: Vec<String>,
-    seen: BTreeMap<String, usize>,
 }
 
-impl ModuleMapper for AdamMapper<'_> {
-    fn enter_module(&mut self, name: &str, _container_type: &str) {
-        self.path.push(name.to_string());
-    }
-    fn exit_module(&mut self, _name: &str, _container_type: &str) {
-        self.path.pop();
-    }
-    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-        let name = param_name(&self.path, &mut self.seen);
+impl MapNamed for AdamMapper<'_> {
+    fn map<const D: usize>(&mut self, name: String, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
         let (id, tensor, mapper) = param.consume();
         let Some(g) = tensor.grad(self.grads) else {
             return Param::from_mapped_value(id, tensor, mapper);
@@ -135,64 +125,33 @@ impl ModuleMapper for AdamMapper<'_> {
 /// `decoders.texture.out.weight`) tracked for gradients: a backward pass then computes no
 /// gradient for the others, nor through the layers that only they feed.
 pub fn trainable_where<M: Module>(module: M, keep: &dyn Fn(&str) -> bool) -> M {
-    struct Mark<'a> {
-        path: Vec<String>,
-        seen: BTreeMap<String, usize>,
-        keep: &'a dyn Fn(&str) -> bool,
-    }
-    impl ModuleMapper for Mark<'_> {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
-            let name = param_name(&self.path, &mut self.seen);
-            p.set_require_grad((self.keep)(&name))
+    struct Mark<'a>(&'a dyn Fn(&str) -> bool);
+    impl MapNamed for Mark<'_> {
+        fn map<const D: usize>(&mut self, name: String, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            p.set_require_grad((self.0)(&name))
         }
     }
-    module.map(&mut Mark { path: Vec::new(), seen: BTreeMap::new(), keep })
+    map_named(module, &mut Mark(keep))
 }
 
 /// Exponential moving average of a model's parameters (the paper's "EMA of the generator"):
 /// `ema ← β·ema + (1 − β)·model`, matched by parameter path. `ema` may live on the model's
 /// device without autodiff.
 pub fn ema_update<M: Module>(ema: M, model: &M, beta: f32) -> M {
-    struct Get {
-        path: Vec<String>,
-        seen: BTreeMap<String, usize>,
-        out: BTreeMap<String, Tensor<1>>,
-    }
-    impl burn::module::ModuleVisitor for Get {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
-            let name = param_name(&self.path, &mut self.seen);
+    struct Get(BTreeMap<String, Tensor<1>>);
+    impl VisitNamed for Get {
+        fn visit<const D: usize>(&mut self, name: String, p: &Param<Tensor<D>>) {
             let t = p.val().inner();
             let n: usize = t.dims().iter().product();
-            self.out.insert(name, t.reshape([n]));
+            self.0.insert(name, t.reshape([n]));
         }
     }
     struct Set {
-        path: Vec<String>,
-        seen: BTreeMap<String, usize>,
         src: BTreeMap<String, Tensor<1>>,
         beta: f32,
     }
-    impl ModuleMapper for Set {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
-            let name = param_name(&self.path, &mut self.seen);
+    impl MapNamed for Set {
+        fn map<const D: usize>(&mut self, name: String, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
             let Some(src) = self.src.remove(&name) else { return p };
             let beta = self.beta;
             p.map(|t| {
@@ -201,8 +160,7 @@ pub fn ema_update<M: Module>(ema: M, model: &M, beta: f32) -> M {
             })
         }
     }
-    let mut get = Get { path: Vec::new(), seen: BTreeMap::new(), out: BTreeMap::new() };
-    model.visit(&mut get);
-    let mut set = Set { path: Vec::new(), seen: BTreeMap::new(), src: get.out, beta };
-    ema.map(&mut set)
+    let mut get = Get(BTreeMap::new());
+    visit_named(model, &mut get);
+    map_named(ema, &mut Set { src: get.0, beta })
 }

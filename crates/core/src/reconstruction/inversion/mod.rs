@@ -8,7 +8,7 @@
 //! The authors' script optimises Z+ for the texture only; here the geometry moves too (a
 //! photo's clothes are not the template's), and the codes are W+ for both, held near their
 //! start by `latent_reg · ‖w − w₀‖²` (mean over layers and dimensions). The start is the
-//! checkpoint's latent mode (or w_avg) whose render explains the photo best ([`choose_start`]).
+//! checkpoint's latent mode (or w_avg) whose render explains the photo best ([`choose_start_async`]).
 //!
 //! **Phase 2, PTI.** The codes are frozen (the pivot); the synthesis backbone and decoders (not
 //! the mapping networks) are tuned by Adam at `pti_lr` on the same image terms. PTI's locality

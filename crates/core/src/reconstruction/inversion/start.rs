@@ -5,8 +5,6 @@ use burn::tensor::Device;
 
 use super::target::*;
 use crate::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
-#[cfg(not(target_arch = "wasm32"))]
-use crate::generator::readback::block_on_ready;
 use crate::generator::readback::read_f32;
 use crate::render::diff::avatar::{render_avatars_async, PosedGridCache};
 
@@ -58,18 +56,7 @@ pub fn start_candidates(g: &Generator, modes: Option<&LatentModes>) -> Vec<Start
 
 /// The start whose render at the target's camera has the lowest image loss (RGB L1 + MSE +
 /// silhouette), with each candidate's loss. Renders without gradients.
-#[cfg(not(target_arch = "wasm32"))]
-pub fn choose_start(
-    g: &Generator,
-    ctx: &BodyContext,
-    target: &InversionTarget,
-    candidates: &[StartCandidate],
-    device: &Device,
-) -> Result<(usize, Vec<f32>), InversionError> {
-    block_on_ready(choose_start_async(g, ctx, target, candidates, device))
-}
-
-/// [`choose_start`], awaiting its read-backs.
+/// The read-backs are awaited (every platform; `block_on_ready` natively).
 pub async fn choose_start_async(
     g: &Generator,
     ctx: &BodyContext,

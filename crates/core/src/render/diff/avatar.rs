@@ -46,7 +46,7 @@ pub struct FakeViews {
     pub cross_entropy: Tensor<1>,
     /// Triangles extracted per sample (0 = empty surface: its images are background).
     pub triangles: Vec<usize>,
-    /// With [`render_avatar_views_retextured`]: the RGB images of the same surfaces coloured
+    /// With [`render_avatar_views_async`]: the RGB images of the same surfaces coloured
     /// by the texture field of the other styles (same layout as `rgb`).
     pub rgb_retextured: Option<Tensor<4>>,
     /// The triplanes of the batch's avatars (`[B, 3·C, R, R]`, with gradients), for terms
@@ -183,7 +183,7 @@ pub fn render_avatar_views(
     grids: &PosedGridCache,
     device: &Device,
 ) -> Result<FakeViews, ReadbackError> {
-    render_avatar_views_retextured(g, ctx, styles, None, views, res, grids, device)
+    block_on_ready(render_avatar_views_async(g, ctx, styles, None, views, res, grids, device))
 }
 
 /// [`render_avatar_views`], and with `retexture` (batch B styles) also the RGB of each surface
@@ -191,23 +191,9 @@ pub fn render_avatar_views(
 /// at the same canonical pixel coordinates, held constant (`FakeViews::rgb_retextured`). The
 /// texture-swap term of the reconstruction warm-up uses it: geometry from one code, colours
 /// that must follow the texture code alone.
-#[cfg(not(target_arch = "wasm32"))]
-#[allow(clippy::too_many_arguments)]
-pub fn render_avatar_views_retextured(
-    g: &Generator,
-    ctx: &BodyContext,
-    styles: &Styles,
-    retexture: Option<&Styles>,
-    views: &[Vec<View>],
-    res: usize,
-    grids: &PosedGridCache,
-    device: &Device,
-) -> Result<FakeViews, ReadbackError> {
-    block_on_ready(render_avatar_views_async(g, ctx, styles, retexture, views, res, grids, device))
-}
-
-/// [`render_avatar_views_retextured`] on any platform: the read-backs (band fields, clip-space
-/// positions, pixel coordinates) are awaited, so the browser's GPU is never blocked on.
+///
+/// The read-backs (band fields, clip-space positions, pixel coordinates) are awaited, so the
+/// browser's GPU is never blocked on.
 #[allow(clippy::too_many_arguments)]
 pub async fn render_avatar_views_async(
     g: &Generator,
