@@ -128,6 +128,37 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
     assert_eq!(diff(&unchanged, &before, ""), 0.0, "the caller's generator changed");
 }
 
+/// A W+ run that diverges (here a learning rate far too large for these codes) ends on the
+/// codes of its lowest loss, not on where it was thrown; a settled run keeps its last codes.
+#[test]
+fn a_diverged_w_plus_run_ends_on_its_best_codes() {
+    let (cfg, ctx, target, _truth) = setup();
+    let dev = cpu().autodiff();
+    let g = Generator::new(&cfg, 0, &dev);
+    let start = start_candidates(&g, None)[0].styles.clone();
+    let run = |lr: f32, steps: usize| {
+        let opts =
+            InversionOptions { steps, pti_steps: 0, lr, warmup: 0.0, rampdown: 0.0, ..InversionOptions::default() };
+        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
+        let mut seen = Vec::new();
+        loop {
+            let before = values(inv.styles().geo.reshape([-1]));
+            let Some(r) = inv.step().unwrap() else { break };
+            seen.push((r.terms.total, before));
+        }
+        (seen, values(inv.styles().geo.reshape([-1])))
+    };
+    let (seen, end) = run(4.0, 4);
+    let (best, best_codes) = seen.iter().min_by(|a, b| a.0.total_cmp(&b.0)).unwrap();
+    let last = seen.last().unwrap().0;
+    assert!(last > 1.05 * best, "the run did not diverge: losses {:?}", seen.iter().map(|s| s.0).collect::<Vec<_>>());
+    assert_eq!(&end, best_codes, "a diverged run ends on the codes of its lowest loss {best}");
+    // A settled run (small steps): its last codes are the update after the last step, not a
+    // code it rendered.
+    let (seen, end) = run(0.01, 3);
+    assert!(seen.iter().all(|(_, codes)| *codes != end), "a settled run keeps its last update");
+}
+
 #[test]
 fn the_start_is_the_candidate_that_explains_the_image() {
     let (cfg, ctx, target, truth) = setup();
