@@ -10,8 +10,8 @@ evenly over the sorted entries), so the figure sits beside the eval's.
     python3 tools/sharpness_floor.py data/ds64_16 /tmp/ds64_16_ss1 4
 
 At 64² the scans themselves, sampled once per pixel, differ from their own 2×2-supersampled
-views by 0.0085 on v1's grid (MODEL_CARD, session 44): point-sampled renders alias where the
-data averages. Images are compared as `trainer eval` reads them (the PNG's RGB, which
+views by 0.0085 on v1's grid (the model card's sharpness row): point-sampled renders alias
+where the data averages. Images are compared as `trainer eval` reads them (the PNG's RGB, which
 `prepare` composites on white; [0, 1] units). Needs numpy and Pillow.
 """
 import json
