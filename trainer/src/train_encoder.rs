@@ -79,8 +79,29 @@ pub struct TrainEncoderArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
+    /// Start a new run from this encoder's weights (e.g. the shipped one, to train it further
+    /// on new pairs) instead of from scratch; its held-out error is logged as step 0.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// `K/N`: render only the shards whose number is K modulo N, then stop without training,
+    /// so that N processes (or machines) render one set of pairs together; the shards are
+    /// the ones a single process would render.
+    #[arg(long, value_parser = parse_part)]
+    pub render_part: Option<(usize, usize)>,
     #[arg(long)]
     pub out: PathBuf,
+}
+
+fn parse_part(s: &str) -> Result<(usize, usize), String> {
+    let (k, n) = s.split_once('/').ok_or_else(|| format!("`{s}` is not K/N"))?;
+    let (k, n): (usize, usize) = (
+        k.trim().parse().map_err(|e| format!("K in `{s}`: {e}"))?,
+        n.trim().parse().map_err(|e| format!("N in `{s}`: {e}"))?,
+    );
+    if n == 0 || k >= n {
+        return Err(format!("`{s}`: need 0 <= K < N"));
+    }
+    Ok((k, n))
 }
 
 const SHARD: usize = 64;
@@ -126,6 +147,10 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     std::fs::create_dir_all(a.out.join("pairs")).with_context(|| format!("creating {}", a.out.display()))?;
     let shards = a.pairs.div_ceil(shard_size(a.pairs));
     render_pairs(a, &g, modes.as_ref(), &ctx, &model, ecfg.res, shards, &device)?;
+    if let Some((k, n)) = a.render_part {
+        println!("rendered the shards {k} mod {n} of {shards} in {}", a.out.join("pairs").display());
+        return Ok(());
+    }
     let data: Vec<Shard> =
         (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
     let (train, held) = data.split_at(shards - 1);
@@ -166,8 +191,9 @@ fn render_pairs(
     shards: usize,
     dev: &Device,
 ) -> Result<()> {
+    let mine = |s: &usize| a.render_part.is_none_or(|(k, n)| s % n == k);
     let todo: Vec<usize> =
-        (0..shards).filter(|s| !shard_path(&a.out, *s).with_extension("safetensors").is_file()).collect();
+        (0..shards).filter(mine).filter(|s| !shard_path(&a.out, *s).with_extension("safetensors").is_file()).collect();
     if todo.is_empty() {
         return Ok(());
     }
@@ -462,6 +488,20 @@ fn train_loop(
         let s = load_state(&state, ad)?;
         eprintln!("resuming from {} at step {}", state.display(), s.2);
         s
+    } else if let Some(init) = &a.init {
+        let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
+        let st = parse_safetensors(&bytes).with_context(|| format!("{} is not an encoder", init.display()))?;
+        let theirs: EncoderConfig = st
+            .metadata
+            .get("encoder")
+            .and_then(|t| serde_json::from_str(t).ok())
+            .with_context(|| format!("{} has no encoder config", init.display()))?;
+        if &theirs != ecfg {
+            bail!("{} is an encoder of another size ({theirs:?}) than this generator's ({ecfg:?})", init.display());
+        }
+        let enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", init.display()))?;
+        eprintln!("starting from the weights of {}", init.display());
+        (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     } else {
         let mut enc = Encoder::new(ecfg, a.seed, ad);
         if let Some((geo, tex)) = dictionary {
@@ -493,6 +533,17 @@ fn train_loop(
     };
     let mut best = best_logged(&a.out.join("log.jsonl"), step)?;
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("log.jsonl"))?;
+    if step == 0 && a.init.is_some() && best.is_infinite() {
+        // The starting weights' figure, so that the run shows what training further gained.
+        let (val, val_avg) = held_out_error(&enc, held, &offsets, ad)?;
+        writeln!(log, "{}", serde_json::json!({"step": 0, "held_out_mse": val, "held_out_mse_w_avg": val_avg}))?;
+        eprintln!("step 0 (the --init weights): held-out code MSE {val:.4} (w_avg {val_avg:.4})");
+        best = val;
+        let mut extra = BTreeMap::new();
+        extra.insert("step".into(), "0".into());
+        extra.insert("held_out_mse".into(), val.to_string());
+        write_atomic(&a.out.join("encoder_best.safetensors"), &save_encoder(&collect_params(&enc)?, ecfg, &extra)?)?;
+    }
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(step.min(a.steps));
     let (mut loss_sum, mut loss_n) = (0.0f64, 0usize);
