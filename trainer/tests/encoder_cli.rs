@@ -15,8 +15,12 @@ fn ok(o: std::process::Output) -> std::process::Output {
 }
 
 fn train_encoder(out: &Path, steps: u64) -> std::process::Output {
+    train_encoder_with(out, steps, &[])
+}
+
+fn train_encoder_with(out: &Path, steps: u64, extra: &[&str]) -> std::process::Output {
     let steps = steps.to_string();
-    trainer(&[
+    let base = [
         "train-encoder",
         "--config",
         "tiny",
@@ -31,7 +35,12 @@ fn train_encoder(out: &Path, steps: u64) -> std::process::Output {
         &steps,
         "--out",
         s(out),
-    ])
+    ];
+    trainer(&[&base[..], extra].concat())
+}
+
+fn log_lines(dir: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(dir.join("log.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
 }
 
 fn metrics(dir: &Path) -> serde_json::Value {
@@ -48,11 +57,7 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
         assert!(a.join(f).is_file(), "{f} missing");
     }
     assert!(a.join("snapshots/step_000002.png").is_file());
-    let log: Vec<serde_json::Value> = std::fs::read_to_string(a.join("log.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let log = log_lines(&a);
     assert_eq!(log.len(), 2);
     // The untrained head answers w_avg: the first figures are near w_avg's, and finite.
     for l in &log {
@@ -119,5 +124,44 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
     );
     assert_eq!(err.matches("cannot be used").count(), 1, "{err}");
     assert_ne!(metrics(&inv2)["start"], "encoder");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn render_parts_make_the_pairs_one_process_makes_and_init_starts_from_given_weights() {
+    let root = tmp("encoder_parts");
+    let (one, parts, further) = (root.join("one"), root.join("parts"), root.join("further"));
+    // 0/1 is every shard, as a single process renders them; 0/2 then 1/2 render half each.
+    ok(train_encoder_with(&one, 1, &["--render-part", "0/1"]));
+    ok(train_encoder_with(&parts, 1, &["--render-part", "0/2"]));
+    assert!(parts.join("pairs/shard_0000.safetensors").is_file());
+    assert!(!parts.join("pairs/shard_0001.safetensors").exists(), "part 0/2 rendered shard 1");
+    assert!(!parts.join("state.safetensors").exists(), "a render part trained");
+    ok(train_encoder_with(&parts, 1, &["--render-part", "1/2"]));
+    for f in
+        ["pairs/shard_0000.bin", "pairs/shard_0000.safetensors", "pairs/shard_0001.bin", "pairs/shard_0001.safetensors"]
+    {
+        assert!(std::fs::read(one.join(f)).unwrap() == std::fs::read(parts.join(f)).unwrap(), "{f} differs");
+    }
+    // Train one step on the parts' pairs; a new run started from those weights logs, as its
+    // step 0, exactly the held-out error they had.
+    ok(train_encoder(&parts, 1));
+    let trained = log_lines(&parts)[0]["held_out_mse"].as_f64().unwrap();
+    std::fs::create_dir_all(&further).unwrap();
+    std::fs::rename(one.join("pairs"), further.join("pairs")).unwrap();
+    let init = parts.join("encoder.safetensors");
+    let o = ok(train_encoder_with(&further, 1, &["--init", s(&init)]));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("starting from the weights"));
+    let log = log_lines(&further);
+    assert_eq!((log[0]["step"].as_u64(), log[0]["held_out_mse"].as_f64()), (Some(0), Some(trained)), "{log:?}");
+    assert_eq!(log[1]["step"], 1);
+    // Bad input: one clear error each.
+    let o = train_encoder_with(&root.join("x"), 1, &["--render-part", "2/2"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("0 <= K < N"));
+    let bad = root.join("bad.safetensors");
+    std::fs::write(&bad, b"not an encoder").unwrap();
+    std::fs::remove_file(further.join("state.safetensors")).unwrap();
+    let o = train_encoder_with(&further, 2, &["--init", s(&bad)]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("bad.safetensors"));
     let _ = std::fs::remove_dir_all(&root);
 }
