@@ -12,11 +12,15 @@
 //! about the errors `fit-pose` makes on MediaPipe detections (docs/benchmarks.md), so the
 //! encoder tolerates a fit that is a few pixels off. `.bin` holds the 11 u8 images of each
 //! pair (render RGB, mask, the perturbed body's normals, canonical coordinates, silhouette);
-//! `.safetensors` the true W+ codes and views. The last shard is held out.
+//! `.safetensors` the true W+ codes and views. The last shard is held out. `--render-part K/N`
+//! renders only the shards whose number is K modulo N and stops, so that N processes (on a
+//! GPU machine: `tools/gpu_bench.sh`, part `encoder`) render one set of pairs together.
 //!
 //! **Training**: code regression (mean squared error of the W+ offsets from w_avg), Adam.
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
 //! subjects' codes (one per subject and branch), which the samples are truncated towards.
+//! `--init FILE` starts a new run from an encoder's weights instead (training the shipped one
+//! further on new pairs) and logs their held-out error as step 0.
 //! Each step composes the renders over a random background (solid, noise, or a blurred other
 //! render) and erodes or dilates the person mask by up to 2 px before the input is built, as a
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
