@@ -34,11 +34,11 @@ impl Default for FitWeights {
     fn default() -> Self {
         Self {
             robust_sigma: 40.0,
-            pose: 0.6,
+            pose: 1.2,
             hinge: 1.0,
             hinge_side: 5.0,
             betas: 0.5,
-            bones: 25.0,
+            bones: 10.0,
             symmetry: 20.0,
             silhouette: 0.2,
             silhouette_uncovered: 0.45,
