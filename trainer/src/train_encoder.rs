@@ -495,11 +495,9 @@ fn train_loop(
     } else if let Some(init) = &a.init {
         let bytes = std::fs::read(init).with_context(|| format!("reading {}", init.display()))?;
         let st = parse_safetensors(&bytes).with_context(|| format!("{} is not an encoder", init.display()))?;
-        let theirs: EncoderConfig = st
-            .metadata
-            .get("encoder")
-            .and_then(|t| serde_json::from_str(t).ok())
-            .with_context(|| format!("{} has no encoder config", init.display()))?;
+        let text = st.metadata.get("encoder").with_context(|| format!("{} has no encoder config", init.display()))?;
+        let theirs: EncoderConfig =
+            serde_json::from_str(text).with_context(|| format!("the encoder config in {}", init.display()))?;
         if &theirs != ecfg {
             bail!("{} is an encoder of another size ({theirs:?}) than this generator's ({ecfg:?})", init.display());
         }
