@@ -8,12 +8,13 @@
 //! - the root's path is within 10 cm of the truth's after scale alignment;
 //! - frames without a person are filled in and reported; a clip without one is an error.
 //!
-//! The same on the real detector's reading of the rendered dance (a fixture), at its measured
-//! errors.
+//! The same on the real detector's reading of the rendered dance (a fixture): every frame
+//! ≤ 60 mm there too.
 //!
 //! The settings can be varied for measurements (docs/benchmarks.md, "Motion from a video"):
 //! `VIDEO_WARM=10,60,0` (warm steps per stage), `VIDEO_SMOOTHING=1.5` (σ, frames),
-//! `VIDEO_TEMPORAL=0` (pull towards the previous frame), `VIDEO_DEBUG=1` (per-frame yaw and
+//! `VIDEO_TEMPORAL=0` (pull towards the previous frame), `VIDEO_WARM_BONES=30` (the warm frames'
+//! bone weight), `VIDEO_DEBUG=1` (per-frame yaw and
 //! error), e.g. `VIDEO_SMOOTHING=0 VIDEO_TEMPORAL=5 cargo test --workspace --test video_motion -- --nocapture`.
 
 use std::sync::Arc;
@@ -150,6 +151,9 @@ fn options() -> VideoFitOptions {
     if let Ok(w) = std::env::var("VIDEO_DEPTH_SMOOTHING") {
         options.depth_smoothing_factor = w.parse().unwrap();
     }
+    if let Ok(w) = std::env::var("VIDEO_WARM_BONES") {
+        options.warm_weights.bones = w.parse().unwrap();
+    }
     if let Ok(w) = std::env::var("VIDEO_TEMPORAL") {
         options.temporal = w.parse().unwrap();
     }
@@ -239,13 +243,13 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
 /// The same dance rendered (`trainer body-photos --dance 60 --size 384`), encoded by ffmpeg
 /// and read by the real MediaPipe Pose in its tracking mode (`trainer motion-from-video
 /// --keypoints-out`): the fixture `tests/fixtures/video/dance.keypoints.jsonl`. Bounds at the
-/// measured figures (mean 45.6 mm, worst 63.3 mm: above the 60 mm goal; accel 7.2 against
-/// 22.7 unsmoothed; lag 0.8 frame; path 5.4 cm at scale 0.93).
+/// goal's 60 mm per frame and near the measured figures (mean 42.2 mm, worst 56.7 mm; accel 7.6
+/// against 27.4 unsmoothed; lag 0.5 frame; path 5.6 cm at scale 0.95).
 #[test]
-fn the_real_detectors_reading_of_the_dance_stays_within_its_measured_errors() {
+fn the_real_detectors_reading_of_the_dance_comes_back_within_60_mm_per_frame() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/video/dance.keypoints.jsonl");
     let s = fit_and_score("MediaPipe", &read_keypoints(path), &[]);
-    assert!(s.mean() <= 0.050 && s.worst() <= 0.066, "PA-MPJPE mean {} worst {}: {:?}", s.mean(), s.worst(), s.errors);
+    assert!(s.mean() <= 0.045 && s.worst() <= 0.060, "PA-MPJPE mean {} worst {}: {:?}", s.mean(), s.worst(), s.errors);
     assert!(s.accel < 0.5 * s.accel_raw, "smoothing made the acceleration error {} from {}", s.accel, s.accel_raw);
     assert!(s.lag.abs() <= 2.0, "the turn lags by {} frames", s.lag);
     assert!(s.path_error <= 0.07, "root path off by {} m", s.path_error);

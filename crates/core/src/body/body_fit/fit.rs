@@ -45,7 +45,7 @@ pub use super::input::{FitInput, HAND_SWAP};
 use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
 use super::limits::HINGES;
 use super::metrics::{body_mask, mask_iou};
-pub use super::options::{FitOptions, FitWeights};
+pub use super::options::{BoneForm, FitOptions, FitWeights};
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
 use super::result::{FAR, NEAR};
 use super::surface::{surface_landmarks, SurfaceLandmark};
@@ -530,8 +530,20 @@ impl BodyFitter {
             let c = posed.joints.clone().select(0, joint_index(to, &dev));
             let d = c - a;
             let len = (d.clone() * d.clone()).sum_dim(1).sqrt().clamp_min(1e-6);
-            let diff = d / len - dirs.clone();
-            loss = loss + ((diff.clone() * diff).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.bones;
+            let unit = d / len;
+            let term = match wts.bones_form {
+                BoneForm::Direction => {
+                    let diff = unit - dirs.clone();
+                    (diff.clone() * diff).sum_dim(1)
+                }
+                BoneForm::DepthFloor => {
+                    let detected = dirs.clone().narrow(1, 2, 1);
+                    let side = detected.clone().sign();
+                    let short = (detected * side.clone() - unit.narrow(1, 2, 1) * side).clamp_min(0.0);
+                    short.clone() * short
+                }
+            };
+            loss = loss + (term * w.clone()).sum().reshape([1]) * wts.bones;
         }
         if let (Some((hidden, seen, w)), true) = (&self.symmetry, wts.symmetry > 0.0) {
             // The counterpart is detached: the seen limb is not pulled towards the hidden one.

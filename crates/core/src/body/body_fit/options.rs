@@ -18,8 +18,11 @@ pub struct FitWeights {
     pub hinge_side: f32,
     /// L2 on β.
     pub betas: f32,
-    /// Squared difference of unit bone directions to the world landmarks'.
+    /// Weight of the bone term: the detector's 3D bone directions (world landmarks), read as
+    /// [`FitWeights::bones_form`] says.
     pub bones: f32,
+    /// How the bone term reads the detector's directions.
+    pub bones_form: BoneForm,
     /// Squared difference (radians²) of a hidden limb's joint rotations to the mirror image
     /// of its seen counterpart's, scaled by how hidden the one and how seen the other is.
     pub symmetry: f32,
@@ -39,11 +42,29 @@ impl Default for FitWeights {
             hinge_side: 5.0,
             betas: 0.5,
             bones: 10.0,
+            bones_form: BoneForm::Direction,
             symmetry: 20.0,
             silhouette: 0.2,
             silhouette_uncovered: 0.45,
         }
     }
+}
+
+/// How the bone term compares a fitted bone with the detector's direction of it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BoneForm {
+    /// Squared difference of the unit directions (a cold fit: the detector's directions also
+    /// say where a limb the image leaves in doubt goes).
+    #[default]
+    Direction,
+    /// Squared shortfall of the bone's depth part (its unit direction's component along the
+    /// camera's axis) below the detector's, on the detector's side; a bone may leave the image
+    /// plane further than the detector says, never less, and the image says the rest.
+    /// MediaPipe's world landmarks flatten depth: a squatting thigh that comes 30 cm towards
+    /// the camera reads as 6 cm. A warm-started video frame uses this form (the previous
+    /// frame holds what the image leaves in doubt; [`super::video::VideoFitOptions`]).
+    DepthFloor,
 }
 
 /// Settings of the fit.
