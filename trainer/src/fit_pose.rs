@@ -101,12 +101,17 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     crate::atomic::write_atomic(&args.out, fit.to_json()?.as_bytes())?;
     let r = &fit.residuals;
     println!(
-        "wrote {}: mean keypoint error {:.1} px ({:.2} % of the body's height){}{}{}",
+        "wrote {}: mean keypoint error {:.1} px ({:.2} % of the body's height){}{}{}{}",
         args.out.display(),
         r.mean_px,
         100.0 * r.relative_to_height,
         r.mask_iou.map_or(String::new(), |i| format!(", mask IoU {i:.3}")),
         if fit.missing.is_empty() { String::new() } else { format!("; not seen: {}", fit.missing.join(", ")) },
+        if fit.off_person.is_empty() {
+            String::new()
+        } else {
+            format!("; put off the person's mask by the detector, fitted to the mask instead: {}", fit.off_person.join(", "))
+        },
         if fit.relabelled.is_empty() {
             String::new()
         } else {

@@ -201,12 +201,13 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
 /// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
 /// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
-/// 90 mm; measured: mean 64.1 mm, worst 116.3 mm, seven cases over 90 mm. The worst are
+/// 90 mm; measured: mean 63.1 mm, worst 116.3 mm, six cases over 90 mm. The worst are
 /// detector errors the fit follows: kneeling from behind (116.3 mm) has the legs' sides
-/// mixed; the raised knee from the front (110.4 mm) is bent the wrong way in depth; the
-/// jumping jack from the front (106.6 mm) has both wrists put over the head, and MediaPipe's
-/// own person mask follows that reading, so the silhouette cannot correct it. So this guards
-/// the measured state (mean ≤ 66 mm, worst ≤ 120 mm) until the fit closes the gap.
+/// mixed; the raised knee from the front (110.4 mm) is bent the wrong way in depth; leaning
+/// forward from behind (108.2 mm) reads as upright. The jumping jack from the front, whose arms
+/// MediaPipe puts over the head off its own person mask, is fitted to the mask (73.4 mm; 106.6
+/// before landmarks off the person were taken as errors). So this guards the measured state
+/// (mean ≤ 65 mm, worst ≤ 120 mm) until the fit closes the gap.
 #[test]
 fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     let dir = tmp("fit-wide");
@@ -220,6 +221,16 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         for k in 0..WIDE_YAWS.len() {
             let stem = format!("{name}_view{k}");
             let (fit, err) = fit_fixture(&dir, &fixtures, &stem, &model, &truth);
+            // Only the frontal jumping jack has landmarks off the person (its arms), with
+            // their limbs; every other fixture's landmarks are on it.
+            if stem == "jumping_jack_view0" {
+                for l in ["left_elbow", "left_wrist", "right_elbow", "right_wrist", "right_index"] {
+                    assert!(fit.off_person.iter().any(|o| o == l), "{stem}: {l} not off: {:?}", fit.off_person);
+                    assert!(fit.missing.iter().any(|o| o == l), "{stem}: {l} not missing: {:?}", fit.missing);
+                }
+            } else {
+                assert!(fit.off_person.is_empty(), "{stem}: {:?} off the person", fit.off_person);
+            }
             errors.push(err);
             report.push(format!(
                 "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
@@ -237,7 +248,7 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         mean * 1000.0,
         worst * 1000.0
     );
-    assert!(mean <= 0.066 && worst <= 0.120, "mean {mean}, worst {worst}\n{}", report.join("\n"));
+    assert!(mean <= 0.065 && worst <= 0.120, "mean {mean}, worst {worst}\n{}", report.join("\n"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -332,6 +332,12 @@ impl GetAvatarApp {
         if !s.missing_joints.is_empty() {
             s.message += &format!("; not seen: {}", s.missing_joints.join(", "));
         }
+        if !fit.off_person.is_empty() {
+            s.message += &format!(
+                "; the detector put {} off the person: fitted to the person's outline instead",
+                fit.off_person.join(", ")
+            );
+        }
         if let Some(p) = &self.photo.photo {
             if p.people.is_some_and(|n| n > 1) || p.rotation != 0 {
                 s.message += &format!("; {}", who_was_found(p));

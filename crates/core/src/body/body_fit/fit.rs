@@ -735,6 +735,7 @@ impl BodyFitter {
             },
             table,
             missing,
+            off_person: self.input.off_person.iter().map(|&l| LANDMARK_NAMES[l].to_string()).collect(),
             relabelled: if self.hands_swapped {
                 HAND_SWAP.iter().map(|(a, b)| format!("{}↔{}", LANDMARK_NAMES[*a], LANDMARK_NAMES[*b])).collect()
             } else {
@@ -856,7 +857,7 @@ mod tests {
         vis[16] = 0.2;
         let points: Vec<([f32; 2], f32)> = (0..NUM_LANDMARKS).map(|i| ([i as f32, 0.0], vis[i])).collect();
         let world = Some((0..NUM_LANDMARKS).map(|i| Vec3::splat(i as f32)).collect());
-        let input = FitInput { framing, points, world, mask: None, rotation: 0 };
+        let input = FitInput { framing, points, world, mask: None, rotation: 0, off_person: Vec::new() };
         assert!(!input.hands_in_doubt(), "both wrists hidden");
         let mut input = input;
         input.points[16].1 = 0.9;

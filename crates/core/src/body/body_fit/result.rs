@@ -35,8 +35,13 @@ pub struct BodyFit {
     pub residuals: FitResiduals,
     /// The landmark → joint/vertex table used.
     pub table: Vec<FitTarget>,
-    /// Landmarks the detector did not see (visibility < 0.5); the fit ignores them.
+    /// Landmarks the detector did not see (visibility < 0.5) or put off the person
+    /// (`off_person`); the fit ignores them.
     pub missing: Vec<String>,
+    /// Landmarks the detector saw where the person mask shows no person, with the rest of
+    /// their limb ([`super::input::off_person`]): taken as the detector's errors.
+    #[serde(default)]
+    pub off_person: Vec<String>,
     /// Landmarks the fit took with their sides swapped (`"left_wrist↔right_wrist"`, …):
     /// the detector's labels of a hidden hand and a seen one, when swapping them explained
     /// the photo better ([`HAND_SWAP`]). `keypoints` report the swapped labels.
