@@ -110,7 +110,10 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
         if fit.off_person.is_empty() {
             String::new()
         } else {
-            format!("; put off the person's mask by the detector, fitted to the mask instead: {}", fit.off_person.join(", "))
+            format!(
+                "; put off the person's mask by the detector, fitted to the mask instead: {}",
+                fit.off_person.join(", ")
+            )
         },
         if fit.relabelled.is_empty() {
             String::new()

@@ -139,7 +139,8 @@ impl FitInput {
             Some(m) => Some(framing.resample_mask(&m.data, m.width, m.height, options.silhouette_size)),
             None => None,
         };
-        let mut off = mask.as_ref().map_or_else(Vec::new, |m| off_person(&points, &framing, m, options.silhouette_size));
+        let mut off =
+            mask.as_ref().map_or_else(Vec::new, |m| off_person(&points, &framing, m, options.silhouette_size));
         // A hand or foot off the person puts its whole limb in doubt: the detector placed the
         // limb, and its middle with it, where the person is not.
         for (ends, limb) in LIMBS {

@@ -20,9 +20,9 @@ use burn::tensor::Device;
 use glam::{Mat3, Quat, Vec3};
 
 use super::fit::{BodyFitter, FitError, FitInput, FitOptions, FitState};
-use super::options::{BoneForm, FitWeights};
 use super::framing::Framing;
 use super::landmarks::{PoseResult, VISIBLE};
+use super::options::{BoneForm, FitWeights};
 use super::temporal::{fill_lost, smooth, PoseFrame};
 use crate::body::body_model::BodyModel;
 use crate::body::motion::{resample, Motion, MAX_FRAMES, MOTION_FPS};
