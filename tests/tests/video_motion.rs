@@ -243,8 +243,8 @@ fn a_dance_filmed_from_one_camera_comes_back_as_its_motion() {
 /// The same dance rendered (`trainer body-photos --dance 60 --size 384`), encoded by ffmpeg
 /// and read by the real MediaPipe Pose in its tracking mode (`trainer motion-from-video
 /// --keypoints-out`): the fixture `tests/fixtures/video/dance.keypoints.jsonl`. Bounds at the
-/// goal's 60 mm per frame and near the measured figures (mean 42.2 mm, worst 56.7 mm; accel 7.6
-/// against 27.4 unsmoothed; lag 0.5 frame; path 5.6 cm at scale 0.95).
+/// goal's 60 mm per frame and near the measured figures (mean 37.1 mm, worst 53.2 mm; accel 7.4
+/// against 26.9 unsmoothed; lag 0.6 frame; path 6.0 cm at scale 0.95).
 #[test]
 fn the_real_detectors_reading_of_the_dance_comes_back_within_60_mm_per_frame() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/video/dance.keypoints.jsonl");

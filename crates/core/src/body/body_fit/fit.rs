@@ -6,8 +6,8 @@
 //! 1. **torso**: orientation and camera translation from the shoulders and hips;
 //! 2. **body**: everything, all landmarks: Geman–McClure robust reprojection of the joints
 //!    ([`super::landmarks::JOINT_LANDMARKS`]) and surface points ([`super::surface`]),
-//!    SMPLify's angle prior on elbows and knees and an L2 on their sideways bend
-//!    ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
+//!    SMPLify's angle prior on elbows and knees and an L2 on their sideways bend, a stiffer
+//!    L2 on the collars ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
 //!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
 //!    cannot, e.g. which arm is in front) and, where an elbow or knee is hidden, its limb's
 //!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
@@ -43,7 +43,7 @@ pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
 pub use super::input::{FitInput, HAND_SWAP};
 use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
-use super::limits::HINGES;
+use super::limits::{COLLARS, HINGES};
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{BoneForm, FitOptions, FitWeights};
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
@@ -514,6 +514,11 @@ impl BodyFitter {
         // Priors.
         let pose = self.params.body_pose.val();
         loss = loss + (pose.clone() * pose.clone()).sum().reshape([1]) * wts.pose;
+        if wts.collar > 0.0 {
+            let rows: Vec<usize> = COLLARS.iter().map(|j| j - 1).collect();
+            let c = pose.clone().select(0, joint_index(&rows, &dev));
+            loss = loss + (c.clone() * c).sum().reshape([1]) * wts.collar;
+        }
         for h in HINGES {
             let a = pose.clone().narrow(0, h.joint - 1, 1).narrow(1, h.axis, 1).reshape([1]);
             let e = (a * -h.bend).exp();

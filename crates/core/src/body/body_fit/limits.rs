@@ -35,6 +35,13 @@ pub const HINGES: [Hinge; 4] = [
     Hinge { joint: 19, axis: 1, bend: 1.0, side: 2 },
 ];
 
+/// The collar bones (SMPL's `left_collar`, `right_collar`): the clavicles move little (some
+/// 20–30° of elevation and protraction in a person), so [`super::options::FitWeights::collar`]
+/// holds them stiffer than θ's plain L2. Left free, a fit reaches a misread or hidden arm by
+/// turning a collar 0.5–1.3 rad and then bends the spine and the standing knee to keep the
+/// torso's landmarks.
+pub const COLLARS: [usize; 2] = [13, 14];
+
 /// SMPLify's angle prior on the hinges: Σ exp(−bend · θ_axis)², about 1 per straight joint,
 /// growing exponentially with hyperextension and vanishing with natural flexion.
 pub fn hinge_penalty(pose: &[Vec3; NUM_JOINTS]) -> f32 {

@@ -11,6 +11,8 @@ pub struct FitWeights {
     pub robust_sigma: f32,
     /// L2 on the body pose θ₁…θ₂₃ (radians²).
     pub pose: f32,
+    /// L2 (radians²) on the collars' rotation ([`super::limits::COLLARS`]), on top of `pose`.
+    pub collar: f32,
     /// SMPLify's angle prior on elbows and knees.
     pub hinge: f32,
     /// L2 (radians²) on the sideways bend of elbows and knees: the rotation about the axis
@@ -38,6 +40,7 @@ impl Default for FitWeights {
         Self {
             robust_sigma: 40.0,
             pose: 1.2,
+            collar: 10.0,
             hinge: 1.0,
             hinge_side: 5.0,
             betas: 0.5,

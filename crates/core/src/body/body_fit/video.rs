@@ -38,7 +38,7 @@ pub struct VideoFitOptions {
     /// Term weights of the warm-started fits: the bone term reads the detector's depth as a
     /// floor ([`BoneForm::DepthFloor`], weight 30: on the real detector's reading of the dance
     /// in `tests/tests/video_motion.rs`, PA-MPJPE mean 45.6 → 42.2 mm and worst 63.3 → 56.7 mm
-    /// against the cold fit's form; docs/benchmarks.md).
+    /// against the cold fit's form, before the collars' prior; docs/benchmarks.md).
     pub warm_weights: FitWeights,
     /// Frames fitted in full for the clip's β.
     pub shape_frames: usize,
