@@ -165,3 +165,47 @@ fn render_parts_make_the_pairs_one_process_makes_and_init_starts_from_given_weig
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("bad.safetensors"));
     let _ = std::fs::remove_dir_all(&root);
 }
+
+#[test]
+fn the_image_term_on_scans_chooses_the_kept_encoder_and_resumes_bit_identically() {
+    let root = tmp("encoder_image");
+    let (scans, data) = (root.join("scans"), root.join("data"));
+    ok(trainer(&["synth-scans", "--out", s(&scans), "--count", "8", "--seed", "3", "--texture-size", "128"]));
+    ok(trainer(&["prepare", "--scans", s(&scans), "--out", s(&data), "--views", "2", "--res", "64"]));
+    let (a, b) = (root.join("a"), root.join("b"));
+    let with = ["--image-data", s(&data)];
+    let o = ok(train_encoder_with(&a, 3, &with));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("6 training and 2 held-out subjects"), "{err}");
+    let log = log_lines(&a);
+    assert_eq!(log.len(), 3);
+    for l in &log {
+        let (img, iou) = (l["held_out_image"].as_f64().unwrap(), l["held_out_iou"].as_f64().unwrap());
+        assert!(img.is_finite() && img > 0.0 && (0.0..=1.0).contains(&iou), "{l}");
+        assert!(l["train_image"].as_f64().unwrap().is_finite(), "{l}");
+    }
+    // With scans the kept encoder is the one with the lowest held-out image loss.
+    let lowest = log.iter().map(|l| l["held_out_image"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
+    let best = std::fs::read(a.join("encoder_best.safetensors")).unwrap();
+    let n = u64::from_le_bytes(best[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&best[8..8 + n]).unwrap();
+    let kept: f64 = header["__metadata__"]["held_out_image"].as_str().unwrap().parse().unwrap();
+    assert_eq!(kept, lowest, "{header}");
+    // 2 steps, stop, rerun to 3 == 3 at once.
+    ok(train_encoder_with(&b, 2, &with));
+    ok(train_encoder_with(&b, 3, &with));
+    for f in ["encoder.safetensors", "encoder_best.safetensors", "state.safetensors"] {
+        assert!(std::fs::read(a.join(f)).unwrap() == std::fs::read(b.join(f)).unwrap(), "{f} differs after resuming");
+    }
+    let figures = |d: &Path| -> Vec<serde_json::Value> {
+        let mut log = log_lines(d);
+        log.iter_mut().for_each(|l| l.as_object_mut().unwrap().retain(|k, _| k != "seconds_per_step"));
+        log
+    };
+    assert_eq!(figures(&a), figures(&b), "the figures differ after resuming");
+    // A folder that is not a dataset: one error naming it.
+    let o = train_encoder_with(&root.join("c"), 1, &["--image-data", s(&scans)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--image-data") && err.contains("dataset.json"), "{err}");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -17,6 +17,14 @@
 //! GPU machine: `tools/gpu_bench.sh`, part `encoder`) render one set of pairs together.
 //!
 //! **Training**: code regression (mean squared error of the W+ offsets from w_avg), Adam.
+//! With `--image-data DIR` (a `prepare` dataset of scans, e.g. `synth-scans --seed 5` then
+//! `prepare --views 8 --res 256`) each step adds an **image term** through the differentiable
+//! renderer: the encoder's guess for [`IMAGE_BATCH`] scan photos (over a random background,
+//! the body perturbed as for the pairs) is rendered at [`IMAGE_RES`]² at the photo's true camera
+//! and at another view of the same subject, and compared with the scan's renders as the
+//! inversion compares (masked RGB L1 + MSE + silhouette), weighted by `--image-weight`. The
+//! last [`HELD_SUBJECTS`] subjects are held out; with image data the kept encoder is the one
+//! with the lowest held-out image loss (the people it will see are scans, not samples).
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
 //! subjects' codes (one per subject and branch), which the samples are truncated towards.
 //! `--init FILE` starts a new run from an encoder's weights instead (training the shipped one
@@ -38,6 +46,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::body::skinning::{pose_body, BodyParams};
+use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
 use getavatar_core::generator::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
 use getavatar_core::generator::optim::Adam;
@@ -52,10 +61,13 @@ use getavatar_core::render::camera::{from_row_major, sample_data_camera, to_row_
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::util::rng::Rng;
 use getavatar_core::NUM_JOINTS;
-use glam::Vec3;
+use glam::{Mat4, Vec3};
 
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
 use crate::model_io::{load_body, GeneratorArgs};
+
+mod image_term;
+use image_term::ScanPhotos;
 
 #[derive(clap::Args, Debug)]
 pub struct TrainEncoderArgs {
@@ -92,6 +104,13 @@ pub struct TrainEncoderArgs {
     /// the ones a single process would render.
     #[arg(long, value_parser = parse_part)]
     pub render_part: Option<(usize, usize)>,
+    /// A `prepare` dataset of scan renders for the image term (module docs); its last
+    /// subjects are held out and choose the kept encoder.
+    #[arg(long)]
+    pub image_data: Option<PathBuf>,
+    /// Weight of the image term against the code error.
+    #[arg(long, default_value_t = 1.0)]
+    pub image_weight: f32,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -123,6 +142,12 @@ const PER_BODY: usize = 4;
 /// u8 images per pair: render RGB (3), mask (1), body normals (3), canonical (3), silhouette (1).
 const PLANES: usize = 11;
 const STATE: &str = "state.safetensors";
+/// Scan photos per step in the image term, each rendered at two views.
+pub const IMAGE_BATCH: usize = 2;
+/// The image term's render side, pixels.
+pub const IMAGE_RES: usize = 64;
+/// Subjects of `--image-data` held out (fewer when it has few: a quarter).
+pub const HELD_SUBJECTS: usize = 4;
 
 /// One shard of pairs in memory.
 struct Shard {
@@ -159,7 +184,14 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
         (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
     let (train, held) = data.split_at(shards - 1);
     let dictionary = modes.as_ref().map(|m| subject_offsets(&g, m)).transpose()?;
-    train_loop(a, &g, &ctx, &ecfg, dictionary, train, &held[0], &ad)
+    let scans = match &a.image_data {
+        Some(p) => {
+            let (_, g_ad, _) = a.model.load(&ad)?;
+            Some(ScanPhotos::open(p, g_ad.no_grad(), model)?)
+        }
+        None => None,
+    };
+    train_loop(a, &g, &ctx, &ecfg, dictionary, train, &held[0], scans.as_ref(), &ad)
 }
 
 /// The training subjects' codes as offsets from w_avg, `[subjects, n·w_dim]` per branch: the
@@ -264,14 +296,7 @@ fn draw_pair(
     }
     let (rgb, mask) = render_images(&f)?;
     // The perturbed fit the encoder is shown.
-    let mut fit = body.clone();
-    fit.pose[0] += jitter(rng, 0.03);
-    for r in fit.pose.iter_mut().skip(1) {
-        *r += jitter(rng, 0.04);
-    }
-    for b in fit.betas.iter_mut() {
-        *b += rng.normal() * 0.15;
-    }
+    let fit = perturbed_body(body, rng);
     let mut fcam = cam;
     fcam.yaw += rng.normal() * 0.02;
     fcam.pitch += rng.normal() * 0.015;
@@ -288,6 +313,34 @@ fn draw_pair(
         img.push(q(maps.mask[k]));
     }
     Ok(Some((img, styles, view)))
+}
+
+/// `body` jittered by about the errors `fit-pose` makes on MediaPipe's detections.
+fn perturbed_body(body: &BodyParams, rng: &mut Rng) -> BodyParams {
+    let mut fit = body.clone();
+    fit.pose[0] += jitter(rng, 0.03);
+    for r in fit.pose.iter_mut().skip(1) {
+        *r += jitter(rng, 0.04);
+    }
+    for b in fit.betas.iter_mut() {
+        *b += rng.normal() * 0.15;
+    }
+    fit
+}
+
+/// A camera (world → camera) jittered as [`draw_pair`] jitters the fitted one: turned about
+/// `center` by about 0.02 rad of yaw and 0.015 of pitch, 2 % nearer or farther, aimed 1 cm off.
+fn perturbed_camera(m: Mat4, center: Vec3, rng: &mut Rng) -> Mat4 {
+    let turn = Mat4::from_translation(center)
+        * Mat4::from_rotation_y(rng.normal() * 0.02)
+        * Mat4::from_rotation_x(rng.normal() * 0.015)
+        * Mat4::from_translation(-center);
+    let mut out = m * turn;
+    let scale = 1.0 + rng.normal() * 0.02;
+    out.w_axis.x += rng.normal() * 0.01;
+    out.w_axis.y += rng.normal() * 0.01;
+    out.w_axis.z *= scale;
+    out
 }
 
 fn jitter(rng: &mut Rng, sigma: f32) -> Vec3 {
@@ -390,16 +443,21 @@ impl Shard {
     }
 }
 
-/// Pair `i` of `shard` as the encoder sees it in training: over a random background, with its
-/// mask eroded or dilated (`rng` draws both; `other` is another render for a blurred backdrop).
-fn augmented_input(shard: &Shard, i: usize, other: &[f32], rng: &mut Rng) -> (EncoderInput, Vec<f32>) {
-    let res = shard.res;
+/// Pair `i` of `shard` as the encoder sees it in training (see [`augment`]).
+fn augmented_input(shard: &Shard, i: usize, other: &[f32], rng: &mut Rng) -> EncoderInput {
     let (rgb, mask, maps) = shard.pair(i);
+    augment(&rgb, &mask, &maps, shard.res, other, rng)
+}
+
+/// A render (`res`², HWC RGB and mask) with its body maps as the encoder sees it in training:
+/// over a random background, with its mask eroded or dilated (`rng` draws both; `other` is
+/// another render for a blurred backdrop).
+fn augment(rgb: &[f32], mask: &[f32], maps: &BodyMaps, res: usize, other: &[f32], rng: &mut Rng) -> EncoderInput {
     let bg = background(res, other, rng);
     let shown: Vec<f32> = (0..res * res * 3).map(|k| rgb[k] * mask[k / 3] + bg[k] * (1.0 - mask[k / 3])).collect();
     let r = rng.below(5) as i32 - 2; // −2 … 2 px
-    let m = morph(&mask, res, r);
-    (EncoderImage::from_parts(&shown, &m, &maps, res).patchify(), shown)
+    let m = morph(mask, res, r);
+    EncoderImage::from_parts(&shown, &m, maps, res).patchify()
 }
 
 /// A backdrop: a solid colour, coloured noise, or `other` blurred and tinted.
@@ -485,6 +543,7 @@ fn train_loop(
     dictionary: Option<(Tensor<2>, Tensor<2>)>,
     train: &[Shard],
     held: &Shard,
+    scans: Option<&ScanPhotos>,
     ad: &Device,
 ) -> Result<()> {
     let state = a.out.join(STATE);
@@ -533,22 +592,40 @@ fn train_loop(
         }
         unreachable!("index within the training pairs")
     };
-    let mut best = best_logged(&a.out.join("log.jsonl"), step)?;
+    let held_photos = scans.map(|s| s.held_out(ecfg.res)).transpose()?;
+    // What chooses the kept encoder: the held-out image loss with scans, else the code error.
+    let key = if scans.is_some() { "held_out_image" } else { "held_out_mse" };
+    let image_figures = |enc: &Encoder| -> Result<Option<image_term::ImageFigures>> {
+        match (scans, &held_photos) {
+            (Some(s), Some(p)) => Ok(Some(s.figures(enc, ctx, p, ad)?)),
+            _ => Ok(None),
+        }
+    };
+    let mut best = best_logged(&a.out.join("log.jsonl"), step, key)?;
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(a.out.join("log.jsonl"))?;
     if step == 0 && a.init.is_some() && best.is_infinite() {
         // The starting weights' figure, so that the run shows what training further gained.
         let (val, val_avg) = held_out_error(&enc, held, &offsets, ad)?;
-        writeln!(log, "{}", serde_json::json!({"step": 0, "held_out_mse": val, "held_out_mse_w_avg": val_avg}))?;
-        eprintln!("step 0 (the --init weights): held-out code MSE {val:.4} (w_avg {val_avg:.4})");
-        best = val;
+        let img = image_figures(&enc)?;
+        let mut line = serde_json::json!({"step": 0, "held_out_mse": val, "held_out_mse_w_avg": val_avg});
+        add_image_figures(&mut line, img.as_ref());
+        writeln!(log, "{line}")?;
+        eprintln!(
+            "step 0 (the --init weights): held-out code MSE {val:.4} (w_avg {val_avg:.4}){}",
+            describe(img.as_ref())
+        );
+        best = img.map_or(val, |f| f.loss);
         let mut extra = BTreeMap::new();
         extra.insert("step".into(), "0".into());
         extra.insert("held_out_mse".into(), val.to_string());
+        if let Some(f) = img {
+            extra.insert("held_out_image".into(), f.loss.to_string());
+        }
         write_atomic(&a.out.join("encoder_best.safetensors"), &save_encoder(&collect_params(&enc)?, ecfg, &extra)?)?;
     }
     let bar = crate::progress::bar(a.steps, "steps");
     bar.set_position(step.min(a.steps));
-    let (mut loss_sum, mut loss_n) = (0.0f64, 0usize);
+    let (mut loss_sum, mut loss_n, mut image_sum) = (0.0f64, 0usize, 0.0f64);
     let mut t0 = std::time::Instant::now();
     while step < a.steps {
         let mut inputs = Vec::with_capacity(a.batch);
@@ -557,7 +634,7 @@ fn train_loop(
             let (s, i) = locate(rng.below(n_train));
             let (os, oi) = locate(rng.below(n_train));
             let other = train[os].pair(oi).0;
-            inputs.push(augmented_input(&train[s], i, &other, &mut rng).0);
+            inputs.push(augmented_input(&train[s], i, &other, &mut rng));
             targets.extend(offsets(&train[s], i));
         }
         let refs: Vec<&EncoderInput> = inputs.iter().collect();
@@ -566,39 +643,69 @@ fn train_loop(
         let b = a.batch;
         let pred = Tensor::cat(vec![pg.reshape([b, ng * w]), pt.reshape([b, nt * w])], 1);
         let target = Tensor::<2>::from_data(TensorData::new(targets, [b, (ng + nt) * w]), ad);
-        let loss = (pred - target).powf_scalar(2.0).mean();
-        let lv = read_f32_now(loss.clone())?[0];
-        if !lv.is_finite() {
-            bail!("the loss became {lv} at step {}", step + 1);
+        let mut loss = (pred - target).powf_scalar(2.0).mean();
+        let mut parts = vec![loss.clone()];
+        if let Some(sc) = scans {
+            let mut photos = Vec::with_capacity(IMAGE_BATCH);
+            for _ in 0..IMAGE_BATCH {
+                let (os, oi) = locate(rng.below(n_train));
+                photos.push(sc.draw(ecfg.res, &train[os].pair(oi).0, &mut rng)?);
+            }
+            let (image, _) = sc.loss(&enc, ctx, &photos, ad)?;
+            loss = loss + image.clone() * a.image_weight;
+            parts.push(image);
         }
+        let values = read_f32_now(Tensor::cat(parts.into_iter().map(|t| t.detach()).collect(), 0))?;
+        let lv = values[0];
+        let iv = values.get(1).copied().unwrap_or(0.0);
+        if !lv.is_finite() || !iv.is_finite() {
+            bail!("the loss became {lv} (code) / {iv} (image) at step {}", step + 1);
+        }
+        image_sum += iv as f64;
         let grads = loss.backward();
         enc = adam.step(a.lr, enc, &grads);
         step += 1;
         loss_sum += lv as f64;
         loss_n += 1;
         bar.set_position(step);
-        bar.set_message(format!("code MSE {lv:.4}"));
+        bar.set_message(if scans.is_some() {
+            format!("code MSE {lv:.4} image {iv:.4}")
+        } else {
+            format!("code MSE {lv:.4}")
+        });
         if step % a.snapshot_every == 0 || step == a.steps {
             let (val, val_avg) = held_out_error(&enc, held, &offsets, ad)?;
+            let img = image_figures(&enc)?;
             snapshot(a, g, ctx, &enc, held, step, ad)?;
             save_state(&state, &enc, &adam, step, &rng, ecfg)?;
             let mut extra = BTreeMap::new();
             extra.insert("step".into(), step.to_string());
             extra.insert("held_out_mse".into(), val.to_string());
+            if let Some(f) = img {
+                extra.insert("held_out_image".into(), f.loss.to_string());
+            }
             let file = save_encoder(&collect_params(&enc)?, ecfg, &extra)?;
             write_atomic(&a.out.join("encoder.safetensors"), &file)?;
-            if val < best {
-                best = val;
+            let score = img.map_or(val, |f| f.loss);
+            if score < best {
+                best = score;
                 write_atomic(&a.out.join("encoder_best.safetensors"), &file)?;
             }
-            let line = serde_json::json!({
+            let mut line = serde_json::json!({
                 "step": step, "train_mse": loss_sum / loss_n.max(1) as f64,
                 "held_out_mse": val, "held_out_mse_w_avg": val_avg,
                 "seconds_per_step": t0.elapsed().as_secs_f64() / loss_n.max(1) as f64,
             });
+            if scans.is_some() {
+                line["train_image"] = (image_sum / loss_n.max(1) as f64).into();
+            }
+            add_image_figures(&mut line, img.as_ref());
             writeln!(log, "{line}")?;
-            bar.println(format!("step {step}: held-out code MSE {val:.4} (w_avg {val_avg:.4})"));
-            (loss_sum, loss_n, t0) = (0.0, 0, std::time::Instant::now());
+            bar.println(format!(
+                "step {step}: held-out code MSE {val:.4} (w_avg {val_avg:.4}){}",
+                describe(img.as_ref())
+            ));
+            (loss_sum, loss_n, image_sum, t0) = (0.0, 0, 0.0, std::time::Instant::now());
         }
     }
     bar.finish_and_clear();
@@ -642,11 +749,29 @@ fn clean_input(shard: &Shard, i: usize) -> EncoderInput {
     EncoderImage::from_parts(&rgb, &mask, &maps, shard.res).patchify()
 }
 
-/// `OUT/snapshots/step_NNNNNN.png`: rows of held-out pairs, input (on white) | the encoder's
-/// avatar at the true view | the truth.
-/// The lowest held-out code error `log` records up to `step` (a resumed run's earlier
+/// The held-out image figures in a log line (`held_out_image`, `held_out_iou`, …).
+fn add_image_figures(line: &mut serde_json::Value, f: Option<&image_term::ImageFigures>) {
+    if let Some(f) = f {
+        line["held_out_image"] = f.loss.into();
+        line["held_out_iou"] = f.iou.into();
+        line["held_out_psnr"] = f.psnr.into();
+        line["held_out_iou_other_view"] = f.iou_other.into();
+        line["held_out_psnr_other_view"] = f.psnr_other.into();
+    }
+}
+
+fn describe(f: Option<&image_term::ImageFigures>) -> String {
+    f.map_or(String::new(), |f| {
+        format!(
+            "; held-out scans: image loss {:.4}, IoU {:.3} / PSNR {:.2} dB (other view {:.3} / {:.2})",
+            f.loss, f.iou, f.psnr, f.iou_other, f.psnr_other
+        )
+    })
+}
+
+/// The lowest held-out figure `key` that `log` records up to `step` (a resumed run's earlier
 /// snapshots; infinity without any).
-fn best_logged(log: &Path, step: u64) -> Result<f64> {
+fn best_logged(log: &Path, step: u64, key: &str) -> Result<f64> {
     let text = match std::fs::read_to_string(log) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(f64::INFINITY),
@@ -657,13 +782,15 @@ fn best_logged(log: &Path, step: u64) -> Result<f64> {
         let v: serde_json::Value =
             serde_json::from_str(line).with_context(|| format!("{} line {}", log.display(), i + 1))?;
         let at = v["step"].as_u64().unwrap_or(u64::MAX);
-        if let Some(e) = v["held_out_mse"].as_f64().filter(|_| at <= step) {
+        if let Some(e) = v[key].as_f64().filter(|_| at <= step) {
             best = best.min(e);
         }
     }
     Ok(best)
 }
 
+/// `OUT/snapshots/step_NNNNNN.png`: rows of held-out pairs, input (on white) | the encoder's
+/// avatar at the true view | the truth.
 fn snapshot(
     a: &TrainEncoderArgs,
     g: &Generator,
