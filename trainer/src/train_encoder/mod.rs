@@ -143,11 +143,11 @@ const PER_BODY: usize = 4;
 const PLANES: usize = 11;
 const STATE: &str = "state.safetensors";
 /// Scan photos per step in the image term, each rendered at two views.
-pub const IMAGE_BATCH: usize = 2;
+pub const IMAGE_BATCH: usize = 4;
 /// The image term's render side, pixels.
 pub const IMAGE_RES: usize = 64;
 /// Subjects of `--image-data` held out (fewer when it has few: a quarter).
-pub const HELD_SUBJECTS: usize = 4;
+pub const HELD_SUBJECTS: usize = 8;
 
 /// One shard of pairs in memory.
 struct Shard {
