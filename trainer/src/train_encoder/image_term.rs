@@ -53,9 +53,14 @@ pub struct ImageFigures {
     pub psnr_other: f64,
 }
 
+/// Weight of the silhouette's MSE in the image term. It is a mean over every pixel, where the
+/// RGB terms are means over the person: at weight 1 (the inversion's) it was a tenth of the
+/// term, and the held-out mask IoU did not move in 200 steps while the PSNR rose 1.7 dB.
+pub const SILHOUETTE_WEIGHT: f32 = 10.0;
+
 /// The image term of `enc`'s guesses for `photos`, rendered by `g` at each photo's two views
-/// (masked RGB L1 + MSE in [0, 1] units and the silhouette's MSE, with `InversionOptions`'
-/// default weights of 1), and the renders.
+/// (masked RGB L1 + MSE in [0, 1] units, and the silhouette's MSE weighted by
+/// [`SILHOUETTE_WEIGHT`]), and the renders.
 pub fn image_loss(
     g: &Generator,
     grids: &PosedGridCache,
@@ -78,7 +83,7 @@ pub fn image_loss(
     let l1 = (d.clone().abs() * m.clone()).sum() / (3.0 * msum);
     let mse = (d.powf_scalar(2.0) * m.clone()).sum() / (3.0 * msum);
     let sil = ((f.mask.clone() + 1.0) * 0.5 - m).powf_scalar(2.0).mean();
-    Ok((l1 + mse + sil, f))
+    Ok((l1 + mse + sil * SILHOUETTE_WEIGHT, f))
 }
 
 impl ScanPhotos {

@@ -22,7 +22,8 @@
 //! renderer: the encoder's guess for [`IMAGE_BATCH`] scan photos (over a random background,
 //! the body perturbed as for the pairs) is rendered at [`IMAGE_RES`]² at the photo's true camera
 //! and at another view of the same subject, and compared with the scan's renders as the
-//! inversion compares (masked RGB L1 + MSE + silhouette), weighted by `--image-weight`. The
+//! inversion compares (masked RGB L1 + MSE, the silhouette weighted up: `image_term`),
+//! weighted by `--image-weight`. The
 //! last [`HELD_SUBJECTS`] subjects are held out; with image data the kept encoder is the one
 //! with the lowest held-out image loss (the people it will see are scans, not samples).
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
