@@ -18,7 +18,8 @@ use getavatar_core::render::diff::avatar::{render_avatar_views, FakeViews, Posed
 use getavatar_core::util::rng::Rng;
 use glam::Vec3;
 
-use super::{augment, perturbed_body, perturbed_camera, HELD_SUBJECTS, IMAGE_RES};
+use super::pairs::{perturbed_body, perturbed_camera};
+use super::{augment, HELD_SUBJECTS, IMAGE_RES};
 
 /// A `prepare` dataset of scans as photos for the encoder, with the generator (on the
 /// autodiff device, its weights without gradients) that renders the encoder's guesses.
