@@ -207,5 +207,10 @@ fn the_image_term_on_scans_chooses_the_kept_encoder_and_resumes_bit_identically(
     let o = train_encoder_with(&root.join("c"), 1, &["--image-data", s(&scans)]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--image-data") && err.contains("dataset.json"), "{err}");
+    for w in ["--image-weight=-1", "--image-weight=nan"] {
+        let o = train_encoder_with(&root.join("d"), 1, &["--image-data", s(&data), w]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains("--image-weight must be"), "{w}: {err}");
+    }
     let _ = std::fs::remove_dir_all(&root);
 }

@@ -23,9 +23,9 @@
 //! the body perturbed as for the pairs) is rendered at [`IMAGE_RES`]² at the photo's true camera
 //! and at another view of the same subject, and compared with the scan's renders as the
 //! inversion compares (masked RGB L1 + MSE, the silhouette weighted up: `image_term`),
-//! weighted by `--image-weight`. The
-//! last [`HELD_SUBJECTS`] subjects are held out; with image data the kept encoder is the one
-//! with the lowest held-out image loss (the people it will see are scans, not samples).
+//! weighted by `--image-weight`. The last [`HELD_SUBJECTS`] subjects are held out; with image
+//! data the kept encoder is the one with the lowest held-out image loss (the people it will
+//! see are scans, not samples).
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
 //! subjects' codes (one per subject and branch), which the samples are truncated towards.
 //! `--init FILE` starts a new run from an encoder's weights instead (training the shipped one
@@ -35,9 +35,10 @@
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
 //! the step and the random state) is written atomically every `--snapshot-every` steps and a
 //! rerun resumes from it bit-identically; `OUT/encoder.safetensors` is the encoder alone,
-//! `OUT/encoder_best.safetensors` the one with the lowest held-out code error so far (its
-//! `step` and `held_out_mse` in the metadata: the one to ship, as longer runs overfit),
-//! `OUT/log.jsonl` the held-out code error against w_avg's, `OUT/snapshots/step_NNNNNN.png`
+//! `OUT/encoder_best.safetensors` the one with the lowest held-out code error (with image
+//! data: image loss) so far (its `step`, `held_out_mse` and `held_out_image` in the metadata:
+//! the one to ship, as longer runs overfit), `OUT/log.jsonl` the held-out code error against
+//! w_avg's and the held-out image figures, `OUT/snapshots/step_NNNNNN.png`
 //! held-out rows of input | the encoder's avatar | the truth.
 
 use std::collections::BTreeMap;
@@ -136,6 +137,9 @@ pub const HELD_SUBJECTS: usize = 8;
 pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     if a.batch == 0 || a.snapshot_every == 0 || a.pairs < 4 {
         bail!("--batch and --snapshot-every must be at least 1 and --pairs at least 4");
+    }
+    if !(a.image_weight.is_finite() && a.image_weight >= 0.0) {
+        bail!("--image-weight must be a number ≥ 0 (got {})", a.image_weight);
     }
     let device = a.backend.device()?;
     let ad = device.clone().autodiff();
