@@ -47,6 +47,16 @@ fn metrics(dir: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("metrics.json")).unwrap()).unwrap()
 }
 
+/// `encoder_best.safetensors` in `dir` records (safetensors metadata) the lowest `key` of the log.
+fn assert_best_is_lowest(dir: &Path, log: &[serde_json::Value], key: &str) {
+    let lowest = log.iter().map(|l| l[key].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
+    let best = std::fs::read(dir.join("encoder_best.safetensors")).unwrap();
+    let n = u64::from_le_bytes(best[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&best[8..8 + n]).unwrap();
+    let kept: f64 = header["__metadata__"][key].as_str().unwrap().parse().unwrap();
+    assert_eq!(kept, lowest, "{header}");
+}
+
 #[test]
 fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
     let root = tmp("encoder");
@@ -65,12 +75,7 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
         assert!(e.is_finite() && e0 > 0.0 && e < 10.0 * e0, "{l}");
     }
     // The best snapshot by held-out error is kept beside the latest, its error in the metadata.
-    let lowest = log.iter().map(|l| l["held_out_mse"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
-    let best = std::fs::read(a.join("encoder_best.safetensors")).unwrap();
-    let n = u64::from_le_bytes(best[..8].try_into().unwrap()) as usize;
-    let header: serde_json::Value = serde_json::from_slice(&best[8..8 + n]).unwrap();
-    let kept: f64 = header["__metadata__"]["held_out_mse"].as_str().unwrap().parse().unwrap();
-    assert_eq!(kept, lowest, "{header}");
+    assert_best_is_lowest(&a, &log, "held_out_mse");
     // 1 step, stop, rerun to 2 steps == 2 steps at once (the pairs are rendered again in
     // the other directory: rendering is deterministic too).
     ok(train_encoder(&b, 1));
@@ -185,12 +190,7 @@ fn the_image_term_on_scans_chooses_the_kept_encoder_and_resumes_bit_identically(
         assert!(l["train_image"].as_f64().unwrap().is_finite(), "{l}");
     }
     // With scans the kept encoder is the one with the lowest held-out image loss.
-    let lowest = log.iter().map(|l| l["held_out_image"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
-    let best = std::fs::read(a.join("encoder_best.safetensors")).unwrap();
-    let n = u64::from_le_bytes(best[..8].try_into().unwrap()) as usize;
-    let header: serde_json::Value = serde_json::from_slice(&best[8..8 + n]).unwrap();
-    let kept: f64 = header["__metadata__"]["held_out_image"].as_str().unwrap().parse().unwrap();
-    assert_eq!(kept, lowest, "{header}");
+    assert_best_is_lowest(&a, &log, "held_out_image");
     // 2 steps, stop, rerun to 3 == 3 at once.
     ok(train_encoder_with(&b, 2, &with));
     ok(train_encoder_with(&b, 3, &with));
