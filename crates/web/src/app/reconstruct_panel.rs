@@ -18,7 +18,8 @@ use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstructi
 use crate::generate::TextureField;
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
 use crate::reconstruct::{
-    open, reconstruct, save, InversionJob, ProjectionSource, ReconstructEvent, ReconstructRequest, ReconstructTask,
+    open, reconstruct, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
+    ReconstructTask,
 };
 
 /// Side of the photo crop that the colour projection samples, pixels.
@@ -277,6 +278,8 @@ impl GetAvatarApp {
             start: r.start,
             encoder: files.encoder.ok(),
             compute: r.compute,
+            // The guess alone (`instant`): on screen before its figures.
+            measure_after_result: self.recon.refine.is_none() && steps_total == 0,
         };
         let req = ReconstructRequest { job, ctx, device };
         self.recon.target = Some(target);
@@ -330,15 +333,7 @@ impl GetAvatarApp {
                         s.message = "extracting, rigging and colouring the avatar…".into();
                     }
                 }
-                ReconstructEvent::Preview(pv) => {
-                    let Some(t) = &self.recon.target else { continue };
-                    let bytes = comparison_image(t, &pv.rgb, &pv.mask);
-                    let img = egui::ColorImage::from_rgb([3 * t.res, t.res], &bytes);
-                    self.recon.preview =
-                        Some(ctx.load_texture("reconstruction preview", img, egui::TextureOptions::LINEAR));
-                    self.status.reconstruct.previews += 1;
-                    self.status.reconstruct.preview_step = pv.done;
-                }
+                ReconstructEvent::Preview(pv) => self.show_preview(ctx, &pv),
                 ReconstructEvent::Finished(r) => {
                     let refine = self.recon.refine.take();
                     self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
@@ -362,6 +357,15 @@ impl GetAvatarApp {
                                 "opened {name} in {:.0} s{}",
                                 r.millis / 1000.0,
                                 if has_photo { ", with its photo projected on" } else { " (it keeps no photo)" }
+                            );
+                        }
+                        (None, _) if r.measuring => {
+                            let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
+                            (s.first_avatar_ms, s.state) = (since_click, "measuring".into());
+                            (s.finish_ms, s.finish_detail) = (r.finish_ms as f32, r.finish_detail.clone());
+                            s.message = format!(
+                                "the encoder's guess in {:.1} s; measuring it at the photo's camera…",
+                                since_click / 1000.0
                             );
                         }
                         (None, fit) => {
@@ -406,6 +410,7 @@ impl GetAvatarApp {
                         }
                     }
                 }
+                ReconstructEvent::Measured(m) => self.measured(ctx, *m),
                 ReconstructEvent::Saved(bytes) => {
                     let name = format!("getavatar_{}.safetensors", self.avatar_name);
                     match download_bytes(&name, &bytes, "application/octet-stream") {
@@ -431,6 +436,36 @@ impl GetAvatarApp {
         }
         if task.finished() && self.recon.task.as_ref().is_some_and(|t| t.same(&task)) {
             self.recon.task = None;
+        }
+    }
+
+    /// A render at the photo's camera beside the photo, in the panel.
+    fn show_preview(&mut self, ctx: &egui::Context, pv: &Preview) {
+        let Some(t) = &self.recon.target else { return };
+        let bytes = comparison_image(t, &pv.rgb, &pv.mask);
+        let img = egui::ColorImage::from_rgb([3 * t.res, t.res], &bytes);
+        self.recon.preview = Some(ctx.load_texture("reconstruction preview", img, egui::TextureOptions::LINEAR));
+        self.status.reconstruct.previews += 1;
+        self.status.reconstruct.preview_step = pv.done;
+    }
+
+    /// The figures of an avatar shown before it was measured (`instant` in the worker).
+    fn measured(&mut self, ctx: &egui::Context, m: Measured) {
+        let s = &mut self.status.reconstruct;
+        (s.state, s.done) = ("done".into(), s.done + 1);
+        s.total_ms = (crate::platform::now_ms() - self.recon.t_click) as f32;
+        s.finish_ms += m.millis as f32;
+        s.finish_detail = format!("{}; worker, after it: figures {:.1} s", s.finish_detail, m.millis / 1000.0);
+        let first = s.first_avatar_ms / 1000.0;
+        match m.figures {
+            Ok(((iou, psnr), preview)) => {
+                (s.first_mask_iou, s.first_psnr_db, s.mask_iou, s.psnr_db) = (iou, psnr, iou, psnr);
+                s.message = format!(
+                    "the encoder's guess in {first:.1} s: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera"
+                );
+                self.show_preview(ctx, &preview);
+            }
+            Err(why) => s.message = format!("the encoder's guess in {first:.1} s ({why})"),
         }
     }
 

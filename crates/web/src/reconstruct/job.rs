@@ -52,6 +52,10 @@ pub struct InversionJob {
     pub encoder: Option<Rc<Vec<u8>>>,
     /// Where the worker computes (the page's fallback always uses the page's WebGPU device).
     pub compute: Compute,
+    /// In the worker, a job without steps hands its result over before it renders it at the
+    /// photo's camera for the figures (a whole forward pass: 20 s on SwiftShader), so the
+    /// avatar is on screen sooner; the figures follow ([`ReconstructEvent::Measured`]).
+    pub measure_after_result: bool,
 }
 
 /// The photo as the app holds it, with its body fit and person mask: the colour projection's
@@ -125,6 +129,17 @@ pub struct Reconstructed {
     pub finish_detail: String,
     /// Cancelled after this many steps: the result is the state at the last preview.
     pub stopped_at: Option<usize>,
+    /// Its figures (`fit`) follow as a [`ReconstructEvent::Measured`], the task's outcome.
+    pub measuring: bool,
+}
+
+/// The figures of a result that was shown before it was measured.
+pub struct Measured {
+    /// Mask IoU and masked PSNR (dB) at the photo's camera and the render they come from, or
+    /// why there are none.
+    pub figures: Result<((f32, f32), Preview), String>,
+    /// Milliseconds of the render and its read-back.
+    pub millis: f64,
 }
 
 /// What a reconstruction reports.
@@ -145,7 +160,9 @@ pub enum ReconstructEvent {
     },
     Step(Box<Progress>),
     Preview(Box<Preview>),
+    /// The avatar; the task's outcome unless its figures follow (`measuring`).
     Finished(Box<Reconstructed>),
+    Measured(Box<Measured>),
     /// The reconstruction as a file ("Save reconstruction").
     Saved(Vec<u8>),
     /// One sentence for the user; the app stays as it was.
@@ -158,6 +175,7 @@ impl TaskEvent for ReconstructEvent {
         match self {
             ReconstructEvent::Started { .. } | ReconstructEvent::Step(_) => EventKind::Log,
             ReconstructEvent::Preview(_) => EventKind::Latest,
+            ReconstructEvent::Finished(r) if r.measuring => EventKind::Log,
             _ => EventKind::Outcome,
         }
     }
@@ -205,7 +223,9 @@ pub(crate) fn run_on_page(req: ReconstructRequest, t: ReconstructTask, repaint: 
 
 async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Reconstructed>, String> {
     let (job, dev) = (&req.job, &req.device.clone().autodiff());
-    let Some(inv) = invert(job, &req.ctx, dev, "WebGPU (the page's device)", out).await? else { return Ok(None) };
+    let Some(inv) = invert(job, &req.ctx, dev, "WebGPU (the page's device)", out, false).await? else {
+        return Ok(None);
+    };
     let t_finish = now_ms();
     // The avatar: extracted, rigged, the photo's colours on what the photo sees.
     let ctx = req.ctx.as_ref();
@@ -228,7 +248,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         styles: inv.styles,
         rigged,
         projection,
-        fit: Some(inv.fit),
+        fit: inv.fit,
         opened: None,
         millis: 0.0,
         finish_ms: inv.finish_ms + now_ms() - t_finish,
@@ -238,30 +258,36 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
             (now_ms() - t_finish) / 1000.0
         ),
         stopped_at: inv.stopped_at,
+        measuring: false,
     }))
 }
 
 /// The inversion's outcome: the tuned generator (without gradients) and codes, and how well
 /// they explain the photo at its camera.
-pub(crate) struct Inverted {
+pub(crate) struct Inverted<'a> {
     pub generator: Generator,
     pub styles: Styles,
-    /// Mask IoU with the person mask, masked PSNR (dB).
-    pub fit: (f32, f32),
+    /// Mask IoU with the person mask, masked PSNR (dB); None while `unmeasured`.
+    pub fit: Option<(f32, f32)>,
+    /// The inverter and its target, when the figures were left for after the result
+    /// ([`InversionJob::measure_after_result`]): [`measure`] them.
+    pub unmeasured: Option<(Inverter<'a>, InversionTarget)>,
     /// Milliseconds of the final preview and figures (the last step's render read back).
     pub finish_ms: f64,
     /// Cancelled after this many steps (None: all done).
     pub stopped_at: Option<usize>,
 }
 
-/// The inversion itself (start, W+ and PTI steps, the final figures): `Ok(None)` when cancelled.
-pub(crate) async fn invert(
+/// The inversion itself (start, W+ and PTI steps, the final figures, which a job without
+/// steps leaves for later where `defer` and it asks): `Ok(None)` when cancelled.
+pub(crate) async fn invert<'a>(
     job: &InversionJob,
-    ctx: &BodyContext,
+    ctx: &'a BodyContext,
     dev: &Device,
     device_label: &str,
     out: &dyn Progressing,
-) -> Result<Option<Inverted>, String> {
+    defer: bool,
+) -> Result<Option<Inverted<'a>>, String> {
     let t0 = now_ms();
     // Not in the frame that asked (it resampled the photo): loading the model is a slice too.
     yield_to_browser().await;
@@ -316,28 +342,36 @@ pub(crate) async fn invert(
         }
     }
 
-    // The result at the photo's camera: the final preview and the figures, from the last
-    // step's render (the codes and weights before that step's update), which costs a
-    // read-back; a render of its own would be another forward pass, as long as a W+ step in
-    // the browser (82 s of a 330 s reconstruction on SwiftShader). `trainer invert` renders
-    // the final state.
     let t_finish = now_ms();
+    let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
+    if defer && job.measure_after_result && inv.progress().0 == 0 {
+        let unmeasured = Some((inv, job.target.clone()));
+        return Ok(Some(Inverted { generator, styles, fit: None, unmeasured, finish_ms: 0.0, stopped_at }));
+    }
+    let (fit, preview) = measure(&inv, &job.target).await?;
+    out.push(ReconstructEvent::Preview(Box::new(preview)));
+    yield_to_browser().await;
+    if stopped_at.is_none() && out.cancelled() {
+        return Ok(None);
+    }
+    let finish_ms = now_ms() - t_finish;
+    Ok(Some(Inverted { generator, styles, fit: Some(fit), unmeasured: None, finish_ms, stopped_at }))
+}
+
+/// The result at the photo's camera: mask IoU and masked PSNR (dB) against `t`, and the render
+/// as a preview. From the last step's render (the codes and weights before that step's
+/// update), which costs a read-back; a render of its own would be another forward pass, as
+/// long as a W+ step in the browser (82 s of a 330 s reconstruction on SwiftShader), so only
+/// a job without steps makes one. `trainer invert` renders the final state.
+pub(crate) async fn measure(inv: &Inverter<'_>, t: &InversionTarget) -> Result<((f32, f32), Preview), String> {
     let (rgb, mask) = match inv.last_images_async().await.map_err(|e| e.to_string())? {
         Some(images) => images,
         None => render_images_async(&inv.render_async().await.map_err(|e| e.to_string())?)
             .await
             .map_err(|e| e.to_string())?,
     };
-    let t = &job.target;
     let fit = (mask_iou(&mask, &t.mask), masked_psnr(&rgb, &t.rgb, &t.mask));
-    let (done, _) = inv.progress();
-    out.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })));
-    yield_to_browser().await;
-    if stopped_at.is_none() && out.cancelled() {
-        return Ok(None);
-    }
-    let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
-    Ok(Some(Inverted { generator, styles, fit, finish_ms: now_ms() - t_finish, stopped_at }))
+    Ok((fit, Preview { rgb, mask, done: inv.progress().0 }))
 }
 
 /// The start the job asks for: the candidate, how many were weighed, and why it is not the
@@ -463,6 +497,7 @@ pub(crate) async fn rig_saved(
         finish_ms: 0.0,
         finish_detail: String::new(),
         stopped_at: None,
+        measuring: false,
     })
 }
 

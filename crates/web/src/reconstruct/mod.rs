@@ -24,7 +24,10 @@ pub mod worker;
 mod worker_client;
 
 use job::run_on_page;
-pub use job::{open, save, InversionJob, ProjectionSource, ReconstructEvent, ReconstructRequest, ReconstructTask};
+pub use job::{
+    open, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
+    ReconstructTask,
+};
 
 /// Start a reconstruction; its events arrive on the returned task. It runs in the
 /// reconstruction worker (its own WebGPU device, off the UI thread), or on the page

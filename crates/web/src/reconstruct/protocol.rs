@@ -23,8 +23,11 @@ pub(super) enum ToWorker {
     /// The model files the next jobs use, sent ahead of the job in a message of their own
     /// (arrays `checkpoint`, `discriminator`, `encoder`: the ones the worker does not hold yet).
     Files,
-    /// Stop the running inversion at its next step.
+    /// Stop the running inversion at its next step (or skip measuring its result).
     Cancel,
+    /// The page shows the result handed over before its figures: measure it now (not while
+    /// the page rigs it, which would share the adapter with it).
+    Measure,
 }
 
 /// An [`InversionJob`] without its arrays.
@@ -43,6 +46,7 @@ pub(super) struct JobMeta {
     pub(super) body: BodyParams,
     pub(super) res: usize,
     pub(super) projection: Option<ProjectionMeta>,
+    pub(super) measure_after_result: bool,
 }
 
 /// A [`ProjectionSource`] without its arrays (`photo_rgb`, `photo_mask`).
@@ -88,6 +92,16 @@ pub(super) enum FromWorker {
         file_ms: f64,
         /// Cancelled after this many steps (the result is the last preview's state).
         stopped_at: Option<usize>,
+        /// The figures follow (`Figures`): IoU and PSNR are None here.
+        measuring: bool,
+    },
+    /// A result's figures after the result (`Finished { measuring: true }`), with the arrays
+    /// `rgb` and `mask` (the render they come from) unless `error` says why there are none.
+    Figures {
+        iou: Option<f32>,
+        psnr: Option<f32>,
+        millis: f64,
+        error: Option<String>,
     },
     Failed {
         message: String,

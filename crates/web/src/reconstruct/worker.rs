@@ -18,7 +18,9 @@ use glam::Mat4;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use super::job::{invert, Compute, InversionJob, Progress, Progressing, ProjectionSource, ReconstructEvent};
+use super::job::{
+    invert, measure, Compute, InversionJob, Inverted, Progress, Progressing, ProjectionSource, ReconstructEvent,
+};
 use super::protocol::{f32_array, json_of, message_of, u8_array, FromWorker, JobMeta, ModelFiles, ToWorker};
 use crate::platform::{js_message, now_ms};
 
@@ -36,6 +38,8 @@ thread_local! {
     /// The model files of the last job (the page sends each once).
     static FILES: RefCell<Option<ModelFiles>> = const { RefCell::new(None) };
     static CANCEL: Cell<bool> = const { Cell::new(false) };
+    /// The page shows the result handed over: measure it (`ToWorker::Measure`).
+    static MEASURE: Cell<bool> = const { Cell::new(false) };
 }
 
 /// Post a message to the page (the worker's global `postMessage`).
@@ -65,6 +69,7 @@ pub fn post_fatal(message: &str) {
 pub fn reconstruct_worker_message(data: JsValue) {
     match json_of(&data).and_then(|j| serde_json::from_str::<ToWorker>(&j).map_err(|e| e.to_string())) {
         Ok(ToWorker::Cancel) => CANCEL.with(|c| c.set(true)),
+        Ok(ToWorker::Measure) => MEASURE.with(|m| m.set(true)),
         Ok(ToWorker::Files) => FILES.with(|f| {
             let mut f = f.borrow_mut();
             let f = f.get_or_insert_with(ModelFiles::default);
@@ -76,6 +81,7 @@ pub fn reconstruct_worker_message(data: JsValue) {
         }),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
+            MEASURE.with(|m| m.set(false));
             wasm_bindgen_futures::spawn_local(run_job(*meta, data));
         }
         Err(e) => post(&FromWorker::Failed { message: format!("the worker cannot read the job: {e}") }, &[]),
@@ -120,27 +126,63 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Ok(d) => d,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
+    let finite = |x: f32| Some(x).filter(|x| x.is_finite());
     match job(meta, &data, &state, &device).await {
-        Ok(Some((bytes, (iou, psnr), figures_ms, file_ms, stopped_at))) => {
-            let finite = |x: f32| Some(x).filter(|x| x.is_finite());
-            let m = FromWorker::Finished { iou: finite(iou), psnr: finite(psnr), figures_ms, file_ms, stopped_at };
+        Ok(Some((bytes, inv, file_ms))) => {
+            let (iou, psnr) = inv.fit.unwrap_or((f32::NAN, f32::NAN));
+            let m = FromWorker::Finished {
+                iou: finite(iou),
+                psnr: finite(psnr),
+                figures_ms: inv.finish_ms,
+                file_ms,
+                stopped_at: inv.stopped_at,
+                measuring: inv.unmeasured.is_some(),
+            };
             post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
+            // Measured once the page has shown it (Cancel: not at all).
+            if let Some((inv, target)) = inv.unmeasured {
+                while !MEASURE.with(Cell::get) {
+                    if CANCEL.with(Cell::get) {
+                        return;
+                    }
+                    sleep_ms(50).await;
+                }
+                let t = now_ms();
+                match measure(&inv, &target).await {
+                    Ok(((iou, psnr), p)) => post(
+                        &FromWorker::Figures {
+                            iou: finite(iou),
+                            psnr: finite(psnr),
+                            millis: now_ms() - t,
+                            error: None,
+                        },
+                        &[
+                            ("rgb", js_sys::Float32Array::from(&p.rgb[..]).into()),
+                            ("mask", js_sys::Float32Array::from(&p.mask[..]).into()),
+                        ],
+                    ),
+                    Err(e) => {
+                        let m = FromWorker::Figures { iou: None, psnr: None, millis: now_ms() - t, error: Some(e) };
+                        post(&m, &[])
+                    }
+                }
+            }
         }
         Ok(None) => post(&FromWorker::Cancelled, &[]),
         Err(message) => post(&FromWorker::Failed { message }, &[]),
     }
 }
 
-/// The result file, IoU and PSNR, milliseconds of the final figures and of the file, and the
-/// steps done when cancelled.
-type Outcome = (Vec<u8>, (f32, f32), f64, f64, Option<usize>);
+/// The result file, the inversion's outcome (figures, or the inverter that measures them
+/// after the file is sent), milliseconds of the file.
+type Outcome<'a> = (Vec<u8>, Inverted<'a>, f64);
 
-async fn job(
+async fn job<'a>(
     meta: JobMeta,
     data: &JsValue,
-    state: &WorkerState,
+    state: &'a WorkerState,
     device: &(Device, String),
-) -> Result<Option<Outcome>, String> {
+) -> Result<Option<Outcome<'a>>, String> {
     let (Some(rgb), Some(mask)) = (f32_array(data, "target_rgb"), f32_array(data, "target_mask")) else {
         return Err("the job came without its photo".into());
     };
@@ -184,8 +226,9 @@ async fn job(
         start: meta.start,
         encoder,
         compute: meta.compute,
+        measure_after_result: meta.measure_after_result,
     };
-    let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage).await? else { return Ok(None) };
+    let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else { return Ok(None) };
     let t = now_ms();
     let photo = match &job.projection {
         Some(source) => {
@@ -199,7 +242,18 @@ async fn job(
     let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
-    Ok(Some((bytes, inv.fit, inv.finish_ms, now_ms() - t, inv.stopped_at)))
+    Ok(Some((bytes, inv, now_ms() - t)))
+}
+
+/// Wait `ms` milliseconds (at once if the timer cannot be set).
+async fn sleep_ms(ms: i32) {
+    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
+        if crate::platform::set_timeout(&resolve, ms).is_err() {
+            let _ = resolve.call0(&JsValue::NULL);
+        }
+    });
+    // The promise only resolves.
+    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
 }
 
 /// The worker's body context, made on its first job (and again for another config).

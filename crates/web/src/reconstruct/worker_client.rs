@@ -19,7 +19,8 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
 use super::job::{
-    rig_saved, run_on_page, InversionJob, Preview, Progress, ReconstructEvent, ReconstructRequest, ReconstructTask,
+    rig_saved, run_on_page, InversionJob, Measured, Preview, Progress, ReconstructEvent, ReconstructRequest,
+    ReconstructTask,
 };
 use super::protocol::{
     f32_array, json_of, message_of, object, u8_array, FromWorker, JobMeta, Message, ModelFiles, ProjectionMeta,
@@ -75,8 +76,20 @@ struct Running {
     device: Device,
 }
 
+/// A result the worker handed over before measuring it: the page rigs and shows it, then the
+/// worker renders it for the figures (`ToWorker::Measure`), which end the task.
+struct Measuring {
+    task: ReconstructTask,
+    repaint: egui::Context,
+    /// The page has shown the avatar.
+    shown: bool,
+    /// The figures, when they came before the avatar was shown (the worker stopped).
+    figures: Option<Measured>,
+}
+
 thread_local! {
     static CLIENT: RefCell<Option<Rc<Client>>> = const { RefCell::new(None) };
+    static MEASURING: RefCell<Option<Measuring>> = const { RefCell::new(None) };
     /// A worker could not run a reconstruction here (why): later ones run on the page.
     static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
     /// Jobs handed to a worker so far: an idle release applies only if none came since.
@@ -87,7 +100,8 @@ thread_local! {
 fn release_when_idle() {
     let job = JOBS.with(Cell::get);
     let release = Closure::once_into_js(move || {
-        let idle = CLIENT.with(|c| c.borrow().as_ref().is_some_and(|c| c.running.borrow().is_none()));
+        let idle = CLIENT.with(|c| c.borrow().as_ref().is_some_and(|c| c.running.borrow().is_none()))
+            && MEASURING.with(|m| m.borrow().is_none());
         if idle && JOBS.with(Cell::get) == job {
             drop_client();
         }
@@ -124,6 +138,11 @@ pub fn start(
                 let m = message_of(&ToWorker::Cancel, &[]);
                 let _ = c.worker.post_message(&m.data, &m.transfer);
             }
+        }
+        // Shown and being measured: the avatar stays, without its figures.
+        if MEASURING.with(|m| m.borrow().as_ref().is_some_and(|m| m.task.same(&worker_task))) {
+            tell_worker(&ToWorker::Cancel);
+            measured(Measured { figures: Err("not measured: cancelled".into()), millis: 0.0 });
         }
     });
     JOBS.with(|j| j.set(j.get() + 1));
@@ -185,6 +204,48 @@ fn worker_unusable(why: String) {
 fn drop_client() {
     if let Some(c) = CLIENT.with(|c| c.borrow_mut().take()) {
         c.worker.terminate();
+    }
+    if MEASURING.with(|m| m.borrow().is_some()) {
+        measured(Measured { figures: Err("not measured: the worker stopped".into()), millis: 0.0 });
+    }
+}
+
+/// The figures of the result being measured: its task's outcome once the avatar is shown.
+fn measured(m: Measured) {
+    let Some(mut ms) = MEASURING.with(|s| s.borrow_mut().take()) else { return };
+    if ms.shown {
+        ms.task.push(ReconstructEvent::Measured(Box::new(m)), &ms.repaint);
+    } else {
+        ms.figures = Some(m);
+        MEASURING.with(|s| *s.borrow_mut() = Some(ms));
+    }
+}
+
+/// The page has shown the result being measured (`rigged`: else it failed, which ended the
+/// task): the worker measures it now (or not at all).
+fn shown(task: &ReconstructTask, rigged: bool) {
+    let Some(mut ms) = MEASURING.with(|s| s.borrow_mut().take()).filter(|m| m.task.same(task)) else { return };
+    if !rigged {
+        return tell_worker(&ToWorker::Cancel);
+    }
+    ms.shown = true;
+    match ms.figures.take() {
+        Some(m) => ms.task.push(ReconstructEvent::Measured(Box::new(m)), &ms.repaint),
+        None => {
+            MEASURING.with(|s| *s.borrow_mut() = Some(ms));
+            tell_worker(&ToWorker::Measure);
+        }
+    }
+}
+
+/// A message without arrays to the worker, if there is one (else nothing waits for it).
+fn tell_worker(m: &ToWorker) {
+    if let Some(c) = CLIENT.with(|c| c.borrow().clone()) {
+        let m = message_of(m, &[]);
+        if let Err(e) = c.worker.post_message(&m.data, &m.transfer) {
+            // The worker is gone: its `onerror` or the next job says so.
+            web_sys::console::warn_1(&JsValue::from_str(&format!("the reconstruction worker: {}", js_message(&e))));
+        }
     }
 }
 
@@ -266,6 +327,7 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
         world_to_camera: t.view.world_to_camera.to_cols_array(),
         body: t.view.body.clone(),
         res: t.res,
+        measure_after_result: job.measure_after_result,
         projection: job.projection.as_ref().map(|p| ProjectionMeta {
             fit: p.fit.clone(),
             width: p.width,
@@ -305,6 +367,22 @@ fn on_message(data: JsValue) {
         Ok(e) => e,
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
+    if let FromWorker::Figures { iou, psnr, millis, error } = event {
+        let images = f32_array(&data, "rgb").zip(f32_array(&data, "mask"));
+        let figures = match (error, images) {
+            (Some(e), _) => Err(format!("not measured: {e}")),
+            (None, None) => Err("not measured: the worker sent no render".into()),
+            (None, Some((rgb, mask))) => {
+                let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
+                Ok((fit, Preview { rgb, mask, done: 0 }))
+            }
+        };
+        return measured(Measured { figures, millis });
+    }
+    // The worker stopped while it measured a result already handed over.
+    if matches!(event, FromWorker::Fatal { .. }) && client.running.borrow().is_none() {
+        return drop_client();
+    }
     let mut slot = client.running.borrow_mut();
     let Some(r) = slot.as_mut() else { return };
     match event {
@@ -322,11 +400,16 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at } => {
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at, measuring } => {
             let Some(r) = slot.take() else { return };
             match u8_array(&data, "bytes") {
                 Some(bytes) => {
-                    let fit = (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN));
+                    let fit = (!measuring).then(|| (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN)));
+                    if measuring {
+                        let (task, repaint) = (r.task.clone(), r.repaint.clone());
+                        let m = Measuring { task, repaint, shown: false, figures: None };
+                        MEASURING.with(|s| *s.borrow_mut() = Some(m));
+                    }
                     wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at));
                     release_when_idle();
                 }
@@ -349,6 +432,7 @@ fn on_message(data: JsValue) {
             drop(slot);
             unavailable(message);
         }
+        FromWorker::Figures { .. } => {}
         FromWorker::Fatal { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
             *slot = None;
@@ -376,11 +460,12 @@ fn fall_back_to_page(why: String) {
     }
 }
 
-/// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures.
+/// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures
+/// (None: they follow).
 async fn finish(
     r: Running,
     bytes: Vec<u8>,
-    fit: (f32, f32),
+    fit: Option<(f32, f32)>,
     (figures_ms, file_ms): (f64, f64),
     stopped_at: Option<usize>,
 ) {
@@ -389,20 +474,27 @@ async fn finish(
     let t = now_ms();
     let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
         Ok(mut done) => {
-            done.fit = Some(fit);
+            (done.fit, done.measuring) = (fit, fit.is_none());
             done.stopped_at = stopped_at;
             done.millis = now_ms() - r.t0;
             let rig_ms = now_ms() - t;
             done.finish_ms = figures_ms + file_ms + rig_ms;
-            done.finish_detail = format!(
-                "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s",
-                figures_ms / 1000.0,
-                file_ms / 1000.0,
-                rig_ms / 1000.0
-            );
+            done.finish_detail = match fit {
+                Some(_) => format!(
+                    "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s",
+                    figures_ms / 1000.0,
+                    file_ms / 1000.0,
+                    rig_ms / 1000.0
+                ),
+                None => {
+                    format!("worker: result file {:.1} s; page: rigging {:.1} s", file_ms / 1000.0, rig_ms / 1000.0)
+                }
+            };
             ReconstructEvent::Finished(Box::new(done))
         }
         Err(e) => ReconstructEvent::Failed(format!("the reconstruction failed: {e}")),
     };
+    let rigged = matches!(event, ReconstructEvent::Finished(_));
     r.task.push(event, &r.repaint);
+    shown(&r.task, rigged);
 }
