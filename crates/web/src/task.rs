@@ -118,9 +118,14 @@ impl<E> Task<E> {
 /// nested), letting it render and handle input. Not `scheduler.yield()`: its continuations run
 /// ahead of the page's other tasks, so a long job starved the frames that carry Cancel.
 pub async fn yield_to_browser() {
+    sleep_ms(0).await
+}
+
+/// Wait `ms` milliseconds (a timer task; at once if no timer can be set).
+pub async fn sleep_ms(ms: i32) {
     let promise = js_sys::Promise::new(&mut |resolve, _reject| {
         // A failed setTimeout leaves the promise pending: resolve at once instead.
-        if crate::platform::set_timeout(&resolve, 0).is_err() {
+        if crate::platform::set_timeout(&resolve, ms).is_err() {
             let _ = resolve.call0(&JsValue::NULL);
         }
     });

@@ -145,7 +145,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
                     if CANCEL.with(Cell::get) {
                         return;
                     }
-                    sleep_ms(50).await;
+                    crate::task::sleep_ms(50).await;
                 }
                 let t = now_ms();
                 match measure(&inv, &target).await {
@@ -243,17 +243,6 @@ async fn job<'a>(
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
     Ok(Some((bytes, inv, now_ms() - t)))
-}
-
-/// Wait `ms` milliseconds (at once if the timer cannot be set).
-async fn sleep_ms(ms: i32) {
-    let promise = js_sys::Promise::new(&mut |resolve, _reject| {
-        if crate::platform::set_timeout(&resolve, ms).is_err() {
-            let _ = resolve.call0(&JsValue::NULL);
-        }
-    });
-    // The promise only resolves.
-    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
 }
 
 /// The worker's body context, made on its first job (and again for another config).
