@@ -11,7 +11,10 @@
 //
 // Finding the person tries before it fails: Pose runs on a crop around every region (largest
 // first), then on the whole photo, until a reading agrees with its region (most landmarks in
-// it, spanning it) and is upright; when none is, the same candidates are tried on the photo
+// it, spanning it) and is upright. With one region, the whole photo comes first, judged
+// against that region: Pose's 3D reading of a person alone in a photo is better from the
+// whole photo than from a crop around them (docs/benchmarks.md, "Body fit"). When no reading
+// is upright and agrees, the same candidates are tried on the photo
 // turned 180°, 90° and 270° (a person read lying or upside down first at the turn that makes
 // them upright). A turned reading is returned in the turned photo's frame: the preview, the
 // sizes, the landmarks and the mask are all of the turned photo, and `rotation` says by how
@@ -276,7 +279,7 @@ function judge(pts, vis, box) {
 /**
  * Pose on one candidate: `source` is the turned photo (a canvas), `crop` a box of it or null
  * for all of it, `box` the person's box in it (for the agreement) or null. Returns
- * {results, crop, verdict} or null when Pose saw no one.
+ * {results, crop, verdict, pts, vis} or null when Pose saw no one.
  */
 async function readCandidate(pose, source, crop, box) {
   let image = source;
@@ -290,7 +293,7 @@ async function readCandidate(pose, source, crop, box) {
   const [sw, sh] = crop ? [crop.w, crop.h] : [source.width, source.height];
   const pts = results.poseLandmarks.map((l) => [ox + l.x * sw, oy + l.y * sh]);
   const vis = results.poseLandmarks.map((l) => l.visibility ?? 1);
-  return { results, crop, verdict: judge(pts, vis, box), pts };
+  return { results, crop, verdict: judge(pts, vis, box), pts, vis };
 }
 
 /** The region (index) most of a reading's seen landmarks fall in, or -1. */
@@ -305,7 +308,8 @@ function regionOf(pts, vis, boxes) {
 
 /**
  * Find the person: Pose on every selfie-segmentation region (largest first), then on the
- * whole photo, then, when nothing upright was read, on the same candidates turned 180°, 90°
+ * whole photo (first, against the region, when there is one region; Pose runs once on it),
+ * then, when nothing upright was read, on the same candidates turned 180°, 90°
  * and 270° (a reading seen lying or upside down is tried at the turn that makes it upright
  * first). `want` (0-based) restricts the search to that region. Returns
  * {found: {results, crop, turn, region}, boxes, tried, seen} or {error}.
@@ -322,16 +326,26 @@ async function findPerson(pose, canvas, regions, want) {
     const { canvas: src, map } = turned(canvas, turn);
     const tb = boxes.map((b) => turnedBox(b, map));
     const candidates = order.map((k) => ({ region: k, crop: padded(tb[k], src.width, src.height), box: tb[k] }));
-    // The whole photo: with one region or none (the mask missed the person), or after the regions.
-    if (want === null) candidates.push({ region: null, crop: null, box: null });
+    // The whole photo after the regions (none: the mask missed the person), and with one
+    // region also before its crop, judged against it.
+    if (want === null) {
+      if (tb.length === 1) candidates.unshift({ region: 0, crop: null, box: tb[0] });
+      candidates.push({ region: null, crop: null, box: null });
+    }
+    let whole;
     for (const c of candidates) {
+      if (c.crop === null && whole !== undefined) {
+        // The whole photo, read before the region's crop, is judged again without the region,
+        // and read again only when it now counts (the crop's run replaced Pose's mask).
+        if (!whole || !judge(whole.pts, whole.vis, null).ok) continue;
+      }
       tried++;
       const r = await readCandidate(pose, src, c.crop, c.box);
+      if (c.crop === null && whole === undefined) whole = r;
       if (!r) continue;
       if (r.verdict.turn !== undefined && turn === 0) hints.add(r.verdict.turn);
       if (!r.verdict.ok) continue;
-      const vis = r.results.poseLandmarks.map((l) => l.visibility ?? 1);
-      const region = c.region ?? (tb.length ? regionOf(r.pts, vis, tb) : null);
+      const region = c.region ?? (tb.length ? regionOf(r.pts, r.vis, tb) : null);
       return { results: r.results, crop: r.crop, turn, region: region === -1 ? null : region, src, boxes: tb };
     }
     return null;

@@ -144,16 +144,14 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 }
 
 /// The real detector: MediaPipe Pose's results (committed fixtures, made by
-/// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`) on the
-/// bare body in the unseen poses from two yaws → `trainer fit-pose` with the detector's mask,
-/// PA-MPJPE against the pose that was rendered. The target is PA-MPJPE ≤ 60 mm: the mean
-/// over the set, as the field reports it (HMR, SPIN on 3DPW), is 45.5 mm, with the ten cases
-/// at 38–57 mm. The worst, arms crossed seen from the front (56.9 mm), is a detector error
-/// the fit can only partly undo: MediaPipe gives the hand it sees (the left, on the right
-/// shoulder) the right wrist's label, and guesses the hidden elbow. The fit's two-labelling
-/// hypothesis swaps the hands back from the side (asserted below), and the limb chord puts
-/// that hand across the chest (107 mm without either). So this guards the set's mean ≤ 60 mm,
-/// nine of ten cases ≤ 60 mm and every case ≤ 68 mm.
+/// `tools/mediapipe_fixtures.mjs` in headless Chromium from `trainer body-photos`, through
+/// the app's person finder) on the bare body in the unseen poses from two yaws →
+/// `trainer fit-pose` with the detector's mask, PA-MPJPE against the pose that was rendered.
+/// The target is PA-MPJPE ≤ 60 mm: the mean over the set, as the field reports it (HMR, SPIN
+/// on 3DPW), is 47.9 mm, with the cases at 37–62 mm. The worst, arms crossed seen from the
+/// front (61.3 mm), is a detector error the fit can only partly undo: MediaPipe guesses the
+/// hidden elbow. So this guards the set's mean ≤ 60 mm, nine of ten cases ≤ 60 mm and every
+/// case ≤ 68 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
     let dir = tmp("fit-mediapipe");
@@ -170,11 +168,7 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
             let (fit, err) = fit_fixture(&dir, &fixtures, &stem, &model, &truth);
             worst = worst.max(err);
             errors.push(err);
-            // Only a fit whose wrists disagree on visibility may swap the hands; the side view
-            // of crossed arms must.
-            if stem == "arms_crossed_yaw1" {
-                assert_eq!(fit.relabelled.first().map(String::as_str), Some("left_wrist↔right_wrist"), "{stem}");
-            }
+            // Only a fit whose wrists disagree on visibility may swap the hands.
             let wrists_seen = [15, 16].map(|l| fit.keypoints[l].visibility >= 0.5);
             assert!(fit.relabelled.is_empty() || wrists_seen[0] != wrists_seen[1], "{stem}: {:?}", fit.relabelled);
             report.push(format!(
@@ -201,14 +195,12 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
 /// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
 /// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
-/// 90 mm; measured: mean 59.7 mm, worst 151.5 mm, four cases over 90 mm. The worst are depth
-/// the image cannot tell: the side reach seen from its side (151.5 mm) bends the spine
-/// sideways, which is depth from there, and lifts the hidden arm over the head; kneeling from
-/// behind (108.4 mm) and the raised knee from the front (100.5 mm) follow MediaPipe's misread
-/// depth. The jumping jack from the front, whose arms MediaPipe puts over the head off its own
-/// person mask, is fitted to the mask (64.5 mm; 106.6 before landmarks off the person were
-/// taken as errors). So this guards the mean goal (≤ 60.5 mm) and the measured worst (≤ 155
-/// mm) until the fit closes the gap.
+/// 90 mm; measured: mean 59.6 mm, worst 123.5 mm, three cases over 90 mm. The worst are depth
+/// the image cannot tell: kneeling from behind (123.5 mm: MediaPipe reads the shin on the
+/// ground far from where it is), the side reach seen from its side (112.1 mm: the spine bends
+/// sideways, which is depth from there) and the raised knee from the front (101.0 mm: both
+/// raised arms read towards the camera). So this guards the mean goal (≤ 60.5 mm) and the
+/// measured worst (≤ 125 mm) until the fit closes the gap.
 #[test]
 fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     let dir = tmp("fit-wide");
@@ -222,16 +214,8 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         for k in 0..WIDE_YAWS.len() {
             let stem = format!("{name}_view{k}");
             let (fit, err) = fit_fixture(&dir, &fixtures, &stem, &model, &truth);
-            // Only the frontal jumping jack has landmarks off the person (its arms), with
-            // their limbs; every other fixture's landmarks are on it.
-            if stem == "jumping_jack_view0" {
-                for l in ["left_elbow", "left_wrist", "right_elbow", "right_wrist", "right_index"] {
-                    assert!(fit.off_person.iter().any(|o| o == l), "{stem}: {l} not off: {:?}", fit.off_person);
-                    assert!(fit.missing.iter().any(|o| o == l), "{stem}: {l} not missing: {:?}", fit.missing);
-                }
-            } else {
-                assert!(fit.off_person.is_empty(), "{stem}: {:?} off the person", fit.off_person);
-            }
+            // Every reading's landmarks are on the person here (`misread/` has one that is not).
+            assert!(fit.off_person.is_empty(), "{stem}: {:?} off the person", fit.off_person);
             errors.push(err);
             report.push(format!(
                 "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
@@ -249,7 +233,42 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         mean * 1000.0,
         worst * 1000.0
     );
-    assert!(mean <= 0.0605 && worst <= 0.155, "mean {mean}, worst {worst}\n{}", report.join("\n"));
+    assert!(mean <= 0.0605 && worst <= 0.125, "mean {mean}, worst {worst}\n{}", report.join("\n"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Two readings MediaPipe got wrong, kept to hold the fit's answers to them (`misread/`: made
+/// by earlier versions of the detector's pipeline from earlier renders of the same poses):
+/// - the jumping jack from the front, its arms read over the head while its own person mask
+///   shows them spread: the wrists and fingers lie 4.9–7.6 % of the photo's height off the
+///   mask, so those limbs are taken as the detector's error and named missing, and the
+///   silhouette places them (64.5 mm; 106.6 with the reading taken as it is);
+/// - crossed arms from 52° to the side, the seen hand given the other wrist's label: the fit's
+///   two-labelling hypothesis swaps the hands back (41.4 mm; 58.7 without it).
+#[test]
+fn fit_pose_undoes_known_detector_misreadings() {
+    let dir = tmp("fit-misread");
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe/misread");
+    let run = trainer(&["body-photos", "--out", s(&dir)]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let model = BodyModel::default_body().unwrap();
+    let truth =
+        |poses: Vec<(&'static str, BodyParams)>, name: &str| poses.into_iter().find(|(n, _)| *n == name).unwrap().1;
+
+    let stem = "jumping_jack_view0";
+    let (fit, err) = fit_fixture(&dir, &fixtures, stem, &model, &truth(wide_poses(), "jumping_jack"));
+    for l in ["left_elbow", "left_wrist", "right_elbow", "right_wrist", "right_index"] {
+        assert!(fit.off_person.iter().any(|o| o == l), "{stem}: {l} not off: {:?}", fit.off_person);
+        assert!(fit.missing.iter().any(|o| o == l), "{stem}: {l} not missing: {:?}", fit.missing);
+    }
+    eprintln!("{stem}: PA-MPJPE {:.1} mm, off the person: {:?}", err * 1000.0, fit.off_person);
+    assert!(err <= 0.070, "{stem}: PA-MPJPE {:.1} mm", err * 1000.0);
+
+    let stem = "arms_crossed_yaw1";
+    let (fit, err) = fit_fixture(&dir, &fixtures, stem, &model, &truth(unseen_poses(), "arms_crossed"));
+    assert_eq!(fit.relabelled.first().map(String::as_str), Some("left_wrist↔right_wrist"), "{stem}");
+    eprintln!("{stem}: PA-MPJPE {:.1} mm, relabelled: {:?}", err * 1000.0, fit.relabelled);
+    assert!(err <= 0.050, "{stem}: PA-MPJPE {:.1} mm", err * 1000.0);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
