@@ -148,7 +148,7 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// the app's person finder) on the bare body in the unseen poses from two yaws →
 /// `trainer fit-pose` with the detector's mask, PA-MPJPE against the pose that was rendered.
 /// The target is PA-MPJPE ≤ 60 mm: the mean over the set, as the field reports it (HMR, SPIN
-/// on 3DPW), is 47.9 mm, with the cases at 37–62 mm. The worst, arms crossed seen from the
+/// on 3DPW), is 48.1 mm, with the cases at 38–62 mm. The worst, arms crossed seen from the
 /// front (61.3 mm), is a detector error the fit can only partly undo: MediaPipe guesses the
 /// hidden elbow. So this guards the set's mean ≤ 60 mm, nine of ten cases ≤ 60 mm and every
 /// case ≤ 68 mm.
@@ -195,12 +195,12 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
 /// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
 /// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
-/// 90 mm; measured: mean 59.6 mm, worst 123.5 mm, three cases over 90 mm. The worst are depth
-/// the image cannot tell: kneeling from behind (123.5 mm: MediaPipe reads the shin on the
-/// ground far from where it is), the side reach seen from its side (112.1 mm: the spine bends
-/// sideways, which is depth from there) and the raised knee from the front (101.0 mm: both
-/// raised arms read towards the camera). So this guards the mean goal (≤ 60.5 mm) and the
-/// measured worst (≤ 125 mm) until the fit closes the gap.
+/// 90 mm; measured: mean 58.4 mm, worst 112.1 mm, two cases over 90 mm. The worst are depth
+/// the image cannot tell: the side reach seen from its side (112.1 mm: the spine bends
+/// sideways, which is depth from there) and kneeling from behind (107.0 mm: MediaPipe reads
+/// the shin on the ground far from where it is, and the legs' foreshortening check takes
+/// only part of it back). So this guards the mean goal (≤ 60 mm) and the measured worst
+/// (≤ 115 mm) until the fit closes the gap.
 #[test]
 fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     let dir = tmp("fit-wide");
@@ -233,7 +233,7 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         mean * 1000.0,
         worst * 1000.0
     );
-    assert!(mean <= 0.0605 && worst <= 0.125, "mean {mean}, worst {worst}\n{}", report.join("\n"));
+    assert!(mean <= 0.060 && worst <= 0.115, "mean {mean}, worst {worst}\n{}", report.join("\n"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

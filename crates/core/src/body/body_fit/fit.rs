@@ -9,7 +9,9 @@
 //!    SMPLify's angle prior on elbows and knees and an L2 on their sideways bend, a stiffer
 //!    L2 on the collars ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
 //!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
-//!    cannot, e.g. which arm is in front) and, where an elbow or knee is hidden, its limb's
+//!    cannot, e.g. which arm is in front; a leg bone whose 3D direction disagrees with how
+//!    foreshortened its 2D landmarks show it loses that weight) and, where an elbow or knee
+//!    is hidden, its limb's
 //!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
 //!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a
 //!    joint whose bone the detector did not see is pulled towards the mirror image of its
@@ -41,6 +43,7 @@ use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
 
 pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
+use super::input::leg_foreshortening_agreement;
 pub use super::input::{FitInput, HAND_SWAP};
 use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
 use super::limits::{COLLARS, HINGES};
@@ -254,9 +257,12 @@ impl BodyFitter {
             let vis = |l: usize| input.points[l].1;
             // Every bone, weighted by its ends' visibility; and each limb's chord, weighted by
             // how seen its ends are and how hidden its middle is.
+            let posed = posed_joints(&model, &init);
+            let fore =
+                |b: &(usize, usize, usize, usize)| leg_foreshortening_agreement(&posed, cam, &input.points, world, *b);
             let rows: Vec<((usize, usize, usize, usize), f32)> = BONES
                 .iter()
-                .map(|b| (*b, vis(b.2).min(vis(b.3))))
+                .map(|b| (*b, vis(b.2).min(vis(b.3)) * fore(b)))
                 .chain(CHORDS.iter().map(|c| ((c.0, c.1, c.2, c.4), vis(c.2).min(vis(c.4)) * (1.0 - vis(c.3)))))
                 .filter(|r| r.1 > 0.0)
                 .collect();

@@ -8,7 +8,8 @@ use super::framing::Framing;
 use super::init::camera_axes;
 use super::landmarks::{PoseResult, SegmentationMask, NUM_LANDMARKS, VISIBLE};
 use super::options::FitOptions;
-use crate::body::body_model::BodyModel;
+use crate::body::body_model::{BodyModel, NUM_JOINTS};
+use crate::render::camera::reference_fov_y;
 
 /// What the fit observes, in the reference camera's NDC of a [`Framing`].
 #[derive(Clone, Debug)]
@@ -157,9 +158,46 @@ impl FitInput {
     }
 }
 
+/// The in-plane fractions of a leg bone (MediaPipe's 3D direction against its own 2D landmarks)
+/// within which the bone's 3D direction keeps its whole weight, and beyond which it has none.
+pub const LEG_FORESHORTENING: (f32, f32) = (0.2, 0.4);
+
+/// How far MediaPipe's 3D direction of leg bone `b` agrees with its own 2D landmarks about how
+/// much the bone lies in the image plane: 1 while the two in-plane fractions are within
+/// [`LEG_FORESHORTENING`]`.0` of each other, falling to 0 at `.1`. The 2D fraction is the
+/// bone's length between its landmarks against the body's bone (β = 0, `posed`) at the initial
+/// camera's depth (`cam`). Where they part, the detector has misread the bone's depth (a shin
+/// on the ground seen from behind, a raised thigh seen from the front), and the 2D landmarks
+/// with the bone's length place it. Arms keep their weight: crossed forearms are short in 2D
+/// where MediaPipe's direction is right.
+pub(super) fn leg_foreshortening_agreement(
+    posed: &[Vec3; NUM_JOINTS],
+    cam: Vec3,
+    points: &[([f32; 2], f32)],
+    world: &[Vec3],
+    b: (usize, usize, usize, usize),
+) -> f32 {
+    const LEG_JOINTS: [usize; 4] = [1, 2, 4, 5];
+    let len = (posed[b.1] - posed[b.0]).length();
+    let depth = -(0.5 * (posed[b.0] + posed[b.1]) + cam).z;
+    if !LEG_JOINTS.contains(&b.0) || depth <= 0.0 || len <= 0.0 {
+        return 1.0;
+    }
+    let f = 1.0 / (reference_fov_y() / 2.0).tan();
+    let (p, q) = (points[b.2].0, points[b.3].0);
+    let in_2d = ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)).sqrt() / (f * len / depth);
+    let d = (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO);
+    let in_3d = (d.x * d.x + d.y * d.y).sqrt();
+    let (agree, apart) = LEG_FORESHORTENING;
+    let gap = (in_2d.min(1.0) - in_3d).abs();
+    (1.0 - (gap - agree) / (apart - agree)).clamp(0.0, 1.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::body::body_fit::init::posed_joints;
+    use crate::body::skinning::BodyParams;
 
     /// A 100² photo framed whole, its mask (at 100² in the crop) a person's column at
     /// x 40…60: a landmark on it, one just beside it, one far off it, one hidden far off it,
@@ -197,5 +235,38 @@ mod tests {
         assert!(input.off_person.iter().all(|&l| input.points[l].1 == 0.0));
         assert_eq!(input.points[11].1, 1.0);
         assert_eq!(input.points[16].1, 0.1);
+    }
+
+    #[test]
+    fn a_leg_bone_whose_depth_disagrees_with_its_foreshortening_loses_its_3d_weight() {
+        let model = BodyModel::default_body().unwrap();
+        let posed = posed_joints(&model, &BodyParams::default());
+        let cam = Vec3::new(0.0, -0.3, -3.0);
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let project = |p: Vec3| {
+            let c = p + cam;
+            [f * c.x / -c.z, f * c.y / -c.z]
+        };
+        // The left thigh (hip 1 → knee 4; landmarks 23 → 25) seen at its whole length.
+        let thigh = (1, 4, 23, 25);
+        let mut points = vec![([0.0f32; 2], 1.0f32); NUM_LANDMARKS];
+        points[23].0 = project(posed[1]);
+        points[25].0 = project(posed[4]);
+        let agreement = |toward_camera_deg: f32| {
+            let mut world = vec![Vec3::ZERO; NUM_LANDMARKS];
+            let a = toward_camera_deg.to_radians();
+            world[25] = Vec3::new(0.0, -a.cos(), a.sin());
+            leg_foreshortening_agreement(&posed, cam, &points, &world, thigh)
+        };
+        // In the image plane, as the 2D length says; 30° towards the camera (in-plane 0.87);
+        // 46° (0.7: halfway); 60° (0.5: beyond).
+        assert!((agreement(0.0) - 1.0).abs() < 1e-3, "{}", agreement(0.0));
+        assert!((agreement(30.0) - 1.0).abs() < 1e-3, "{}", agreement(30.0));
+        assert!((agreement(45.57) - 0.5).abs() < 0.05, "{}", agreement(45.57));
+        assert!(agreement(60.0) < 1e-3, "{}", agreement(60.0));
+        // Arms keep their weight whatever the disagreement.
+        let mut world = vec![Vec3::ZERO; NUM_LANDMARKS];
+        world[13] = Vec3::Z;
+        assert_eq!(leg_foreshortening_agreement(&posed, cam, &points, &world, (16, 18, 11, 13)), 1.0);
     }
 }
