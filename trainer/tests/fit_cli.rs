@@ -154,11 +154,7 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// case ≤ 68 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
-    let dir = tmp("fit-mediapipe");
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe");
-    let run = trainer(&["body-photos", "--out", s(&dir)]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    let model = BodyModel::default_body().unwrap();
+    let (dir, fixtures, model) = fixture_photos("fit-mediapipe", "");
     let mut report = Vec::new();
     let mut worst = 0.0f32;
     let mut errors = Vec::new();
@@ -203,11 +199,7 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (≤ 115 mm) until the fit closes the gap.
 #[test]
 fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
-    let dir = tmp("fit-wide");
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe");
-    let run = trainer(&["body-photos", "--out", s(&dir)]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    let model = BodyModel::default_body().unwrap();
+    let (dir, fixtures, model) = fixture_photos("fit-wide", "");
     let mut report = Vec::new();
     let mut errors = Vec::new();
     for (name, truth) in wide_poses() {
@@ -247,11 +239,7 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
 ///   two-labelling hypothesis swaps the hands back (41.4 mm; 58.7 without it).
 #[test]
 fn fit_pose_undoes_known_detector_misreadings() {
-    let dir = tmp("fit-misread");
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe/misread");
-    let run = trainer(&["body-photos", "--out", s(&dir)]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    let model = BodyModel::default_body().unwrap();
+    let (dir, fixtures, model) = fixture_photos("fit-misread", "misread");
     let truth =
         |poses: Vec<(&'static str, BodyParams)>, name: &str| poses.into_iter().find(|(n, _)| *n == name).unwrap().1;
 
@@ -270,6 +258,16 @@ fn fit_pose_undoes_known_detector_misreadings() {
     eprintln!("{stem}: PA-MPJPE {:.1} mm, relabelled: {:?}", err * 1000.0, fit.relabelled);
     assert!(err <= 0.050, "{stem}: PA-MPJPE {:.1} mm", err * 1000.0);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A fixture test's setup: `trainer body-photos` rendered into a new temporary folder `name`,
+/// the fixtures' folder (`fixtures/mediapipe/SUB`) and the body model.
+fn fixture_photos(name: &str, sub: &str) -> (std::path::PathBuf, std::path::PathBuf, BodyModel) {
+    let dir = tmp(name);
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe").join(sub);
+    let run = trainer(&["body-photos", "--out", s(&dir)]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    (dir, fixtures, BodyModel::default_body().unwrap())
 }
 
 /// `trainer fit-pose` on a committed MediaPipe fixture (`fixtures/STEM.kp.json`,
