@@ -11,7 +11,8 @@
 //! checkpoint's latent mode (or w_avg) whose render explains the photo best ([`choose_start_async`]).
 //!
 //! **Phase 2, PTI.** The codes are frozen (the pivot); the synthesis backbone and decoders (not
-//! the mapping networks) are tuned by Adam at `pti_lr` on the same image terms. PTI's locality
+//! the mapping networks) are tuned by Adam at `pti_lr` on the same image terms (constant by
+//! default; with `pti_warmup`/`pti_rampdown` on the same schedule as phase 1). PTI's locality
 //! regulariser keeps the rest of the latent space: every `locality_every` steps a random code
 //! `w_z` of each branch is pulled towards the pivot, `w_r = w_p + (w_z − w_p)·min(1, α/‖w_z −
 //! w_p‖)`, and the tuned generator's render there is held to the original's (L2 + perceptual).
@@ -61,6 +62,8 @@ mod tests {
         // A short run warms up over 10 steps all the same: its first step is small.
         let short = |s| lr_schedule(0.1, s, 3, 0.05, 0.25);
         assert!(short(0) < 0.006 && short(1) > short(0) && short(1) < 0.02, "{} {}", short(0), short(1));
+        // No warm-up and no ramp-down (PTI in `full`): the rate is constant.
+        assert!((0..350).all(|s| lr_schedule(3e-4, s, 350, 0.0, 0.0) == 3e-4));
     }
 
     #[test]

@@ -128,6 +128,11 @@ pub struct InversionOptions {
     pub pti_steps: usize,
     /// PTI's Adam learning rate of the synthesis weights (3e-4).
     pub pti_lr: f32,
+    /// Fractions of the PTI steps with [`lr_schedule`]'s warm-up and cosine ramp-down (0 and
+    /// 0: a constant rate, as the PTI paper tunes; `fast` warms up and ramps down a higher
+    /// rate, which at full rate from its first step throws the weights off).
+    pub pti_warmup: f32,
+    pub pti_rampdown: f32,
     /// PTI's locality regulariser: α (30), weight (1), every this many steps (1; 0 = off).
     pub locality_alpha: f32,
     pub locality_weight: f32,
@@ -153,6 +158,8 @@ impl Default for InversionOptions {
             latent_reg: 0.01,
             pti_steps: 350,
             pti_lr: 3e-4,
+            pti_warmup: 0.0,
+            pti_rampdown: 0.0,
             locality_alpha: 30.0,
             locality_weight: 1.0,
             locality_every: 1,
@@ -169,13 +176,22 @@ impl Default for InversionOptions {
 
 impl InversionOptions {
     /// `full` (the defaults: 200 W+ and 350 PTI steps), `fast` (60 + 60, locality every 4
-    /// steps) or `instant` (no steps: the start, the encoder's guess, is the avatar): what the
-    /// app's quality preset picks.
+    /// steps, PTI at 1e-3 warmed up and ramped down: +0.15 to +0.51 dB end to end against a
+    /// constant 3e-4, docs/benchmarks.md) or `instant` (no steps: the start, the encoder's
+    /// guess, is the avatar): what the app's quality preset picks.
     pub fn preset(name: &str) -> Option<Self> {
         match name {
             "instant" => Some(Self { steps: 0, pti_steps: 0, ..Self::default() }),
             "full" => Some(Self::default()),
-            "fast" => Some(Self { steps: 60, pti_steps: 60, locality_every: 4, ..Self::default() }),
+            "fast" => Some(Self {
+                steps: 60,
+                pti_steps: 60,
+                locality_every: 4,
+                pti_lr: 1e-3,
+                pti_warmup: 0.05,
+                pti_rampdown: 0.25,
+                ..Self::default()
+            }),
             _ => None,
         }
     }
