@@ -123,7 +123,7 @@ pub struct Inverter<'a> {
 /// diverged late (Adam at the full learning rate can throw the codes off in one step, and the
 /// run does not come back: on one held-out image the mask IoU fell from 0.95 to 0.89 after
 /// step 130 of 200): it ends on the codes of its lowest loss instead. A settled run keeps its
-/// last codes. PTI ends the same way on the weights of its lowest image loss (at `fast`'s rate
+/// last codes. PTI ends the same way on the weights of its lowest image loss (at a rate of 3e-3
 /// one end-to-end run fell from 15.5 to 14.2 dB in its last ten steps).
 pub const DIVERGED: f32 = 1.05;
 
