@@ -129,7 +129,7 @@ pub struct InversionOptions {
     /// PTI's Adam learning rate of the synthesis weights (3e-4).
     pub pti_lr: f32,
     /// Fractions of the PTI steps with [`lr_schedule`]'s warm-up and cosine ramp-down (0 and
-    /// 0: a constant rate, as the PTI paper tunes; `fast` warms up and ramps down a higher
+    /// 0: a constant rate, as the PTI paper tunes; the presets warm up and ramp down a higher
     /// rate, which at full rate from its first step throws the weights off).
     pub pti_warmup: f32,
     pub pti_rampdown: f32,
@@ -175,25 +175,25 @@ impl Default for InversionOptions {
 }
 
 impl InversionOptions {
-    /// `full` (the defaults: 200 W+ and 350 PTI steps), `fast` (60 + 60, locality every 4
-    /// steps, PTI at 1e-3 warmed up and ramped down: +0.15 to +0.51 dB end to end against a
-    /// constant 3e-4, docs/benchmarks.md) or `instant` (no steps: the start, the encoder's
-    /// guess, is the avatar): what the app's quality preset picks.
+    /// `full` (200 W+ and 350 PTI steps), `fast` (60 + 60, locality every 4 steps) or
+    /// `instant` (no steps: the start, the encoder's guess, is the avatar): what the app's
+    /// quality preset picks. Both presets that tune do PTI at 1e-3, warmed up and ramped down
+    /// ([`InversionOptions::scheduled_pti`]).
     pub fn preset(name: &str) -> Option<Self> {
         match name {
             "instant" => Some(Self { steps: 0, pti_steps: 0, ..Self::default() }),
-            "full" => Some(Self::default()),
-            "fast" => Some(Self {
-                steps: 60,
-                pti_steps: 60,
-                locality_every: 4,
-                pti_lr: 1e-3,
-                pti_warmup: 0.05,
-                pti_rampdown: 0.25,
-                ..Self::default()
-            }),
+            "full" => Some(Self::default().scheduled_pti()),
+            "fast" => Some(Self { steps: 60, pti_steps: 60, locality_every: 4, ..Self::default() }.scheduled_pti()),
             _ => None,
         }
+    }
+
+    /// PTI at 1e-3 on phase 1's schedule (10 steps' warm-up, cosine ramp-down over the last
+    /// quarter) instead of the default constant 3e-4, whose end-to-end curve still climbs after
+    /// 350 steps: +0.15 to +0.51 dB in `fast` on three photos, +1.6 dB in `full` on one
+    /// (docs/benchmarks.md, "PTI's rate"). A constant 3e-3 jumps by up to 2 dB between steps.
+    pub fn scheduled_pti(self) -> Self {
+        Self { pti_lr: 1e-3, pti_warmup: 0.05, pti_rampdown: 0.25, ..self }
     }
 }
 
