@@ -6,7 +6,7 @@ use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::generator::checkpoint::collect_params;
 use getavatar_core::generator::network::GeneratorConfig;
-use getavatar_core::generator::pipeline::{seed_latents, BodyContext, Generator, Styles};
+use getavatar_core::generator::pipeline::{is_texture_param, seed_latents, BodyContext, Generator, Styles};
 use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, render_images, start_candidates, InversionError, InversionOptions, InversionTarget, Inverter,
@@ -194,6 +194,54 @@ fn a_diverged_pti_run_ends_on_its_best_weights() {
     assert!(end == *best_weights, "a diverged PTI run ends on the weights of its lowest loss {best}");
     let (seen, end) = run(1e-5, 3);
     assert!(seen.iter().all(|(_, w)| *w != end), "a settled run keeps its last update");
+}
+
+/// PTI's texture factor scales the texture branch's rate alone: Adam's first step moves every
+/// coordinate with a gradient by about the rate, so after one step at `lr` the texture
+/// weights move by up to `factor · lr` and the rest by up to `lr`; the mapping networks stay.
+#[test]
+fn pti_tunes_the_texture_branch_at_its_own_rate() {
+    let (cfg, ctx, target, _truth) = setup();
+    let dev = cpu().autodiff();
+    let g = Generator::new(&cfg, 0, &dev);
+    let start = start_candidates(&g, None)[0].styles.clone();
+    let lr = 1e-4;
+    // Largest move per group (texture branch, mapping networks, the rest) after one PTI step.
+    let moves = |factor: f32| -> [f32; 3] {
+        let opts = InversionOptions {
+            steps: 0,
+            pti_steps: 2,
+            pti_lr: lr,
+            pti_texture_lr_mul: factor,
+            locality_every: 0,
+            ..InversionOptions::default()
+        };
+        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
+        inv.step().unwrap().unwrap();
+        let before = collect_params(&g).unwrap();
+        let after = collect_params(inv.generator()).unwrap();
+        let mut m = [0.0f32; 3];
+        for (a, b) in before.iter().zip(&after) {
+            assert_eq!(a.0, b.0);
+            let group = if a.0.starts_with("mapping_") {
+                1
+            } else if is_texture_param(&a.0) {
+                0
+            } else {
+                2
+            };
+            let d = a.2.iter().zip(&b.2).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            m[group] = m[group].max(d);
+        }
+        m
+    };
+    let [tex, mapping, rest] = moves(4.0);
+    assert_eq!(mapping, 0.0, "the mapping networks are not tuned");
+    assert!((rest - lr).abs() < 0.2 * lr, "the rest moves by the rate: {rest}");
+    assert!((tex - 4.0 * lr).abs() < 0.8 * lr, "the texture branch moves by 4× the rate: {tex}");
+    let [tex, _, rest] = moves(0.0);
+    assert_eq!(tex, 0.0, "a factor of 0 holds the texture branch");
+    assert!((rest - lr).abs() < 0.2 * lr, "{rest}");
 }
 
 #[test]

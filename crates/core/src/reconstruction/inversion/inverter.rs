@@ -8,7 +8,7 @@ use super::figures::*;
 use super::target::*;
 use crate::generator::network::discriminator::Discriminator;
 use crate::generator::optim::Adam;
-use crate::generator::pipeline::{BodyContext, Generator, Styles};
+use crate::generator::pipeline::{is_texture_param, BodyContext, Generator, Styles};
 #[cfg(not(target_arch = "wasm32"))]
 use crate::generator::readback::block_on_ready;
 use crate::generator::readback::{read_f32, ReadbackError};
@@ -373,8 +373,13 @@ impl<'a> Inverter<'a> {
         }
         // The synthesis backbone and decoders; the mapping networks get no gradient (the codes
         // are W+), so they stay as they are.
-        self.g =
-            self.adam_g.step_scaled(lr, self.g.clone(), &grads, &|name| if is_tuned_param(name) { 1.0 } else { 0.0 });
+        let tex = o.pti_texture_lr_mul;
+        let factor = |name: &str| match (is_tuned_param(name), is_texture_param(name)) {
+            (false, _) => 0.0,
+            (true, true) => tex,
+            (true, false) => 1.0,
+        };
+        self.g = self.adam_g.step_scaled(lr, self.g.clone(), &grads, &factor);
         if self.step + 1 == o.pti_steps {
             if let Some((b, g)) = self.best_g.take() {
                 if image_loss > b * DIVERGED {
