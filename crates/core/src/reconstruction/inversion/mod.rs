@@ -13,7 +13,7 @@
 //! **Phase 2, PTI.** The codes are frozen (the pivot); the synthesis backbone and decoders (not
 //! the mapping networks) are tuned by Adam at `pti_lr` on the same image terms (constant by
 //! default; with `pti_warmup`/`pti_rampdown` on the same schedule as phase 1), the texture
-//! branch at `pti_texture_lr_mul` times that rate (`fast`: 10). PTI's locality
+//! branch at `pti_texture_lr_mul` times that rate (both presets: 10). PTI's locality
 //! regulariser keeps the rest of the latent space: every `locality_every` steps a random code
 //! `w_z` of each branch is pulled towards the pivot, `w_r = w_p + (w_z − w_p)·min(1, α/‖w_z −
 //! w_p‖)`, and the tuned generator's render there is held to the original's (L2 + perceptual).
