@@ -7,6 +7,7 @@
 
 #[cfg(feature = "dataset")]
 pub mod dataset;
+#[cfg(any(feature = "ndarray", feature = "autodiff", feature = "wgpu"))]
 pub mod named_tensor;
 pub mod npz;
 pub mod scan;

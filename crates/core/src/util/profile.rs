@@ -240,7 +240,9 @@ fn add(f: impl FnOnce(&mut StageTime)) {
     });
 }
 
-/// A read-back that began at `since` (from [`now`]) has completed.
+/// A read-back that began at `since` (from [`now`]) has completed. (Its callers, the
+/// read-backs, come with the tensor features.)
+#[cfg_attr(not(any(feature = "ndarray", feature = "autodiff", feature = "wgpu")), allow(dead_code))]
 pub(crate) fn readback_done(since: Option<f64>) {
     if let (Some(t0), Some(t1)) = (since, now()) {
         add(|s| {
