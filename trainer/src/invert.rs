@@ -10,7 +10,8 @@
 //! input's pose shown, the built-in `walk` clip), `inverted.safetensors` (the tuned generator
 //! and the codes: `trainer sample --inverted DIR` reloads it), `steps.jsonl` (every step's
 //! terms) and `metrics.json` (mask IoU and masked PSNR at the input camera after W+ and after
-//! PTI, the back view's IoU against the subject's own scan with `--scans`, timings; with
+//! PTI, the back view's IoU and masked PSNR against the subject's own scan with `--scans`, whose
+//! back is drawn to `back_view_truth.png` (mask) and `back_view_truth_rgb.png`, timings; with
 //! `--pck`, PCK@0.1 of MediaPipe on the avatar at the photo's camera against the photo's
 //! keypoints, its render in `pck/`).
 
@@ -157,6 +158,10 @@ struct InvertMetrics {
     projected: ViewMetrics,
     /// Mask IoU at the opposite camera vs the subject's scan (with `--scans`).
     back_view_iou: Option<f32>,
+    /// Masked PSNR (dB, over the scan's back mask) of the exported avatar's back against the
+    /// scan's albedo there (with `--scans`): how well the unseen side's colours are guessed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    back_view_psnr_db: Option<f32>,
     /// With `--pck`: the pose metric on the photo.
     #[serde(skip_serializing_if = "Option::is_none")]
     pck: Option<crate::pck::Pck>,
@@ -488,8 +493,8 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let back = opposite(target.view.world_to_camera);
     let (brgb, bmask) = render_baked(&rigged, &ctx, &tex, body, proj * back, r)?;
     write_png(&a.out.join("back_view.png"), &rgba(&brgb, &bmask), r, 4)?;
-    let back_view_iou = match &scan {
-        Some((scan, prepared)) => Some(back_view_truth(scan, prepared, proj * back, &bmask, r, &a.out)?),
+    let back_truth = match &scan {
+        Some((scan, prepared)) => Some(back_view_truth(scan, prepared, proj * back, (&brgb, &bmask), r, &a.out)?),
         None => None,
     };
     write_pose_views(&rigged, &ctx, &tex, body, r, &a.out)?;
@@ -519,7 +524,8 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         after_pti: (opts.pti_steps > 0).then_some(final_m),
         baked: baked_m,
         projected: projected_m,
-        back_view_iou,
+        back_view_iou: back_truth.map(|b| b.0),
+        back_view_psnr_db: back_truth.map(|b| b.1),
         pck,
         seconds_start,
         seconds_per_w_step: t_w.unwrap_or(0.0),
@@ -532,7 +538,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         a.out.display(),
         final_m.mask_iou,
         final_m.psnr_db,
-        back_view_iou.map_or(String::new(), |i| format!(", back view IoU {i:.3}")),
+        back_truth.map_or(String::new(), |(i, p)| format!(", back view IoU {i:.3} and masked PSNR {p:.2} dB")),
         t0.elapsed().as_secs_f64()
     );
     Ok(())
@@ -640,10 +646,10 @@ fn back_view_truth(
     scan: &getavatar_core::io::scan::Scan,
     prepared: &RenderableScan,
     vp: Mat4,
-    bmask: &[f32],
+    (brgb, bmask): (&[f32], &[f32]),
     r: usize,
     out: &Path,
-) -> Result<f32> {
+) -> Result<(f32, f32)> {
     let albedo = |attrs: &[Vec3]| Ok::<_, std::convert::Infallible>(attrs.iter().map(|x| scan.albedo(*x)).collect());
     let truth = render_views_textured(
         &prepared.vertices,
@@ -657,8 +663,10 @@ fn back_view_truth(
     )
     .unwrap_or_else(|never| match never {});
     let tm: Vec<f32> = truth.mask.iter().map(|m| *m as f32 / 255.0).collect();
+    let trgb: Vec<f32> = truth.rgb.iter().map(|c| *c as f32 / 255.0).collect();
     write_png(&out.join("back_view_truth.png"), &to_u8(&tm), r, 1)?;
-    Ok(mask_iou(bmask, &tm))
+    write_png(&out.join("back_view_truth_rgb.png"), &rgba(&trgb, &tm), r, 4)?;
+    Ok((mask_iou(bmask, &tm), masked_psnr(brgb, &trgb, &tm)))
 }
 
 /// The exported avatar in three library poses from the front (`pose_<name>.png`).

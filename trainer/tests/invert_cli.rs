@@ -53,6 +53,7 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
         "comparison.png",
         "back_view.png",
         "back_view_truth.png",
+        "back_view_truth_rgb.png",
         "pose_walking.png",
         "pose_arms_up.png",
         "pose_sitting.png",
@@ -75,6 +76,9 @@ fn invert_a_dataset_image_writes_a_reloadable_avatar() {
     assert!((0.3..=1.0).contains(&iou), "{m}");
     let back = m["back_view_iou"].as_f64().unwrap();
     assert!((0.3..=1.0).contains(&back), "{m}");
+    // The back's colours against the scan's: a finite PSNR in a plausible range.
+    let back_psnr = m["back_view_psnr_db"].as_f64().unwrap();
+    assert!(back_psnr > 5.0 && back_psnr < 60.0, "{m}");
     assert!(m["after_w"]["psnr_db"].as_f64().unwrap() > 5.0);
     assert_eq!(m["perceptual"], false);
     // The photo projected onto the exported avatar brings it closer to the photo.

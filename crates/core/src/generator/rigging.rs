@@ -365,7 +365,7 @@ impl RiggedAvatar {
             let (_, normals) = texel_points(&atlas, &per_atlas(&nrm), res);
             let normals: Vec<glam::Vec3> = normals.iter().map(|n| n.normalize_or_zero()).collect();
             checkpoint().await;
-            projection.blend(&posed, &normals, &mut colors);
+            projection.blend(&points, &posed, &normals, &mut colors);
             checkpoint().await;
         }
         let rgb = bake_image_async(res, &texels, &colors).await;

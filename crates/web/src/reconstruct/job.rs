@@ -419,7 +419,7 @@ async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhot
     yield_to_browser().await;
     let projection = photo.projection_async(&posed, &rigged.canonical.mesh.faces).await;
     yield_to_browser().await;
-    projection.blend(&posed, &normals, &mut rigged.canonical.colors);
+    projection.blend(&rigged.canonical.mesh.vertices, &posed, &normals, &mut rigged.canonical.colors);
     Rc::new(Projected { photo, projection })
 }
 
