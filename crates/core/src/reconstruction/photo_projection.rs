@@ -286,16 +286,45 @@ impl PhotoProjection {
 /// far side of the body covers in the front view (a side photo's hidden half).
 pub const SHIFT_FINE: f32 = 0.04;
 pub const SHIFT_COARSE: f32 = 0.16;
+/// How far (linear RGB) a seen point's shift may lie from the mean around it before it counts
+/// less in the colour shift (a Gaussian weight of this σ).
+pub const SHIFT_OUTLIER: f32 = 0.25;
 
 /// The photo's colour shift carried to the surface it does not see: per point, the mean of
 /// `photo − generated` over the points the photo does see (weighted by their photo weight) near
 /// it in the canonical pose's front view (x, y: the Da-pose faces +z, so a point's front and back
 /// fall together, and the back of a dress takes the shift of its front), at two widths, each
 /// faded out where the photo saw less than a fifth of the points around. Additive in linear
-/// RGB: the generated texture's own variation stays, its tone follows the photo's.
+/// RGB: the generated texture's own variation stays, its tone follows the photo's. Robust: a
+/// second round weighs each seen point down by how far its shift lies from the first round's
+/// mean around it (σ [`SHIFT_OUTLIER`]), so that background inside the detector's mask does not
+/// tint the hidden side.
 pub fn colour_shift(canonical: &[Vec3], samples: &[(Vec3, f32)], colors: &[Vec3]) -> Vec<Vec3> {
-    let fine = ShiftGrid::new(canonical, samples, colors, SHIFT_FINE);
-    let coarse = ShiftGrid::new(canonical, samples, colors, SHIFT_COARSE);
+    let levels = |samples: &[(Vec3, f32)]| {
+        (
+            ShiftGrid::new(canonical, samples, colors, SHIFT_FINE),
+            ShiftGrid::new(canonical, samples, colors, SHIFT_COARSE),
+        )
+    };
+    let (fine, coarse) = levels(samples);
+    let reweighted: Vec<(Vec3, f32)> = canonical
+        .iter()
+        .zip(samples)
+        .zip(colors)
+        .map(|((p, (photo, w)), g)| {
+            let ((f, fs), (c, cs)) = (fine.at(*p), coarse.at(*p));
+            let mean = if fs > 0.05 {
+                f / fs
+            } else if cs > 0.05 {
+                c / cs
+            } else {
+                return (*photo, *w);
+            };
+            let d = (*photo - *g - mean).length_squared();
+            (*photo, w * (-d / (2.0 * SHIFT_OUTLIER * SHIFT_OUTLIER)).exp())
+        })
+        .collect();
+    let (fine, coarse) = levels(&reweighted);
     canonical
         .iter()
         .map(|p| {
@@ -463,7 +492,15 @@ mod tests {
                     for j in 0..50 {
                         let p = Vec3::new(x0 + i as f32 * 0.02, j as f32 * 0.02, z);
                         canonical.push(p);
-                        let photo = if p.y >= 0.5 { red } else { blue };
+                        // A 3 × 3-point patch of background (green) inside the red half.
+                        let patch = (0.16..0.21).contains(&p.x) && (0.7..0.75).contains(&p.y);
+                        let photo = if patch {
+                            Vec3::new(0.1, 0.9, 0.1)
+                        } else if p.y >= 0.5 {
+                            red
+                        } else {
+                            blue
+                        };
                         samples.push(if seen && z > 0.0 { (photo, 1.0) } else { (Vec3::ZERO, 0.0) });
                     }
                 }
@@ -476,7 +513,8 @@ mod tests {
             if p.x >= 1.0 {
                 assert!(d.length() < 1e-6, "unseen slab at {p}: shift {d}");
             } else if *w == 0.0 && (p.y - 0.5).abs() > 0.1 && p.x > 0.06 && p.x < 0.32 {
-                // The back, away from the red/blue border and the sides: the front's colour.
+                // The back, away from the red/blue border and the sides: the front's colour; the
+                // green patch does not tint it (without the robust round, 0.057 off there).
                 let want = if p.y >= 0.5 { red } else { blue };
                 assert!((got - want).length() < 0.05, "back at {p}: {got} want {want}");
             }
