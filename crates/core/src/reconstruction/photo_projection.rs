@@ -14,6 +14,7 @@
 
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
+use crate::export::uv_atlas::NEIGHBOURS_8;
 use crate::render::camera::{OrbitCamera, View};
 use crate::render::rasterize::{rasterize, Texture};
 use crate::util::cooperative::checkpoint;
@@ -130,12 +131,13 @@ fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
 /// pixels (mixed with the background) and up to `reach` pixels beyond it hold the colours just
 /// inside instead. Returns each pixel's weight: 1 on the person (`mask ≥ ½`) once filled,
 /// `1 − s/(reach + 1)` at `s` steps outside it, 0 further out and where nothing reached.
+/// (The bake's `uv_atlas::dilate_ring` fills the same way but everywhere; here the fill stops
+/// `reach` steps off the person and only the last pass's neighbours are visited.)
 fn extend_from_interior(colours: &mut [Vec3], mask: &[f32], interior: &[f32], res: usize, reach: usize) -> Vec<f32> {
-    const NEIGHBOURS: [(i64, i64); 8] = [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)];
     let neighbours = move |k: usize| {
         let (x, y) = ((k % res) as i64, (k / res) as i64);
-        NEIGHBOURS.iter().filter_map(move |(dx, dy)| {
-            let (u, v) = (usize::try_from(x + dx).ok()?, usize::try_from(y + dy).ok()?);
+        NEIGHBOURS_8.iter().filter_map(move |(dx, dy)| {
+            let (u, v) = (usize::try_from(x + *dx as i64).ok()?, usize::try_from(y + *dy as i64).ok()?);
             (u < res && v < res).then_some(v * res + u)
         })
     };
