@@ -271,9 +271,19 @@ impl PhotoProjection {
     /// shift to the parts it does not see ([`colour_shift`]). With `canonical` of another length
     /// than `colors` the hidden side keeps its generated colours.
     pub fn blend(&self, canonical: &[Vec3], points: &[Vec3], normals: &[Vec3], colors: &mut [Vec3]) {
-        let samples: Vec<(Vec3, f32)> = points.iter().zip(normals).map(|(p, n)| self.sample(*p, *n)).collect();
+        crate::util::cooperative::run_blocking(self.blend_async(canonical, points, normals, colors))
+    }
+
+    /// [`Self::blend`] in slices ([`crate::util::cooperative`]): the samples in chunks, then each
+    /// of the colour shift's grids.
+    pub async fn blend_async(&self, canonical: &[Vec3], points: &[Vec3], normals: &[Vec3], colors: &mut [Vec3]) {
+        let mut samples: Vec<(Vec3, f32)> = Vec::with_capacity(points.len());
+        for (p, n) in points.chunks(SLICE).zip(normals.chunks(SLICE)) {
+            samples.extend(p.iter().zip(n).map(|(p, n)| self.sample(*p, *n)));
+            checkpoint().await;
+        }
         let shift = if canonical.len() == colors.len() {
-            colour_shift(canonical, &samples, colors)
+            colour_shift_async(canonical, &samples, colors).await
         } else {
             vec![Vec3::ZERO; colors.len()]
         };
@@ -282,6 +292,9 @@ impl PhotoProjection {
         }
     }
 }
+
+/// Points per slice of [`PhotoProjection::blend_async`]'s loops.
+const SLICE: usize = 4096;
 
 /// Widths (Gaussian σ, metres) of the colour shift's two levels: the fine one keeps garment
 /// borders (a waist, a hem) where the photo saw them; the coarse one reaches what only the
@@ -302,18 +315,18 @@ pub const SHIFT_OUTLIER: f32 = 0.25;
 /// mean around it (σ [`SHIFT_OUTLIER`]), so that background inside the detector's mask does not
 /// tint the hidden side.
 pub fn colour_shift(canonical: &[Vec3], samples: &[(Vec3, f32)], colors: &[Vec3]) -> Vec<Vec3> {
-    let levels = |samples: &[(Vec3, f32)]| {
-        (
-            ShiftGrid::new(canonical, samples, colors, SHIFT_FINE),
-            ShiftGrid::new(canonical, samples, colors, SHIFT_COARSE),
-        )
-    };
-    let (fine, coarse) = levels(samples);
-    let reweighted: Vec<(Vec3, f32)> = canonical
-        .iter()
-        .zip(samples)
-        .zip(colors)
-        .map(|((p, (photo, w)), g)| {
+    crate::util::cooperative::run_blocking(colour_shift_async(canonical, samples, colors))
+}
+
+/// [`colour_shift`] in slices: one per grid and per pass over the points.
+pub async fn colour_shift_async(canonical: &[Vec3], samples: &[(Vec3, f32)], colors: &[Vec3]) -> Vec<Vec3> {
+    let fine = ShiftGrid::new(canonical, samples, colors, SHIFT_FINE);
+    checkpoint().await;
+    let coarse = ShiftGrid::new(canonical, samples, colors, SHIFT_COARSE);
+    checkpoint().await;
+    let mut reweighted: Vec<(Vec3, f32)> = Vec::with_capacity(samples.len());
+    for ((p, s), g) in canonical.chunks(SLICE).zip(samples.chunks(SLICE)).zip(colors.chunks(SLICE)) {
+        reweighted.extend(p.iter().zip(s).zip(g).map(|((p, (photo, w)), g)| {
             let ((f, fs), (c, cs)) = (fine.at(*p), coarse.at(*p));
             let mean = if fs > 0.05 {
                 f / fs
@@ -324,17 +337,23 @@ pub fn colour_shift(canonical: &[Vec3], samples: &[(Vec3, f32)], colors: &[Vec3]
             };
             let d = (*photo - *g - mean).length_squared();
             (*photo, w * (-d / (2.0 * SHIFT_OUTLIER * SHIFT_OUTLIER)).exp())
-        })
-        .collect();
-    let (fine, coarse) = levels(&reweighted);
-    canonical
-        .iter()
-        .map(|p| {
+        }));
+        checkpoint().await;
+    }
+    let fine = ShiftGrid::new(canonical, &reweighted, colors, SHIFT_FINE);
+    checkpoint().await;
+    let coarse = ShiftGrid::new(canonical, &reweighted, colors, SHIFT_COARSE);
+    checkpoint().await;
+    let mut shift = Vec::with_capacity(canonical.len());
+    for p in canonical.chunks(SLICE) {
+        shift.extend(p.iter().map(|p| {
             let (f, fs) = fine.at(*p);
             let (c, _) = coarse.at(*p);
             f + (1.0 - fs) * c
-        })
-        .collect()
+        }));
+        checkpoint().await;
+    }
+    shift
 }
 
 /// One level of [`colour_shift`]: a grid over the canonical x, y with cells of σ/2, holding the

@@ -408,9 +408,10 @@ async fn choose_start(
 }
 
 /// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
-/// colours show what the download's texture will. Five slices of the UI thread: the body
+/// colours show what the download's texture will. In slices of the UI thread: the body
 /// posed once, as the photo shows it; the avatar re-posed; its depth at the photo's camera;
-/// the photo's mask and linear colours; the blend.
+/// the photo's mask and linear colours; the blend (itself sliced: the samples, then each of
+/// the colour shift's grids).
 async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
     yield_to_browser().await;
     let body = pose_body(&ctx.model, &photo.view.body);
@@ -419,7 +420,7 @@ async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhot
     yield_to_browser().await;
     let projection = photo.projection_async(&posed, &rigged.canonical.mesh.faces).await;
     yield_to_browser().await;
-    projection.blend(&rigged.canonical.mesh.vertices, &posed, &normals, &mut rigged.canonical.colors);
+    projection.blend_async(&rigged.canonical.mesh.vertices, &posed, &normals, &mut rigged.canonical.colors).await;
     Rc::new(Projected { photo, projection })
 }
 
