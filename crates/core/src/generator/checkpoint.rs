@@ -339,21 +339,30 @@ pub struct SafeTensors {
 }
 
 pub fn parse_safetensors(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
-    parse(bytes, false)
+    crate::util::cooperative::run_blocking(parse(bytes, false))
+}
+
+/// [`parse_safetensors`] in slices of about a megabyte of weights
+/// ([`crate::util::cooperative`]): the browser's page parses a reconstruction's file.
+pub async fn parse_safetensors_async(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
+    parse(bytes, false).await
 }
 
 /// Like [`parse_safetensors`], but tensors of other dtypes (e.g. PyTorch's I64
 /// `num_batches_tracked` counters in converted state dicts) are skipped instead of refused.
 pub fn parse_safetensors_lenient(bytes: &[u8]) -> Result<SafeTensors, CheckpointError> {
-    parse(bytes, true)
+    crate::util::cooperative::run_blocking(parse(bytes, true))
 }
 
-fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, CheckpointError> {
+async fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, CheckpointError> {
+    /// Bytes of weights decoded between checkpoints.
+    const SLICE_BYTES: usize = 1 << 20;
     // The safetensors crate validates the header (length, JSON, offsets contiguous and within
     // the file, shape × dtype = bytes with overflow checks) before anything is allocated.
     let metadata = header_metadata(bytes)?;
     let file = safetensors::SafeTensors::deserialize(bytes).map_err(|e| fmt_err(e.to_string()))?;
     let mut out = SafeTensors { metadata, tensors: BTreeMap::new() };
+    let mut decoded = 0;
     for (name, view) in file.iter() {
         if view.dtype() != safetensors::Dtype::F32 {
             if skip_other_dtypes {
@@ -363,6 +372,11 @@ fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, Checkpoin
         }
         let vals = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         out.tensors.insert(name.to_string(), (view.shape().to_vec(), vals));
+        decoded += view.data().len();
+        if decoded >= SLICE_BYTES {
+            decoded = 0;
+            crate::util::cooperative::checkpoint().await;
+        }
     }
     Ok(out)
 }

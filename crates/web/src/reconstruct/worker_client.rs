@@ -479,16 +479,19 @@ async fn finish(
             done.millis = now_ms() - r.t0;
             let rig_ms = now_ms() - t;
             done.finish_ms = figures_ms + file_ms + rig_ms;
+            let build = std::mem::take(&mut done.finish_detail);
             done.finish_detail = match fit {
                 Some(_) => format!(
-                    "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s",
+                    "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s ({build})",
                     figures_ms / 1000.0,
                     file_ms / 1000.0,
                     rig_ms / 1000.0
                 ),
-                None => {
-                    format!("worker: result file {:.1} s; page: rigging {:.1} s", file_ms / 1000.0, rig_ms / 1000.0)
-                }
+                None => format!(
+                    "worker: result file {:.1} s; page: rigging {:.1} s ({build})",
+                    file_ms / 1000.0,
+                    rig_ms / 1000.0
+                ),
             };
             ReconstructEvent::Finished(Box::new(done))
         }
