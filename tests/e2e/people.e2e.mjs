@@ -10,6 +10,7 @@
 //  - a person against a bright, low-contrast gradient: fitted;
 //  - a person cut off below the knees by the photo's edge: fitted, the unseen joints named;
 //  - no person: one clear message, the app as it was;
+//  - one person as taken: the person mask the fit uses is the composited silhouette (IoU);
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the
 // fit explains the person's mask (IoU), and no console error. Prints, per case, the
 // detection and fit times and which candidate won (docs/benchmarks.md).
@@ -23,6 +24,8 @@ import { launchChromium, appStatus } from './browser.mjs';
 const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
 // Short fits: the finder is under test here, the fit's own accuracy in app.e2e.mjs.
 const ITERATIONS = [30, 100, 20];
+// The person mask against the composited silhouette: MediaPipe's probability read at 0.5.
+const PERSON_MASK_IOU = 0.92;
 
 let failures = 0;
 function check(cond, msg) {
@@ -61,6 +64,24 @@ async function bodyCentre() {
   }
   return n ? [sx / n / m.width, sy / n / m.height] : null;
 }
+/**
+ * Mask IoU of the person mask the fit used (`photoMasks().person`, at the preview's size) with
+ * the composited people's coverage (`truth`, at the photo's size; nearest pixel).
+ */
+async function personMaskIou(truth) {
+  const m = await page.evaluate(() => window.getavatar.photoMasks());
+  if (!m?.person) return 0;
+  let [both, either] = [0, 0];
+  for (let y = 0; y < m.height; y++) {
+    const ty = Math.min(truth.height - 1, Math.floor(((y + 0.5) / m.height) * truth.height));
+    for (let x = 0; x < m.width; x++) {
+      const tx = Math.min(truth.width - 1, Math.floor(((x + 0.5) / m.width) * truth.width));
+      const a = m.person[y * m.width + x] === '1', b = truth.data[ty * truth.width + tx] >= 0.5;
+      both += a && b; either += a || b;
+    }
+  }
+  return either ? both / either : 0;
+}
 const inside = (c, b) => c && c[0] >= b[0] && c[0] <= b[0] + b[2] && c[1] >= b[1] && c[1] <= b[1] + b[3];
 
 /** The fitted person is the expected one: its number, turn, the body in its box. */
@@ -74,7 +95,7 @@ async function checkFitted(p, name, person, rotation, tag = '') {
 }
 
 const rows = [];
-for (const { name, expect } of photos.values()) {
+for (const { name, expect, truth } of photos.values()) {
   const before = (await status()).photo;
   const app = await status();
   const t0 = Date.now();
@@ -92,6 +113,10 @@ for (const { name, expect } of photos.values()) {
   }
   check(p.people === expect.people, `${name}: ${p.people} seen (want ${expect.people})`);
   await checkFitted(p, name, expect.person, expect.rotation);
+  if (expect.people === 1 && !expect.rotation) {
+    const iou = await personMaskIou(truth);
+    check(iou >= PERSON_MASK_IOU, `${name}: the person mask is the person's silhouette (IoU ${iou.toFixed(3)} ≥ ${PERSON_MASK_IOU})`);
+  }
   if (expect.person > 1 && expect.people > 1) {
     check(/the largest that could be read, the 2nd by size/.test(p.message), `${name}: the message says who was fitted ("${p.message}")`);
   }

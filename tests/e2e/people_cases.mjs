@@ -2,7 +2,8 @@
 // avatar in a kick, alpha = the person): people composited over backgrounds at known places,
 // sizes and turns, so the person finder's choice can be checked against the truth.
 //
-//   cases() → [{name, png: Buffer, expect}], where expect is
+//   cases() → [{name, png: Buffer, truth, expect}], where truth is the people's coverage
+//     (alpha, row-major over the photo: {width, height, data: Float32Array}) and expect is
 //     {people, person (1-based, the fitted one by size), rotation, chooses?, missing?: RegExp
 //     (joints named as unseen)} or {error: RegExp}.
 //   node people_cases.mjs DIR   writes the PNGs into DIR (to look at them, or for
@@ -29,6 +30,7 @@ function rng(seed) {
 /** A w × h photo filled by `f(x, y) → [r, g, b]`. */
 function background(w, h, f) {
   const png = new PNG({ width: w, height: h });
+  png.truth = new Float32Array(w * h);
   for (let y = 0; y < h; y++) {
     for (let x = 0; x < w; x++) {
       const o = (y * w + x) * 4;
@@ -61,6 +63,7 @@ function paste(photo, { scale, ox, oy, turn = 0, tone = (c) => c }) {
       const px = ox + x, py = oy + y;
       if (a === 0 || px < 0 || py < 0 || px >= photo.width || py >= photo.height) continue;
       const o = (py * photo.width + px) * 4;
+      photo.truth[py * photo.width + px] = Math.max(photo.truth[py * photo.width + px], a);
       const bg = [photo.data[o], photo.data[o + 1], photo.data[o + 2]];
       const fg = tone([render.data[i], render.data[i + 1], render.data[i + 2]], bg);
       for (let c = 0; c < 3; c++) photo.data[o + c] = Math.round(fg[c] * a + bg[c] * (1 - a));
@@ -70,7 +73,12 @@ function paste(photo, { scale, ox, oy, turn = 0, tone = (c) => c }) {
 
 export function cases() {
   const out = [];
-  const add = (name, photo, expect) => out.push({ name, png: PNG.sync.write(photo), expect });
+  const add = (name, photo, expect) => out.push({
+    name,
+    png: PNG.sync.write(photo),
+    truth: { width: photo.width, height: photo.height, data: photo.truth },
+    expect,
+  });
 
   // Two people: the larger upside down (a handstand, a fall), the smaller upright.
   let p = wall(1100, 640, 1);
