@@ -147,6 +147,15 @@ function runSolution(solution, image) {
 }
 
 /**
+ * The probability from which a pixel of selfie segmentation's mask joins a person's region:
+ * any (1/255). Regions are for counting and framing people, where a limb joined to its body
+ * by a faint band must not count as another person (at 0.5 the people e2e's upside-down kick
+ * counted as two people, and one of its three people went uncounted); the fit's mask is the
+ * probability itself.
+ */
+const REGION_PROBABILITY = 1 / 255;
+
+/**
  * The people in a photo: connected regions of selfie segmentation's mask (at ≤ MASK_SIDE),
  * largest first, as boxes {x, y, w, h, area} in `canvas` pixels; regions under a fifth of
  * the largest are noise, not people.
@@ -158,7 +167,7 @@ async function personRegions(canvas) {
   const label = new Int32Array(w * h).fill(-1);
   const regions = [];
   for (let start = 0; start < w * h; start++) {
-    if (label[start] >= 0 || data[start] < 0.5) continue;
+    if (label[start] >= 0 || data[start] < REGION_PROBABILITY) continue;
     const id = regions.length;
     const r = { x0: w, y0: h, x1: 0, y1: 0, area: 0 };
     const stack = [start];
@@ -170,7 +179,7 @@ async function personRegions(canvas) {
       r.x0 = Math.min(r.x0, x); r.x1 = Math.max(r.x1, x); r.y0 = Math.min(r.y0, y); r.y1 = Math.max(r.y1, y);
       for (const [nx, ny] of [[x - 1, y], [x + 1, y], [x, y - 1], [x, y + 1]]) {
         const j = ny * w + nx;
-        if (nx >= 0 && ny >= 0 && nx < w && ny < h && label[j] < 0 && data[j] >= 0.5) {
+        if (nx >= 0 && ny >= 0 && nx < w && ny < h && label[j] < 0 && data[j] >= REGION_PROBABILITY) {
           label[j] = id;
           stack.push(j);
         }
