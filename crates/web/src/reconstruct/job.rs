@@ -471,7 +471,7 @@ pub(crate) async fn rig_saved(
     device: &Device,
 ) -> Result<Reconstructed, String> {
     // Parsing (a copy of every weight) runs in slices, building the generator in one (its
-    // milliseconds are reported: the longest of the page's own slices here).
+    // milliseconds go into the finish detail, which the browser e2e prints).
     let not_one = |e| format!("{name} is not a reconstruction of this model: {e}");
     let st = parse_safetensors_async(&bytes).await.map_err(not_one)?;
     drop(bytes);
