@@ -12,7 +12,7 @@ use getavatar_core::body::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::{
-    inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors, parse_safetensors_async,
+    inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors_async,
 };
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};

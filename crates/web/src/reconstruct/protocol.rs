@@ -180,10 +180,17 @@ pub(super) fn field(data: &JsValue, name: &str) -> Option<JsValue> {
     js_sys::Reflect::get(data, &name.into()).ok().filter(|v| !v.is_undefined() && !v.is_null())
 }
 
+/// A message's `name` field as floats: a `Float32Array` copied once into wasm memory (or any
+/// array-like, converted first).
 pub(super) fn f32_array(data: &JsValue, name: &str) -> Option<Vec<f32>> {
-    field(data, name).map(|v| js_sys::Float32Array::new(&v).to_vec())
+    field(data, name)
+        .map(|v| v.dyn_into::<js_sys::Float32Array>().unwrap_or_else(|v| js_sys::Float32Array::new(&v)).to_vec())
 }
 
+/// A message's `name` field as bytes: a `Uint8Array` copied once into wasm memory (or any
+/// array-like, converted first). `Uint8Array::new` on a typed array copies it element by
+/// element: 35+ ms of the UI thread for a reconstruction's 11.5 MB file on SwiftShader.
 pub(super) fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
-    field(data, name).map(|v| js_sys::Uint8Array::new(&v).to_vec())
+    field(data, name)
+        .map(|v| v.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v)).to_vec())
 }
