@@ -6,7 +6,7 @@
 //                                     # first keeps wasm function names in the profiles)
 //   cd tests/e2e && PHASES=generate,photo,reconstruct,generate2 [PROFILE=1] node probe_long_tasks.mjs
 //
-// Phases: generate*, photo, reconstruct* (3 W+ + 1 PTI steps at 64²), download*, betas* (a new shape),
+// Phases: generate*, photo, instant* (the `instant` preset), reconstruct* (3 W+ + 1 PTI steps at 64²), download*, betas* (a new shape),
 // texres* (256² texture for the downloads), show* (the avatar), cmdN (the N-th of CMDS='{…}|{…}'). With PROFILE set,
 // each phase's CPU profile (Chrome's .cpuprofile) and its long tasks ([start, duration] in
 // page time, `pt0` = the profile's start) go to out/long_tasks/ (GETAVATAR_URL as for app.e2e.mjs).
@@ -43,7 +43,7 @@ await phase('camera', () => cmd({ yaw: 0.5 }));
 const which = (process.env.PHASES ?? 'generate,photo').split(',');
 let prof = null;
 if (process.env.PROFILE) { prof = await context.newCDPSession(page); await prof.send('Profiler.enable'); await prof.send('Profiler.setSamplingInterval', { interval: 1000 }); }
-for (const w of which) {
+for (const [k, w] of which.entries()) {
   let pt0 = 0;
   if (prof) { await prof.send('Profiler.start'); pt0 = await page.evaluate(() => performance.now()); }
   if (w.startsWith('generate')) {
@@ -54,6 +54,11 @@ for (const w of which) {
     const photo = greyPhoto();
     await phase('photo', () => page.evaluate(([b, n]) => window.getavatar.photo(new Uint8Array(b), n), [[...photo], 'p.png']), (s) => s.photo.fits > 0 || s.photo.failures > 0);
     console.log(JSON.stringify((await status()).photo).slice(0, 300));
+  } else if (w.startsWith('instant')) {
+    const before = (await status()).reconstruct.done;
+    await phase(w, () => cmd({ reconstruct: { preset: 'instant' } }), (s) => s.reconstruct.done > before || ['failed', 'cancelled'].includes(s.reconstruct.state));
+    const r = (await status()).reconstruct;
+    console.log(r.state, r.message, r.finish_detail);
   } else if (w.startsWith('reconstruct')) {
     const before = (await status()).reconstruct.done;
     await phase(w, () => cmd({ reconstruct: { steps: 3, pti_steps: 1, res: 64, preview_every: 1, start: 'average' } }), (s) => s.reconstruct.done > before || ['failed', 'cancelled'].includes(s.reconstruct.state));
@@ -74,6 +79,6 @@ for (const w of which) {
   } else if (w.startsWith('betas')) {
     await phase(w, () => cmd({ betas: [1.5 - which.indexOf(w) * 0.3, -1, 0.5] }));
   }
-  if (prof) { const { profile } = await prof.send('Profiler.stop'); fs.writeFileSync(new URL(`${w}${which.indexOf(w)}.cpuprofile`, outDir), JSON.stringify(profile)); fs.writeFileSync(new URL(`${w}${which.indexOf(w)}.lt.json`, outDir), JSON.stringify({ pt0, lt: globalThis.__lastLt })); }
+  if (prof) { const { profile } = await prof.send('Profiler.stop'); fs.writeFileSync(new URL(`${w}${k}.cpuprofile`, outDir), JSON.stringify(profile)); fs.writeFileSync(new URL(`${w}${k}.lt.json`, outDir), JSON.stringify({ pt0, lt: globalThis.__lastLt })); }
 }
 await browser.close();

@@ -202,6 +202,8 @@ impl PhotoProjection {
         let view_proj = proj * world_to_camera;
         let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
         let r = rasterize(&clip, faces, res, res);
+        // Checkpoints between the steps (each 5–25 ms in the browser, on its UI thread).
+        checkpoint().await;
         let inv_proj = proj.inverse();
         let depth = (0..res * res)
             .map(|k| {
@@ -221,10 +223,12 @@ impl PhotoProjection {
             .collect();
         checkpoint().await;
         let eroded = erode3(mask, res);
+        checkpoint().await;
         let mut texels: Vec<Vec3> = rgb
             .chunks_exact(3)
             .map(|c| Vec3::new(c[0], c[1], c[2]).map(crate::render::colour::decode_srgb_fast))
             .collect();
+        checkpoint().await;
         let mask = extend_from_interior(&mut texels, mask, &eroded, res, reach(res));
         let photo = Texture { width: res, height: res, texels };
         Self { res, view: world_to_camera, view_proj, photo, mask, depth }
