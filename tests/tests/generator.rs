@@ -176,6 +176,18 @@ fn fast_repose_path_matches_the_exact_path() {
     let cell = ctx.grid.cell();
     println!("fast vs exact: Hausdorff {:.4} m = {:.2} cells", d1.max(d2), d1.max(d2) / cell);
     assert!(d1.max(d2) < 2.0 * cell, "fast and exact paths differ by {} m", d1.max(d2));
+
+    // A bind pose kept ahead is the one computed on demand, at its shape only.
+    let (betas, other) = ([1.0, -0.5, 0.3], [0.0, 2.0]);
+    let mut kept = rigged.clone();
+    block_on_ready(kept.keep_bind_pose_async(&ctx, &betas));
+    let rest = |b: &[f32]| {
+        let p = getavatar_core::body::skinning::BodyParams { betas: b.to_vec(), ..Default::default() };
+        rigged.repose(&ctx, &pose_body(model, &p))
+    };
+    assert_eq!(kept.bind_pose(&ctx, &betas), rest(&betas));
+    assert_eq!(kept.bind_pose(&ctx, &other), rest(&other));
+    assert_ne!(rest(&betas).0, rest(&other).0, "the shapes differ, so the check can fail");
 }
 
 /// A new identity is generated in the canonical pose with the inverse skinning and grid kept

@@ -141,7 +141,7 @@ struct Shipped {
     encoder: Result<Rc<Vec<u8>>, String>,
 }
 
-type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, eframe::egui::Context);
+type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, Vec<f32>, eframe::egui::Context);
 
 /// What the engine prepares at start: the shipped checkpoint (or why none) and the body's
 /// context (None without a body model).
@@ -304,19 +304,21 @@ impl GenEngine {
     }
 
     /// Start generating (full, or texture only on `keep`'s geometry). The result arrives via
-    /// [`GenEngine::poll`].
+    /// [`GenEngine::poll`], its bind pose at shape `betas` (the app's) computed ahead for the
+    /// viewer's upload.
     pub fn start(
         &mut self,
         seeds: (u64, u64),
         psi: Option<f32>,
         keep: Option<RiggedAvatar>,
+        betas: Vec<f32>,
         repaint: eframe::egui::Context,
     ) {
         if self.busy {
             return;
         }
         if self.weights == Weights::Loading {
-            self.pending = Some((seeds, psi, keep, repaint));
+            self.pending = Some((seeds, psi, keep, betas, repaint));
             self.busy = true;
             return;
         }
@@ -348,7 +350,13 @@ impl GenEngine {
                         (r, Some(planes))
                     })
                 }
-                None => generate_rigged_async(&g, &ctx, &styles, &dev).await.map(|r| (r, None)),
+                None => match generate_rigged_async(&g, &ctx, &styles, &dev).await {
+                    Ok(mut r) => {
+                        r.keep_bind_pose_async(&ctx, &betas).await;
+                        Ok((r, None))
+                    }
+                    Err(e) => Err(e),
+                },
             };
             let stages = profile::finish();
             let result = match generated {
@@ -396,9 +404,9 @@ impl GenEngine {
                     Weights::Random(e)
                 }
             };
-            if let Some((seeds, psi, keep, repaint)) = self.pending.take() {
+            if let Some((seeds, psi, keep, betas, repaint)) = self.pending.take() {
                 self.busy = false;
-                self.start(seeds, psi, keep, repaint);
+                self.start(seeds, psi, keep, betas, repaint);
             }
         }
         let r = self.slot.borrow_mut().take();

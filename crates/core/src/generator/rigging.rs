@@ -29,6 +29,16 @@ pub struct RiggedAvatar {
     pub canonical: Avatar,
     /// Nearest canonical body vertex of each avatar vertex.
     pub body_vertex: Vec<u32>,
+    /// The bind pose at one shape, computed ahead ([`RiggedAvatar::keep_bind_pose_async`]).
+    bind: Option<BindPose>,
+}
+
+/// Vertices and normals in the rest pose at shape `betas`.
+#[derive(Clone, Debug)]
+struct BindPose {
+    betas: Vec<f32>,
+    positions: Vec<glam::Vec3>,
+    normals: Vec<glam::Vec3>,
 }
 
 impl RiggedAvatar {
@@ -39,7 +49,7 @@ impl RiggedAvatar {
         let inv = ctx.canonical_inverse();
         let body_vertex =
             canonical.mesh.vertices.iter().map(|v| inv.nearest_body_vertex(*v).map_or(0, |i| i as u32)).collect();
-        Self { canonical, body_vertex }
+        Self { canonical, body_vertex, bind: None }
     }
 
     /// Vertices and normals in the pose/shape of `posed` (from `pose_body`).
@@ -72,9 +82,23 @@ pub fn repose_transform(ctx: &BodyContext, posed: &PosedBody, i: usize) -> (Mat4
 impl RiggedAvatar {
     /// Vertices and normals in the body's rest pose (T-pose, θ = 0) at shape `betas`: the
     /// bind pose of an animated export (see [`crate::export::gltf_export`]).
+    /// The one kept by [`RiggedAvatar::keep_bind_pose_async`] when `betas` are its shape.
     pub fn bind_pose(&self, ctx: &BodyContext, betas: &[f32]) -> (Vec<glam::Vec3>, Vec<glam::Vec3>) {
+        if let Some(b) = self.bind.as_ref().filter(|b| b.betas == betas) {
+            return (b.positions.clone(), b.normals.clone());
+        }
         let rest = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
         self.repose(ctx, &pose_body(&ctx.model, &rest))
+    }
+
+    /// Compute the bind pose at `betas` now, in slices, and keep it for
+    /// [`RiggedAvatar::bind_pose`]: the browser's viewer asks for it inside a frame (its mesh
+    /// upload), where the body's shaping and the re-pose would block the UI thread.
+    pub async fn keep_bind_pose_async(&mut self, ctx: &BodyContext, betas: &[f32]) {
+        let rest = pose_body(&ctx.model, &BodyParams { betas: betas.to_vec(), ..BodyParams::default() });
+        checkpoint().await;
+        let (positions, normals) = self.repose(ctx, &rest);
+        self.bind = Some(BindPose { betas: betas.to_vec(), positions, normals });
     }
 
     /// The mesh to export from per-avatar-vertex `positions` and `normals`: with a baked

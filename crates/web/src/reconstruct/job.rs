@@ -411,7 +411,7 @@ async fn choose_start(
 /// colours show what the download's texture will. In slices of the UI thread: the body
 /// posed once, as the photo shows it; the avatar re-posed; its depth at the photo's camera;
 /// the photo's mask and linear colours; the blend (itself sliced: the samples, then each of
-/// the colour shift's grids).
+/// the colour shift's grids); the bind pose at the photo's shape.
 async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
     yield_to_browser().await;
     let body = pose_body(&ctx.model, &photo.view.body);
@@ -421,6 +421,10 @@ async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhot
     let projection = photo.projection_async(&posed, &rigged.canonical.mesh.faces).await;
     yield_to_browser().await;
     projection.blend_async(&rigged.canonical.mesh.vertices, &posed, &normals, &mut rigged.canonical.colors).await;
+    // The bind pose at the photo's shape (the fit gave the app that shape), for the viewer's
+    // upload, which would otherwise compute it inside a frame.
+    yield_to_browser().await;
+    rigged.keep_bind_pose_async(ctx, &photo.view.body.betas).await;
     Rc::new(Projected { photo, projection })
 }
 
