@@ -38,6 +38,7 @@ import { PNG } from 'pngjs';
 import validator from 'gltf-validator';
 import fs from 'node:fs';
 import path from 'node:path';
+import { maskIou, pixelAt } from './browser.mjs';
 
 const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
 const out = process.env.GETAVATAR_OUT ?? 'out';
@@ -394,15 +395,7 @@ try {
   check(p.state === 'fitted' && p.missing_joints.length === 0 && p.people === 1, `the person is found (${p.people} in the photo) and fitted (${p.state}: ${p.message})`);
   check(p.relative_to_height <= 0.03, `keypoint residual ${(100 * p.relative_to_height).toFixed(2)} % of the person's height (≤ 3 %; ${p.mean_px.toFixed(1)} px)`);
   const masks = await page.evaluate(() => window.getavatar.photoMasks());
-  const alphaIou = (bits) => {
-    let inter = 0, union = 0;
-    for (let y = 0; y < masks.height; y++) for (let x = 0; x < masks.width; x++) {
-      const ax = Math.floor((x + 0.5) / masks.width * render.width), ay = Math.floor((y + 0.5) / masks.height * render.height);
-      const a = render.data[(ay * render.width + ax) * 4 + 3] >= 128, b = bits[y * masks.width + x] === '1';
-      inter += a && b; union += a || b;
-    }
-    return inter / Math.max(1, union);
-  };
+  const alphaIou = (bits) => maskIou(masks, bits, (u, v) => render.data[pixelAt(render.width, render.height, u, v) * 4 + 3] >= 128);
   const personIou = alphaIou(masks.person), bodyIou = alphaIou(masks.body);
   // MediaPipe's probability read from the mask's alpha (www/pose_worker.js): 0.954 here; red
   // alone (every pixel of any probability) gave a ring around the person: 0.85 on the people

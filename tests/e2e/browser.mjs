@@ -1,5 +1,6 @@
-// What the benchmark and soak scripts share: headless Chromium with WebGPU on SwiftShader,
-// the app's status and a poll on it, and the e2e photo composited over grey.
+// What the e2e, benchmark and soak scripts share: headless Chromium with WebGPU on
+// SwiftShader, the app's status and a poll on it, the e2e photo composited over grey, and the
+// IoU of the app's photo masks against a truth.
 
 import { chromium } from 'playwright-core';
 import { PNG } from 'pngjs';
@@ -43,4 +44,23 @@ export function greyPhoto() {
     render.data[k + 3] = 255;
   }
   return PNG.sync.write(render);
+}
+
+/// The pixel index of a `width` × `height` image at the normalised point (u, v) in [0, 1)².
+export const pixelAt = (width, height, u, v) =>
+  Math.min(height - 1, Math.floor(v * height)) * width + Math.min(width - 1, Math.floor(u * width));
+
+/// IoU of a mask of `window.getavatar.photoMasks()` (`bits`: '0'/'1' per pixel,
+/// `masks.width` × `masks.height`, e.g. `masks.person`) against a truth read at each pixel's
+/// centre: `truthAt(u, v)` (normalised photo coordinates) → whether the person is there.
+/// 0 when neither has a pixel.
+export function maskIou(masks, bits, truthAt) {
+  let [both, either] = [0, 0];
+  for (let y = 0; y < masks.height; y++) {
+    for (let x = 0; x < masks.width; x++) {
+      const a = bits[y * masks.width + x] === '1', b = truthAt((x + 0.5) / masks.width, (y + 0.5) / masks.height);
+      both += a && b; either += a || b;
+    }
+  }
+  return either ? both / either : 0;
 }

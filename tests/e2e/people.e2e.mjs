@@ -19,7 +19,7 @@
 //   cd tests/e2e && GETAVATAR_URL=http://127.0.0.1:8765/ node people.e2e.mjs
 
 import { cases } from './people_cases.mjs';
-import { launchChromium, appStatus } from './browser.mjs';
+import { launchChromium, appStatus, maskIou, pixelAt } from './browser.mjs';
 
 const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
 // Short fits: the finder is under test here, the fit's own accuracy in app.e2e.mjs.
@@ -71,16 +71,7 @@ async function bodyCentre() {
 async function personMaskIou(truth) {
   const m = await page.evaluate(() => window.getavatar.photoMasks());
   if (!m?.person) return 0;
-  let [both, either] = [0, 0];
-  for (let y = 0; y < m.height; y++) {
-    const ty = Math.min(truth.height - 1, Math.floor(((y + 0.5) / m.height) * truth.height));
-    for (let x = 0; x < m.width; x++) {
-      const tx = Math.min(truth.width - 1, Math.floor(((x + 0.5) / m.width) * truth.width));
-      const a = m.person[y * m.width + x] === '1', b = truth.data[ty * truth.width + tx] >= 0.5;
-      both += a && b; either += a || b;
-    }
-  }
-  return either ? both / either : 0;
+  return maskIou(m, m.person, (u, v) => truth.data[pixelAt(truth.width, truth.height, u, v)] >= 0.5);
 }
 const inside = (c, b) => c && c[0] >= b[0] && c[0] <= b[0] + b[2] && c[1] >= b[1] && c[1] <= b[1] + b[3];
 
