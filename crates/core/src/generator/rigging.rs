@@ -30,6 +30,8 @@ pub struct RiggedAvatar {
     /// Nearest canonical body vertex of each avatar vertex.
     pub body_vertex: Vec<u32>,
     /// The bind pose at one shape, computed ahead ([`RiggedAvatar::keep_bind_pose_async`]).
+    /// Nothing changes `canonical`'s geometry after rigging (re-texturing changes its colours
+    /// only), so it stays valid.
     bind: Option<BindPose>,
 }
 
