@@ -44,15 +44,59 @@ pub(crate) fn run(cmd: &mut Command) -> Result<()> {
     Ok(())
 }
 
+const USAGE: &str =
+    "usage: cargo xtask <serve [--port N] [--no-build] | build-web | test [--skip-native] [--skip-browser] | setup | body-model>";
+
 fn usage() -> ! {
-    eprintln!(
-        "usage: cargo xtask <serve [--port N] [--no-build] | build-web | test [--skip-native] [--skip-browser] | setup | body-model>"
-    );
+    eprintln!("{USAGE}");
     std::process::exit(2)
+}
+
+/// What `check_args` made of the command line.
+#[derive(Debug, PartialEq)]
+enum Args {
+    Fine,
+    Help,
+    Bad(String),
+}
+
+/// `--help` anywhere, or an argument the command does not take: `cargo xtask test --help`
+/// must print the usage, not start a 40-minute run.
+fn check_args(args: &[String]) -> Args {
+    let (flags, with_value): (&[&str], &[&str]) = match args.first().map(String::as_str) {
+        Some("serve") => (&["--no-build"], &["--port"]),
+        Some("test") => (&["--skip-native", "--skip-browser"], &[]),
+        _ => (&[], &[]),
+    };
+    let mut rest = args.iter().skip(1);
+    while let Some(a) = rest.next() {
+        if a == "--help" || a == "-h" {
+            return Args::Help;
+        }
+        if with_value.contains(&a.as_str()) {
+            if rest.next().is_none() {
+                return Args::Bad(format!("{a} needs a value"));
+            }
+        } else if !flags.contains(&a.as_str()) {
+            return Args::Bad(format!("unknown argument {a:?} for {:?}", args[0]));
+        }
+    }
+    Args::Fine
 }
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    match check_args(&args) {
+        Args::Fine => {}
+        Args::Help => {
+            println!("{USAGE}");
+            return Ok(());
+        }
+        Args::Bad(why) => {
+            eprintln!("xtask: {why}");
+            usage();
+        }
+    }
     let flag = |name: &str| args.iter().any(|a| a == name);
     let value = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
     match args.first().map(String::as_str) {
@@ -318,4 +362,25 @@ fn body_model() -> Result<()> {
         .arg(&wheel)
         .args(["--out", "assets/body/getavatar_body.npz"]);
     run(&mut c)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{check_args, Args};
+
+    fn check(line: &str) -> Args {
+        check_args(&line.split_whitespace().map(String::from).collect::<Vec<_>>())
+    }
+
+    #[test]
+    fn help_and_unknown_arguments_stop_before_any_work() {
+        assert_eq!(check("test"), Args::Fine);
+        assert_eq!(check("test --skip-browser --skip-native"), Args::Fine);
+        assert_eq!(check("serve --port 8765 --no-build"), Args::Fine);
+        assert_eq!(check("test --help"), Args::Help);
+        assert_eq!(check("serve --no-build -h"), Args::Help);
+        assert_eq!(check("test --bogus"), Args::Bad("unknown argument \"--bogus\" for \"test\"".into()));
+        assert_eq!(check("build-web extra"), Args::Bad("unknown argument \"extra\" for \"build-web\"".into()));
+        assert_eq!(check("serve --port"), Args::Bad("--port needs a value".into()));
+    }
 }
