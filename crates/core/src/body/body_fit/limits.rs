@@ -42,6 +42,42 @@ pub const HINGES: [Hinge; 4] = [
 /// torso's landmarks.
 pub const COLLARS: [usize; 2] = [13, 14];
 
+/// A range of one rotation component that a body's joint stays within (radians, of the
+/// joint's local axis-angle vector; with one component dominant it is that rotation).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Range {
+    /// Index into `body_model::JOINT_NAMES`.
+    pub joint: usize,
+    /// 0 = x, 1 = y, 2 = z.
+    pub axis: usize,
+    pub lo: f32,
+    pub hi: f32,
+}
+
+/// Rotations people have little of, which a fit otherwise uses to explain depth the image
+/// leaves in doubt: the twist of the thighs about the hip (internal/external rotation, some
+/// 40–45° each way) and of the shins about the knee (a few degrees with the knee straight).
+/// Left free, the fit of a sideways bend seen from behind turned a thigh 76° about its axis
+/// and the shin 63° more (PA-MPJPE 102.6 mm; 74.0 with the ranges, docs/benchmarks.md). The
+/// ankles', neck's and head's sideways tilts were tried too and cost the video fit 2 mm.
+pub const RANGES: [Range; 4] = [
+    Range { joint: 1, axis: 1, lo: -0.8, hi: 0.8 },
+    Range { joint: 2, axis: 1, lo: -0.8, hi: 0.8 },
+    Range { joint: 4, axis: 1, lo: -0.35, hi: 0.35 },
+    Range { joint: 5, axis: 1, lo: -0.35, hi: 0.35 },
+];
+
+/// Σ over [`RANGES`] of the squared excess beyond the range (0 inside it).
+pub fn range_penalty(pose: &[Vec3; NUM_JOINTS]) -> f32 {
+    RANGES
+        .iter()
+        .map(|r| {
+            let a = pose[r.joint][r.axis];
+            (a - r.hi).max(0.0).powi(2) + (r.lo - a).max(0.0).powi(2)
+        })
+        .sum()
+}
+
 /// SMPLify's angle prior on the hinges: Σ exp(−bend · θ_axis)², about 1 per straight joint,
 /// growing exponentially with hyperextension and vanishing with natural flexion.
 pub fn hinge_penalty(pose: &[Vec3; NUM_JOINTS]) -> f32 {
@@ -93,5 +129,33 @@ mod tests {
             straight[h.joint][h.axis] = -0.8 * h.bend;
             assert!(hinge_penalty(&straight) > base + 3.0, "hyperextension is dearer");
         }
+    }
+
+    /// The ranges' axes are the rotations the comment names: a hip's y turns the thigh about
+    /// itself (the knee stays, a bent knee's ankle swings sideways); inside the ranges nothing
+    /// is paid, beyond them the squared excess.
+    #[test]
+    fn ranges_limit_the_legs_twists_and_nothing_else() {
+        let bent = joints(&[(4, 0, 1.2)]);
+        let twisted = joints(&[(4, 0, 1.2), (1, 1, 0.8)]);
+        assert!((twisted[4] - bent[4]).length() < 0.02, "the knee moved {}", twisted[4] - bent[4]);
+        let swing = twisted[7] - bent[7];
+        assert!(swing.x.abs() > 0.2 && swing.y.abs() < 0.1, "the ankle moved {swing}");
+
+        let mut pose = [Vec3::ZERO; NUM_JOINTS];
+        assert_eq!(range_penalty(&pose), 0.0);
+        pose[1].y = 0.7;
+        pose[5].y = -0.3;
+        assert_eq!(range_penalty(&pose), 0.0, "inside the ranges");
+        // The fit of a sideways bend seen from behind, before the ranges: thigh 1.33, shin 1.11.
+        pose[1].y = 1.33;
+        pose[4].y = 1.11;
+        let expected = (1.33f32 - 0.8).powi(2) + (1.11f32 - 0.35).powi(2);
+        assert!((range_penalty(&pose) - expected).abs() < 1e-5);
+        // Bends the ranges do not name (a knee's flexion, a shoulder) cost nothing here.
+        pose = [Vec3::ZERO; NUM_JOINTS];
+        pose[4].x = 2.0;
+        pose[16].z = -1.5;
+        assert_eq!(range_penalty(&pose), 0.0);
     }
 }

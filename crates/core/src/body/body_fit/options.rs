@@ -18,6 +18,9 @@ pub struct FitWeights {
     /// L2 (radians²) on the sideways bend of elbows and knees: the rotation about the axis
     /// that is neither the hinge's nor the bone's, which these joints do not have.
     pub hinge_side: f32,
+    /// Squared excess (radians²) of the thighs' and shins' twists beyond their ranges
+    /// ([`super::limits::RANGES`]).
+    pub ranges: f32,
     /// L2 on β.
     pub betas: f32,
     /// Weight of the bone term: the detector's 3D bone directions (world landmarks), read as
@@ -43,6 +46,7 @@ impl Default for FitWeights {
             collar: 10.0,
             hinge: 1.0,
             hinge_side: 5.0,
+            ranges: 20.0,
             betas: 0.5,
             bones: 10.0,
             bones_form: BoneForm::Direction,
