@@ -5,9 +5,13 @@
 //      tasks (OFF=… overrides it);
 //   2. per long task, the functions (by name substring, CATS) its samples fell in, in ms;
 //   3. over the whole phase, the contiguous stretches of each of those functions (the pieces
-//      between two checkpoints that a slice cannot split).
+//      between two checkpoints that a slice cannot split);
+//   4. with STACKS=1, per long task and clock offset (−150, −100, −50, 0 ms), the samples'
+//      leaf function and the first three of the project's frames under it, most frequent
+//      first. Use it when 1. finds no offset (a long task that is not JavaScript, e.g. a GPU
+//      upload or the thread descheduled, samples as "(idle)" at every offset).
 //
-//   node profile_tasks.mjs photo1 [CATS=silhouette_pairs,AutodiffServer::backward,…]
+//   node profile_tasks.mjs photo1 [CATS=silhouette_pairs,AutodiffServer::backward,…] [STACKS=1]
 //
 // Function names need a wasm build with names (GETAVATAR_KEEP_NAMES=1 cargo xtask build-web).
 import fs from 'node:fs';
@@ -91,4 +95,23 @@ for (const c of cats) {
   const r = (runs[c] ?? []).filter((x) => x > 3).sort((a, b) => b - a);
   if (!r.length) continue;
   console.log(`${c.padEnd(28)} ${r.length} stretches > 3 ms, longest ${r.slice(0, 6).map((x) => x.toFixed(0)).join(' ')}, median ${r[Math.floor(r.length / 2)].toFixed(1)} ms`);
+}
+
+// 4. Stacks per long task at a few offsets.
+if (process.env.STACKS) {
+  const ours = /getavatar|core::|web::|burn|egui|eframe|wgpu/;
+  for (const [s, d] of [...long].sort((a, b) => b[1] - a[1]).slice(0, 15)) {
+    for (const shift of [-150, -100, -50, 0]) {
+      const counts = new Map();
+      profile.samples.forEach((id, k) => {
+        const at = times[k] + pt0 + shift;
+        if (at < s || at > s + d) return;
+        const names = stack(id).filter(Boolean);
+        const key = `${(names[0] ?? '?').slice(0, 60)} || ${names.filter((f) => ours.test(f)).slice(0, 3).map((f) => f.slice(0, 60)).join(' < ')}`;
+        counts.set(key, (counts.get(key) ?? 0) + 1);
+      });
+      console.log(`task at ${s.toFixed(0)} ms, ${d.toFixed(0)} ms, offset ${shift}:`);
+      for (const [key, n] of [...counts].sort((a, b) => b[1] - a[1]).slice(0, 8)) console.log(`  ${n} ${key}`);
+    }
+  }
 }
