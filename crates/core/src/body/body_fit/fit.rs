@@ -46,7 +46,7 @@ use super::init::{camera_translation, pose_from_image, pose_from_world, posed_jo
 use super::input::leg_foreshortening_agreement;
 pub use super::input::{FitInput, HAND_SWAP};
 use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
-use super::limits::{COLLARS, HINGES, RANGES};
+use super::limits::{range_term, COLLARS, HINGES};
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{BoneForm, FitOptions, FitWeights};
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
@@ -533,13 +533,7 @@ impl BodyFitter {
             loss = loss + side.clone() * side * wts.hinge_side;
         }
         if wts.ranges > 0.0 {
-            let idx: Vec<usize> = RANGES.iter().map(|r| (r.joint - 1) * 3 + r.axis).collect();
-            let a = pose.clone().reshape([(NUM_JOINTS - 1) * 3, 1]).select(0, joint_index(&idx, &dev));
-            let n = RANGES.len();
-            let hi = matrix(RANGES.iter().map(|r| r.hi).collect(), n, 1, &dev);
-            let lo = matrix(RANGES.iter().map(|r| r.lo).collect(), n, 1, &dev);
-            let (over, under) = ((a.clone() - hi).clamp_min(0.0), (lo - a).clamp_min(0.0));
-            loss = loss + (over.clone() * over + under.clone() * under).sum().reshape([1]) * wts.ranges;
+            loss = loss + range_term(pose.clone()) * wts.ranges;
         }
         if !self.shape_held {
             let b = self.params.betas.val();

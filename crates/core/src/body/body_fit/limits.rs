@@ -8,9 +8,12 @@
 //! positive x rotation takes the ankle behind the knee, the elbows' flexion brings the wrists
 //! in front of the body, and each bone lies along its hinge's remaining axis.
 
+use burn::tensor::Tensor;
 use glam::Vec3;
 
 use crate::body::body_model::NUM_JOINTS;
+use crate::render::diff::body_model::joint_index;
+use crate::render::diff::matrix;
 
 /// A hinge joint: the axis it bends about and the sign of a natural bend.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -67,15 +70,17 @@ pub const RANGES: [Range; 4] = [
     Range { joint: 5, axis: 1, lo: -0.35, hi: 0.35 },
 ];
 
-/// Σ over [`RANGES`] of the squared excess beyond the range (0 inside it).
-pub fn range_penalty(pose: &[Vec3; NUM_JOINTS]) -> f32 {
-    RANGES
-        .iter()
-        .map(|r| {
-            let a = pose[r.joint][r.axis];
-            (a - r.hi).max(0.0).powi(2) + (r.lo - a).max(0.0).powi(2)
-        })
-        .sum()
+/// Σ over [`RANGES`] of the squared excess beyond the range (0 inside it), of θ₁…θ₂₃ as the
+/// fit holds them (`[23, 3]`, the root's row left out).
+pub fn range_term(body_pose: Tensor<2>) -> Tensor<1> {
+    let dev = body_pose.device();
+    let n = RANGES.len();
+    let idx: Vec<usize> = RANGES.iter().map(|r| (r.joint - 1) * 3 + r.axis).collect();
+    let a = body_pose.reshape([(NUM_JOINTS - 1) * 3, 1]).select(0, joint_index(&idx, &dev));
+    let hi = matrix(RANGES.iter().map(|r| r.hi).collect(), n, 1, &dev);
+    let lo = matrix(RANGES.iter().map(|r| r.lo).collect(), n, 1, &dev);
+    let (over, under) = ((a.clone() - hi).clamp_min(0.0), (lo - a).clamp_min(0.0));
+    (over.clone() * over + under.clone() * under).sum().reshape([1])
 }
 
 /// SMPLify's angle prior on the hinges: Σ exp(−bend · θ_axis)², about 1 per straight joint,
@@ -142,20 +147,24 @@ mod tests {
         let swing = twisted[7] - bent[7];
         assert!(swing.x.abs() > 0.2 && swing.y.abs() < 0.1, "the ankle moved {swing}");
 
-        let mut pose = [Vec3::ZERO; NUM_JOINTS];
-        assert_eq!(range_penalty(&pose), 0.0);
-        pose[1].y = 0.7;
-        pose[5].y = -0.3;
-        assert_eq!(range_penalty(&pose), 0.0, "inside the ranges");
+        // The term as the fit computes it, on θ₁…θ₂₃.
+        #[allow(deprecated)]
+        let dev = burn::tensor::Device::ndarray();
+        let term = |rows: &[(usize, usize, f32)]| {
+            let mut theta = vec![0.0f32; (NUM_JOINTS - 1) * 3];
+            for &(j, axis, v) in rows {
+                theta[(j - 1) * 3 + axis] = v;
+            }
+            let t = range_term(matrix(theta, NUM_JOINTS - 1, 3, &dev));
+            t.into_data().convert::<f32>().to_vec::<f32>().expect("floats")[0]
+        };
+        assert_eq!(term(&[]), 0.0);
+        assert_eq!(term(&[(1, 1, 0.7), (5, 1, -0.3)]), 0.0, "inside the ranges");
         // The fit of a sideways bend seen from behind, before the ranges: thigh 1.33, shin 1.11.
-        pose[1].y = 1.33;
-        pose[4].y = 1.11;
         let expected = (1.33f32 - 0.8).powi(2) + (1.11f32 - 0.35).powi(2);
-        assert!((range_penalty(&pose) - expected).abs() < 1e-5);
-        // Bends the ranges do not name (a knee's flexion, a shoulder) cost nothing here.
-        pose = [Vec3::ZERO; NUM_JOINTS];
-        pose[4].x = 2.0;
-        pose[16].z = -1.5;
-        assert_eq!(range_penalty(&pose), 0.0);
+        assert!((term(&[(1, 1, 1.33), (4, 1, 1.11)]) - expected).abs() < 1e-5);
+        assert!((term(&[(2, 1, -1.33)]) - (1.33f32 - 0.8).powi(2)).abs() < 1e-5, "the other way");
+        // Bends the ranges do not name (a knee's flexion, a shoulder) cost nothing.
+        assert_eq!(term(&[(4, 0, 2.0), (16, 2, -1.5)]), 0.0);
     }
 }
