@@ -156,7 +156,7 @@ mod tests {
                 theta[(j - 1) * 3 + axis] = v;
             }
             let t = range_term(matrix(theta, NUM_JOINTS - 1, 3, &dev));
-            t.into_data().convert::<f32>().to_vec::<f32>().expect("floats")[0]
+            t.into_data().convert::<f32>().try_to_vec::<f32>().expect("floats")[0]
         };
         assert_eq!(term(&[]), 0.0);
         assert_eq!(term(&[(1, 1, 0.7), (5, 1, -0.3)]), 0.0, "inside the ranges");
