@@ -39,8 +39,8 @@ use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset}
 use getavatar_core::io::scan::RenderableScan;
 use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
 use getavatar_core::reconstruction::inversion::{
-    choose_start_async, comparison_image, encoder_start, mask_iou, masked_psnr, render_images, start_candidates,
-    InversionOptions, InversionTarget, Inverter, Phase,
+    choose_start_async, comparison_image, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images,
+    start_candidates, InversionOptions, InversionTarget, Inverter, Phase,
 };
 use getavatar_core::render::camera::{OrbitCamera, View};
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
@@ -145,6 +145,9 @@ struct InvertMetrics {
     start_losses: Vec<(String, f32)>,
     /// At the input camera: the start (the encoder's guess, or the chosen latent mode).
     at_start: ViewMetrics,
+    /// The body fit's refinement on the guess's outline (a photo, `refit_steps` > 0).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    refit: Option<RefitMetrics>,
     /// Seconds from the command's start to the first avatar (the start rendered at the input
     /// camera), and to the end.
     seconds_to_first_avatar: f64,
@@ -171,6 +174,14 @@ struct InvertMetrics {
     seconds_total: f64,
 }
 
+#[derive(Serialize)]
+struct RefitMetrics {
+    steps: usize,
+    seconds: f64,
+    betas_before: Vec<f32>,
+    betas_after: Vec<f32>,
+}
+
 #[derive(Serialize, Clone, Copy)]
 struct ViewMetrics {
     mask_iou: f32,
@@ -178,7 +189,8 @@ struct ViewMetrics {
 }
 
 /// The target, a name for it, and (with `--scans`) the subject's scan for the back view.
-type Loaded = (InversionTarget, String, Option<(getavatar_core::io::scan::Scan, RenderableScan)>);
+/// With a photo, its body fit.
+type Loaded = (InversionTarget, String, Option<(getavatar_core::io::scan::Scan, RenderableScan)>, Option<BodyFit>);
 
 fn load_target(a: &InvertArgs, model: &getavatar_core::body::body_model::BodyModel) -> Result<Loaded> {
     if let (Some(data), Some(entry)) = (&a.data, &a.entry) {
@@ -214,7 +226,7 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body::body_model::BodyMod
             }
             _ => (s.size, s.rgb, s.mask),
         };
-        return Ok((InversionTarget { view, res, rgb, mask }, format!("{} {entry}", data.display()), scan));
+        return Ok((InversionTarget { view, res, rgb, mask }, format!("{} {entry}", data.display()), scan, None));
     }
     let (Some(image), Some(fit_path)) = (&a.image, &a.fit) else {
         bail!("give a photo (--image PHOTO --fit fit.json) or a dataset image (--data DIR --entry NAME)");
@@ -254,7 +266,7 @@ fn load_target(a: &InvertArgs, model: &getavatar_core::body::body_model::BodyMod
     let (rgb, _, _) = turn::turn_image(&rgb, photo.width() as usize, photo.height() as usize, 3, fit.rotation);
     let target = InversionTarget::from_photo(&fit, &rgb, w, h, &mask, res, model.num_betas)
         .with_context(|| format!("{} with {}", image.display(), fit_path.display()))?;
-    Ok((target, image.display().to_string(), None))
+    Ok((target, image.display().to_string(), None, Some(fit)))
 }
 
 /// A square image of `size`² pixels × `c` channels box-filtered to `r`² (`r` divides `size`).
@@ -404,7 +416,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
     }
     let model = load_body(&a.body)?;
-    let (target, source, scan) = load_target(a, &model)?;
+    let (mut target, source, scan, photo_fit) = load_target(a, &model)?;
     target.validate()?;
     let dev = a.backend.device()?.autodiff();
     let (cfg, g, modes) = a.model.load(&dev)?;
@@ -417,21 +429,16 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
 
     // The start: the encoder's guess, or the latent mode (or w_avg) that explains the image best.
     let ts = std::time::Instant::now();
-    let encoder = load_encoder_arg(a, &g, shipped_g.then_some(&cfg), &dev);
-    let (start, start_styles, start_losses) = match encoder {
-        Some((enc, path)) => {
-            let styles = encoder_start(&enc, &g, &ctx.model, &target, &dev)
-                .with_context(|| format!("the encoder {}", path.display()))?;
-            ("encoder".to_string(), styles, Vec::new())
-        }
-        None => {
-            let cands = start_candidates(&g, modes.as_ref());
-            let (best, losses) = block_on_ready(choose_start_async(&g, &ctx, &target, &cands, &dev))?;
-            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
-            (cands[best].name.clone(), cands[best].styles.clone(), all)
-        }
-    };
+    let (start, start_styles, start_losses) =
+        first_guess(a, &g, modes.as_ref(), &ctx, &target, shipped_g.then_some(&cfg), &dev)?;
     let seconds_start = ts.elapsed().as_secs_f64();
+    // The photo's body fit refined on the guess's clothed outline (a photo only).
+    let (refit, rigged_start) = match (&photo_fit, opts.refit_steps) {
+        (Some(fit), steps) if steps > 0 => {
+            refit_photo(a, &g, &ctx, &start_styles, fit, &mut target, steps, &dev)?.unzip()
+        }
+        _ => (None, None),
+    };
     let (rgb0, mask0) = render_at(&g, &ctx, &start_styles, &target.view, target.res, &dev)?;
     let at_start = view_metrics(&target, &rgb0, &mask0);
     let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
@@ -460,7 +467,10 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     write_atomic(&a.out.join("comparison.png"), &png)?;
 
     // The animatable avatar, its baked textures, and what it looks like at the input camera.
-    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, &dev))?;
+    let rigged = match rigged_start.filter(|_| opts.steps + opts.pti_steps == 0) {
+        Some(r) => r,
+        None => block_on_ready(generate_rigged_async(&g, &ctx, &styles, &dev))?,
+    };
     if rigged.canonical.mesh.faces.is_empty() {
         bail!("the inverted generator produced an empty surface");
     }
@@ -518,6 +528,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         start,
         start_losses,
         at_start,
+        refit,
         seconds_to_first_avatar,
         perceptual,
         after_w: if opts.steps > 0 { after_w.unwrap_or(final_m) } else { at_start },
@@ -542,6 +553,74 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// The start's name, codes and (a search) each candidate's loss.
+type FirstGuess = (String, Styles, Vec<(String, f32)>);
+
+/// Where the codes start: the encoder's guess (`--encoder`, else the shipped one), or the
+/// latent mode (or w_avg) that explains the image best; its name and the candidates' losses.
+fn first_guess(
+    a: &InvertArgs,
+    g: &Generator,
+    modes: Option<&getavatar_core::generator::pipeline::LatentModes>,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    shipped: Option<&GeneratorConfig>,
+    dev: &Device,
+) -> Result<FirstGuess> {
+    Ok(match load_encoder_arg(a, g, shipped, dev) {
+        Some((enc, path)) => {
+            let styles = encoder_start(&enc, g, &ctx.model, target, dev)
+                .with_context(|| format!("the encoder {}", path.display()))?;
+            ("encoder".to_string(), styles, Vec::new())
+        }
+        None => {
+            let cands = start_candidates(g, modes);
+            let (best, losses) = block_on_ready(choose_start_async(g, ctx, target, &cands, dev))?;
+            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
+            (cands[best].name.clone(), cands[best].styles.clone(), all)
+        }
+    })
+}
+
+/// The photo's body fit refined on the guess's outline (`refit_to_start`), written to
+/// `fit_refined.json`; `target` takes its camera and body. When it cannot be refined (the
+/// guess has no surface) the fit stays as it was, and the message says why.
+#[allow(clippy::too_many_arguments)]
+fn refit_photo(
+    a: &InvertArgs,
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    fit: &BodyFit,
+    target: &mut InversionTarget,
+    steps: usize,
+    dev: &Device,
+) -> Result<Option<(RefitMetrics, RiggedAvatar)>> {
+    let t = std::time::Instant::now();
+    let (refined, rigged) = match block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev)) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("the body fit was not refined on the guess's outline ({e}); it stays as fitted");
+            return Ok(None);
+        }
+    };
+    write_atomic(&a.out.join("fit_refined.json"), refined.to_json()?.as_bytes())?;
+    let r = RefitMetrics {
+        steps,
+        seconds: t.elapsed().as_secs_f64(),
+        betas_before: fit.betas.clone(),
+        betas_after: refined.betas.clone(),
+    };
+    let b1 = |b: &[f32]| b.get(1).copied().unwrap_or(0.0);
+    eprintln!(
+        "body refitted on the guess's outline in {:.1} s: β₁ {:.2} → {:.2} (fit_refined.json)",
+        r.seconds,
+        b1(&fit.betas),
+        b1(&refined.betas)
+    );
+    Ok(Some((r, rigged)))
 }
 
 /// The preset's options with `--options` (JSON fields) and `--steps` / `--pti-steps` over them.

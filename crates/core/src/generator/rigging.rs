@@ -6,6 +6,7 @@
 
 use glam::{Mat3, Mat4};
 
+use crate::body::body_fit::refit::OutlineMesh;
 use crate::body::humanoid::SkeletonNames;
 use crate::body::motion::Motion;
 use crate::body::skinning::{pose_body, BodyParams, PosedBody};
@@ -91,6 +92,13 @@ impl RiggedAvatar {
         }
         let rest = BodyParams { betas: betas.to_vec(), ..BodyParams::default() };
         self.repose(ctx, &pose_body(&ctx.model, &rest))
+    }
+
+    /// The avatar as the body fit's outline ([`crate::body::body_fit::refit`]): its vertices
+    /// in the rest pose at β = 0, each following its nearest body vertex, and its faces.
+    pub fn outline_mesh(&self, ctx: &BodyContext) -> OutlineMesh {
+        let (rest, _) = self.bind_pose(ctx, &vec![0.0; ctx.model.num_betas]);
+        OutlineMesh { rest, body_vertex: self.body_vertex.clone(), faces: self.canonical.mesh.faces.clone() }
     }
 
     /// Compute the bind pose at `betas` now, in slices, and keep it for

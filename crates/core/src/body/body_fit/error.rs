@@ -20,4 +20,6 @@ pub enum FitError {
     MaskSize { got: usize, width: usize, height: usize },
     #[error("too few landmarks to fit: {0}")]
     TooFew(String),
+    #[error("the fit cannot be refined: {0}")]
+    Refit(String),
 }

@@ -39,7 +39,7 @@ use std::sync::Arc;
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
-use glam::{Mat3, Mat4, Quat, Vec3, Vec4};
+use glam::{Mat4, Vec3, Vec4};
 
 pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
@@ -49,11 +49,12 @@ use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LAN
 use super::limits::{range_term, COLLARS, HINGES};
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{BoneForm, FitOptions, FitWeights};
+pub use super::result::upright;
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
 use super::result::{FAR, NEAR};
 use super::surface::{surface_landmarks, SurfaceLandmark};
 use crate::body::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
-use crate::body::skinning::{axis_angle_to_matrix, BodyParams};
+use crate::body::skinning::BodyParams;
 use crate::generator::optim::Adam;
 use crate::generator::readback::read_f32;
 use crate::render::camera::{reference_fov_y, to_row_major};
@@ -120,6 +121,9 @@ impl Targets {
     }
 }
 
+/// The silhouette stage's vertices, faces and the faces' edges.
+type SilhouetteMesh = (VertexSet, Arc<Vec<[u32; 3]>>, Arc<diff_raster::MeshEdges>);
+
 /// The fit, one Adam step at a time.
 pub struct BodyFitter {
     model: Arc<BodyModel>,
@@ -129,9 +133,9 @@ pub struct BodyFitter {
     skeleton: Skeleton,
     surface: VertexSet,
     surface_marks: Vec<SurfaceLandmark>,
-    all_vertices: Option<VertexSet>,
-    /// The body mesh's edges, for the silhouette's pixel pairs (the faces never change).
-    edges: Option<diff_raster::MeshEdges>,
+    /// The silhouette stage's mesh: the body's every vertex, its faces and their edges (for
+    /// the silhouette's pixel pairs), or an outline set by [`BodyFitter::refine_on_outline`].
+    mesh: Option<SilhouetteMesh>,
     joints: Targets,
     joint_ids: Vec<usize>,
     points: Targets,
@@ -307,8 +311,7 @@ impl BodyFitter {
             skeleton,
             surface,
             surface_marks,
-            all_vertices: None,
-            edges: None,
+            mesh: None,
             joints,
             joint_ids,
             points,
@@ -376,6 +379,28 @@ impl BodyFitter {
         if let Some(alt) = self.alternative.as_mut() {
             alt.hold_shape(betas);
         }
+    }
+
+    /// From here on, the silhouette stage alone for `steps` steps on another mesh than the
+    /// body: points at `rest` (rest pose, β = 0) following body vertices `body_vertex`, with
+    /// `faces` (a generated avatar's clothed outline; [`super::refit`]). Every person pixel
+    /// it leaves uncovered costs fully; β is held when `hold_shape`.
+    pub fn refine_on_outline(
+        &mut self,
+        rest: &[Vec3],
+        body_vertex: &[u32],
+        faces: Vec<[u32; 3]>,
+        steps: usize,
+        hold_shape: bool,
+    ) {
+        let vertices = VertexSet::rigged(&self.model, rest, body_vertex, &self.skeleton, &self.device);
+        let faces = Arc::new(faces);
+        self.mesh = Some((vertices, faces.clone(), Arc::new(diff_raster::MeshEdges::new(&faces))));
+        self.options.iterations = [0, 0, steps];
+        self.options.weights.silhouette_uncovered = 1.0;
+        self.shape_held = hold_shape;
+        (self.stage, self.step_in_stage, self.done) = (2, 0, 0);
+        self.adam = Adam::new(0.9, 0.999, 1e-8);
     }
 
     /// The current parameters.
@@ -587,14 +612,14 @@ impl BodyFitter {
         mask: &[f32],
     ) -> Result<Tensor<1>, FitError> {
         let size = self.options.silhouette_size;
-        let all = match &self.all_vertices {
-            Some(v) => v.clone(),
-            None => {
-                let v = VertexSet::all(&self.model, &self.skeleton, &self.device);
-                self.all_vertices = Some(v.clone());
-                v
-            }
-        };
+        let (model, skeleton, device) = (&self.model, &self.skeleton, &self.device);
+        let (all, faces, edges) = self
+            .mesh
+            .get_or_insert_with(|| {
+                let faces = Arc::new(model.faces.clone());
+                (VertexSet::all(model, skeleton, device), faces.clone(), Arc::new(diff_raster::MeshEdges::new(&faces)))
+            })
+            .clone();
         // Every vertex is posed for the rasterizer without a gradient; the gradient flows only
         // through the silhouette edges' vertices (`antialias`), posed again below with one:
         // the backward pass then covers ~2k vertices instead of 6890 (a 70 ms task in the
@@ -607,11 +632,10 @@ impl BodyFitter {
         let host = read_f32(clip_all).await?;
         checkpoint().await;
         let clip_host: Vec<Vec4> = host.chunks_exact(4).map(Vec4::from_slice).collect();
-        let raster = crate::render::rasterize::rasterize(&clip_host, &self.model.faces, size, size);
-        let cov = diff_raster::Coverage::new(&raster, &self.model.faces);
+        let raster = crate::render::rasterize::rasterize(&clip_host, &faces, size, size);
+        let cov = diff_raster::Coverage::new(&raster, &faces);
         checkpoint().await;
-        let edges = self.edges.get_or_insert_with(|| diff_raster::MeshEdges::new(&self.model.faces));
-        let pairs = diff_raster::silhouette_pairs_of(&raster, &clip_host, &self.model.faces, edges);
+        let pairs = diff_raster::silhouette_pairs_of(&raster, &clip_host, &faces, &edges);
         checkpoint().await;
         let dev = &self.device;
         let image = if cov.is_empty() {
@@ -773,23 +797,11 @@ fn initial_camera(model: &BodyModel, input: &FitInput, init: &BodyParams) -> Vec
     camera_translation(&tj, &to).unwrap_or(Vec3::new(0.0, 0.185, -crate::render::camera::REFERENCE_RADIUS))
 }
 
-/// Split a global orientation into a turn about +y (moved into the camera) and an upright
-/// remainder: with `Y` the turn, posed points satisfy `p(Y·R') = Y·p(R') + (I − Y)·j₀`
-/// (SMPL rotates about the root joint `j₀`), so the camera becomes `M · [Y | (I − Y) j₀]`.
-pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) {
-    let r = axis_angle_to_matrix(orient);
-    let fwd = r * Vec3::Z;
-    let yaw = fwd.x.atan2(fwd.z);
-    let y = Mat3::from_rotation_y(yaw);
-    let rest = Quat::from_mat3(&(y.transpose() * r)).normalize().to_scaled_axis();
-    let turn = Mat4::from_translation(root) * Mat4::from_mat3(y) * Mat4::from_translation(-root);
-    (rest, world_to_camera * turn)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::body::body_fit::framing::Framing;
+    use crate::body::skinning::axis_angle_to_matrix;
 
     #[test]
     fn the_upright_split_keeps_every_posed_point_in_view() {

@@ -7,6 +7,7 @@
 //!   this body).
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 //! - [`options`]: the fit's settings (term weights, stages).
+//! - [`refit`]: the fit refined on a generated avatar's clothed outline.
 //! - [`temporal`]: a video's per-frame fits as one motion (lost frames filled, smoothed
 //!   without lag) and the yardsticks of a motion against its truth.
 //! - [`video`]: a clip's detections → one body shape and a warm-started fit per frame.
@@ -25,6 +26,8 @@ pub mod landmarks;
 pub mod limits;
 pub mod metrics;
 pub mod options;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod refit;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod result;
 /// The surface landmarks live with the body ([`crate::body::body_surface`]); this path stays.

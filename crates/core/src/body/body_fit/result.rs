@@ -1,13 +1,13 @@
 //! The fitted body ([`BodyFit`], `fit.json`): pose, shape and camera, with what they were
 //! fitted to and how well.
 
-use glam::Mat4;
+use glam::{Mat3, Mat4, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
 use super::framing::{Framing, MAX_PHOTO_PIXELS};
 use super::options::FitOptions;
 use crate::body::body_model::NUM_JOINTS;
-use crate::body::skinning::BodyParams;
+use crate::body::skinning::{axis_angle_to_matrix, BodyParams};
 
 /// Clip planes of the fit's camera, metres.
 pub(crate) const NEAR: f32 = 0.1;
@@ -173,4 +173,17 @@ impl BodyFit {
     pub fn original_photo_view_proj(&self) -> Mat4 {
         super::turn::clip_to_original(self.rotation) * self.photo_view_proj()
     }
+}
+
+/// Split a global orientation into a turn about +y (moved into the camera) and an upright
+/// remainder: with `Y` the turn, posed points satisfy `p(Y·R') = Y·p(R') + (I − Y)·j₀`
+/// (SMPL rotates about the root joint `j₀`), so the camera becomes `M · [Y | (I − Y) j₀]`.
+pub fn upright(orient: Vec3, root: Vec3, world_to_camera: Mat4) -> (Vec3, Mat4) {
+    let r = axis_angle_to_matrix(orient);
+    let fwd = r * Vec3::Z;
+    let yaw = fwd.x.atan2(fwd.z);
+    let y = Mat3::from_rotation_y(yaw);
+    let rest = Quat::from_mat3(&(y.transpose() * r)).normalize().to_scaled_axis();
+    let turn = Mat4::from_translation(root) * Mat4::from_mat3(y) * Mat4::from_translation(-root);
+    (rest, world_to_camera * turn)
 }

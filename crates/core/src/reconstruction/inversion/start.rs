@@ -1,11 +1,16 @@
 //! Where the inversion starts: the encoder's guess, or the latent mode (or w_avg) whose
 //! render explains the photo best.
 
+use std::sync::Arc;
+
 use burn::tensor::Device;
 
 use super::target::*;
+use crate::body::body_fit::fit::BodyFit;
+use crate::body::body_fit::refit::{refit_on_outline, RefitOptions};
 use crate::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use crate::generator::readback::read_f32;
+use crate::generator::rigging::{generate_rigged_async, RiggedAvatar};
 use crate::render::diff::avatar::{render_avatars_async, PosedGridCache};
 
 /// A candidate start: the codes and where they come from.
@@ -35,6 +40,39 @@ pub fn encoder_start(
     )?;
     let s = enc.styles(g, &[&image.patchify()], device)?;
     Ok(Styles { geo: s.geo.detach(), tex: s.tex.detach() })
+}
+
+/// The photo's body fit refined on the start's clothed outline
+/// ([`crate::body::body_fit::refit`]): the start's avatar generated in the canonical pose and
+/// rigged, its outline fitted to the person mask of `target` (the photo in `fit`'s crop) from
+/// `fit`, and `target`'s camera and body replaced by the refined fit's. The bare body fitted
+/// to a clothed person comes out broad and the avatar built on it broader still; fitted with
+/// the avatar's own outline it comes in. Returns the refined fit and the rigged avatar (the
+/// avatar itself when no step follows).
+pub async fn refit_to_start(
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    fit: &BodyFit,
+    target: &mut InversionTarget,
+    steps: usize,
+    device: &Device,
+) -> Result<(BodyFit, RiggedAvatar), InversionError> {
+    target.validate()?;
+    let rigged = generate_rigged_async(g, ctx, styles, device).await?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        return Err(InversionError::EmptySurface);
+    }
+    let options = RefitOptions { steps, ..RefitOptions::default() };
+    let model = Arc::new(ctx.model.clone());
+    let outline = rigged.outline_mesh(ctx);
+    let refit = refit_on_outline(model, fit, &target.mask, target.res, &outline, &options, device)
+        .await
+        .map_err(|e| InversionError::Refit(e.to_string()))?;
+    let mut body = refit.body_params();
+    body.betas.truncate(target.view.body.betas.len());
+    target.view = crate::render::camera::View { world_to_camera: refit.world_to_camera(), body };
+    Ok((refit, rigged))
 }
 
 /// The start candidates of a checkpoint: w_avg of both branches, and each latent mode (the

@@ -177,9 +177,17 @@ pub struct VertexSet {
 impl VertexSet {
     /// Vertices `ids` of `model` with the skeleton's β count.
     pub fn new(model: &BodyModel, ids: &[u32], skeleton: &Skeleton, device: &Device) -> Self {
+        let rest: Vec<glam::Vec3> = ids.iter().map(|&i| model.v_template[i as usize]).collect();
+        Self::rigged(model, &rest, ids, skeleton, device)
+    }
+
+    /// Points at `rest` (rest pose, β = 0) that follow body vertices `ids` (one each): their
+    /// shape directions and skin weights, as a rigged avatar's vertices follow their nearest
+    /// body vertex ([`crate::generator::rigging`]).
+    pub fn rigged(model: &BodyModel, rest: &[glam::Vec3], ids: &[u32], skeleton: &Skeleton, device: &Device) -> Self {
         let nb = skeleton.num_betas;
         let n = ids.len();
-        let template: Vec<f32> = ids.iter().flat_map(|&i| model.v_template[i as usize].to_array()).collect();
+        let template: Vec<f32> = rest.iter().flat_map(|p| p.to_array()).collect();
         let mut dirs = vec![0.0f32; nb.max(1) * 3 * n];
         for (k, &i) in ids.iter().enumerate() {
             for c in 0..3 {
