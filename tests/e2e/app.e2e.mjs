@@ -439,6 +439,9 @@ try {
     `instant: the avatar is on screen before its figures (${(rec.first_avatar_ms / 1000).toFixed(1)} s, figures at ${(rec.total_ms / 1000).toFixed(1)} s: ${rec.finish_detail})`);
   check(rec.mask_iou >= 0.75 && rec.first_mask_iou === rec.mask_iou,
     `instant: the avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.75), masked PSNR ${rec.psnr_db.toFixed(1)} dB`);
+  // The photo's body fit was refined on the guess's clothed outline, and the app's body is it.
+  check(rec.refit_beta1[0] !== rec.refit_beta1[1] && rec.refit_beta1.every(Number.isFinite),
+    `instant: the body fit refined on the guess's outline (β₁ ${rec.refit_beta1.map((b) => b.toFixed(2)).join(' → ')})`);
   const foreignInstant = requests.filter(([u, method]) => method !== 'GET' || new URL(u).origin !== origin || !own.test(new URL(u).pathname));
   check(foreignInstant.length === 0, `no network request during the instant reconstruction but the worker's own module files (${requests.length} in all; others: ${foreignInstant.slice(0, 3).map((r) => r.join(' ')).join(', ')})`);
   s = await waitFor((s) => s.renders > 0 && s.showing === 'avatar', 'the instant avatar on screen');

@@ -599,7 +599,7 @@ fn refit_photo(
     dev: &Device,
 ) -> Result<Option<(RefitMetrics, RiggedAvatar)>> {
     let t = std::time::Instant::now();
-    let (refined, rigged) = match block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev)) {
+    let (refined, rigged) = match block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev, dev)) {
         Ok(r) => r,
         Err(e) => {
             eprintln!("the body fit was not refined on the guess's outline ({e}); it stays as fitted");

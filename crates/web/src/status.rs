@@ -158,6 +158,9 @@ pub struct ReconstructStatus {
     pub first_psnr_db: f32,
     /// Cancelled after this many steps, the avatar being that state (0: not).
     pub stopped_at: usize,
+    /// The photo's body fit refined on the first guess's outline: β₁ before and after (both 0:
+    /// not refined).
+    pub refit_beta1: [f32; 2],
     /// Every step's weighted loss, in order (this run's).
     pub losses: Vec<f32>,
     /// The last step's mask IoU with the person mask.

@@ -116,6 +116,12 @@ impl PhotoPanel {
     pub(super) fn fitted(&self) -> Option<(&Photo, &BodyFit)> {
         Some((self.photo.as_ref()?, self.fit.as_ref()?))
     }
+
+    /// The fit refined by the reconstruction (on its guess's outline) in place of this one;
+    /// the one it replaces. The overlay stays the first fit's.
+    pub(super) fn replace_fit(&mut self, fit: BodyFit) -> Option<BodyFit> {
+        self.fit.replace(fit)
+    }
 }
 
 impl GetAvatarApp {

@@ -11,6 +11,7 @@ use std::rc::Rc;
 
 use eframe::egui;
 
+use getavatar_core::body::body_fit::fit::BodyFit;
 use getavatar_core::reconstruction::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
 
 use super::GetAvatarApp;
@@ -224,6 +225,10 @@ impl GetAvatarApp {
         if let Some(n) = r.pti_steps {
             options.pti_steps = n;
         }
+        // The refinement after the guess starts from the fit the guess refined.
+        if !first {
+            options.refit_steps = 0;
+        }
         // The encoder's guess first, as an avatar of its own, then the refinement from it.
         let guess_first = first && r.start == StartChoice::Encoder && options.steps + options.pti_steps > 0;
         self.recon.refine = guess_first.then(|| r.clone());
@@ -336,6 +341,7 @@ impl GetAvatarApp {
                 ReconstructEvent::Preview(pv) => self.show_preview(ctx, &pv),
                 ReconstructEvent::Finished(r) => {
                     let refine = self.recon.refine.take();
+                    self.use_refined_fit(r.refit.as_ref());
                     self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
                     self.rigged = Some(r.rigged);
                     let has_photo = r.projection.is_some();
@@ -437,6 +443,18 @@ impl GetAvatarApp {
         if task.finished() && self.recon.task.as_ref().is_some_and(|t| t.same(&task)) {
             self.recon.task = None;
         }
+    }
+
+    /// The photo's body fit refined on the guess's outline becomes the app's: the body, the
+    /// photo's fit (a refinement that follows starts from it) and the status.
+    fn use_refined_fit(&mut self, fit: Option<&BodyFit>) {
+        let Some(fit) = fit else { return };
+        let b1 = |f: &BodyFit| f.betas.get(1).copied().unwrap_or(0.0);
+        let before = self.photo.replace_fit(fit.clone()).as_ref().map_or(f32::NAN, b1);
+        self.status.reconstruct.refit_beta1 = [before, b1(fit)];
+        self.params = fit.body_params();
+        self.mesh_dirty = true;
+        self.render_dirty = true;
     }
 
     /// A render at the photo's camera beside the photo, in the panel.

@@ -19,8 +19,8 @@ use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
 use getavatar_core::generator::rigging::RiggedAvatar;
 use getavatar_core::reconstruction::encoder::load_encoder;
 use getavatar_core::reconstruction::inversion::{
-    choose_start_async, encoder_start, mask_iou, masked_psnr, render_images_async, start_candidates, InversionOptions,
-    InversionTarget, Inverter, StartCandidate, StepReport,
+    choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images_async, start_candidates,
+    InversionOptions, InversionTarget, Inverter, StartCandidate, StepReport,
 };
 use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
@@ -117,6 +117,9 @@ pub struct Reconstructed {
     pub rigged: RiggedAvatar,
     /// The photo and its projection onto the avatar, for the bake and "Save reconstruction".
     pub projection: Option<Rc<Projected>>,
+    /// The photo's body fit refined on the start's outline (None: not refined): the app's
+    /// body and photo fit become it.
+    pub refit: Option<BodyFit>,
     /// At the photo's camera: the avatar's mask IoU with the person mask, masked PSNR (dB)
     /// (None for a reconstruction opened from its file).
     pub fit: Option<(f32, f32)>,
@@ -233,7 +236,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
-    let projection = match &job.projection {
+    let projection = match inv.projection(job) {
         Some(source) => {
             yield_to_browser().await;
             match source.crop() {
@@ -248,6 +251,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         styles: inv.styles,
         rigged,
         projection,
+        refit: inv.refit,
         fit: inv.fit,
         opened: None,
         millis: 0.0,
@@ -276,6 +280,19 @@ pub(crate) struct Inverted<'a> {
     pub finish_ms: f64,
     /// Cancelled after this many steps (None: all done).
     pub stopped_at: Option<usize>,
+    /// The photo's body fit refined on the start's outline (None: not refined).
+    pub refit: Option<BodyFit>,
+}
+
+impl Inverted<'_> {
+    /// The job's photo for the projection, with the refined fit's camera and body.
+    pub(crate) fn projection(&self, job: &InversionJob) -> Option<ProjectionSource> {
+        let src = job.projection.clone()?;
+        Some(match &self.refit {
+            Some(fit) => ProjectionSource { fit: fit.clone(), ..src },
+            None => src,
+        })
+    }
 }
 
 /// The inversion itself (start, W+ and PTI steps, the final figures, which a job without
@@ -304,8 +321,26 @@ pub(crate) async fn invert<'a>(
     if out.cancelled() {
         return Ok(None);
     }
-    let (start, candidates, note) = choose_start(job, &g, modes.as_ref(), ctx, dev).await?;
-    let mut inv = Inverter::new(g, ctx, disc, job.target.clone(), &start.styles, job.options.clone(), dev)
+    let (start, candidates, mut note) = choose_start(job, &g, modes.as_ref(), ctx, dev).await?;
+    // The photo's body fit refined on the start's outline (a photo's job; the fit on the CPU).
+    let mut target = job.target.clone();
+    let refit = match (&job.projection, job.options.refit_steps) {
+        (Some(src), steps) if steps > 0 => {
+            #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+            let cpu = Device::ndarray().autodiff();
+            match refit_to_start(&g, ctx, &start.styles, &src.fit, &mut target, steps, dev, &cpu).await {
+                Ok((fit, _)) => Some(fit),
+                Err(e) => {
+                    note =
+                        format!("{note}{}the body fit stays as fitted ({e})", if note.is_empty() { "" } else { "; " });
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
+    yield_to_browser().await;
+    let mut inv = Inverter::new(g, ctx, disc, target.clone(), &start.styles, job.options.clone(), dev)
         .map_err(|e| e.to_string())?;
     out.push(ReconstructEvent::Started {
         start: start.name.clone(),
@@ -345,17 +380,17 @@ pub(crate) async fn invert<'a>(
     let t_finish = now_ms();
     let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
     if defer && job.measure_after_result && inv.progress().0 == 0 {
-        let unmeasured = Some((inv, job.target.clone()));
-        return Ok(Some(Inverted { generator, styles, fit: None, unmeasured, finish_ms: 0.0, stopped_at }));
+        let unmeasured = Some((inv, target));
+        return Ok(Some(Inverted { generator, styles, fit: None, unmeasured, finish_ms: 0.0, stopped_at, refit }));
     }
-    let (fit, preview) = measure(&inv, &job.target).await?;
+    let (fit, preview) = measure(&inv, &target).await?;
     out.push(ReconstructEvent::Preview(Box::new(preview)));
     yield_to_browser().await;
     if stopped_at.is_none() && out.cancelled() {
         return Ok(None);
     }
     let finish_ms = now_ms() - t_finish;
-    Ok(Some(Inverted { generator, styles, fit: Some(fit), unmeasured: None, finish_ms, stopped_at }))
+    Ok(Some(Inverted { generator, styles, fit: Some(fit), unmeasured: None, finish_ms, stopped_at, refit }))
 }
 
 /// The result at the photo's camera: mask IoU and masked PSNR (dB) against `t`, and the render
@@ -499,6 +534,7 @@ pub(crate) async fn rig_saved(
         styles: inv.styles,
         rigged,
         projection,
+        refit: None,
         fit: None,
         opened: None,
         millis: 0.0,

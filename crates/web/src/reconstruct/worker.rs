@@ -137,6 +137,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
                 file_ms,
                 stopped_at: inv.stopped_at,
                 measuring: inv.unmeasured.is_some(),
+                refit: inv.refit.clone(),
             };
             post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
             // Measured once the page has shown it (Cancel: not at all).
@@ -230,7 +231,7 @@ async fn job<'a>(
     };
     let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else { return Ok(None) };
     let t = now_ms();
-    let photo = match &job.projection {
+    let photo = match inv.projection(&job) {
         Some(source) => {
             crate::task::yield_to_browser().await;
             source.crop().map(|p| p.source_photo())

@@ -400,7 +400,7 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at, measuring } => {
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at, measuring, refit } => {
             let Some(r) = slot.take() else { return };
             match u8_array(&data, "bytes") {
                 Some(bytes) => {
@@ -410,7 +410,7 @@ fn on_message(data: JsValue) {
                         let m = Measuring { task, repaint, shown: false, figures: None };
                         MEASURING.with(|s| *s.borrow_mut() = Some(m));
                     }
-                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at));
+                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at, refit));
                     release_when_idle();
                 }
                 None => {
@@ -468,6 +468,7 @@ async fn finish(
     fit: Option<(f32, f32)>,
     (figures_ms, file_ms): (f64, f64),
     stopped_at: Option<usize>,
+    refit: Option<getavatar_core::body::body_fit::fit::BodyFit>,
 ) {
     // Not in the task that copied the file out of the message.
     crate::task::yield_to_browser().await;
@@ -475,7 +476,7 @@ async fn finish(
     let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
         Ok(mut done) => {
             (done.fit, done.measuring) = (fit, fit.is_none());
-            done.stopped_at = stopped_at;
+            (done.stopped_at, done.refit) = (stopped_at, refit);
             done.millis = now_ms() - r.t0;
             let rig_ms = now_ms() - t;
             done.finish_ms = figures_ms + file_ms + rig_ms;

@@ -47,8 +47,11 @@ pub fn encoder_start(
 /// rigged, its outline fitted to the person mask of `target` (the photo in `fit`'s crop) from
 /// `fit`, and `target`'s camera and body replaced by the refined fit's. The bare body fitted
 /// to a clothed person comes out broad and the avatar built on it broader still; fitted with
-/// the avatar's own outline it comes in. Returns the refined fit and the rigged avatar (the
+/// the avatar's own outline it comes in. The avatar is generated on the generator's
+/// `device`, the fit runs on `fit_device` (an autodiff device; the browser's worker fits on
+/// the CPU, as the page fits the photo). Returns the refined fit and the rigged avatar (the
 /// avatar itself when no step follows).
+#[allow(clippy::too_many_arguments)]
 pub async fn refit_to_start(
     g: &Generator,
     ctx: &BodyContext,
@@ -57,6 +60,7 @@ pub async fn refit_to_start(
     target: &mut InversionTarget,
     steps: usize,
     device: &Device,
+    fit_device: &Device,
 ) -> Result<(BodyFit, RiggedAvatar), InversionError> {
     target.validate()?;
     let rigged = generate_rigged_async(g, ctx, styles, device).await?;
@@ -66,7 +70,7 @@ pub async fn refit_to_start(
     let options = RefitOptions { steps, ..RefitOptions::default() };
     let model = Arc::new(ctx.model.clone());
     let outline = rigged.outline_mesh(ctx);
-    let refit = refit_on_outline(model, fit, &target.mask, target.res, &outline, &options, device)
+    let refit = refit_on_outline(model, fit, &target.mask, target.res, &outline, &options, fit_device)
         .await
         .map_err(|e| InversionError::Refit(e.to_string()))?;
     let mut body = refit.body_params();
