@@ -45,7 +45,7 @@ impl Default for RefitOptions {
 impl FitInput {
     /// What `fit` was fitted to, as far as `fit.json` keeps it (the landmarks where they
     /// were seen, not the detector's 3D reading), with the person `mask` of the fit's crop at
-    /// `size`².
+    /// its options' `silhouette_size`².
     pub fn from_fit(fit: &BodyFit, mask: Vec<f32>) -> Self {
         let points = fit.keypoints.iter().map(|k| (fit.framing.to_ndc(k.observed), k.visibility)).collect();
         Self {
