@@ -39,14 +39,17 @@ use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset}
 use getavatar_core::io::scan::RenderableScan;
 use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
 use getavatar_core::reconstruction::inversion::{
-    choose_start_async, comparison_image, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images,
-    start_candidates, InversionOptions, InversionTarget, Inverter, Phase,
+    comparison_image, mask_iou, masked_psnr, render_images, InversionOptions, InversionTarget, Inverter, Phase,
 };
 use getavatar_core::render::camera::{OrbitCamera, View};
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
 use getavatar_core::render::rasterize::{render_views_textured, Texture};
 use glam::{Mat4, Vec3};
 use serde::Serialize;
+
+mod start;
+
+use start::{first_guess, start_views, StartViews};
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
@@ -143,14 +146,17 @@ struct InvertMetrics {
     options: InversionOptions,
     start: String,
     start_losses: Vec<(String, f32)>,
-    /// At the input camera: the start (the encoder's guess, or the chosen latent mode).
+    /// At the input camera: the start (the encoder's guess, or the chosen latent mode), on
+    /// the body the steps start from (the refitted one, where the fit was refitted).
     at_start: ViewMetrics,
     /// The body fit's refinement on the guess's outline (a photo, `refit_steps` > 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     refit: Option<RefitMetrics>,
-    /// Seconds from the command's start to the first avatar (the start rendered at the input
-    /// camera), and to the end.
+    /// Seconds from the command's start to the first avatar: the start rendered at the input
+    /// camera on the body as first fitted (before the refit: what the app shows first).
     seconds_to_first_avatar: f64,
+    /// At the input camera: that first avatar.
+    first_avatar: ViewMetrics,
     perceptual: bool,
     /// At the input camera: after W+ and after PTI.
     after_w: ViewMetrics,
@@ -432,21 +438,9 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     let (start, start_styles, start_losses) =
         first_guess(a, &g, modes.as_ref(), &ctx, &target, shipped_g.then_some(&cfg), &dev)?;
     let seconds_start = ts.elapsed().as_secs_f64();
-    // The photo's body fit refined on the guess's clothed outline (a photo only).
-    let (refit, rigged_start) = match (&photo_fit, opts.refit_steps) {
-        (Some(fit), steps) if steps > 0 => {
-            refit_photo(a, &g, &ctx, &start_styles, fit, &mut target, steps, &dev)?.unzip()
-        }
-        _ => (None, None),
-    };
-    let (rgb0, mask0) = render_at(&g, &ctx, &start_styles, &target.view, target.res, &dev)?;
-    let at_start = view_metrics(&target, &rgb0, &mask0);
-    let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
-    write_png(&a.out.join("input_view_start.png"), &rgba(&rgb0, &mask0), target.res, 4)?;
-    eprintln!(
-        "start: {start} ({seconds_start:.1} s); first avatar after {seconds_to_first_avatar:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
-        at_start.mask_iou, at_start.psnr_db
-    );
+    eprintln!("start: {start} ({seconds_start:.1} s)");
+    let StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb: rgb0, mask: mask0, refit, rigged_start } =
+        start_views(a, &g, &ctx, &start_styles, photo_fit.as_ref(), &mut target, &opts, &dev, t0)?;
 
     let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &start_styles, opts.clone(), &dev)?;
     let perceptual = inv.has_perceptual();
@@ -530,6 +524,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         at_start,
         refit,
         seconds_to_first_avatar,
+        first_avatar,
         perceptual,
         after_w: if opts.steps > 0 { after_w.unwrap_or(final_m) } else { at_start },
         after_pti: (opts.pti_steps > 0).then_some(final_m),
@@ -553,74 +548,6 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     Ok(())
-}
-
-/// The start's name, codes and (a search) each candidate's loss.
-type FirstGuess = (String, Styles, Vec<(String, f32)>);
-
-/// Where the codes start: the encoder's guess (`--encoder`, else the shipped one), or the
-/// latent mode (or w_avg) that explains the image best; its name and the candidates' losses.
-fn first_guess(
-    a: &InvertArgs,
-    g: &Generator,
-    modes: Option<&getavatar_core::generator::pipeline::LatentModes>,
-    ctx: &BodyContext,
-    target: &InversionTarget,
-    shipped: Option<&GeneratorConfig>,
-    dev: &Device,
-) -> Result<FirstGuess> {
-    Ok(match load_encoder_arg(a, g, shipped, dev) {
-        Some((enc, path)) => {
-            let styles = encoder_start(&enc, g, &ctx.model, target, dev)
-                .with_context(|| format!("the encoder {}", path.display()))?;
-            ("encoder".to_string(), styles, Vec::new())
-        }
-        None => {
-            let cands = start_candidates(g, modes);
-            let (best, losses) = block_on_ready(choose_start_async(g, ctx, target, &cands, dev))?;
-            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
-            (cands[best].name.clone(), cands[best].styles.clone(), all)
-        }
-    })
-}
-
-/// The photo's body fit refined on the guess's outline (`refit_to_start`), written to
-/// `fit_refined.json`; `target` takes its camera and body. When it cannot be refined (the
-/// guess has no surface) the fit stays as it was, and the message says why.
-#[allow(clippy::too_many_arguments)]
-fn refit_photo(
-    a: &InvertArgs,
-    g: &Generator,
-    ctx: &BodyContext,
-    styles: &Styles,
-    fit: &BodyFit,
-    target: &mut InversionTarget,
-    steps: usize,
-    dev: &Device,
-) -> Result<Option<(RefitMetrics, RiggedAvatar)>> {
-    let t = std::time::Instant::now();
-    let (refined, rigged) = match block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev, dev)) {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("the body fit was not refined on the guess's outline ({e}); it stays as fitted");
-            return Ok(None);
-        }
-    };
-    write_atomic(&a.out.join("fit_refined.json"), refined.to_json()?.as_bytes())?;
-    let r = RefitMetrics {
-        steps,
-        seconds: t.elapsed().as_secs_f64(),
-        betas_before: fit.betas.clone(),
-        betas_after: refined.betas.clone(),
-    };
-    let b1 = |b: &[f32]| b.get(1).copied().unwrap_or(0.0);
-    eprintln!(
-        "body refitted on the guess's outline in {:.1} s: β₁ {:.2} → {:.2} (fit_refined.json)",
-        r.seconds,
-        b1(&fit.betas),
-        b1(&refined.betas)
-    );
-    Ok(Some((r, rigged)))
 }
 
 /// The preset's options with `--options` (JSON fields) and `--steps` / `--pti-steps` over them.

@@ -1,0 +1,144 @@
+//! Where `trainer invert`'s codes start and how the first avatar is shown: the encoder's guess
+//! (or the latent-mode search), rendered on the body as first fitted, then on the body
+//! refitted to its outline.
+
+use anyhow::{Context, Result};
+use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::generator::rigging::RiggedAvatar;
+use getavatar_core::reconstruction::inversion::{
+    choose_start_async, encoder_start, refit_to_start, start_candidates, InversionOptions, InversionTarget,
+};
+
+use super::{load_encoder_arg, render_at, rgba, view_metrics, InvertArgs, RefitMetrics, ViewMetrics};
+use crate::atomic::write_atomic;
+use crate::model_io::write_png;
+
+/// The start at the input camera: the first avatar (the body as first fitted) and, with a
+/// photo's fit and `refit_steps`, the start again on the body refitted to its outline.
+pub(super) struct StartViews {
+    pub(super) first_avatar: ViewMetrics,
+    pub(super) seconds_to_first_avatar: f64,
+    /// At the body the steps start from, with its render (RGB, mask).
+    pub(super) at_start: ViewMetrics,
+    pub(super) rgb: Vec<f32>,
+    pub(super) mask: Vec<f32>,
+    pub(super) refit: Option<RefitMetrics>,
+    /// The refit's rigged guess (exported as it is when no step follows).
+    pub(super) rigged_start: Option<RiggedAvatar>,
+}
+
+/// Render the start as the first avatar (`input_view_first.png`, seconds from `t0`), refit the
+/// photo's body fit on its outline (`target` takes the refitted camera and body), render it
+/// again (`input_view_start.png`).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn start_views(
+    a: &InvertArgs,
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    photo_fit: Option<&BodyFit>,
+    target: &mut InversionTarget,
+    opts: &InversionOptions,
+    dev: &Device,
+    t0: std::time::Instant,
+) -> Result<StartViews> {
+    let (mut rgb, mut mask) = render_at(g, ctx, styles, &target.view, target.res, dev)?;
+    let first_avatar = view_metrics(target, &rgb, &mask);
+    let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
+    write_png(&a.out.join("input_view_first.png"), &rgba(&rgb, &mask), target.res, 4)?;
+    eprintln!(
+        "first avatar after {seconds_to_first_avatar:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
+        first_avatar.mask_iou, first_avatar.psnr_db
+    );
+    let (refit, rigged_start) = match (photo_fit, opts.refit_steps) {
+        (Some(fit), steps) if steps > 0 => refit_photo(a, g, ctx, styles, fit, target, steps, dev)?.unzip(),
+        _ => (None, None),
+    };
+    let at_start = if refit.is_some() {
+        (rgb, mask) = render_at(g, ctx, styles, &target.view, target.res, dev)?;
+        let m = view_metrics(target, &rgb, &mask);
+        eprintln!(
+            "the start on the refitted body after {:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
+            t0.elapsed().as_secs_f64(),
+            m.mask_iou,
+            m.psnr_db
+        );
+        m
+    } else {
+        first_avatar
+    };
+    write_png(&a.out.join("input_view_start.png"), &rgba(&rgb, &mask), target.res, 4)?;
+    Ok(StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb, mask, refit, rigged_start })
+}
+
+/// The start's name, codes and (a search) each candidate's loss.
+pub(super) type FirstGuess = (String, Styles, Vec<(String, f32)>);
+
+/// Where the codes start: the encoder's guess (`--encoder`, else the shipped one), or the
+/// latent mode (or w_avg) that explains the image best; its name and the candidates' losses.
+pub(super) fn first_guess(
+    a: &InvertArgs,
+    g: &Generator,
+    modes: Option<&LatentModes>,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    shipped: Option<&GeneratorConfig>,
+    dev: &Device,
+) -> Result<FirstGuess> {
+    Ok(match load_encoder_arg(a, g, shipped, dev) {
+        Some((enc, path)) => {
+            let styles = encoder_start(&enc, g, &ctx.model, target, dev)
+                .with_context(|| format!("the encoder {}", path.display()))?;
+            ("encoder".to_string(), styles, Vec::new())
+        }
+        None => {
+            let cands = start_candidates(g, modes);
+            let (best, losses) = block_on_ready(choose_start_async(g, ctx, target, &cands, dev))?;
+            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
+            (cands[best].name.clone(), cands[best].styles.clone(), all)
+        }
+    })
+}
+
+/// The photo's body fit refined on the guess's outline (`refit_to_start`), written to
+/// `fit_refined.json`; `target` takes its camera and body. When it cannot be refined (the
+/// guess has no surface) the fit stays as it was, and the message says why.
+#[allow(clippy::too_many_arguments)]
+fn refit_photo(
+    a: &InvertArgs,
+    g: &Generator,
+    ctx: &BodyContext,
+    styles: &Styles,
+    fit: &BodyFit,
+    target: &mut InversionTarget,
+    steps: usize,
+    dev: &Device,
+) -> Result<Option<(RefitMetrics, RiggedAvatar)>> {
+    let t = std::time::Instant::now();
+    let (refined, rigged) = match block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev, dev)) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("the body fit was not refined on the guess's outline ({e}); it stays as fitted");
+            return Ok(None);
+        }
+    };
+    write_atomic(&a.out.join("fit_refined.json"), refined.to_json()?.as_bytes())?;
+    let r = RefitMetrics {
+        steps,
+        seconds: t.elapsed().as_secs_f64(),
+        betas_before: fit.betas.clone(),
+        betas_after: refined.betas.clone(),
+    };
+    let b1 = |b: &[f32]| b.get(1).copied().unwrap_or(0.0);
+    eprintln!(
+        "body refitted on the guess's outline in {:.1} s: β₁ {:.2} → {:.2} (fit_refined.json)",
+        r.seconds,
+        b1(&fit.betas),
+        b1(&refined.betas)
+    );
+    Ok(Some((r, rigged)))
+}
