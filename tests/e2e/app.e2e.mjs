@@ -433,11 +433,13 @@ try {
   check(rec.state === 'done' && rec.start === "the encoder's guess" && rec.losses.length === 0,
     `instant: the avatar is the shipped encoder's guess, no step (${rec.state}, start "${rec.start}", ${rec.losses.length} steps: ${rec.message})`);
   check(/^WebGPU/.test(rec.device) && rec.runs_in === 'worker', `the guess is made in the worker on its WebGPU device (${rec.runs_in}: ${rec.device})`);
-  // The worker hands the guess over first and renders it for the figures while the page
-  // rigs and shows it.
-  check(rec.first_avatar_ms > 0 && rec.first_avatar_ms < rec.total_ms && /after it: figures/.test(rec.finish_detail),
-    `instant: the avatar is on screen before its figures (${(rec.first_avatar_ms / 1000).toFixed(1)} s, figures at ${(rec.total_ms / 1000).toFixed(1)} s: ${rec.finish_detail})`);
-  check(rec.mask_iou >= 0.75 && rec.first_mask_iou === rec.mask_iou,
+  // The guess on the body as first fitted is on screen first (unmeasured: its figures are
+  // null), then the guess on the body refitted to its outline; the worker hands that over and
+  // renders it for the figures while the page rigs and shows it.
+  check(rec.first_avatar_ms > 0 && rec.first_avatar_ms < rec.total_ms && rec.first_mask_iou === null && /after it: figures/.test(rec.finish_detail),
+    `instant: the guess is on screen before the refit and the figures (${(rec.first_avatar_ms / 1000).toFixed(1)} s, figures at ${(rec.total_ms / 1000).toFixed(1)} s: ${rec.finish_detail})`);
+  check(rec.first_avatar_ms <= 90000, `instant: the first avatar within 90 s of the command on SwiftShader (${(rec.first_avatar_ms / 1000).toFixed(1)} s)`);
+  check(rec.mask_iou >= 0.75,
     `instant: the avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.75), masked PSNR ${rec.psnr_db.toFixed(1)} dB`);
   // The photo's body fit was refined on the guess's clothed outline, and the app's body is it.
   check(rec.refit_beta1[0] !== rec.refit_beta1[1] && rec.refit_beta1.every(Number.isFinite),

@@ -24,6 +24,8 @@ const sizes = (process.argv[2] ?? '64,128').split(',').map(Number);
 const steps = Number(process.argv[3] ?? 4);
 const ptiSteps = Number(process.argv[4] ?? 3);
 const devices = (process.argv[5] ?? 'cpu,webgpu').split(',');
+// A figure, or "–" where there is none (the encoder's guess is shown unmeasured before the refit).
+const fixed = (x, digits) => (x == null ? '–' : x.toFixed(digits));
 const browser = await launchChromium();
 const page = await (await browser.newContext({ viewport: { width: 1280, height: 800 } })).newPage();
 page.on('console', (m) => { if (m.type() === 'error') console.log(`console error: ${m.text()}`); });
@@ -66,7 +68,7 @@ console.log(`reconstruction in the browser (page adapter ${st.adapter}, ${st.bac
 console.log('| device | render size | first avatar s | ms per W+ step | ms per PTI step | start (load, encoder) s | finish s | total s | mask IoU first → last | masked PSNR first → last |');
 console.log('|---|---|---|---|---|---|---|---|---|---|');
 for (const { device, res, r, wallS } of rows) {
-  console.log(`| ${device} (${r.device}) | ${res}² | ${(r.first_avatar_ms / 1000).toFixed(1)} | ${r.ms_per_latent_step.toFixed(0)} | ${r.ms_per_pivotal_step.toFixed(0)} | ${(r.start_ms / 1000).toFixed(1)} | ${(r.finish_ms / 1000).toFixed(1)} | ${wallS.toFixed(1)} | ${r.first_mask_iou.toFixed(3)} → ${r.mask_iou.toFixed(3)} | ${r.first_psnr_db.toFixed(2)} → ${r.psnr_db.toFixed(2)} dB |`);
+  console.log(`| ${device} (${r.device}) | ${res}² | ${(r.first_avatar_ms / 1000).toFixed(1)} | ${r.ms_per_latent_step.toFixed(0)} | ${r.ms_per_pivotal_step.toFixed(0)} | ${(r.start_ms / 1000).toFixed(1)} | ${(r.finish_ms / 1000).toFixed(1)} | ${wallS.toFixed(1)} | ${fixed(r.first_mask_iou, 3)} → ${r.mask_iou.toFixed(3)} | ${fixed(r.first_psnr_db, 2)} → ${r.psnr_db.toFixed(2)} dB |`);
 }
 for (const res of sizes) {
   const [c, w] = ['cpu', 'webgpu'].map((d) => rows.find((x) => x.device === d && x.res === res));

@@ -83,6 +83,9 @@ pub enum PhotoEvent {
     Progress(FitProgress),
     /// The fit, its time and its overlay.
     Fitted(Box<FittedView>),
+    /// The overlay of a fit refined elsewhere (the reconstruction's refit on its guess's
+    /// outline), which the app has already applied.
+    Overlay(Box<FittedView>),
     Cancelled,
 }
 
@@ -338,6 +341,25 @@ async fn fit_async(
     checkpoint().await;
     let (body_image, masks_json) = overlay(&fit, &model, &req.result, req.preview).await;
     Ok(Some(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
+}
+
+/// The overlay of `fit`, a fit refined elsewhere (the reconstruction's refit), made in a task
+/// of its own ([`PhotoEvent::Overlay`]): posing and rasterizing the body is ~50 ms.
+pub fn refined_overlay(
+    fit: BodyFit,
+    model: Arc<BodyModel>,
+    result: PoseResult,
+    preview: [usize; 2],
+    repaint: egui::Context,
+) -> PhotoTask {
+    let task = PhotoTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        crate::task::yield_to_browser().await;
+        let (body_image, masks_json) = overlay(&fit, &model, &result, preview).await;
+        t.push(PhotoEvent::Overlay(Box::new(FittedView { fit, millis: 0.0, body_image, masks_json })), &repaint);
+    });
+    task
 }
 
 thread_local! {

@@ -152,7 +152,9 @@ pub struct ReconstructStatus {
     /// The device they run on, in words ("CPU (burn NdArray in the worker; …)", "WebGPU: …").
     pub device: String,
     /// Milliseconds from "Reconstruct" to the first avatar on screen (the start's, shown
-    /// before any refinement), and its mask IoU and masked PSNR (dB) at the photo's camera.
+    /// before any refinement), and its mask IoU and masked PSNR (dB) at the photo's camera
+    /// (NaN, null in JSON: the encoder's guess shown unmeasured, before the body's refit on
+    /// its outline and the stage that measures).
     pub first_avatar_ms: f32,
     pub first_mask_iou: f32,
     pub first_psnr_db: f32,

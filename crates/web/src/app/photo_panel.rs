@@ -116,12 +116,6 @@ impl PhotoPanel {
     pub(super) fn fitted(&self) -> Option<(&Photo, &BodyFit)> {
         Some((self.photo.as_ref()?, self.fit.as_ref()?))
     }
-
-    /// The fit refined by the reconstruction (on its guess's outline) in place of this one;
-    /// the one it replaces. The overlay stays the first fit's.
-    pub(super) fn replace_fit(&mut self, fit: BodyFit) -> Option<BodyFit> {
-        self.fit.replace(fit)
-    }
 }
 
 impl GetAvatarApp {
@@ -237,6 +231,18 @@ impl GetAvatarApp {
         self.messages.push(message);
     }
 
+    /// The fit refined by the reconstruction (on its guess's outline) in place of the photo's,
+    /// its overlay redrawn (unless a detection or fit runs, which brings its own); the one it
+    /// replaces.
+    pub(super) fn replace_photo_fit(&mut self, fit: BodyFit) -> Option<BodyFit> {
+        if let (Some(p), Some(model), None) = (&self.photo.photo, &self.body, &self.photo.task) {
+            let (result, preview) = (p.result.clone(), p.preview.size);
+            let task = photo::refined_overlay(fit.clone(), model.clone(), result, preview, self.ctx.clone());
+            self.photo.task = Some((TaskKind::Fit, task));
+        }
+        self.photo.fit.replace(fit)
+    }
+
     /// Drain the running task's events; start what they lead to.
     pub(super) fn poll_photo(&mut self, ctx: &egui::Context) {
         if let Some((fit, ms)) = self.photo.to_apply.take() {
@@ -257,6 +263,11 @@ impl GetAvatarApp {
                 }
                 PhotoEvent::Detected(p) => self.photo_detected(*p, ctx),
                 PhotoEvent::Fitted(view) => self.photo_fitted(*view, ctx),
+                PhotoEvent::Overlay(view) => {
+                    let image = ctx.load_texture("fitted body", view.body_image, egui::TextureOptions::LINEAR);
+                    self.photo.body = Some(image);
+                    photo::publish_masks(view.masks_json);
+                }
                 PhotoEvent::Failed(e) => self.fail_photo(e),
                 PhotoEvent::Cancelled => {
                     self.status.photo.state = "cancelled".into();

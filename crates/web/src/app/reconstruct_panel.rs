@@ -20,7 +20,7 @@ use crate::generate::TextureField;
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
 use crate::reconstruct::{
     open, reconstruct, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
-    ReconstructTask,
+    ReconstructTask, Reconstructed,
 };
 
 /// Side of the photo crop that the colour projection samples, pixels.
@@ -41,6 +41,8 @@ pub(super) struct ReconstructPanel {
     refine: Option<Reconstruction>,
     /// When "Reconstruct" was pressed (ms, the page's clock), for the time to the first avatar.
     t_click: f64,
+    /// The result being measured after it was shown is the first avatar (else a later stage's).
+    measuring_first: bool,
 }
 
 impl Default for ReconstructPanel {
@@ -53,6 +55,7 @@ impl Default for ReconstructPanel {
             latent: (0, 0.0),
             refine: None,
             t_click: 0.0,
+            measuring_first: true,
         }
     }
 }
@@ -225,15 +228,17 @@ impl GetAvatarApp {
         if let Some(n) = r.pti_steps {
             options.pti_steps = n;
         }
-        // The refinement after the guess starts from the fit the guess refined.
-        if !first {
-            options.refit_steps = 0;
-        }
-        // The encoder's guess first, as an avatar of its own, then the refinement from it.
-        let guess_first = first && r.start == StartChoice::Encoder && options.steps + options.pti_steps > 0;
+        // The encoder's guess first, as an avatar of its own (unmeasured, on the body as
+        // first fitted), then the stage that refits the body on the guess's outline and
+        // refines from it. (Without an encoder the start is the search: one stage.)
+        let refits = options.refit_steps > 0 && projection.is_some();
+        let guess_first = first
+            && r.start == StartChoice::Encoder
+            && files.encoder.is_ok()
+            && (refits || options.steps + options.pti_steps > 0);
         self.recon.refine = guess_first.then(|| r.clone());
         if guess_first {
-            (options.steps, options.pti_steps) = (0, 0);
+            (options.steps, options.pti_steps, options.refit_steps) = (0, 0, 0);
         }
         let mut note = String::new();
         let discriminator = match (r.perceptual, files.discriminator) {
@@ -249,6 +254,9 @@ impl GetAvatarApp {
         }
         let s = &mut self.status.reconstruct;
         let message = match r.start {
+            _ if !first && options.steps + options.pti_steps == 0 => {
+                format!("fitting the body to the encoder's guess's outline…{note}")
+            }
             _ if !first => format!("refining the encoder's guess…{note}"),
             StartChoice::Encoder => format!("the photo encoder's guess…{note}"),
             StartChoice::Search => format!("choosing the start among the model's subjects…{note}"),
@@ -285,6 +293,7 @@ impl GetAvatarApp {
             compute: r.compute,
             // The guess alone (`instant`): on screen before its figures.
             measure_after_result: self.recon.refine.is_none() && steps_total == 0,
+            figures: !guess_first,
         };
         let req = ReconstructRequest { job, ctx, device };
         self.recon.target = Some(target);
@@ -339,83 +348,7 @@ impl GetAvatarApp {
                     }
                 }
                 ReconstructEvent::Preview(pv) => self.show_preview(ctx, &pv),
-                ReconstructEvent::Finished(r) => {
-                    let refine = self.recon.refine.take();
-                    self.use_refined_fit(r.refit.as_ref());
-                    self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
-                    self.rigged = Some(r.rigged);
-                    let has_photo = r.projection.is_some();
-                    self.field = Some(Rc::new(TextureField::reconstructed(r.generator, r.styles, r.projection)));
-                    // The bake belongs to the previous avatar.
-                    self.baked = None;
-                    self.show_avatar = true;
-                    self.mesh_dirty = true;
-                    self.avatar_dirty = true;
-                    self.avatar_name = "reconstruction".into();
-                    let s = &mut self.status.reconstruct;
-                    s.state = "done".into();
-                    s.has_photo = has_photo;
-                    s.eta_s = 0.0;
-                    match (&r.opened, r.fit) {
-                        (Some(name), _) => {
-                            s.opened += 1;
-                            s.message = format!(
-                                "opened {name} in {:.0} s{}",
-                                r.millis / 1000.0,
-                                if has_photo { ", with its photo projected on" } else { " (it keeps no photo)" }
-                            );
-                        }
-                        (None, _) if r.measuring => {
-                            let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
-                            (s.first_avatar_ms, s.state) = (since_click, "measuring".into());
-                            (s.finish_ms, s.finish_detail) = (r.finish_ms as f32, r.finish_detail.clone());
-                            s.message = format!(
-                                "the encoder's guess in {:.1} s; measuring it at the photo's camera…",
-                                since_click / 1000.0
-                            );
-                        }
-                        (None, fit) => {
-                            let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
-                            let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
-                            if s.first_avatar_ms == 0.0 {
-                                (s.first_avatar_ms, s.first_mask_iou, s.first_psnr_db) = (since_click, iou, psnr);
-                            }
-                            (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, since_click);
-                            s.finish_ms = r.finish_ms as f32;
-                            s.finish_detail = r.finish_detail.clone();
-                            let figures = format!("mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera");
-                            match (r.stopped_at, &refine) {
-                                (Some(k), _) => {
-                                    s.state = "cancelled".into();
-                                    s.stopped_at = k;
-                                    s.message = format!(
-                                        "cancelled after {k} of {} steps: the avatar is the last preview ({figures})",
-                                        s.steps_total
-                                    );
-                                }
-                                (None, Some(_)) => {
-                                    s.state = "starting".into();
-                                    s.message = format!(
-                                        "the encoder's guess in {:.1} s ({figures}); refining it…",
-                                        since_click / 1000.0
-                                    );
-                                }
-                                (None, None) => {
-                                    s.done += 1;
-                                    s.message = format!(
-                                        "reconstructed in {:.0} s: {figures} (last step)",
-                                        since_click / 1000.0
-                                    );
-                                }
-                            }
-                        }
-                    }
-                    if let Some(next) = refine {
-                        if r.stopped_at.is_none() && r.opened.is_none() {
-                            self.start_stage(next, false);
-                        }
-                    }
-                }
+                ReconstructEvent::Finished(r) => self.reconstructed(*r),
                 ReconstructEvent::Measured(m) => self.measured(ctx, *m),
                 ReconstructEvent::Saved(bytes) => {
                     let name = format!("getavatar_{}.safetensors", self.avatar_name);
@@ -445,12 +378,95 @@ impl GetAvatarApp {
         }
     }
 
+    /// A finished stage: its avatar becomes the app's, the status says what it was, and the
+    /// refinement that waits for the guess (if any) starts.
+    fn reconstructed(&mut self, r: Reconstructed) {
+        let refine = self.recon.refine.take();
+        self.use_refined_fit(r.refit.as_ref());
+        self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
+        self.rigged = Some(r.rigged);
+        let has_photo = r.projection.is_some();
+        self.field = Some(Rc::new(TextureField::reconstructed(r.generator, r.styles, r.projection)));
+        // The bake belongs to the previous avatar.
+        self.baked = None;
+        self.show_avatar = true;
+        self.mesh_dirty = true;
+        self.avatar_dirty = true;
+        self.avatar_name = "reconstruction".into();
+        let s = &mut self.status.reconstruct;
+        s.state = "done".into();
+        s.has_photo = has_photo;
+        s.eta_s = 0.0;
+        match (&r.opened, r.fit) {
+            (Some(name), _) => {
+                s.opened += 1;
+                s.message = format!(
+                    "opened {name} in {:.0} s{}",
+                    r.millis / 1000.0,
+                    if has_photo { ", with its photo projected on" } else { " (it keeps no photo)" }
+                );
+            }
+            (None, _) if r.measuring => {
+                let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
+                self.recon.measuring_first = s.first_avatar_ms == 0.0;
+                if self.recon.measuring_first {
+                    s.first_avatar_ms = since_click;
+                }
+                s.state = "measuring".into();
+                (s.finish_ms, s.finish_detail) = (r.finish_ms as f32, r.finish_detail.clone());
+                s.message = format!(
+                    "{} in {:.1} s; measuring it at the photo's camera…",
+                    if self.recon.measuring_first { "the encoder's guess" } else { "on the refitted body" },
+                    since_click / 1000.0
+                );
+            }
+            (None, fit) => {
+                let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
+                let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
+                if s.first_avatar_ms == 0.0 {
+                    (s.first_avatar_ms, s.first_mask_iou, s.first_psnr_db) = (since_click, iou, psnr);
+                }
+                (s.mask_iou, s.psnr_db, s.total_ms) = (iou, psnr, since_click);
+                s.finish_ms = r.finish_ms as f32;
+                s.finish_detail = r.finish_detail.clone();
+                let figures = format!("mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera");
+                match (r.stopped_at, &refine) {
+                    (Some(k), _) => {
+                        s.state = "cancelled".into();
+                        s.stopped_at = k;
+                        s.message = format!(
+                            "cancelled after {k} of {} steps: the avatar is the last preview ({figures})",
+                            s.steps_total
+                        );
+                    }
+                    (None, Some(_)) => {
+                        s.state = "starting".into();
+                        let figures = if iou.is_finite() { format!(" ({figures})") } else { String::new() };
+                        s.message = format!(
+                            "the encoder's guess in {:.1} s{figures}; refining it (the body first)…",
+                            since_click / 1000.0
+                        );
+                    }
+                    (None, None) => {
+                        s.done += 1;
+                        s.message = format!("reconstructed in {:.0} s: {figures} (last step)", since_click / 1000.0);
+                    }
+                }
+            }
+        }
+        if let Some(next) = refine {
+            if r.stopped_at.is_none() && r.opened.is_none() {
+                self.start_stage(next, false);
+            }
+        }
+    }
+
     /// The photo's body fit refined on the guess's outline becomes the app's: the body, the
     /// photo's fit (a refinement that follows starts from it) and the status.
     fn use_refined_fit(&mut self, fit: Option<&BodyFit>) {
         let Some(fit) = fit else { return };
         let b1 = |f: &BodyFit| f.betas.get(1).copied().unwrap_or(0.0);
-        let before = self.photo.replace_fit(fit.clone()).as_ref().map_or(f32::NAN, b1);
+        let before = self.replace_photo_fit(fit.clone()).as_ref().map_or(f32::NAN, b1);
         self.status.reconstruct.refit_beta1 = [before, b1(fit)];
         self.params = fit.body_params();
         self.mesh_dirty = true;
@@ -475,15 +491,21 @@ impl GetAvatarApp {
         s.finish_ms += m.millis as f32;
         s.finish_detail = format!("{}; worker, after it: figures {:.1} s", s.finish_detail, m.millis / 1000.0);
         let first = s.first_avatar_ms / 1000.0;
+        // The guess shown first, or (after it) the guess on the body refitted to its outline.
+        let what = match self.recon.measuring_first {
+            true => format!("the encoder's guess in {first:.1} s"),
+            false => format!("the encoder's guess in {first:.1} s, then on the body refitted to its outline"),
+        };
         match m.figures {
             Ok(((iou, psnr), preview)) => {
-                (s.first_mask_iou, s.first_psnr_db, s.mask_iou, s.psnr_db) = (iou, psnr, iou, psnr);
-                s.message = format!(
-                    "the encoder's guess in {first:.1} s: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera"
-                );
+                (s.mask_iou, s.psnr_db) = (iou, psnr);
+                if self.recon.measuring_first {
+                    (s.first_mask_iou, s.first_psnr_db) = (iou, psnr);
+                }
+                s.message = format!("{what}: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera");
                 self.show_preview(ctx, &preview);
             }
-            Err(why) => s.message = format!("the encoder's guess in {first:.1} s ({why})"),
+            Err(why) => s.message = format!("{what} ({why})"),
         }
     }
 

@@ -56,6 +56,9 @@ pub struct InversionJob {
     /// photo's camera for the figures (a whole forward pass: 20 s on SwiftShader), so the
     /// avatar is on screen sooner; the figures follow ([`ReconstructEvent::Measured`]).
     pub measure_after_result: bool,
+    /// Whether a job without steps measures its result at all (false: the encoder's guess
+    /// shown before a stage that refits the body and measures its own result).
+    pub figures: bool,
 }
 
 /// The photo as the app holds it, with its body fit and person mask: the colour projection's
@@ -379,6 +382,17 @@ pub(crate) async fn invert<'a>(
 
     let t_finish = now_ms();
     let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
+    if !job.figures && inv.progress().0 == 0 {
+        return Ok(Some(Inverted {
+            generator,
+            styles,
+            fit: None,
+            unmeasured: None,
+            finish_ms: 0.0,
+            stopped_at,
+            refit,
+        }));
+    }
     if defer && job.measure_after_result && inv.progress().0 == 0 {
         let unmeasured = Some((inv, target));
         return Ok(Some(Inverted { generator, styles, fit: None, unmeasured, finish_ms: 0.0, stopped_at, refit }));

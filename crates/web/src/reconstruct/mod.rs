@@ -26,7 +26,7 @@ mod worker_client;
 use job::run_on_page;
 pub use job::{
     open, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
-    ReconstructTask,
+    ReconstructTask, Reconstructed,
 };
 
 /// Start a reconstruction; its events arrive on the returned task. It runs in the

@@ -47,6 +47,7 @@ pub(super) struct JobMeta {
     pub(super) res: usize,
     pub(super) projection: Option<ProjectionMeta>,
     pub(super) measure_after_result: bool,
+    pub(super) figures: bool,
 }
 
 /// A [`ProjectionSource`] without its arrays (`photo_rgb`, `photo_mask`).

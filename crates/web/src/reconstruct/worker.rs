@@ -228,6 +228,7 @@ async fn job<'a>(
         encoder,
         compute: meta.compute,
         measure_after_result: meta.measure_after_result,
+        figures: meta.figures,
     };
     let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else { return Ok(None) };
     let t = now_ms();

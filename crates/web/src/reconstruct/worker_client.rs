@@ -328,6 +328,7 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
         body: t.view.body.clone(),
         res: t.res,
         measure_after_result: job.measure_after_result,
+        figures: job.figures,
         projection: job.projection.as_ref().map(|p| ProjectionMeta {
             fit: p.fit.clone(),
             width: p.width,
