@@ -253,11 +253,15 @@ impl GetAvatarApp {
             options.perceptual = 0.0;
         }
         let s = &mut self.status.reconstruct;
+        // After the guess: how long it took, and what this stage does with it.
+        let after_guess =
+            |what: &str| format!("the encoder's guess in {:.1} s; {what}…{note}", s.first_avatar_ms / 1000.0);
         let message = match r.start {
-            _ if !first && options.steps + options.pti_steps == 0 => {
-                format!("fitting the body to the encoder's guess's outline…{note}")
+            _ if !first && refits && options.steps + options.pti_steps == 0 => {
+                after_guess("fitting the body to its outline")
             }
-            _ if !first => format!("refining the encoder's guess…{note}"),
+            _ if !first && refits => after_guess("fitting the body to its outline, then refining it"),
+            _ if !first => after_guess("refining it"),
             StartChoice::Encoder => format!("the photo encoder's guess…{note}"),
             StartChoice::Search => format!("choosing the start among the model's subjects…{note}"),
             StartChoice::Average => format!("starting from the average…{note}"),
