@@ -8,6 +8,7 @@
 //! every frame.
 
 use std::cell::RefCell;
+use std::rc::Rc;
 use std::sync::Arc;
 
 use eframe::egui;
@@ -18,8 +19,11 @@ use wasm_bindgen::JsCast;
 use getavatar_core::body::body_fit::fit::{BodyFit, BodyFitter, FitInput, FitOptions, FitProgress};
 use getavatar_core::body::body_fit::landmarks::PoseResult;
 use getavatar_core::body::body_fit::metrics::body_mask_rect;
+use getavatar_core::body::body_fit::refit::{finish_outline_refit, outline_refitter, RefitOptions};
 use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::rigging::RiggedAvatar;
 use getavatar_core::{BodyModel, BodyParams};
 
 use crate::automation::PhotoSource;
@@ -86,6 +90,8 @@ pub enum PhotoEvent {
     /// The overlay of a fit refined elsewhere (the reconstruction's refit on its guess's
     /// outline), which the app has already applied.
     Overlay(Box<FittedView>),
+    /// The photo's fit refined on an avatar's outline ([`refit`]), its time and its overlay.
+    Refitted(Box<FittedView>),
     Cancelled,
 }
 
@@ -341,6 +347,69 @@ async fn fit_async(
     checkpoint().await;
     let (body_image, masks_json) = overlay(&fit, &model, &req.result, req.preview).await;
     Ok(Some(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
+}
+
+/// What [`refit`] refines: the photo's `fit` on an avatar's outline, against the person
+/// `mask` of the fit's crop (`size`²).
+pub struct RefitRequest {
+    pub model: Arc<BodyModel>,
+    pub fit: BodyFit,
+    pub mask: Vec<f32>,
+    pub size: usize,
+    /// The avatar whose outline the body is fitted with, and the body context it was rigged in.
+    pub rigged: RiggedAvatar,
+    pub ctx: Rc<BodyContext>,
+    pub options: RefitOptions,
+    /// An autodiff device (`fit_device()`).
+    pub device: Device,
+    /// The photo's detection and preview size, which the overlay covers.
+    pub result: PoseResult,
+    pub preview: [usize; 2],
+}
+
+/// Refit the photo's body on an avatar's outline on the page, one step per await
+/// (`body_fit::refit`): the reconstruction's guess is already rigged here, so the refit needs
+/// no worker job. Ends in [`PhotoEvent::Refitted`] (or `Failed`, `Cancelled`).
+pub fn refit(req: RefitRequest, repaint: egui::Context) -> PhotoTask {
+    let task = PhotoTask::default();
+    let t = task.clone();
+    wasm_bindgen_futures::spawn_local(async move {
+        let event = match refit_async(req, &t, &repaint).await {
+            Ok(Some(view)) => PhotoEvent::Refitted(Box::new(view)),
+            Ok(None) => PhotoEvent::Cancelled,
+            Err(e) => PhotoEvent::Failed(format!("the body's refit on the guess's outline failed: {e}")),
+        };
+        t.push(event, &repaint);
+    });
+    task
+}
+
+async fn refit_async(
+    req: RefitRequest,
+    task: &PhotoTask,
+    repaint: &egui::Context,
+) -> Result<Option<FittedView>, getavatar_core::body::body_fit::fit::FitError> {
+    let t0 = now_ms();
+    crate::task::yield_to_browser().await;
+    let outline = req.rigged.outline_mesh(&req.ctx);
+    checkpoint().await;
+    let mut fitter =
+        outline_refitter(req.model.clone(), &req.fit, &req.mask, req.size, &outline, &req.options, &req.device).await?;
+    loop {
+        checkpoint().await;
+        if task.cancelled() {
+            return Ok(None);
+        }
+        match fitter.step().await? {
+            Some(p) => task.push(PhotoEvent::Progress(p), repaint),
+            None => break,
+        }
+    }
+    let fit = finish_outline_refit(&fitter, &req.fit).await?;
+    let millis = now_ms() - t0;
+    checkpoint().await;
+    let (body_image, masks_json) = overlay(&fit, &req.model, &req.result, req.preview).await;
+    Ok(Some(FittedView { fit, millis, body_image, masks_json }))
 }
 
 /// The overlay of `fit`, a fit refined elsewhere (the reconstruction's refit), made in a task

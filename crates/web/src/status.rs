@@ -132,8 +132,9 @@ pub struct PhotoStatus {
 /// The reconstruction's state (`status().reconstruct`).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct ReconstructStatus {
-    /// "none", "starting", "latent" (W+), "pivotal" (PTI), "finishing", "done", "failed" or
-    /// "cancelled".
+    /// "none", "starting", "refitting" (the body on the guess's outline, on the page),
+    /// "latent" (W+), "pivotal" (PTI), "finishing", "measuring" (the figures of a result on
+    /// screen), "done", "failed" or "cancelled".
     pub state: String,
     pub message: String,
     /// The preset's or the request's steps: done in both phases, and in all.
@@ -163,6 +164,12 @@ pub struct ReconstructStatus {
     /// The photo's body fit refined on the first guess's outline: β₁ before and after (both 0:
     /// not refined).
     pub refit_beta1: [f32; 2],
+    /// Where that refit ran ("page": on the guess already rigged there, "worker": inside the
+    /// stage's job, "": none), its milliseconds on the page, and the milliseconds from
+    /// "Reconstruct" to the guess on the refitted body on screen (0: not yet).
+    pub refit_on: String,
+    pub refit_ms: f32,
+    pub refitted_avatar_ms: f32,
     /// Every step's weighted loss, in order (this run's).
     pub losses: Vec<f32>,
     /// The last step's mask IoU with the person mask.

@@ -243,6 +243,18 @@ impl GetAvatarApp {
         self.photo.fit.replace(fit)
     }
 
+    /// A fit refined on the page ([`photo::refit`]) in place of the photo's, with the overlay
+    /// it brings; the one it replaces.
+    pub(super) fn install_refitted_fit(&mut self, view: photo::FittedView, ctx: &egui::Context) -> Option<BodyFit> {
+        self.show_fit_overlay(view.body_image, view.masks_json, ctx);
+        self.photo.fit.replace(view.fit)
+    }
+
+    fn show_fit_overlay(&mut self, body_image: egui::ColorImage, masks_json: String, ctx: &egui::Context) {
+        self.photo.body = Some(ctx.load_texture("fitted body", body_image, egui::TextureOptions::LINEAR));
+        photo::publish_masks(masks_json);
+    }
+
     /// Drain the running task's events; start what they lead to.
     pub(super) fn poll_photo(&mut self, ctx: &egui::Context) {
         if let Some((fit, ms)) = self.photo.to_apply.take() {
@@ -263,10 +275,8 @@ impl GetAvatarApp {
                 }
                 PhotoEvent::Detected(p) => self.photo_detected(*p, ctx),
                 PhotoEvent::Fitted(view) => self.photo_fitted(*view, ctx),
-                PhotoEvent::Overlay(view) => {
-                    let image = ctx.load_texture("fitted body", view.body_image, egui::TextureOptions::LINEAR);
-                    self.photo.body = Some(image);
-                    photo::publish_masks(view.masks_json);
+                PhotoEvent::Overlay(view) | PhotoEvent::Refitted(view) => {
+                    self.show_fit_overlay(view.body_image, view.masks_json, ctx)
                 }
                 PhotoEvent::Failed(e) => self.fail_photo(e),
                 PhotoEvent::Cancelled => {

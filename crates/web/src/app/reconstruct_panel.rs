@@ -12,11 +12,13 @@ use std::rc::Rc;
 use eframe::egui;
 
 use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_fit::refit::RefitOptions;
 use getavatar_core::reconstruction::inversion::{comparison_image, InversionOptions, InversionTarget, Phase};
 
 use super::GetAvatarApp;
 use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, StartChoice, RECONSTRUCT_PRESETS};
 use crate::generate::TextureField;
+use crate::photo::{self, PhotoEvent, PhotoTask, RefitRequest};
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
 use crate::reconstruct::{
     open, reconstruct, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
@@ -43,6 +45,15 @@ pub(super) struct ReconstructPanel {
     t_click: f64,
     /// The result being measured after it was shown is the first avatar (else a later stage's).
     measuring_first: bool,
+    /// The body's refit on the guess's outline, running on the page, and the stage that
+    /// follows it.
+    refit: Option<PhotoTask>,
+    after_refit: Option<Reconstruction>,
+    /// The stage after a finished page refit, started on the next frame (the frame that
+    /// installs the refitted body re-poses the avatar, tens of milliseconds on the UI thread).
+    pending: Option<Reconstruction>,
+    /// The body was refitted on the page: the stage that follows does not refit.
+    refitted_on_page: bool,
 }
 
 impl Default for ReconstructPanel {
@@ -56,18 +67,28 @@ impl Default for ReconstructPanel {
             refine: None,
             t_click: 0.0,
             measuring_first: true,
+            refit: None,
+            after_refit: None,
+            pending: None,
+            refitted_on_page: false,
         }
     }
 }
 
 impl ReconstructPanel {
     pub(super) fn running(&self) -> bool {
-        self.task.is_some()
+        self.task.is_some() || self.refit.is_some() || self.pending.is_some()
     }
 
     /// Stop the running reconstruction (it reports its cancellation); no refinement follows.
     pub(super) fn cancel(&mut self) -> bool {
         self.refine = None;
+        self.after_refit = None;
+        self.pending = None;
+        if let Some(t) = &self.refit {
+            t.cancel();
+            return true;
+        }
         match &self.task {
             Some(t) => {
                 t.cancel();
@@ -82,6 +103,11 @@ impl GetAvatarApp {
     pub(super) fn apply_reconstruct(&mut self, action: Action) {
         match action {
             Action::Reconstruct(r) => self.start_reconstruct(r),
+            // Between the page's refit and the stage after it: nothing runs to report it.
+            Action::ReconstructCancel if self.recon.pending.is_some() => {
+                self.recon.cancel();
+                self.cancelled_at_the_guess();
+            }
             Action::ReconstructCancel if !self.recon.cancel() => {
                 self.messages.push("no reconstruction is running".into());
             }
@@ -150,6 +176,8 @@ impl GetAvatarApp {
 
     fn fail_reconstruct(&mut self, message: String) {
         self.recon.refine = None;
+        self.recon.after_refit = None;
+        self.recon.pending = None;
         let s = &mut self.status.reconstruct;
         s.state = "failed".into();
         s.message = message.clone();
@@ -162,6 +190,7 @@ impl GetAvatarApp {
             return;
         }
         self.recon.t_click = crate::platform::now_ms();
+        self.recon.refitted_on_page = false;
         self.start_stage(r, true);
     }
 
@@ -228,6 +257,9 @@ impl GetAvatarApp {
         if let Some(n) = r.pti_steps {
             options.pti_steps = n;
         }
+        if !first && self.recon.refitted_on_page {
+            options.refit_steps = 0;
+        }
         // The encoder's guess first, as an avatar of its own (unmeasured, on the body as
         // first fitted), then the stage that refits the body on the guess's outline and
         // refines from it. (Without an encoder the start is the search: one stage.)
@@ -253,14 +285,18 @@ impl GetAvatarApp {
             options.perceptual = 0.0;
         }
         let s = &mut self.status.reconstruct;
-        // After the guess: how long it took, and what this stage does with it.
+        // After the guess: how long it took (and the page's refit), and what this stage does.
+        let refitted = match s.refit_on.as_str() {
+            "page" => format!(", refitted to its outline in {:.1} s", s.refit_ms / 1000.0),
+            _ => String::new(),
+        };
         let after_guess =
-            |what: &str| format!("the encoder's guess in {:.1} s; {what}…{note}", s.first_avatar_ms / 1000.0);
+            |what: &str| format!("the encoder's guess in {:.1} s{refitted}; {what}…{note}", s.first_avatar_ms / 1000.0);
+        let refines = options.steps + options.pti_steps > 0;
         let message = match r.start {
-            _ if !first && refits && options.steps + options.pti_steps == 0 => {
-                after_guess("fitting the body to its outline")
-            }
+            _ if !first && refits && !refines => after_guess("fitting the body to its outline"),
             _ if !first && refits => after_guess("fitting the body to its outline, then refining it"),
+            _ if !first && !refines => after_guess("projecting the photo on it at the refitted camera"),
             _ if !first => after_guess("refining it"),
             StartChoice::Encoder => format!("the photo encoder's guess…{note}"),
             StartChoice::Search => format!("choosing the start among the model's subjects…{note}"),
@@ -308,6 +344,7 @@ impl GetAvatarApp {
 
     /// Drain the reconstruction's events; install its result.
     pub(super) fn poll_reconstruct(&mut self, ctx: &egui::Context) {
+        self.poll_refit(ctx);
         let Some(task) = self.recon.task.clone() else { return };
         for event in task.drain() {
             match event {
@@ -460,18 +497,128 @@ impl GetAvatarApp {
         }
         if let Some(next) = refine {
             if r.stopped_at.is_none() && r.opened.is_none() {
+                self.after_guess(next);
+            }
+        }
+    }
+
+    /// The guess is on screen: refit the body on its outline here on the page (the guess is
+    /// rigged here already), then run `next`; or run `next` at once, which refits in the
+    /// worker where the page cannot.
+    fn after_guess(&mut self, next: Reconstruction) {
+        match self.page_refit(&next) {
+            Ok(Some(task)) => {
+                self.recon.refit = Some(task);
+                self.recon.after_refit = Some(next);
+                let s = &mut self.status.reconstruct;
+                s.state = "refitting".into();
+                s.message = format!(
+                    "the encoder's guess in {:.1} s; fitting the body to its outline…",
+                    s.first_avatar_ms / 1000.0
+                );
+            }
+            Ok(None) => self.start_stage(next, false),
+            Err(why) => {
+                self.messages.push(format!("the body's refit cannot run on the page ({why}): the worker refits it"));
                 self.start_stage(next, false);
             }
         }
     }
 
-    /// The photo's body fit refined on the guess's outline becomes the app's: the body, the
-    /// photo's fit (a refinement that follows starts from it) and the status.
+    /// The refit of the photo's body on the shown guess's outline, when `next` refits.
+    fn page_refit(&self, next: &Reconstruction) -> Result<Option<PhotoTask>, String> {
+        let Some(options) = InversionOptions::preset(&next.preset) else { return Ok(None) };
+        if options.refit_steps == 0 || !next.projection {
+            return Ok(None);
+        }
+        let (Some(rigged), Some(target), Some(model), Some((p, fit))) =
+            (&self.rigged, &self.recon.target, &self.body, self.photo.fitted())
+        else {
+            return Ok(None);
+        };
+        let ctx = self.engine.as_ref().ok_or("no generator")?.body_context()?;
+        let req = RefitRequest {
+            model: model.clone(),
+            fit: fit.clone(),
+            mask: target.mask.clone(),
+            size: target.res,
+            rigged: rigged.clone(),
+            ctx,
+            options: RefitOptions { steps: options.refit_steps, ..RefitOptions::default() },
+            device: photo::fit_device(),
+            result: p.result.clone(),
+            preview: p.preview.size,
+        };
+        Ok(Some(photo::refit(req, self.ctx.clone())))
+    }
+
+    fn cancelled_at_the_guess(&mut self) {
+        let s = &mut self.status.reconstruct;
+        s.state = "cancelled".into();
+        s.message = "cancelled before the first step: the avatar is the encoder's guess".into();
+    }
+
+    /// Drain the page's refit: its progress, then the refitted body (the stage after it
+    /// starts on the next frame).
+    fn poll_refit(&mut self, ctx: &egui::Context) {
+        if let Some(next) = self.recon.pending.take() {
+            self.start_stage(next, false);
+        }
+        let Some(task) = self.recon.refit.clone() else { return };
+        for event in task.drain() {
+            match event {
+                PhotoEvent::Progress(p) => {
+                    let s = &mut self.status.reconstruct;
+                    s.message = format!(
+                        "the encoder's guess in {:.1} s; fitting the body to its outline ({} of {} steps)…",
+                        s.first_avatar_ms / 1000.0,
+                        p.done,
+                        p.total
+                    );
+                }
+                PhotoEvent::Refitted(view) => {
+                    let Some(next) = self.recon.after_refit.take() else { continue };
+                    let since_click = (crate::platform::now_ms() - self.recon.t_click) as f32;
+                    let millis = view.millis as f32;
+                    let fit = view.fit.clone();
+                    let before = self.install_refitted_fit(*view, ctx);
+                    self.refined_fit_applied(&fit, before.as_ref());
+                    let s = &mut self.status.reconstruct;
+                    (s.refit_on, s.refit_ms, s.refitted_avatar_ms) = ("page".into(), millis, since_click);
+                    self.recon.refitted_on_page = true;
+                    self.recon.pending = Some(next);
+                }
+                PhotoEvent::Failed(why) => {
+                    // The worker can still refit it: the stage runs with its own refit.
+                    self.messages.push(format!("{why}: the worker refits it"));
+                    if let Some(next) = self.recon.after_refit.take() {
+                        self.start_stage(next, false);
+                    }
+                }
+                PhotoEvent::Cancelled => self.cancelled_at_the_guess(),
+                PhotoEvent::Detected(_) | PhotoEvent::Fitted(_) | PhotoEvent::Overlay(_) => {}
+            }
+        }
+        if task.finished() && self.recon.refit.as_ref().is_some_and(|t| t.same(&task)) {
+            self.recon.refit = None;
+        }
+    }
+
+    /// The photo's body fit refined on the guess's outline (in the worker) becomes the app's:
+    /// the body, the photo's fit (a refinement that follows starts from it) and the status.
     fn use_refined_fit(&mut self, fit: Option<&BodyFit>) {
         let Some(fit) = fit else { return };
+        let before = self.replace_photo_fit(fit.clone());
+        self.refined_fit_applied(fit, before.as_ref());
+        let s = &mut self.status.reconstruct;
+        s.refit_on = "worker".into();
+        s.refitted_avatar_ms = (crate::platform::now_ms() - self.recon.t_click) as f32;
+    }
+
+    /// The body and the status follow a refined fit that replaced `before`.
+    fn refined_fit_applied(&mut self, fit: &BodyFit, before: Option<&BodyFit>) {
         let b1 = |f: &BodyFit| f.betas.get(1).copied().unwrap_or(0.0);
-        let before = self.replace_photo_fit(fit.clone()).as_ref().map_or(f32::NAN, b1);
-        self.status.reconstruct.refit_beta1 = [before, b1(fit)];
+        self.status.reconstruct.refit_beta1 = [before.map_or(f32::NAN, b1), b1(fit)];
         self.params = fit.body_params();
         self.mesh_dirty = true;
         self.render_dirty = true;

@@ -482,14 +482,15 @@ async fn finish(
             let rig_ms = now_ms() - t;
             done.finish_ms = figures_ms + file_ms + rig_ms;
             let build = std::mem::take(&mut done.finish_detail);
+            // A guess shown before it is measured (`InversionJob::figures` off) has no figures.
             done.finish_detail = match fit {
-                Some(_) => format!(
+                Some((iou, _)) if iou.is_finite() => format!(
                     "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s ({build})",
                     figures_ms / 1000.0,
                     file_ms / 1000.0,
                     rig_ms / 1000.0
                 ),
-                None => format!(
+                _ => format!(
                     "worker: result file {:.1} s; page: rigging {:.1} s ({build})",
                     file_ms / 1000.0,
                     rig_ms / 1000.0

@@ -14,6 +14,7 @@ use super::fit::{BodyFit, BodyFitter, FitInput, FitState};
 use crate::body::body_model::BodyModel;
 use crate::body::skinning::{axis_angle_to_matrix, pose_body, BodyParams};
 use crate::render::camera::reference_fov_y;
+use crate::util::cooperative::checkpoint;
 
 /// A mesh that follows the body: points at `rest` (rest pose, β = 0), each following body
 /// vertex `body_vertex` (its shape directions and skin weights), with `faces`. A rigged
@@ -113,6 +114,24 @@ pub async fn refit_on_outline(
     options: &RefitOptions,
     device: &Device,
 ) -> Result<BodyFit, FitError> {
+    let mut fitter = outline_refitter(model, fit, mask, size, outline, options, device).await?;
+    fitter.run().await?;
+    finish_outline_refit(&fitter, fit).await
+}
+
+/// The fitter of [`refit_on_outline`], set up and not yet stepped: the caller steps it
+/// (`BodyFitter::step`, e.g. in slices on a page) and ends with [`finish_outline_refit`].
+/// Checkpoints (`cooperative`) between the parts of the set-up, which on a page runs on the UI
+/// thread (the outline's edges and rigged vertex set are tens of milliseconds there).
+pub async fn outline_refitter(
+    model: Arc<BodyModel>,
+    fit: &BodyFit,
+    mask: &[f32],
+    size: usize,
+    outline: &OutlineMesh,
+    options: &RefitOptions,
+    device: &Device,
+) -> Result<BodyFitter, FitError> {
     if size < 16 || mask.len() != size * size {
         return Err(FitError::MaskSize { got: mask.len(), width: size, height: size });
     }
@@ -128,8 +147,10 @@ pub async fn refit_on_outline(
     let fit_options = fit.options.clone();
     let state = FitState::from_fit(fit, &model)?;
     let input = FitInput::from_fit(fit, resize_square(mask, size, fit_options.silhouette_size));
+    checkpoint().await;
     let mut fitter = BodyFitter::new(model, input, fit_options, device)?;
     fitter.warm_start(&state, options.hold_pose);
+    checkpoint().await;
     fitter.refine_on_outline(
         &outline.rest,
         &outline.body_vertex,
@@ -137,7 +158,12 @@ pub async fn refit_on_outline(
         options.steps,
         options.hold_shape,
     );
-    fitter.run().await?;
+    Ok(fitter)
+}
+
+/// The refined fit of an [`outline_refitter`] that has run, with what `fit` (the fit it
+/// refines) was fitted to.
+pub async fn finish_outline_refit(fitter: &BodyFitter, fit: &BodyFit) -> Result<BodyFit, FitError> {
     let mut out = fitter.finish().await?;
     // The fit's residuals are the bare body's; what it was fitted to stays the fit's.
     out.missing.clone_from(&fit.missing);
