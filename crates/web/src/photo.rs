@@ -1,8 +1,10 @@
 //! The photo → body flow's browser side (paper Sec. 3.4's inversion starts from it): a photo's
 //! bytes go to MediaPipe Pose (`www/pose_detect.js`, called through wasm-bindgen), its
-//! landmarks and person mask to `getavatar_core::body::body_fit` (burn with autodiff on the shared
-//! WebGPU device). Both run as async tasks; the fit awaits one Adam step at a time (each ends
-//! in a GPU read-back), so the page stays live, shows progress and can cancel between steps.
+//! landmarks and person mask to `getavatar_core::body::body_fit` (burn with autodiff on NdArray,
+//! [`fit_device`]; the shared WebGPU device on request). Both run as async tasks; the fit runs
+//! in slices of Adam steps between frames, so the page stays live, shows progress and can
+//! cancel between steps. [`refit`] refits the photo's body on a reconstruction's outline the
+//! same way.
 //!
 //! Tasks report through a [`PhotoTask`]'s event queue (`crate::task`), which the app drains
 //! every frame.
