@@ -333,22 +333,33 @@ async fn fit_async(
     if let Some(start) = &req.start {
         fitter.start_from(start);
     }
-    loop {
-        // On the CPU a step never waits for anything: give the page the thread back once the
-        // slice is over (`task::SLICE_MS`), so it repaints, shows the progress and sees Cancel.
-        checkpoint().await;
-        if task.cancelled() {
-            return Ok(None);
-        }
-        match fitter.step().await? {
-            Some(p) => task.push(PhotoEvent::Progress(p), repaint),
-            None => break,
-        }
+    if !run_steps(&mut fitter, task, repaint).await? {
+        return Ok(None);
     }
     let fit = fitter.finish().await?;
     checkpoint().await;
     let (body_image, masks_json) = overlay(&fit, &model, &req.result, req.preview).await;
     Ok(Some(FittedView { fit, millis: now_ms() - t0, body_image, masks_json }))
+}
+
+/// Step `fitter` to its end, reporting progress; false when the task was cancelled.
+async fn run_steps(
+    fitter: &mut BodyFitter,
+    task: &PhotoTask,
+    repaint: &egui::Context,
+) -> Result<bool, getavatar_core::body::body_fit::fit::FitError> {
+    loop {
+        // On the CPU a step never waits for anything: give the page the thread back once the
+        // slice is over (`task::SLICE_MS`), so it repaints, shows the progress and sees Cancel.
+        checkpoint().await;
+        if task.cancelled() {
+            return Ok(false);
+        }
+        match fitter.step().await? {
+            Some(p) => task.push(PhotoEvent::Progress(p), repaint),
+            None => return Ok(true),
+        }
+    }
 }
 
 /// What [`refit`] refines: the photo's `fit` on an avatar's outline, against the person
@@ -397,15 +408,8 @@ async fn refit_async(
     checkpoint().await;
     let mut fitter =
         outline_refitter(req.model.clone(), &req.fit, &req.mask, req.size, &outline, &req.options, &req.device).await?;
-    loop {
-        checkpoint().await;
-        if task.cancelled() {
-            return Ok(None);
-        }
-        match fitter.step().await? {
-            Some(p) => task.push(PhotoEvent::Progress(p), repaint),
-            None => break,
-        }
+    if !run_steps(&mut fitter, task, repaint).await? {
+        return Ok(None);
     }
     let fit = finish_outline_refit(&fitter, &req.fit).await?;
     let millis = now_ms() - t0;
