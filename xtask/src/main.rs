@@ -239,9 +239,45 @@ fn copy_mediapipe(dist: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Seconds per suite of `cargo xtask test`, printed after each suite and as a table at the
+/// end, so a slow CI run says where its time went.
+#[derive(Default)]
+struct Clock {
+    rows: Vec<(String, f64)>,
+}
+
+impl Clock {
+    fn time<T>(&mut self, what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+        let t0 = std::time::Instant::now();
+        let out = f();
+        let s = t0.elapsed().as_secs_f64();
+        eprintln!("xtask test: {what}: {s:.0} s{}", if out.is_err() { " (failed)" } else { "" });
+        self.rows.push((what.to_string(), s));
+        out
+    }
+
+    fn table(&self) -> String {
+        let total: f64 = self.rows.iter().map(|(_, s)| s).sum();
+        let mut t = String::from("xtask test: seconds per suite\n");
+        for (what, s) in &self.rows {
+            t += &format!("  {s:7.0}  {what}\n");
+        }
+        t + &format!("  {total:7.0}  in all")
+    }
+}
+
 fn test(native: bool, browser: bool) -> Result<()> {
+    let mut clock = Clock::default();
+    let out = test_suites(native, browser, &mut clock);
+    println!("{}", clock.table());
+    out?;
+    println!("xtask test: all requested suites passed");
+    Ok(())
+}
+
+fn test_suites(native: bool, browser: bool, clock: &mut Clock) -> Result<()> {
     if native {
-        setup::native_test_deps()?;
+        clock.time("native set-up", setup::native_test_deps)?;
         // The crates' files import each other without circles, and no file or function is
         // longer than the limits (ARCHITECTURE.md).
         for src in ["crates/core/src", "crates/web/src", "trainer/src"] {
@@ -250,13 +286,17 @@ fn test(native: bool, browser: bool) -> Result<()> {
         }
         run(Command::new("python3").current_dir(root()).args(["tools/code_size.py"]))
             .context("a file or function is over the size limits (tools/code_size.py lists them)")?;
-        let mut c = Command::new(cargo());
-        c.current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]);
-        run(&mut c)?;
+        // Built first, then run: the table tells compile time from test time.
+        clock.time("native tests: build", || {
+            run(Command::new(cargo()).current_dir(root()).args(["test", "--workspace", "--no-run"]))
+        })?;
+        clock.time("native tests: run", || {
+            run(Command::new(cargo()).current_dir(root()).args(["test", "--workspace", "--no-fail-fast"]))
+        })?;
     }
     if browser {
-        setup::browser_test_deps()?;
-        build_web()?;
+        clock.time("browser set-up", setup::browser_test_deps)?;
+        clock.time("web build", build_web)?;
         let server = serve::Server::start(&dist_dir(), 0)?;
         let e2e = root().join("tests/e2e");
         // A browser test against the served app, its files under tests/e2e/out.
@@ -268,17 +308,16 @@ fn test(native: bool, browser: bool) -> Result<()> {
                 .env("GETAVATAR_OUT", e2e.join("out"));
             run(&mut c)
         };
-        node(&["app.e2e.mjs"])?;
+        clock.time("app e2e", || node(&["app.e2e.mjs"]))?;
         // Person finding on hard photos (several people, upside down, lying, backlit, none).
-        node(&["people.e2e.mjs"])?;
+        clock.time("people e2e", || node(&["people.e2e.mjs"]))?;
         // Motion from a video: bad files, the dance clip read, fitted, played, exported, cut.
-        node(&["video.e2e.mjs"])?;
+        clock.time("video e2e", || node(&["video.e2e.mjs"]))?;
         // The random-action soak: 300 seeded actions after a warm-up, no panic, no
         // console error, bounded memory and GPU buffers (about 5 minutes on SwiftShader).
-        node(&["soak.e2e.mjs", "300", "1"])?;
-        export_checks(&e2e)?;
+        clock.time("soak e2e", || node(&["soak.e2e.mjs", "300", "1"]))?;
+        clock.time("export checks", || export_checks(&e2e))?;
     }
-    println!("xtask test: all requested suites passed");
     Ok(())
 }
 
