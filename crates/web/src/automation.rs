@@ -228,8 +228,9 @@ pub enum StartChoice {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Compute {
-    /// The worker's WebGPU device (the page's where the worker has none): on a software
-    /// adapter too, where it is still faster than NdArray in wasm (docs/benchmarks.md).
+    /// The worker's WebGPU device (the page's where the worker has none), but burn's NdArray
+    /// in the worker for a job without pivotal steps on a software adapter, where that is
+    /// the faster (docs/benchmarks.md).
     Auto,
     /// burn's NdArray in the worker.
     Cpu,

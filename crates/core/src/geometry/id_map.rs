@@ -1,7 +1,7 @@
 //! Hash maps keyed by mesh ids (vertex indices, edges as index pairs) with a multiplicative
 //! hasher. std's default SipHash guards against keys chosen by an attacker, which ids
-//! computed here are not, and costs several times more per lookup; in wasm (no SIMD, one
-//! thread) that shows in marching tetrahedra's edge table and the rigging's caches.
+//! computed here are not, and costs several times more per lookup; in wasm (one thread) that
+//! shows in marching tetrahedra's edge table and the rigging's caches.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};

@@ -122,7 +122,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Ok(s) => s,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
-    let device = match device(meta.compute).await {
+    let device = match device(meta.compute, meta.options.pti_steps).await {
         Ok(d) => d,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
@@ -259,16 +259,20 @@ async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
     Ok(s)
 }
 
-/// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none).
-/// `Auto` is WebGPU (and the page's device where the worker has none): even on a software
-/// adapter (SwiftShader) it is the faster of the two today. NdArray in this wasm module (one
-/// thread, no SIMD, optimised for size) took over 4 minutes for a W+ step at 64² where
-/// SwiftShader takes 1–2.5 (docs/benchmarks.md); `Cpu` is there to measure it.
-/// Also the device in words, for the status.
+/// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none),
+/// and the device in words, for the status. `Auto` is the worker's WebGPU device, but burn's
+/// NdArray in the worker for a job without pivotal steps (`instant`'s guess and its figures)
+/// on a software adapter (SwiftShader, what a machine without a usable GPU gets): there
+/// NdArray in this wasm module (SIMD, the tensor crates optimised for speed) makes the guess
+/// sooner and renders its figures in a sixth of the time, and a W+ step costs the same, while
+/// a pivotal step is faster on the adapter (docs/benchmarks.md, "CPU against WebGPU in the
+/// worker"). Without a WebGPU device in the worker `Auto` is refused, and the page runs the
+/// job on its own device.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
-async fn device(compute: Compute) -> Result<(Device, String), String> {
+async fn device(compute: Compute, pivotal_steps: usize) -> Result<(Device, String), String> {
+    let cpu = || Device::ndarray().autodiff();
     if compute == Compute::Cpu {
-        return Ok((Device::ndarray().autodiff(), "CPU (burn NdArray in the worker)".into()));
+        return Ok((cpu(), "CPU (burn NdArray in the worker)".into()));
     }
     if WEBGPU.with(|w| w.borrow().is_none()) {
         let made = webgpu_device().await;
@@ -276,6 +280,9 @@ async fn device(compute: Compute) -> Result<(Device, String), String> {
     }
     let webgpu = WEBGPU.with(|w| w.borrow().clone()).unwrap_or_else(|| Err("no WebGPU device".into()));
     let (d, name, software) = webgpu?;
+    if software && compute == Compute::Auto && pivotal_steps == 0 {
+        return Ok((cpu(), format!("CPU (burn NdArray in the worker; the WebGPU adapter is a software one: {name})")));
+    }
     Ok((d, format!("WebGPU{}: {name}", if software { " (a software adapter)" } else { "" })))
 }
 
