@@ -261,12 +261,12 @@ async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
 
 /// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none),
 /// and the device in words, for the status. `Auto` is the worker's WebGPU device, but burn's
-/// NdArray in the worker for a job without pivotal steps (`instant`'s guess and its figures)
-/// on a software adapter (SwiftShader, what a machine without a usable GPU gets): there
-/// NdArray in this wasm module (SIMD, the tensor crates optimised for speed) makes the guess
-/// sooner and renders its figures in a sixth of the time, and a W+ step costs the same, while
-/// a pivotal step is faster on the adapter (docs/benchmarks.md, "CPU against WebGPU in the
-/// worker"). Without a WebGPU device in the worker `Auto` is refused, and the page runs the
+/// NdArray in the worker for a job without pivotal steps (every preset's guess, `instant`'s
+/// figures) on a software adapter (SwiftShader, what a machine without a usable GPU gets):
+/// there NdArray in this wasm module (SIMD, the tensor crates optimised for speed) makes the
+/// guess sooner and finishes in a sixth of the time, while a step costs about the same on
+/// both and SwiftShader, unlike NdArray here, gains with every core (docs/benchmarks.md,
+/// "CPU against WebGPU in the worker"). Without a WebGPU device in the worker `Auto` is refused, and the page runs the
 /// job on its own device.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
 async fn device(compute: Compute, pivotal_steps: usize) -> Result<(Device, String), String> {
