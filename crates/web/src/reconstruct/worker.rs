@@ -266,8 +266,8 @@ async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
 /// there NdArray in this wasm module (SIMD, the tensor crates optimised for speed) makes the
 /// guess sooner and finishes in a sixth of the time, while a step costs about the same on
 /// both and SwiftShader, unlike NdArray here, gains with every core (docs/benchmarks.md,
-/// "CPU against WebGPU in the worker"). Without a WebGPU device in the worker `Auto` is refused, and the page runs the
-/// job on its own device.
+/// "CPU against WebGPU in the worker"). Without a WebGPU device in the worker `Auto` is
+/// refused, and the page runs the job on its own device.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
 async fn device(compute: Compute, pivotal_steps: usize) -> Result<(Device, String), String> {
     let cpu = || Device::ndarray().autodiff();
