@@ -100,7 +100,7 @@ impl DiscriminatorConfig {
 /// 2× downsampling: 2×2 average pooling (on NdArray one operation with its own backward,
 /// [`super::ndarray_ops`]).
 fn down2(x: Tensor<4>) -> Tensor<4> {
-    #[cfg(feature = "generator")]
+    #[cfg(feature = "ndarray")]
     if super::layers::is_ndarray(&x.device()) {
         return super::ndarray_ops::avg_pool2x2(x);
     }

@@ -18,13 +18,13 @@ pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
 
 /// Whether `device` (or the device an autodiff device wraps) is the NdArray CPU backend.
 pub fn is_ndarray(device: &Device) -> bool {
-    #[cfg(feature = "generator")]
+    #[cfg(feature = "ndarray")]
     {
         #[allow(deprecated)]
         let cpu = Device::ndarray();
         device.clone().inner() == cpu
     }
-    #[cfg(not(feature = "generator"))]
+    #[cfg(not(feature = "ndarray"))]
     {
         let _ = device;
         false
@@ -44,7 +44,7 @@ pub fn conv2d_same(x: Tensor<4>, weight: Tensor<5>) -> Tensor<4> {
     let [b, c_in, h, w] = x.dims();
     let [wb, c_out, _, k, _] = weight.dims();
     let pad = k / 2;
-    #[cfg(feature = "generator")]
+    #[cfg(feature = "ndarray")]
     if is_ndarray(&x.device()) {
         return super::ndarray_ops::conv2d_same(x, weight);
     }
@@ -71,7 +71,7 @@ pub fn bias_lrelu(x: Tensor<4>, bias: Tensor<1>, activation: bool) -> Tensor<4> 
     if let Some(y) = super::cube_ops::bias_lrelu(&x, &bias, 1, activation) {
         return y;
     }
-    #[cfg(feature = "generator")]
+    #[cfg(feature = "ndarray")]
     if activation && is_ndarray(&x.device()) {
         return super::ndarray_ops::bias_lrelu(x, bias);
     }
