@@ -20,10 +20,11 @@
 //    gives fit.json + kp.json; beside a smaller copy of itself at 4.7 MP, two people are
 //    counted, the larger is fitted and detection ran at ≤ 4 MP; a re-fit can be cancelled.
 //  - Reconstruct: `instant` (the shipped photo encoder's guess, no step) runs in the
-//    reconstruction worker on its WebGPU device and gives an avatar whose mask overlaps the
-//    photo's person (IoU ≥ 0.75 at the photo's camera); a short reconstruction lowers the
-//    loss (IoU ≥ 0.6); neither makes a network request or a console error; Cancel after a
-//    step keeps the last preview's state as the avatar; "Save reconstruction" downloads one .safetensors
+//    reconstruction worker (on NdArray there on a software adapter, on its WebGPU device on a
+//    hardware one) and gives an avatar whose mask overlaps the photo's person (IoU ≥ 0.75 at
+//    the photo's camera); a short reconstruction on the same device lowers the loss (IoU ≥
+//    0.6); neither makes a network request or a console error; Cancel after a step (on the
+//    worker's WebGPU device) keeps the last preview's state as the avatar; "Save reconstruction" downloads one .safetensors
 //    (generator, codes, photo) that "Open reconstruction…" turns back into the same avatar;
 //    a broken file is refused.
 //  - Motion: the built-in walk scrubbed to two times changes the mask; playing re-poses every
@@ -458,8 +459,9 @@ try {
   await page.screenshot({ path: path.join(out, 'reconstruction_instant.png') });
   requests.length = 0;
   // --- reconstruct the avatar from the fitted photo ---------------------------------
-  // A short run on the worker's WebGPU device (SwiftShader: about a minute or more per step
-  // here): 3 W+ + 1 PTI steps at 64² from w_avg, a preview after every step.
+  // A short run on the worker's `auto` device (NdArray on a software adapter, 2–3 s per step
+  // here; WebGPU on a hardware one): 3 W+ + 1 PTI steps at 64² from w_avg, a preview after
+  // every step.
   const tRec = Date.now();
   const jRec = await pageNow();
   const recErr = await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 3, pti_steps: 1, res: 64, preview_every: 1, start: 'average' } }));
@@ -471,7 +473,8 @@ try {
   page.off('request', onRequest);
   console.log(`reconstruction in ${((Date.now() - tRec) / 1000).toFixed(1)} s: start ${rec.start} (${(rec.start_ms / 1000).toFixed(1)} s), ${rec.ms_per_latent_step.toFixed(0)} ms per W+ step, ${rec.ms_per_pivotal_step.toFixed(0)} ms per PTI step, finish ${(rec.finish_ms / 1000).toFixed(1)} s (${rec.finish_detail}); losses ${rec.losses.map((l) => l.toFixed(4)).join(' ')}; ${rec.message}`);
   check(rec.state === 'done' && rec.losses.length === 4 && rec.previews >= 3, `the reconstruction finishes: ${rec.losses.length} steps, ${rec.previews} previews (${rec.state}: ${rec.message})`);
-  check(rec.runs_in === 'worker' && /^WebGPU/.test(rec.device), `the reconstruction's steps ran in the reconstruction worker on its WebGPU device, off the UI thread (${rec.runs_in}: ${rec.device})`);
+  check(rec.runs_in === 'worker' && (software ? /^CPU \(burn NdArray in the worker; the WebGPU adapter is a software one/ : /^WebGPU/).test(rec.device),
+    `the reconstruction's steps ran in the reconstruction worker, off the UI thread, on ${software ? 'NdArray, the adapter being a software one' : 'its WebGPU device'} (${rec.runs_in}: ${rec.device})`);
   check(rec.losses[2] < rec.losses[0], `the loss falls over the W+ steps (${rec.losses[0]?.toFixed(4)} → ${rec.losses[2]?.toFixed(4)})`);
   check(rec.mask_iou >= 0.6, `the reconstructed avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.6)`);
   // Nothing may be requested, and nothing is sent.
@@ -482,16 +485,18 @@ try {
     `the reconstruction is the shown avatar (${s.avatar_vertices} vertices), no console errors (${consoleErrors.length})`);
   await page.screenshot({ path: path.join(out, 'reconstruction.png') });
   // Cancel: a second run stopped after its first step keeps the last preview's state as the
-  // avatar.
+  // avatar. It runs on the worker's WebGPU device whatever the adapter, so that path's steps
+  // are tested here too (SwiftShader: about a minute per step).
   const doneBefore = rec.done;
   const jRec2 = await pageNow();
-  await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 40, pti_steps: 0, res: 64, preview_every: 1, start: 'average' } }));
+  await page.evaluate(() => window.getavatar.command({ reconstruct: { steps: 40, pti_steps: 0, res: 64, preview_every: 1, start: 'average', device: 'webgpu' } }));
   // (The second run is the one with 40 steps: the status still holds the first run's until the app takes the command.)
   await waitFor((s) => s.reconstruct.steps_total === 40 && (s.reconstruct.steps_done >= 1 || s.reconstruct.state === 'failed'), 'the second reconstruction to start', 900000);
   await page.evaluate(() => window.getavatar.command({ reconstruct_cancel: true }));
   rec = (await waitFor((s) => s.reconstruct.steps_total === 40 && ['cancelled', 'done', 'failed'].includes(s.reconstruct.state), 'the cancellation', 300000)).reconstruct;
   jobs.push(['reconstruction, the second (start, a step, cancel)', jRec2, await pageNow()]);
   s = await status();
+  check(rec.runs_in === 'worker' && /^WebGPU/.test(rec.device), `the second run's step ran in the worker on its WebGPU device (${rec.runs_in}: ${rec.device})`);
   check(rec.state === 'cancelled' && rec.stopped_at >= 1 && rec.done === doneBefore && s.avatar_vertices > 1000 && s.showing === 'avatar' && /last preview/.test(rec.message),
     `Cancel stops a reconstruction and keeps the last preview's state as the avatar (${rec.state} after ${rec.stopped_at} steps, ${s.avatar_vertices} vertices: ${rec.message})`);
   const vertsBefore = s.avatar_vertices;

@@ -228,9 +228,9 @@ pub enum StartChoice {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Compute {
-    /// The worker's WebGPU device (the page's where the worker has none), but burn's NdArray
-    /// in the worker for a job without pivotal steps on a software adapter, where that is
-    /// the faster (docs/benchmarks.md).
+    /// The worker's WebGPU device on a hardware adapter (the page's where the worker has
+    /// none), burn's NdArray in the worker on a software one, where that is many times the
+    /// faster (docs/benchmarks.md).
     Auto,
     /// burn's NdArray in the worker.
     Cpu,

@@ -122,7 +122,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
         Ok(s) => s,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
-    let device = match device(meta.compute, meta.options.pti_steps).await {
+    let device = match device(meta.compute).await {
         Ok(d) => d,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
     };
@@ -260,16 +260,15 @@ async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
 }
 
 /// The autodiff device `compute` asks for (`Err`: WebGPU asked for and the worker has none),
-/// and the device in words, for the status. `Auto` is the worker's WebGPU device, but burn's
-/// NdArray in the worker for a job without pivotal steps (every preset's guess, `instant`'s
-/// figures) on a software adapter (SwiftShader, what a machine without a usable GPU gets):
-/// there NdArray in this wasm module (SIMD, the tensor crates optimised for speed) makes the
-/// guess sooner and finishes in a sixth of the time, while a step costs about the same on
-/// both and SwiftShader, unlike NdArray here, gains with every core (docs/benchmarks.md,
+/// and the device in words, for the status. `Auto` is the worker's WebGPU device on a
+/// hardware adapter and burn's NdArray in the worker on a software one (SwiftShader, what a
+/// machine without a usable GPU gets): there NdArray in this wasm module (the networks' own
+/// CPU operations, SIMD, the tensor crates optimised for speed) takes 2–3 s per W+ or PTI step
+/// where SwiftShader takes 35–115 s, and finishes in a sixth of the time (docs/benchmarks.md,
 /// "CPU against WebGPU in the worker"). Without a WebGPU device in the worker `Auto` is
 /// refused, and the page runs the job on its own device.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
-async fn device(compute: Compute, pivotal_steps: usize) -> Result<(Device, String), String> {
+async fn device(compute: Compute) -> Result<(Device, String), String> {
     let cpu = || Device::ndarray().autodiff();
     if compute == Compute::Cpu {
         return Ok((cpu(), "CPU (burn NdArray in the worker)".into()));
@@ -280,7 +279,7 @@ async fn device(compute: Compute, pivotal_steps: usize) -> Result<(Device, Strin
     }
     let webgpu = WEBGPU.with(|w| w.borrow().clone()).unwrap_or_else(|| Err("no WebGPU device".into()));
     let (d, name, software) = webgpu?;
-    if software && compute == Compute::Auto && pivotal_steps == 0 {
+    if software && compute == Compute::Auto {
         return Ok((cpu(), format!("CPU (burn NdArray in the worker; the WebGPU adapter is a software one: {name})")));
     }
     Ok((d, format!("WebGPU{}: {name}", if software { " (a software adapter)" } else { "" })))
