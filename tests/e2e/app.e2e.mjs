@@ -433,8 +433,8 @@ try {
   console.log(`instant reconstruction: first avatar ${(rec.first_avatar_ms / 1000).toFixed(1)} s after the command (start ${(rec.start_ms / 1000).toFixed(1)} s in the worker on ${rec.device}; finish ${(rec.finish_ms / 1000).toFixed(1)} s: ${rec.finish_detail}); wall ${((Date.now() - tInstant) / 1000).toFixed(1)} s; ${rec.message}`);
   check(rec.state === 'done' && rec.start === "the encoder's guess" && rec.losses.length === 0,
     `instant: the avatar is the shipped encoder's guess, no step (${rec.state}, start "${rec.start}", ${rec.losses.length} steps: ${rec.message})`);
-  // On a software adapter (SwiftShader here) a job without pivotal steps runs on NdArray in
-  // the worker, the faster there (docs/benchmarks.md); on a hardware one on WebGPU.
+  // On a software adapter (SwiftShader here) `auto` runs a job on NdArray in the worker, the
+  // faster there (docs/benchmarks.md); on a hardware one on WebGPU.
   const software = /Cpu/.test(s.adapter);
   check(rec.runs_in === 'worker' && (software ? /^CPU \(burn NdArray in the worker; the WebGPU adapter is a software one/ : /^WebGPU/).test(rec.device),
     `the guess is made in the worker on ${software ? 'NdArray, the adapter being a software one' : 'its WebGPU device'} (${rec.runs_in}: ${rec.device})`);
