@@ -250,6 +250,74 @@ fn a_new_identity_reads_back_from_the_device_twice() {
     assert!(rigged.canonical.normals.iter().all(|n| (n.length() - 1.0).abs() < 1e-4));
 }
 
+/// A rigged avatar as flat arrays (the browser worker hands its result to the page so) comes
+/// back the same, re-poses the same, and broken arrays are refused with the reason.
+#[test]
+fn a_rigged_avatar_round_trips_through_flat_arrays_and_broken_ones_are_refused() {
+    use getavatar_core::body::skinning::{pose_body, BodyParams};
+    use getavatar_core::generator::rigging::{RiggedArraysError, RiggedAvatar};
+    let (ctx, dev, g, s) = tiny_identity((3, 4));
+    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
+    let arrays = rigged.to_arrays();
+    let n = rigged.canonical.mesh.vertices.len();
+    assert_eq!((arrays.positions.len(), arrays.faces.len()), (3 * n, 3 * rigged.canonical.mesh.faces.len()));
+    let back = RiggedAvatar::from_arrays(arrays.clone(), &ctx).expect("valid arrays");
+    assert_eq!(back.canonical.mesh.vertices, rigged.canonical.mesh.vertices);
+    assert_eq!(back.canonical.mesh.faces, rigged.canonical.mesh.faces);
+    assert_eq!(back.canonical.mesh.attributes, rigged.canonical.mesh.attributes);
+    assert_eq!(back.canonical.mesh.edges, rigged.canonical.mesh.edges);
+    assert_eq!(
+        (&back.canonical.normals, &back.canonical.colors),
+        (&rigged.canonical.normals, &rigged.canonical.colors)
+    );
+    assert_eq!(back.body_vertex, rigged.body_vertex);
+    let mut params = BodyParams::default();
+    params.pose[16] = glam::Vec3::new(0.0, 0.0, -1.0);
+    let posed = pose_body(&ctx.model, &params);
+    assert_eq!(back.repose(&ctx, &posed), rigged.repose(&ctx, &posed));
+
+    let nb = ctx.model.num_vertices();
+    let broken = |f: &dyn Fn(&mut getavatar_core::generator::rigging::RiggedArrays)| {
+        let mut a = arrays.clone();
+        f(&mut a);
+        RiggedAvatar::from_arrays(a, &ctx).err()
+    };
+    assert_eq!(broken(&|a| a.faces[4] = n as u32), Some(RiggedArraysError::Face(n as u32, n)));
+    assert_eq!(broken(&|a| a.body_vertex[0] = nb as u32), Some(RiggedArraysError::BodyVertex(nb as u32, nb)));
+    assert_eq!(
+        broken(&|a| {
+            a.colors.pop();
+        }),
+        Some(RiggedArraysError::Length("colors", 3 * n - 1, 3 * n))
+    );
+    assert_eq!(broken(&|a| a.normals[7] = f32::NAN), Some(RiggedArraysError::NonFinite("normals")));
+    assert_eq!(
+        broken(&|a| {
+            a.body_vertex.pop();
+        }),
+        Some(RiggedArraysError::Length("body_vertex", n - 1, n))
+    );
+    assert_eq!(
+        broken(&|a| {
+            a.edge_t.pop();
+        }),
+        Some(RiggedArraysError::Length("edge_t", n - 1, n))
+    );
+    assert_eq!(broken(&|a| a.faces.clear()), Some(RiggedArraysError::Empty));
+    assert!(broken(&|a| {
+        a.faces.pop();
+    })
+    .is_some());
+    // Without edges and attributes (a mesh that has none) the arrays are still an avatar.
+    let bare = broken(&|a| {
+        a.edge_a.clear();
+        a.edge_b.clear();
+        a.edge_t.clear();
+        a.attributes.clear();
+    });
+    assert_eq!(bare, None);
+}
+
 #[test]
 fn checkpoints_round_trip_and_reject_other_configs() {
     use getavatar_core::generator::checkpoint::{load_generator, parse_safetensors, save_generator};

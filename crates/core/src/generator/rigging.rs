@@ -421,3 +421,115 @@ pub async fn generate_rigged_async(
     crate::util::profile::stage("rigging");
     Ok(RiggedAvatar::new(a, ctx))
 }
+
+/// A [`RiggedAvatar`] as flat arrays, for handing it between threads that share no memory
+/// (the browser's reconstruction worker rigs the result it sends to the page): 3 floats per
+/// vertex for `positions`, `attributes` (canonical coordinates), `normals`, `colors`; 3
+/// indices per triangle; per vertex its grid edge (`edge_a`, `edge_b`, `edge_t`) and its
+/// rigging body vertex. [`RiggedAvatar::from_arrays`] checks every length and index.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RiggedArrays {
+    pub positions: Vec<f32>,
+    pub faces: Vec<u32>,
+    pub attributes: Vec<f32>,
+    pub normals: Vec<f32>,
+    pub colors: Vec<f32>,
+    pub edge_a: Vec<u32>,
+    pub edge_b: Vec<u32>,
+    pub edge_t: Vec<f32>,
+    pub body_vertex: Vec<u32>,
+}
+
+/// Why [`RiggedArrays`] are not a rigged avatar.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RiggedArraysError {
+    #[error("`{0}` has {1} numbers, expected {2}")]
+    Length(&'static str, usize, usize),
+    #[error("triangle corner {0} is out of range (the avatar has {1} vertices)")]
+    Face(u32, usize),
+    #[error("body vertex {0} is out of range (the body has {1})")]
+    BodyVertex(u32, usize),
+    #[error("`{0}` holds a value that is not finite")]
+    NonFinite(&'static str),
+    #[error("the avatar has no triangles")]
+    Empty,
+}
+
+fn flat(v: &[glam::Vec3]) -> Vec<f32> {
+    v.iter().flat_map(|p| p.to_array()).collect()
+}
+
+fn vec3s(name: &'static str, a: &[f32], n: usize) -> Result<Vec<glam::Vec3>, RiggedArraysError> {
+    if a.len() != 3 * n {
+        return Err(RiggedArraysError::Length(name, a.len(), 3 * n));
+    }
+    if a.iter().any(|x| !x.is_finite()) {
+        return Err(RiggedArraysError::NonFinite(name));
+    }
+    Ok(a.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect())
+}
+
+impl RiggedAvatar {
+    /// The avatar as flat arrays (without its kept bind pose, which the receiver recomputes).
+    pub fn to_arrays(&self) -> RiggedArrays {
+        let (m, edges) = (&self.canonical.mesh, &self.canonical.mesh.edges);
+        RiggedArrays {
+            positions: flat(&m.vertices),
+            faces: m.faces.iter().flatten().copied().collect(),
+            attributes: flat(&m.attributes),
+            normals: flat(&self.canonical.normals),
+            colors: flat(&self.canonical.colors),
+            edge_a: edges.iter().map(|e| e.0).collect(),
+            edge_b: edges.iter().map(|e| e.1).collect(),
+            edge_t: edges.iter().map(|e| e.2).collect(),
+            body_vertex: self.body_vertex.clone(),
+        }
+    }
+
+    /// The avatar [`RiggedAvatar::to_arrays`] made, checked against `ctx`'s body: every array
+    /// one entry per vertex (or per triangle corner), every index in range, every number
+    /// finite. The attributes and the edges may be absent (empty), as in a mesh without them.
+    pub fn from_arrays(a: RiggedArrays, ctx: &BodyContext) -> Result<Self, RiggedArraysError> {
+        use RiggedArraysError as E;
+        if a.positions.len() % 3 != 0 {
+            return Err(E::Length("positions", a.positions.len(), a.positions.len() / 3 * 3));
+        }
+        let n = a.positions.len() / 3;
+        let vertices = vec3s("positions", &a.positions, n)?;
+        let normals = vec3s("normals", &a.normals, n)?;
+        let colors = vec3s("colors", &a.colors, n)?;
+        let attributes = match a.attributes.is_empty() {
+            true => Vec::new(),
+            false => vec3s("attributes", &a.attributes, n)?,
+        };
+        if a.faces.is_empty() {
+            return Err(E::Empty);
+        }
+        if a.faces.len() % 3 != 0 {
+            return Err(E::Length("faces", a.faces.len(), a.faces.len() / 3 * 3));
+        }
+        if let Some(v) = a.faces.iter().find(|v| **v as usize >= n) {
+            return Err(E::Face(*v, n));
+        }
+        if a.body_vertex.len() != n {
+            return Err(E::Length("body_vertex", a.body_vertex.len(), n));
+        }
+        let nb = ctx.model.num_vertices();
+        if let Some(b) = a.body_vertex.iter().find(|b| **b as usize >= nb) {
+            return Err(E::BodyVertex(*b, nb));
+        }
+        let ne = if a.edge_a.is_empty() { 0 } else { n };
+        for (name, len) in [("edge_a", a.edge_a.len()), ("edge_b", a.edge_b.len()), ("edge_t", a.edge_t.len())] {
+            if len != ne {
+                return Err(E::Length(name, len, ne));
+            }
+        }
+        if a.edge_t.iter().any(|t| !t.is_finite()) {
+            return Err(E::NonFinite("edge_t"));
+        }
+        let edges = a.edge_a.iter().zip(&a.edge_b).zip(&a.edge_t).map(|((x, y), t)| (*x, *y, *t)).collect();
+        let faces = a.faces.chunks_exact(3).map(|f| [f[0], f[1], f[2]]).collect();
+        let mesh = crate::geometry::dmtet::TriMesh { vertices, faces, attributes, edges };
+        Ok(Self { canonical: Avatar { mesh, normals, colors }, body_vertex: a.body_vertex, bind: None })
+    }
+}

@@ -16,7 +16,7 @@ use getavatar_core::generator::checkpoint::{
 };
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
-use getavatar_core::generator::rigging::RiggedAvatar;
+use getavatar_core::generator::rigging::{RiggedArrays, RiggedAvatar};
 use getavatar_core::reconstruction::encoder::load_encoder;
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images_async, start_candidates,
@@ -500,7 +500,7 @@ pub fn open(
                     (url, b)
                 }
             };
-            let mut r = rig_saved(bytes, &name, &cfg, &ctx, &device).await?;
+            let mut r = rig_saved(bytes, None, &name, &cfg, &ctx, &device).await?;
             r.opened = Some(name);
             r.millis = now_ms() - t0;
             Ok::<_, String>(r)
@@ -515,9 +515,11 @@ pub fn open(
 }
 
 /// A reconstruction's file (`name`: where it came from, for messages) as the app's avatar:
-/// its generator and codes on `device`, extracted, rigged, its photo projected on.
+/// its generator and codes on `device`, extracted and rigged (or `rigged`, the avatar the
+/// reconstruction worker made from the same file), its photo projected on.
 pub(crate) async fn rig_saved(
     bytes: Vec<u8>,
+    rigged: Option<RiggedArrays>,
     name: &str,
     cfg: &GeneratorConfig,
     ctx: &BodyContext,
@@ -534,8 +536,10 @@ pub(crate) async fn rig_saved(
     let build_ms = crate::platform::now_ms() - t;
     drop(st);
     yield_to_browser().await;
-    let mut rigged =
-        generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?;
+    let mut rigged = match rigged {
+        Some(a) => RiggedAvatar::from_arrays(a, ctx).map_err(|e| format!("{name}: the worker's avatar: {e}"))?,
+        None => generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?,
+    };
     if rigged.canonical.mesh.faces.is_empty() {
         return Err(format!("{name}: the reconstruction's generator produced an empty surface"));
     }

@@ -7,6 +7,7 @@ use std::rc::Rc;
 use getavatar_core::body::body_fit::fit::BodyFit;
 use getavatar_core::body::skinning::BodyParams;
 use getavatar_core::generator::network::GeneratorConfig;
+use getavatar_core::generator::rigging::RiggedArrays;
 use getavatar_core::reconstruction::inversion::{InversionOptions, StepReport};
 use serde::{Deserialize, Serialize};
 use wasm_bindgen::prelude::*;
@@ -84,13 +85,16 @@ pub(super) enum FromWorker {
     Preview {
         done: usize,
     },
-    /// With the array `bytes`: the reconstruction file. IoU and PSNR at the photo's camera
-    /// (None: not finite).
+    /// With the array `bytes`: the reconstruction file, and the avatar the worker rigged from
+    /// it (the arrays of [`rigged_arrays`]). IoU and PSNR at the photo's camera (None: not
+    /// finite).
     Finished {
         iou: Option<f32>,
         psnr: Option<f32>,
         figures_ms: f64,
         file_ms: f64,
+        /// Milliseconds of the worker's extraction and rigging.
+        rig_ms: f64,
         /// Cancelled after this many steps (the result is the last preview's state).
         stopped_at: Option<usize>,
         /// The figures follow (`Figures`): IoU and PSNR are None here.
@@ -196,4 +200,44 @@ pub(super) fn f32_array(data: &JsValue, name: &str) -> Option<Vec<f32>> {
 pub(super) fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
     field(data, name)
         .map(|v| v.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v)).to_vec())
+}
+
+/// A message's `name` field as 32-bit indices: a `Uint32Array` copied once into wasm memory.
+pub(super) fn u32_array(data: &JsValue, name: &str) -> Option<Vec<u32>> {
+    field(data, name)
+        .map(|v| v.dyn_into::<js_sys::Uint32Array>().unwrap_or_else(|v| js_sys::Uint32Array::new(&v)).to_vec())
+}
+
+/// The fields of a rigged avatar in a message (each a typed array made for it, so moved).
+pub(super) fn rigged_arrays(a: &RiggedArrays) -> Vec<(&'static str, JsValue)> {
+    let f = |v: &[f32]| JsValue::from(js_sys::Float32Array::from(v));
+    let u = |v: &[u32]| JsValue::from(js_sys::Uint32Array::from(v));
+    vec![
+        ("rig_positions", f(&a.positions)),
+        ("rig_faces", u(&a.faces)),
+        ("rig_attributes", f(&a.attributes)),
+        ("rig_normals", f(&a.normals)),
+        ("rig_colors", f(&a.colors)),
+        ("rig_edge_a", u(&a.edge_a)),
+        ("rig_edge_b", u(&a.edge_b)),
+        ("rig_edge_t", f(&a.edge_t)),
+        ("rig_body_vertex", u(&a.body_vertex)),
+    ]
+}
+
+/// The rigged avatar of a message ([`rigged_arrays`]), or the name of a missing field.
+pub(super) fn rigged_of(data: &JsValue) -> Result<RiggedArrays, &'static str> {
+    let f = |name: &'static str| f32_array(data, name).ok_or(name);
+    let u = |name: &'static str| u32_array(data, name).ok_or(name);
+    Ok(RiggedArrays {
+        positions: f("rig_positions")?,
+        faces: u("rig_faces")?,
+        attributes: f("rig_attributes")?,
+        normals: f("rig_normals")?,
+        colors: f("rig_colors")?,
+        edge_a: u("rig_edge_a")?,
+        edge_b: u("rig_edge_b")?,
+        edge_t: f("rig_edge_t")?,
+        body_vertex: u("rig_body_vertex")?,
+    })
 }

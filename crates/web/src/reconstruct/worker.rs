@@ -1,6 +1,7 @@
 //! The worker's side of the reconstruction worker ([`super::worker_client`] is the page's):
 //! [`reconstruct_worker_message`] receives a job, runs the inversion on the worker's own WebGPU
-//! device and posts its start, steps, previews and the result file back to the page.
+//! device and posts its start, steps, previews, the result file and the avatar rigged from it
+//! back to the page.
 
 use std::cell::{Cell, RefCell};
 use std::rc::Rc;
@@ -12,6 +13,7 @@ use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::save_inverted_async;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::rigging::{generate_rigged_async, RiggedArrays};
 use getavatar_core::reconstruction::inversion::InversionTarget;
 use getavatar_core::render::camera::View;
 use glam::Mat4;
@@ -21,7 +23,9 @@ use wasm_bindgen::JsCast;
 use super::job::{
     invert, measure, Compute, InversionJob, Inverted, Progress, Progressing, ProjectionSource, ReconstructEvent,
 };
-use super::protocol::{f32_array, json_of, message_of, u8_array, FromWorker, JobMeta, ModelFiles, ToWorker};
+use super::protocol::{
+    f32_array, json_of, message_of, rigged_arrays, u8_array, FromWorker, JobMeta, ModelFiles, ToWorker,
+};
 use crate::platform::{js_message, now_ms};
 
 /// What the worker keeps between reconstructions: the body's context (its devices are
@@ -128,18 +132,23 @@ async fn run_job(meta: JobMeta, data: JsValue) {
     };
     let finite = |x: f32| Some(x).filter(|x| x.is_finite());
     match job(meta, &data, &state, &device).await {
-        Ok(Some((bytes, inv, file_ms))) => {
+        Ok(Some(Outcome { bytes, inv, file_ms, rigged, rig_ms })) => {
             let (iou, psnr) = inv.fit.unwrap_or((f32::NAN, f32::NAN));
             let m = FromWorker::Finished {
                 iou: finite(iou),
                 psnr: finite(psnr),
                 figures_ms: inv.finish_ms,
                 file_ms,
+                rig_ms,
                 stopped_at: inv.stopped_at,
                 measuring: inv.unmeasured.is_some(),
                 refit: inv.refit.clone(),
             };
-            post(&m, &[("bytes", js_sys::Uint8Array::from(&bytes[..]).into())]);
+            let mut arrays = rigged_arrays(&rigged);
+            drop(rigged);
+            arrays.push(("bytes", js_sys::Uint8Array::from(&bytes[..]).into()));
+            drop(bytes);
+            post(&m, &arrays);
             // Measured once the page has shown it (Cancel: not at all).
             if let Some((inv, target)) = inv.unmeasured {
                 while !MEASURE.with(Cell::get) {
@@ -174,9 +183,21 @@ async fn run_job(meta: JobMeta, data: JsValue) {
     }
 }
 
-/// The result file, the inversion's outcome (figures, or the inverter that measures them
-/// after the file is sent), milliseconds of the file.
-type Outcome<'a> = (Vec<u8>, Inverted<'a>, f64);
+/// A job's result.
+struct Outcome<'a> {
+    /// The result file.
+    bytes: Vec<u8>,
+    /// The inversion's outcome (figures, or the inverter that measures them after the file
+    /// is sent).
+    inv: Inverted<'a>,
+    /// Milliseconds of the file.
+    file_ms: f64,
+    /// The avatar extracted and rigged here, so the page shows it without a generation of its
+    /// own (on a software adapter the page's WebGPU device takes 10+ s for it; the worker's
+    /// NdArray a few), and its milliseconds.
+    rigged: RiggedArrays,
+    rig_ms: f64,
+}
 
 async fn job<'a>(
     meta: JobMeta,
@@ -232,6 +253,14 @@ async fn job<'a>(
     };
     let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else { return Ok(None) };
     let t = now_ms();
+    let rigged = generate_rigged_async(&inv.generator, &state.ctx, &inv.styles, &device.0)
+        .await
+        .map_err(|e| format!("cannot extract the avatar: {e}"))?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        return Err("the reconstructed generator produced an empty surface".into());
+    }
+    let (rigged, rig_ms) = (rigged.to_arrays(), now_ms() - t);
+    let t = now_ms();
     let photo = match inv.projection(&job) {
         Some(source) => {
             crate::task::yield_to_browser().await;
@@ -244,7 +273,7 @@ async fn job<'a>(
     let bytes = save_inverted_async(&inv.generator, &job.cfg, &inv.styles, photo.as_ref(), &extra)
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
-    Ok(Some((bytes, inv, now_ms() - t)))
+    Ok(Some(Outcome { bytes, inv, file_ms: now_ms() - t, rigged, rig_ms }))
 }
 
 /// The worker's body context, made on its first job (and again for another config).

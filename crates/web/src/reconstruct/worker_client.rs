@@ -5,7 +5,8 @@
 //! (`www/reconstruct_worker.js`) with its own WebGPU device, the embedded body model and the
 //! checkpoint's bytes ([`super::worker`]). It reports its start, steps and previews as it goes,
 //! and its result as a reconstruction file (the "Save reconstruction" format: tuned generator,
-//! codes, photo), which the page rigs exactly as "Open reconstruction…" does. Where a worker
+//! codes, photo) with the avatar it rigged from it, which the page opens as "Open
+//! reconstruction…" does, on that avatar instead of a generation of its own. Where a worker
 //! cannot have WebGPU (or cannot start), the page runs the reconstruction itself.
 
 use std::cell::{Cell, RefCell};
@@ -15,6 +16,7 @@ use eframe::egui;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::rigging::RiggedArrays;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
@@ -23,8 +25,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, object, u8_array, FromWorker, JobMeta, Message, ModelFiles, ProjectionMeta,
-    ToWorker,
+    f32_array, json_of, message_of, object, rigged_of, u8_array, FromWorker, JobMeta, Message, ModelFiles,
+    ProjectionMeta, ToWorker,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -401,22 +403,28 @@ fn on_message(data: JsValue) {
                 r.task.push(ReconstructEvent::Preview(Box::new(Preview { rgb, mask, done })), &r.repaint);
             }
         }
-        FromWorker::Finished { iou, psnr, figures_ms, file_ms, stopped_at, measuring, refit } => {
+        FromWorker::Finished { iou, psnr, figures_ms, file_ms, rig_ms, stopped_at, measuring, refit } => {
             let Some(r) = slot.take() else { return };
-            match u8_array(&data, "bytes") {
-                Some(bytes) => {
+            match (u8_array(&data, "bytes"), rigged_of(&data)) {
+                (Some(bytes), Ok(rigged)) => {
                     let fit = (!measuring).then(|| (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN)));
                     if measuring {
                         let (task, repaint) = (r.task.clone(), r.repaint.clone());
                         let m = Measuring { task, repaint, shown: false, figures: None };
                         MEASURING.with(|s| *s.borrow_mut() = Some(m));
                     }
-                    wasm_bindgen_futures::spawn_local(finish(r, bytes, fit, (figures_ms, file_ms), stopped_at, refit));
+                    let result =
+                        WorkerResult { bytes, rigged, fit, stopped_at, refit, ms: (figures_ms, file_ms, rig_ms) };
+                    wasm_bindgen_futures::spawn_local(finish(r, result));
                     release_when_idle();
                 }
-                None => {
+                (None, _) => {
                     r.task.push(ReconstructEvent::Failed("the reconstruction worker sent no result".into()), &r.repaint)
                 }
+                (_, Err(missing)) => r.task.push(
+                    ReconstructEvent::Failed(format!("the reconstruction worker sent its avatar without `{missing}`")),
+                    &r.repaint,
+                ),
             }
         }
         FromWorker::Failed { message } => {
@@ -461,20 +469,27 @@ fn fall_back_to_page(why: String) {
     }
 }
 
-/// The worker's result on the page: rigged as "Open reconstruction…" does, with its figures
-/// (None: they follow).
-async fn finish(
-    r: Running,
+/// What the worker hands over at the end of a job.
+struct WorkerResult {
+    /// The result file and the avatar the worker rigged from it.
     bytes: Vec<u8>,
+    rigged: RiggedArrays,
+    /// Its figures (None: they follow).
     fit: Option<(f32, f32)>,
-    (figures_ms, file_ms): (f64, f64),
     stopped_at: Option<usize>,
     refit: Option<getavatar_core::body::body_fit::fit::BodyFit>,
-) {
+    /// Milliseconds of the worker's final figures, result file, rigging.
+    ms: (f64, f64, f64),
+}
+
+/// The worker's result on the page: opened as "Open reconstruction…" does, on the avatar the
+/// worker rigged, with its figures (None: they follow).
+async fn finish(r: Running, w: WorkerResult) {
+    let WorkerResult { bytes, rigged, fit, stopped_at, refit, ms: (figures_ms, file_ms, worker_rig_ms) } = w;
     // Not in the task that copied the file out of the message.
     crate::task::yield_to_browser().await;
     let t = now_ms();
-    let event = match rig_saved(bytes, "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
+    let event = match rig_saved(bytes, Some(rigged), "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
         Ok(mut done) => {
             (done.fit, done.measuring) = (fit, fit.is_none());
             (done.stopped_at, done.refit) = (stopped_at, refit);
@@ -483,19 +498,17 @@ async fn finish(
             done.finish_ms = figures_ms + file_ms + rig_ms;
             let build = std::mem::take(&mut done.finish_detail);
             // A guess shown before it is measured (`InversionJob::figures` off) has no figures.
-            done.finish_detail = match fit {
-                Some((iou, _)) if iou.is_finite() => format!(
-                    "worker: final figures {:.1} s, result file {:.1} s; page: rigging {:.1} s ({build})",
-                    figures_ms / 1000.0,
-                    file_ms / 1000.0,
-                    rig_ms / 1000.0
-                ),
-                _ => format!(
-                    "worker: result file {:.1} s; page: rigging {:.1} s ({build})",
-                    file_ms / 1000.0,
-                    rig_ms / 1000.0
-                ),
+            let figures = match fit {
+                Some((iou, _)) if iou.is_finite() => format!("final figures {:.1} s, ", figures_ms / 1000.0),
+                _ => String::new(),
             };
+            done.finish_ms += worker_rig_ms;
+            done.finish_detail = format!(
+                "worker: {figures}rigging {:.1} s, result file {:.1} s; page: the avatar {:.1} s ({build})",
+                worker_rig_ms / 1000.0,
+                file_ms / 1000.0,
+                rig_ms / 1000.0
+            );
             ReconstructEvent::Finished(Box::new(done))
         }
         Err(e) => ReconstructEvent::Failed(format!("the reconstruction failed: {e}")),
