@@ -267,10 +267,15 @@ try {
   const tGen = Date.now();
   const jGen = await pageNow();
   await page.evaluate(() => window.getavatar.command({ generate: { seed_geo: 1, seed_tex: 2 } }));
-  s = await waitFor((s) => s.generations > g0 && !s.generating, 'generation on WebGPU', 300000);
+  s = await waitFor((s) => s.generations > g0 && !s.generating, 'generation', 300000);
   jobs.push(['generate', jGen, await pageNow()]);
   await page.waitForTimeout(800);
-  console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
+  console.log(`generation took ${s.last_generation_ms.toFixed(0)} ms in the app on ${s.last_generation_on} (${((Date.now() - tGen) / 1000).toFixed(1)} s wall)`);
+  // A new identity on a software adapter (SwiftShader here) is generated in the worker on
+  // NdArray, on a hardware one on the page's WebGPU device.
+  const softwareGen = /Cpu/.test(s.adapter);
+  check(softwareGen ? /^the worker's CPU/.test(s.last_generation_on) : /^the page's WebGPU/.test(s.last_generation_on),
+    `a new identity is generated on ${softwareGen ? "the worker's CPU, the adapter being a software one" : "the page's WebGPU device"} (${s.last_generation_on})`);
   // The stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
   const stageRows = s.last_generation_stages?.stages ?? [];
   console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}  dispatches ${x.dispatches}`).join('\n'));

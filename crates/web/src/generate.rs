@@ -28,6 +28,8 @@ use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, Rigged
 use getavatar_core::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
 use getavatar_core::util::profile;
 
+use crate::reconstruct::generate_in_worker;
+
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
 /// Which models the build ships (`{"demo": "demo.safetensors", "demo_d": "demo_d_rgb.safetensors"}`,
@@ -94,12 +96,17 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
 /// compiles it (cubecl → WGSL → the browser's shader compiler), single tasks of up to ~0.8 s on
 /// this project's software-GPU test machine that cannot be sliced. Done here, no generation the
-/// user asks for pays them. A failure only means the first generation compiles.
-async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, device: &Device) {
+/// user asks for pays them. A failure only means the first generation compiles. On a
+/// `software` adapter new identities are generated in the worker, so only the kernels the
+/// page still runs (the bake, a new texture's colours) are compiled, not a whole generation
+/// (8–10 s of SwiftShader before the first avatar could start).
+async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, device: &Device, software: bool) {
     let (zg, zt) = seed_latents(cfg, 0, 0, device);
     let styles = shipped.generator.styles_with(zg, zt, default_psi(shipped.modes.as_ref()), shipped.modes.as_ref());
-    if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
-        web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
+    if !software {
+        if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
+            web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
+        }
     }
     // The texture bake's batch shape (the downloads' first bake compiled 0.2–0.4 s tasks).
     let planes = shipped.generator.triplanes_async(&styles).await;
@@ -210,6 +217,8 @@ pub struct Finished {
     pub seeds: (u64, u64),
     /// The truncation ψ it was generated with.
     pub psi: f32,
+    /// Where it was generated ("the worker's CPU (burn NdArray)", "the page's WebGPU device").
+    pub on: String,
 }
 
 pub struct GenEngine {
@@ -234,6 +243,9 @@ pub struct GenEngine {
     pub baking: bool,
     /// A generation asked for while the weights were loading.
     pending: Option<Job>,
+    /// The WebGPU adapter is a software one (a CPU): new identities are generated in the
+    /// reconstruction worker on burn's NdArray, 6–10× faster there (docs/benchmarks.md).
+    software: bool,
     pub busy: bool,
 }
 
@@ -263,6 +275,7 @@ impl GenEngine {
             .setup(setup)
             .init()
             .map_err(|e| format!("burn cannot use the WebGPU device: {e:?}"))?;
+        let software = rs.adapter.get_info().device_type == egui_wgpu::wgpu::DeviceType::Cpu;
         let cfg = GeneratorConfig::demo();
         let generator = Rc::new(Generator::new(&cfg, 0, &device));
         let weights_slot = Rc::new(RefCell::new(None));
@@ -277,7 +290,7 @@ impl GenEngine {
                     None => None,
                 };
                 if let (Ok(shipped), Some(ctx)) = (&loaded, &ctx) {
-                    warm_up(shipped, ctx, &shipped.cfg, &device).await;
+                    warm_up(shipped, ctx, &shipped.cfg, &device, software).await;
                 }
                 *slot.borrow_mut() = Some((loaded, ctx));
                 repaint.request_repaint();
@@ -300,6 +313,7 @@ impl GenEngine {
             baking: false,
             pending: None,
             busy: false,
+            software,
         })
     }
 
@@ -328,6 +342,9 @@ impl GenEngine {
         };
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
+        // On a software adapter a new identity is generated in the reconstruction worker on
+        // the CPU (with the trained model; random weights stay on the page).
+        let worker = self.checkpoint.clone().filter(|_| self.software);
         let modes = self.modes.clone();
         // No ψ from the user: the loaded model's default (`generator::default_psi`).
         let psi = psi.unwrap_or_else(|| default_psi(modes.as_ref().as_ref()));
@@ -340,8 +357,10 @@ impl GenEngine {
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
             crate::task::checkpoint().await;
+            let (mut worker_stages, mut on) = (None, "the worker's CPU (burn NdArray)");
             let generated = match keep {
                 Some(mut r) => {
+                    on = "the page's WebGPU device";
                     profile::stage("synthesis");
                     let planes = g.triplanes_async(&styles).await;
                     profile::stage("colours");
@@ -350,15 +369,45 @@ impl GenEngine {
                         (r, Some(planes))
                     })
                 }
-                None => match generate_rigged_async(&g, &ctx, &styles, &dev).await {
-                    Ok(mut r) => {
-                        r.keep_bind_pose_async(&ctx, &betas).await;
-                        Ok((r, None))
+                None => {
+                    let in_worker = match &worker {
+                        Some(bytes) => match generate_in_worker(&cfg, bytes, seeds, psi).await {
+                            Ok((arrays, _, stages)) => RiggedAvatar::from_arrays(arrays, &ctx)
+                                .map(|r| (r, stages))
+                                .map_err(|e| format!("the worker's avatar: {e}")),
+                            Err(e) => Err(e),
+                        },
+                        None => Err(String::new()),
+                    };
+                    match in_worker {
+                        Ok((mut r, stages)) => {
+                            worker_stages = Some(stages);
+                            r.keep_bind_pose_async(&ctx, &betas).await;
+                            Ok((r, None))
+                        }
+                        Err(why) => {
+                            if !why.is_empty() {
+                                let m = format!("generating in the worker failed ({why}); generating on the page");
+                                web_sys::console::warn_1(&m.into());
+                            }
+                            on = "the page's WebGPU device";
+                            match generate_rigged_async(&g, &ctx, &styles, &dev).await {
+                                Ok(mut r) => {
+                                    r.keep_bind_pose_async(&ctx, &betas).await;
+                                    Ok((r, None))
+                                }
+                                Err(e) => Err(e),
+                            }
+                        }
                     }
-                    Err(e) => Err(e),
-                },
+                }
             };
-            let stages = profile::finish();
+            let page_stages = profile::finish();
+            // Generated in the worker: its stages (mapping to rigging) stand for the page's.
+            let stages = match worker_stages {
+                Some(s) => s,
+                None => page_stages,
+            };
             let result = match generated {
                 Err(e) => Err(format!("generation failed: {e}")),
                 Ok((rigged, _)) if rigged.canonical.mesh.faces.is_empty() => {
@@ -372,7 +421,8 @@ impl GenEngine {
                         projection: None,
                         reconstructed: false,
                     });
-                    Ok(Finished { rigged, field, millis: crate::platform::now_ms() - t0, stages, seeds, psi })
+                    let millis = crate::platform::now_ms() - t0;
+                    Ok(Finished { rigged, field, millis, stages, seeds, psi, on: on.to_string() })
                 }
             };
             *slot.borrow_mut() = Some(result);

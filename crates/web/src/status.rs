@@ -50,6 +50,9 @@ pub struct Status {
     /// The last generation by stage (mapping … rigging, then the mesh's upload): host ms,
     /// waits on the GPU, read-backs (`getavatar_core::util::profile`).
     pub last_generation_stages: Option<getavatar_core::util::profile::StageProfile>,
+    /// Where the last generation ran: "the worker's CPU (burn NdArray)" on a software WebGPU
+    /// adapter, else "the page's WebGPU device".
+    pub last_generation_on: String,
     pub seed_geo: u64,
     pub seed_tex: u64,
     pub psi: f32,

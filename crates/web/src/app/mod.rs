@@ -335,6 +335,7 @@ impl GetAvatarApp {
                 self.status.generations += 1;
                 self.status.last_generation_ms = done.millis as f32;
                 self.status.last_generation_stages = done.stages;
+                self.status.last_generation_on = done.on;
                 self.time_upload = true;
                 self.status.avatar_vertices = done.rigged.canonical.mesh.vertices.len();
                 (self.seed_geo, self.seed_tex) = done.seeds;

@@ -47,7 +47,8 @@ impl GetAvatarApp {
             if ui.checkbox(&mut show, "show avatar (off: bare body)").changed() {
                 self.apply(Action::ShowAvatar(show));
             }
-            ui.label(format!("{} vertices · {:.0} ms", self.status.avatar_vertices, self.status.last_generation_ms));
+            let (st, ms) = (&self.status, self.status.last_generation_ms);
+            ui.label(format!("{} vertices · {ms:.0} ms on {}", st.avatar_vertices, st.last_generation_on));
             if let Some(p) = &self.status.last_generation_stages {
                 ui.label(format!(
                     "host {:.0} ms · GPU waits {:.0} ms · {} read-back{}",

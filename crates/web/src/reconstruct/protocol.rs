@@ -1,6 +1,6 @@
 //! The messages between the page and the reconstruction worker: `{json, …typed arrays}`,
 //! the JSON holding the small fields ([`ToWorker`], [`FromWorker`]), the arrays the bulk
-//! (checkpoint, images, the result file).
+//! (checkpoint, images, the result file, rigged avatars).
 
 use std::rc::Rc;
 
@@ -9,6 +9,7 @@ use getavatar_core::body::skinning::BodyParams;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::rigging::RiggedArrays;
 use getavatar_core::reconstruction::inversion::{InversionOptions, StepReport};
+use getavatar_core::util::profile::StageProfile;
 use serde::{Deserialize, Serialize};
 use wasm_bindgen::prelude::*;
 
@@ -29,6 +30,20 @@ pub(super) enum ToWorker {
     /// The page shows the result handed over before its figures: measure it now (not while
     /// the page rigs it, which would share the adapter with it).
     Measure,
+    /// Generate a new identity on the worker's CPU for the page's Generate (the array
+    /// `checkpoint` comes with it unless the worker holds it).
+    Generate(GenerateMeta),
+}
+
+/// A new identity the page asks the worker for: the seeds and ψ as the page's Generate has
+/// them, under the model's config.
+#[derive(Serialize, Deserialize)]
+pub(super) struct GenerateMeta {
+    pub(super) id: u64,
+    pub(super) cfg: GeneratorConfig,
+    pub(super) checkpoint_kept: bool,
+    pub(super) seeds: (u64, u64),
+    pub(super) psi: f32,
 }
 
 /// An [`InversionJob`] without its arrays.
@@ -116,6 +131,18 @@ pub(super) enum FromWorker {
     Cancelled,
     /// This worker has no WebGPU device: the page runs the reconstruction itself.
     Unavailable {
+        message: String,
+    },
+    /// With the arrays of [`rigged_arrays`]: the avatar of `Generate` `id`, extracted and rigged,
+    /// in `millis` (the model's loading included), by stage.
+    Generated {
+        id: u64,
+        millis: f64,
+        stages: Option<StageProfile>,
+    },
+    /// `Generate` `id` failed.
+    GenerateFailed {
+        id: u64,
         message: String,
     },
     /// The worker's module stopped (a panic): it is gone; the next reconstruction starts a new one.

@@ -1,7 +1,8 @@
 //! The worker's side of the reconstruction worker ([`super::worker_client`] is the page's):
 //! [`reconstruct_worker_message`] receives a job, runs the inversion on the worker's own WebGPU
-//! device and posts its start, steps, previews, the result file and the avatar rigged from it
-//! back to the page.
+//! device (or NdArray) and posts its start, steps, previews, the result file and the avatar
+//! rigged from it back to the page. On a software adapter it also generates the page's new
+//! identities (`ToWorker::Generate`) on NdArray.
 
 use std::cell::{Cell, RefCell};
 use std::rc::Rc;
@@ -24,7 +25,7 @@ use super::job::{
     invert, measure, Compute, InversionJob, Inverted, Progress, Progressing, ProjectionSource, ReconstructEvent,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, rigged_arrays, u8_array, FromWorker, JobMeta, ModelFiles, ToWorker,
+    f32_array, json_of, message_of, rigged_arrays, u8_array, FromWorker, GenerateMeta, JobMeta, ModelFiles, ToWorker,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -83,6 +84,7 @@ pub fn reconstruct_worker_message(data: JsValue) {
                 }
             }
         }),
+        Ok(ToWorker::Generate(meta)) => wasm_bindgen_futures::spawn_local(generate_job(meta, data)),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
             MEASURE.with(|m| m.set(false));
@@ -220,17 +222,7 @@ async fn job<'a>(
         }
         None => None,
     };
-    // A file sent now, or the one kept from an earlier job.
-    let file = |name: &str, kept: bool| {
-        FILES.with(|f| {
-            let mut f = f.borrow_mut();
-            let s = f.get_or_insert_with(ModelFiles::default).slot(name);
-            if !kept {
-                *s = u8_array(data, name).map(Rc::new);
-            }
-            s.clone()
-        })
-    };
+    let file = |name: &str, kept: bool| file(data, name, kept);
     let checkpoint = file("checkpoint", meta.checkpoint_kept);
     let discriminator = file("discriminator", meta.discriminator_kept);
     let encoder = file("encoder", meta.encoder_kept);
@@ -274,6 +266,57 @@ async fn job<'a>(
         .await
         .map_err(|e| format!("cannot write the result: {e}"))?;
     Ok(Some(Outcome { bytes, inv, file_ms: now_ms() - t, rigged, rig_ms }))
+}
+
+/// A model file sent with `data` now, or the one kept from an earlier job (`kept`).
+fn file(data: &JsValue, name: &str, kept: bool) -> Option<Rc<Vec<u8>>> {
+    FILES.with(|f| {
+        let mut f = f.borrow_mut();
+        let s = f.get_or_insert_with(ModelFiles::default).slot(name);
+        if !kept {
+            *s = u8_array(data, name).map(Rc::new);
+        }
+        s.clone()
+    })
+}
+
+/// The page's Generate on this worker's CPU: the avatar, or why not.
+async fn generate_job(meta: GenerateMeta, data: JsValue) {
+    let id = meta.id;
+    match generate(meta, &data).await {
+        Ok((rigged, millis, stages)) => post(&FromWorker::Generated { id, millis, stages }, &rigged_arrays(&rigged)),
+        Err(message) => post(&FromWorker::GenerateFailed { id, message }, &[]),
+    }
+}
+
+/// A new identity, extracted and rigged on burn's NdArray in this worker (a software WebGPU
+/// adapter's page takes 8–10 s for it, mostly DMTet's GPU wait; docs/benchmarks.md), its
+/// milliseconds (the model's loading included) and its stages.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn generate(
+    meta: GenerateMeta,
+    data: &JsValue,
+) -> Result<(RiggedArrays, f64, Option<getavatar_core::util::profile::StageProfile>), String> {
+    use getavatar_core::generator::checkpoint::load_generator_and_modes;
+    use getavatar_core::generator::pipeline::seed_latents;
+    use getavatar_core::util::profile;
+    let t0 = now_ms();
+    let state = state(&meta.cfg).await?;
+    let checkpoint = file(data, "checkpoint", meta.checkpoint_kept).ok_or("the worker lost the model's file")?;
+    let dev = Device::ndarray();
+    let (g, modes) = load_generator_and_modes(&checkpoint, &meta.cfg, &dev).map_err(|e| format!("the model: {e}"))?;
+    crate::task::yield_to_browser().await;
+    profile::start(now_ms);
+    profile::stage("mapping");
+    let (zg, zt) = seed_latents(&meta.cfg, meta.seeds.0, meta.seeds.1, &dev);
+    let styles = g.styles_with(zg, zt, meta.psi, modes.as_ref());
+    let rigged = generate_rigged_async(&g, &state.ctx, &styles, &dev).await;
+    let stages = profile::finish();
+    let rigged = rigged.map_err(|e| format!("generation failed: {e}"))?;
+    if rigged.canonical.mesh.faces.is_empty() {
+        return Err("the generator produced an empty surface".into());
+    }
+    Ok((rigged.to_arrays(), now_ms() - t0, stages))
 }
 
 /// The worker's body context, made on its first job (and again for another config).

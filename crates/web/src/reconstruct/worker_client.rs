@@ -17,6 +17,7 @@ use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::generator::rigging::RiggedArrays;
+use getavatar_core::util::profile::StageProfile;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
@@ -25,8 +26,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, object, rigged_of, u8_array, FromWorker, JobMeta, Message, ModelFiles,
-    ProjectionMeta, ToWorker,
+    f32_array, json_of, message_of, object, rigged_of, u8_array, FromWorker, GenerateMeta, JobMeta, Message,
+    ModelFiles, ProjectionMeta, ToWorker,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -96,6 +97,67 @@ thread_local! {
     static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
     /// Jobs handed to a worker so far: an idle release applies only if none came since.
     static JOBS: Cell<u64> = const { Cell::new(0) };
+    /// Generations handed to the worker (`generate_in_worker`): their ids and where their
+    /// outcome goes.
+    static GENERATIONS: RefCell<Vec<(u64, GenerationSlot)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// A new identity from the worker: its rigged avatar, milliseconds and stages, or why none.
+pub type WorkerGeneration = Result<(RiggedArrays, f64, Option<StageProfile>), String>;
+type GenerationSlot = Rc<RefCell<Option<WorkerGeneration>>>;
+
+/// Generate a new identity in the worker (started on first use) on its CPU, for the page's
+/// Generate on a software WebGPU adapter. `Err`: the worker cannot (none here, busy with a
+/// reconstruction, stopped, or the generation failed); the page generates it itself.
+pub async fn generate_in_worker(
+    cfg: &GeneratorConfig,
+    checkpoint: &Rc<Vec<u8>>,
+    seeds: (u64, u64),
+    psi: f32,
+) -> WorkerGeneration {
+    if let Some(why) = NO_WORKER.with(|n| n.borrow().clone()) {
+        return Err(why);
+    }
+    let client = client()?;
+    if client.running.borrow().is_some() {
+        return Err("the worker is reconstructing".into());
+    }
+    let id = JOBS.with(|j| {
+        j.set(j.get() + 1);
+        j.get()
+    });
+    let checkpoint_kept = holds(&client.sent.borrow().checkpoint, checkpoint);
+    let meta = GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi };
+    let json = serde_json::to_string(&ToWorker::Generate(meta)).map_err(|e| e.to_string())?;
+    let arrays: Vec<(&str, JsValue)> = match checkpoint_kept {
+        true => Vec::new(),
+        false => vec![("checkpoint", js_sys::Uint8Array::from(&checkpoint[..]).into())],
+    };
+    let m = object(&json, &arrays);
+    client.worker.post_message(&m.data, &m.transfer).map_err(|e| js_message(&e))?;
+    client.sent.borrow_mut().checkpoint = Some(checkpoint.clone());
+    drop(client);
+    let slot: GenerationSlot = Rc::default();
+    GENERATIONS.with(|g| g.borrow_mut().push((id, slot.clone())));
+    let outcome = loop {
+        if let Some(o) = slot.borrow_mut().take() {
+            break o;
+        }
+        crate::task::sleep_ms(20).await;
+    };
+    release_when_idle();
+    outcome
+}
+
+/// The outcome of generation `id` (from the worker, or its end).
+fn generated(id: u64, outcome: WorkerGeneration) {
+    let slot = GENERATIONS.with(|g| {
+        let mut g = g.borrow_mut();
+        g.iter().position(|(i, _)| *i == id).map(|k| g.swap_remove(k).1)
+    });
+    if let Some(slot) = slot {
+        *slot.borrow_mut() = Some(outcome);
+    }
 }
 
 /// End the worker if it is still idle after [`IDLE_RELEASE_MS`].
@@ -103,7 +165,8 @@ fn release_when_idle() {
     let job = JOBS.with(Cell::get);
     let release = Closure::once_into_js(move || {
         let idle = CLIENT.with(|c| c.borrow().as_ref().is_some_and(|c| c.running.borrow().is_none()))
-            && MEASURING.with(|m| m.borrow().is_none());
+            && MEASURING.with(|m| m.borrow().is_none())
+            && GENERATIONS.with(|g| g.borrow().is_empty());
         if idle && JOBS.with(Cell::get) == job {
             drop_client();
         }
@@ -206,6 +269,9 @@ fn worker_unusable(why: String) {
 fn drop_client() {
     if let Some(c) = CLIENT.with(|c| c.borrow_mut().take()) {
         c.worker.terminate();
+    }
+    for (id, _) in GENERATIONS.with(|g| g.borrow().clone()) {
+        generated(id, Err("the worker stopped".into()));
     }
     if MEASURING.with(|m| m.borrow().is_some()) {
         measured(Measured { figures: Err("not measured: the worker stopped".into()), millis: 0.0 });
@@ -370,6 +436,16 @@ fn on_message(data: JsValue) {
         Ok(e) => e,
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
+    match event {
+        FromWorker::Generated { id, millis, stages } => {
+            let outcome = rigged_of(&data)
+                .map(|a| (a, millis, stages))
+                .map_err(|missing| format!("the worker sent its avatar without `{missing}`"));
+            return generated(id, outcome);
+        }
+        FromWorker::GenerateFailed { id, message } => return generated(id, Err(message)),
+        _ => {}
+    }
     if let FromWorker::Figures { iou, psnr, millis, error } = event {
         let images = f32_array(&data, "rgb").zip(f32_array(&data, "mask"));
         let figures = match (error, images) {
@@ -441,7 +517,7 @@ fn on_message(data: JsValue) {
             drop(slot);
             unavailable(message);
         }
-        FromWorker::Figures { .. } => {}
+        FromWorker::Figures { .. } | FromWorker::Generated { .. } | FromWorker::GenerateFailed { .. } => {}
         FromWorker::Fatal { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
             *slot = None;
