@@ -324,6 +324,8 @@ try {
   for (let k = 0; k < avMask.length; k++) if (avMask[k]) { for (let c = 0; c < 3; c++) diff += Math.abs(rgb1.data[4 * k + c] - rgb2.data[4 * k + c]); nBody++; }
   diff /= Math.max(1, 3 * nBody);
   check(diff > 3, `a new texture seed changes RGB pixels (mean |Δ| ${diff.toFixed(1)} on the body)`);
+  check(softwareGen ? /^the worker's CPU/.test(s.last_generation_on) : /^the page's WebGPU/.test(s.last_generation_on),
+    `a new texture is computed on ${softwareGen ? "the worker's CPU" : "the page's WebGPU device"} (${s.last_generation_on}, ${s.last_generation_ms.toFixed(0)} ms)`);
   s = await command({ view: 'mask' }, (s) => s.view === 'mask');
   const avMask2 = maskOf(await grab('mask_avatar_tex3'), (c) => c[0] > 127);
   check(iou(avMask, avMask2) > 0.999, `…but not the mask (IoU ${iou(avMask, avMask2).toFixed(4)})`);

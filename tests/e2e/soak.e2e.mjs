@@ -180,6 +180,8 @@ try {
       || consoleErrors.some((e) => e.includes('panicked')),
     `the app's answer after action ${i} (${a.kind})`, 120000);
     if (await page.$('#fatal')) throw new Error(`the app stopped after action ${i} (${a.kind}): ${await page.innerText('#fatal')}`);
+    // The warm-up's avatar exists before its download, so that download bakes a texture.
+    if (i < WARMUP && a.kind === 'generate') await waitFor((s) => !s.generating && s.generations > 0, 'the warm-up generation', 300000);
     const m = await memory();
     for (const k of Object.keys(peak)) peak[k] = Math.max(peak[k], m[k]);
     if (i + 1 === WARMUP) {

@@ -58,7 +58,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 
 /// One instruction to the app. JSON form: `{"pose":"walking"}`, `{"joint":"left_elbow",
 /// "value":[0,-1,0]}`, `{"yaw":30}`, `{"view":"mask"}`, `{"res":1024}`, `{"betas":[1,0]}`,
-/// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}`,
+/// `{"reset_camera":true}`, `{"download":true}`, `{"generate":{"seed_geo":1,"seed_tex":2,"psi":0.7}}` (optionally
+/// `"device":"auto"|"cpu"|"webgpu"`),
 /// `{"retexture":{"seed_tex":3}}`, `{"show":"body"}`, `{"photo":{"url":"me.jpg"}}` (optionally
 /// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`, `{"photo_fit":{"person":2}}` (fit the
 /// photo's 2nd person by size),
@@ -167,6 +168,10 @@ pub struct GenerateArgs {
     pub seed_geo: Option<u64>,
     pub seed_tex: Option<u64>,
     pub psi: Option<f32>,
+    /// Where a new identity is generated (generate only; unset: `auto`): `cpu` in the
+    /// reconstruction worker on burn's NdArray, `webgpu` on the page's WebGPU device, `auto`
+    /// the first on a software adapter and the second on a hardware one.
+    pub device: Option<Compute>,
 }
 
 /// A photo to reconstruct the body from, by URL (relative to the page or absolute).
@@ -234,7 +239,8 @@ pub enum Compute {
     Auto,
     /// burn's NdArray in the worker.
     Cpu,
-    /// The worker's own WebGPU device.
+    /// The worker's own WebGPU device (for a generation: the page's).
+    #[serde(rename = "webgpu")]
     WebGpu,
 }
 
@@ -484,6 +490,9 @@ impl Command {
             Command::Download { .. } => Action::Download,
             Command::Continuous { continuous } => Action::Continuous(continuous),
             Command::Generate { generate } => Action::Generate(check_psi(generate)?),
+            Command::Retexture { retexture } if retexture.device.is_some() => {
+                return Err("`device` applies to generate only: a new texture is computed on the page".into())
+            }
             Command::Retexture { retexture } => Action::Retexture(check_psi(retexture)?),
             Command::Show { show } => match show.as_str() {
                 "avatar" => Action::ShowAvatar(true),
@@ -646,7 +655,7 @@ pub fn parse_query(query: &str) -> (Vec<Action>, Vec<String>) {
                     Action::Generate(GenerateArgs {
                         seed_geo: if k == "seed_geo" { s } else { None },
                         seed_tex: if k == "seed_tex" { s } else { None },
-                        psi: None,
+                        ..Default::default()
                     })
                 })
             }
@@ -798,6 +807,16 @@ mod tests {
         assert_eq!(parse_command(r#"{"show":"body"}"#), Ok(Action::ShowAvatar(false)));
         assert!(parse_command(r#"{"generate":{"seed":3}}"#).is_err());
         assert!(parse_command(r#"{"generate":{"psi":7}}"#).is_err());
+        assert_eq!(
+            parse_command(r#"{"generate":{"seed_geo":4,"device":"cpu"}}"#),
+            Ok(Action::Generate(GenerateArgs { seed_geo: Some(4), device: Some(Compute::Cpu), ..Default::default() }))
+        );
+        assert!(parse_command(r#"{"generate":{"device":"gpu"}}"#).is_err());
+        assert_eq!(
+            parse_command(r#"{"generate":{"device":"webgpu"}}"#),
+            Ok(Action::Generate(GenerateArgs { device: Some(Compute::WebGpu), ..Default::default() }))
+        );
+        assert!(parse_command(r#"{"retexture":{"device":"cpu"}}"#).unwrap_err().contains("generate only"));
         assert!(parse_command(r#"{"joint":"elbow","value":[1,0,0]}"#).is_err());
         assert!(parse_command(r#"{"res":77}"#).is_err());
         // An unknown key is refused (not swallowed by the all-optional camera command), and

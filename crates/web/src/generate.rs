@@ -14,7 +14,7 @@ use crate::platform::fetch_bytes;
 use eframe::egui_wgpu;
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
-use getavatar_core::burn::tensor::Device;
+use getavatar_core::burn::tensor::{Device, Tensor};
 use getavatar_core::generator::checkpoint::{
     config_with_saved_resolutions, load_generator_and_modes, save_inverted_async,
 };
@@ -28,7 +28,8 @@ use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, Rigged
 use getavatar_core::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
 use getavatar_core::util::profile;
 
-use crate::reconstruct::generate_in_worker;
+use crate::automation::Compute;
+use crate::reconstruct::{generate_in_worker, retexture_in_worker};
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -96,17 +97,27 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel
 /// compiles it (cubecl → WGSL → the browser's shader compiler), single tasks of up to ~0.8 s on
 /// this project's software-GPU test machine that cannot be sliced. Done here, no generation the
-/// user asks for pays them. A failure only means the first generation compiles. On a
-/// `software` adapter new identities are generated in the worker, so only the kernels the
-/// page still runs (the bake, a new texture's colours) are compiled, not a whole generation
-/// (8–10 s of SwiftShader before the first avatar could start).
+/// user asks for pays them. A failure only means the first generation compiles.
+///
+/// Not on a `software` adapter: there new identities are generated in the reconstruction
+/// worker on NdArray, and on SwiftShader this warm-up took 47 s (the bake's kernels 11 s, the
+/// surface sizes' 21 s, the rest the generation): the model was ready 50 s after the page
+/// loaded, without it 2.8 s (`tests/e2e/bench_generate.mjs`). New textures are computed in
+/// the worker too; the first bake compiles its kernels when it runs (tasks of 0.2–0.4 s).
 async fn warm_up(shipped: &Shipped, ctx: &BodyContext, cfg: &GeneratorConfig, device: &Device, software: bool) {
     let (zg, zt) = seed_latents(cfg, 0, 0, device);
     let styles = shipped.generator.styles_with(zg, zt, default_psi(shipped.modes.as_ref()), shipped.modes.as_ref());
-    if !software {
-        if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
-            web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
+    if software {
+        // The page still maps every generation's seeds to its styles (for its texture field):
+        // those kernels' compiles (a 0.3 s task) are made here.
+        let mapped = Tensor::cat(vec![styles.geo.clone().sum(), styles.tex.clone().sum()], 0);
+        if let Err(e) = getavatar_core::generator::readback::read_f32(mapped).await {
+            web_sys::console::warn_1(&format!("warming the mapping's kernels up failed: {e}").into());
         }
+        return;
+    }
+    if let Err(e) = generate_rigged_async(&shipped.generator, ctx, &styles, device).await {
+        web_sys::console::warn_1(&format!("warming the generator's kernels up failed: {e}").into());
     }
     // The texture bake's batch shape (the downloads' first bake compiled 0.2–0.4 s tasks).
     let planes = shipped.generator.triplanes_async(&styles).await;
@@ -148,7 +159,7 @@ struct Shipped {
     encoder: Result<Rc<Vec<u8>>, String>,
 }
 
-type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, Vec<f32>, eframe::egui::Context);
+type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, Compute, Vec<f32>, eframe::egui::Context);
 
 /// What the engine prepares at start: the shipped checkpoint (or why none) and the body's
 /// context (None without a body model).
@@ -282,16 +293,30 @@ impl GenEngine {
         {
             let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
             wasm_bindgen_futures::spawn_local(async move {
+                let now = crate::platform::now_ms;
+                let t = [now(), 0.0, 0.0, 0.0];
                 let loaded = load_shipped(&cfg, &device).await;
+                let t = [t[0], now(), 0.0, 0.0];
                 // The shipped file's config where it brings its own resolutions (its tet grid).
                 let cfg = loaded.as_ref().map_or(&cfg, |s| &s.cfg);
                 let ctx = match body {
                     Some(b) => Some(Rc::new(BodyContext::new_async(b, cfg).await)),
                     None => None,
                 };
+                let t = [t[0], t[1], now(), 0.0];
                 if let (Ok(shipped), Some(ctx)) = (&loaded, &ctx) {
                     warm_up(shipped, ctx, &shipped.cfg, &device, software).await;
                 }
+                let t = [t[0], t[1], t[2], now()];
+                web_sys::console::info_1(
+                    &format!(
+                        "the model: fetched and loaded in {:.0} ms, the body's context {:.0} ms, kernels warmed up {:.0} ms",
+                        t[1] - t[0],
+                        t[2] - t[1],
+                        t[3] - t[2]
+                    )
+                    .into(),
+                );
                 *slot.borrow_mut() = Some((loaded, ctx));
                 repaint.request_repaint();
             });
@@ -317,14 +342,16 @@ impl GenEngine {
         })
     }
 
-    /// Start generating (full, or texture only on `keep`'s geometry). The result arrives via
-    /// [`GenEngine::poll`], its bind pose at shape `betas` (the app's) computed ahead for the
-    /// viewer's upload.
+    /// Start generating (full, or texture only on `keep`'s geometry; a new identity where
+    /// `compute` says: `Cpu` in the reconstruction worker, `WebGpu` on the page, `Auto` the
+    /// first on a software adapter). The result arrives via [`GenEngine::poll`], its bind pose
+    /// at shape `betas` (the app's) computed ahead for the viewer's upload.
     pub fn start(
         &mut self,
         seeds: (u64, u64),
         psi: Option<f32>,
         keep: Option<RiggedAvatar>,
+        compute: Compute,
         betas: Vec<f32>,
         repaint: eframe::egui::Context,
     ) {
@@ -332,7 +359,7 @@ impl GenEngine {
             return;
         }
         if self.weights == Weights::Loading {
-            self.pending = Some((seeds, psi, keep, betas, repaint));
+            self.pending = Some((seeds, psi, keep, compute, betas, repaint));
             self.busy = true;
             return;
         }
@@ -342,9 +369,14 @@ impl GenEngine {
         };
         self.busy = true;
         let (g, dev, cfg, slot) = (self.generator.clone(), self.device.clone(), self.cfg.clone(), self.slot.clone());
-        // On a software adapter a new identity is generated in the reconstruction worker on
-        // the CPU (with the trained model; random weights stay on the page).
-        let worker = self.checkpoint.clone().filter(|_| self.software);
+        // By default a new identity is generated in the reconstruction worker on the CPU on a
+        // software adapter (with the trained model; random weights stay on the page).
+        let in_worker = match compute {
+            Compute::Auto => self.software,
+            Compute::Cpu => true,
+            Compute::WebGpu => false,
+        };
+        let worker = self.checkpoint.clone().filter(|_| in_worker);
         let modes = self.modes.clone();
         // No ψ from the user: the loaded model's default (`generator::default_psi`).
         let psi = psi.unwrap_or_else(|| default_psi(modes.as_ref().as_ref()));
@@ -360,14 +392,31 @@ impl GenEngine {
             let (mut worker_stages, mut on) = (None, "the worker's CPU (burn NdArray)");
             let generated = match keep {
                 Some(mut r) => {
-                    on = "the page's WebGPU device";
-                    profile::stage("synthesis");
-                    let planes = g.triplanes_async(&styles).await;
-                    profile::stage("colours");
-                    recolor_async(&g, &planes, &styles, &r.canonical.mesh.attributes, &dev).await.map(|colors| {
-                        r.canonical.colors = colors;
-                        (r, Some(planes))
-                    })
+                    let points = &r.canonical.mesh.attributes;
+                    let in_worker = match &worker {
+                        Some(bytes) => retexture_in_worker(&cfg, bytes, seeds, psi, points).await,
+                        None => Err(String::new()),
+                    };
+                    match in_worker {
+                        Ok((colors, _)) => {
+                            r.canonical.colors = colors;
+                            Ok((r, None))
+                        }
+                        Err(why) => {
+                            if !why.is_empty() {
+                                let m = format!("a new texture in the worker failed ({why}); computing it on the page");
+                                web_sys::console::warn_1(&m.into());
+                            }
+                            on = "the page's WebGPU device";
+                            profile::stage("synthesis");
+                            let planes = g.triplanes_async(&styles).await;
+                            profile::stage("colours");
+                            recolor_async(&g, &planes, &styles, points, &dev).await.map(|colors| {
+                                r.canonical.colors = colors;
+                                (r, Some(planes))
+                            })
+                        }
+                    }
                 }
                 None => {
                     let in_worker = match &worker {
@@ -454,9 +503,9 @@ impl GenEngine {
                     Weights::Random(e)
                 }
             };
-            if let Some((seeds, psi, keep, betas, repaint)) = self.pending.take() {
+            if let Some((seeds, psi, keep, compute, betas, repaint)) = self.pending.take() {
                 self.busy = false;
-                self.start(seeds, psi, keep, betas, repaint);
+                self.start(seeds, psi, keep, compute, betas, repaint);
             }
         }
         let r = self.slot.borrow_mut().take();

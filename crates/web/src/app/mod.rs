@@ -322,7 +322,8 @@ impl GetAvatarApp {
         // Until the user sets ψ, the loaded model's default applies (0 for a checkpoint with
         // latent modes: its training subjects, `generator::default_psi`).
         let psi = self.psi_from_user.then_some(self.psi);
-        engine.start((self.seed_geo, self.seed_tex), psi, keep, self.params.betas.clone(), ctx.clone());
+        let compute = a.device.unwrap_or(crate::automation::Compute::Auto);
+        engine.start((self.seed_geo, self.seed_tex), psi, keep, compute, self.params.betas.clone(), ctx.clone());
     }
 
     fn poll_generation(&mut self) {

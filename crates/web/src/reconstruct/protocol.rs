@@ -33,10 +33,13 @@ pub(super) enum ToWorker {
     /// Generate a new identity on the worker's CPU for the page's Generate (the array
     /// `checkpoint` comes with it unless the worker holds it).
     Generate(GenerateMeta),
+    /// The texture field of these styles at the canonical points of the array `points` (3
+    /// floats each), on the worker's CPU: the page's New texture (`checkpoint` as above).
+    Retexture(GenerateMeta),
 }
 
-/// A new identity the page asks the worker for: the seeds and ψ as the page's Generate has
-/// them, under the model's config.
+/// A new identity (or texture) the page asks the worker for: the seeds and ψ as the page's
+/// Generate has them, under the model's config.
 #[derive(Serialize, Deserialize)]
 pub(super) struct GenerateMeta {
     pub(super) id: u64,
@@ -140,8 +143,13 @@ pub(super) enum FromWorker {
         millis: f64,
         stages: Option<StageProfile>,
     },
-    /// `Generate` `id` failed.
-    GenerateFailed {
+    /// With the array `colors` (linear RGB, 3 floats per point): the answer to `Retexture` `id`.
+    Retextured {
+        id: u64,
+        millis: f64,
+    },
+    /// `Generate` or `Retexture` `id` failed.
+    CallFailed {
         id: u64,
         message: String,
     },

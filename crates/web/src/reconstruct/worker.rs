@@ -11,9 +11,10 @@ use getavatar_core::body::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::checkpoint::load_generator_and_modes;
 use getavatar_core::generator::checkpoint::save_inverted_async;
 use getavatar_core::generator::network::GeneratorConfig;
-use getavatar_core::generator::pipeline::BodyContext;
+use getavatar_core::generator::pipeline::{recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::rigging::{generate_rigged_async, RiggedArrays};
 use getavatar_core::reconstruction::inversion::InversionTarget;
 use getavatar_core::render::camera::View;
@@ -85,6 +86,7 @@ pub fn reconstruct_worker_message(data: JsValue) {
             }
         }),
         Ok(ToWorker::Generate(meta)) => wasm_bindgen_futures::spawn_local(generate_job(meta, data)),
+        Ok(ToWorker::Retexture(meta)) => wasm_bindgen_futures::spawn_local(retexture_job(meta, data)),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
             MEASURE.with(|m| m.set(false));
@@ -285,8 +287,53 @@ async fn generate_job(meta: GenerateMeta, data: JsValue) {
     let id = meta.id;
     match generate(meta, &data).await {
         Ok((rigged, millis, stages)) => post(&FromWorker::Generated { id, millis, stages }, &rigged_arrays(&rigged)),
-        Err(message) => post(&FromWorker::GenerateFailed { id, message }, &[]),
+        Err(message) => post(&FromWorker::CallFailed { id, message }, &[]),
     }
+}
+
+/// The page's New texture on this worker's CPU: the colours, or why not.
+async fn retexture_job(meta: GenerateMeta, data: JsValue) {
+    let id = meta.id;
+    let t0 = now_ms();
+    match retexture(meta, &data).await {
+        Ok(rgb) => {
+            let colors: JsValue = js_sys::Float32Array::from(&rgb[..]).into();
+            post(&FromWorker::Retextured { id, millis: now_ms() - t0 }, &[("colors", colors)])
+        }
+        Err(message) => post(&FromWorker::CallFailed { id, message }, &[]),
+    }
+}
+
+/// The generator of the page's model on NdArray here, and its latent modes.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+fn model(meta: &GenerateMeta, data: &JsValue) -> Result<(Generator, Option<LatentModes>), String> {
+    let checkpoint = file(data, "checkpoint", meta.checkpoint_kept).ok_or("the worker lost the model's file")?;
+    load_generator_and_modes(&checkpoint, &meta.cfg, &Device::ndarray()).map_err(|e| format!("the model: {e}"))
+}
+
+/// The styles of `meta`'s seeds and ψ.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+fn styles(g: &Generator, modes: Option<&LatentModes>, meta: &GenerateMeta) -> Styles {
+    let (zg, zt) = seed_latents(&meta.cfg, meta.seeds.0, meta.seeds.1, &Device::ndarray());
+    g.styles_with(zg, zt, meta.psi, modes)
+}
+
+/// The texture field at the points of `data`'s array `points`, as linear RGB floats.
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn retexture(meta: GenerateMeta, data: &JsValue) -> Result<Vec<f32>, String> {
+    let flat = f32_array(data, "points").ok_or("the request came without its points")?;
+    if flat.len() % 3 != 0 || flat.iter().any(|x| !x.is_finite()) {
+        return Err(format!("{} numbers are not points", flat.len()));
+    }
+    let points: Vec<glam::Vec3> = flat.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect();
+    let (g, modes) = model(&meta, data)?;
+    let styles = styles(&g, modes.as_ref(), &meta);
+    crate::task::yield_to_browser().await;
+    let planes = g.triplanes_async(&styles).await;
+    let colors = recolor_async(&g, &planes, &styles, &points, &Device::ndarray())
+        .await
+        .map_err(|e| format!("the texture field: {e}"))?;
+    Ok(colors.iter().flat_map(|c| c.to_array()).collect())
 }
 
 /// A new identity, extracted and rigged on burn's NdArray in this worker (a software WebGPU
@@ -297,19 +344,15 @@ async fn generate(
     meta: GenerateMeta,
     data: &JsValue,
 ) -> Result<(RiggedArrays, f64, Option<getavatar_core::util::profile::StageProfile>), String> {
-    use getavatar_core::generator::checkpoint::load_generator_and_modes;
-    use getavatar_core::generator::pipeline::seed_latents;
     use getavatar_core::util::profile;
     let t0 = now_ms();
     let state = state(&meta.cfg).await?;
-    let checkpoint = file(data, "checkpoint", meta.checkpoint_kept).ok_or("the worker lost the model's file")?;
     let dev = Device::ndarray();
-    let (g, modes) = load_generator_and_modes(&checkpoint, &meta.cfg, &dev).map_err(|e| format!("the model: {e}"))?;
+    let (g, modes) = model(&meta, data)?;
     crate::task::yield_to_browser().await;
     profile::start(now_ms);
     profile::stage("mapping");
-    let (zg, zt) = seed_latents(&meta.cfg, meta.seeds.0, meta.seeds.1, &dev);
-    let styles = g.styles_with(zg, zt, meta.psi, modes.as_ref());
+    let styles = styles(&g, modes.as_ref(), &meta);
     let rigged = generate_rigged_async(&g, &state.ctx, &styles, &dev).await;
     let stages = profile::finish();
     let rigged = rigged.map_err(|e| format!("generation failed: {e}"))?;

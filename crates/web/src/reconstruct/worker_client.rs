@@ -97,14 +97,18 @@ thread_local! {
     static NO_WORKER: RefCell<Option<String>> = const { RefCell::new(None) };
     /// Jobs handed to a worker so far: an idle release applies only if none came since.
     static JOBS: Cell<u64> = const { Cell::new(0) };
-    /// Generations handed to the worker (`generate_in_worker`): their ids and where their
-    /// outcome goes.
-    static GENERATIONS: RefCell<Vec<(u64, GenerationSlot)>> = const { RefCell::new(Vec::new()) };
+    /// Generations and new textures handed to the worker ([`generate_in_worker`],
+    /// [`retexture_in_worker`]): their ids and where their answer goes.
+    static GENERATIONS: RefCell<Vec<(u64, AnswerSlot)>> = const { RefCell::new(Vec::new()) };
 }
+
+/// The worker's answer to a call (its message, parsed, and the message with its arrays), or
+/// why there is none.
+type Answer = Result<(FromWorker, JsValue), String>;
+type AnswerSlot = Rc<RefCell<Option<Answer>>>;
 
 /// A new identity from the worker: its rigged avatar, milliseconds and stages, or why none.
 pub type WorkerGeneration = Result<(RiggedArrays, f64, Option<StageProfile>), String>;
-type GenerationSlot = Rc<RefCell<Option<WorkerGeneration>>>;
 
 /// Generate a new identity in the worker (started on first use) on its CPU, for the page's
 /// Generate on a software WebGPU adapter. `Err`: the worker cannot (none here, busy with a
@@ -115,6 +119,51 @@ pub async fn generate_in_worker(
     seeds: (u64, u64),
     psi: f32,
 ) -> WorkerGeneration {
+    let ask =
+        |id, checkpoint_kept| ToWorker::Generate(GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi });
+    match call(ask, checkpoint, Vec::new()).await? {
+        (FromWorker::Generated { millis, stages, .. }, data) => {
+            let arrays =
+                rigged_of(&data).map_err(|missing| format!("the worker sent its avatar without `{missing}`"))?;
+            Ok((arrays, millis, stages))
+        }
+        _ => Err("the worker answered Generate with another message".into()),
+    }
+}
+
+/// The texture field of the styles of `seeds` and ψ at canonical `points` (a new texture on
+/// the avatar's geometry), computed in the worker on its CPU: linear RGB per point and the
+/// milliseconds. `Err` as for [`generate_in_worker`].
+pub async fn retexture_in_worker(
+    cfg: &GeneratorConfig,
+    checkpoint: &Rc<Vec<u8>>,
+    seeds: (u64, u64),
+    psi: f32,
+    points: &[glam::Vec3],
+) -> Result<(Vec<glam::Vec3>, f64), String> {
+    let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+    let arrays = vec![("points", JsValue::from(js_sys::Float32Array::from(&flat[..])))];
+    let ask =
+        |id, checkpoint_kept| ToWorker::Retexture(GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi });
+    match call(ask, checkpoint, arrays).await? {
+        (FromWorker::Retextured { millis, .. }, data) => {
+            let rgb = f32_array(&data, "colors").ok_or("the worker sent no colours")?;
+            if rgb.len() != 3 * points.len() || rgb.iter().any(|x| !x.is_finite()) {
+                return Err(format!("the worker sent {} colour values for {} points", rgb.len(), points.len()));
+            }
+            Ok((rgb.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect(), millis))
+        }
+        _ => Err("the worker answered Retexture with another message".into()),
+    }
+}
+
+/// Ask the worker (`ask(id, whether it holds the checkpoint)`, with `arrays`, and the
+/// checkpoint where it lacks it) and await its answer.
+async fn call(
+    ask: impl FnOnce(u64, bool) -> ToWorker,
+    checkpoint: &Rc<Vec<u8>>,
+    mut arrays: Vec<(&str, JsValue)>,
+) -> Answer {
     if let Some(why) = NO_WORKER.with(|n| n.borrow().clone()) {
         return Err(why);
     }
@@ -127,36 +176,34 @@ pub async fn generate_in_worker(
         j.get()
     });
     let checkpoint_kept = holds(&client.sent.borrow().checkpoint, checkpoint);
-    let meta = GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi };
-    let json = serde_json::to_string(&ToWorker::Generate(meta)).map_err(|e| e.to_string())?;
-    let arrays: Vec<(&str, JsValue)> = match checkpoint_kept {
-        true => Vec::new(),
-        false => vec![("checkpoint", js_sys::Uint8Array::from(&checkpoint[..]).into())],
-    };
+    let json = serde_json::to_string(&ask(id, checkpoint_kept)).map_err(|e| e.to_string())?;
+    if !checkpoint_kept {
+        arrays.push(("checkpoint", js_sys::Uint8Array::from(&checkpoint[..]).into()));
+    }
     let m = object(&json, &arrays);
     client.worker.post_message(&m.data, &m.transfer).map_err(|e| js_message(&e))?;
     client.sent.borrow_mut().checkpoint = Some(checkpoint.clone());
     drop(client);
-    let slot: GenerationSlot = Rc::default();
+    let slot: AnswerSlot = Rc::default();
     GENERATIONS.with(|g| g.borrow_mut().push((id, slot.clone())));
-    let outcome = loop {
-        if let Some(o) = slot.borrow_mut().take() {
-            break o;
+    let answer = loop {
+        if let Some(a) = slot.borrow_mut().take() {
+            break a;
         }
         crate::task::sleep_ms(20).await;
     };
     release_when_idle();
-    outcome
+    answer
 }
 
-/// The outcome of generation `id` (from the worker, or its end).
-fn generated(id: u64, outcome: WorkerGeneration) {
+/// The answer to call `id` (from the worker, or its end).
+fn answered(id: u64, answer: Answer) {
     let slot = GENERATIONS.with(|g| {
         let mut g = g.borrow_mut();
         g.iter().position(|(i, _)| *i == id).map(|k| g.swap_remove(k).1)
     });
     if let Some(slot) = slot {
-        *slot.borrow_mut() = Some(outcome);
+        *slot.borrow_mut() = Some(answer);
     }
 }
 
@@ -271,7 +318,7 @@ fn drop_client() {
         c.worker.terminate();
     }
     for (id, _) in GENERATIONS.with(|g| g.borrow().clone()) {
-        generated(id, Err("the worker stopped".into()));
+        answered(id, Err("the worker stopped".into()));
     }
     if MEASURING.with(|m| m.borrow().is_some()) {
         measured(Measured { figures: Err("not measured: the worker stopped".into()), millis: 0.0 });
@@ -437,13 +484,8 @@ fn on_message(data: JsValue) {
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
     match event {
-        FromWorker::Generated { id, millis, stages } => {
-            let outcome = rigged_of(&data)
-                .map(|a| (a, millis, stages))
-                .map_err(|missing| format!("the worker sent its avatar without `{missing}`"));
-            return generated(id, outcome);
-        }
-        FromWorker::GenerateFailed { id, message } => return generated(id, Err(message)),
+        FromWorker::Generated { id, .. } | FromWorker::Retextured { id, .. } => return answered(id, Ok((event, data))),
+        FromWorker::CallFailed { id, message } => return answered(id, Err(message)),
         _ => {}
     }
     if let FromWorker::Figures { iou, psnr, millis, error } = event {
@@ -517,7 +559,10 @@ fn on_message(data: JsValue) {
             drop(slot);
             unavailable(message);
         }
-        FromWorker::Figures { .. } | FromWorker::Generated { .. } | FromWorker::GenerateFailed { .. } => {}
+        FromWorker::Figures { .. }
+        | FromWorker::Generated { .. }
+        | FromWorker::Retextured { .. }
+        | FromWorker::CallFailed { .. } => {}
         FromWorker::Fatal { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
             *slot = None;
