@@ -16,7 +16,7 @@ use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::{Device, Tensor};
 use getavatar_core::generator::checkpoint::{
-    config_with_saved_resolutions, load_generator_and_modes, save_inverted_async,
+    config_with_saved_resolutions, inverted_of, load_generator_and_modes, save_inverted_async, SafeTensors,
 };
 use getavatar_core::generator::network::synthesis::Triplanes;
 use getavatar_core::generator::network::GeneratorConfig;
@@ -170,13 +170,23 @@ type Loaded = (Result<Shipped, String>, Option<Rc<BodyContext>>);
 /// extraction; they are made again only if the per-pixel texture view asks); and for a
 /// reconstruction the photo's projection, which the bake blends in.
 pub struct TextureField {
-    generator: Rc<Generator>,
-    styles: Styles,
+    model: RefCell<FieldModel>,
     planes: RefCell<Option<Triplanes>>,
     /// A reconstruction's: the photo it was made from and its projection onto the avatar.
     projection: Option<Rc<Projected>>,
     /// A reconstruction's field (its own tuned generator), which "Save reconstruction" keeps.
     reconstructed: bool,
+}
+
+/// Where a texture field's generator and codes are.
+pub enum FieldModel {
+    /// On the page's device.
+    Built(Rc<Generator>, Styles),
+    /// In the reconstruction worker's result file, parsed: built on the page's device on first
+    /// use (every weight onto the device in one task, 15–115 ms on SwiftShader), so a
+    /// reconstruction shows its avatar without that task; the file itself is what "Save
+    /// reconstruction" writes.
+    File { st: Rc<SafeTensors>, bytes: Rc<Vec<u8>>, cfg: GeneratorConfig, device: Device },
 }
 
 /// A photo projected onto a reconstructed avatar.
@@ -187,8 +197,12 @@ pub struct Projected {
 
 impl TextureField {
     /// A reconstruction's field: its tuned generator and codes, and the photo's projection.
-    pub fn reconstructed(generator: Rc<Generator>, styles: Styles, projection: Option<Rc<Projected>>) -> Self {
-        Self { generator, styles, planes: RefCell::new(None), projection, reconstructed: true }
+    pub fn reconstructed(model: FieldModel, projection: Option<Rc<Projected>>) -> Self {
+        Self::of(model, projection)
+    }
+
+    fn of(model: FieldModel, projection: Option<Rc<Projected>>) -> Self {
+        Self { model: RefCell::new(model), planes: RefCell::new(None), projection, reconstructed: true }
     }
 
     /// Whether this is a reconstruction's field.
@@ -196,23 +210,42 @@ impl TextureField {
         self.reconstructed
     }
 
+    /// The generator and codes, built from the file on first use.
+    fn model(&self) -> Result<(Rc<Generator>, Styles), String> {
+        let built = match &*self.model.borrow() {
+            FieldModel::Built(g, s) => return Ok((g.clone(), s.clone())),
+            FieldModel::File { st, cfg, device, .. } => {
+                inverted_of(st, cfg, device).map_err(|e| format!("the reconstruction's file: {e}"))?
+            }
+        };
+        let (g, s) = (Rc::new(built.generator), built.styles);
+        *self.model.borrow_mut() = FieldModel::Built(g.clone(), s.clone());
+        Ok((g, s))
+    }
+
     /// The reconstruction as one file (`trainer invert`'s `inverted.safetensors` format: the
     /// tuned generator, the codes and the photo), for "Save reconstruction".
     pub async fn save_async(&self, cfg: &GeneratorConfig) -> Result<Vec<u8>, String> {
+        if let FieldModel::File { bytes, .. } = &*self.model.borrow() {
+            return Ok(bytes.to_vec());
+        }
+        let (g, styles) = self.model()?;
         let mut extra = std::collections::BTreeMap::new();
         extra.insert("inversion/source".into(), "the GETAvatar web app".into());
         let photo = self.projection.as_ref().map(|p| &p.photo);
-        save_inverted_async(&self.generator, cfg, &self.styles, photo, &extra).await.map_err(|e| e.to_string())
+        save_inverted_async(&g, cfg, &styles, photo, &extra).await.map_err(|e| e.to_string())
     }
 
-    /// The triplanes, computed on first use.
-    fn planes(&self) -> Triplanes {
+    /// The generator, codes and triplanes (computed on first use).
+    fn planes(&self) -> Result<(Rc<Generator>, Styles, Triplanes), String> {
+        let (g, styles) = self.model()?;
         let cached = self.planes.borrow().clone();
-        cached.unwrap_or_else(|| {
-            let p = self.generator.triplanes(&self.styles);
+        let planes = cached.unwrap_or_else(|| {
+            let p = g.triplanes(&styles);
             *self.planes.borrow_mut() = Some(p.clone());
             p
-        })
+        });
+        Ok((g, styles, planes))
     }
 }
 
@@ -464,8 +497,7 @@ impl GenEngine {
                 }
                 Ok((rigged, planes)) => {
                     let field = Rc::new(TextureField {
-                        generator: g,
-                        styles,
+                        model: RefCell::new(FieldModel::Built(g, styles)),
                         planes: RefCell::new(planes),
                         projection: None,
                         reconstructed: false,
@@ -520,9 +552,13 @@ impl GenEngine {
     pub fn query_texture(&mut self, field: Rc<TextureField>, points: Vec<glam::Vec3>, repaint: eframe::egui::Context) {
         let (dev, slot) = (self.device.clone(), self.texture_slot.clone());
         wasm_bindgen_futures::spawn_local(async move {
-            let planes = field.planes();
-            let colors = recolor_async(&field.generator, &planes, &field.styles, &points, &dev).await;
-            *slot.borrow_mut() = Some(colors.map_err(|e| format!("texture query failed: {e}")));
+            let colors = match field.planes() {
+                Ok((g, styles, planes)) => recolor_async(&g, &planes, &styles, &points, &dev)
+                    .await
+                    .map_err(|e| format!("texture query failed: {e}")),
+                Err(e) => Err(format!("texture query failed: {e}")),
+            };
+            *slot.borrow_mut() = Some(colors);
             repaint.request_repaint();
         });
     }
@@ -544,10 +580,14 @@ impl GenEngine {
         self.baking = true;
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
-            let planes = field.planes();
             let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
-            let g = &field.generator;
-            let baked = rigged.bake_texture_photo_async(g, &planes, &field.styles, &ctx, res, photo, &dev).await;
+            let baked = match field.planes() {
+                Ok((g, styles, planes)) => rigged
+                    .bake_texture_photo_async(&g, &planes, &styles, &ctx, res, photo, &dev)
+                    .await
+                    .map_err(|e| e.to_string()),
+                Err(e) => Err(e),
+            };
             let baked =
                 baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}"));
             *slot.borrow_mut() = Some((field, baked));

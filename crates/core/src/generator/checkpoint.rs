@@ -220,7 +220,15 @@ pub fn inverted_of(
         Ok(Tensor::from_data(TensorData::new(data.clone(), [1, n, requested.w_dim]), device))
     };
     let styles = crate::generator::pipeline::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? };
-    let photo = match st.metadata.get(INVERTED_PHOTO) {
+    let photo = inverted_photo(st)?;
+    Ok(InvertedAvatar { generator, styles, photo })
+}
+
+/// The photo an inverted avatar's file keeps (None: it keeps none), read without building its
+/// generator: host memory only, no device work (the browser reads it from the worker's result
+/// before it needs that generator).
+pub fn inverted_photo(st: &SafeTensors) -> Result<Option<SourcePhoto>, CheckpointError> {
+    Ok(match st.metadata.get(INVERTED_PHOTO) {
         None => None,
         Some(text) => {
             let m: PhotoMeta =
@@ -248,8 +256,7 @@ pub fn inverted_of(
             p.validate().map_err(|e| fmt_err(format!("{INVERTED_PHOTO}: {e}")))?;
             Some(p)
         }
-    };
-    Ok(InvertedAvatar { generator, styles, photo })
+    })
 }
 
 /// The RGB discriminator (`d0/…`) of a training state (its config in the `run` metadata) or

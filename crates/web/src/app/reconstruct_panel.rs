@@ -427,7 +427,7 @@ impl GetAvatarApp {
         self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
         self.rigged = Some(r.rigged);
         let has_photo = r.projection.is_some();
-        self.field = Some(Rc::new(TextureField::reconstructed(r.generator, r.styles, r.projection)));
+        self.field = Some(Rc::new(TextureField::reconstructed(r.model, r.projection)));
         // The bake belongs to the previous avatar.
         self.baked = None;
         self.show_avatar = true;

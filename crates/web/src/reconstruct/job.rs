@@ -12,7 +12,7 @@ use getavatar_core::body::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::{
-    inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors_async,
+    inverted_of, inverted_photo, load_discriminator, load_generator_and_modes, parse_safetensors_async,
 };
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
@@ -26,7 +26,7 @@ use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
 use crate::automation::PhotoSource;
 pub use crate::automation::{Compute, StartChoice};
-use crate::generate::{Projected, TextureField};
+use crate::generate::{FieldModel, Projected, TextureField};
 use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
 
@@ -113,9 +113,9 @@ pub struct Preview {
 
 /// A finished reconstruction.
 pub struct Reconstructed {
-    /// The tuned generator (on the autodiff device, without gradients) and the codes.
-    pub generator: Rc<Generator>,
-    pub styles: Styles,
+    /// The tuned generator (on the page's device, without gradients) and the codes, or the
+    /// worker's file they are built from when first used.
+    pub model: FieldModel,
     /// Rigged to the body, vertex colours with the photo projected on.
     pub rigged: RiggedAvatar,
     /// The photo and its projection onto the avatar, for the bake and "Save reconstruction".
@@ -250,8 +250,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         None => None,
     };
     Ok(Some(Reconstructed {
-        generator: Rc::new(inv.generator),
-        styles: inv.styles,
+        model: FieldModel::Built(Rc::new(inv.generator), inv.styles),
         rigged,
         projection,
         refit: inv.refit,
@@ -526,30 +525,42 @@ pub(crate) async fn rig_saved(
     device: &Device,
 ) -> Result<Reconstructed, String> {
     // Parsing (a copy of every weight) runs in slices, building the generator in one (its
-    // milliseconds go into the finish detail, which the browser e2e prints).
+    // milliseconds go into the finish detail, which the browser e2e prints). With the worker's
+    // avatar the generator is built when first used (the texture view, the bake), not here.
     let not_one = |e| format!("{name} is not a reconstruction of this model: {e}");
-    let st = parse_safetensors_async(&bytes).await.map_err(not_one)?;
-    drop(bytes);
+    let bytes = Rc::new(bytes);
+    let st = Rc::new(parse_safetensors_async(&bytes).await.map_err(not_one)?);
     yield_to_browser().await;
     let t = crate::platform::now_ms();
-    let inv = inverted_of(&st, cfg, device).map_err(not_one)?;
-    let build_ms = crate::platform::now_ms() - t;
-    drop(st);
-    yield_to_browser().await;
-    let mut rigged = match rigged {
-        Some(a) => RiggedAvatar::from_arrays(a, ctx).map_err(|e| format!("{name}: the worker's avatar: {e}"))?,
-        None => generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?,
+    let (mut rigged, model, photo) = match rigged {
+        Some(a) => {
+            let photo = inverted_photo(&st).map_err(not_one)?;
+            let rigged = RiggedAvatar::from_arrays(a, ctx).map_err(|e| format!("{name}: the worker's avatar: {e}"))?;
+            (rigged, FieldModel::File { st, bytes, cfg: cfg.clone(), device: device.clone() }, photo)
+        }
+        None => {
+            drop(bytes);
+            let inv = inverted_of(&st, cfg, device).map_err(not_one)?;
+            drop(st);
+            yield_to_browser().await;
+            let rigged =
+                generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?;
+            (rigged, FieldModel::Built(Rc::new(inv.generator), inv.styles), inv.photo)
+        }
+    };
+    let detail = match &model {
+        FieldModel::File { .. } => "its generator is built when first used".to_string(),
+        FieldModel::Built(..) => format!("building and extracting it {:.0} ms", crate::platform::now_ms() - t),
     };
     if rigged.canonical.mesh.faces.is_empty() {
         return Err(format!("{name}: the reconstruction's generator produced an empty surface"));
     }
-    let projection = match inv.photo {
+    let projection = match photo {
         Some(p) => Some(project(&mut rigged, ctx, p).await),
         None => None,
     };
     Ok(Reconstructed {
-        generator: Rc::new(inv.generator),
-        styles: inv.styles,
+        model,
         rigged,
         projection,
         refit: None,
@@ -557,7 +568,7 @@ pub(crate) async fn rig_saved(
         opened: None,
         millis: 0.0,
         finish_ms: 0.0,
-        finish_detail: format!("building the generator {build_ms:.0} ms"),
+        finish_detail: detail,
         stopped_at: None,
         measuring: false,
     })
