@@ -23,6 +23,7 @@ use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{
     default_psi, recolor_async, seed_latents, warm_surface_kernels, BodyContext, Generator, LatentModes, Styles,
 };
+use getavatar_core::generator::readback::ReadbackError;
 use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
 use getavatar_core::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
@@ -298,6 +299,83 @@ pub struct GenEngine {
 /// GPU process.
 const WGPU_TASKS_PER_SUBMIT: usize = 256;
 
+/// A generation's inputs: the page's generator, the styles it mapped, and where the worker
+/// may do the work instead (the model's bytes; None: on the page).
+struct Generation<'a> {
+    g: &'a Generator,
+    styles: &'a Styles,
+    dev: &'a Device,
+    cfg: &'a GeneratorConfig,
+    worker: Option<&'a Rc<Vec<u8>>>,
+    seeds: (u64, u64),
+    psi: f32,
+}
+
+/// A generation's avatar, the triplanes where the page computed them, where it ran, and the
+/// worker's stages when it ran there.
+struct Made {
+    rigged: RiggedAvatar,
+    planes: Option<Triplanes>,
+    on: &'static str,
+    worker_stages: Option<Option<getavatar_core::util::profile::StageProfile>>,
+}
+
+const ON_WORKER: &str = "the worker's CPU (burn NdArray)";
+const ON_PAGE: &str = "the page's WebGPU device";
+
+/// Say in the console why the worker did not do `what` (nothing when it was not asked).
+fn fell_back(what: &str, why: &str) {
+    if !why.is_empty() {
+        web_sys::console::warn_1(&format!("{what} in the worker failed ({why}); on the page instead").into());
+    }
+}
+
+impl Generation<'_> {
+    /// New colours on `r`'s geometry: in the worker, else (or when it fails) on the page.
+    async fn new_texture(&self, mut r: RiggedAvatar) -> Result<Made, ReadbackError> {
+        let points = &r.canonical.mesh.attributes;
+        let in_worker = match self.worker {
+            Some(bytes) => retexture_in_worker(self.cfg, bytes, self.seeds, self.psi, points).await,
+            None => Err(String::new()),
+        };
+        let (colors, planes, on) = match in_worker {
+            Ok((colors, _)) => (colors, None, ON_WORKER),
+            Err(why) => {
+                fell_back("a new texture", &why);
+                profile::stage("synthesis");
+                let planes = self.g.triplanes_async(self.styles).await;
+                profile::stage("colours");
+                (recolor_async(self.g, &planes, self.styles, points, self.dev).await?, Some(planes), ON_PAGE)
+            }
+        };
+        r.canonical.colors = colors;
+        Ok(Made { rigged: r, planes, on, worker_stages: None })
+    }
+
+    /// A new identity, its bind pose at shape `betas` kept: in the worker, else (or when it
+    /// fails) on the page.
+    async fn new_identity(&self, ctx: &BodyContext, betas: &[f32]) -> Result<Made, ReadbackError> {
+        let in_worker = match self.worker {
+            Some(bytes) => match generate_in_worker(self.cfg, bytes, self.seeds, self.psi).await {
+                Ok((arrays, _, stages)) => RiggedAvatar::from_arrays(arrays, ctx)
+                    .map(|r| (r, stages))
+                    .map_err(|e| format!("the worker's avatar: {e}")),
+                Err(e) => Err(e),
+            },
+            None => Err(String::new()),
+        };
+        let (mut rigged, on, worker_stages) = match in_worker {
+            Ok((r, stages)) => (r, ON_WORKER, Some(stages)),
+            Err(why) => {
+                fell_back("generating", &why);
+                (generate_rigged_async(self.g, ctx, self.styles, self.dev).await?, ON_PAGE, None)
+            }
+        };
+        rigged.keep_bind_pose_async(ctx, betas).await;
+        Ok(Made { rigged, planes: None, on, worker_stages })
+    }
+}
+
 impl GenEngine {
     /// Register egui's wgpu device with burn, build the `demo` generator and start fetching
     /// its trained weights and preparing `body`'s context (its template SDF: a second of work
@@ -422,80 +500,20 @@ impl GenEngine {
             let (zg, zt) = seed_latents(&cfg, seeds.0, seeds.1, &dev);
             let styles = g.styles_with(zg, zt, psi, modes.as_ref().as_ref());
             crate::task::checkpoint().await;
-            let (mut worker_stages, mut on) = (None, "the worker's CPU (burn NdArray)");
+            let job = Generation { g: &g, styles: &styles, dev: &dev, cfg: &cfg, worker: worker.as_ref(), seeds, psi };
             let generated = match keep {
-                Some(mut r) => {
-                    let points = &r.canonical.mesh.attributes;
-                    let in_worker = match &worker {
-                        Some(bytes) => retexture_in_worker(&cfg, bytes, seeds, psi, points).await,
-                        None => Err(String::new()),
-                    };
-                    match in_worker {
-                        Ok((colors, _)) => {
-                            r.canonical.colors = colors;
-                            Ok((r, None))
-                        }
-                        Err(why) => {
-                            if !why.is_empty() {
-                                let m = format!("a new texture in the worker failed ({why}); computing it on the page");
-                                web_sys::console::warn_1(&m.into());
-                            }
-                            on = "the page's WebGPU device";
-                            profile::stage("synthesis");
-                            let planes = g.triplanes_async(&styles).await;
-                            profile::stage("colours");
-                            recolor_async(&g, &planes, &styles, points, &dev).await.map(|colors| {
-                                r.canonical.colors = colors;
-                                (r, Some(planes))
-                            })
-                        }
-                    }
-                }
-                None => {
-                    let in_worker = match &worker {
-                        Some(bytes) => match generate_in_worker(&cfg, bytes, seeds, psi).await {
-                            Ok((arrays, _, stages)) => RiggedAvatar::from_arrays(arrays, &ctx)
-                                .map(|r| (r, stages))
-                                .map_err(|e| format!("the worker's avatar: {e}")),
-                            Err(e) => Err(e),
-                        },
-                        None => Err(String::new()),
-                    };
-                    match in_worker {
-                        Ok((mut r, stages)) => {
-                            worker_stages = Some(stages);
-                            r.keep_bind_pose_async(&ctx, &betas).await;
-                            Ok((r, None))
-                        }
-                        Err(why) => {
-                            if !why.is_empty() {
-                                let m = format!("generating in the worker failed ({why}); generating on the page");
-                                web_sys::console::warn_1(&m.into());
-                            }
-                            on = "the page's WebGPU device";
-                            match generate_rigged_async(&g, &ctx, &styles, &dev).await {
-                                Ok(mut r) => {
-                                    r.keep_bind_pose_async(&ctx, &betas).await;
-                                    Ok((r, None))
-                                }
-                                Err(e) => Err(e),
-                            }
-                        }
-                    }
-                }
+                Some(r) => job.new_texture(r).await,
+                None => job.new_identity(&ctx, &betas).await,
             };
             let page_stages = profile::finish();
-            // Generated in the worker: its stages (mapping to rigging) stand for the page's.
-            let stages = match worker_stages {
-                Some(s) => s,
-                None => page_stages,
-            };
             let result = match generated {
                 Err(e) => Err(format!("generation failed: {e}")),
-                Ok((rigged, _)) if rigged.canonical.mesh.faces.is_empty() => {
+                Ok(m) if m.rigged.canonical.mesh.faces.is_empty() => {
                     Err("the generator produced an empty surface".to_string())
                 }
-                Ok((rigged, planes)) => {
+                Ok(Made { rigged, planes, on, worker_stages }) => {
+                    // Generated in the worker: its stages (mapping to rigging) stand for the page's.
+                    let stages = worker_stages.unwrap_or(page_stages);
                     let field = Rc::new(TextureField {
                         model: RefCell::new(FieldModel::Built(g, styles)),
                         planes: RefCell::new(planes),
