@@ -504,6 +504,14 @@ fn on_message(data: JsValue) {
     if matches!(event, FromWorker::Fatal { .. }) && client.running.borrow().is_none() {
         return drop_client();
     }
+    // Without a reconstruction, a failure is a call the worker could not read (no id to
+    // answer): the calls waiting get it rather than waiting for ever.
+    if let (FromWorker::Failed { message }, true) = (&event, client.running.borrow().is_none()) {
+        for (id, _) in GENERATIONS.with(|g| g.borrow().clone()) {
+            answered(id, Err(message.clone()));
+        }
+        return;
+    }
     let mut slot = client.running.borrow_mut();
     let Some(r) = slot.as_mut() else { return };
     match event {
