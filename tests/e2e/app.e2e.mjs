@@ -660,6 +660,10 @@ try {
   const texJson = glbPositions(tex).json;
   check(texRep.issues.numErrors === 0 && texRep.issues.numWarnings === 0 && texRep.info.hasTextures && texJson.images?.length === 1 && s.motion.last_textured && s.motion.bakes === bakesBefore + 1,
     `posed .glb with a ${s.motion.texture_res}² baked texture (${s.motion.last_bake_ms.toFixed(0)} ms; atlas ${s.motion.atlas_vertices} vertices): ${texRep.issues.numErrors} errors, ${texRep.issues.numWarnings} warnings, ${texJson.images?.length} image`);
+  // The avatar shown is the opened reconstruction: on a software adapter the worker computes
+  // its texture field from the file (bench_bake.mjs compares both devices' textures).
+  check(softwareGen ? /^the worker's CPU/.test(s.motion.last_bake_on) : /^the page's WebGPU/.test(s.motion.last_bake_on),
+    `the bake's texture-field queries ran on ${softwareGen ? "the worker's CPU" : "the page's WebGPU device"} (${s.motion.last_bake_on})`);
   const [tadl] = await Promise.all([page.waitForEvent('download'), page.evaluate(() => window.getavatar.command({ download_animated: true }))]);
   const texAnim = new Uint8Array(fs.readFileSync(await tadl.path()));
   const texAnimRep = await validator.validateBytes(texAnim);

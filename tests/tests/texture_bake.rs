@@ -10,7 +10,7 @@ use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{default_psi, recolor_async, seed_latents, BodyContext};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::generator::rigging::generate_rigged_async;
+use getavatar_core::generator::rigging::{bake_queries, generate_rigged_async, BakeError};
 use getavatar_core::render::colour::linear_to_srgb;
 use getavatar_core::BodyModel;
 use glam::Vec3;
@@ -164,6 +164,23 @@ fn baked_texture_at_a_vertex_uv_is_the_texture_field_there() {
         }
         assert!(other.posed_glb(&ctx, &params, None, "vertex colours").is_ok());
     }
+
+    // The bake in its stages (the browser computes the colours between them, in its worker):
+    // the same image as the bake in one call; colours that do not match the texels are
+    // refused, not baked.
+    let plan = block_on_ready(rigged.bake_plan_async(&ctx, res)).expect("plan");
+    assert_eq!(plan.points.len(), baked.covered);
+    let colors = block_on_ready(bake_queries(&g, &planes, &s, &plan.points, &dev)).expect("colours");
+    let mut short = colors.clone();
+    short.pop();
+    let mut not_finite = colors.clone();
+    not_finite[7] = Vec3::NAN;
+    for bad in [short, not_finite] {
+        let e = block_on_ready(rigged.bake_finish_async(&ctx, plan.clone(), bad, None)).expect_err("refused");
+        assert!(matches!(e, BakeError::Colours(..)), "{e}");
+    }
+    let staged = block_on_ready(rigged.bake_finish_async(&ctx, plan, colors, None)).expect("staged bake");
+    assert_eq!(staged.rgb, baked.rgb, "the staged bake is the one-call bake");
 }
 
 /// Surface far from the body (a skirt-like tube around the hips) gets charts of its own,

@@ -64,7 +64,8 @@ pub const RESOLUTIONS: [u32; 2] = [512, 1024];
 /// `"iterations":[60,300,80]`), `{"photo_fit":"cancel"|"refit"|"download"|"close"}`, `{"photo_fit":{"person":2}}` (fit the
 /// photo's 2nd person by size),
 /// `{"motion":{"clip":"walk","play":true,"time":0.5,"speed":1,"loop":true,"include":["walk"]}}`,
-/// `{"download_animated":true}`, `{"download_vrm":true}`, `{"download_vrma":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
+/// `{"download_animated":true}`, `{"texture_res":256}`, `{"texture_device":"auto"|"cpu"|"webgpu"}`,
+/// `{"download_vrm":true}`, `{"download_vrma":true}`, `{"reconstruct":{"preset":"fast"}}` (optionally `"steps"`,
 /// `"pti_steps"`, `"res"`, `"preview_every"`, `"perceptual"`, `"projection"`, `"start"`),
 /// `{"reconstruct_cancel":true}`, `{"save_reconstruction":true}`, `{"video":{"url":"clip.webm","fps":10}}`,
 /// `{"video_cancel":true}`,
@@ -127,6 +128,9 @@ pub enum Command {
     },
     TextureRes {
         texture_res: usize,
+    },
+    TextureDevice {
+        texture_device: Compute,
     },
     Reconstruct {
         reconstruct: ReconstructArgs,
@@ -416,6 +420,9 @@ pub enum Action {
     DownloadVrma,
     /// Side of the avatar's baked texture in the downloads (0: vertex colours).
     TextureRes(usize),
+    /// Where the texture field's colours (bakes, the per-pixel view) are computed: `Auto` in
+    /// the worker on a software adapter, `Cpu` in the worker, `WebGpu` on the page.
+    TextureDevice(Compute),
     /// Reconstruct an avatar from the fitted photo.
     Reconstruct(Reconstruction),
     /// Stop the running reconstruction (the avatar stays as it was).
@@ -558,6 +565,7 @@ impl Command {
                 }
                 Action::TextureRes(texture_res)
             }
+            Command::TextureDevice { texture_device } => Action::TextureDevice(texture_device),
             Command::Reconstruct { reconstruct } => Action::Reconstruct(reconstruct.validate()?),
             Command::ReconstructCancel { .. } => Action::ReconstructCancel,
             Command::SaveReconstruction { .. } => Action::SaveReconstruction,
@@ -861,6 +869,9 @@ mod tests {
         assert_eq!(parse_command(r#"{"download_vrma":true}"#), Ok(Action::DownloadVrma));
         assert_eq!(parse_command(r#"{"texture_res":512}"#), Ok(Action::TextureRes(512)));
         assert!(parse_command(r#"{"texture_res":300}"#).is_err());
+        assert_eq!(parse_command(r#"{"texture_device":"cpu"}"#), Ok(Action::TextureDevice(Compute::Cpu)));
+        assert_eq!(parse_command(r#"{"texture_device":"webgpu"}"#), Ok(Action::TextureDevice(Compute::WebGpu)));
+        assert!(parse_command(r#"{"texture_device":"gpu"}"#).is_err());
         assert!(matches!(
             parse_command(r#"{"photo":{"url":"p.png","device":"webgpu"}}"#),
             Ok(Action::Photo { on_gpu: true, options: None, .. })

@@ -15,9 +15,7 @@ use eframe::egui_wgpu;
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::{Device, Tensor};
-use getavatar_core::generator::checkpoint::{
-    config_with_saved_resolutions, inverted_of, load_generator_and_modes, save_inverted_async, SafeTensors,
-};
+use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator_and_modes};
 use getavatar_core::generator::network::synthesis::Triplanes;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{
@@ -26,11 +24,11 @@ use getavatar_core::generator::pipeline::{
 use getavatar_core::generator::readback::ReadbackError;
 use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
-use getavatar_core::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
 use getavatar_core::util::profile;
 
 use crate::automation::Compute;
-use crate::reconstruct::{generate_in_worker, retexture_in_worker};
+use crate::reconstruct::{colours_in_worker, generate_in_worker, WorkerField};
+use crate::texture_field::{fell_back, TextureField, ON_PAGE, ON_WORKER};
 
 /// Where the page finds the trained demo model (relative to the page).
 pub const MODEL_URL: &str = "models/demo.safetensors";
@@ -145,8 +143,15 @@ pub struct ModelFiles {
 /// Colours of a texture-field query, or why it failed.
 type TextureColours = Result<Vec<glam::Vec3>, String>;
 /// A finished bake: the texture field it was baked from (which avatar and colours it
-/// belongs to) and the texture with its time in ms, or why it failed.
-type Bake = (Rc<TextureField>, Result<(BakedTexture, f64), String>);
+/// belongs to) and the texture, or why it failed.
+type Bake = (Rc<TextureField>, Result<Baked, String>);
+
+/// A baked texture, its milliseconds and where its texture-field queries ran.
+pub struct Baked {
+    pub texture: BakedTexture,
+    pub millis: f64,
+    pub on: &'static str,
+}
 
 /// A fetched checkpoint: the generator, its latent modes (if any), its bytes, and the
 /// discriminator's bytes (or why there are none).
@@ -165,90 +170,6 @@ type Job = ((u64, u64), Option<f32>, Option<RiggedAvatar>, Compute, Vec<f32>, ef
 /// What the engine prepares at start: the shipped checkpoint (or why none) and the body's
 /// context (None without a body model).
 type Loaded = (Result<Shipped, String>, Option<Rc<BodyContext>>);
-
-/// An avatar's texture field: its generator (the engine's, or a reconstruction's tuned one),
-/// styles, and triplanes once computed (a new generation computes them inside the
-/// extraction; they are made again only if the per-pixel texture view asks); and for a
-/// reconstruction the photo's projection, which the bake blends in.
-pub struct TextureField {
-    model: RefCell<FieldModel>,
-    planes: RefCell<Option<Triplanes>>,
-    /// A reconstruction's: the photo it was made from and its projection onto the avatar.
-    projection: Option<Rc<Projected>>,
-    /// A reconstruction's field (its own tuned generator), which "Save reconstruction" keeps.
-    reconstructed: bool,
-}
-
-/// Where a texture field's generator and codes are.
-pub enum FieldModel {
-    /// On the page's device.
-    Built(Rc<Generator>, Styles),
-    /// In the reconstruction worker's result file, parsed: built on the page's device on first
-    /// use (every weight onto the device in one task, 15–115 ms on SwiftShader), so a
-    /// reconstruction shows its avatar without that task; the file itself is what "Save
-    /// reconstruction" writes.
-    File { st: Rc<SafeTensors>, bytes: Rc<Vec<u8>>, cfg: GeneratorConfig, device: Device },
-}
-
-/// A photo projected onto a reconstructed avatar.
-pub struct Projected {
-    pub photo: SourcePhoto,
-    pub projection: PhotoProjection,
-}
-
-impl TextureField {
-    /// A reconstruction's field: its tuned generator and codes, and the photo's projection.
-    pub fn reconstructed(model: FieldModel, projection: Option<Rc<Projected>>) -> Self {
-        Self::of(model, projection)
-    }
-
-    fn of(model: FieldModel, projection: Option<Rc<Projected>>) -> Self {
-        Self { model: RefCell::new(model), planes: RefCell::new(None), projection, reconstructed: true }
-    }
-
-    /// Whether this is a reconstruction's field.
-    pub fn is_reconstruction(&self) -> bool {
-        self.reconstructed
-    }
-
-    /// The generator and codes, built from the file on first use.
-    fn model(&self) -> Result<(Rc<Generator>, Styles), String> {
-        let built = match &*self.model.borrow() {
-            FieldModel::Built(g, s) => return Ok((g.clone(), s.clone())),
-            FieldModel::File { st, cfg, device, .. } => {
-                inverted_of(st, cfg, device).map_err(|e| format!("the reconstruction's file: {e}"))?
-            }
-        };
-        let (g, s) = (Rc::new(built.generator), built.styles);
-        *self.model.borrow_mut() = FieldModel::Built(g.clone(), s.clone());
-        Ok((g, s))
-    }
-
-    /// The reconstruction as one file (`trainer invert`'s `inverted.safetensors` format: the
-    /// tuned generator, the codes and the photo), for "Save reconstruction".
-    pub async fn save_async(&self, cfg: &GeneratorConfig) -> Result<Vec<u8>, String> {
-        if let FieldModel::File { bytes, .. } = &*self.model.borrow() {
-            return Ok(bytes.to_vec());
-        }
-        let (g, styles) = self.model()?;
-        let mut extra = std::collections::BTreeMap::new();
-        extra.insert("inversion/source".into(), "the GETAvatar web app".into());
-        let photo = self.projection.as_ref().map(|p| &p.photo);
-        save_inverted_async(&g, cfg, &styles, photo, &extra).await.map_err(|e| e.to_string())
-    }
-
-    /// The generator, codes and triplanes (computed on first use).
-    fn planes(&self) -> Result<(Rc<Generator>, Styles, Triplanes), String> {
-        let (g, styles) = self.model()?;
-        let cached = self.planes.borrow().clone();
-        let planes = cached.unwrap_or_else(|| {
-            let p = g.triplanes(&styles);
-            *self.planes.borrow_mut() = Some(p.clone());
-            p
-        });
-        Ok((g, styles, planes))
-    }
-}
 
 /// Outcome of a background generation.
 pub struct Finished {
@@ -291,6 +212,9 @@ pub struct GenEngine {
     /// The WebGPU adapter is a software one (a CPU): new identities are generated in the
     /// reconstruction worker on burn's NdArray, 6–10× faster there (docs/benchmarks.md).
     software: bool,
+    /// Where texture-field colours are computed (bakes, the per-pixel view): `Auto` in the
+    /// worker on a software adapter (automation `{"texture_device":…}`).
+    pub texture_device: Compute,
     pub busy: bool,
 }
 
@@ -320,22 +244,15 @@ struct Made {
     worker_stages: Option<Option<getavatar_core::util::profile::StageProfile>>,
 }
 
-const ON_WORKER: &str = "the worker's CPU (burn NdArray)";
-const ON_PAGE: &str = "the page's WebGPU device";
-
-/// Say in the console why the worker did not do `what` (nothing when it was not asked).
-fn fell_back(what: &str, why: &str) {
-    if !why.is_empty() {
-        web_sys::console::warn_1(&format!("{what} in the worker failed ({why}); on the page instead").into());
-    }
-}
-
 impl Generation<'_> {
     /// New colours on `r`'s geometry: in the worker, else (or when it fails) on the page.
     async fn new_texture(&self, mut r: RiggedAvatar) -> Result<Made, ReadbackError> {
         let points = &r.canonical.mesh.attributes;
         let in_worker = match self.worker {
-            Some(bytes) => retexture_in_worker(self.cfg, bytes, self.seeds, self.psi, points).await,
+            Some(bytes) => {
+                let field = WorkerField::Seeds { seeds: self.seeds, psi: self.psi };
+                colours_in_worker(self.cfg, bytes, &field, None, points).await
+            }
             None => Err(String::new()),
         };
         let (colors, planes, on) = match in_worker {
@@ -450,6 +367,7 @@ impl GenEngine {
             pending: None,
             busy: false,
             software,
+            texture_device: Compute::Auto,
         })
     }
 
@@ -514,12 +432,7 @@ impl GenEngine {
                 Ok(Made { rigged, planes, on, worker_stages }) => {
                     // Generated in the worker: its stages (mapping to rigging) stand for the page's.
                     let stages = worker_stages.unwrap_or(page_stages);
-                    let field = Rc::new(TextureField {
-                        model: RefCell::new(FieldModel::Built(g, styles)),
-                        planes: RefCell::new(planes),
-                        projection: None,
-                        reconstructed: false,
-                    });
+                    let field = Rc::new(TextureField::generated(g, styles, planes, seeds, psi));
                     let millis = crate::platform::now_ms() - t0;
                     Ok(Finished { rigged, field, millis, stages, seeds, psi, on: on.to_string() })
                 }
@@ -566,16 +479,16 @@ impl GenEngine {
     }
 
     /// Query the texture field of `field` at canonical points (the per-pixel RGB of the
-    /// paper's renderer); the colours arrive via [`GenEngine::poll_texture`].
+    /// paper's renderer; in the worker on a software adapter); the colours arrive via
+    /// [`GenEngine::poll_texture`].
     pub fn query_texture(&mut self, field: Rc<TextureField>, points: Vec<glam::Vec3>, repaint: eframe::egui::Context) {
-        let (dev, slot) = (self.device.clone(), self.texture_slot.clone());
+        let (dev, slot, worker) = (self.device.clone(), self.texture_slot.clone(), self.worker_files());
         wasm_bindgen_futures::spawn_local(async move {
-            let colors = match field.planes() {
-                Ok((g, styles, planes)) => recolor_async(&g, &planes, &styles, &points, &dev)
-                    .await
-                    .map_err(|e| format!("texture query failed: {e}")),
-                Err(e) => Err(format!("texture query failed: {e}")),
-            };
+            let colors = field
+                .colours(&points, &dev, worker.as_ref().map(|(c, b)| (c, b)))
+                .await
+                .map(|(c, _)| c)
+                .map_err(|e| format!("texture query failed: {e}"));
             *slot.borrow_mut() = Some(colors);
             repaint.request_repaint();
         });
@@ -586,29 +499,39 @@ impl GenEngine {
         self.texture_slot.borrow_mut().take()
     }
 
-    /// Bake `rigged`'s texture field (`field`) into a `res²` atlas image for the downloads
-    /// (texture-field queries on the WebGPU device); the result arrives via
-    /// [`GenEngine::poll_bake`].
+    /// The model's config and file where the worker computes texture-field colours (by
+    /// default on a software adapter, with a trained model); None: the page does.
+    fn worker_files(&self) -> Option<(GeneratorConfig, Rc<Vec<u8>>)> {
+        let in_worker = match self.texture_device {
+            Compute::Auto => self.software,
+            Compute::Cpu => true,
+            Compute::WebGpu => false,
+        };
+        self.checkpoint.clone().filter(|_| in_worker).map(|b| (self.cfg.clone(), b))
+    }
+
+    /// Bake `rigged`'s texture field (`field`) into a `res²` atlas image for the downloads:
+    /// the atlas and its texels here, the texture-field queries in the worker on a software
+    /// adapter (else on the WebGPU device), the photo's projection blended in here; the
+    /// result (and where the queries ran) arrives via [`GenEngine::poll_bake`].
     pub fn bake(&mut self, field: Rc<TextureField>, rigged: RiggedAvatar, res: usize, repaint: eframe::egui::Context) {
         let Some(ctx) = self.ctx.clone() else {
             *self.bake_slot.borrow_mut() = Some((field, Err("the body context is not ready".into())));
             return;
         };
-        let (dev, slot) = (self.device.clone(), self.bake_slot.clone());
+        let (dev, slot, worker) = (self.device.clone(), self.bake_slot.clone(), self.worker_files());
         self.baking = true;
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
-            let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
-            let baked = match field.planes() {
-                Ok((g, styles, planes)) => rigged
-                    .bake_texture_photo_async(&g, &planes, &styles, &ctx, res, photo, &dev)
-                    .await
-                    .map_err(|e| e.to_string()),
-                Err(e) => Err(e),
-            };
-            let baked =
-                baked.map(|b| (b, crate::platform::now_ms() - t0)).map_err(|e| format!("texture bake failed: {e}"));
-            *slot.borrow_mut() = Some((field, baked));
+            let baked = async {
+                let plan = rigged.bake_plan_async(&ctx, res).await.map_err(|e| e.to_string())?;
+                let (colors, on) = field.colours(&plan.points, &dev, worker.as_ref().map(|(c, b)| (c, b))).await?;
+                let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
+                let b = rigged.bake_finish_async(&ctx, plan, colors, photo).await.map_err(|e| e.to_string())?;
+                Ok::<_, String>(Baked { texture: b, millis: crate::platform::now_ms() - t0, on })
+            }
+            .await;
+            *slot.borrow_mut() = Some((field, baked.map_err(|e| format!("texture bake failed: {e}"))));
             repaint.request_repaint();
         });
     }

@@ -8,6 +8,8 @@
 //! - [`status`]: what `window.getavatar.status()` returns, one struct per panel (pure)
 //! - `app` (wasm32): the egui application state and per-frame flow; `app::panels`, `app::texture_job`
 //! - `generate` (wasm32): the generator on burn's wgpu backend sharing egui's WebGPU device
+//! - `texture_field` (wasm32): an avatar's texture field and where its colours are computed
+//!   (the worker's CPU on a software adapter, else the page's WebGPU device)
 //! - `viewer` (wasm32): the wgpu render pass that draws RGB / normal / mask views
 //! - `photo` (wasm32): the photo → body flow's tasks: MediaPipe Pose (`www/pose_detect.js`)
 //!   and the body fit on the shared WebGPU device; the page's file input
@@ -38,6 +40,8 @@ mod platform;
 mod reconstruct;
 #[cfg(target_arch = "wasm32")]
 mod task;
+#[cfg(target_arch = "wasm32")]
+mod texture_field;
 #[cfg(target_arch = "wasm32")]
 mod video;
 #[cfg(target_arch = "wasm32")]

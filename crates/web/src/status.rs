@@ -240,6 +240,9 @@ pub struct MotionStatus {
     pub bakes: u64,
     pub baking: bool,
     pub last_bake_ms: f32,
+    /// Where the last bake's texture-field queries ran ("the worker's CPU (burn NdArray)" on a
+    /// software adapter, "the page's WebGPU device"; empty before the first bake).
+    pub last_bake_on: String,
     pub atlas_vertices: usize,
     pub atlas_own_chart_faces: usize,
     /// Bakes dropped because the avatar or its colours changed while they ran.

@@ -89,6 +89,19 @@ pub async fn generate_avatar_async(
     profile::stage("synthesis");
     let planes = g.triplanes_async(s).await;
     checkpoint().await;
+    generate_avatar_from_planes_async(g, ctx, s, &planes, params, device).await
+}
+
+/// [`generate_avatar_async`] from the triplanes of `s` computed already (a caller that keeps
+/// them for later texture-field queries).
+pub async fn generate_avatar_from_planes_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    s: &Styles,
+    planes: &Triplanes,
+    params: &BodyParams,
+    device: &Device,
+) -> Result<Avatar, ReadbackError> {
     profile::stage("posed grid");
     // A new identity is generated in the canonical pose, whose inverse skinning and grid are
     // the same every time (kept in `ctx`).
@@ -117,9 +130,9 @@ pub async fn generate_avatar_async(
     // work), more than the CPU reference costs, and NdArray runs everything on the host anyway.
     let surface = if canonical_pose && !is_ndarray(device) {
         let topology = ctx.canonical_dmtet.get_or_make(device, device_topology(ctx, grid, device)).await;
-        surface_on_device(g, ctx, &planes, s, band_points, &topology).await?
+        surface_on_device(g, ctx, planes, s, band_points, &topology).await?
     } else {
-        surface_on_host(g, ctx, &planes, s, band_points, grid, device).await?
+        surface_on_host(g, ctx, planes, s, band_points, grid, device).await?
     };
     let SurfaceFields { mesh, gradients, colors } = surface;
     let normals = mesh

@@ -283,6 +283,8 @@ pub enum BakeError {
     Png(String),
     #[error("texture resolution {0} (64…4096)")]
     Resolution(usize),
+    #[error("{0} texture colours (or some not finite) for {1} texels")]
+    Colours(usize, usize),
 }
 
 /// Texture-field queries per batch (bounds the decoder's activations). Every batch of a bake
@@ -292,7 +294,7 @@ pub enum BakeError {
 pub const BAKE_BATCH: usize = 16_384;
 
 /// Texture-field colours at `points`, in batches of [`BAKE_BATCH`] (the last padded).
-async fn bake_queries(
+pub async fn bake_queries(
     g: &Generator,
     planes: &Triplanes,
     s: &Styles,
@@ -383,6 +385,15 @@ impl RiggedAvatar {
         photo: Option<(&PhotoProjection, &BodyParams)>,
         device: &Device,
     ) -> Result<BakedTexture, BakeError> {
+        let plan = self.bake_plan_async(ctx, res).await?;
+        let colors = bake_queries(g, planes, s, &plan.points, device).await?;
+        self.bake_finish_async(ctx, plan, colors, photo).await
+    }
+
+    /// A bake's first stage: the atlas, its covered texels and each one's canonical point,
+    /// where the texture field is queried (on any device, or in another thread: the browser's
+    /// worker on a software adapter); [`RiggedAvatar::bake_finish_async`] takes the colours.
+    pub async fn bake_plan_async(&self, ctx: &BodyContext, res: usize) -> Result<BakePlan, BakeError> {
         if !(64..=4096).contains(&res) {
             return Err(BakeError::Resolution(res));
         }
@@ -390,7 +401,22 @@ impl RiggedAvatar {
         let canon: Vec<glam::Vec3> = atlas.source.iter().map(|v| self.canonical.mesh.attributes[*v as usize]).collect();
         let (texels, points) = texel_points(&atlas, &canon, res);
         checkpoint().await;
-        let mut colors = bake_queries(g, planes, s, &points, device).await?;
+        Ok(BakePlan { atlas, res, texels, points })
+    }
+
+    /// A bake's last stage: the texture field's linear RGB at `plan.points` (one per point),
+    /// the photo's projection blended in (a reconstruction's), dilated into the image.
+    pub async fn bake_finish_async(
+        &self,
+        ctx: &BodyContext,
+        plan: BakePlan,
+        mut colors: Vec<glam::Vec3>,
+        photo: Option<(&PhotoProjection, &BodyParams)>,
+    ) -> Result<BakedTexture, BakeError> {
+        let BakePlan { atlas, res, texels, points } = plan;
+        if colors.len() != points.len() || colors.iter().any(|c| !c.is_finite()) {
+            return Err(BakeError::Colours(colors.len(), points.len()));
+        }
         if let Some((projection, params)) = photo {
             let (pos, nrm) = self.repose(ctx, &pose_body(&ctx.model, params));
             let per_atlas =
@@ -408,6 +434,17 @@ impl RiggedAvatar {
     }
 }
 
+/// A bake between its stages ([`RiggedAvatar::bake_plan_async`]): the atlas, the covered
+/// texels (indices into the `res²` image) and the canonical point of each, where the texture
+/// field is to be queried.
+#[derive(Clone, Debug)]
+pub struct BakePlan {
+    pub atlas: UvAtlas,
+    pub res: usize,
+    pub texels: Vec<u32>,
+    pub points: Vec<glam::Vec3>,
+}
+
 /// Generate in the canonical pose and rig (the fast path's one-off cost).
 pub async fn generate_rigged_async(
     g: &crate::generator::pipeline::Generator,
@@ -417,6 +454,21 @@ pub async fn generate_rigged_async(
 ) -> Result<RiggedAvatar, crate::generator::readback::ReadbackError> {
     let params = crate::body::skinning::BodyParams { pose: crate::body::pose_library::da_pose(), ..Default::default() };
     let a = crate::generator::pipeline::generate_avatar_async(g, ctx, s, &params, device).await?;
+    crate::util::cooperative::checkpoint().await;
+    crate::util::profile::stage("rigging");
+    Ok(RiggedAvatar::new(a, ctx))
+}
+
+/// [`generate_rigged_async`] from the triplanes of `s` computed already.
+pub async fn generate_rigged_from_planes_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    s: &Styles,
+    planes: &Triplanes,
+    device: &Device,
+) -> Result<RiggedAvatar, ReadbackError> {
+    let params = crate::body::skinning::BodyParams { pose: crate::body::pose_library::da_pose(), ..Default::default() };
+    let a = crate::generator::pipeline::generate_avatar_from_planes_async(g, ctx, s, planes, &params, device).await?;
     crate::util::cooperative::checkpoint().await;
     crate::util::profile::stage("rigging");
     Ok(RiggedAvatar::new(a, ctx))

@@ -32,8 +32,9 @@ use getavatar_core::generator::rigging::RiggedAvatar;
 use getavatar_core::OrbitCamera;
 
 use crate::automation::{Action, GenerateArgs, Status, ViewMode};
-use crate::generate::{GenEngine, TextureField};
+use crate::generate::GenEngine;
 use crate::platform::{download_bytes, now_ms};
+use crate::texture_field::TextureField;
 use crate::viewer::{joint_bones, Vertex, Viewer};
 use motion_panel::MotionPlayer;
 use photo_panel::PhotoPanel;
@@ -290,6 +291,10 @@ impl GetAvatarApp {
             Action::DownloadVrm => self.request_download(motion_panel::DownloadKind::Vrm),
             Action::DownloadVrma => self.download_vrma(),
             Action::TextureRes(r) => self.texture_res = r,
+            Action::TextureDevice(d) => match self.engine.as_mut() {
+                Some(e) => e.texture_device = d,
+                None => self.messages.push("the generator is not available".into()),
+            },
         }
     }
 

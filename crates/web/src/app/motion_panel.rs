@@ -372,10 +372,11 @@ impl GetAvatarApp {
             return;
         }
         match result {
-            Ok((b, ms)) => {
+            Ok(crate::generate::Baked { texture: b, millis, on }) => {
                 let s = &mut self.status.motion;
                 s.bakes += 1;
-                s.last_bake_ms = ms as f32;
+                s.last_bake_ms = millis as f32;
+                s.last_bake_on = on.to_string();
                 s.atlas_vertices = b.atlas.source.len();
                 s.atlas_own_chart_faces = b.atlas.own_chart_faces;
                 self.baked = Some(b);

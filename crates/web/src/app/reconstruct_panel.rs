@@ -17,13 +17,13 @@ use getavatar_core::reconstruction::inversion::{comparison_image, InversionOptio
 
 use super::GetAvatarApp;
 use crate::automation::{Action, ReconstructArgs, ReconstructStatus, Reconstruction, StartChoice, RECONSTRUCT_PRESETS};
-use crate::generate::TextureField;
 use crate::photo::{self, PhotoEvent, PhotoTask, RefitRequest};
 use crate::platform::{download_bytes, open_file_picker, RECONSTRUCTION_INPUT_ID};
 use crate::reconstruct::{
     open, reconstruct, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
     ReconstructTask, Reconstructed,
 };
+use crate::texture_field::TextureField;
 
 /// Side of the photo crop that the colour projection samples, pixels.
 const PROJECTION_RES: usize = 512;
@@ -427,7 +427,7 @@ impl GetAvatarApp {
         self.status.avatar_vertices = r.rigged.canonical.mesh.vertices.len();
         self.rigged = Some(r.rigged);
         let has_photo = r.projection.is_some();
-        self.field = Some(Rc::new(TextureField::reconstructed(r.model, r.projection)));
+        self.field = Some(Rc::new(TextureField::reconstructed(r.model, r.projection, r.file)));
         // The bake belongs to the previous avatar.
         self.baked = None;
         self.show_avatar = true;

@@ -26,9 +26,9 @@ use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
 use crate::automation::PhotoSource;
 pub use crate::automation::{Compute, StartChoice};
-use crate::generate::{FieldModel, Projected, TextureField};
 use crate::platform::{fetch_bytes, now_ms};
 use crate::task::{yield_to_browser, EventKind, Task, TaskEvent};
+use crate::texture_field::{FieldModel, Projected, TextureField};
 
 /// What the inversion runs on: plain data, so that it can be handed to the reconstruction
 /// worker (`super::worker`) as well as run on the page.
@@ -116,6 +116,9 @@ pub struct Reconstructed {
     /// The tuned generator (on the page's device, without gradients) and the codes, or the
     /// worker's file they are built from when first used.
     pub model: FieldModel,
+    /// The result's file where the page has it (the worker's, or one opened): the worker
+    /// computes the field's colours from it on a software adapter.
+    pub file: Option<Rc<Vec<u8>>>,
     /// Rigged to the body, vertex colours with the photo projected on.
     pub rigged: RiggedAvatar,
     /// The photo and its projection onto the avatar, for the bake and "Save reconstruction".
@@ -251,6 +254,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
     };
     Ok(Some(Reconstructed {
         model: FieldModel::Built(Rc::new(inv.generator), inv.styles),
+        file: None,
         rigged,
         projection,
         refit: inv.refit,
@@ -536,10 +540,9 @@ pub(crate) async fn rig_saved(
         Some(a) => {
             let photo = inverted_photo(&st).map_err(not_one)?;
             let rigged = RiggedAvatar::from_arrays(a, ctx).map_err(|e| format!("{name}: the worker's avatar: {e}"))?;
-            (rigged, FieldModel::File { st, bytes, cfg: cfg.clone(), device: device.clone() }, photo)
+            (rigged, FieldModel::File { st, bytes: bytes.clone(), cfg: cfg.clone(), device: device.clone() }, photo)
         }
         None => {
-            drop(bytes);
             let inv = inverted_of(&st, cfg, device).map_err(not_one)?;
             drop(st);
             yield_to_browser().await;
@@ -561,6 +564,7 @@ pub(crate) async fn rig_saved(
     };
     Ok(Reconstructed {
         model,
+        file: Some(bytes),
         rigged,
         projection,
         refit: None,

@@ -13,7 +13,7 @@
 //!
 //! - [`job`]: the reconstruction's steps (shared by the page and the worker)
 //! - [`worker_client`]: the page's side of the reconstruction worker (which also generates
-//!   the page's new identities and textures on a software WebGPU adapter)
+//!   the page's new identities and its texture-field queries on a software WebGPU adapter)
 //! - [`worker`]: the worker's side
 //! - [`protocol`]: the messages between them
 
@@ -29,7 +29,8 @@ pub use job::{
     open, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
     ReconstructTask, Reconstructed,
 };
-pub use worker_client::{generate_in_worker, retexture_in_worker};
+pub use protocol::WorkerField;
+pub use worker_client::{colours_in_worker, generate_in_worker};
 
 /// Start a reconstruction; its events arrive on the returned task. It runs in the
 /// reconstruction worker (its own WebGPU device, off the UI thread), or on the page

@@ -33,9 +33,30 @@ pub(super) enum ToWorker {
     /// Generate a new identity on the worker's CPU for the page's Generate (the array
     /// `checkpoint` comes with it unless the worker holds it).
     Generate(GenerateMeta),
-    /// The texture field of these styles at the canonical points of the array `points` (3
-    /// floats each), on the worker's CPU: the page's New texture (`checkpoint` as above).
-    Retexture(GenerateMeta),
+    /// An avatar's texture field at the canonical points of the array `points` (3 floats
+    /// each), on the worker's CPU: the page's New texture, texture bakes and per-pixel texture
+    /// view on a software adapter (`checkpoint` as above; a reconstruction's file as the array
+    /// `result`).
+    Colours(ColoursMeta),
+}
+
+/// Whose texture field [`ToWorker::Colours`] asks for.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WorkerField {
+    /// A generated identity's: the model's styles of these seeds and ψ.
+    Seeds { seeds: (u64, u64), psi: f32 },
+    /// A reconstruction's: its file (the array `result`), `key` naming it for the worker's cache.
+    Result { key: u64 },
+}
+
+/// A [`ToWorker::Colours`] call.
+#[derive(Serialize, Deserialize)]
+pub(super) struct ColoursMeta {
+    pub(super) id: u64,
+    pub(super) cfg: GeneratorConfig,
+    pub(super) checkpoint_kept: bool,
+    pub(super) field: WorkerField,
 }
 
 /// A new identity (or texture) the page asks the worker for: the seeds and ψ as the page's
@@ -143,12 +164,12 @@ pub(super) enum FromWorker {
         millis: f64,
         stages: Option<StageProfile>,
     },
-    /// With the array `colors` (linear RGB, 3 floats per point): the answer to `Retexture` `id`.
-    Retextured {
+    /// With the array `colors` (linear RGB, 3 floats per point): the answer to `Colours` `id`.
+    Coloured {
         id: u64,
         millis: f64,
     },
-    /// `Generate` or `Retexture` `id` failed.
+    /// `Generate` or `Colours` `id` failed.
     CallFailed {
         id: u64,
         message: String,

@@ -2,7 +2,8 @@
 //! [`reconstruct_worker_message`] receives a job, runs the inversion on the worker's own WebGPU
 //! device (or NdArray) and posts its start, steps, previews, the result file and the avatar
 //! rigged from it back to the page. On a software adapter it also generates the page's new
-//! identities (`ToWorker::Generate`) on NdArray.
+//! identities (`ToWorker::Generate`) and answers its texture-field queries (`ToWorker::Colours`:
+//! new textures, bakes, the per-pixel view) on NdArray.
 
 use std::cell::{Cell, RefCell};
 use std::rc::Rc;
@@ -12,10 +13,12 @@ use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::wgpu::WgpuSetup;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::load_generator_and_modes;
-use getavatar_core::generator::checkpoint::save_inverted_async;
+use getavatar_core::generator::checkpoint::{inverted_of, parse_safetensors_async, save_inverted_async};
 use getavatar_core::generator::network::GeneratorConfig;
-use getavatar_core::generator::pipeline::{recolor_async, seed_latents, BodyContext, Generator, LatentModes, Styles};
-use getavatar_core::generator::rigging::{generate_rigged_async, RiggedArrays};
+use getavatar_core::generator::pipeline::{seed_latents, BodyContext, Generator, LatentModes, Styles};
+use getavatar_core::generator::rigging::{
+    bake_queries, generate_rigged_async, generate_rigged_from_planes_async, RiggedArrays,
+};
 use getavatar_core::reconstruction::inversion::InversionTarget;
 use getavatar_core::render::camera::View;
 use glam::Mat4;
@@ -26,7 +29,8 @@ use super::job::{
     invert, measure, Compute, InversionJob, Inverted, Progress, Progressing, ProjectionSource, ReconstructEvent,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, rigged_arrays, u8_array, FromWorker, GenerateMeta, JobMeta, ModelFiles, ToWorker,
+    f32_array, json_of, message_of, rigged_arrays, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
+    ModelFiles, ToWorker, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -86,7 +90,7 @@ pub fn reconstruct_worker_message(data: JsValue) {
             }
         }),
         Ok(ToWorker::Generate(meta)) => wasm_bindgen_futures::spawn_local(generate_job(meta, data)),
-        Ok(ToWorker::Retexture(meta)) => wasm_bindgen_futures::spawn_local(retexture_job(meta, data)),
+        Ok(ToWorker::Colours(meta)) => wasm_bindgen_futures::spawn_local(colours_job(meta, data)),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
             MEASURE.with(|m| m.set(false));
@@ -291,46 +295,140 @@ async fn generate_job(meta: GenerateMeta, data: JsValue) {
     }
 }
 
-/// The page's New texture on this worker's CPU: the colours, or why not.
-async fn retexture_job(meta: GenerateMeta, data: JsValue) {
+/// The page's texture-field query on this worker's CPU (a New texture, a bake, the per-pixel
+/// view): the colours, or why not.
+async fn colours_job(meta: ColoursMeta, data: JsValue) {
     let id = meta.id;
     let t0 = now_ms();
-    match retexture(meta, &data).await {
+    match colours(meta, &data).await {
         Ok(rgb) => {
             let colors: JsValue = js_sys::Float32Array::from(&rgb[..]).into();
-            post(&FromWorker::Retextured { id, millis: now_ms() - t0 }, &[("colors", colors)])
+            post(&FromWorker::Coloured { id, millis: now_ms() - t0 }, &[("colors", colors)])
         }
         Err(message) => post(&FromWorker::CallFailed { id, message }, &[]),
     }
 }
 
-/// The generator of the page's model on NdArray here, and its latent modes.
-#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
-fn model(meta: &GenerateMeta, data: &JsValue) -> Result<(Generator, Option<LatentModes>), String> {
-    let checkpoint = file(data, "checkpoint", meta.checkpoint_kept).ok_or("the worker lost the model's file")?;
-    load_generator_and_modes(&checkpoint, &meta.cfg, &Device::ndarray()).map_err(|e| format!("the model: {e}"))
+/// The page's model on NdArray here: its generator and latent modes.
+type Model = Rc<(Generator, Option<LatentModes>)>;
+
+thread_local! {
+    /// The page's model as last loaded, with the file and config it came from (loading it
+    /// took a few hundred ms of every Generate and texture call).
+    static MODEL: RefCell<Option<(GeneratorConfig, Rc<Vec<u8>>, Model)>> = const { RefCell::new(None) };
 }
 
-/// The styles of `meta`'s seeds and ψ.
+/// The generator of the page's model on NdArray here, and its latent modes (loaded once per
+/// file the page sends).
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
-fn styles(g: &Generator, modes: Option<&LatentModes>, meta: &GenerateMeta) -> Styles {
-    let (zg, zt) = seed_latents(&meta.cfg, meta.seeds.0, meta.seeds.1, &Device::ndarray());
-    g.styles_with(zg, zt, meta.psi, modes)
+fn model(cfg: &GeneratorConfig, kept: bool, data: &JsValue) -> Result<Model, String> {
+    let checkpoint = file(data, "checkpoint", kept).ok_or("the worker lost the model's file")?;
+    let cached = MODEL.with(|m| {
+        m.borrow().as_ref().filter(|(c, b, _)| c == cfg && Rc::ptr_eq(b, &checkpoint)).map(|(_, _, m)| m.clone())
+    });
+    if let Some(m) = cached {
+        return Ok(m);
+    }
+    let loaded =
+        Rc::new(load_generator_and_modes(&checkpoint, cfg, &Device::ndarray()).map_err(|e| format!("the model: {e}"))?);
+    MODEL.with(|m| *m.borrow_mut() = Some((cfg.clone(), checkpoint, loaded.clone())));
+    Ok(loaded)
 }
 
-/// The texture field at the points of `data`'s array `points`, as linear RGB floats.
+/// The styles of seeds and ψ.
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
-async fn retexture(meta: GenerateMeta, data: &JsValue) -> Result<Vec<f32>, String> {
+fn styles(g: &Generator, modes: Option<&LatentModes>, cfg: &GeneratorConfig, seeds: (u64, u64), psi: f32) -> Styles {
+    let (zg, zt) = seed_latents(cfg, seeds.0, seeds.1, &Device::ndarray());
+    g.styles_with(zg, zt, psi, modes)
+}
+
+/// A texture field on NdArray: the field's generator, styles and triplanes, kept for the
+/// next query of the same field (a bake follows a generation; the per-pixel view asks again
+/// on every change of view).
+struct CachedField {
+    field: WorkerField,
+    cfg: GeneratorConfig,
+    generator: Field,
+    styles: Styles,
+    planes: getavatar_core::generator::network::synthesis::Triplanes,
+}
+
+/// A texture field's generator: the page's model's, or a reconstruction's tuned one.
+enum Field {
+    Model(Model),
+    Tuned(Generator),
+}
+
+impl Field {
+    fn get(&self) -> &Generator {
+        match self {
+            Field::Model(m) => &m.0,
+            Field::Tuned(g) => g,
+        }
+    }
+}
+
+thread_local! {
+    static FIELD: RefCell<Option<Rc<CachedField>>> = const { RefCell::new(None) };
+}
+
+/// The texture field `meta` names: the cached one, or built from the model (seeds) or the
+/// reconstruction's file (the array `result`).
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, String> {
+    // The model (also kept for later calls when only a reconstruction's file is asked about).
+    let model = match meta.field {
+        WorkerField::Seeds { .. } => Some(model(&meta.cfg, meta.checkpoint_kept, data)?),
+        WorkerField::Result { .. } => {
+            let _ = file(data, "checkpoint", meta.checkpoint_kept);
+            None
+        }
+    };
+    let cached = FIELD.with(|f| f.borrow().clone()).filter(|c| {
+        c.field == meta.field
+            && c.cfg == meta.cfg
+            && match (&c.generator, &model) {
+                // Another model (a new file) draws other avatars from the same seeds.
+                (Field::Model(a), Some(b)) => Rc::ptr_eq(a, b),
+                (Field::Tuned(_), None) => true,
+                _ => false,
+            }
+    });
+    if let Some(c) = cached {
+        return Ok(c);
+    }
+    let (generator, styles) = match (&meta.field, model) {
+        (WorkerField::Seeds { seeds, psi }, Some(m)) => {
+            let s = styles(&m.0, m.1.as_ref(), &meta.cfg, *seeds, *psi);
+            (Field::Model(m), s)
+        }
+        _ => {
+            let bytes = u8_array(data, "result").ok_or("the call came without the reconstruction's file")?;
+            let st = parse_safetensors_async(&bytes).await.map_err(|e| format!("the reconstruction's file: {e}"))?;
+            let inv = inverted_of(&st, &meta.cfg, &Device::ndarray())
+                .map_err(|e| format!("the reconstruction's file: {e}"))?;
+            (Field::Tuned(inv.generator), inv.styles)
+        }
+    };
+    crate::task::yield_to_browser().await;
+    let planes = generator.get().triplanes_async(&styles).await;
+    let c = Rc::new(CachedField { field: meta.field.clone(), cfg: meta.cfg.clone(), generator, styles, planes });
+    FIELD.with(|f| *f.borrow_mut() = Some(c.clone()));
+    Ok(c)
+}
+
+/// The texture field at the points of `data`'s array `points`, as linear RGB floats (in the
+/// bake's batches, so a 1024² bake's half a million points never share one tensor).
+#[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+async fn colours(meta: ColoursMeta, data: &JsValue) -> Result<Vec<f32>, String> {
     let flat = f32_array(data, "points").ok_or("the request came without its points")?;
     if flat.len() % 3 != 0 || flat.iter().any(|x| !x.is_finite()) {
         return Err(format!("{} numbers are not points", flat.len()));
     }
     let points: Vec<glam::Vec3> = flat.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect();
-    let (g, modes) = model(&meta, data)?;
-    let styles = styles(&g, modes.as_ref(), &meta);
-    crate::task::yield_to_browser().await;
-    let planes = g.triplanes_async(&styles).await;
-    let colors = recolor_async(&g, &planes, &styles, &points, &Device::ndarray())
+    drop(flat);
+    let f = field(&meta, data).await?;
+    let colors = bake_queries(f.generator.get(), &f.planes, &f.styles, &points, &Device::ndarray())
         .await
         .map_err(|e| format!("the texture field: {e}"))?;
     Ok(colors.iter().flat_map(|c| c.to_array()).collect())
@@ -348,17 +446,23 @@ async fn generate(
     let t0 = now_ms();
     let state = state(&meta.cfg).await?;
     let dev = Device::ndarray();
-    let (g, modes) = model(&meta, data)?;
+    let m = model(&meta.cfg, meta.checkpoint_kept, data)?;
     crate::task::yield_to_browser().await;
     profile::start(now_ms);
     profile::stage("mapping");
-    let styles = styles(&g, modes.as_ref(), &meta);
-    let rigged = generate_rigged_async(&g, &state.ctx, &styles, &dev).await;
+    let styles = styles(&m.0, m.1.as_ref(), &meta.cfg, meta.seeds, meta.psi);
+    profile::stage("synthesis");
+    let planes = m.0.triplanes_async(&styles).await;
+    let rigged = generate_rigged_from_planes_async(&m.0, &state.ctx, &styles, &planes, &dev).await;
     let stages = profile::finish();
     let rigged = rigged.map_err(|e| format!("generation failed: {e}"))?;
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the generator produced an empty surface".into());
     }
+    // This avatar's texture field, for the bake or view that may follow.
+    let field = WorkerField::Seeds { seeds: meta.seeds, psi: meta.psi };
+    let c = CachedField { field, cfg: meta.cfg.clone(), generator: Field::Model(m), styles, planes };
+    FIELD.with(|f| *f.borrow_mut() = Some(Rc::new(c)));
     Ok((rigged.to_arrays(), now_ms() - t0, stages))
 }
 

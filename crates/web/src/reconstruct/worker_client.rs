@@ -26,8 +26,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, object, rigged_of, u8_array, FromWorker, GenerateMeta, JobMeta, Message,
-    ModelFiles, ProjectionMeta, ToWorker,
+    f32_array, json_of, message_of, object, rigged_of, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
+    Message, ModelFiles, ProjectionMeta, ToWorker, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -98,7 +98,7 @@ thread_local! {
     /// Jobs handed to a worker so far: an idle release applies only if none came since.
     static JOBS: Cell<u64> = const { Cell::new(0) };
     /// Generations and new textures handed to the worker ([`generate_in_worker`],
-    /// [`retexture_in_worker`]): their ids and where their answer goes.
+    /// [`colours_in_worker`]): their ids and where their answer goes.
     static GENERATIONS: RefCell<Vec<(u64, AnswerSlot)>> = const { RefCell::new(Vec::new()) };
 }
 
@@ -131,29 +131,38 @@ pub async fn generate_in_worker(
     }
 }
 
-/// The texture field of the styles of `seeds` and ψ at canonical `points` (a new texture on
-/// the avatar's geometry), computed in the worker on its CPU: linear RGB per point and the
-/// milliseconds. `Err` as for [`generate_in_worker`].
-pub async fn retexture_in_worker(
+/// The texture field of `field` (a generated identity's seeds and ψ, or a reconstruction's
+/// file `result`) at canonical `points`, computed in the worker on its CPU (a new texture, a
+/// bake, the per-pixel view): linear RGB per point and the milliseconds. `Err` as for
+/// [`generate_in_worker`].
+pub async fn colours_in_worker(
     cfg: &GeneratorConfig,
     checkpoint: &Rc<Vec<u8>>,
-    seeds: (u64, u64),
-    psi: f32,
+    field: &WorkerField,
+    result: Option<&Rc<Vec<u8>>>,
     points: &[glam::Vec3],
 ) -> Result<(Vec<glam::Vec3>, f64), String> {
     let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
-    let arrays = vec![("points", JsValue::from(js_sys::Float32Array::from(&flat[..])))];
-    let ask =
-        |id, checkpoint_kept| ToWorker::Retexture(GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi });
+    let mut arrays = vec![("points", JsValue::from(js_sys::Float32Array::from(&flat[..])))];
+    drop(flat);
+    match (field, result) {
+        (WorkerField::Result { .. }, Some(bytes)) => {
+            arrays.push(("result", js_sys::Uint8Array::from(&bytes[..]).into()));
+        }
+        (WorkerField::Result { .. }, None) => return Err("the reconstruction's file is not on the page".into()),
+        (WorkerField::Seeds { .. }, _) => {}
+    }
+    let field = field.clone();
+    let ask = |id, checkpoint_kept| ToWorker::Colours(ColoursMeta { id, cfg: cfg.clone(), checkpoint_kept, field });
     match call(ask, checkpoint, arrays).await? {
-        (FromWorker::Retextured { millis, .. }, data) => {
+        (FromWorker::Coloured { millis, .. }, data) => {
             let rgb = f32_array(&data, "colors").ok_or("the worker sent no colours")?;
             if rgb.len() != 3 * points.len() || rgb.iter().any(|x| !x.is_finite()) {
                 return Err(format!("the worker sent {} colour values for {} points", rgb.len(), points.len()));
             }
             Ok((rgb.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect(), millis))
         }
-        _ => Err("the worker answered Retexture with another message".into()),
+        _ => Err("the worker answered Colours with another message".into()),
     }
 }
 
@@ -484,7 +493,7 @@ fn on_message(data: JsValue) {
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
     match event {
-        FromWorker::Generated { id, .. } | FromWorker::Retextured { id, .. } => return answered(id, Ok((event, data))),
+        FromWorker::Generated { id, .. } | FromWorker::Coloured { id, .. } => return answered(id, Ok((event, data))),
         FromWorker::CallFailed { id, message } => return answered(id, Err(message)),
         _ => {}
     }
@@ -569,7 +578,7 @@ fn on_message(data: JsValue) {
         }
         FromWorker::Figures { .. }
         | FromWorker::Generated { .. }
-        | FromWorker::Retextured { .. }
+        | FromWorker::Coloured { .. }
         | FromWorker::CallFailed { .. } => {}
         FromWorker::Fatal { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
