@@ -8,7 +8,7 @@
 // their ratio, all in one run.
 //
 //   cargo xtask serve            # another shell; or any server of dist/
-//   cd tests/e2e && node bench_bake.mjs [avatars, default 3] [texture side, default 256]
+//   cd tests/e2e && node bench_bake.mjs [avatars, default 3] [texture side, default 256] [devices, default webgpu,cpu]
 //
 // GETAVATAR_URL (default http://127.0.0.1:8080/) and GETAVATAR_CHROMIUM as for app.e2e.mjs.
 // Headless Chromium runs WebGPU on SwiftShader (a CPU); on a real GPU re-measure.
@@ -19,8 +19,9 @@ import { appStatus, launchChromium } from './browser.mjs';
 const url = process.env.GETAVATAR_URL ?? 'http://127.0.0.1:8080/';
 const count = Number(process.argv[2] ?? 3);
 const res = Number(process.argv[3] ?? 256);
-if (!(count >= 1) || ![256, 512, 1024, 2048].includes(res)) {
-  console.error('usage: node bench_bake.mjs [avatars ≥ 1] [texture side: 256|512|1024|2048]');
+const devices = (process.argv[4] ?? 'webgpu,cpu').split(',');
+if (!(count >= 1) || ![256, 512, 1024, 2048].includes(res) || devices.some((d) => !['auto', 'cpu', 'webgpu'].includes(d))) {
+  console.error('usage: node bench_bake.mjs [avatars ≥ 1] [texture side: 256|512|1024|2048] [devices: auto,cpu,webgpu]');
   process.exit(2);
 }
 const browser = await launchChromium();
@@ -75,19 +76,24 @@ function difference(a, b) {
 }
 
 const median = (xs) => [...xs].sort((a, b) => a - b)[Math.floor(xs.length / 2)];
-const times = { webgpu: [], cpu: [] };
+const times = Object.fromEntries(devices.map((d) => [d, []]));
 for (let k = -1; k < count; k++) {
   const seeds = [31 + 2 * k, 32 + 2 * k];
   const baked = {};
-  for (const device of ['webgpu', 'cpu']) {
+  for (const device of devices) {
     await generate(...seeds);
     baked[device] = await bake(device);
     if (k >= 0) times[device].push(baked[device].ms);
   }
-  const d = difference(baked.webgpu.png, baked.cpu.png);
-  console.log(`${k < 0 ? 'warm-up' : `avatar ${k + 1}`} (seeds ${seeds.join('/')}): ${res}² on the page ${baked.webgpu.ms.toFixed(0)} ms (${baked.webgpu.on}), in the worker ${baked.cpu.ms.toFixed(0)} ms (${baked.cpu.on}); the textures differ by ${d.mean.toFixed(3)} levels on average, ${d.max} at most`);
+  const line = devices.map((d) => `${d} ${baked[d].ms.toFixed(0)} ms (${baked[d].on})`).join(', ');
+  let diff = '';
+  if (devices.length > 1) {
+    const d = difference(baked[devices[0]].png, baked[devices[1]].png);
+    diff = `; the textures differ by ${d.mean.toFixed(3)} levels on average, ${d.max} at most`;
+  }
+  console.log(`${k < 0 ? 'warm-up' : `avatar ${k + 1}`} (seeds ${seeds.join('/')}), ${res}²: ${line}${diff}`);
 }
-const [p, w] = [median(times.webgpu), median(times.cpu)];
-console.log(`\nmedian ${res}² bake: page ${p.toFixed(0)} ms, worker ${w.toFixed(0)} ms, page/worker ${(p / w).toFixed(1)}×`);
+console.log(`\nmedian ${res}² bake: ${devices.map((d) => `${d} ${median(times[d]).toFixed(0)} ms`).join(', ')}`);
+if (devices.length > 1) console.log(`${devices[0]}/${devices[1]}: ${(median(times[devices[0]]) / median(times[devices[1]])).toFixed(1)}×`);
 if (warnings.length) console.log(`the worker fell back: ${warnings.join('; ')}`);
 await browser.close();
