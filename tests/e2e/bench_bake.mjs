@@ -60,7 +60,7 @@ async function bake(device) {
   const view = json.bufferViews[json.images[0].bufferView];
   const start = 20 + jsonLen + 8 + (view.byteOffset ?? 0);
   const png = PNG.sync.read(Buffer.from(bytes.subarray(start, start + view.byteLength)));
-  return { ms: s.motion.last_bake_ms, on: s.motion.last_bake_on, png };
+  return { ms: s.motion.last_bake_ms, on: s.motion.last_bake_on, detail: s.motion.last_bake_detail, png };
 }
 
 /** Mean and largest difference of two RGBA images' colours, in 8-bit levels. */
@@ -85,7 +85,7 @@ for (let k = -1; k < count; k++) {
     baked[device] = await bake(device);
     if (k >= 0) times[device].push(baked[device].ms);
   }
-  const line = devices.map((d) => `${d} ${baked[d].ms.toFixed(0)} ms (${baked[d].on})`).join(', ');
+  const line = devices.map((d) => `${d} ${baked[d].ms.toFixed(0)} ms (${baked[d].on}: ${baked[d].detail})`).join(', ');
   let diff = '';
   if (devices.length > 1) {
     const d = difference(baked[devices[0]].png, baked[devices[1]].png);

@@ -146,11 +146,12 @@ type TextureColours = Result<Vec<glam::Vec3>, String>;
 /// belongs to) and the texture, or why it failed.
 type Bake = (Rc<TextureField>, Result<Baked, String>);
 
-/// A baked texture, its milliseconds and where its texture-field queries ran.
+/// A baked texture, its milliseconds, where its texture-field queries ran and its stages' times.
 pub struct Baked {
     pub texture: BakedTexture,
     pub millis: f64,
     pub on: &'static str,
+    pub detail: String,
 }
 
 /// A fetched checkpoint: the generator, its latent modes (if any), its bytes, and the
@@ -524,11 +525,21 @@ impl GenEngine {
         wasm_bindgen_futures::spawn_local(async move {
             let t0 = crate::platform::now_ms();
             let baked = async {
+                let now = crate::platform::now_ms;
                 let plan = rigged.bake_plan_async(&ctx, res).await.map_err(|e| e.to_string())?;
+                let t1 = now();
                 let (colors, on) = field.colours(&plan.points, &dev, worker.as_ref().map(|(c, b)| (c, b))).await?;
+                let t2 = now();
                 let photo = field.projection.as_deref().map(|p| (&p.projection, &p.photo.view.body));
                 let b = rigged.bake_finish_async(&ctx, plan, colors, photo).await.map_err(|e| e.to_string())?;
-                Ok::<_, String>(Baked { texture: b, millis: crate::platform::now_ms() - t0, on })
+                let (t3, n) = (now(), b.covered);
+                let detail = format!(
+                    "atlas and texels {:.0} ms, {n} texture-field queries {:.0} ms, image {:.0} ms",
+                    t1 - t0,
+                    t2 - t1,
+                    t3 - t2
+                );
+                Ok::<_, String>(Baked { texture: b, millis: t3 - t0, on, detail })
             }
             .await;
             *slot.borrow_mut() = Some((field, baked.map_err(|e| format!("texture bake failed: {e}"))));

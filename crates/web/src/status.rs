@@ -243,6 +243,8 @@ pub struct MotionStatus {
     /// Where the last bake's texture-field queries ran ("the worker's CPU (burn NdArray)" on a
     /// software adapter, "the page's WebGPU device"; empty before the first bake).
     pub last_bake_on: String,
+    /// The last bake's stages: the atlas and texels, the texture-field queries, the image (ms).
+    pub last_bake_detail: String,
     pub atlas_vertices: usize,
     pub atlas_own_chart_faces: usize,
     /// Bakes dropped because the avatar or its colours changed while they ran.

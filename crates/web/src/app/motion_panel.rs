@@ -372,11 +372,12 @@ impl GetAvatarApp {
             return;
         }
         match result {
-            Ok(crate::generate::Baked { texture: b, millis, on }) => {
+            Ok(crate::generate::Baked { texture: b, millis, on, detail }) => {
                 let s = &mut self.status.motion;
                 s.bakes += 1;
                 s.last_bake_ms = millis as f32;
                 s.last_bake_on = on.to_string();
+                s.last_bake_detail = detail;
                 s.atlas_vertices = b.atlas.source.len();
                 s.atlas_own_chart_faces = b.atlas.own_chart_faces;
                 self.baked = Some(b);
