@@ -27,7 +27,7 @@ use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, Rigged
 use getavatar_core::util::profile;
 
 use crate::automation::Compute;
-use crate::reconstruct::{colours_in_worker, generate_in_worker, WorkerField};
+use crate::reconstruct::{colours_in_worker, generate_in_worker, warm_worker, WorkerField};
 use crate::texture_field::{fell_back, TextureField, ON_PAGE, ON_WORKER};
 
 /// Where the page finds the trained demo model (relative to the page).
@@ -459,6 +459,9 @@ impl GenEngine {
                     self.checkpoint = Some(shipped.bytes);
                     self.discriminator = shipped.discriminator;
                     self.encoder = shipped.encoder;
+                    if self.software {
+                        self.warm_worker();
+                    }
                     Weights::Trained(n, k)
                 }
                 Err(e) => {
@@ -498,6 +501,20 @@ impl GenEngine {
     /// Colours of the last [`GenEngine::query_texture`] (or why it failed), once.
     pub fn poll_texture(&mut self) -> Option<Result<Vec<glam::Vec3>, String>> {
         self.texture_slot.borrow_mut().take()
+    }
+
+    /// Start the reconstruction worker while the page is idle and have it get ready for the
+    /// first Generate (on a software adapter Generate runs there; a fresh worker's first took
+    /// about 5 s, 3.2 s of it the canonical pose's posed grid). Work asked for meanwhile waits in
+    /// the worker behind it; a failure only costs the first Generate its head start.
+    fn warm_worker(&self) {
+        let (Some(checkpoint), cfg) = (self.checkpoint.clone(), self.cfg.clone()) else { return };
+        wasm_bindgen_futures::spawn_local(async move {
+            match warm_worker(&cfg, &checkpoint).await {
+                Ok(ms) => web_sys::console::info_1(&format!("the worker is ready for Generate ({ms:.0} ms)").into()),
+                Err(e) => web_sys::console::warn_1(&format!("the worker did not get ready ahead: {e}").into()),
+            }
+        });
     }
 
     /// The model's config and file where the worker computes texture-field colours (by

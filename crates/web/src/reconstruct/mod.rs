@@ -30,7 +30,7 @@ pub use job::{
     ReconstructTask, Reconstructed,
 };
 pub use protocol::WorkerField;
-pub use worker_client::{colours_in_worker, generate_in_worker};
+pub use worker_client::{colours_in_worker, generate_in_worker, warm_worker};
 
 /// Start a reconstruction; its events arrive on the returned task. It runs in the
 /// reconstruction worker (its own WebGPU device, off the UI thread), or on the page

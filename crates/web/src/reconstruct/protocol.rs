@@ -38,6 +38,18 @@ pub(super) enum ToWorker {
     /// view on a software adapter (`checkpoint` as above; a reconstruction's file as the array
     /// `result`).
     Colours(ColoursMeta),
+    /// Get ready for the page's first Generate on a software adapter, while the page is idle:
+    /// the body's context, the model (the array `checkpoint` unless kept) and the canonical
+    /// pose's posed grid (seconds the first Generate of a fresh worker paid).
+    Warm(WarmMeta),
+}
+
+/// A [`ToWorker::Warm`] call.
+#[derive(Serialize, Deserialize)]
+pub(super) struct WarmMeta {
+    pub(super) id: u64,
+    pub(super) cfg: GeneratorConfig,
+    pub(super) checkpoint_kept: bool,
 }
 
 /// Whose texture field [`ToWorker::Colours`] asks for.
@@ -169,7 +181,12 @@ pub(super) enum FromWorker {
         id: u64,
         millis: f64,
     },
-    /// `Generate` or `Colours` `id` failed.
+    /// `Warm` `id` is done, in `millis`.
+    Warmed {
+        id: u64,
+        millis: f64,
+    },
+    /// `Generate`, `Colours` or `Warm` `id` failed.
     CallFailed {
         id: u64,
         message: String,

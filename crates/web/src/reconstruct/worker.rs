@@ -30,7 +30,7 @@ use super::job::{
 };
 use super::protocol::{
     f32_array, json_of, message_of, rigged_arrays, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
-    ModelFiles, ToWorker, WorkerField,
+    ModelFiles, ToWorker, WarmMeta, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -50,6 +50,16 @@ thread_local! {
     static CANCEL: Cell<bool> = const { Cell::new(false) };
     /// The page shows the result handed over: measure it (`ToWorker::Measure`).
     static MEASURE: Cell<bool> = const { Cell::new(false) };
+    /// A warm-up (`ToWorker::Warm`) runs: other work waits for it rather than doing the same
+    /// (the body's context, the model, the posed grid) beside it.
+    static WARMING: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Wait while a warm-up runs.
+async fn after_warm_up() {
+    while WARMING.with(Cell::get) {
+        crate::task::sleep_ms(20).await;
+    }
 }
 
 /// Post a message to the page (the worker's global `postMessage`).
@@ -91,6 +101,7 @@ pub fn reconstruct_worker_message(data: JsValue) {
         }),
         Ok(ToWorker::Generate(meta)) => wasm_bindgen_futures::spawn_local(generate_job(meta, data)),
         Ok(ToWorker::Colours(meta)) => wasm_bindgen_futures::spawn_local(colours_job(meta, data)),
+        Ok(ToWorker::Warm(meta)) => wasm_bindgen_futures::spawn_local(warm_job(meta, data)),
         Ok(ToWorker::Start(meta)) => {
             CANCEL.with(|c| c.set(false));
             MEASURE.with(|m| m.set(false));
@@ -130,6 +141,7 @@ impl Progressing for ToPage {
 }
 
 async fn run_job(meta: JobMeta, data: JsValue) {
+    after_warm_up().await;
     let state = match state(&meta.cfg).await {
         Ok(s) => s,
         Err(message) => return post(&FromWorker::Unavailable { message }, &[]),
@@ -288,6 +300,7 @@ fn file(data: &JsValue, name: &str, kept: bool) -> Option<Rc<Vec<u8>>> {
 
 /// The page's Generate on this worker's CPU: the avatar, or why not.
 async fn generate_job(meta: GenerateMeta, data: JsValue) {
+    after_warm_up().await;
     let id = meta.id;
     match generate(meta, &data).await {
         Ok((rigged, millis, stages)) => post(&FromWorker::Generated { id, millis, stages }, &rigged_arrays(&rigged)),
@@ -295,9 +308,30 @@ async fn generate_job(meta: GenerateMeta, data: JsValue) {
     }
 }
 
+/// Get ready for the page's first Generate: the body's context, the model, the canonical
+/// pose's posed grid (kept for the worker's life).
+async fn warm_job(meta: WarmMeta, data: JsValue) {
+    let (id, t0) = (meta.id, now_ms());
+    WARMING.with(|w| w.set(true));
+    let warmed = async {
+        let state = state(&meta.cfg).await?;
+        model(&meta.cfg, meta.checkpoint_kept, &data)?;
+        crate::task::yield_to_browser().await;
+        state.ctx.canonical_grid_async(state.ctx.canonical_inverse()).await;
+        Ok::<_, String>(())
+    };
+    let warmed = warmed.await;
+    WARMING.with(|w| w.set(false));
+    match warmed {
+        Ok(()) => post(&FromWorker::Warmed { id, millis: now_ms() - t0 }, &[]),
+        Err(message) => post(&FromWorker::CallFailed { id, message }, &[]),
+    }
+}
+
 /// The page's texture-field query on this worker's CPU (a New texture, a bake, the per-pixel
 /// view): the colours, or why not.
 async fn colours_job(meta: ColoursMeta, data: JsValue) {
+    after_warm_up().await;
     let id = meta.id;
     let t0 = now_ms();
     match colours(meta, &data).await {

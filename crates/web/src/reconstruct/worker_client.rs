@@ -27,7 +27,7 @@ use super::job::{
 };
 use super::protocol::{
     f32_array, json_of, message_of, object, rigged_of, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
-    Message, ModelFiles, ProjectionMeta, ToWorker, WorkerField,
+    Message, ModelFiles, ProjectionMeta, ToWorker, WarmMeta, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -163,6 +163,16 @@ pub async fn colours_in_worker(
             Ok((rgb.chunks_exact(3).map(|c| glam::Vec3::new(c[0], c[1], c[2])).collect(), millis))
         }
         _ => Err("the worker answered Colours with another message".into()),
+    }
+}
+
+/// Start the worker and have it get ready for Generate (the body's context, the model, the
+/// canonical posed grid) while the page is idle: its milliseconds, or why not.
+pub async fn warm_worker(cfg: &GeneratorConfig, checkpoint: &Rc<Vec<u8>>) -> Result<f64, String> {
+    let ask = |id, checkpoint_kept| ToWorker::Warm(WarmMeta { id, cfg: cfg.clone(), checkpoint_kept });
+    match call(ask, checkpoint, Vec::new()).await? {
+        (FromWorker::Warmed { millis, .. }, _) => Ok(millis),
+        _ => Err("the worker answered Warm with another message".into()),
     }
 }
 
@@ -493,7 +503,9 @@ fn on_message(data: JsValue) {
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
     };
     match event {
-        FromWorker::Generated { id, .. } | FromWorker::Coloured { id, .. } => return answered(id, Ok((event, data))),
+        FromWorker::Generated { id, .. } | FromWorker::Coloured { id, .. } | FromWorker::Warmed { id, .. } => {
+            return answered(id, Ok((event, data)))
+        }
         FromWorker::CallFailed { id, message } => return answered(id, Err(message)),
         _ => {}
     }
@@ -579,6 +591,7 @@ fn on_message(data: JsValue) {
         FromWorker::Figures { .. }
         | FromWorker::Generated { .. }
         | FromWorker::Coloured { .. }
+        | FromWorker::Warmed { .. }
         | FromWorker::CallFailed { .. } => {}
         FromWorker::Fatal { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction stopped: {message}")), &r.repaint);
