@@ -452,10 +452,11 @@ pub async fn generate_rigged_async(
     s: &crate::generator::pipeline::Styles,
     device: &Device,
 ) -> Result<RiggedAvatar, crate::generator::readback::ReadbackError> {
-    crate::util::profile::stage("synthesis");
-    let planes = g.triplanes_async(s).await;
-    checkpoint().await;
-    generate_rigged_from_planes_async(g, ctx, s, &planes, device).await
+    let params = crate::body::skinning::BodyParams { pose: crate::body::pose_library::da_pose(), ..Default::default() };
+    let a = crate::generator::pipeline::generate_avatar_async(g, ctx, s, &params, device).await?;
+    crate::util::cooperative::checkpoint().await;
+    crate::util::profile::stage("rigging");
+    Ok(RiggedAvatar::new(a, ctx))
 }
 
 /// [`generate_rigged_async`] from the triplanes of `s` computed already.
@@ -468,7 +469,7 @@ pub async fn generate_rigged_from_planes_async(
 ) -> Result<RiggedAvatar, ReadbackError> {
     let params = crate::body::skinning::BodyParams { pose: crate::body::pose_library::da_pose(), ..Default::default() };
     let a = crate::generator::pipeline::generate_avatar_from_planes_async(g, ctx, s, planes, &params, device).await?;
-    checkpoint().await;
+    crate::util::cooperative::checkpoint().await;
     crate::util::profile::stage("rigging");
     Ok(RiggedAvatar::new(a, ctx))
 }
