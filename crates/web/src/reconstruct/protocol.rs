@@ -275,12 +275,6 @@ pub(super) fn u8_array(data: &JsValue, name: &str) -> Option<Vec<u8>> {
         .map(|v| v.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v)).to_vec())
 }
 
-/// A message's `name` field as 32-bit indices: a `Uint32Array` copied once into wasm memory.
-pub(super) fn u32_array(data: &JsValue, name: &str) -> Option<Vec<u32>> {
-    field(data, name)
-        .map(|v| v.dyn_into::<js_sys::Uint32Array>().unwrap_or_else(|v| js_sys::Uint32Array::new(&v)).to_vec())
-}
-
 /// The fields of a rigged avatar in a message (each a typed array made for it, so moved).
 pub(super) fn rigged_arrays(a: &RiggedArrays) -> Vec<(&'static str, JsValue)> {
     let f = |v: &[f32]| JsValue::from(js_sys::Float32Array::from(v));
@@ -298,19 +292,58 @@ pub(super) fn rigged_arrays(a: &RiggedArrays) -> Vec<(&'static str, JsValue)> {
     ]
 }
 
-/// The rigged avatar of a message ([`rigged_arrays`]), or the name of a missing field.
-pub(super) fn rigged_of(data: &JsValue) -> Result<RiggedArrays, &'static str> {
-    let f = |name: &'static str| f32_array(data, name).ok_or(name);
-    let u = |name: &'static str| u32_array(data, name).ok_or(name);
+/// Elements of a typed array copied into wasm memory between two of the page's checkpoints
+/// (1 MB of floats or indices, 2 MB of bytes): one copy of a whole 11.5 MB result file held
+/// the UI thread 40–100 ms on SwiftShader.
+const COPY_SLICE_BYTES: u32 = 1 << 20;
+
+/// `len` elements copied by `chunk(start, end)` in slices of `per` elements, with a
+/// checkpoint ([`getavatar_core::util::cooperative`]) after each: the page's time slicing
+/// gives the thread back between them. The result is reserved, not zeroed: a zeroed 11.5 MB
+/// vector alone held the UI thread 20–30 ms in a job's first result.
+async fn copy_in_slices<T: Copy>(len: u32, per: u32, chunk: impl Fn(u32, u32) -> Vec<T>) -> Vec<T> {
+    let mut out = Vec::with_capacity(len as usize);
+    let mut start = 0;
+    while start < len {
+        let end = start.saturating_add(per.max(1)).min(len);
+        out.extend_from_slice(&chunk(start, end));
+        start = end;
+        getavatar_core::util::cooperative::checkpoint().await;
+    }
+    out
+}
+
+/// [`u8_array`] in slices (the page's copy of a result file).
+pub(super) async fn u8_array_sliced(data: &JsValue, name: &str) -> Option<Vec<u8>> {
+    let a = field(data, name)?.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v));
+    Some(copy_in_slices(a.length(), 2 * COPY_SLICE_BYTES, |s, e| a.subarray(s, e).to_vec()).await)
+}
+
+/// [`f32_array`] in slices (the page's copy of a bake's colours).
+pub(super) async fn f32_array_sliced(data: &JsValue, name: &str) -> Option<Vec<f32>> {
+    let a = field(data, name)?.dyn_into::<js_sys::Float32Array>().unwrap_or_else(|v| js_sys::Float32Array::new(&v));
+    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e| a.subarray(s, e).to_vec()).await)
+}
+
+async fn u32_array_sliced(data: &JsValue, name: &str) -> Option<Vec<u32>> {
+    let a = field(data, name)?.dyn_into::<js_sys::Uint32Array>().unwrap_or_else(|v| js_sys::Uint32Array::new(&v));
+    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e| a.subarray(s, e).to_vec()).await)
+}
+
+/// The rigged avatar of a message ([`rigged_arrays`]), copied in slices on the page, or the
+/// name of a missing field.
+pub(super) async fn rigged_of(data: &JsValue) -> Result<RiggedArrays, &'static str> {
+    let f = |name: &'static str| async move { f32_array_sliced(data, name).await.ok_or(name) };
+    let u = |name: &'static str| async move { u32_array_sliced(data, name).await.ok_or(name) };
     Ok(RiggedArrays {
-        positions: f("rig_positions")?,
-        faces: u("rig_faces")?,
-        attributes: f("rig_attributes")?,
-        normals: f("rig_normals")?,
-        colors: f("rig_colors")?,
-        edge_a: u("rig_edge_a")?,
-        edge_b: u("rig_edge_b")?,
-        edge_t: f("rig_edge_t")?,
-        body_vertex: u("rig_body_vertex")?,
+        positions: f("rig_positions").await?,
+        faces: u("rig_faces").await?,
+        attributes: f("rig_attributes").await?,
+        normals: f("rig_normals").await?,
+        colors: f("rig_colors").await?,
+        edge_a: u("rig_edge_a").await?,
+        edge_b: u("rig_edge_b").await?,
+        edge_t: f("rig_edge_t").await?,
+        body_vertex: u("rig_body_vertex").await?,
     })
 }

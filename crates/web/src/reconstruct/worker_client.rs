@@ -26,8 +26,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, json_of, message_of, object, rigged_of, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
-    Message, ModelFiles, ProjectionMeta, ToWorker, WarmMeta, WorkerField,
+    f32_array, f32_array_sliced, json_of, message_of, object, rigged_of, u8_array_sliced, ColoursMeta, FromWorker,
+    GenerateMeta, JobMeta, Message, ModelFiles, ProjectionMeta, ToWorker, WarmMeta, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -124,7 +124,7 @@ pub async fn generate_in_worker(
     match call(ask, checkpoint, Vec::new()).await? {
         (FromWorker::Generated { millis, stages, .. }, data) => {
             let arrays =
-                rigged_of(&data).map_err(|missing| format!("the worker sent its avatar without `{missing}`"))?;
+                rigged_of(&data).await.map_err(|missing| format!("the worker sent its avatar without `{missing}`"))?;
             Ok((arrays, millis, stages))
         }
         _ => Err("the worker answered Generate with another message".into()),
@@ -156,7 +156,7 @@ pub async fn colours_in_worker(
     let ask = |id, checkpoint_kept| ToWorker::Colours(ColoursMeta { id, cfg: cfg.clone(), checkpoint_kept, field });
     match call(ask, checkpoint, arrays).await? {
         (FromWorker::Coloured { millis, .. }, data) => {
-            let rgb = f32_array(&data, "colors").ok_or("the worker sent no colours")?;
+            let rgb = f32_array_sliced(&data, "colors").await.ok_or("the worker sent no colours")?;
             if rgb.len() != 3 * points.len() || rgb.iter().any(|x| !x.is_finite()) {
                 return Err(format!("the worker sent {} colour values for {} points", rgb.len(), points.len()));
             }
@@ -552,27 +552,16 @@ fn on_message(data: JsValue) {
         }
         FromWorker::Finished { iou, psnr, figures_ms, file_ms, rig_ms, stopped_at, measuring, refit } => {
             let Some(r) = slot.take() else { return };
-            match (u8_array(&data, "bytes"), rigged_of(&data)) {
-                (Some(bytes), Ok(rigged)) => {
-                    let fit = (!measuring).then(|| (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN)));
-                    if measuring {
-                        let (task, repaint) = (r.task.clone(), r.repaint.clone());
-                        let m = Measuring { task, repaint, shown: false, figures: None };
-                        MEASURING.with(|s| *s.borrow_mut() = Some(m));
-                    }
-                    let result =
-                        WorkerResult { bytes, rigged, fit, stopped_at, refit, ms: (figures_ms, file_ms, rig_ms) };
-                    wasm_bindgen_futures::spawn_local(finish(r, result));
-                    release_when_idle();
-                }
-                (None, _) => {
-                    r.task.push(ReconstructEvent::Failed("the reconstruction worker sent no result".into()), &r.repaint)
-                }
-                (_, Err(missing)) => r.task.push(
-                    ReconstructEvent::Failed(format!("the reconstruction worker sent its avatar without `{missing}`")),
-                    &r.repaint,
-                ),
+            let fit = (!measuring).then(|| (iou.unwrap_or(f32::NAN), psnr.unwrap_or(f32::NAN)));
+            if measuring {
+                let (task, repaint) = (r.task.clone(), r.repaint.clone());
+                let m = Measuring { task, repaint, shown: false, figures: None };
+                MEASURING.with(|s| *s.borrow_mut() = Some(m));
             }
+            // The arrays are copied out of the message in `finish`, in slices.
+            let result = WorkerResult { data, fit, stopped_at, refit, ms: (figures_ms, file_ms, rig_ms) };
+            wasm_bindgen_futures::spawn_local(finish(r, result));
+            release_when_idle();
         }
         FromWorker::Failed { message } => {
             r.task.push(ReconstructEvent::Failed(format!("the reconstruction failed: {message}")), &r.repaint);
@@ -622,9 +611,8 @@ fn fall_back_to_page(why: String) {
 
 /// What the worker hands over at the end of a job.
 struct WorkerResult {
-    /// The result file and the avatar the worker rigged from it.
-    bytes: Vec<u8>,
-    rigged: RiggedArrays,
+    /// The message with the result file (`bytes`) and the avatar the worker rigged from it.
+    data: JsValue,
     /// Its figures (None: they follow).
     fit: Option<(f32, f32)>,
     stopped_at: Option<usize>,
@@ -636,9 +624,24 @@ struct WorkerResult {
 /// The worker's result on the page: opened as "Open reconstruction…" does, on the avatar the
 /// worker rigged, with its figures (None: they follow).
 async fn finish(r: Running, w: WorkerResult) {
-    let WorkerResult { bytes, rigged, fit, stopped_at, refit, ms: (figures_ms, file_ms, worker_rig_ms) } = w;
-    // Not in the task that copied the file out of the message.
+    let WorkerResult { data, fit, stopped_at, refit, ms: (figures_ms, file_ms, worker_rig_ms) } = w;
+    // Not in the task that received the message.
     crate::task::yield_to_browser().await;
+    let copied = async {
+        let bytes = u8_array_sliced(&data, "bytes").await.ok_or("the reconstruction worker sent no result")?;
+        let rigged = rigged_of(&data)
+            .await
+            .map_err(|missing| format!("the reconstruction worker sent its avatar without `{missing}`"))?;
+        Ok::<_, String>((bytes, rigged))
+    };
+    let (bytes, rigged) = match copied.await {
+        Ok(c) => c,
+        Err(e) => {
+            r.task.push(ReconstructEvent::Failed(e), &r.repaint);
+            return shown(&r.task, false);
+        }
+    };
+    drop(data);
     let t = now_ms();
     let event = match rig_saved(bytes, Some(rigged), "the reconstruction", &r.cfg, &r.ctx, &r.device).await {
         Ok(mut done) => {
