@@ -44,12 +44,31 @@ pub(super) enum ToWorker {
     Warm(WarmMeta),
 }
 
-/// A [`ToWorker::Warm`] call.
+/// A call to the worker (Generate, Colours, Warm): its id for the answer, the model's config,
+/// whether the worker holds the checkpoint already (else it comes as the array `checkpoint`),
+/// and what is asked.
 #[derive(Serialize, Deserialize)]
-pub(super) struct WarmMeta {
+pub(super) struct CallMeta<T> {
     pub(super) id: u64,
     pub(super) cfg: GeneratorConfig,
     pub(super) checkpoint_kept: bool,
+    pub(super) ask: T,
+}
+
+/// A [`ToWorker::Warm`] call: nothing asked but getting ready.
+pub(super) type WarmMeta = CallMeta<()>;
+
+/// A [`ToWorker::Colours`] call: whose texture field.
+pub(super) type ColoursMeta = CallMeta<WorkerField>;
+
+/// A [`ToWorker::Generate`] call: a new identity (or texture) as the page's Generate has it.
+pub(super) type GenerateMeta = CallMeta<Identity>;
+
+/// A generated identity: its seeds and ψ under the model's config.
+#[derive(Clone, Copy, Serialize, Deserialize)]
+pub(super) struct Identity {
+    pub(super) seeds: (u64, u64),
+    pub(super) psi: f32,
 }
 
 /// Whose texture field [`ToWorker::Colours`] asks for.
@@ -60,26 +79,6 @@ pub enum WorkerField {
     Seeds { seeds: (u64, u64), psi: f32 },
     /// A reconstruction's: its file (the array `result`), `key` naming it for the worker's cache.
     Result { key: u64 },
-}
-
-/// A [`ToWorker::Colours`] call.
-#[derive(Serialize, Deserialize)]
-pub(super) struct ColoursMeta {
-    pub(super) id: u64,
-    pub(super) cfg: GeneratorConfig,
-    pub(super) checkpoint_kept: bool,
-    pub(super) field: WorkerField,
-}
-
-/// A new identity (or texture) the page asks the worker for: the seeds and ψ as the page's
-/// Generate has them, under the model's config.
-#[derive(Serialize, Deserialize)]
-pub(super) struct GenerateMeta {
-    pub(super) id: u64,
-    pub(super) cfg: GeneratorConfig,
-    pub(super) checkpoint_kept: bool,
-    pub(super) seeds: (u64, u64),
-    pub(super) psi: f32,
 }
 
 /// An [`InversionJob`] without its arrays.

@@ -411,7 +411,7 @@ thread_local! {
 #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
 async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, String> {
     // The model (also kept for later calls when only a reconstruction's file is asked about).
-    let model = match meta.field {
+    let model = match meta.ask {
         WorkerField::Seeds { .. } => Some(model(&meta.cfg, meta.checkpoint_kept, data)?),
         WorkerField::Result { .. } => {
             let _ = file(data, "checkpoint", meta.checkpoint_kept);
@@ -419,7 +419,7 @@ async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, St
         }
     };
     let cached = FIELD.with(|f| f.borrow().clone()).filter(|c| {
-        c.field == meta.field
+        c.field == meta.ask
             && c.cfg == meta.cfg
             && match (&c.generator, &model) {
                 // Another model (a new file) draws other avatars from the same seeds.
@@ -431,7 +431,7 @@ async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, St
     if let Some(c) = cached {
         return Ok(c);
     }
-    let (generator, styles) = match (&meta.field, model) {
+    let (generator, styles) = match (&meta.ask, model) {
         (WorkerField::Seeds { seeds, psi }, Some(m)) => {
             let s = styles(&m.0, m.1.as_ref(), &meta.cfg, *seeds, *psi);
             (Field::Model(m), s)
@@ -446,7 +446,7 @@ async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, St
     };
     crate::task::yield_to_browser().await;
     let planes = generator.get().triplanes_async(&styles).await;
-    let c = Rc::new(CachedField { field: meta.field.clone(), cfg: meta.cfg.clone(), generator, styles, planes });
+    let c = Rc::new(CachedField { field: meta.ask.clone(), cfg: meta.cfg.clone(), generator, styles, planes });
     FIELD.with(|f| *f.borrow_mut() = Some(c.clone()));
     Ok(c)
 }
@@ -484,7 +484,7 @@ async fn generate(
     crate::task::yield_to_browser().await;
     profile::start(now_ms);
     profile::stage("mapping");
-    let styles = styles(&m.0, m.1.as_ref(), &meta.cfg, meta.seeds, meta.psi);
+    let styles = styles(&m.0, m.1.as_ref(), &meta.cfg, meta.ask.seeds, meta.ask.psi);
     profile::stage("synthesis");
     let planes = m.0.triplanes_async(&styles).await;
     let rigged = generate_rigged_from_planes_async(&m.0, &state.ctx, &styles, &planes, &dev).await;
@@ -494,7 +494,7 @@ async fn generate(
         return Err("the generator produced an empty surface".into());
     }
     // This avatar's texture field, for the bake or view that may follow.
-    let field = WorkerField::Seeds { seeds: meta.seeds, psi: meta.psi };
+    let field = WorkerField::Seeds { seeds: meta.ask.seeds, psi: meta.ask.psi };
     let c = CachedField { field, cfg: meta.cfg.clone(), generator: Field::Model(m), styles, planes };
     FIELD.with(|f| *f.borrow_mut() = Some(Rc::new(c)));
     Ok((rigged.to_arrays(), now_ms() - t0, stages))

@@ -26,8 +26,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, f32_array_sliced, json_of, message_of, object, rigged_of, u8_array_sliced, ColoursMeta, FromWorker,
-    GenerateMeta, JobMeta, Message, ModelFiles, ProjectionMeta, ToWorker, WarmMeta, WorkerField,
+    f32_array, f32_array_sliced, json_of, message_of, object, rigged_of, u8_array_sliced, CallMeta, FromWorker,
+    Identity, JobMeta, Message, ModelFiles, ProjectionMeta, ToWorker, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -119,8 +119,9 @@ pub async fn generate_in_worker(
     seeds: (u64, u64),
     psi: f32,
 ) -> WorkerGeneration {
-    let ask =
-        |id, checkpoint_kept| ToWorker::Generate(GenerateMeta { id, cfg: cfg.clone(), checkpoint_kept, seeds, psi });
+    let ask = |id, checkpoint_kept| {
+        ToWorker::Generate(CallMeta { id, cfg: cfg.clone(), checkpoint_kept, ask: Identity { seeds, psi } })
+    };
     match call(ask, checkpoint, Vec::new()).await? {
         (FromWorker::Generated { millis, stages, .. }, data) => {
             let arrays =
@@ -153,7 +154,7 @@ pub async fn colours_in_worker(
         (WorkerField::Seeds { .. }, _) => {}
     }
     let field = field.clone();
-    let ask = |id, checkpoint_kept| ToWorker::Colours(ColoursMeta { id, cfg: cfg.clone(), checkpoint_kept, field });
+    let ask = |id, checkpoint_kept| ToWorker::Colours(CallMeta { id, cfg: cfg.clone(), checkpoint_kept, ask: field });
     match call(ask, checkpoint, arrays).await? {
         (FromWorker::Coloured { millis, .. }, data) => {
             let rgb = f32_array_sliced(&data, "colors").await.ok_or("the worker sent no colours")?;
@@ -169,7 +170,7 @@ pub async fn colours_in_worker(
 /// Start the worker and have it get ready for Generate (the body's context, the model, the
 /// canonical posed grid) while the page is idle: its milliseconds, or why not.
 pub async fn warm_worker(cfg: &GeneratorConfig, checkpoint: &Rc<Vec<u8>>) -> Result<f64, String> {
-    let ask = |id, checkpoint_kept| ToWorker::Warm(WarmMeta { id, cfg: cfg.clone(), checkpoint_kept });
+    let ask = |id, checkpoint_kept| ToWorker::Warm(CallMeta { id, cfg: cfg.clone(), checkpoint_kept, ask: () });
     match call(ask, checkpoint, Vec::new()).await? {
         (FromWorker::Warmed { millis, .. }, _) => Ok(millis),
         _ => Err("the worker answered Warm with another message".into()),
