@@ -312,6 +312,31 @@ async fn copy_in_slices<T: Copy>(len: u32, per: u32, chunk: impl Fn(u32, u32) ->
     out
 }
 
+/// `v` copied out of wasm memory into a new `Uint8Array` in slices, with a checkpoint after
+/// each (the page's side of a large array it sends: the checkpoint, a result file).
+pub(super) async fn js_u8_sliced(v: &[u8]) -> js_sys::Uint8Array {
+    let a = js_sys::Uint8Array::new_with_length(v.len() as u32);
+    let per = 2 * COPY_SLICE_BYTES as usize;
+    for (k, c) in v.chunks(per).enumerate() {
+        let s = (k * per) as u32;
+        a.subarray(s, s + c.len() as u32).copy_from(c);
+        getavatar_core::util::cooperative::checkpoint().await;
+    }
+    a
+}
+
+/// [`js_u8_sliced`] for floats (a bake's points).
+pub(super) async fn js_f32_sliced(v: &[f32]) -> js_sys::Float32Array {
+    let a = js_sys::Float32Array::new_with_length(v.len() as u32);
+    let per = COPY_SLICE_BYTES as usize / 4;
+    for (k, c) in v.chunks(per).enumerate() {
+        let s = (k * per) as u32;
+        a.subarray(s, s + c.len() as u32).copy_from(c);
+        getavatar_core::util::cooperative::checkpoint().await;
+    }
+    a
+}
+
 /// [`u8_array`] in slices (the page's copy of a result file).
 pub(super) async fn u8_array_sliced(data: &JsValue, name: &str) -> Option<Vec<u8>> {
     let a = field(data, name)?.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v));

@@ -26,8 +26,8 @@ use super::job::{
     ReconstructTask,
 };
 use super::protocol::{
-    f32_array, f32_array_sliced, json_of, message_of, object, rigged_of, u8_array_sliced, CallMeta, FromWorker,
-    Identity, JobMeta, Message, ModelFiles, ProjectionMeta, ToWorker, WorkerField,
+    f32_array, f32_array_sliced, js_f32_sliced, js_u8_sliced, json_of, message_of, object, rigged_of, u8_array_sliced,
+    CallMeta, FromWorker, Identity, JobMeta, Message, ModelFiles, ProjectionMeta, ToWorker, WorkerField,
 };
 use crate::platform::{js_message, now_ms};
 
@@ -144,11 +144,11 @@ pub async fn colours_in_worker(
     points: &[glam::Vec3],
 ) -> Result<(Vec<glam::Vec3>, f64), String> {
     let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
-    let mut arrays = vec![("points", JsValue::from(js_sys::Float32Array::from(&flat[..])))];
+    let mut arrays = vec![("points", JsValue::from(js_f32_sliced(&flat).await))];
     drop(flat);
     match (field, result) {
         (WorkerField::Result { .. }, Some(bytes)) => {
-            arrays.push(("result", js_sys::Uint8Array::from(&bytes[..]).into()));
+            arrays.push(("result", js_u8_sliced(bytes).await.into()));
         }
         (WorkerField::Result { .. }, None) => return Err("the reconstruction's file is not on the page".into()),
         (WorkerField::Seeds { .. }, _) => {}
@@ -188,6 +188,15 @@ async fn call(
         return Err(why);
     }
     let client = client()?;
+    // The checkpoint's copy is sliced, so the worker may have ended or taken a
+    // reconstruction meanwhile: both are checked after it.
+    let checkpoint_kept = holds(&client.sent.borrow().checkpoint, checkpoint);
+    if !checkpoint_kept {
+        arrays.push(("checkpoint", js_u8_sliced(checkpoint).await.into()));
+    }
+    if !CLIENT.with(|c| c.borrow().as_ref().is_some_and(|now| Rc::ptr_eq(now, &client))) {
+        return Err("the worker stopped".into());
+    }
     if client.running.borrow().is_some() {
         return Err("the worker is reconstructing".into());
     }
@@ -195,11 +204,7 @@ async fn call(
         j.set(j.get() + 1);
         j.get()
     });
-    let checkpoint_kept = holds(&client.sent.borrow().checkpoint, checkpoint);
     let json = serde_json::to_string(&ask(id, checkpoint_kept)).map_err(|e| e.to_string())?;
-    if !checkpoint_kept {
-        arrays.push(("checkpoint", js_sys::Uint8Array::from(&checkpoint[..]).into()));
-    }
     let m = object(&json, &arrays);
     client.worker.post_message(&m.data, &m.transfer).map_err(|e| js_message(&e))?;
     client.sent.borrow_mut().checkpoint = Some(checkpoint.clone());
