@@ -296,16 +296,17 @@ pub(super) fn rigged_arrays(a: &RiggedArrays) -> Vec<(&'static str, JsValue)> {
 /// the UI thread 40–100 ms on SwiftShader.
 const COPY_SLICE_BYTES: u32 = 1 << 20;
 
-/// `len` elements copied by `chunk(start, end)` in slices of `per` elements, with a
+/// `len` elements copied by `copy(start, end, into)` in slices of `per` elements, with a
 /// checkpoint ([`getavatar_core::util::cooperative`]) after each: the page's time slicing
-/// gives the thread back between them. The result is reserved, not zeroed: a zeroed 11.5 MB
-/// vector alone held the UI thread 20–30 ms in a job's first result.
-async fn copy_in_slices<T: Copy>(len: u32, per: u32, chunk: impl Fn(u32, u32) -> Vec<T>) -> Vec<T> {
+/// gives the thread back between them. The result is reserved at once and zeroed a slice at
+/// a time: a zeroed 11.5 MB vector alone held the UI thread 20–30 ms in a job's first result.
+async fn copy_in_slices<T: Copy + Default>(len: u32, per: u32, copy: impl Fn(u32, u32, &mut [T])) -> Vec<T> {
     let mut out = Vec::with_capacity(len as usize);
     let mut start = 0;
     while start < len {
         let end = start.saturating_add(per.max(1)).min(len);
-        out.extend_from_slice(&chunk(start, end));
+        out.resize(end as usize, T::default());
+        copy(start, end, &mut out[start as usize..]);
         start = end;
         getavatar_core::util::cooperative::checkpoint().await;
     }
@@ -340,18 +341,18 @@ pub(super) async fn js_f32_sliced(v: &[f32]) -> js_sys::Float32Array {
 /// [`u8_array`] in slices (the page's copy of a result file).
 pub(super) async fn u8_array_sliced(data: &JsValue, name: &str) -> Option<Vec<u8>> {
     let a = field(data, name)?.dyn_into::<js_sys::Uint8Array>().unwrap_or_else(|v| js_sys::Uint8Array::new(&v));
-    Some(copy_in_slices(a.length(), 2 * COPY_SLICE_BYTES, |s, e| a.subarray(s, e).to_vec()).await)
+    Some(copy_in_slices(a.length(), 2 * COPY_SLICE_BYTES, |s, e, into| a.subarray(s, e).copy_to(into)).await)
 }
 
 /// [`f32_array`] in slices (the page's copy of a bake's colours).
 pub(super) async fn f32_array_sliced(data: &JsValue, name: &str) -> Option<Vec<f32>> {
     let a = field(data, name)?.dyn_into::<js_sys::Float32Array>().unwrap_or_else(|v| js_sys::Float32Array::new(&v));
-    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e| a.subarray(s, e).to_vec()).await)
+    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e, into| a.subarray(s, e).copy_to(into)).await)
 }
 
 async fn u32_array_sliced(data: &JsValue, name: &str) -> Option<Vec<u32>> {
     let a = field(data, name)?.dyn_into::<js_sys::Uint32Array>().unwrap_or_else(|v| js_sys::Uint32Array::new(&v));
-    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e| a.subarray(s, e).to_vec()).await)
+    Some(copy_in_slices(a.length(), COPY_SLICE_BYTES / 4, |s, e, into| a.subarray(s, e).copy_to(into)).await)
 }
 
 /// The rigged avatar of a message ([`rigged_arrays`]), copied in slices on the page, or the
