@@ -481,10 +481,23 @@ fn own_charts(vertices: &[Vec3], faces: &[[u32; 3]], far: &[usize], atlas: &mut 
 /// triangle; the first triangle claims a texel), and each one's point interpolated from
 /// `attribute` (one value per atlas vertex, e.g. canonical coordinates).
 pub fn texel_points(atlas: &UvAtlas, attribute: &[Vec3], res: usize) -> (Vec<u32>, Vec<Vec3>) {
+    crate::util::cooperative::run_blocking(texel_points_async(atlas, attribute, res))
+}
+
+/// Triangles of [`texel_points_async`] between two checkpoints (a 1024² atlas's whole pass was
+/// a 30–60 ms task in the browser).
+pub const TEXEL_SLICE: usize = 512;
+
+/// [`texel_points`] with a [`crate::util::cooperative::checkpoint`] every [`TEXEL_SLICE`]
+/// triangles: the same texels and points.
+pub async fn texel_points_async(atlas: &UvAtlas, attribute: &[Vec3], res: usize) -> (Vec<u32>, Vec<Vec3>) {
     let mut owner = vec![false; res * res];
     let (mut texels, mut points) = (Vec::new(), Vec::new());
     let r = res as f32;
-    for tri in &atlas.faces {
+    for (i, tri) in atlas.faces.iter().enumerate() {
+        if i % TEXEL_SLICE == TEXEL_SLICE - 1 {
+            crate::util::cooperative::checkpoint().await;
+        }
         let [a, b, c] = tri.map(|v| atlas.uvs[v as usize] * r);
         let [pa, pb, pc] = tri.map(|v| attribute[v as usize]);
         let area = (b - a).perp_dot(c - a);
@@ -609,6 +622,15 @@ mod tests {
         assert!(sliced.uvs.iter().zip(&reference.uvs).all(|(a, b)| a.to_array() == b.to_array()));
         let queries = avatar.len() / TRANSFER_SLICE + model.faces.len() / TRANSFER_SLICE;
         assert!(pauses >= queries, "{pauses} pauses for {queries} slices");
+
+        // The texels' points: the same texels and points, a pause per slice of triangles.
+        let attr: Vec<Vec3> = reference.source.iter().map(|v| avatar[*v as usize]).collect();
+        let plain = texel_points(&reference, &attr, 128);
+        let ((texels, points), pauses) = drive(texel_points_async(&reference, &attr, 128));
+        assert!(!texels.is_empty());
+        assert_eq!(texels, plain.0);
+        assert!(points.iter().zip(&plain.1).all(|(a, b)| a.to_array() == b.to_array()));
+        assert_eq!(pauses, reference.faces.len() / TEXEL_SLICE, "a pause per {TEXEL_SLICE} triangles");
 
         // Bake: a 64² image with one lit texel dilates ring by ring, one pause per ring.
         let colors = [Vec3::new(1.0, 0.5, 0.25)];

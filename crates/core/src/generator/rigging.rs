@@ -12,7 +12,9 @@ use crate::body::motion::Motion;
 use crate::body::skinning::{pose_body, BodyParams, PosedBody};
 use crate::export::gltf_export::{write_glb_full, ExportError, ExportMesh};
 use crate::export::skin_export::{motion_clip, smpl_skin, vrm_frame, vrm_rest_skin};
-use crate::export::uv_atlas::{bake_image_async, texel_points, transfer_body_uvs_async, AtlasError, BodyUvs, UvAtlas};
+use crate::export::uv_atlas::{
+    bake_image_async, texel_points_async, transfer_body_uvs_async, AtlasError, BodyUvs, UvAtlas,
+};
 use crate::export::vrm_export::{write_vrm, VrmMeta};
 use crate::generator::network::synthesis::Triplanes;
 use crate::generator::pipeline::{recolor_async, Avatar, Generator, Styles};
@@ -399,7 +401,7 @@ impl RiggedAvatar {
         }
         let atlas = self.atlas_async(ctx).await?;
         let canon: Vec<glam::Vec3> = atlas.source.iter().map(|v| self.canonical.mesh.attributes[*v as usize]).collect();
-        let (texels, points) = texel_points(&atlas, &canon, res);
+        let (texels, points) = texel_points_async(&atlas, &canon, res).await;
         checkpoint().await;
         Ok(BakePlan { atlas, res, texels, points })
     }
@@ -421,11 +423,11 @@ impl RiggedAvatar {
             let (pos, nrm) = self.repose(ctx, &pose_body(&ctx.model, params));
             let per_atlas =
                 |v: &[glam::Vec3]| -> Vec<glam::Vec3> { atlas.source.iter().map(|i| v[*i as usize]).collect() };
-            let (_, posed) = texel_points(&atlas, &per_atlas(&pos), res);
-            let (_, normals) = texel_points(&atlas, &per_atlas(&nrm), res);
+            let (_, posed) = texel_points_async(&atlas, &per_atlas(&pos), res).await;
+            let (_, normals) = texel_points_async(&atlas, &per_atlas(&nrm), res).await;
             let normals: Vec<glam::Vec3> = normals.iter().map(|n| n.normalize_or_zero()).collect();
             checkpoint().await;
-            projection.blend(&points, &posed, &normals, &mut colors);
+            projection.blend_async(&points, &posed, &normals, &mut colors).await;
             checkpoint().await;
         }
         let rgb = bake_image_async(res, &texels, &colors).await;
