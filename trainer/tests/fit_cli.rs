@@ -190,13 +190,14 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
 /// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
 /// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
-/// 90 mm; measured: mean 54.8 mm, worst 108.9 mm, two cases over 90 mm. Those are depth
-/// the image cannot tell: kneeling from behind (108.9 mm: MediaPipe reads the shin on the
-/// ground far from where it is, and the legs' foreshortening check takes only part of it
-/// back) and the side reach seen from its side (99.6 mm: the spine bends sideways, which is
-/// depth from there, and MediaPipe reads it flat). The side reach from behind is held under
-/// 90 mm (74.0) by the legs' twist ranges (102.6 without). So this guards the mean goal, the
-/// measured worst (≤ 115 mm) and that case until the fit closes the gap. A single hard case
+/// 90 mm; measured: mean 53.7 mm, worst 99.6 mm, one case over 90 mm: the side reach seen
+/// from its side (the spine bends sideways, which is depth from there, and MediaPipe reads it
+/// flat). Kneeling from behind (MediaPipe reads the forward thigh as hanging down and its shin
+/// as pointing at the camera) is held under 90 mm (75.5) by the misread thigh's handling
+/// (`leg_readings`: the leg starts at rest, the shin inherits the doubt, the lifted directions;
+/// 109.4 without), the side reach from behind (74.0) by the legs' twist ranges (102.6
+/// without). So this guards the mean goal, the measured worst (≤ 115 mm) and those two cases
+/// until the fit closes the gap. A single hard case
 /// moves by up to ~13 mm when only the order of floating-point additions changes
 /// (docs/benchmarks.md, "How far one case moves on its own"); the means move by tenths of a
 /// millimetre. `FIT_ONLY=stem,stem` fits only those cases (with `FIT_DEBUG=1`, to look at one).
@@ -205,7 +206,7 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     let (dir, fixtures, model) = fixture_photos("fit-wide", "");
     let mut report = Vec::new();
     let mut errors = Vec::new();
-    let mut side_reach_behind = None;
+    let mut held = Vec::new();
     for (name, truth) in wide_poses() {
         for k in 0..WIDE_YAWS.len() {
             let stem = format!("{name}_view{k}");
@@ -216,8 +217,8 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
             // Every reading's landmarks are on the person here (`misread/` has one that is not).
             assert!(fit.off_person.is_empty(), "{stem}: {:?} off the person", fit.off_person);
             errors.push(err);
-            if stem == "side_reach_view3" {
-                side_reach_behind = Some(err);
+            if stem == "side_reach_view3" || stem == "kneel_view3" {
+                held.push((stem.clone(), err));
             }
             report.push(format!(
                 "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
@@ -238,8 +239,8 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     if std::env::var("FIT_ONLY").is_err() {
         assert!(mean <= 0.060 && worst <= 0.115, "mean {mean}, worst {worst}\n{}", report.join("\n"));
     }
-    if let Some(err) = side_reach_behind {
-        assert!(err <= 0.090, "the side reach from behind: {:.1} mm", err * 1000.0);
+    for (stem, err) in held {
+        assert!(err <= 0.090, "{stem}: {:.1} mm", err * 1000.0);
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -10,7 +10,9 @@
 //!    L2 on the collars ([`super::limits`]), L2 priors on θ and β (no SMPL GMM is redistributable), the world
 //!    landmarks' bone directions (3D limb directions, weakly: they decide what a single image
 //!    cannot, e.g. which arm is in front; a leg bone whose 3D direction disagrees with how
-//!    foreshortened its 2D landmarks show it loses that weight) and, where an elbow or knee
+//!    foreshortened its 2D landmarks show it loses that weight, the bones below it with it,
+//!    and is lifted from its 2D landmarks instead, [`super::input::leg_readings`]; a leg whose
+//!    thigh is so misread starts at rest) and, where an elbow or knee
 //!    is hidden, its limb's
 //!    chord (shoulder → wrist, hip → ankle: a hand across the chest or before its own
 //!    shoulder, which a side view cannot tell), and a symmetry prior for hidden limbs (a
@@ -41,9 +43,9 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 use glam::{Mat4, Vec3, Vec4};
 
+use super::bones::{bone_rows, misread_legs_at_rest, BONES};
 pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
-use super::input::leg_foreshortening_agreement;
 pub use super::input::{FitInput, HAND_SWAP};
 use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LANDMARKS, VISIBLE};
 use super::limits::{range_term, COLLARS, HINGES};
@@ -169,26 +171,6 @@ pub struct FitState {
     pub camera: Vec3,
 }
 
-/// Limb bones of the 3D direction term: (parent joint, child joint, landmarks). Ordered so
-/// that bone `i ^ 2` is bone `i`'s left/right counterpart (the symmetry term's pairing).
-const BONES: [(usize, usize, usize, usize); 8] = [
-    (16, 18, 11, 13),
-    (18, 20, 13, 15),
-    (17, 19, 12, 14),
-    (19, 21, 14, 16),
-    (1, 4, 23, 25),
-    (4, 7, 25, 27),
-    (2, 5, 24, 26),
-    (5, 8, 26, 28),
-];
-
-/// Limb chords of the 3D direction term: (root joint, end joint, landmarks of root, middle
-/// and end). When the middle (elbow, knee) is hidden, its bones' directions are the
-/// detector's guesses, while the chord from a seen shoulder to a seen wrist still says where
-/// the hand is: across the chest or before its own shoulder, which a side view cannot tell.
-const CHORDS: [(usize, usize, usize, usize, usize); 4] =
-    [(16, 20, 11, 13, 15), (17, 21, 12, 14, 16), (1, 7, 23, 25, 27), (2, 8, 24, 26, 28)];
-
 /// The symmetry term's rows (joint, counterpart joint, weight): the parent joint of a bone
 /// whose far-end landmark the detector did not see (visibility below [`VISIBLE`]) while it
 /// saw its counterpart's ([`BONES`]`[i ^ 2]`), weighted by how hidden and how seen.
@@ -256,35 +238,26 @@ impl BodyFitter {
             None => pose_from_image(input.points[11].0, input.points[12].0, &betas0),
         };
         let cam = initial_camera(&model, &input, &init);
-
-        let bones = input.world.as_ref().and_then(|world| {
-            let vis = |l: usize| input.points[l].1;
-            // Every bone, weighted by its ends' visibility; and each limb's chord, weighted by
-            // how seen its ends are and how hidden its middle is.
-            let posed = posed_joints(&model, &init);
-            let fore =
-                |b: &(usize, usize, usize, usize)| leg_foreshortening_agreement(&posed, cam, &input.points, world, *b);
-            let rows: Vec<((usize, usize, usize, usize), f32)> = BONES
-                .iter()
-                .map(|b| (*b, vis(b.2).min(vis(b.3)) * fore(b)))
-                .chain(CHORDS.iter().map(|c| ((c.0, c.1, c.2, c.4), vis(c.2).min(vis(c.4)) * (1.0 - vis(c.3)))))
-                .filter(|r| r.1 > 0.0)
-                .collect();
-            if rows.is_empty() {
-                return None;
+        let (init, cam) = match misread_legs_at_rest(&model, &input, &init, cam) {
+            Some(rest) => {
+                let cam = initial_camera(&model, &input, &rest);
+                (rest, cam)
             }
-            let dirs: Vec<f32> =
-                rows.iter().flat_map(|(b, _)| (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO).to_array()).collect();
-            let w: Vec<f32> = rows.iter().map(|r| r.1).collect();
-            let rows: Vec<_> = rows.iter().map(|r| r.0).collect();
+            None => (init, cam),
+        };
+
+        let bones = {
+            let rows = bone_rows(&posed_joints(&model, &init), cam, &input, options.weights.bones_lifted);
             let n = rows.len();
-            Some((
-                rows.iter().map(|b| b.0).collect(),
-                rows.iter().map(|b| b.1).collect(),
-                matrix(dirs, n, 3, device),
-                matrix(w, n, 1, device),
-            ))
-        });
+            (n > 0).then(|| {
+                (
+                    rows.iter().map(|r| r.bone.0).collect(),
+                    rows.iter().map(|r| r.bone.1).collect(),
+                    matrix(rows.iter().flat_map(|r| r.direction.to_array()).collect(), n, 3, device),
+                    matrix(rows.iter().map(|r| r.weight).collect(), n, 1, device),
+                )
+            })
+        };
 
         let rows = mirror_rows(|l| input.points[l].1);
         let symmetry = (!rows.is_empty()).then(|| {

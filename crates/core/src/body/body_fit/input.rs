@@ -166,20 +166,22 @@ pub const LEG_FORESHORTENING: (f32, f32) = (0.2, 0.4);
 /// much the bone lies in the image plane: 1 while the two in-plane fractions are within
 /// [`LEG_FORESHORTENING`]`.0` of each other, falling to 0 at `.1`. The 2D fraction is the
 /// bone's length between its landmarks against the body's bone (β = 0, `posed`) at the initial
-/// camera's depth (`cam`). Where they part, the detector has misread the bone's depth (a shin
+/// camera's depth (`cam`), `farther` metres deeper (a shin below a thigh lifted away from the
+/// camera is seen smaller). Where they part, the detector has misread the bone's depth (a shin
 /// on the ground seen from behind, a raised thigh seen from the front), and the 2D landmarks
-/// with the bone's length place it. Arms keep their weight: crossed forearms are short in 2D
-/// where MediaPipe's direction is right.
-pub(super) fn leg_foreshortening_agreement(
+/// with the bone's length place it ([`leg_readings`]). Arms keep their weight: crossed
+/// forearms are short in 2D where MediaPipe's direction is right.
+fn leg_foreshortening_agreement(
     posed: &[Vec3; NUM_JOINTS],
     cam: Vec3,
     points: &[([f32; 2], f32)],
     world: &[Vec3],
     b: (usize, usize, usize, usize),
+    farther: f32,
 ) -> f32 {
     const LEG_JOINTS: [usize; 4] = [1, 2, 4, 5];
     let len = (posed[b.1] - posed[b.0]).length();
-    let depth = -(0.5 * (posed[b.0] + posed[b.1]) + cam).z;
+    let depth = -(0.5 * (posed[b.0] + posed[b.1]) + cam).z + farther;
     if !LEG_JOINTS.contains(&b.0) || depth <= 0.0 || len <= 0.0 {
         return 1.0;
     }
@@ -191,6 +193,78 @@ pub(super) fn leg_foreshortening_agreement(
     let (agree, apart) = LEG_FORESHORTENING;
     let gap = (in_2d.min(1.0) - in_3d).abs();
     (1.0 - (gap - agree) / (apart - agree)).clamp(0.0, 1.0)
+}
+
+/// The depth component of MediaPipe's unit direction from which its sign is trusted fully; a
+/// bone the detector reads nearly in the image plane says little about which way it leaves it.
+pub const LIFT_SIGN_SURE: f32 = 0.25;
+
+/// A thigh whose [`leg_foreshortening_agreement`] is below this has had its depth misread:
+/// its leg's world landmarks do not place the initial pose, and the bones below it inherit
+/// the doubt ([`leg_readings`]).
+pub const MISREAD: f32 = 0.5;
+
+/// One bone's reading for the 3D direction term: how far MediaPipe's own direction is kept
+/// (`agreement`: its own [`leg_foreshortening_agreement`] times the bone's above it) and,
+/// where it is not, the direction lifted from the 2D landmarks with its weight.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct BoneReading {
+    pub agreement: f32,
+    pub lifted: Option<(Vec3, f32)>,
+}
+
+/// The bones' readings for the 3D direction term, for `bones` in order from the hips and
+/// shoulders down (a thigh before its shin).
+///
+/// A bone below one whose depth the detector misread starts at a misplaced joint, so its
+/// direction inherits that doubt (its agreement is multiplied by the one above). Leg bones
+/// are lifted from their 2D landmarks (Taylor 2000, under perspective): a bone's upper end
+/// lies on its landmark's ray at the initial body's depth (`posed` at β = 0 through the
+/// initial camera `cam`) or where the bone above it was lifted to; its lower end where its
+/// landmark's ray lies one body bone length from there, on the nearer or farther of the two
+/// such points as MediaPipe's 3D direction says (the whole length in the image plane where the
+/// landmarks lie farther apart than that). A bone is lifted where the detector's own direction
+/// disagrees with its foreshortening, weighted by that disagreement times how sure the
+/// detector's sign of depth is ([`LIFT_SIGN_SURE`]); a lifted thigh moves its shin's depth, and
+/// so the foreshortening its shin is judged by. Arms keep the detector's directions.
+pub(super) fn leg_readings(
+    posed: &[Vec3; NUM_JOINTS],
+    cam: Vec3,
+    points: &[([f32; 2], f32)],
+    world: &[Vec3],
+    bones: &[(usize, usize, usize, usize)],
+) -> Vec<BoneReading> {
+    let f = 1.0 / (reference_fov_y() / 2.0).tan();
+    let ray = |p: [f32; 2]| Vec3::new(p[0] / f, p[1] / f, -1.0);
+    let mut ends: [Option<Vec3>; NUM_JOINTS] = [None; NUM_JOINTS];
+    let mut kept = [1.0f32; NUM_JOINTS];
+    bones
+        .iter()
+        .map(|&b| {
+            let init_depth = -(posed[b.0] + cam).z;
+            let upper = ends[b.0].unwrap_or(ray(points[b.2].0) * init_depth);
+            let own = leg_foreshortening_agreement(posed, cam, points, world, b, -upper.z - init_depth);
+            let agreement = own * kept[b.0];
+            kept[b.1] = agreement;
+            let len = (posed[b.1] - posed[b.0]).length();
+            let detected = (world[b.3] - world[b.2]).normalize_or(Vec3::ZERO);
+            let weight = (1.0 - own) * (detected.z.abs() / LIFT_SIGN_SURE).min(1.0);
+            if weight <= 0.0 || upper.z >= 0.0 || len <= 0.0 {
+                return BoneReading { agreement, lifted: None };
+            }
+            let r = ray(points[b.3].0).normalize();
+            // |t r − upper| = len: t = r·upper ± √((r·upper)² − |upper|² + len²); farther is larger t.
+            let along = r.dot(upper);
+            let half = (along * along - upper.length_squared() + len * len).max(0.0).sqrt();
+            let t = if detected.z < 0.0 { along + half } else { along - half };
+            let d = (r * t - upper).normalize_or(Vec3::ZERO);
+            if d == Vec3::ZERO {
+                return BoneReading { agreement, lifted: None };
+            }
+            ends[b.1] = Some(upper + d * len);
+            BoneReading { agreement, lifted: Some((d, weight)) }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -256,7 +330,7 @@ mod tests {
             let mut world = vec![Vec3::ZERO; NUM_LANDMARKS];
             let a = toward_camera_deg.to_radians();
             world[25] = Vec3::new(0.0, -a.cos(), a.sin());
-            leg_foreshortening_agreement(&posed, cam, &points, &world, thigh)
+            leg_foreshortening_agreement(&posed, cam, &points, &world, thigh, 0.0)
         };
         // In the image plane, as the 2D length says; 30° towards the camera (in-plane 0.87);
         // 46° (0.7: halfway); 60° (0.5: beyond).
@@ -267,6 +341,47 @@ mod tests {
         // Arms keep their weight whatever the disagreement.
         let mut world = vec![Vec3::ZERO; NUM_LANDMARKS];
         world[13] = Vec3::Z;
-        assert_eq!(leg_foreshortening_agreement(&posed, cam, &points, &world, (16, 18, 11, 13)), 1.0);
+        assert_eq!(leg_foreshortening_agreement(&posed, cam, &points, &world, (16, 18, 11, 13), 0.0), 1.0);
+    }
+
+    #[test]
+    fn a_foreshortened_leg_bone_is_lifted_from_its_landmarks_on_the_detected_side() {
+        let model = BodyModel::default_body().unwrap();
+        let posed = posed_joints(&model, &BodyParams::default());
+        let cam = Vec3::new(0.0, -0.3, -3.0);
+        let f = 1.0 / (reference_fov_y() / 2.0).tan();
+        let project = |p: Vec3| {
+            let c = p + cam;
+            [f * c.x / -c.z, f * c.y / -c.z]
+        };
+        // The left thigh turned 65° away from the camera about the hip (a leg stepping forward
+        // seen from behind): its 2D landmarks show 42 % of its length.
+        let thigh = (1, 4, 23, 25);
+        let len = (posed[4] - posed[1]).length();
+        let a = 65f32.to_radians();
+        let truth = Vec3::new(0.0, -a.cos(), -a.sin());
+        let mut points = vec![([0.0f32; 2], 1.0f32); NUM_LANDMARKS];
+        points[23].0 = project(posed[1]);
+        points[25].0 = project(posed[1] + truth * len);
+        let lift = |detected: Vec3| {
+            let mut world = vec![Vec3::ZERO; NUM_LANDMARKS];
+            world[25] = detected;
+            leg_readings(&posed, cam, &points, &world, &[thigh])[0].lifted
+        };
+        // The detector reads it 25° away (in-plane 0.91): lifted to the truth, fully weighted.
+        let (d, w) = lift(Vec3::new(0.0, -25f32.to_radians().cos(), -25f32.to_radians().sin())).unwrap();
+        assert!((d - truth).length() < 0.06 && (d.length() - 1.0).abs() < 1e-4, "{d} against {truth}");
+        assert!(w > 0.9, "{w}");
+        // Read 25° towards the camera: the knee on the same ray, nearer the camera, as the
+        // detector's sign says (under perspective not the mirror image: the ray converges).
+        let (d, _) = lift(Vec3::new(0.0, -25f32.to_radians().cos(), 25f32.to_radians().sin())).unwrap();
+        let knee = posed[1] + cam + d * len;
+        let seen = Vec3::from((points[25].0[0] / f, points[25].0[1] / f, -1.0)).normalize();
+        assert!(d.z > 0.8 && knee.normalize().dot(seen) > 0.9999, "{d}");
+        // Read 5° away: the sign is in doubt and the weight small.
+        let (_, w) = lift(Vec3::new(0.0, -5f32.to_radians().cos(), -5f32.to_radians().sin())).unwrap();
+        assert!(w < 0.4, "{w}");
+        // Read as foreshortened as it is: the detector's direction keeps its weight, no lift.
+        assert!(lift(truth).is_none());
     }
 }

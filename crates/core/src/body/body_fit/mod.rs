@@ -1,6 +1,7 @@
 //! Photo → body: the SMPL pose, shape and camera that explain a
 //! person's detected landmarks and mask, for the latent inversion that follows.
 //!
+//! - `bones`: the fit's 3D bone-direction term from the detector's world landmarks.
 //! - [`landmarks`]: MediaPipe Pose's 33 landmarks, their SMPL joints and the detector's
 //!   result object (validated).
 //! - [`limits`]: knees and elbows bend one way (SMPLify's angle prior, directions checked on
@@ -14,6 +15,8 @@
 //! - [`turn`]: a photo turned by quarter turns so that its person is upright, and the map
 //!   back to the photo as taken.
 
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+mod bones;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod error;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]

@@ -28,6 +28,9 @@ pub struct FitWeights {
     pub bones: f32,
     /// How the bone term reads the detector's directions.
     pub bones_form: BoneForm,
+    /// Factor on `bones` for the leg bones lifted from their 2D landmarks where the detector
+    /// misread their depth (`body_fit::input::leg_readings`).
+    pub bones_lifted: f32,
     /// Squared difference (radians²) of a hidden limb's joint rotations to the mirror image
     /// of its seen counterpart's, scaled by how hidden the one and how seen the other is.
     pub symmetry: f32,
@@ -50,6 +53,7 @@ impl Default for FitWeights {
             betas: 0.5,
             bones: 10.0,
             bones_form: BoneForm::Direction,
+            bones_lifted: 3.0,
             symmetry: 20.0,
             silhouette: 0.2,
             silhouette_uncovered: 0.45,
