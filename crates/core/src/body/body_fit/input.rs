@@ -311,16 +311,24 @@ mod tests {
         assert_eq!(input.points[16].1, 0.1);
     }
 
-    #[test]
-    fn a_leg_bone_whose_depth_disagrees_with_its_foreshortening_loses_its_3d_weight() {
+    /// The body at rest (β = 0) 3 m before the reference camera, its joints, the camera's
+    /// translation and the projection's focal factor.
+    fn rest_body_in_view() -> ([Vec3; NUM_JOINTS], Vec3, f32) {
         let model = BodyModel::default_body().unwrap();
         let posed = posed_joints(&model, &BodyParams::default());
-        let cam = Vec3::new(0.0, -0.3, -3.0);
-        let f = 1.0 / (reference_fov_y() / 2.0).tan();
-        let project = |p: Vec3| {
-            let c = p + cam;
-            [f * c.x / -c.z, f * c.y / -c.z]
-        };
+        (posed, Vec3::new(0.0, -0.3, -3.0), 1.0 / (reference_fov_y() / 2.0).tan())
+    }
+
+    /// A point of the body's frame in NDC through the camera translation `cam`.
+    fn project(p: Vec3, cam: Vec3, f: f32) -> [f32; 2] {
+        let c = p + cam;
+        [f * c.x / -c.z, f * c.y / -c.z]
+    }
+
+    #[test]
+    fn a_leg_bone_whose_depth_disagrees_with_its_foreshortening_loses_its_3d_weight() {
+        let (posed, cam, f) = rest_body_in_view();
+        let project = |p: Vec3| project(p, cam, f);
         // The left thigh (hip 1 → knee 4; landmarks 23 → 25) seen at its whole length.
         let thigh = (1, 4, 23, 25);
         let mut points = vec![([0.0f32; 2], 1.0f32); NUM_LANDMARKS];
@@ -346,14 +354,8 @@ mod tests {
 
     #[test]
     fn a_foreshortened_leg_bone_is_lifted_from_its_landmarks_on_the_detected_side() {
-        let model = BodyModel::default_body().unwrap();
-        let posed = posed_joints(&model, &BodyParams::default());
-        let cam = Vec3::new(0.0, -0.3, -3.0);
-        let f = 1.0 / (reference_fov_y() / 2.0).tan();
-        let project = |p: Vec3| {
-            let c = p + cam;
-            [f * c.x / -c.z, f * c.y / -c.z]
-        };
+        let (posed, cam, f) = rest_body_in_view();
+        let project = |p: Vec3| project(p, cam, f);
         // The left thigh turned 65° away from the camera about the hip (a leg stepping forward
         // seen from behind): its 2D landmarks show 42 % of its length.
         let thigh = (1, 4, 23, 25);
