@@ -555,12 +555,22 @@ try {
   check(p.width === crowd.width && p.detected_width * p.detected_height <= 4e6 && p.detected_width * p.detected_height > 3.9e6,
     `a ${(crowd.width * crowd.height / 1e6).toFixed(1)} MP photo is detected at ${p.detected_width}×${p.detected_height} (≤ 4 MP)`);
 
+  // A limb corrected with the pose controls is held by the re-fit: the left shoulder turned
+  // 1.5 rad from the fit's (the hand moves by more than half a metre, far from its landmarks).
+  const shoulder = fj.body_pose.slice(15 * 3, 15 * 3 + 3);
+  await command({ joint: 'left_shoulder', value: [shoulder[0], shoulder[1], shoulder[2] + 1.5] }, (s) => s.pose === 'custom');
+  const tHeld = Date.now();
+  await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));
+  p = (await waitFor((s) => s.photo.fits > fitsCrowd + 1 || s.photo.state === 'failed', 'the corrected re-fit', 300000)).photo;
+  check(p.state === 'fitted' && /held where you put it, against the detector: left arm$/.test(p.message),
+    `a corrected arm is held by the re-fit (${((Date.now() - tHeld) / 1000).toFixed(1)} s: "${p.message}")`);
+
   // A re-fit from the current pose, cancelled while it runs.
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));
   await waitFor((s) => s.photo.state === 'fitting' && s.photo.steps_done > 0, 'the re-fit to start', 60000);
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'cancel' }));
   p = (await waitFor((s) => s.photo.state !== 'fitting', 'the cancellation', 60000)).photo;
-  check(p.state === 'cancelled' && p.fits === fitsCrowd + 1, `a re-fit can be cancelled (${p.state}, ${p.message})`);
+  check(p.state === 'cancelled' && p.fits === fitsCrowd + 2, `a re-fit can be cancelled (${p.state}, ${p.message})`);
 
   // --- motion: built-in clips play on the GPU re-pose; AMASS files; the animated .glb -----
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'close' }));

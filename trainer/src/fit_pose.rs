@@ -50,6 +50,11 @@ pub struct FitPoseArgs {
     /// Body model .npz in the SMPL layout (default: the embedded open body).
     #[arg(long)]
     pub body: Option<PathBuf>,
+    /// Fit again from this fit.json of the same photo with its pose corrected (edit its
+    /// `body_pose`, or the app's pose controls then "Download fit"): a limb it puts far from
+    /// the detector's landmarks is held where it is and those landmarks are left out.
+    #[arg(long)]
+    pub start: Option<PathBuf>,
 }
 
 pub(crate) fn open_image(path: &std::path::Path) -> Result<image::DynamicImage> {
@@ -69,8 +74,17 @@ pub(crate) fn load_mask(path: &std::path::Path) -> Result<SegmentationMask> {
 }
 
 /// Run a fit to the end with a progress bar.
-fn run_fit(model: Arc<BodyModel>, input: FitInput, options: FitOptions, device: &Device) -> Result<BodyFit> {
+fn run_fit(
+    model: Arc<BodyModel>,
+    input: FitInput,
+    options: FitOptions,
+    start: Option<&BodyFit>,
+    device: &Device,
+) -> Result<BodyFit> {
     let mut fitter = BodyFitter::new(model, input, options, device)?;
+    if let Some(start) = start {
+        fitter.correct_from(start);
+    }
     let bar = crate::progress::bar(fitter.total_steps() as u64, "steps");
     let fit = block_on_ready(async {
         while let Some(p) = fitter.step().await? {
@@ -96,12 +110,36 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
     let [a, b, c] = args.iterations[..] else { bail!("--iterations takes three numbers: torso,body,silhouette") };
     let options = FitOptions { iterations: [a, b, c], num_betas: args.betas, ..FitOptions::default() };
     let input = FitInput::from_detection(&result, w, h, mask.as_ref(), &model, &options)?;
+    let start = match &args.start {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            let fit = BodyFit::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            if fit.rotation != result.rotation {
+                bail!(
+                    "{}: a fit of the photo turned by {}°, the detection is turned by {}°",
+                    path.display(),
+                    fit.rotation,
+                    result.rotation
+                );
+            }
+            let (a, b) = (fit.framing, input.framing);
+            let moved = (a.centre[0] - b.centre[0]).hypot(a.centre[1] - b.centre[1]).max((a.side - b.side).abs());
+            if (a.photo_width, a.photo_height) != (b.photo_width, b.photo_height) || moved > 1.0 {
+                bail!(
+                    "{}: a fit of another photo or detection (its crop differs from this detection's)",
+                    path.display()
+                );
+            }
+            Some(fit)
+        }
+        None => None,
+    };
     let device = args.backend.device()?.autodiff();
-    let fit = run_fit(model.clone(), input, options, &device)?;
+    let fit = run_fit(model.clone(), input, options, start.as_ref(), &device)?;
     crate::atomic::write_atomic(&args.out, fit.to_json()?.as_bytes())?;
     let r = &fit.residuals;
     println!(
-        "wrote {}: mean keypoint error {:.1} px ({:.2} % of the body's height){}{}{}{}",
+        "wrote {}: mean keypoint error {:.1} px ({:.2} % of the body's height){}{}{}{}{}",
         args.out.display(),
         r.mean_px,
         100.0 * r.relative_to_height,
@@ -119,6 +157,11 @@ pub fn fit_pose(args: &FitPoseArgs) -> Result<()> {
             String::new()
         } else {
             format!("; hands swapped back: {}", fit.relabelled.join(", "))
+        },
+        if fit.held.is_empty() {
+            String::new()
+        } else {
+            format!("; held where the start puts them, against the detector: {}", fit.held.join(", "))
         }
     );
     if let Some(path) = &args.overlay {

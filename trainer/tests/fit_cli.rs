@@ -277,6 +277,62 @@ fn fit_pose_undoes_known_detector_misreadings() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A person's correction of a misread limb holds (`fit-pose --start`; the app's pose controls,
+/// then "Re-fit from this pose"). The side reach seen from its side: MediaPipe reads the near
+/// (left) hand, at the waist, over the head with the far one, and the fit follows it (99.6 mm).
+/// - Started from its own fit.json the re-fit holds no limb and ends where the fit did.
+/// - Started from that fit with the left arm's rotations set to the truth's (what a person does
+///   with the pose controls), it holds the left arm, leaves out the arm's landmarks and ends
+///   under 90 mm, with the wrist where the person put it rather than where it was read.
+/// - A fit of another photo is refused with one message.
+#[test]
+fn fit_pose_holds_a_limb_the_person_corrected() {
+    let (dir, fixtures, model) = fixture_photos("fit-correct", "");
+    let truth = wide_poses().into_iter().find(|(n, _)| *n == "side_reach").unwrap().1;
+    let stem = "side_reach_view2";
+    let (fit, err) = fit_fixture(&dir, &fixtures, stem, &model, &truth);
+    let own = dir.join("own.fit.json");
+    std::fs::write(&own, fit.to_json().unwrap()).unwrap();
+    let (again, err_again) = fit_fixture_from(&dir, &fixtures, stem, &model, &truth, Some(&own));
+    eprintln!("{stem}: fit {:.1} mm, again from its own fit {:.1} mm", err * 1000.0, err_again * 1000.0);
+    assert!(again.held.is_empty(), "{:?}", again.held);
+    assert!((err_again - err).abs() < 0.005, "{err} → {err_again}");
+
+    let mut corrected = fit.clone();
+    for j in [16, 18, 20, 22] {
+        corrected.body_pose[(j - 1) * 3..][..3].copy_from_slice(&truth.pose[j].to_array());
+    }
+    let start = dir.join("corrected.fit.json");
+    std::fs::write(&start, corrected.to_json().unwrap()).unwrap();
+    let (refit, err_refit) = fit_fixture_from(&dir, &fixtures, stem, &model, &truth, Some(&start));
+    let wrist = |f: &BodyFit| {
+        let k = f.keypoints.iter().find(|k| k.name == "left_wrist").unwrap();
+        (k.fitted.unwrap(), k.observed)
+    };
+    let ((at, read), (first, _)) = (wrist(&refit), wrist(&fit));
+    eprintln!(
+        "{stem}: re-fit from the corrected left arm {:.1} mm, held {:?}; left wrist at {at:?}, read at {read:?}, first fit {first:?}",
+        err_refit * 1000.0,
+        refit.held
+    );
+    assert_eq!(refit.held, ["left arm"]);
+    assert!(err_refit < 0.090 && err_refit < err - 0.010, "{err} → {err_refit}");
+    // The wrist is held below where it was read (photo pixels, y down), by a tenth of the photo.
+    assert!(at[1] - read[1] > 0.1 * fit.framing.photo_height as f32, "{at:?} vs {read:?}");
+
+    let other = dir.join("other.fit.json");
+    let mut moved = fit.clone();
+    moved.framing.centre[0] += 40.0;
+    std::fs::write(&other, moved.to_json().unwrap()).unwrap();
+    let (kp, mask) = (fixtures.join(format!("{stem}.kp.json")), fixtures.join(format!("{stem}.mask.png")));
+    let photo = dir.join(format!("{stem}.png"));
+    let run =
+        trainer(&["fit-pose", "--image", s(&photo), "--keypoints", s(&kp), "--mask", s(&mask), "--start", s(&other)]);
+    let err_text = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && err_text.contains("another photo or detection"), "{err_text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A fixture test's setup: `trainer body-photos` rendered into a new temporary folder `name`,
 /// the fixtures' folder (`fixtures/mediapipe/SUB`) and the body model.
 fn fixture_photos(name: &str, sub: &str) -> (std::path::PathBuf, std::path::PathBuf, BodyModel) {
@@ -291,10 +347,26 @@ fn fixture_photos(name: &str, sub: &str) -> (std::path::PathBuf, std::path::Path
 /// `STEM.mask.png`) of the photo `dir/STEM.png`: the fit and its PA-MPJPE against `truth`.
 /// FIT_DEBUG=1 prints each joint's error after the Procrustes alignment.
 fn fit_fixture(dir: &Path, fixtures: &Path, stem: &str, model: &BodyModel, truth: &BodyParams) -> (BodyFit, f32) {
-    let out = dir.join(format!("{stem}.fit.json"));
+    fit_fixture_from(dir, fixtures, stem, model, truth, None)
+}
+
+/// [`fit_fixture`] started from a fit.json (`--start`), written to `STEM.refit.json`.
+fn fit_fixture_from(
+    dir: &Path,
+    fixtures: &Path,
+    stem: &str,
+    model: &BodyModel,
+    truth: &BodyParams,
+    start: Option<&Path>,
+) -> (BodyFit, f32) {
+    let out = dir.join(format!("{stem}.{}.json", if start.is_some() { "refit" } else { "fit" }));
     let (kp, mask) = (fixtures.join(format!("{stem}.kp.json")), fixtures.join(format!("{stem}.mask.png")));
     let photo = dir.join(format!("{stem}.png"));
-    let run = trainer(&["fit-pose", "--image", s(&photo), "--keypoints", s(&kp), "--mask", s(&mask), "--out", s(&out)]);
+    let mut args = vec!["fit-pose", "--image", s(&photo), "--keypoints", s(&kp), "--mask", s(&mask), "--out", s(&out)];
+    if let Some(start) = start {
+        args.extend(["--start", s(start)]);
+    }
+    let run = trainer(&args);
     assert!(run.status.success(), "{stem}: {}", String::from_utf8_lossy(&run.stderr));
     let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     let fitted = pose_body(model, &fit.body_params()).kinematics.posed_joints;

@@ -223,8 +223,10 @@ pub struct FitRequest {
     pub width: usize,
     pub height: usize,
     pub options: FitOptions,
-    /// Start from this pose and shape (a re-fit after the user corrected joints).
-    pub start: Option<BodyParams>,
+    /// Start from this pose and shape (a re-fit after the user corrected joints), seen through
+    /// the photo's last fit's camera when there is one: then a limb the user moved off its
+    /// landmarks is held where they put it (`BodyFitter::correct_from`).
+    pub start: Option<(BodyParams, Option<BodyFit>)>,
     /// An autodiff device (`Device::autodiff()`).
     pub device: Device,
     /// The size of the photo's preview, which the overlay covers.
@@ -330,8 +332,12 @@ async fn fit_async(
     let input = FitInput::from_detection(&req.result, req.width, req.height, None, &req.model, &req.options)?;
     checkpoint().await;
     let mut fitter = BodyFitter::new(req.model, input, req.options, &req.device)?;
-    if let Some(start) = &req.start {
-        fitter.start_from(start);
+    match &req.start {
+        Some((params, Some(last))) => {
+            fitter.correct_from(&last.with_params(params));
+        }
+        Some((params, None)) => fitter.start_from(params),
+        None => {}
     }
     if !run_steps(&mut fitter, task, repaint).await? {
         return Ok(None);

@@ -129,7 +129,7 @@ impl GetAvatarApp {
                 None => self.messages.push("no photo fit is running".into()),
             },
             Action::PhotoFit(PhotoFitAction::Refit) => {
-                let start = self.params.clone();
+                let start = (self.params.clone(), self.photo.fit.clone());
                 self.start_fit(Some(start));
             }
             Action::PhotoFit(PhotoFitAction::Download) => self.download_fit(),
@@ -186,7 +186,7 @@ impl GetAvatarApp {
     }
 
     /// Fit the body to the current photo's detection (from `start` for a re-fit).
-    fn start_fit(&mut self, start: Option<getavatar_core::BodyParams>) {
+    fn start_fit(&mut self, start: Option<(getavatar_core::BodyParams, Option<BodyFit>)>) {
         let Some(p) = &self.photo.photo else {
             self.messages.push("open a photo first".into());
             return;
@@ -372,6 +372,9 @@ impl GetAvatarApp {
         }
         if !fit.relabelled.is_empty() {
             s.message += "; the detector's left and right hands were swapped back";
+        }
+        if !fit.held.is_empty() {
+            s.message += &format!("; held where you put it, against the detector: {}", fit.held.join(", "));
         }
         self.photo.fit = Some(fit);
     }

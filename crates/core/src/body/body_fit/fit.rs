@@ -27,6 +27,9 @@
 //! the one whose landmarks the body explains better (the data term) goes on
 //! ([`FitInput::hands_in_doubt`], [`BodyFit::relabelled`]).
 //!
+//! A re-fit from a pose a person corrected ([`BodyFitter::correct_from`]) holds the limbs
+//! they moved far from the detector's landmarks ([`super::correction`]).
+//!
 //! The fit starts from [`super::init`] and is deterministic (no random numbers). It runs
 //! step by step ([`BodyFitter::step`], async: the silhouette stage reads the posed vertices
 //! back to rasterise, which a browser must await), so callers show progress and can cancel.
@@ -43,7 +46,8 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 use glam::{Mat4, Vec3, Vec4};
 
-use super::bones::{bone_rows, misread_legs_at_rest, BONES};
+use super::bones::misread_legs_at_rest;
+use super::correction;
 pub use super::error::FitError;
 use super::init::{camera_translation, pose_from_image, pose_from_world, posed_joints};
 pub use super::input::{FitInput, HAND_SWAP};
@@ -51,10 +55,11 @@ use super::landmarks::{JOINT_LANDMARKS, LANDMARK_NAMES, NUM_LANDMARKS, TORSO_LAN
 use super::limits::{range_term, COLLARS, HINGES};
 use super::metrics::{body_mask, mask_iou};
 pub use super::options::{BoneForm, FitOptions, FitWeights};
-pub use super::result::upright;
+pub use super::result::{upright, FitState};
 pub use super::result::{BodyFit, FitKeypoint, FitResiduals, FitTarget, BODY_FIT_FORMAT};
 use super::result::{FAR, NEAR};
 use super::surface::{surface_landmarks, SurfaceLandmark};
+use super::targets::{Observations, Targets};
 use crate::body::body_model::{BodyModel, JOINT_NAMES, NUM_JOINTS};
 use crate::body::skinning::BodyParams;
 use crate::generator::optim::Adam;
@@ -88,41 +93,6 @@ struct FitParams {
     camera: Param<Tensor<2>>,
 }
 
-/// Observations of one kind of body point (joints or surface vertices) as tensors.
-struct Targets {
-    observed: Tensor<2>,
-    /// Weight × visibility, `[N, 1]`; `torso` masks rows for stage 1.
-    weight: Tensor<2>,
-    torso_weight: Tensor<2>,
-    weight_sum: f32,
-    torso_sum: f32,
-}
-
-impl Targets {
-    fn new(rows: &[(usize, f32)], input: &FitInput, device: &Device) -> Self {
-        let n = rows.len();
-        let mut obs = Vec::with_capacity(n * 2);
-        let (mut w, mut tw) = (Vec::with_capacity(n), Vec::with_capacity(n));
-        for &(l, weight) in rows {
-            let (p, vis) = input.points[l];
-            obs.extend_from_slice(&p);
-            // Occluded landmarks still count, by their visibility: the detector's guess for a
-            // hidden arm beats the prior's T-pose arm.
-            let c = weight * vis;
-            w.push(c);
-            tw.push(if TORSO_LANDMARKS.contains(&l) { c } else { 0.0 });
-        }
-        let (weight_sum, torso_sum) = (w.iter().sum(), tw.iter().sum());
-        Self {
-            observed: matrix(obs, n, 2, device),
-            weight: matrix(w, n, 1, device),
-            torso_weight: matrix(tw, n, 1, device),
-            weight_sum,
-            torso_sum,
-        }
-    }
-}
-
 /// The silhouette stage's vertices, faces and the faces' edges.
 type SilhouetteMesh = (VertexSet, Arc<Vec<[u32; 3]>>, Arc<diff_raster::MeshEdges>);
 
@@ -138,14 +108,8 @@ pub struct BodyFitter {
     /// The silhouette stage's mesh: the body's every vertex, its faces and their edges (for
     /// the silhouette's pixel pairs), or an outline set by [`BodyFitter::refine_on_outline`].
     mesh: Option<SilhouetteMesh>,
-    joints: Targets,
-    joint_ids: Vec<usize>,
-    points: Targets,
-    /// Bones (parent joint, child joint) with their observed world direction and weight.
-    bones: Option<(Vec<usize>, Vec<usize>, Tensor<2>, Tensor<2>)>,
-    /// Hidden limb joints (rows of θ₁…θ₂₃), their seen counterparts' rows and the term's
-    /// weight per row ([`mirror_rows`]).
-    symmetry: Option<(Tensor<1, burn::tensor::Int>, Tensor<1, burn::tensor::Int>, Tensor<2>)>,
+    /// The landmarks, bone directions and symmetry rows the terms compare the body with.
+    obs: Observations,
     params: FitParams,
     adam: Adam,
     stage: usize,
@@ -161,30 +125,11 @@ pub struct BodyFitter {
     shape_held: bool,
     /// A pull of θ `[24, 3]` towards a neighbouring frame's, and its weight (radians²).
     temporal: Option<(Tensor<2>, f32)>,
-}
-
-/// The fit's own parameters: θ with the body's whole turn in it (not yet split into the
-/// camera, as [`BodyFit`] has it) and the camera's translation (world → camera).
-#[derive(Clone, Debug, PartialEq)]
-pub struct FitState {
-    pub params: BodyParams,
-    pub camera: Vec3,
-}
-
-/// The symmetry term's rows (joint, counterpart joint, weight): the parent joint of a bone
-/// whose far-end landmark the detector did not see (visibility below [`VISIBLE`]) while it
-/// saw its counterpart's ([`BONES`]`[i ^ 2]`), weighted by how hidden and how seen.
-fn mirror_rows(visibility: impl Fn(usize) -> f32) -> Vec<(usize, usize, f32)> {
-    BONES
-        .iter()
-        .enumerate()
-        .filter_map(|(i, &(j, _, _, l))| {
-            let (cj, _, _, cl) = BONES[i ^ 2];
-            let hidden = (1.0 - visibility(l) / VISIBLE).clamp(0.0, 1.0);
-            let seen = ((visibility(cl) - VISIBLE) / (1.0 - VISIBLE)).clamp(0.0, 1.0);
-            (hidden * seen > 0.0).then_some((j, cj, hidden * seen))
-        })
-        .collect()
+    /// Limbs a person corrected ([`BodyFitter::correct_from`]): the rows of θ₁…θ₂₃ held and
+    /// the rotations they are held at `[N, 3]`.
+    held: Option<(Tensor<1, burn::tensor::Int>, Tensor<2>)>,
+    /// Those limbs, whose landmarks the fit leaves out.
+    held_limbs: Vec<correction::Limb>,
 }
 
 impl BodyFitter {
@@ -222,11 +167,6 @@ impl BodyFitter {
         let surface_marks = surface_landmarks(&model)?;
         let surface_ids: Vec<u32> = surface_marks.iter().map(|s| s.vertex).collect();
         let surface = VertexSet::new(&model, &surface_ids, &skeleton, device);
-        let joint_rows: Vec<(usize, f32)> = JOINT_LANDMARKS.iter().map(|m| (m.landmark, m.weight)).collect();
-        let joint_ids: Vec<usize> = JOINT_LANDMARKS.iter().map(|m| m.joint).collect();
-        let joints = Targets::new(&joint_rows, &input, device);
-        let point_rows: Vec<(usize, f32)> = surface_marks.iter().map(|s| (s.landmark, s.weight)).collect();
-        let points = Targets::new(&point_rows, &input, device);
 
         // Initial pose and camera.
         let betas0 = vec![0.0f32; skeleton.num_betas];
@@ -246,28 +186,8 @@ impl BodyFitter {
             None => (init, cam),
         };
 
-        let bones = {
-            let rows = bone_rows(&posed_joints(&model, &init), cam, &input, options.weights.bones_lifted);
-            let n = rows.len();
-            (n > 0).then(|| {
-                (
-                    rows.iter().map(|r| r.bone.0).collect(),
-                    rows.iter().map(|r| r.bone.1).collect(),
-                    matrix(rows.iter().flat_map(|r| r.direction.to_array()).collect(), n, 3, device),
-                    matrix(rows.iter().map(|r| r.weight).collect(), n, 1, device),
-                )
-            })
-        };
-
-        let rows = mirror_rows(|l| input.points[l].1);
-        let symmetry = (!rows.is_empty()).then(|| {
-            (
-                joint_index(&rows.iter().map(|r| r.0 - 1).collect::<Vec<_>>(), device),
-                joint_index(&rows.iter().map(|r| r.1 - 1).collect::<Vec<_>>(), device),
-                matrix(rows.iter().map(|r| r.2).collect(), rows.len(), 1, device),
-            )
-        });
-
+        let obs =
+            Observations::new(&model, &input, &surface_marks, &init, cam, options.weights.bones_lifted, &[], device);
         let theta: Vec<f32> = init.pose[1..].iter().flat_map(|v| v.to_array()).collect();
         let nb = skeleton.num_betas.max(1);
         let params = FitParams {
@@ -285,11 +205,7 @@ impl BodyFitter {
             surface,
             surface_marks,
             mesh: None,
-            joints,
-            joint_ids,
-            points,
-            bones,
-            symmetry,
+            obs,
             params,
             adam: Adam::new(0.9, 0.999, 1e-8),
             stage: 0,
@@ -300,6 +216,8 @@ impl BodyFitter {
             hands_swapped: false,
             shape_held: false,
             temporal: None,
+            held: None,
+            held_limbs: Vec::new(),
         })
     }
 
@@ -311,6 +229,36 @@ impl BodyFitter {
         init.betas.resize(self.skeleton.num_betas, 0.0);
         let cam = initial_camera(&self.model, &self.input, &init);
         self.restart(&init, cam);
+    }
+
+    /// Start again from `corrected`: this photo's fit with the pose and shape a person
+    /// corrected (the app's pose controls after a fit; `trainer fit-pose --start`), seen through
+    /// its own camera and with its hand labelling. Every limb it puts far from the detector's
+    /// landmarks is the person's correction ([`correction::corrected_limbs`]): that limb's
+    /// landmarks leave the fit and its joints are held at the corrected rotations. Returns the
+    /// limbs held (also in [`BodyFit::held`]).
+    pub fn correct_from(&mut self, corrected: &BodyFit) -> Vec<&'static str> {
+        let state = correction::fit_state(corrected, &self.model);
+        if corrected.relabelled.is_empty() == self.hands_swapped {
+            self.input = self.input.with_hands_swapped();
+            self.hands_swapped = !self.hands_swapped;
+        }
+        let limbs = correction::corrected_limbs(&self.model, &state, &self.input);
+        let mut kept = self.input.clone();
+        for l in limbs.iter().flat_map(|limb| limb.landmarks) {
+            kept.points[*l].1 = 0.0;
+        }
+        let joints: Vec<usize> = limbs.iter().flat_map(|limb| limb.joints).collect();
+        let (init, cam, lifted) = (&state.params, state.camera, self.options.weights.bones_lifted);
+        let dev = self.device.clone();
+        self.obs = Observations::new(&self.model, &kept, &self.surface_marks, init, cam, lifted, &joints, &dev);
+        self.restart(init, cam);
+        let dev = &dev;
+        let rows: Vec<usize> = joints.iter().map(|j| j - 1).collect();
+        let target = joints.iter().flat_map(|j| init.pose[*j].to_array()).collect();
+        self.held = (!joints.is_empty()).then(|| (joint_index(&rows, dev), matrix(target, rows.len(), 3, dev)));
+        self.held_limbs = limbs;
+        self.held_limbs.iter().map(|l| l.name).collect()
     }
 
     /// Continue from a neighbouring frame's parameters as they are (camera included), with
@@ -340,6 +288,7 @@ impl BodyFitter {
         self.adam = Adam::new(0.9, 0.999, 1e-8);
         (self.stage, self.step_in_stage, self.done, self.stage_loss) = (0, 0, 0, [None; 3]);
         self.alternative = None;
+        (self.held, self.held_limbs) = (None, Vec::new());
     }
 
     /// Hold β at `betas` from now on (the clip's shape): the fit moves θ and the camera only.
@@ -494,12 +443,13 @@ impl BodyFitter {
     /// The data term: robust reprojection of the joints (torso stage: the torso's only) and,
     /// after the torso stage, the surface points, per unit of landmark weight.
     async fn data_term(&self, posed: &PosedSkeleton, betas: &Tensor<2>, torso: bool) -> Tensor<1> {
-        let joints = posed.joints.clone().select(0, joint_index(&self.joint_ids, &self.device));
-        let norm = if torso { self.joints.torso_sum } else { self.joints.weight_sum + self.points.weight_sum };
-        let mut loss = self.reprojection(self.project(joints), &self.joints, torso);
+        let joints = posed.joints.clone().select(0, joint_index(&self.obs.joint_ids, &self.device));
+        let norm =
+            if torso { self.obs.joints.torso_sum } else { self.obs.joints.weight_sum + self.obs.points.weight_sum };
+        let mut loss = self.reprojection(self.project(joints), &self.obs.joints, torso);
         if !torso {
             let surface = self.surface.pose(posed, betas, &self.skeleton);
-            loss = loss + self.reprojection(self.project(surface), &self.points, false);
+            loss = loss + self.reprojection(self.project(surface), &self.obs.points, false);
             checkpoint().await;
         }
         loss / norm.max(1e-6)
@@ -537,7 +487,7 @@ impl BodyFitter {
             let b = self.params.betas.val();
             loss = loss + (b.clone() * b).sum().reshape([1]) * wts.betas;
         }
-        if let Some((from, to, dirs, w)) = &self.bones {
+        if let Some((from, to, dirs, w)) = &self.obs.bones {
             let a = posed.joints.clone().select(0, joint_index(from, &dev));
             let c = posed.joints.clone().select(0, joint_index(to, &dev));
             let d = c - a;
@@ -557,13 +507,17 @@ impl BodyFitter {
             };
             loss = loss + (term * w.clone()).sum().reshape([1]) * wts.bones;
         }
-        if let (Some((hidden, seen, w)), true) = (&self.symmetry, wts.symmetry > 0.0) {
+        if let (Some((hidden, seen, w)), true) = (&self.obs.symmetry, wts.symmetry > 0.0) {
             // The counterpart is detached: the seen limb is not pulled towards the hidden one.
             // Mirroring in the body's sagittal plane negates an axis-angle's y and z.
             let flip = matrix(vec![1.0, -1.0, -1.0], 1, 3, &dev);
             let target = pose.clone().select(0, seen.clone()).detach() * flip;
             let d = pose.clone().select(0, hidden.clone()) - target;
             loss = loss + ((d.clone() * d).sum_dim(1) * w.clone()).sum().reshape([1]) * wts.symmetry;
+        }
+        if let Some((rows, held)) = &self.held {
+            let d = pose.clone().select(0, rows.clone()) - held.clone();
+            loss = loss + (d.clone() * d).sum().reshape([1]) * correction::HOLD;
         }
         if let Some((previous, w)) = &self.temporal {
             let d = theta.clone() - previous.clone();
@@ -681,7 +635,8 @@ impl BodyFitter {
         let (mut err, mut wsum) = (0.0f32, 0.0f32);
         for (l, (ndc, vis)) in self.input.points.iter().enumerate() {
             let observed = framing.to_photo(*ndc);
-            if let (Some(p), true) = (fitted[l], *vis >= VISIBLE) {
+            let held = self.held_limbs.iter().any(|limb| limb.landmarks.contains(&l));
+            if let (Some(p), true) = (fitted[l], *vis >= VISIBLE && !held) {
                 err += vis * ((p[0] - observed[0]).powi(2) + (p[1] - observed[1]).powi(2)).sqrt();
                 wsum += vis;
             }
@@ -752,6 +707,7 @@ impl BodyFitter {
             } else {
                 Vec::new()
             },
+            held: self.held_limbs.iter().map(|l| l.name.to_string()).collect(),
             options: self.options.clone(),
             rotation: self.input.rotation,
         })
@@ -774,6 +730,7 @@ fn initial_camera(model: &BodyModel, input: &FitInput, init: &BodyParams) -> Vec
 mod tests {
     use super::*;
     use crate::body::body_fit::framing::Framing;
+    use crate::body::body_fit::targets::mirror_rows;
     use crate::body::skinning::axis_angle_to_matrix;
 
     #[test]

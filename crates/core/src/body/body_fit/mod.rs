@@ -2,6 +2,7 @@
 //! person's detected landmarks and mask, for the latent inversion that follows.
 //!
 //! - `bones`: the fit's 3D bone-direction term from the detector's world landmarks.
+//! - [`correction`]: a re-fit that holds the limbs a person corrected.
 //! - [`landmarks`]: MediaPipe Pose's 33 landmarks, their SMPL joints and the detector's
 //!   result object (validated).
 //! - [`limits`]: knees and elbows bend one way (SMPLify's angle prior, directions checked on
@@ -9,6 +10,7 @@
 //! - [`metrics`]: Procrustes alignment and PA-MPJPE, the fit's yardstick.
 //! - [`options`]: the fit's settings (term weights, stages).
 //! - [`refit`]: the fit refined on a generated avatar's clothed outline.
+//! - `targets`: the landmarks, bone directions and symmetry rows as the fit's tensors.
 //! - [`temporal`]: a video's per-frame fits as one motion (lost frames filled, smoothed
 //!   without lag) and the yardsticks of a motion against its truth.
 //! - [`video`]: a clip's detections → one body shape and a warm-started fit per frame.
@@ -17,6 +19,8 @@
 
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 mod bones;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+pub mod correction;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod error;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
@@ -36,6 +40,8 @@ pub mod result;
 /// The surface landmarks live with the body ([`crate::body::body_surface`]); this path stays.
 pub use crate::body::body_surface as surface;
 pub mod synthetic;
+#[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
+mod targets;
 pub mod temporal;
 pub mod turn;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]

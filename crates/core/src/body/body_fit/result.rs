@@ -47,6 +47,11 @@ pub struct BodyFit {
     /// the photo better ([`HAND_SWAP`]). `keypoints` report the swapped labels.
     #[serde(default)]
     pub relabelled: Vec<String>,
+    /// Limbs a person corrected before this fit (`"left arm"`, …): their landmarks disagreed
+    /// with the correction, so the fit held the limb where the person put it and left those
+    /// landmarks out of `residuals` ([`super::correction`]).
+    #[serde(default)]
+    pub held: Vec<String>,
     pub options: FitOptions,
     /// Degrees clockwise the photo was turned to read the person upright ([`super::turn`]):
     /// `camera`, `framing` and `keypoints` are of the turned photo;
@@ -56,6 +61,14 @@ pub struct BodyFit {
 }
 
 pub const BODY_FIT_FORMAT: &str = "getavatar-body-fit/1";
+
+/// The fit's own parameters: θ with the body's whole turn in it (not yet split into the
+/// camera, as [`BodyFit`] has it) and the camera's translation (world → camera).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitState {
+    pub params: BodyParams,
+    pub camera: Vec3,
+}
 
 /// One landmark of [`BodyFit::keypoints`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -153,6 +166,18 @@ impl BodyFit {
     /// The fitted body as body parameters (no translation).
     pub fn body_params(&self) -> BodyParams {
         BodyParams::from_split(&self.global_orient, &self.body_pose, &self.betas)
+    }
+
+    /// This fit with another pose and shape (the app's pose controls after the fit), seen
+    /// through the same camera: the start of a corrected re-fit ([`super::correction`]).
+    pub fn with_params(&self, params: &BodyParams) -> Self {
+        let theta = params.theta();
+        Self {
+            global_orient: [theta[0], theta[1], theta[2]],
+            body_pose: theta[3..].to_vec(),
+            betas: params.betas.clone(),
+            ..self.clone()
+        }
     }
 
     /// World → camera.
