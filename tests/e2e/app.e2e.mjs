@@ -562,8 +562,9 @@ try {
   const tHeld = Date.now();
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));
   p = (await waitFor((s) => s.photo.fits > fitsCrowd + 1 || s.photo.state === 'failed', 'the corrected re-fit', 300000)).photo;
-  check(p.state === 'fitted' && /held where you put it, against the detector: left arm$/.test(p.message),
+  check(p.state === 'fitted' && /held where you put it, against the detector: left arm$/.test(p.message) && p.held.join() === 'left arm',
     `a corrected arm is held by the re-fit (${((Date.now() - tHeld) / 1000).toFixed(1)} s: "${p.message}")`);
+  await page.screenshot({ path: path.join(out, 'photo_refit_held.png') });
 
   // A re-fit from the current pose, cancelled while it runs.
   await page.evaluate(() => window.getavatar.command({ photo_fit: 'refit' }));

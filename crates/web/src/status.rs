@@ -111,6 +111,9 @@ pub struct PhotoStatus {
     pub tries: usize,
     /// Body joints the detector did not see (visibility < ½), SMPL names.
     pub missing_joints: Vec<String>,
+    /// Limbs the last fit held where the user put them against the detector ("left arm", …;
+    /// a re-fit from corrected joints, `BodyFit::held`).
+    pub held: Vec<String>,
     /// Milliseconds of the detection (decode, MediaPipe, mask read-back).
     pub detect_ms: f32,
     /// Fit progress: stage ("torso", "body", "silhouette"), steps done and total, loss.

@@ -11,6 +11,7 @@ use std::rc::Rc;
 use eframe::egui;
 use egui::{Color32, Pos2, Rect, Stroke};
 
+use getavatar_core::body::body_fit::correction::LIMBS;
 use getavatar_core::body::body_fit::fit::{BodyFit, FitOptions, STAGE_NAMES};
 use getavatar_core::body::body_fit::landmarks::{PoseResult, JOINT_LANDMARKS, VISIBLE};
 use getavatar_core::body::body_model::JOINT_NAMES;
@@ -306,6 +307,7 @@ impl GetAvatarApp {
         (s.width, s.height, s.detect_ms) = (p.width, p.height, p.detect_ms as f32);
         [s.detected_width, s.detected_height] = p.detected;
         s.missing_joints = missing.clone();
+        s.held.clear();
         s.people = p.people;
         s.person = p.person.map(|k| k + 1);
         s.persons = p.persons.clone();
@@ -376,6 +378,7 @@ impl GetAvatarApp {
         if !fit.held.is_empty() {
             s.message += &format!("; held where you put it, against the detector: {}", fit.held.join(", "));
         }
+        s.held = fit.held.clone();
         self.photo.fit = Some(fit);
     }
 
@@ -577,19 +580,23 @@ impl GetAvatarApp {
         let sy = rect.height() / p.height as f32;
         let at = |q: [f32; 2]| Pos2::new(rect.min.x + q[0] * sx, rect.min.y + q[1] * sy);
         let lm = &p.result.pose_landmarks;
-        let seen = |i: usize| lm[i].visibility >= VISIBLE;
+        // A limb the fit held where the user put it: its landmarks are drawn as unseen.
+        let held: Vec<usize> = self.photo.fit.as_ref().map_or_else(Vec::new, |fit| {
+            LIMBS.iter().filter(|l| fit.held.iter().any(|h| h == l.name)).flat_map(|l| l.landmarks.to_vec()).collect()
+        });
+        let seen = |i: usize| lm[i].visibility >= VISIBLE && !held.contains(&i);
         let px = |i: usize| at([lm[i].x * p.width as f32, lm[i].y * p.height as f32]);
         for (a, b) in CONNECTIONS {
             let c = if seen(a) && seen(b) { Color32::from_rgb(90, 220, 120) } else { Color32::from_gray(150) };
             painter.line_segment([px(a), px(b)], Stroke::new(2.0, c));
         }
-        for (i, l) in lm.iter().enumerate() {
-            let c = if l.visibility >= VISIBLE { Color32::from_rgb(60, 200, 90) } else { Color32::from_gray(140) };
+        for i in 0..lm.len() {
+            let c = if seen(i) { Color32::from_rgb(60, 200, 90) } else { Color32::from_gray(140) };
             painter.circle_filled(px(i), 3.5, c);
         }
         if let Some(fit) = &self.photo.fit {
-            for kp in &fit.keypoints {
-                if let Some(f) = kp.fitted {
+            for (i, kp) in fit.keypoints.iter().enumerate() {
+                if let (Some(f), false) = (kp.fitted, held.contains(&i)) {
                     let (o, f) = (at(kp.observed), at(f));
                     painter.line_segment([o, f], Stroke::new(1.0, Color32::WHITE));
                     painter.circle_stroke(f, 3.0, Stroke::new(1.5, Color32::from_rgb(255, 150, 40)));
