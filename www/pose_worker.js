@@ -11,7 +11,8 @@
 //
 // Finding the person tries before it fails: Pose runs on a crop around every region (largest
 // first), then on the whole photo, until a reading agrees with its region (most landmarks in
-// it, spanning it) and is upright. With one region, the whole photo comes first, judged
+// it, spanning it) and is upright; last, on a square with room around every region that
+// touches the photo's edge, padded with the photo's border colour. With one region, the whole photo comes first, judged
 // against that region: Pose's 3D reading of a person alone in a photo is better from the
 // whole photo than from a crop around them (docs/benchmarks.md, "Body fit"). When no reading
 // is upright and agrees, the same candidates are tried on the photo
@@ -201,6 +202,35 @@ function padded(r, width, height) {
   return { x, y, w: x1 - x, h: y1 - y };
 }
 
+/**
+ * For a person's box that touches the photo's edge (within 1 % of its long side), the square
+ * around it, twice its long side, centred on it and not clamped: `readCandidate` fills its
+ * part past the photo's edge with the photo's border colour. Null for a box clear of the edges
+ * (the padded crop has given that person room).
+ */
+function roomy(r, width, height) {
+  const m = 0.01 * Math.max(width, height);
+  const touches = r.x <= m || r.y <= m || r.x + r.w >= width - m || r.y + r.h >= height - m;
+  if (!touches) return null;
+  const side = Math.ceil(2 * Math.max(r.w, r.h));
+  return { x: Math.floor(r.x + r.w / 2 - side / 2), y: Math.floor(r.y + r.h / 2 - side / 2), w: side, h: side };
+}
+
+/** The mean colour of a canvas's outermost pixels, as a CSS colour. */
+function borderColour(canvas) {
+  const ctx = canvas.getContext('2d', { willReadFrequently: true });
+  const { width: w, height: h } = canvas;
+  const strips = [[0, 0, w, 1], [0, h - 1, w, 1], [0, 0, 1, h], [w - 1, 0, 1, h]];
+  const sum = [0, 0, 0];
+  let n = 0;
+  for (const [x, y, sw, sh] of strips) {
+    const d = ctx.getImageData(x, y, sw, sh).data;
+    for (let i = 0; i < d.length; i += 4) { sum[0] += d[i]; sum[1] += d[i + 1]; sum[2] += d[i + 2]; n++; }
+  }
+  const [r, g, b] = sum.map((v) => Math.round(v / Math.max(1, n)));
+  return `rgb(${r}, ${g}, ${b})`;
+}
+
 /** An image (canvas / ImageBitmap) drawn at most `maxSide` on its long side: {width, height, rgba}. */
 function pixelsAtMost(image, maxSide) {
   const k = Math.min(1, maxSide / Math.max(image.width, image.height));
@@ -292,14 +322,22 @@ function judge(pts, vis, box) {
 
 /**
  * Pose on one candidate: `source` is the turned photo (a canvas), `crop` a box of it or null
- * for all of it, `box` the person's box in it (for the agreement) or null. Returns
+ * for all of it, `box` the person's box in it (for the agreement) or null, `fill` the colour
+ * of a crop's part past the photo's edge (a `roomy` crop). Returns
  * {results, crop, verdict, pts, vis} or null when Pose saw no one.
  */
-async function readCandidate(pose, source, crop, box) {
+async function readCandidate(pose, source, crop, box, fill) {
   let image = source;
   if (crop) {
     image = newCanvas(crop.w, crop.h);
-    image.getContext('2d').drawImage(source, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
+    const ctx = image.getContext('2d');
+    if (fill) {
+      ctx.fillStyle = fill;
+      ctx.fillRect(0, 0, crop.w, crop.h);
+      ctx.drawImage(source, -crop.x, -crop.y);
+    } else {
+      ctx.drawImage(source, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
+    }
   }
   const results = await runSolution(pose, image);
   if (!results.poseLandmarks || results.poseLandmarks.length !== 33) return null;
@@ -346,6 +384,15 @@ async function findPerson(pose, canvas, regions, want) {
       if (tb.length === 1) candidates.unshift({ region: 0, crop: null, box: tb[0] });
       candidates.push({ region: null, crop: null, box: null });
     }
+    // Last, a person at the photo's edge with room around them: Pose's detector finds a face
+    // or an upper body first, and a person whose feet touch the edge and whose face is hidden
+    // (raised arms seen from the side, a back view) it reads only with the photo padded
+    // (docs/benchmarks.md, "Person finding on hard photos").
+    for (const k of order) {
+      const crop = roomy(tb[k], src.width, src.height);
+      if (crop) candidates.push({ region: k, crop, box: tb[k], fill: true });
+    }
+    let fill;
     let whole;
     for (const c of candidates) {
       if (c.crop === null && whole !== undefined) {
@@ -354,7 +401,8 @@ async function findPerson(pose, canvas, regions, want) {
         if (!whole || !judge(whole.pts, whole.vis, null).ok) continue;
       }
       tried++;
-      const r = await readCandidate(pose, src, c.crop, c.box);
+      if (c.fill && !fill) fill = borderColour(src);
+      const r = await readCandidate(pose, src, c.crop, c.box, c.fill ? fill : undefined);
       if (c.crop === null && whole === undefined) whole = r;
       if (!r) continue;
       if (r.verdict.turn !== undefined && turn === 0) hints.add(r.verdict.turn);

@@ -9,6 +9,8 @@
 //    it, `{"photo_fit":{"person":3}}` on the 3rd;
 //  - a person against a bright, low-contrast gradient: fitted;
 //  - a person cut off below the knees by the photo's edge: fitted, the unseen joints named;
+//  - arms raised seen from the side, hands and feet at the photo's edges (the face hidden):
+//    read through the square with room padded around the person;
 //  - no person: one clear message, the app as it was;
 //  - one person as taken: the person mask the fit uses is the composited silhouette (IoU);
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the

@@ -16,7 +16,10 @@ import { createRequire } from 'node:module';
 const require = createRequire(import.meta.url);
 const { PNG } = require('pngjs');
 
-const render = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
+const defaultRender = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clothed.png', import.meta.url)));
+// A held-out synthetic person (`trainer synth-scans --count 12 --seed 1`, `prepare --views 4
+// --res 512 --seed 1`: person 0011, view 003): arms raised, seen from the side.
+const armsUp = PNG.sync.read(fs.readFileSync(new URL('./fixtures/arms_up_side.png', import.meta.url)));
 
 /** A deterministic pseudo-random stream in [0, 1). */
 function rng(seed) {
@@ -48,10 +51,11 @@ function wall(w, h, seed) {
 }
 
 /**
- * The render pasted at (ox, oy), scaled by `scale` (nearest) and turned `turn` (0, 90, 180,
- * 270) clockwise, blended as `tone(rgb, bg) → rgb` (default: as rendered).
+ * The render (`src`, default the kick) pasted at (ox, oy), scaled by `scale` (nearest) and
+ * turned `turn` (0, 90, 180, 270) clockwise, blended as `tone(rgb, bg) → rgb` (default: as
+ * rendered).
  */
-function paste(photo, { scale, ox, oy, turn = 0, tone = (c) => c }) {
+function paste(photo, { src: render = defaultRender, scale, ox, oy, turn = 0, tone = (c) => c }) {
   const sw = Math.floor(render.width * scale), sh = Math.floor(render.height * scale);
   const [tw, th] = turn % 180 ? [sh, sw] : [sw, sh];
   for (let y = 0; y < th; y++) {
@@ -117,6 +121,13 @@ export function cases() {
   p = wall(560, 400, 6);
   paste(p, { scale: 1.05, ox: 20, oy: 40 });
   add('cut_off.png', p, { people: 1, person: 1, rotation: 0, missing: /ankle/ });
+
+  // Arms raised seen from the side, the raised arm before the face, the hands and feet at the
+  // photo's top and bottom edges: Pose reads this person only through the square with room
+  // around them (padded past the photo's edges with its border colour).
+  p = wall(512, 512, 7);
+  paste(p, { src: armsUp, scale: 1, ox: 0, oy: 0 });
+  add('arms_up_at_the_edge.png', p, { people: 1, person: 1, rotation: 0 });
 
   // No person: only a background (the wall with a bright window).
   p = wall(640, 480, 5);
