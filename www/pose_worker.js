@@ -20,7 +20,9 @@
 // them upright). A turned reading is returned in the turned photo's frame: the preview, the
 // sizes, the landmarks and the mask are all of the turned photo, and `rotation` says by how
 // much it was turned, so the fit sees an upright person and its camera is that of the turned
-// photo (the original's camera rolled by `rotation`, docs/conventions.md).
+// photo (the original's camera rolled by `rotation`, docs/conventions.md). A found reading with
+// limb landmarks off its own person mask is read again on the mirrored photo, and the mirrored
+// reading wins when it agrees with the person and puts fewer of them off (`secondOpinion`).
 //
 // Messages: {id, bytes: Uint8Array, previewSide, person?} in (person: 0-based region to read,
 // the largest first; absent: search all); {id, json, preview?} out, where json is
@@ -29,7 +31,9 @@
 //    "segmentationMask": {"width", "height", "data": [0..1]},
 //    "people": <number of regions selfie segmentation sees; absent when it could not tell>,
 //    "persons": [{x, y, w, h} per region, normalised, largest first], "person": <the fitted
-//    region's index or null>, "tries": <Pose runs>}
+//    region's index or null>, "tries": <Pose runs>, "mirrored": <the landmarks are the reading
+//    of the mirrored photo (`secondOpinion`)>, "offMask": [<limb landmarks off the person mask
+//    in the first reading>, <in the mirrored one, or null when it was not read>]}
 //   or {"error": "<one sentence for the user>"},
 // {id, bytes, track: 'first' | 'next'} in: a video's frame in order (see `track`), answered
 // with the same json (plus "tracked": true when the tracker read it; no preview);
@@ -321,31 +325,118 @@ function judge(pts, vis, box) {
 }
 
 /**
+ * The image of one candidate: `source` (the turned photo, a canvas) cut to `crop` (a box of it)
+ * or all of it when crop is null; `fill` colours a crop's part past the photo's edge.
+ */
+function candidateImage(source, crop, fill) {
+  if (!crop) return source;
+  const image = newCanvas(crop.w, crop.h);
+  const ctx = image.getContext('2d');
+  if (fill) {
+    ctx.fillStyle = fill;
+    ctx.fillRect(0, 0, crop.w, crop.h);
+    ctx.drawImage(source, -crop.x, -crop.y);
+  } else {
+    ctx.drawImage(source, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
+  }
+  return image;
+}
+
+/**
  * Pose on one candidate: `source` is the turned photo (a canvas), `crop` a box of it or null
  * for all of it, `box` the person's box in it (for the agreement) or null, `fill` the colour
  * of a crop's part past the photo's edge (a `roomy` crop). Returns
- * {results, crop, verdict, pts, vis} or null when Pose saw no one.
+ * {results, crop, verdict, pts, vis, image} or null when Pose saw no one.
  */
 async function readCandidate(pose, source, crop, box, fill) {
-  let image = source;
-  if (crop) {
-    image = newCanvas(crop.w, crop.h);
-    const ctx = image.getContext('2d');
-    if (fill) {
-      ctx.fillStyle = fill;
-      ctx.fillRect(0, 0, crop.w, crop.h);
-      ctx.drawImage(source, -crop.x, -crop.y);
-    } else {
-      ctx.drawImage(source, crop.x, crop.y, crop.w, crop.h, 0, 0, crop.w, crop.h);
-    }
-  }
+  const image = candidateImage(source, crop, fill);
   const results = await runSolution(pose, image);
   if (!results.poseLandmarks || results.poseLandmarks.length !== 33) return null;
+  const { pts, vis } = photoPoints(results.poseLandmarks, source, crop);
+  return { results, crop, verdict: judge(pts, vis, box), pts, vis, image };
+}
+
+/** Crop-normalised landmarks as photo pixels `pts` and their visibilities `vis`. */
+function photoPoints(landmarks, source, crop) {
   const [ox, oy] = crop ? [crop.x, crop.y] : [0, 0];
   const [sw, sh] = crop ? [crop.w, crop.h] : [source.width, source.height];
-  const pts = results.poseLandmarks.map((l) => [ox + l.x * sw, oy + l.y * sh]);
-  const vis = results.poseLandmarks.map((l) => l.visibility ?? 1);
-  return { results, crop, verdict: judge(pts, vis, box), pts, vis };
+  return { pts: landmarks.map((l) => [ox + l.x * sw, oy + l.y * sh]), vis: landmarks.map((l) => l.visibility ?? 1) };
+}
+
+// The second opinion of a mirrored photo. Pose sometimes reads a limb where the person is not:
+// a runner seen from the side read with both legs together in the gap between them (its knees,
+// ankles and feet off the person's mask, which the fit then has to place from the mask alone).
+// A reading with limb landmarks off Pose's own person mask is read again on the candidate's
+// mirror image, and the mirrored reading (mapped back, left and right swapped) replaces it when
+// it agrees with the person and has fewer landmarks off the mask (docs/benchmarks.md, "Person
+// finding on hard photos").
+//
+// MIRROR: each landmark's counterpart on the person's other side (MediaPipe Pose's 33).
+const MIRROR = [0, 4, 5, 6, 1, 2, 3, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15, 18, 17, 20, 19, 22, 21, 24, 23, 26, 25, 28, 27, 30, 29, 32, 31];
+// A limb landmark (elbows to feet) is off the mask when no person pixel (probability ≥ 0.5) lies
+// within OFF_MASK of the person's long side: about the fit's own limit (`OFF_PERSON`, 3 % of
+// its crop, which is wider than the person).
+const OFF_MASK = 0.04;
+
+/** How many seen limb landmarks (crop-normalised) lie off `mask` ({width, height, data}). */
+function offMask(landmarks, mask) {
+  const { width: w, height: h, data } = mask;
+  let x0 = w, x1 = -1, y0 = h, y1 = -1;
+  for (let i = 0; i < w * h; i++) {
+    if (data[i] < 0.5) continue;
+    const x = i % w, y = (i - x) / w;
+    x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y);
+  }
+  if (x1 < 0) return 0;
+  const r = Math.max(1, Math.ceil(OFF_MASK * Math.max(x1 - x0 + 1, y1 - y0 + 1)));
+  const near = (cx, cy) => {
+    for (let y = Math.max(0, cy - r); y <= Math.min(h - 1, cy + r); y++) {
+      for (let x = Math.max(0, cx - r); x <= Math.min(w - 1, cx + r); x++) {
+        if ((x - cx) ** 2 + (y - cy) ** 2 <= r * r && data[y * w + x] >= 0.5) return true;
+      }
+    }
+    return false;
+  };
+  let off = 0;
+  for (let i = 13; i < 33; i++) {
+    const l = landmarks[i];
+    if ((l.visibility ?? 1) < SEEN || l.x < 0 || l.x > 1 || l.y < 0 || l.y > 1) continue;
+    if (!near(Math.min(w - 1, Math.floor(l.x * w)), Math.min(h - 1, Math.floor(l.y * h)))) off++;
+  }
+  return off;
+}
+
+/**
+ * A found reading `r` (of `source`, judged against `box`), checked against its own person mask
+ * and, when limb landmarks lie off it, against Pose's reading of the mirrored candidate. Returns
+ * {read, tries, mirrored, off: [first, mirrored]}: `read` is `r` or the mirrored reading, with
+ * the first reading's mask either way (copied before the second run reuses Pose's canvas).
+ */
+async function secondOpinion(pose, r, source, box) {
+  const m = r.results.segmentationMask;
+  if (!m) return { read: r, tries: 0, mirrored: false };
+  const mask = newCanvas(m.width, m.height);
+  mask.getContext('2d').drawImage(m, 0, 0);
+  const values = maskValues(mask);
+  const own = { ...r, results: { poseLandmarks: r.results.poseLandmarks, poseWorldLandmarks: r.results.poseWorldLandmarks, segmentationMask: mask } };
+  const off = offMask(r.results.poseLandmarks, values);
+  if (off === 0) return { read: own, tries: 0, mirrored: false };
+  const image = newCanvas(r.image.width, r.image.height);
+  const ctx = image.getContext('2d');
+  ctx.translate(image.width, 0);
+  ctx.scale(-1, 1);
+  ctx.drawImage(r.image, 0, 0);
+  const again = await runSolution(pose, image);
+  const lms = again.poseLandmarks;
+  if (!lms || lms.length !== 33) return { read: own, tries: 1, mirrored: false, off: [off, null] };
+  const back = MIRROR.map((k) => ({ ...lms[k], x: 1 - lms[k].x }));
+  const world = again.poseWorldLandmarks?.length === 33 ? MIRROR.map((k) => ({ ...again.poseWorldLandmarks[k], x: -again.poseWorldLandmarks[k].x })) : undefined;
+  const offAgain = offMask(back, values);
+  const { pts, vis } = photoPoints(back, source, r.crop);
+  const verdict = judge(pts, vis, box);
+  if (!verdict.ok || offAgain >= off) return { read: own, tries: 1, mirrored: false, off: [off, offAgain] };
+  const read = { ...r, verdict, pts, vis, results: { poseLandmarks: back, poseWorldLandmarks: world, segmentationMask: mask } };
+  return { read, tries: 1, mirrored: true, off: [off, offAgain] };
 }
 
 /** The region (index) most of a reading's seen landmarks fall in, or -1. */
@@ -408,7 +499,11 @@ async function findPerson(pose, canvas, regions, want) {
       if (r.verdict.turn !== undefined && turn === 0) hints.add(r.verdict.turn);
       if (!r.verdict.ok) continue;
       const region = c.region ?? (tb.length ? regionOf(r.pts, r.vis, tb) : null);
-      return { results: r.results, crop: r.crop, turn, region: region === -1 ? null : region, src, boxes: tb };
+      const second = await secondOpinion(pose, r, src, c.box);
+      tried += second.tries;
+      const { results, crop } = second.read;
+      const mirror = { mirrored: second.mirrored, offMask: second.off ?? [0, null] };
+      return { results, crop, turn, region: region === -1 ? null : region, src, boxes: tb, mirror };
     }
     return null;
   };
@@ -476,7 +571,7 @@ async function detect(bytes, previewSide, person) {
   const want = Number.isInteger(person) && person >= 0 ? person : null;
   const search = await findPerson(pose, canvas, regions, want).catch((e) => ({ error: `the person detector failed: ${e.message ?? e}` }));
   if (search.error) return failed(search.error);
-  const { results, crop, turn, region, src, boxes } = search.found;
+  const { results, crop, turn, region, src, boxes, mirror } = search.found;
   // Crop-normalised → normalised coordinates of the (turned) photo.
   const [ox, oy, sx, sy] = crop
     ? [crop.x / src.width, crop.y / src.height, crop.w / src.width, crop.h / src.height]
@@ -501,6 +596,8 @@ async function detect(bytes, previewSide, person) {
     persons: boxes.map((b) => ({ x: b.x / src.width, y: b.y / src.height, w: b.w / src.width, h: b.h / src.height })),
     person: region,
     tries: search.tried,
+    mirrored: mirror.mirrored,
+    offMask: mirror.offMask,
   };
   if (counted) out.people = regions.length;
   if (out.poseWorldLandmarks.length !== 33) delete out.poseWorldLandmarks;

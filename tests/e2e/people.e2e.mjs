@@ -11,6 +11,8 @@
 //  - a person cut off below the knees by the photo's edge: fitted, the unseen joints named;
 //  - arms raised seen from the side, hands and feet at the photo's edges (the face hidden):
 //    read through the square with room padded around the person;
+//  - a runner seen from the side, whose legs Pose reads together between them (off the
+//    person): read again on the mirrored photo, whose reading is fitted;
 //  - no person: one clear message, the app as it was;
 //  - one person as taken: the person mask the fit uses is the composited silhouette (IoU);
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the
@@ -96,7 +98,7 @@ for (const { name, expect, truth } of photos.values()) {
   if (err) throw new Error(`${name}: ${err}`);
   const p = await fitDone(before, name);
   const wall = (Date.now() - t0) / 1000;
-  rows.push({ name, detect_s: p.detect_ms / 1000, fit_s: p.fit_ms / 1000, wall_s: wall, tries: p.tries, person: p.person, people: p.people, rotation: p.rotation, state: p.state });
+  rows.push({ name, detect_s: p.detect_ms / 1000, fit_s: p.fit_ms / 1000, wall_s: wall, tries: p.tries, person: p.person, people: p.people, rotation: p.rotation, mirrored: p.mirrored, state: p.state });
   if (expect.error) {
     const now = await status();
     check(p.state === 'failed' && expect.error.test(p.message) && now.photo.fits === before.fits,
@@ -117,6 +119,7 @@ for (const { name, expect, truth } of photos.values()) {
     check(p.missing_joints.some((j) => expect.missing.test(j)) && /not seen/.test(p.message),
       `${name}: the joints the photo cuts off are named (${p.missing_joints.join(', ')}; "${p.message}")`);
   }
+  check(p.mirrored === Boolean(expect.mirrored), `${name}: ${p.mirrored ? 'the mirrored photo\'s reading' : 'the first reading'} fitted (want ${expect.mirrored ? 'mirrored' : 'the first'})`);
   if (expect.rotation) check(new RegExp(`turned ${expect.rotation}°`).test(p.message), `${name}: the message names the turn ("${p.message}")`);
   if (expect.chooses) {
     // A click on the 2nd person's box in the photo view refits on that person.
@@ -142,10 +145,10 @@ for (const { name, expect, truth } of photos.values()) {
   }
 }
 await page.screenshot({ path: `${process.env.GETAVATAR_OUT ?? 'out'}/people_last.png` }).catch(() => {});
-console.log('\ncase | detection s | fit s | tries | fitted person / people | turn');
+console.log('\ncase | detection s | fit s | tries | fitted person / people | turn | mirrored');
 for (const r of rows) {
   const fitted = r.state === 'fitted';
-  console.log(`${r.name} | ${r.detect_s.toFixed(1)} | ${fitted ? r.fit_s.toFixed(1) : '—'} | ${fitted ? r.tries : '—'} | ${fitted ? `${r.person} / ${r.people}` : 'none'} | ${fitted ? `${r.rotation}°` : '—'}`);
+  console.log(`${r.name} | ${r.detect_s.toFixed(1)} | ${fitted ? r.fit_s.toFixed(1) : '—'} | ${fitted ? r.tries : '—'} | ${fitted ? `${r.person} / ${r.people}` : 'none'} | ${fitted ? `${r.rotation}°` : '—'} | ${fitted ? (r.mirrored ? 'yes' : 'no') : '—'}`);
 }
 check(consoleErrors.length === 0, `no console error (${JSON.stringify(consoleErrors)})`);
 await browser.close();

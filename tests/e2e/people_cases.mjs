@@ -5,7 +5,8 @@
 //   cases() → [{name, png: Buffer, truth, expect}], where truth is the people's coverage
 //     (alpha, row-major over the photo: {width, height, data: Float32Array}) and expect is
 //     {people, person (1-based, the fitted one by size), rotation, chooses?, missing?: RegExp
-//     (joints named as unseen)} or {error: RegExp}.
+//     (joints named as unseen), mirrored?: the mirrored photo's reading is the one fitted}
+//     or {error: RegExp}.
 //   node people_cases.mjs DIR   writes the PNGs into DIR (to look at them, or for
 //                               tools/mediapipe_fixtures.mjs).
 
@@ -20,6 +21,8 @@ const defaultRender = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clo
 // A held-out synthetic person (`trainer synth-scans --count 12 --seed 1`, `prepare --views 4
 // --res 512 --seed 1`: person 0011, view 003): arms raised, seen from the side.
 const armsUp = PNG.sync.read(fs.readFileSync(new URL('./fixtures/arms_up_side.png', import.meta.url)));
+// Person 0006, view 000 of the same set: running, seen from the side.
+const runner = PNG.sync.read(fs.readFileSync(new URL('./fixtures/runner_side.png', import.meta.url)));
 
 /** A deterministic pseudo-random stream in [0, 1). */
 function rng(seed) {
@@ -128,6 +131,13 @@ export function cases() {
   p = wall(512, 512, 7);
   paste(p, { src: armsUp, scale: 1, ox: 0, oy: 0 });
   add('arms_up_at_the_edge.png', p, { people: 1, person: 1, rotation: 0 });
+
+  // A runner seen from the side over a grey-blue gradient (tools/heldout_photos.mjs): Pose
+  // reads both legs together in the gap between them, off the person; the mirrored photo's
+  // reading puts them on the legs.
+  p = background(512, 512, (x, y) => { const t = y / 511; return [150 - 60 * t, 160 - 50 * t, 185 - 35 * t]; });
+  paste(p, { src: runner, scale: 1, ox: 0, oy: 0 });
+  add('runner_from_the_side.png', p, { people: 1, person: 1, rotation: 0, mirrored: true });
 
   // No person: only a background (the wall with a bright window).
   p = wall(640, 480, 5);

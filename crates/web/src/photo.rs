@@ -77,6 +77,9 @@ pub struct Photo {
     pub rotation: u16,
     /// Candidates the finder tried.
     pub tries: usize,
+    /// The landmarks are Pose's reading of the mirrored photo: the first reading put limb
+    /// landmarks off the person's mask (`www/pose_worker.js`, `secondOpinion`).
+    pub mirrored: bool,
     /// The photo's bytes, to find another of its people.
     pub bytes: std::rc::Rc<Vec<u8>>,
 }
@@ -127,6 +130,8 @@ struct DetectorAnswer {
     rotation: u16,
     #[serde(default)]
     tries: usize,
+    #[serde(default)]
+    mirrored: bool,
 }
 
 /// A person's box, normalised to the photo.
@@ -196,6 +201,7 @@ async fn detect_async(bytes: Vec<u8>, name: String, person: Option<usize>, t0: f
         chosen: person.is_some(),
         rotation: head.rotation,
         tries: head.tries,
+        mirrored: head.mirrored,
         bytes: std::rc::Rc::new(bytes),
     })
 }

@@ -109,6 +109,9 @@ pub struct PhotoStatus {
     pub rotation: u16,
     /// Pose runs the person finder made (candidates tried).
     pub tries: usize,
+    /// The landmarks are Pose's reading of the mirrored photo, which put fewer limb
+    /// landmarks off the person's mask than the first reading.
+    pub mirrored: bool,
     /// Body joints the detector did not see (visibility < ½), SMPL names.
     pub missing_joints: Vec<String>,
     /// Limbs the last fit held where the user put them against the detector ("left arm", …;

@@ -313,6 +313,7 @@ impl GetAvatarApp {
         s.persons = p.persons.clone();
         s.rotation = p.rotation;
         s.tries = p.tries;
+        s.mirrored = p.mirrored;
         let who = who_was_found(&p);
         s.message = if missing.is_empty() {
             format!("{who}; fitting the body…")
