@@ -208,9 +208,9 @@ function padded(r, width, height) {
 
 /**
  * The sides of the squares with room around a person at the photo's edge, in their box's long
- * side, tried in this order: of the held-out views that need one, the arms raised from the
- * side with the face hidden (0011/000) reads only at 1.5 (at 2 Pose reads it upside down in
- * the photo turned 180°, at 1.25 not at all), and the same seen from behind (0011/003) at 2.
+ * side, tried in this order: of the held-out views that need one, arms raised with the face
+ * hidden (0011/000) reads only at 1.5 (at 2 Pose reads it upside down in the photo turned
+ * 180°, at 1.25 not at all), and the same person seen from behind (0011/003) at 2.
  */
 const ROOM = [1.5, 2];
 
