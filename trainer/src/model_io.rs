@@ -135,8 +135,9 @@ pub fn load_inverted_file(
 }
 
 /// The generator in `checkpoint` and the latent modes it carries (if any); without one, the
-/// shipped model of `cfg` (the trained demo model) unless `random` is set; otherwise (saying
-/// so) the deterministic random weights (seed 0) of `cfg`. The config returned is `cfg`, or
+/// shipped model of `cfg` (the trained demo model; an error where it ships but is not found)
+/// unless `random` is set; otherwise (saying so) the deterministic random weights (seed 0) of
+/// `cfg`. The config returned is `cfg`, or
 /// the checkpoint's where it is `cfg` with other detail planes or tet grid
 /// ([`config_with_saved_resolutions`]).
 pub fn generator_or_random(
@@ -157,6 +158,11 @@ pub fn generator_or_random(
             let (g, modes) = load_generator_and_modes(&bytes, &cfg, device).with_context(loading)?;
             (cfg, g, modes)
         }
+        None if !random && cfg.name == "demo" => bail!(
+            "the shipped demo model was not found: neither ./{SHIPPED_DEMO_MODEL} nor {} exists (a trainer \
+             built from another checkout?); give --checkpoint FILE, or --random-weights for untrained weights",
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(SHIPPED_DEMO_MODEL).display()
+        ),
         None => {
             eprintln!(
                 "no trained checkpoint: using deterministic random weights (seed 0) of the `{}` config",
