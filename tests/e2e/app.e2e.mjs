@@ -718,8 +718,8 @@ try {
   await page.screenshot({ path: path.join(out, 'app.png') });
   // No job blocks the UI thread over 100 ms at a time (PerformanceObserver long tasks
   // overlapping each job's window), but for one task of at most 200 ms: two fresh-clone CI
-  // runs on a slow day had one such task in `instant`'s 13 s (151 and 104 ms; none over 50 ms
-  // in a run on the same machine warm), not attributed yet (docs/reliability.md, "Not done
+  // runs on a slow day had one such task in `instant`'s 13 s (151 and 104 ms). Its pieces
+  // found so far are sliced; a warm run still had one of 93 ms (docs/reliability.md, "Not done
   // yet"). Over the whole run they include 1024² frames drawn by SwiftShader, which are no job's.
   const long = await page.evaluate(() => window.__longTasks);
   const sorted = long.map(([, d]) => d).sort((a, b) => b - a);

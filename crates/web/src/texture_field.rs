@@ -9,7 +9,7 @@ use std::cell::{Cell, RefCell};
 use std::rc::Rc;
 
 use getavatar_core::burn::tensor::Device;
-use getavatar_core::generator::checkpoint::{inverted_of, save_inverted_async, SafeTensors};
+use getavatar_core::generator::checkpoint::{inverted_codes, save_inverted_async, SafeTensors};
 use getavatar_core::generator::network::synthesis::Triplanes;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{Generator, Styles};
@@ -97,10 +97,10 @@ impl TextureField {
         let built = match &*self.model.borrow() {
             FieldModel::Built(g, s) => return Ok((g.clone(), s.clone())),
             FieldModel::File { st, cfg, device, .. } => {
-                inverted_of(st, cfg, device).map_err(|e| format!("the reconstruction's file: {e}"))?
+                inverted_codes(st, cfg, device).map_err(|e| format!("the reconstruction's file: {e}"))?
             }
         };
-        let (g, s) = (Rc::new(built.generator), built.styles);
+        let (g, s) = (Rc::new(built.0), built.1);
         *self.model.borrow_mut() = FieldModel::Built(g.clone(), s.clone());
         Ok((g, s))
     }

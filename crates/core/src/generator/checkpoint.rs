@@ -196,16 +196,28 @@ pub fn load_inverted(
     requested: &GeneratorConfig,
     device: &Device,
 ) -> Result<InvertedAvatar, CheckpointError> {
-    inverted_of(&parse_safetensors(bytes)?, requested, device)
+    inverted_of(parse_safetensors(bytes)?, requested, device)
 }
 
 /// [`load_inverted`] from the parsed file (the browser parses and builds in separate slices
 /// of the UI thread).
 pub fn inverted_of(
-    st: &SafeTensors,
+    mut st: SafeTensors,
     requested: &GeneratorConfig,
     device: &Device,
 ) -> Result<InvertedAvatar, CheckpointError> {
+    let photo = take_inverted_photo(&mut st)?;
+    let (generator, styles) = inverted_codes(&st, requested, device)?;
+    Ok(InvertedAvatar { generator, styles, photo })
+}
+
+/// An inverted avatar's tuned generator and W+ codes from the parsed file, without its photo
+/// (which [`take_inverted_photo`] may already have taken out).
+pub fn inverted_codes(
+    st: &SafeTensors,
+    requested: &GeneratorConfig,
+    device: &Device,
+) -> Result<(Generator, crate::generator::pipeline::Styles), CheckpointError> {
     let generator = generator_of(st, requested, device)?;
     let (ng, nt) = generator.num_ws();
     let code = |name: &str, n: usize| -> Result<Tensor<3>, CheckpointError> {
@@ -220,25 +232,24 @@ pub fn inverted_of(
         Ok(Tensor::from_data(TensorData::new(data.clone(), [1, n, requested.w_dim]), device))
     };
     let styles = crate::generator::pipeline::Styles { geo: code(INVERTED_GEO, ng)?, tex: code(INVERTED_TEX, nt)? };
-    let photo = inverted_photo(st)?;
-    Ok(InvertedAvatar { generator, styles, photo })
+    Ok((generator, styles))
 }
 
-/// The photo an inverted avatar's file keeps (None: it keeps none), read without building its
-/// generator: host memory only, no device work (the browser reads it from the worker's result
-/// before it needs that generator).
-pub fn inverted_photo(st: &SafeTensors) -> Result<Option<SourcePhoto>, CheckpointError> {
+/// The photo an inverted avatar's file keeps (None: it keeps none), taken out of the parsed
+/// file (its pixels moved, not copied) without building its generator: host memory only, no
+/// device work (the browser reads it from the worker's result before it needs that generator).
+pub fn take_inverted_photo(st: &mut SafeTensors) -> Result<Option<SourcePhoto>, CheckpointError> {
     Ok(match st.metadata.get(INVERTED_PHOTO) {
         None => None,
         Some(text) => {
             let m: PhotoMeta =
                 serde_json::from_str(text).map_err(|e| fmt_err(format!("{INVERTED_PHOTO} metadata: {e}")))?;
-            let get = |name: &str, shape: &[usize]| -> Result<Vec<f32>, CheckpointError> {
-                let (s, d) = st.tensors.get(name).ok_or_else(|| fmt_err(format!("{name} missing")))?;
+            let mut take = |name: &str, shape: &[usize]| -> Result<Vec<f32>, CheckpointError> {
+                let (s, d) = st.tensors.remove(name).ok_or_else(|| fmt_err(format!("{name} missing")))?;
                 if s[..] != shape[..] {
                     return Err(fmt_err(format!("{name} has shape {s:?}, expected {shape:?}")));
                 }
-                Ok(d.clone())
+                Ok(d)
             };
             let res = m.res;
             if !(16..=4096).contains(&res) {
@@ -250,8 +261,8 @@ pub fn inverted_photo(st: &SafeTensors) -> Result<Option<SourcePhoto>, Checkpoin
                     body: m.body,
                 },
                 res,
-                rgb: get(INVERTED_PHOTO_RGB, &[res, res, 3])?,
-                mask: get(INVERTED_PHOTO_MASK, &[res, res])?,
+                rgb: take(INVERTED_PHOTO_RGB, &[res, res, 3])?,
+                mask: take(INVERTED_PHOTO_MASK, &[res, res])?,
             };
             p.validate().map_err(|e| fmt_err(format!("{INVERTED_PHOTO}: {e}")))?;
             Some(p)
@@ -377,13 +388,17 @@ async fn parse(bytes: &[u8], skip_other_dtypes: bool) -> Result<SafeTensors, Che
             }
             return Err(CheckpointError::Param(name.into(), format!("dtype {} (only F32 is supported)", view.dtype())));
         }
-        let vals = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        out.tensors.insert(name.to_string(), (view.shape().to_vec(), vals));
-        decoded += view.data().len();
-        if decoded >= SLICE_BYTES {
-            decoded = 0;
-            crate::util::cooperative::checkpoint().await;
+        // A large tensor (a photo, a plane's weights) is decoded in slices of its own.
+        let mut vals = Vec::with_capacity(view.data().len() / 4);
+        for piece in view.data().chunks(SLICE_BYTES) {
+            vals.extend(piece.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])));
+            decoded += piece.len();
+            if decoded >= SLICE_BYTES {
+                decoded = 0;
+                crate::util::cooperative::checkpoint().await;
+            }
         }
+        out.tensors.insert(name.to_string(), (view.shape().to_vec(), vals));
     }
     Ok(out)
 }

@@ -16,7 +16,7 @@ use glam::{Mat4, Vec2, Vec3, Vec4};
 
 use crate::export::uv_atlas::NEIGHBOURS_8;
 use crate::render::camera::{OrbitCamera, View};
-use crate::render::rasterize::{rasterize, Texture};
+use crate::render::rasterize::{rasterize_async, Texture};
 use crate::util::cooperative::checkpoint;
 
 /// `cos θ` below which the photo has no weight, and above which it has full weight. The
@@ -26,6 +26,8 @@ use crate::util::cooperative::checkpoint;
 /// benchmark's slim person against a falloff from 0.2 to 0.55; docs/benchmarks.md).
 pub const GRAZING: f32 = 0.0;
 pub const FACING: f32 = 0.3;
+/// Rows of the photo handled between two checkpoints of [`PhotoProjection::new_async`]'s steps.
+const BAND_ROWS: usize = 64;
 /// How far (pixels) the photo's colours are carried beyond the person mask: a 32nd of the crop,
 /// at least 2, so that an avatar a little wider than the person takes the person's colours at
 /// its edge rather than the generated ones.
@@ -102,10 +104,14 @@ pub struct PhotoProjection {
 
 /// The 3×3 minimum of a `res²` mask, 0 outside it (and where it holds fewer values): a row
 /// pass then a column pass (the window is separable).
-fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
+/// A checkpoint every [`BAND_ROWS`] rows.
+async fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
     let at = |k: usize| mask.get(k).copied().unwrap_or(0.0);
     let mut rows = vec![0.0f32; res * res];
     for y in 0..res {
+        if y % BAND_ROWS == BAND_ROWS - 1 {
+            checkpoint().await;
+        }
         for x in 0..res {
             let k = y * res + x;
             let left = if x == 0 { 0.0 } else { at(k - 1) };
@@ -115,6 +121,9 @@ fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
     }
     let mut out = vec![0.0f32; res * res];
     for y in 0..res {
+        if y % BAND_ROWS == BAND_ROWS - 1 {
+            checkpoint().await;
+        }
         for x in 0..res {
             let k = y * res + x;
             let up = if y == 0 { 0.0 } else { rows[k - res] };
@@ -133,7 +142,14 @@ fn erode3(mask: &[f32], res: usize) -> Vec<f32> {
 /// `1 − s/(reach + 1)` at `s` steps outside it, 0 further out and where nothing reached.
 /// (The bake's `uv_atlas::dilate_ring` fills the same way but everywhere; here the fill stops
 /// `reach` steps off the person and only the last pass's neighbours are visited.)
-fn extend_from_interior(colours: &mut [Vec3], mask: &[f32], interior: &[f32], res: usize, reach: usize) -> Vec<f32> {
+/// A checkpoint after each pass.
+async fn extend_from_interior(
+    colours: &mut [Vec3],
+    mask: &[f32],
+    interior: &[f32],
+    res: usize,
+    reach: usize,
+) -> Vec<f32> {
     let neighbours = move |k: usize| {
         let (x, y) = ((k % res) as i64, (k / res) as i64);
         NEIGHBOURS_8.iter().filter_map(move |(dx, dy)| {
@@ -144,12 +160,14 @@ fn extend_from_interior(colours: &mut [Vec3], mask: &[f32], interior: &[f32], re
     let n = res * res;
     let mut filled: Vec<bool> = (0..n).map(|k| interior.get(k).is_some_and(|m| *m >= 0.5)).collect();
     let mut weight: Vec<f32> = filled.iter().map(|f| if *f { 1.0 } else { 0.0 }).collect();
+    checkpoint().await;
     // Steps outside the person of each filled pixel.
     let mut outside = vec![0usize; n];
     // Each pass looks only at the unfilled neighbours of the pixels the last one filled.
     let mut last: Vec<usize> = (0..n).filter(|k| filled[*k]).collect();
     let mut seen = vec![false; n];
     while !last.is_empty() {
+        checkpoint().await;
         let mut candidates = Vec::new();
         for k in last.drain(..) {
             for j in neighbours(k) {
@@ -201,12 +219,14 @@ impl PhotoProjection {
     ) -> Self {
         let view_proj = proj * world_to_camera;
         let clip: Vec<Vec4> = vertices.iter().map(|v| view_proj * v.extend(1.0)).collect();
-        let r = rasterize(&clip, faces, res, res);
-        // Checkpoints between the steps (each 5–25 ms in the browser, on its UI thread).
+        let r = rasterize_async(&clip, faces, res, res).await;
+        // Checkpoints between the steps, and within each every BAND_ROWS rows (a whole step
+        // on a 512² photo took 25–55 ms in the browser, on its UI thread).
         checkpoint().await;
         let inv_proj = proj.inverse();
-        let depth = (0..res * res)
-            .map(|k| {
+        let mut depth = Vec::with_capacity(res * res);
+        for band in (0..res * res).step_by(BAND_ROWS * res) {
+            depth.extend((band..(band + BAND_ROWS * res).min(res * res)).map(|k| {
                 if r.triangle[k] < 0 {
                     return f32::INFINITY;
                 }
@@ -219,17 +239,18 @@ impl PhotoProjection {
                 );
                 let v = inv_proj * ndc;
                 -v.z / v.w
-            })
-            .collect();
+            }));
+            checkpoint().await;
+        }
+        let eroded = erode3(mask, res).await;
         checkpoint().await;
-        let eroded = erode3(mask, res);
-        checkpoint().await;
-        let mut texels: Vec<Vec3> = rgb
-            .chunks_exact(3)
-            .map(|c| Vec3::new(c[0], c[1], c[2]).map(crate::render::colour::decode_srgb_fast))
-            .collect();
-        checkpoint().await;
-        let mask = extend_from_interior(&mut texels, mask, &eroded, res, reach(res));
+        let mut texels: Vec<Vec3> = Vec::with_capacity(res * res);
+        for band in rgb.chunks(3 * BAND_ROWS * res) {
+            let decode = |c: &[f32]| Vec3::new(c[0], c[1], c[2]).map(crate::render::colour::decode_srgb_fast);
+            texels.extend(band.chunks_exact(3).map(decode));
+            checkpoint().await;
+        }
+        let mask = extend_from_interior(&mut texels, mask, &eroded, res, reach(res)).await;
         let photo = Texture { width: res, height: res, texels };
         Self { res, view: world_to_camera, view_proj, photo, mask, depth }
     }
@@ -473,6 +494,7 @@ where
 mod tests {
     use super::*;
     use crate::render::camera::OrbitCamera;
+    use crate::util::cooperative::run_blocking;
 
     fn project(
         view: Mat4,
@@ -559,7 +581,7 @@ mod tests {
         let res = 9;
         let mut rng = crate::util::rng::Rng::new(7, 0);
         let mask: Vec<f32> = (0..res * res).map(|_| rng.uniform()).collect();
-        let got = erode3(&mask, res);
+        let got = run_blocking(erode3(&mask, res));
         for y in 0..res as i64 {
             for x in 0..res as i64 {
                 let mut m = f32::INFINITY;
@@ -594,9 +616,9 @@ mod tests {
                 mask.push(m);
             }
         }
-        let eroded = erode3(&mask, res);
+        let eroded = run_blocking(erode3(&mask, res));
         let r = 2;
-        let w = extend_from_interior(&mut colours, &mask, &eroded, res, r);
+        let w = run_blocking(extend_from_interior(&mut colours, &mask, &eroded, res, r));
         let red = Vec3::new(1.0, 0.0, 0.0);
         for y in 0..res {
             for x in 0..res {

@@ -26,9 +26,38 @@ pub struct Raster {
 
 /// Rasterise triangles `tris` with clip-space vertex positions `clip` into a `width`×`height` image.
 pub fn rasterize(clip: &[Vec4], tris: &[[u32; 3]], width: usize, height: usize) -> Raster {
+    crate::util::cooperative::run_blocking(rasterize_async(clip, tris, width, height))
+}
+
+/// Triangles rasterised between two checkpoints of [`rasterize_async`].
+const TRIANGLES_PER_SLICE: usize = 4096;
+/// Pixels of the raster's buffers filled between two checkpoints of [`rasterize_async`].
+const PIXELS_PER_SLICE: usize = 1 << 16;
+
+/// [`rasterize`] with a checkpoint ([`crate::util::cooperative`]) every
+/// [`TRIANGLES_PER_SLICE`] triangles, for large images on the browser's UI thread.
+pub async fn rasterize_async(clip: &[Vec4], tris: &[[u32; 3]], width: usize, height: usize) -> Raster {
     let n = width * height;
-    let mut r = Raster { width, height, triangle: vec![-1; n], bary: vec![[0.0; 2]; n], depth: vec![f32::INFINITY; n] };
+    let mut r = Raster {
+        width,
+        height,
+        triangle: Vec::with_capacity(n),
+        bary: Vec::with_capacity(n),
+        depth: Vec::with_capacity(n),
+    };
+    // The buffers are filled in slices too: the first touch of fresh memory is what costs in
+    // the browser (a 512² raster's three buffers took 20–30 ms at once there).
+    for start in (0..n).step_by(PIXELS_PER_SLICE) {
+        let m = PIXELS_PER_SLICE.min(n - start);
+        r.triangle.extend(std::iter::repeat_n(-1, m));
+        r.bary.extend(std::iter::repeat_n([0.0; 2], m));
+        r.depth.extend(std::iter::repeat_n(f32::INFINITY, m));
+        crate::util::cooperative::checkpoint().await;
+    }
     for (t, tri) in tris.iter().enumerate() {
+        if t % TRIANGLES_PER_SLICE == TRIANGLES_PER_SLICE - 1 {
+            crate::util::cooperative::checkpoint().await;
+        }
         let c = tri.map(|i| clip[i as usize]);
         if c.iter().any(|v| v.w <= 1e-6) {
             continue;
@@ -235,6 +264,46 @@ fn composite(r: &Raster, n: &[Option<Vec3>], c: &[Option<Vec3>], size: usize, ss
 mod tests {
     use super::*;
     use crate::render::camera::OrbitCamera;
+
+    /// The sliced raster gives the host a checkpoint per slice of its buffers and of its
+    /// triangles, and the same image as [`rasterize`].
+    #[test]
+    fn the_sliced_raster_offers_a_checkpoint_per_slice_and_draws_the_same_image() {
+        use std::cell::Cell;
+        use std::future::Future;
+        use std::rc::Rc;
+        // A 100×100 grid of quads (20,000 triangles) over the middle of the NDC square.
+        let n = 100usize;
+        let clip: Vec<Vec4> = (0..=n)
+            .flat_map(|j| {
+                (0..=n).map(move |i| Vec4::new(i as f32 / n as f32 - 0.5, j as f32 / n as f32 - 0.5, 0.5, 1.0))
+            })
+            .collect();
+        let at = |i: usize, j: usize| (j * (n + 1) + i) as u32;
+        let tris: Vec<[u32; 3]> = (0..n)
+            .flat_map(|j| {
+                (0..n).flat_map(move |i| {
+                    [[at(i, j), at(i + 1, j), at(i + 1, j + 1)], [at(i, j), at(i + 1, j + 1), at(i, j + 1)]]
+                })
+            })
+            .collect();
+        let calls = Rc::new(Cell::new(0usize));
+        let c = calls.clone();
+        crate::util::cooperative::install(Rc::new(move || {
+            c.set(c.get() + 1);
+            None
+        }));
+        let mut fut = std::pin::pin!(rasterize_async(&clip, &tris, 512, 512));
+        let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+        let std::task::Poll::Ready(sliced) = fut.as_mut().poll(&mut cx) else { panic!("a checkpoint without a pause") };
+        crate::util::cooperative::uninstall();
+        let want = 512 * 512 / PIXELS_PER_SLICE + tris.len() / TRIANGLES_PER_SLICE;
+        assert_eq!(calls.get(), want, "checkpoints: {} (4 buffer slices + 4 triangle slices)", calls.get());
+        let whole = rasterize(&clip, &tris, 512, 512);
+        assert_eq!(sliced.triangle, whole.triangle);
+        assert_eq!(sliced.depth, whole.depth);
+        assert!(sliced.triangle.iter().filter(|t| **t >= 0).count() > 512 * 512 / 5, "the grid covers a quarter");
+    }
 
     #[test]
     fn a_square_covers_its_projected_pixels_with_correct_attributes() {

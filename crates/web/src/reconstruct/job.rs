@@ -12,7 +12,7 @@ use getavatar_core::body::body_fit::landmarks::SegmentationMask;
 use getavatar_core::body::skinning::pose_body;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::{
-    inverted_of, inverted_photo, load_discriminator, load_generator_and_modes, parse_safetensors_async,
+    inverted_of, load_discriminator, load_generator_and_modes, parse_safetensors_async, take_inverted_photo,
 };
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
@@ -533,18 +533,21 @@ pub(crate) async fn rig_saved(
     // avatar the generator is built when first used (the texture view, the bake), not here.
     let not_one = |e| format!("{name} is not a reconstruction of this model: {e}");
     let bytes = Rc::new(bytes);
-    let st = Rc::new(parse_safetensors_async(&bytes).await.map_err(not_one)?);
+    let mut st = parse_safetensors_async(&bytes).await.map_err(not_one)?;
     yield_to_browser().await;
     let t = crate::platform::now_ms();
     let (mut rigged, model, photo) = match rigged {
         Some(a) => {
-            let photo = inverted_photo(&st).map_err(not_one)?;
+            // The photo's pixels are moved out of the parsed file (the generator does not
+            // need them), then checked; the avatar's arrays in a task of their own.
+            let photo = take_inverted_photo(&mut st).map_err(not_one)?;
+            yield_to_browser().await;
             let rigged = RiggedAvatar::from_arrays(a, ctx).map_err(|e| format!("{name}: the worker's avatar: {e}"))?;
+            let st = Rc::new(st);
             (rigged, FieldModel::File { st, bytes: bytes.clone(), cfg: cfg.clone(), device: device.clone() }, photo)
         }
         None => {
-            let inv = inverted_of(&st, cfg, device).map_err(not_one)?;
-            drop(st);
+            let inv = inverted_of(st, cfg, device).map_err(not_one)?;
             yield_to_browser().await;
             let rigged =
                 generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?;

@@ -439,7 +439,7 @@ async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, St
         _ => {
             let bytes = u8_array(data, "result").ok_or("the call came without the reconstruction's file")?;
             let st = parse_safetensors_async(&bytes).await.map_err(|e| format!("the reconstruction's file: {e}"))?;
-            let inv = inverted_of(&st, &meta.cfg, &Device::ndarray())
+            let inv = inverted_of(st, &meta.cfg, &Device::ndarray())
                 .map_err(|e| format!("the reconstruction's file: {e}"))?;
             (Field::Tuned(inv.generator), inv.styles)
         }
