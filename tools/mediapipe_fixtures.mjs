@@ -131,7 +131,7 @@ for (const name of photos) {
     fs.writeFileSync(path.join(dir, `${stem}.mask.png`), PNG.sync.write(png, { colorType: 0, inputColorType: 0, inputHasAlpha: false }));
   }
   const vis = r.poseLandmarks.filter((l) => l.visibility >= 0.5).length;
-  console.log(`${name}: ${vis}/33 landmarks visible${m ? `, mask ${m.width}×${m.height}` : ''}${r.tracked ? ', tracked' : ''}${r.mirrored ? `, read mirrored (limb landmarks off the mask: ${r.offMask.join(' → ')})` : ''}`);
+  console.log(`${name}: ${vis}/33 landmarks visible${m ? `, mask ${m.width}×${m.height}` : ''}${r.tracked ? ', tracked' : ''}${r.mirrorWhy ? `, read again mirrored (${r.mirrorWhy === 'doubledArms' ? 'one arm read twice' : `limb landmarks off the mask: ${r.offMask.join(' → ')}`}): ${r.mirrored ? 'the mirrored reading' : 'the first reading'} kept` : ''}`);
 }
 await browser.close();
 server.close();

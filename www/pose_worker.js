@@ -21,8 +21,9 @@
 // sizes, the landmarks and the mask are all of the turned photo, and `rotation` says by how
 // much it was turned, so the fit sees an upright person and its camera is that of the turned
 // photo (the original's camera rolled by `rotation`, docs/conventions.md). A found reading with
-// limb landmarks off its own person mask is read again on the mirrored photo, and the mirrored
-// reading wins when it agrees with the person and puts fewer of them off (`secondOpinion`).
+// limb landmarks off its own person mask, or with one arm read twice, is read again on the
+// mirrored photo, and the mirrored reading wins when it agrees with the person and puts fewer of
+// them off, or sees the arms apart (`secondOpinion`).
 //
 // Messages: {id, bytes: Uint8Array, previewSide, person?} in (person: 0-based region to read,
 // the largest first; absent: search all); {id, json, preview?} out, where json is
@@ -32,7 +33,8 @@
 //    "people": <number of regions selfie segmentation sees; absent when it could not tell>,
 //    "persons": [{x, y, w, h} per region, normalised, largest first], "person": <the fitted
 //    region's index or null>, "tries": <Pose runs>, "mirrored": <the landmarks are the reading
-//    of the mirrored photo (`secondOpinion`)>, "offMask": [<limb landmarks off the person mask
+//    of the mirrored photo (`secondOpinion`)>, "mirrorWhy": <what sent the reading to the
+//    mirror: "offMask", "doubledArms" or null>, "offMask": [<limb landmarks off the person mask
 //    in the first reading>, <in the mirrored one, or null when it was not read>]}
 //   or {"error": "<one sentence for the user>"},
 // {id, bytes, track: 'first' | 'next'} in: a video's frame in order (see `track`), answered
@@ -385,6 +387,15 @@ const MIRROR = [0, 4, 5, 6, 1, 2, 3, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15, 18, 17
 // within OFF_MASK of the person's long side: about the fit's own limit (`OFF_PERSON`, 3 % of
 // its crop, which is wider than the person).
 const OFF_MASK = 0.04;
+// Pose also reads one arm twice: seen from the side, a hand hanging at the waist in front of the
+// torso read over the head, on the far hand raised there (both wrists within DOUBLED of the
+// person's long side of each other). Two hands in one place is also what two raised arms look
+// like from the side, and what crossed arms or clasped hands are, so the mirrored reading wins
+// here only when it sees the hands apart: its
+// wrists at least APART of the person's long side from each other (docs/benchmarks.md, "Body
+// fit": the side reach from its side; two arms raised from the side stay as read).
+const DOUBLED = 0.03;
+const APART = 0.1;
 
 /** How many seen limb landmarks (crop-normalised) lie off `mask` ({width, height, data}). */
 function offMask(landmarks, mask) {
@@ -415,20 +426,36 @@ function offMask(landmarks, mask) {
 }
 
 /**
+ * How far apart a reading's wrists are, as a share of the person's long side (the seen
+ * landmarks' span). `pts` are photo pixels, `vis` their visibilities.
+ */
+function wristsApart(pts, vis) {
+  const seen = pts.filter((_, i) => vis[i] >= SEEN);
+  if (seen.length < 2) return Infinity;
+  const xs = seen.map((p) => p[0]), ys = seen.map((p) => p[1]);
+  const side = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 1);
+  return Math.hypot(pts[15][0] - pts[16][0], pts[15][1] - pts[16][1]) / side;
+}
+
+/**
  * A found reading `r` (of `source`, judged against `box`), checked against its own person mask
- * and, when limb landmarks lie off it, against Pose's reading of the mirrored candidate. Returns
- * {read, tries, mirrored, off: [first, mirrored]}: `read` is `r` or the mirrored reading, with
- * the first reading's mask either way (copied before the second run reuses Pose's canvas).
+ * and, when limb landmarks lie off it or it reads one arm twice, against Pose's reading of the
+ * mirrored candidate. Returns {read, tries, mirrored, why, off: [first, mirrored]}: `read` is
+ * `r` or the mirrored reading, with the first reading's mask either way (copied before the
+ * second run reuses Pose's canvas); `why` is what sent it to the mirror ('offMask',
+ * 'doubledArms' or null).
  */
 async function secondOpinion(pose, r, source, box) {
   const m = r.results.segmentationMask;
-  if (!m) return { read: r, tries: 0, mirrored: false };
+  if (!m) return { read: r, tries: 0, mirrored: false, why: null };
   const mask = newCanvas(m.width, m.height);
   mask.getContext('2d').drawImage(m, 0, 0);
   const values = maskValues(mask);
   const own = { ...r, results: { poseLandmarks: r.results.poseLandmarks, poseWorldLandmarks: r.results.poseWorldLandmarks, segmentationMask: mask } };
   const off = offMask(r.results.poseLandmarks, values);
-  if (off === 0) return { read: own, tries: 0, mirrored: false };
+  const doubled = wristsApart(r.pts, r.vis) < DOUBLED;
+  if (off === 0 && !doubled) return { read: own, tries: 0, mirrored: false, why: null };
+  const why = off > 0 ? 'offMask' : 'doubledArms';
   const image = newCanvas(r.image.width, r.image.height);
   const ctx = image.getContext('2d');
   ctx.translate(image.width, 0);
@@ -436,15 +463,17 @@ async function secondOpinion(pose, r, source, box) {
   ctx.drawImage(r.image, 0, 0);
   const again = await runSolution(pose, image);
   const lms = again.poseLandmarks;
-  if (!lms || lms.length !== 33) return { read: own, tries: 1, mirrored: false, off: [off, null] };
+  if (!lms || lms.length !== 33) return { read: own, tries: 1, mirrored: false, why, off: [off, null] };
   const back = MIRROR.map((k) => ({ ...lms[k], x: 1 - lms[k].x }));
   const world = again.poseWorldLandmarks?.length === 33 ? MIRROR.map((k) => ({ ...again.poseWorldLandmarks[k], x: -again.poseWorldLandmarks[k].x })) : undefined;
   const offAgain = offMask(back, values);
   const { pts, vis } = photoPoints(back, source, r.crop);
   const verdict = judge(pts, vis, box);
-  if (!verdict.ok || offAgain >= off) return { read: own, tries: 1, mirrored: false, off: [off, offAgain] };
+  // Fewer landmarks off the mask; or, for an arm read twice, none more and the arms apart.
+  const better = offAgain < off || (doubled && offAgain <= off && wristsApart(pts, vis) >= APART);
+  if (!verdict.ok || !better) return { read: own, tries: 1, mirrored: false, why, off: [off, offAgain] };
   const read = { ...r, verdict, pts, vis, results: { poseLandmarks: back, poseWorldLandmarks: world, segmentationMask: mask } };
-  return { read, tries: 1, mirrored: true, off: [off, offAgain] };
+  return { read, tries: 1, mirrored: true, why, off: [off, offAgain] };
 }
 
 /** The region (index) most of a reading's seen landmarks fall in, or -1. */
@@ -512,7 +541,7 @@ async function findPerson(pose, canvas, regions, want) {
       const second = await secondOpinion(pose, r, src, c.box);
       tried += second.tries;
       const { results, crop } = second.read;
-      const mirror = { mirrored: second.mirrored, offMask: second.off ?? [0, null] };
+      const mirror = { mirrored: second.mirrored, why: second.why, offMask: second.off ?? [0, null] };
       return { results, crop, turn, region: region === -1 ? null : region, src, boxes: tb, mirror };
     }
     return null;
@@ -607,6 +636,7 @@ async function detect(bytes, previewSide, person) {
     person: region,
     tries: search.tried,
     mirrored: mirror.mirrored,
+    mirrorWhy: mirror.why,
     offMask: mirror.offMask,
   };
   if (counted) out.people = regions.length;

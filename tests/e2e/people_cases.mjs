@@ -23,6 +23,12 @@ const defaultRender = PNG.sync.read(fs.readFileSync(new URL('./fixtures/kick_clo
 const armsUp = PNG.sync.read(fs.readFileSync(new URL('./fixtures/arms_up_side.png', import.meta.url)));
 // Person 0006, view 000 of the same set: running, seen from the side.
 const runner = PNG.sync.read(fs.readFileSync(new URL('./fixtures/runner_side.png', import.meta.url)));
+// The bare body from its left side (`trainer body-photos`: side_reach_view2 and
+// jumping_jack_view2, the white background made transparent): leaning to its left with the
+// right arm over the head and the left hand at the waist; and a jumping jack, both arms raised
+// in the plane of the body, one behind the other.
+const sideReach = PNG.sync.read(fs.readFileSync(new URL('./fixtures/side_reach_side.png', import.meta.url)));
+const jumpingJack = PNG.sync.read(fs.readFileSync(new URL('./fixtures/jumping_jack_side.png', import.meta.url)));
 
 /** A deterministic pseudo-random stream in [0, 1). */
 function rng(seed) {
@@ -138,6 +144,18 @@ export function cases() {
   p = background(512, 512, (x, y) => { const t = y / 511; return [150 - 60 * t, 160 - 50 * t, 185 - 35 * t]; });
   paste(p, { src: runner, scale: 1, ox: 0, oy: 0 });
   add('runner_from_the_side.png', p, { people: 1, person: 1, rotation: 0, mirrored: true });
+
+  // The side reach from its side: Pose reads the hand at the waist over the head, on the far
+  // hand (both arms in one place); the mirrored photo's reading sees the arms apart and is fitted.
+  p = wall(512, 600, 8);
+  paste(p, { src: sideReach, scale: 1, ox: 0, oy: 40 });
+  add('side_reach_from_the_side.png', p, { people: 1, person: 1, rotation: 0, mirrored: true });
+
+  // Two raised arms from the side, one behind the other, are also one arm's place twice: read
+  // again mirrored, they stay as first read.
+  p = wall(512, 600, 9);
+  paste(p, { src: jumpingJack, scale: 1, ox: 0, oy: 60 });
+  add('arms_raised_from_the_side.png', p, { people: 1, person: 1, rotation: 0 });
 
   // No person: only a background (the wall with a bright window).
   p = wall(640, 480, 5);
