@@ -432,11 +432,25 @@ try {
   const onRequest = (r) => requests.push([r.url(), r.method()]);
   page.on('request', onRequest);
   const tInstant = Date.now();
+  // PROFILE_INSTANT=1: a CPU profile of the page over `instant`'s job, for
+  // `node profile_tasks.mjs app_instant` (out/long_tasks/; needs a build with names,
+  // GETAVATAR_KEEP_NAMES=1 cargo xtask build-web).
+  const prof = process.env.PROFILE_INSTANT ? await context.newCDPSession(page) : null;
+  if (prof) { await prof.send('Profiler.enable'); await prof.send('Profiler.setSamplingInterval', { interval: 1000 }); await prof.send('Profiler.start'); }
   const jInstant = await pageNow();
   const instErr = await page.evaluate(() => window.getavatar.command({ reconstruct: { preset: 'instant' } }));
   check(instErr === '' || instErr == null, `the instant reconstruct command is accepted (${instErr})`);
   let rec = (await waitFor((s) => ['done', 'failed', 'cancelled'].includes(s.reconstruct.state), 'the instant reconstruction', 600000)).reconstruct;
   jobs.push(['reconstruction, instant', jInstant, await pageNow()]);
+  if (prof) {
+    const { profile } = await prof.send('Profiler.stop');
+    const [, from, to] = jobs.at(-1);
+    const lt = (await page.evaluate(() => window.__longTasks)).filter(([t, d]) => t + d > from && t < to);
+    const dir = new URL('./out/long_tasks/', import.meta.url);
+    fs.mkdirSync(dir, { recursive: true });
+    fs.writeFileSync(new URL('app_instant.cpuprofile', dir), JSON.stringify(profile));
+    fs.writeFileSync(new URL('app_instant.lt.json', dir), JSON.stringify({ pt0: from, lt }));
+  }
   console.log(`instant reconstruction: first avatar ${(rec.first_avatar_ms / 1000).toFixed(1)} s after the command (start ${(rec.start_ms / 1000).toFixed(1)} s in the worker on ${rec.device}; finish ${(rec.finish_ms / 1000).toFixed(1)} s: ${rec.finish_detail}); wall ${((Date.now() - tInstant) / 1000).toFixed(1)} s; ${rec.message}`);
   check(rec.state === 'done' && rec.start === "the encoder's guess" && rec.losses.length === 0,
     `instant: the avatar is the shipped encoder's guess, no step (${rec.state}, start "${rec.start}", ${rec.losses.length} steps: ${rec.message})`);
@@ -719,8 +733,8 @@ try {
   // No job blocks the UI thread over 100 ms at a time (PerformanceObserver long tasks
   // overlapping each job's window), but for one task of at most 200 ms: two fresh-clone CI
   // runs on a slow day had one such task in `instant`'s 13 s (151 and 104 ms). Its pieces
-  // found so far are sliced; a warm run still had one of 93 ms (docs/reliability.md, "Not done
-  // yet"). Over the whole run they include 1024² frames drawn by SwiftShader, which are no job's.
+  // found so far are sliced; a warm run still had one of 93 ms, a later one none over 50 ms
+  // (docs/reliability.md, "Not done yet"). Over the whole run they include 1024² frames drawn by SwiftShader, which are no job's.
   const long = await page.evaluate(() => window.__longTasks);
   const sorted = long.map(([, d]) => d).sort((a, b) => b - a);
   console.log(`long tasks on the UI thread, whole run: ${long.length} over 50 ms, ${sorted.filter((d) => d > 100).length} over 100 ms, longest ${sorted.slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);
