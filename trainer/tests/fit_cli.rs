@@ -357,22 +357,9 @@ fn fit_pose_on_the_mirrored_reading_of_a_runner_keeps_its_legs() {
     let truth = getavatar_core::io::scan::SmplParams::from_json(&smpl).unwrap().body_params();
     let tj = pose_body(&model, &truth).kinematics.posed_joints;
     let fit = |kp: &str| {
-        let out = dir.join(format!("{kp}.fit.json"));
         let (photo, mask) = (fixtures.join("runner_side.png"), fixtures.join("runner_side.mask.png"));
         let kp_path = fixtures.join(format!("{kp}.kp.json"));
-        let run = trainer(&[
-            "fit-pose",
-            "--image",
-            s(&photo),
-            "--keypoints",
-            s(&kp_path),
-            "--mask",
-            s(&mask),
-            "--out",
-            s(&out),
-        ]);
-        assert!(run.status.success(), "{kp}: {}", String::from_utf8_lossy(&run.stderr));
-        let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        let fit = fit_pose(&photo, &kp_path, &mask, &dir.join(format!("{kp}.fit.json")), None);
         let err = pa_mpjpe(&pose_body(&model, &fit.body_params()).kinematics.posed_joints, &tj);
         eprintln!(
             "{kp}: PA-MPJPE {:.1} mm, mask IoU {:.3}, off the person {:?}",
@@ -390,6 +377,18 @@ fn fit_pose_on_the_mirrored_reading_of_a_runner_keeps_its_legs() {
     assert!(err <= 0.060 && err < err_first - 0.050, "{err_first} → {err}");
     assert!(mirrored.residuals.mask_iou.is_some_and(|m| m >= 0.85), "{:?}", mirrored.residuals.mask_iou);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `trainer fit-pose` on a photo, its MediaPipe reading and mask (from `start` when given),
+/// writing `out`: the fit it wrote.
+fn fit_pose(photo: &Path, kp: &Path, mask: &Path, out: &Path, start: Option<&Path>) -> BodyFit {
+    let mut args = vec!["fit-pose", "--image", s(photo), "--keypoints", s(kp), "--mask", s(mask), "--out", s(out)];
+    if let Some(start) = start {
+        args.extend(["--start", s(start)]);
+    }
+    let run = trainer(&args);
+    assert!(run.status.success(), "{}: {}", kp.display(), String::from_utf8_lossy(&run.stderr));
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
 }
 
 /// A fixture test's setup: `trainer body-photos` rendered into a new temporary folder `name`,
@@ -420,14 +419,7 @@ fn fit_fixture_from(
 ) -> (BodyFit, f32) {
     let out = dir.join(format!("{stem}.{}.json", if start.is_some() { "refit" } else { "fit" }));
     let (kp, mask) = (fixtures.join(format!("{stem}.kp.json")), fixtures.join(format!("{stem}.mask.png")));
-    let photo = dir.join(format!("{stem}.png"));
-    let mut args = vec!["fit-pose", "--image", s(&photo), "--keypoints", s(&kp), "--mask", s(&mask), "--out", s(&out)];
-    if let Some(start) = start {
-        args.extend(["--start", s(start)]);
-    }
-    let run = trainer(&args);
-    assert!(run.status.success(), "{stem}: {}", String::from_utf8_lossy(&run.stderr));
-    let fit: BodyFit = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let fit = fit_pose(&dir.join(format!("{stem}.png")), &kp, &mask, &out, start);
     let fitted = pose_body(model, &fit.body_params()).kinematics.posed_joints;
     let tj = pose_body(model, truth).kinematics.posed_joints;
     let err = pa_mpjpe(&fitted, &tj);
