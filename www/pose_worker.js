@@ -23,7 +23,7 @@
 // photo (the original's camera rolled by `rotation`, docs/conventions.md). A found reading with
 // limb landmarks off its own person mask, or with one arm read twice, is read again on the
 // mirrored photo, and the mirrored reading wins when it agrees with the person and puts fewer of
-// them off, or sees the arms apart (`secondOpinion`).
+// them off, or sees the hands apart (`secondOpinion`).
 //
 // Messages: {id, bytes: Uint8Array, previewSide, person?} in (person: 0-based region to read,
 // the largest first; absent: search all); {id, json, preview?} out, where json is
@@ -391,9 +391,9 @@ const OFF_MASK = 0.04;
 // torso read over the head, on the far hand raised there (both wrists within DOUBLED of the
 // person's long side of each other). Two hands in one place is also what two raised arms look
 // like from the side, and what crossed arms or clasped hands are, so the mirrored reading wins
-// here only when it sees the hands apart: its
-// wrists at least APART of the person's long side from each other (docs/benchmarks.md, "Body
-// fit": the side reach from its side; two arms raised from the side stay as read).
+// here only when it sees the hands apart: its wrists at least APART of the person's long side
+// from each other (docs/benchmarks.md, "Body fit": the side reach from its side; two arms
+// raised from the side stay as read).
 const DOUBLED = 0.03;
 const APART = 0.1;
 
@@ -469,7 +469,7 @@ async function secondOpinion(pose, r, source, box) {
   const offAgain = offMask(back, values);
   const { pts, vis } = photoPoints(back, source, r.crop);
   const verdict = judge(pts, vis, box);
-  // Fewer landmarks off the mask; or, for an arm read twice, none more and the arms apart.
+  // Fewer landmarks off the mask; or, for an arm read twice, none more and the hands apart.
   const better = offAgain < off || (doubled && offAgain <= off && wristsApart(pts, vis) >= APART);
   if (!verdict.ok || !better) return { read: own, tries: 1, mirrored: false, why, off: [off, offAgain] };
   const read = { ...r, verdict, pts, vis, results: { poseLandmarks: back, poseWorldLandmarks: world, segmentationMask: mask } };
