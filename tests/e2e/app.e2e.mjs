@@ -734,7 +734,8 @@ try {
   // overlapping each job's window), but for one task of at most 200 ms: two fresh-clone CI
   // runs on a slow day had one such task in `instant`'s 13 s (151 and 104 ms). Its pieces
   // found so far are sliced; a warm run still had one of 93 ms, a later one none over 50 ms
-  // (docs/reliability.md, "Not done yet"). Over the whole run they include 1024² frames drawn by SwiftShader, which are no job's.
+  // (docs/reliability.md, "Not done yet"). Over the whole run they include 1024² frames drawn
+  // by SwiftShader, which are no job's.
   const long = await page.evaluate(() => window.__longTasks);
   const sorted = long.map(([, d]) => d).sort((a, b) => b - a);
   console.log(`long tasks on the UI thread, whole run: ${long.length} over 50 ms, ${sorted.filter((d) => d > 100).length} over 100 ms, longest ${sorted.slice(0, 5).map((d) => d.toFixed(0)).join(', ')} ms`);

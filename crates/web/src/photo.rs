@@ -78,7 +78,7 @@ pub struct Photo {
     /// Candidates the finder tried.
     pub tries: usize,
     /// The landmarks are Pose's reading of the mirrored photo: the first reading put limb
-    /// landmarks off the person's mask or read one arm twice (`www/pose_worker.js`,
+    /// landmarks off the person's mask or put both hands in one place (`www/pose_worker.js`,
     /// `secondOpinion`).
     pub mirrored: bool,
     /// The photo's bytes, to find another of its people.

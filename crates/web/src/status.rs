@@ -110,7 +110,7 @@ pub struct PhotoStatus {
     /// Pose runs the person finder made (candidates tried).
     pub tries: usize,
     /// The landmarks are Pose's reading of the mirrored photo, which put fewer limb
-    /// landmarks off the person's mask than the first reading, or saw apart the arms that the
+    /// landmarks off the person's mask than the first reading, or saw apart the hands that the
     /// first reading put in one place.
     pub mirrored: bool,
     /// Body joints the detector did not see (visibility < ½), SMPL names.
