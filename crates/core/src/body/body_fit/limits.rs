@@ -8,12 +8,13 @@
 //! positive x rotation takes the ankle behind the knee, the elbows' flexion brings the wrists
 //! in front of the body, and each bone lies along its hinge's remaining axis.
 
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 use burn::tensor::Tensor;
 use glam::Vec3;
 
 use crate::body::body_model::NUM_JOINTS;
-use crate::render::diff::body_model::joint_index;
-use crate::render::diff::matrix;
+#[cfg(any(feature = "generator", feature = "wgpu"))]
+use crate::render::diff::{body_model::joint_index, matrix};
 
 /// A hinge joint: the axis it bends about and the sign of a natural bend.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -72,6 +73,7 @@ pub const RANGES: [Range; 4] = [
 
 /// Σ over [`RANGES`] of the squared excess beyond the range (0 inside it), of θ₁…θ₂₃ as the
 /// fit holds them (`[23, 3]`, the root's row left out).
+#[cfg(any(feature = "generator", feature = "wgpu"))]
 pub fn range_term(body_pose: Tensor<2>) -> Tensor<1> {
     let dev = body_pose.device();
     let n = RANGES.len();
@@ -140,6 +142,7 @@ mod tests {
     /// itself (the knee stays, a bent knee's ankle swings sideways); inside the ranges nothing
     /// is paid, beyond them the squared excess.
     #[test]
+    #[cfg(all(feature = "ndarray", any(feature = "generator", feature = "wgpu")))]
     fn ranges_limit_the_legs_twists_and_nothing_else() {
         let bent = joints(&[(4, 0, 1.2)]);
         let twisted = joints(&[(4, 0, 1.2), (1, 1, 0.8)]);
