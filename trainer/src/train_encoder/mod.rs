@@ -48,7 +48,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::generator::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
+use getavatar_core::generator::checkpoint::{
+    collect_params, parse_safetensors, write_safetensors, NamedTensor, INVERTED_GEO, INVERTED_TEX,
+};
 use getavatar_core::generator::optim::Adam;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::read_f32_now;
@@ -107,6 +109,13 @@ pub struct TrainEncoderArgs {
     /// subjects are held out and choose the kept encoder.
     #[arg(long)]
     pub image_data: Option<PathBuf>,
+    /// A folder of W+-only inversions (`trainer invert --pti-steps 0` outputs, one folder per
+    /// person) whose codes join both dictionaries after the training subjects' (if any): people the
+    /// subjects' codes cannot draw (they draw a dress as two wide trouser legs; W+ steps
+    /// reach it). With `--init`, the new atoms' logits start at [`NEW_ATOM_LOGIT`]; a resumed
+    /// run needs the same folder.
+    #[arg(long)]
+    pub atoms_from: Option<PathBuf>,
     /// Weight of the image term against the code error.
     #[arg(long, default_value_t = 1.0)]
     pub image_weight: f32,
@@ -133,6 +142,9 @@ pub const IMAGE_BATCH: usize = 4;
 pub const IMAGE_RES: usize = 64;
 /// Subjects of `--image-data` held out (fewer when it has few: a quarter).
 pub const HELD_SUBJECTS: usize = 8;
+/// The logit each `--atoms-from` code starts at when added to a trained (`--init`) encoder:
+/// low enough that its first answers stay the trained ones'.
+pub const NEW_ATOM_LOGIT: f32 = -4.0;
 
 pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     if a.batch == 0 || a.snapshot_every == 0 || a.pairs < 4 {
@@ -146,8 +158,10 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     let (cfg, g, modes) = a.model.load(&device)?;
     let model = load_body(&a.body)?;
     let ctx = BodyContext::new(model.clone(), &cfg);
-    // One dictionary code per training subject (where the checkpoint has latent modes).
-    let atoms = modes.as_ref().map_or(0, |m| m.count());
+    // One dictionary code per training subject (where the checkpoint has latent modes), then
+    // one per `--atoms-from` inversion.
+    let bank = a.atoms_from.as_deref().map(|d| inverted_offsets(d, &g, cfg.w_dim)).transpose()?;
+    let atoms = modes.as_ref().map_or(0, |m| m.count()) + bank.as_ref().map_or(0, |b| b.0.dims()[0]);
     let ecfg = EncoderConfig { atoms, ..EncoderConfig::for_generator(g.num_ws(), cfg.w_dim) };
     std::fs::create_dir_all(a.out.join("pairs")).with_context(|| format!("creating {}", a.out.display()))?;
     let shards = a.pairs.div_ceil(shard_size(a.pairs));
@@ -160,6 +174,7 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
         (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
     let (train, held) = data.split_at(shards - 1);
     let dictionary = modes.as_ref().map(|m| subject_offsets(&g, m)).transpose()?;
+    let dictionary = Dictionary { subjects: dictionary, more: bank };
     let scans = match &a.image_data {
         Some(p) => {
             let (_, g_ad, _) = a.model.load(&ad)?;
@@ -185,6 +200,63 @@ fn subject_offsets(g: &Generator, m: &LatentModes) -> Result<(Tensor<2>, Tensor<
         tex.push(off(s.tex, g.mapping_tex.w_avg_tensor(), nt));
     }
     Ok((Tensor::cat(geo, 0), Tensor::cat(tex, 0)))
+}
+
+/// The W+ codes of the inversions under `dir` (each subfolder's `inverted.safetensors`, by
+/// name; W+ only: a PTI run's codes belong to its tuned generator) as offsets from w_avg,
+/// `[people, n·w_dim]` per branch.
+fn inverted_offsets(dir: &Path, g: &Generator, w_dim: usize) -> Result<(Tensor<2>, Tensor<2>)> {
+    let mut runs: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading --atoms-from {}", dir.display()))?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()
+        .with_context(|| format!("listing {}", dir.display()))?;
+    runs.retain(|p| p.join("inverted.safetensors").is_file());
+    runs.sort();
+    if runs.is_empty() {
+        bail!(
+            "--atoms-from {}: no folder with an inverted.safetensors (trainer invert --pti-steps 0 --out …)",
+            dir.display()
+        );
+    }
+    let (ng, nt) = g.num_ws();
+    let avg = |t: Tensor<2>| -> Result<Vec<f32>> { Ok(read_f32_now(t)?) };
+    let (avg_g, avg_t) = (avg(g.mapping_geo.w_avg_tensor())?, avg(g.mapping_tex.w_avg_tensor())?);
+    let (mut geo, mut tex) = (Vec::new(), Vec::new());
+    for run in &runs {
+        let metrics = std::fs::read_to_string(run.join("metrics.json"))
+            .with_context(|| format!("{}: the inversion's metrics.json", run.display()))?;
+        let m: serde_json::Value =
+            serde_json::from_str(&metrics).with_context(|| format!("{}/metrics.json", run.display()))?;
+        if m["options"]["pti_steps"].as_u64() != Some(0) {
+            bail!(
+                "{}: not a W+-only inversion (its PTI tuned the generator; run it with --pti-steps 0)",
+                run.display()
+            );
+        }
+        let file = run.join("inverted.safetensors");
+        let st = parse_safetensors(&std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?)
+            .with_context(|| format!("parsing {}", file.display()))?;
+        for (name, n, avg, out) in [(INVERTED_GEO, ng, &avg_g, &mut geo), (INVERTED_TEX, nt, &avg_t, &mut tex)] {
+            let (shape, data) = st.tensors.get(name).with_context(|| format!("{} has no {name}", file.display()))?;
+            if shape[..] != [1, n, w_dim] {
+                bail!("{}: {name} is {shape:?}, this generator's codes are [1, {n}, {w_dim}]", file.display());
+            }
+            out.extend(data.iter().enumerate().map(|(k, v)| v - avg[k % w_dim]));
+        }
+    }
+    let p = runs.len();
+    eprintln!("{p} inverted people join the dictionaries ({})", dir.display());
+    let t = |v: Vec<f32>, n: usize| {
+        Tensor::<2>::from_data(TensorData::new(v, [p, n * w_dim]), &g.mapping_geo.w_avg_tensor().device())
+    };
+    Ok((t(geo, ng), t(tex, nt)))
+}
+
+/// The encoder's dictionaries: the training subjects' codes and the `--atoms-from` people's.
+struct Dictionary {
+    subjects: Option<(Tensor<2>, Tensor<2>)>,
+    more: Option<(Tensor<2>, Tensor<2>)>,
 }
 
 /// Pair `i` of `shard` as the encoder sees it in training (see [`augment`]).
@@ -283,10 +355,13 @@ fn load_state(path: &Path, ad: &Device) -> Result<(Encoder, Adam, u64, Rng)> {
 fn starting_state(
     a: &TrainEncoderArgs,
     ecfg: &EncoderConfig,
-    dictionary: Option<(Tensor<2>, Tensor<2>)>,
+    dictionary: Dictionary,
     state: &Path,
     ad: &Device,
 ) -> Result<(Encoder, Adam, u64, Rng)> {
+    let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), ad);
+    let more = dictionary.more.map(|(g, t)| (on(g), on(t)));
+    let added = more.as_ref().map_or(0, |m| m.0.dims()[0]);
     Ok(if state.is_file() {
         let s = load_state(state, ad)?;
         eprintln!("resuming from {} at step {}", state.display(), s.2);
@@ -297,17 +372,23 @@ fn starting_state(
         let text = st.metadata.get("encoder").with_context(|| format!("{} has no encoder config", init.display()))?;
         let theirs: EncoderConfig =
             serde_json::from_str(text).with_context(|| format!("the encoder config in {}", init.display()))?;
-        if &theirs != ecfg {
+        let grown = EncoderConfig { atoms: theirs.atoms + added, ..theirs.clone() };
+        if &grown != ecfg {
             bail!("{} is an encoder of another size ({theirs:?}) than this generator's ({ecfg:?})", init.display());
         }
-        let enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", init.display()))?;
+        let mut enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", init.display()))?;
+        if let Some((geo, tex)) = more {
+            enc = enc.with_more_atoms(geo, tex, NEW_ATOM_LOGIT)?;
+        }
         eprintln!("starting from the weights of {}", init.display());
         (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     } else {
         let mut enc = Encoder::new(ecfg, a.seed, ad);
-        if let Some((geo, tex)) = dictionary {
-            let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), ad);
-            enc = enc.with_dictionary(on(geo), on(tex))?;
+        let parts: Vec<(Tensor<2>, Tensor<2>)> =
+            dictionary.subjects.map(|(g, t)| (on(g), on(t))).into_iter().chain(more).collect();
+        if !parts.is_empty() {
+            let (geo, tex): (Vec<_>, Vec<_>) = parts.into_iter().unzip();
+            enc = enc.with_dictionary(Tensor::cat(geo, 0), Tensor::cat(tex, 0))?;
         }
         (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     })
@@ -319,7 +400,7 @@ fn train_loop(
     g: &Generator,
     ctx: &BodyContext,
     ecfg: &EncoderConfig,
-    dictionary: Option<(Tensor<2>, Tensor<2>)>,
+    dictionary: Dictionary,
     train: &[Shard],
     held: &Shard,
     scans: Option<&ScanPhotos>,
