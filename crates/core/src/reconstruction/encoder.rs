@@ -238,7 +238,7 @@ impl Encoder {
             )));
         }
         let grow = |d: Option<Param<Tensor<2>>>, t: Tensor<2>| {
-            d.map(|p| Param::from_tensor(Tensor::cat(vec![p.val(), t.to_device(&p.val().device())], 0)))
+            d.map(|p| Param::from_tensor(Tensor::cat(vec![p.val(), t.to_device(&p.val().device())], 0).detach()))
         };
         self.dict_geo = grow(self.dict_geo, geo);
         self.dict_tex = grow(self.dict_tex, tex);
@@ -247,8 +247,8 @@ impl Encoder {
                 let (w, b) = (l.weight.val(), l.bias.val());
                 let dev = w.device();
                 let rows = full([m, w.dims()[1]], 0.0, &dev);
-                l.weight = Param::from_tensor(Tensor::cat(vec![w, rows], 0));
-                l.bias = Param::from_tensor(Tensor::cat(vec![b, full([m], logit / l.lr_mul, &dev)], 0));
+                l.weight = Param::from_tensor(Tensor::cat(vec![w, rows], 0).detach());
+                l.bias = Param::from_tensor(Tensor::cat(vec![b, full([m], logit / l.lr_mul, &dev)], 0).detach());
                 l
             })
         };
@@ -621,6 +621,14 @@ mod tests {
             crate::generator::checkpoint::collect_params(&high).unwrap().iter().map(|(_, _, v)| v.len()).sum();
         assert_eq!(Some(n), high.config().num_params());
         assert!(e.clone().with_more_atoms(one(17, 1.0), one(24, 1.0), 0.0).is_err());
+        // On an autodiff device (training) the grown parameters are leaves again.
+        let ad = dev.clone().autodiff();
+        let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), &ad);
+        let trained = Encoder::new(&cfg, 1, &ad).with_dictionary(on(dict(18, 1.0)), on(dict(24, -0.5))).unwrap();
+        let grown = trained.with_more_atoms(on(one(18, 7.0)), on(one(24, 5.0)), -30.0).unwrap();
+        let (g, _) = grown.forward(Tensor::<4>::ones([1, INPUT_CHANNELS * 16, 16, 16], &ad));
+        let grads = g.sum().backward();
+        assert!(grown.dict_geo.as_ref().unwrap().val().grad(&grads).is_some(), "the grown dictionary is not trained");
         assert!(Encoder::new(&EncoderConfig { atoms: 0, ..cfg }, 1, &dev)
             .with_more_atoms(one(18, 1.0), one(24, 1.0), 0.0)
             .is_err());
