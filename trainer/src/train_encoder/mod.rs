@@ -29,7 +29,9 @@
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
 //! subjects' codes (one per subject and branch), which the samples are truncated towards.
 //! `--init FILE` starts a new run from an encoder's weights instead (training the shipped one
-//! further on new pairs) and logs their held-out error as step 0.
+//! further on new pairs) and logs their held-out error as step 0. `--atoms-from DIR` appends
+//! W+-only inversions' codes (`trainer invert --pti-steps 0`, one folder per person) to both
+//! dictionaries: the subjects' codes draw a dress as two trouser legs, W+ codes draw it.
 //! Each step composes the renders over a random background (solid, noise, or a blurred other
 //! render) and erodes or dilates the person mask by up to 2 px before the input is built, as a
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
