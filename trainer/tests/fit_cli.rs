@@ -148,8 +148,8 @@ fn fit_pose_fits_a_synthetic_photo_and_refuses_bad_input() {
 /// the app's person finder) on the bare body in the unseen poses from two yaws →
 /// `trainer fit-pose` with the detector's mask, PA-MPJPE against the pose that was rendered.
 /// The target is PA-MPJPE ≤ 60 mm: the mean over the set, as the field reports it (HMR, SPIN
-/// on 3DPW), is 47.0 mm, with the cases at 35–56 mm. Arms crossed is a detector error the fit
-/// can only partly undo (MediaPipe guesses the hidden elbow; 55.5 mm from the front). So this
+/// on 3DPW), is 44.9 mm, with the cases at 33–54 mm. Arms crossed is a detector error the fit
+/// can only partly undo (MediaPipe guesses the hidden elbow; 53.8 mm from the front). So this
 /// guards the set's mean ≤ 60 mm, nine of ten cases ≤ 60 mm and every case ≤ 68 mm.
 #[test]
 fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
@@ -190,18 +190,17 @@ fn fit_pose_on_mediapipe_detections_recovers_the_rendered_poses() {
 /// (jumping jack, sitting with crossed arms, one leg with arms up, a turned walk, a side
 /// reach, a crouch with a twist, kneeling, leaning forward), each from the front, 40° and
 /// 90° to the side and from behind. The goal is a mean PA-MPJPE ≤ 60 mm with no case over
-/// 90 mm; measured: mean 53.4 mm, worst 90.1 mm: the side reach seen from its side. Pose's
-/// first reading of it puts the near hand (at the waist, in front of the torso) over the head
-/// with the far one (99.6 mm; `misread/side_reach_view2`); the person finder reads a photo with
-/// both hands in one place again mirrored, and that reading, which has the hand lower, is the
-/// fixture (`www/pose_worker.js`, `secondOpinion`). What is left is depth: MediaPipe puts the
-/// shoulders 3 cm from the hips' depth where the lean puts them about 20 cm (docs/benchmarks.md).
+/// 90 mm; measured: mean 51.2 mm, worst 87.7 mm (the raised knee from the front; the side
+/// reach from its side 82.6). The side reach from its side is the one the shape prior
+/// decided (`FitWeights::betas` 2; at 0.5 a freer β shortened the torso to explain its
+/// lean in depth: 90.1 mm). Pose's first reading of it puts the near hand (at the waist, in
+/// front of the torso) over the head with the far one (`misread/side_reach_view2`); the
+/// person finder reads a photo with both hands in one place again mirrored, and that reading,
+/// which has the hand lower, is the fixture (`www/pose_worker.js`, `secondOpinion`).
 /// Kneeling from behind (MediaPipe reads the forward thigh as hanging down and its shin
-/// as pointing at the camera) is held under 90 mm (75.5) by the misread thigh's handling
-/// (`leg_readings`: the leg starts at rest, the shin inherits the doubt, the lifted directions;
-/// 109.4 without), the side reach from behind (74.0) by the legs' twist ranges (102.6
-/// without). So this guards the mean goal, the measured worst (≤ 115 mm) and those two cases
-/// until the fit closes the gap. A single hard case
+/// as pointing at the camera) stays under 90 mm (71.3) through the misread thigh's handling
+/// (`leg_readings`: the leg starts at rest, the shin inherits the doubt, the lifted directions),
+/// the side reach from behind (72.7) through the legs' twist ranges. A single hard case
 /// moves by up to ~13 mm when only the order of floating-point additions changes
 /// (docs/benchmarks.md, "How far one case moves on its own"); the means move by tenths of a
 /// millimetre. `FIT_ONLY=stem,stem` fits only those cases (with `FIT_DEBUG=1`, to look at one).
@@ -210,7 +209,6 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
     let (dir, fixtures, model) = fixture_photos("fit-wide", "");
     let mut report = Vec::new();
     let mut errors = Vec::new();
-    let mut held = Vec::new();
     for (name, truth) in wide_poses() {
         for k in 0..WIDE_YAWS.len() {
             let stem = format!("{name}_view{k}");
@@ -221,9 +219,6 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
             // Every reading's landmarks are on the person here (`misread/` has one that is not).
             assert!(fit.off_person.is_empty(), "{stem}: {:?} off the person", fit.off_person);
             errors.push(err);
-            if stem == "side_reach_view3" || stem == "kneel_view3" {
-                held.push((stem.clone(), err));
-            }
             report.push(format!(
                 "{stem}: PA-MPJPE {:.1} mm, keypoints {:.2} % of the height, mask IoU {:.3}",
                 err * 1000.0,
@@ -241,10 +236,7 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
         worst * 1000.0
     );
     if std::env::var("FIT_ONLY").is_err() {
-        assert!(mean <= 0.060 && worst <= 0.115, "mean {mean}, worst {worst}\n{}", report.join("\n"));
-    }
-    for (stem, err) in held {
-        assert!(err <= 0.090, "{stem}: {:.1} mm", err * 1000.0);
+        assert!(mean <= 0.060 && worst <= 0.090, "mean {mean}, worst {worst}\n{}", report.join("\n"));
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -255,9 +247,10 @@ fn fit_pose_on_the_wider_fixture_set_stays_within_its_measured_errors() {
 /// - the jumping jack from the front, its arms read over the head while its own person mask
 ///   shows them spread: the wrists and fingers lie 4.9–7.6 % of the photo's height off the
 ///   mask, so those limbs are taken as the detector's error and named missing, and the
-///   silhouette places them (64.5 mm; 106.6 with the reading taken as it is);
+///   silhouette places them (81.3 mm; 106.6 with the reading taken as it is; 62.0 with the
+///   weaker shape prior of `FitWeights::betas` 0.5, which the fixture sets fit worse);
 /// - crossed arms from 52° to the side, the seen hand given the other wrist's label: the fit's
-///   two-labelling hypothesis swaps the hands back (41.4 mm; 58.7 without it).
+///   two-labelling hypothesis swaps the hands back (39.6 mm; 58.7 without it).
 #[test]
 fn fit_pose_undoes_known_detector_misreadings() {
     let (dir, fixtures, model) = fixture_photos("fit-misread", "misread");
@@ -271,7 +264,7 @@ fn fit_pose_undoes_known_detector_misreadings() {
         assert!(fit.missing.iter().any(|o| o == l), "{stem}: {l} not missing: {:?}", fit.missing);
     }
     eprintln!("{stem}: PA-MPJPE {:.1} mm, off the person: {:?}", err * 1000.0, fit.off_person);
-    assert!(err <= 0.070, "{stem}: PA-MPJPE {:.1} mm", err * 1000.0);
+    assert!(err <= 0.090, "{stem}: PA-MPJPE {:.1} mm", err * 1000.0);
 
     let stem = "arms_crossed_yaw1";
     let (fit, err) = fit_fixture(&dir, &fixtures, stem, &model, &truth(unseen_poses(), "arms_crossed"));
@@ -285,7 +278,7 @@ fn fit_pose_undoes_known_detector_misreadings() {
 /// then "Re-fit from this pose"). The side reach seen from its side as Pose first reads it
 /// (`misread/side_reach_view2`, the reading before the person finder's mirrored second opinion
 /// for two hands in one place): the near (left) hand, at the waist, read over the head with
-/// the far one, and the fit follows it (99.6 mm).
+/// the far one, and the fit follows it (106.1 mm).
 /// - Started from its own fit.json the re-fit holds no limb and ends where the fit did.
 /// - Started from that fit with the left arm's rotations set to the truth's (what a person does
 ///   with the pose controls), it holds the left arm, leaves out the arm's landmarks and ends

@@ -21,7 +21,9 @@ pub struct FitWeights {
     /// Squared excess (radians²) of the thighs' and shins' twists beyond their ranges
     /// ([`super::limits::RANGES`]).
     pub ranges: f32,
-    /// L2 on β.
+    /// L2 on β. A single photo says little about shape, and a free β explains a limb or torso
+    /// foreshortened in depth as a shorter one: at 2 the fixture sets' PA-MPJPE is 44.9 / 51.2 mm
+    /// and their β error 0.82 against 46.6 / 53.4 mm and 0.97 at 0.5 (docs/benchmarks.md).
     pub betas: f32,
     /// Weight of the bone term: the detector's 3D bone directions (world landmarks), read as
     /// [`FitWeights::bones_form`] says.
@@ -50,7 +52,7 @@ impl Default for FitWeights {
             hinge: 1.0,
             hinge_side: 5.0,
             ranges: 20.0,
-            betas: 0.5,
+            betas: 2.0,
             bones: 10.0,
             bones_form: BoneForm::Direction,
             bones_lifted: 3.0,
