@@ -23,7 +23,7 @@ pub struct FitWeights {
     pub ranges: f32,
     /// L2 on β. A single photo says little about shape, and a free β explains a limb or torso
     /// foreshortened in depth as a shorter one: at 2 the fixture sets' PA-MPJPE is 44.9 / 51.2 mm
-    /// and their β error 0.82 against 46.6 / 53.4 mm and 0.97 at 0.5 (docs/benchmarks.md).
+    /// and their β error 0.75 against 46.6 / 53.4 mm and 0.97 at 0.5 (docs/benchmarks.md).
     pub betas: f32,
     /// Weight of the bone term: the detector's 3D bone directions (world landmarks), read as
     /// [`FitWeights::bones_form`] says.
