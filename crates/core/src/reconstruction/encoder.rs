@@ -260,12 +260,8 @@ impl Encoder {
     /// W+ offsets from w_avg of patchified inputs `[B, 11·16, res/4, res/4]`:
     /// (`[B, n_geo, w_dim]`, `[B, n_tex, w_dim]`).
     pub fn forward(&self, x: Tensor<4>) -> (Tensor<3>, Tensor<3>) {
-        let mut x = self.from_patches.forward(x);
-        for b in &self.blocks {
-            x = b.forward(x);
-        }
-        let [b, c, h, w] = x.dims();
-        let hid = self.hidden.forward(x.reshape([b, c * h * w]));
+        let hid = self.features(x);
+        let b = hid.dims()[0];
         let y = self.out.forward(hid.clone());
         let (ng, nt, d) = (self.num_ws_geo, self.num_ws_tex, self.w_dim);
         let mut geo = y.clone().narrow(1, 0, ng * d);
@@ -282,6 +278,17 @@ impl Encoder {
             tex = tex + m;
         }
         (geo.reshape([b, ng, d]), tex.reshape([b, nt, d]))
+    }
+
+    /// The hidden layer `[B, hidden]` of patchified inputs: what the head and the dictionary
+    /// logits read.
+    pub fn features(&self, x: Tensor<4>) -> Tensor<2> {
+        let mut x = self.from_patches.forward(x);
+        for b in &self.blocks {
+            x = b.forward(x);
+        }
+        let [b, c, h, w] = x.dims();
+        self.hidden.forward(x.reshape([b, c * h * w]))
     }
 
     /// The generator's styles for `inputs` (one per row): w_avg plus the predicted offsets.
