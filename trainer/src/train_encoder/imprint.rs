@@ -4,7 +4,11 @@
 //! discovers it slowly. Imprinted, each atom starts selective instead: at its own person's
 //! photo its logit leads the trained atoms' largest by [`MARGIN`], and it falls by [`SLOPE`] per
 //! standard deviation of the training photos' features along the direction from their mean to
-//! that photo's features.
+//! that photo's features. Only the geometry branch is imprinted: the atoms are there for
+//! outlines the subjects' codes cannot draw (a dress), and another person's colours cost more
+//! than they give (imprinting both branches at a margin of 0 and a slope of 3 lowered the
+//! held-out people's masked PSNR by up to 1.9 dB and moved no outline); the texture branch's
+//! new atoms start at a constant logit and are left to training.
 
 use anyhow::{bail, Result};
 use getavatar_core::burn::module::Param;
@@ -13,14 +17,14 @@ use getavatar_core::generator::readback::read_f32_now;
 use getavatar_core::reconstruction::encoder::Encoder;
 
 /// Logit units by which an imprinted atom leads the trained atoms at its own photo.
-pub const MARGIN: f32 = 1.0;
+pub const MARGIN: f32 = 2.0;
 /// Logit units an imprinted atom loses per standard deviation of the training photos'
 /// features away from its photo.
-pub const SLOPE: f32 = 2.0;
+pub const SLOPE: f32 = 3.0;
 
 /// `enc` with the logits of its atoms `first..` (one per row of `own`, the features
 /// `[m, hidden]` of each atom's photo, [`Encoder::features`]) imprinted against `population`
-/// (`[n, hidden]`, the features of training photos), in both branches.
+/// (`[n, hidden]`, the features of training photos), in the geometry branch.
 pub fn imprint(mut enc: Encoder, first: usize, own: Tensor<2>, population: Tensor<2>) -> Result<Encoder> {
     let [m, d] = own.dims();
     let n = population.dims()[0];
@@ -51,7 +55,7 @@ pub fn imprint(mut enc: Encoder, first: usize, own: Tensor<2>, population: Tenso
         let uh = dot(&u, hk);
         dirs.push((u, SLOPE / sd, uh));
     }
-    for l in [&mut enc.logits_geo, &mut enc.logits_tex].into_iter().flatten() {
+    if let Some(l) = &mut enc.logits_geo {
         let atoms = l.bias.val().dims()[0];
         if first + m != atoms || first == 0 {
             bail!("{m} atoms to imprint after {first} in a dictionary of {atoms}");
@@ -109,17 +113,19 @@ mod tests {
         let pop: Vec<f32> = (0..200 * 10).map(|_| rng.normal()).collect();
         let mut own = vec![0.0f32; 10];
         own[0] = 3.0;
+        let tex_before = read_f32_now(enc.logits_tex.as_ref().unwrap().bias.val()).unwrap();
         let enc = imprint(enc, 2, t2(own.clone(), [1, 10]), t2(pop, [200, 10])).unwrap();
-        for l in [&enc.logits_geo, &enc.logits_tex].into_iter().flatten() {
-            let at = |h: Vec<f32>| read_f32_now(l.forward(t2(h, [1, 10]))).unwrap();
-            let here = at(own.clone());
-            assert!((here[2] - (here[0].max(here[1]) + MARGIN)).abs() < 1e-3, "{here:?}");
-            // At the population's mean (3 sd away): SLOPE·3 lower, within the sample's error.
-            let there = at(vec![0.0; 10]);
-            let fall = here[2] - there[2];
-            assert!((fall - 3.0 * SLOPE).abs() < 0.8, "fell {fall} (there {there:?})");
-            assert!(there[2] < there[0].max(there[1]), "{there:?}");
-        }
+        // The texture branch is left as it was.
+        assert_eq!(read_f32_now(enc.logits_tex.as_ref().unwrap().bias.val()).unwrap(), tex_before);
+        let l = enc.logits_geo.as_ref().unwrap();
+        let at = |h: Vec<f32>| read_f32_now(l.forward(t2(h, [1, 10]))).unwrap();
+        let here = at(own.clone());
+        assert!((here[2] - (here[0].max(here[1]) + MARGIN)).abs() < 1e-3, "{here:?}");
+        // At the population's mean (3 sd away): SLOPE·3 lower, within the sample's error.
+        let there = at(vec![0.0; 10]);
+        let fall = here[2] - there[2];
+        assert!((fall - 3.0 * SLOPE).abs() < 0.15 * 3.0 * SLOPE, "fell {fall} (there {there:?})");
+        assert!(there[2] < there[0].max(there[1]), "{there:?}");
         // The wrong number of atoms is refused.
         let e = Encoder::new(&cfg, 1, &dev);
         let spread: Vec<f32> = (0..20).map(|i| i as f32).collect();

@@ -402,7 +402,7 @@ fn starting_state(
             match scans.map(|s| imprinting_features(&enc, s, &entries, ecfg.res, ad)).transpose()? {
                 Some(Some((own, population))) => {
                     enc = imprint::imprint(enc, first, own, population)?;
-                    eprintln!("{added} new atoms imprinted from their people's photos in --image-data");
+                    eprintln!("{added} new atoms: the geometry logits imprinted from their people's photos in --image-data, the texture logits at {NEW_ATOM_LOGIT}");
                 }
                 _ => eprintln!(
                     "{added} new atoms start at logit {NEW_ATOM_LOGIT} (imprinting needs --image-data with \
