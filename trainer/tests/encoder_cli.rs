@@ -216,35 +216,3 @@ fn the_image_term_on_scans_chooses_the_kept_encoder_and_resumes_bit_identically(
     }
     let _ = std::fs::remove_dir_all(&root);
 }
-
-#[test]
-fn inverted_people_join_the_dictionaries_and_a_pti_run_is_refused() {
-    let root = tmp("encoder_atoms");
-    let (scans, data, bank) = (root.join("scans"), root.join("data"), root.join("bank"));
-    ok(trainer(&["synth-scans", "--out", s(&scans), "--count", "1", "--seed", "1", "--texture-size", "128"]));
-    ok(trainer(&["prepare", "--scans", s(&scans), "--out", s(&data), "--views", "1", "--res", "64"]));
-    let invert = |out: &Path, pti: &str| {
-        let base = ["invert", "--config", "tiny", "--random-weights", "--data", s(&data), "--entry", "0000/000.png"];
-        let steps = ["--steps", "2", "--pti-steps", pti, "--texture-res", "64", "--no-encoder", "--out", s(out)];
-        ok(trainer(&[&base[..], &steps[..]].concat()))
-    };
-    invert(&bank.join("p0"), "0");
-    invert(&bank.join("p1"), "0");
-    let a = root.join("a");
-    let o = ok(train_encoder_with(&a, 1, &["--atoms-from", s(&bank)]));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("2 inverted people join the dictionaries"));
-    let file = std::fs::read(a.join("encoder.safetensors")).unwrap();
-    let n = u64::from_le_bytes(file[..8].try_into().unwrap()) as usize;
-    let header: serde_json::Value = serde_json::from_slice(&file[8..8 + n]).unwrap();
-    let cfg: serde_json::Value = serde_json::from_str(header["__metadata__"]["encoder"].as_str().unwrap()).unwrap();
-    assert_eq!(cfg["atoms"], 2, "{cfg}");
-    // Bad input: one clear error each.
-    invert(&bank.join("p2"), "1");
-    let o = train_encoder_with(&root.join("b"), 1, &["--atoms-from", s(&bank)]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("p2") && err.contains("--pti-steps 0"), "{err}");
-    let o = train_encoder_with(&root.join("c"), 1, &["--atoms-from", s(&data)]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("no folder with an inverted.safetensors"), "{err}");
-    let _ = std::fs::remove_dir_all(&root);
-}

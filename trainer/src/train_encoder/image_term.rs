@@ -133,29 +133,6 @@ impl ScanPhotos {
         self.held.iter().map(|s| self.photo(s[0], s[s.len() / 2], res, None)).collect()
     }
 
-    /// The encoder's inputs for the dataset entries `names` (e.g. `0002/000.png`), each on white
-    /// with its true body, as [`ScanPhotos::held_out`] shows them.
-    pub fn clean_inputs(&self, names: &[String], res: usize) -> Result<Vec<EncoderInput>> {
-        names
-            .iter()
-            .map(|name| {
-                let i = self
-                    .ds
-                    .entries
-                    .iter()
-                    .position(|(p, _)| p == name)
-                    .with_context(|| format!("the image data has no entry `{name}`"))?;
-                Ok(self.photo(i, i, res, None)?.input)
-            })
-            .collect()
-    }
-
-    /// The inputs of the first view of up to `count` training subjects (on white, true bodies):
-    /// a sample of what the encoder sees.
-    pub fn training_inputs(&self, count: usize, res: usize) -> Result<Vec<EncoderInput>> {
-        self.train.iter().take(count).map(|s| Ok(self.photo(s[0], s[0], res, None)?.input)).collect()
-    }
-
     fn photo(&self, i: usize, j: usize, res: usize, augmentation: Option<(&[f32], &mut Rng)>) -> Result<ScanPhoto> {
         let (a, b) = (self.ds.load(i)?, self.ds.load(j)?);
         let src = self.ds.resolution;

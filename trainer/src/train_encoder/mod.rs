@@ -29,11 +29,7 @@
 //! With latent modes in the checkpoint the encoder's dictionaries start at the training
 //! subjects' codes (one per subject and branch), which the samples are truncated towards.
 //! `--init FILE` starts a new run from an encoder's weights instead (training the shipped one
-//! further on new pairs) and logs their held-out error as step 0. `--atoms-from DIR` appends
-//! W+-only inversions' codes (`trainer invert --pti-steps 0`, one folder per person) to both
-//! dictionaries: the subjects' codes draw a dress as two trouser legs, W+ codes draw it. With
-//! `--init` each new atom's logit is imprinted from its person's photo (`imprint`): it leads at
-//! that photo and falls away from it, so training refines a choice rather than discovering one.
+//! further on new pairs) and logs their held-out error as step 0.
 //! Each step composes the renders over a random background (solid, noise, or a blurred other
 //! render) and erodes or dilates the person mask by up to 2 px before the input is built, as a
 //! detector's mask is off at the silhouette. `OUT/state.safetensors` (weights, Adam's moments,
@@ -52,9 +48,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::{Device, Tensor, TensorData};
-use getavatar_core::generator::checkpoint::{
-    collect_params, parse_safetensors, write_safetensors, NamedTensor, INVERTED_GEO, INVERTED_TEX,
-};
+use getavatar_core::generator::checkpoint::{collect_params, parse_safetensors, write_safetensors, NamedTensor};
 use getavatar_core::generator::optim::Adam;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::read_f32_now;
@@ -70,7 +64,6 @@ use crate::atomic::{write_atomic, write_atomic_keeping_previous};
 use crate::model_io::{load_body, GeneratorArgs};
 
 mod image_term;
-mod imprint;
 mod pairs;
 use image_term::ScanPhotos;
 use pairs::{read_shard, render_pairs, shard_path, shard_size, Shard};
@@ -114,14 +107,6 @@ pub struct TrainEncoderArgs {
     /// subjects are held out and choose the kept encoder.
     #[arg(long)]
     pub image_data: Option<PathBuf>,
-    /// A folder of W+-only inversions (`trainer invert --pti-steps 0` outputs, one folder per
-    /// person) whose codes join both dictionaries after the training subjects' (if any): people the
-    /// subjects' codes cannot draw (they draw a dress as two wide trouser legs; W+ steps
-    /// reach it). With `--init`, the new atoms' logits are imprinted from their people's photos
-    /// in `--image-data` (`imprint`), or start at [`NEW_ATOM_LOGIT`] without them; a resumed run
-    /// needs the same folder.
-    #[arg(long)]
-    pub atoms_from: Option<PathBuf>,
     /// Weight of the image term against the code error.
     #[arg(long, default_value_t = 1.0)]
     pub image_weight: f32,
@@ -148,10 +133,6 @@ pub const IMAGE_BATCH: usize = 4;
 pub const IMAGE_RES: usize = 64;
 /// Subjects of `--image-data` held out (fewer when it has few: a quarter).
 pub const HELD_SUBJECTS: usize = 8;
-/// The logit each `--atoms-from` code starts at when added to a trained (`--init`) encoder
-/// and its photo is not in `--image-data` (nothing to imprint from): low enough that its first
-/// answers stay the trained ones'.
-pub const NEW_ATOM_LOGIT: f32 = -4.0;
 
 pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     if a.batch == 0 || a.snapshot_every == 0 || a.pairs < 4 {
@@ -165,10 +146,8 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     let (cfg, g, modes) = a.model.load(&device)?;
     let model = load_body(&a.body)?;
     let ctx = BodyContext::new(model.clone(), &cfg);
-    // One dictionary code per training subject (where the checkpoint has latent modes), then
-    // one per `--atoms-from` inversion.
-    let bank = a.atoms_from.as_deref().map(|d| inverted_offsets(d, &g, cfg.w_dim)).transpose()?;
-    let atoms = modes.as_ref().map_or(0, |m| m.count()) + bank.as_ref().map_or(0, |b| b.geo.dims()[0]);
+    // One dictionary code per training subject (where the checkpoint has latent modes).
+    let atoms = modes.as_ref().map_or(0, |m| m.count());
     let ecfg = EncoderConfig { atoms, ..EncoderConfig::for_generator(g.num_ws(), cfg.w_dim) };
     std::fs::create_dir_all(a.out.join("pairs")).with_context(|| format!("creating {}", a.out.display()))?;
     let shards = a.pairs.div_ceil(shard_size(a.pairs));
@@ -181,7 +160,6 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
         (0..shards).map(|s| read_shard(&shard_path(&a.out, s), g.num_ws(), cfg.w_dim)).collect::<Result<_>>()?;
     let (train, held) = data.split_at(shards - 1);
     let dictionary = modes.as_ref().map(|m| subject_offsets(&g, m)).transpose()?;
-    let dictionary = Dictionary { subjects: dictionary, more: bank };
     let scans = match &a.image_data {
         Some(p) => {
             let (_, g_ad, _) = a.model.load(&ad)?;
@@ -207,73 +185,6 @@ fn subject_offsets(g: &Generator, m: &LatentModes) -> Result<(Tensor<2>, Tensor<
         tex.push(off(s.tex, g.mapping_tex.w_avg_tensor(), nt));
     }
     Ok((Tensor::cat(geo, 0), Tensor::cat(tex, 0)))
-}
-
-/// The W+ codes of the inversions under `dir` (each subfolder's `inverted.safetensors`, by
-/// name; W+ only: a PTI run's codes belong to its tuned generator) as offsets from w_avg,
-/// `[people, n·w_dim]` per branch.
-fn inverted_offsets(dir: &Path, g: &Generator, w_dim: usize) -> Result<Bank> {
-    let mut runs: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("reading --atoms-from {}", dir.display()))?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<std::io::Result<_>>()
-        .with_context(|| format!("listing {}", dir.display()))?;
-    runs.retain(|p| p.join("inverted.safetensors").is_file());
-    runs.sort();
-    if runs.is_empty() {
-        bail!(
-            "--atoms-from {}: no folder with an inverted.safetensors (trainer invert --pti-steps 0 --out …)",
-            dir.display()
-        );
-    }
-    let (ng, nt) = g.num_ws();
-    let avg = |t: Tensor<2>| -> Result<Vec<f32>> { Ok(read_f32_now(t)?) };
-    let (avg_g, avg_t) = (avg(g.mapping_geo.w_avg_tensor())?, avg(g.mapping_tex.w_avg_tensor())?);
-    let (mut geo, mut tex, mut entries) = (Vec::new(), Vec::new(), Vec::new());
-    for run in &runs {
-        let metrics = std::fs::read_to_string(run.join("metrics.json"))
-            .with_context(|| format!("{}: the inversion's metrics.json", run.display()))?;
-        let m: serde_json::Value =
-            serde_json::from_str(&metrics).with_context(|| format!("{}/metrics.json", run.display()))?;
-        // `source` is "DATA ENTRY" for a dataset image: the entry names the photo to imprint from.
-        entries.push(m["source"].as_str().and_then(|s| s.rsplit(' ').next()).map(str::to_owned));
-        if m["options"]["pti_steps"].as_u64() != Some(0) {
-            bail!(
-                "{}: not a W+-only inversion (its PTI tuned the generator; run it with --pti-steps 0)",
-                run.display()
-            );
-        }
-        let file = run.join("inverted.safetensors");
-        let st = parse_safetensors(&std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?)
-            .with_context(|| format!("parsing {}", file.display()))?;
-        for (name, n, avg, out) in [(INVERTED_GEO, ng, &avg_g, &mut geo), (INVERTED_TEX, nt, &avg_t, &mut tex)] {
-            let (shape, data) = st.tensors.get(name).with_context(|| format!("{} has no {name}", file.display()))?;
-            if shape[..] != [1, n, w_dim] {
-                bail!("{}: {name} is {shape:?}, this generator's codes are [1, {n}, {w_dim}]", file.display());
-            }
-            out.extend(data.iter().enumerate().map(|(k, v)| v - avg[k % w_dim]));
-        }
-    }
-    let p = runs.len();
-    eprintln!("{p} inverted people join the dictionaries ({})", dir.display());
-    let t = |v: Vec<f32>, n: usize| {
-        Tensor::<2>::from_data(TensorData::new(v, [p, n * w_dim]), &g.mapping_geo.w_avg_tensor().device())
-    };
-    Ok(Bank { geo: t(geo, ng), tex: t(tex, nt), entries })
-}
-
-/// The `--atoms-from` inversions: their codes as offsets from w_avg, `[people, n·w_dim]` per
-/// branch, and each one's dataset entry (when it inverted a dataset image).
-struct Bank {
-    geo: Tensor<2>,
-    tex: Tensor<2>,
-    entries: Vec<Option<String>>,
-}
-
-/// The encoder's dictionaries: the training subjects' codes and the `--atoms-from` people's.
-struct Dictionary {
-    subjects: Option<(Tensor<2>, Tensor<2>)>,
-    more: Option<Bank>,
 }
 
 /// Pair `i` of `shard` as the encoder sees it in training (see [`augment`]).
@@ -372,15 +283,10 @@ fn load_state(path: &Path, ad: &Device) -> Result<(Encoder, Adam, u64, Rng)> {
 fn starting_state(
     a: &TrainEncoderArgs,
     ecfg: &EncoderConfig,
-    dictionary: Dictionary,
-    scans: Option<&ScanPhotos>,
+    dictionary: Option<(Tensor<2>, Tensor<2>)>,
     state: &Path,
     ad: &Device,
 ) -> Result<(Encoder, Adam, u64, Rng)> {
-    let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), ad);
-    let entries = dictionary.more.as_ref().map(|b| b.entries.clone()).unwrap_or_default();
-    let more = dictionary.more.map(|b| (on(b.geo), on(b.tex)));
-    let added = more.as_ref().map_or(0, |m| m.0.dims()[0]);
     Ok(if state.is_file() {
         let s = load_state(state, ad)?;
         eprintln!("resuming from {} at step {}", state.display(), s.2);
@@ -391,67 +297,20 @@ fn starting_state(
         let text = st.metadata.get("encoder").with_context(|| format!("{} has no encoder config", init.display()))?;
         let theirs: EncoderConfig =
             serde_json::from_str(text).with_context(|| format!("the encoder config in {}", init.display()))?;
-        let grown = EncoderConfig { atoms: theirs.atoms + added, ..theirs.clone() };
-        if &grown != ecfg {
+        if &theirs != ecfg {
             bail!("{} is an encoder of another size ({theirs:?}) than this generator's ({ecfg:?})", init.display());
         }
-        let mut enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", init.display()))?;
-        if let Some((geo, tex)) = more {
-            let first = theirs.atoms;
-            enc = enc.with_more_atoms(geo, tex, NEW_ATOM_LOGIT)?;
-            match scans.map(|s| imprinting_features(&enc, s, &entries, ecfg.res, ad)).transpose()? {
-                Some(Some((own, population))) => {
-                    enc = imprint::imprint(enc, first, own, population)?;
-                    eprintln!("{added} new atoms: the geometry logits imprinted from their people's photos in --image-data, the texture logits at {NEW_ATOM_LOGIT}");
-                }
-                _ => eprintln!(
-                    "{added} new atoms start at logit {NEW_ATOM_LOGIT} (imprinting needs --image-data with \
-                     every inverted entry)"
-                ),
-            }
-        }
+        let enc = load_encoder(&bytes, ad).with_context(|| format!("the encoder in {}", init.display()))?;
         eprintln!("starting from the weights of {}", init.display());
         (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     } else {
         let mut enc = Encoder::new(ecfg, a.seed, ad);
-        let parts: Vec<(Tensor<2>, Tensor<2>)> =
-            dictionary.subjects.map(|(g, t)| (on(g), on(t))).into_iter().chain(more).collect();
-        if !parts.is_empty() {
-            let (geo, tex): (Vec<_>, Vec<_>) = parts.into_iter().unzip();
-            enc = enc.with_dictionary(Tensor::cat(geo, 0), Tensor::cat(tex, 0))?;
+        if let Some((geo, tex)) = dictionary {
+            let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), ad);
+            enc = enc.with_dictionary(on(geo), on(tex))?;
         }
         (enc, Adam::new(0.9, 0.99, 1e-8), 0, Rng::new(a.seed, 0xe2c0))
     })
-}
-
-/// Training photos whose features the imprinted atoms are measured against.
-const IMPRINT_POPULATION: usize = 64;
-
-/// The features ([`Encoder::features`]) of the `--atoms-from` people's photos in `scans` and
-/// of [`IMPRINT_POPULATION`] training photos; `None` when an inversion's entry is not there.
-fn imprinting_features(
-    enc: &Encoder,
-    scans: &ScanPhotos,
-    entries: &[Option<String>],
-    res: usize,
-    ad: &Device,
-) -> Result<Option<(Tensor<2>, Tensor<2>)>> {
-    let Some(names) = entries.iter().cloned().collect::<Option<Vec<String>>>() else {
-        return Ok(None);
-    };
-    let own = match scans.clean_inputs(&names, res) {
-        Ok(v) => v,
-        Err(e) => {
-            eprintln!("not imprinting: {e:#}");
-            return Ok(None);
-        }
-    };
-    let population = scans.training_inputs(IMPRINT_POPULATION, res)?;
-    let features = |inputs: &[EncoderInput]| -> Result<Tensor<2>> {
-        let refs: Vec<&EncoderInput> = inputs.iter().collect();
-        Ok(enc.features(batch_tensor(&refs, ad)?).detach())
-    };
-    Ok(Some((features(&own)?, features(&population)?)))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -460,14 +319,14 @@ fn train_loop(
     g: &Generator,
     ctx: &BodyContext,
     ecfg: &EncoderConfig,
-    dictionary: Dictionary,
+    dictionary: Option<(Tensor<2>, Tensor<2>)>,
     train: &[Shard],
     held: &Shard,
     scans: Option<&ScanPhotos>,
     ad: &Device,
 ) -> Result<()> {
     let state = a.out.join(STATE);
-    let (mut enc, mut adam, mut step, mut rng) = starting_state(a, ecfg, dictionary, scans, &state, ad)?;
+    let (mut enc, mut adam, mut step, mut rng) = starting_state(a, ecfg, dictionary, &state, ad)?;
     enc.check(g)?;
     let (ng, nt) = g.num_ws();
     let w = ecfg.w_dim;

@@ -219,49 +219,15 @@ impl Encoder {
         Ok(self)
     }
 
-    /// This encoder with `geo` `[m, n_geo·w_dim]` and `tex` `[m, n_tex·w_dim]` appended to its
-    /// dictionaries (e.g. W+ codes inverted from people the first atoms cannot draw), each new
-    /// atom's logit starting at `logit` for every input (its weights at zero), so that a
-    /// very negative `logit` leaves the encoder's answers as they were.
-    pub fn with_more_atoms(mut self, geo: Tensor<2>, tex: Tensor<2>, logit: f32) -> Result<Self, EncoderError> {
-        let m = geo.dims()[0];
-        let fits = |d: &Option<Param<Tensor<2>>>, t: &Tensor<2>| {
-            d.as_ref().is_some_and(|p| p.val().dims()[1] == t.dims()[1] && t.dims()[0] == m)
-        };
-        if !fits(&self.dict_geo, &geo) || !fits(&self.dict_tex, &tex) || m == 0 {
-            return Err(EncoderError::Input(format!(
-                "atoms {:?} / {:?} for an encoder with dictionaries {:?} / {:?}",
-                geo.dims(),
-                tex.dims(),
-                self.dict_geo.as_ref().map(|p| p.val().dims()),
-                self.dict_tex.as_ref().map(|p| p.val().dims())
-            )));
-        }
-        let grow = |d: Option<Param<Tensor<2>>>, t: Tensor<2>| {
-            d.map(|p| Param::from_tensor(Tensor::cat(vec![p.val(), t.to_device(&p.val().device())], 0).detach()))
-        };
-        self.dict_geo = grow(self.dict_geo, geo);
-        self.dict_tex = grow(self.dict_tex, tex);
-        let extend = |l: Option<FullyConnected>| {
-            l.map(|mut l| {
-                let (w, b) = (l.weight.val(), l.bias.val());
-                let dev = w.device();
-                let rows = full([m, w.dims()[1]], 0.0, &dev);
-                l.weight = Param::from_tensor(Tensor::cat(vec![w, rows], 0).detach());
-                l.bias = Param::from_tensor(Tensor::cat(vec![b, full([m], logit / l.lr_mul, &dev)], 0).detach());
-                l
-            })
-        };
-        self.logits_geo = extend(self.logits_geo);
-        self.logits_tex = extend(self.logits_tex);
-        Ok(self)
-    }
-
     /// W+ offsets from w_avg of patchified inputs `[B, 11·16, res/4, res/4]`:
     /// (`[B, n_geo, w_dim]`, `[B, n_tex, w_dim]`).
     pub fn forward(&self, x: Tensor<4>) -> (Tensor<3>, Tensor<3>) {
-        let hid = self.features(x);
-        let b = hid.dims()[0];
+        let mut x = self.from_patches.forward(x);
+        for b in &self.blocks {
+            x = b.forward(x);
+        }
+        let [b, c, h, w] = x.dims();
+        let hid = self.hidden.forward(x.reshape([b, c * h * w]));
         let y = self.out.forward(hid.clone());
         let (ng, nt, d) = (self.num_ws_geo, self.num_ws_tex, self.w_dim);
         let mut geo = y.clone().narrow(1, 0, ng * d);
@@ -278,17 +244,6 @@ impl Encoder {
             tex = tex + m;
         }
         (geo.reshape([b, ng, d]), tex.reshape([b, nt, d]))
-    }
-
-    /// The hidden layer `[B, hidden]` of patchified inputs: what the head and the dictionary
-    /// logits read.
-    pub fn features(&self, x: Tensor<4>) -> Tensor<2> {
-        let mut x = self.from_patches.forward(x);
-        for b in &self.blocks {
-            x = b.forward(x);
-        }
-        let [b, c, h, w] = x.dims();
-        self.hidden.forward(x.reshape([b, c * h * w]))
     }
 
     /// The generator's styles for `inputs` (one per row): w_avg plus the predicted offsets.
@@ -611,34 +566,6 @@ mod tests {
         assert!(read(g).iter().all(|v| (v - 2.0).abs() < 1e-6));
         assert!(read(t).iter().all(|v| (v + 1.0).abs() < 1e-6));
         assert!(Encoder::new(&cfg, 1, &dev).with_dictionary(dict(17, 1.0), dict(24, 1.0)).is_err());
-        // More atoms: counted in the config; at a very low logit the answers stay the mean of
-        // the first two, at a high one they are the new atom's.
-        let one = |n: usize, v: f32| Tensor::<2>::from_data(TensorData::new(vec![v; n], [1, n]), &dev);
-        let x = || Tensor::<4>::ones([1, INPUT_CHANNELS * 16, 16, 16], &dev);
-        let low = e.clone().with_more_atoms(one(18, 7.0), one(24, 5.0), -30.0).unwrap();
-        assert_eq!(low.config(), EncoderConfig { atoms: 3, ..cfg.clone() });
-        let (g, t) = low.forward(x());
-        assert!(read(g).iter().all(|v| (v - 2.0).abs() < 1e-5));
-        assert!(read(t).iter().all(|v| (v + 1.0).abs() < 1e-5));
-        let high = e.clone().with_more_atoms(one(18, 7.0), one(24, 5.0), 30.0).unwrap();
-        let (g, t) = high.forward(x());
-        assert!(read(g).iter().all(|v| (v - 7.0).abs() < 1e-4));
-        assert!(read(t).iter().all(|v| (v - 5.0).abs() < 1e-4));
-        let n: usize =
-            crate::generator::checkpoint::collect_params(&high).unwrap().iter().map(|(_, _, v)| v.len()).sum();
-        assert_eq!(Some(n), high.config().num_params());
-        assert!(e.clone().with_more_atoms(one(17, 1.0), one(24, 1.0), 0.0).is_err());
-        // On an autodiff device (training) the grown parameters are leaves again.
-        let ad = dev.clone().autodiff();
-        let on = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), &ad);
-        let trained = Encoder::new(&cfg, 1, &ad).with_dictionary(on(dict(18, 1.0)), on(dict(24, -0.5))).unwrap();
-        let grown = trained.with_more_atoms(on(one(18, 7.0)), on(one(24, 5.0)), -30.0).unwrap();
-        let (g, _) = grown.forward(Tensor::<4>::ones([1, INPUT_CHANNELS * 16, 16, 16], &ad));
-        let grads = g.sum().backward();
-        assert!(grown.dict_geo.as_ref().unwrap().val().grad(&grads).is_some(), "the grown dictionary is not trained");
-        assert!(Encoder::new(&EncoderConfig { atoms: 0, ..cfg }, 1, &dev)
-            .with_more_atoms(one(18, 1.0), one(24, 1.0), 0.0)
-            .is_err());
     }
 
     #[test]
