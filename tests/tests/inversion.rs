@@ -349,3 +349,57 @@ fn the_shipped_encoder_guesses_known_codes_better_than_w_avg() {
     assert!(iou_enc >= iou_avg - 0.005 && iou_enc >= 0.9, "mask IoU {iou_enc} vs w_avg's {iou_avg}");
     assert!(psnr_enc > psnr_avg + 0.3, "masked PSNR {psnr_enc} vs w_avg's {psnr_avg}");
 }
+
+/// The shipped encoder file's garment codes (`reconstruction::garment_codes`): a render whose
+/// geometry is one of them (a dress, the texture the guess's) gets that code's geometry, and
+/// a render of the guess itself keeps the guess's.
+#[test]
+fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
+    use getavatar_core::burn::tensor::{Tensor, TensorData};
+    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, parse_safetensors};
+    use getavatar_core::reconstruction::encoder::load_encoder;
+    use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCodes};
+    use getavatar_core::reconstruction::inversion::encoder_start;
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/");
+    let bytes = std::fs::read(format!("{root}demo.safetensors")).unwrap();
+    let dev = cpu();
+    let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
+    let g = load_generator(&bytes, &cfg, &dev).unwrap();
+    let enc_bytes = std::fs::read(format!("{root}encoder.safetensors")).unwrap();
+    let enc = load_encoder(&enc_bytes, &dev).unwrap();
+    let all = GarmentCodes::from_safetensors(&parse_safetensors(&enc_bytes).unwrap()).expect("shipped garment codes");
+    all.check(&g).unwrap();
+    // Three codes keep the test short; the photo is drawn by the second.
+    let codes = GarmentCodes { codes: all.codes[..3].to_vec() };
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let res = 128;
+    let body = PoseLibrary::builtin().params("walking", &[]).unwrap();
+    let cam = OrbitCamera { yaw: 0.3, pitch: 0.05, ..OrbitCamera::default() };
+    let view = View { world_to_camera: cam.world_to_camera(), body };
+    let render = |s: &Styles| {
+        let f =
+            render_avatars(&g, &ctx, s, std::slice::from_ref(&view), res, &PosedGridCache::default(), &dev).unwrap();
+        let (rgb, mask) = render_images(&f).unwrap();
+        InversionTarget { view: view.clone(), res, rgb, mask }
+    };
+    let avg = start_candidates(&g, None).remove(0).styles;
+    let (name, shape, v) = &codes.codes[1];
+    let geo = Tensor::<3>::from_data(TensorData::new(v.clone(), [shape[0], shape[1], shape[2]]), &dev);
+    let target = render(&Styles { geo, tex: avg.tex.clone() });
+    let guess = encoder_start(&enc, &g, &ctx.model, &target, &dev).unwrap();
+    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
+    let figures: Vec<String> =
+        choice.candidates.iter().map(|c| format!("{} {:.3} / {:.4}", c.name, c.mask_iou, c.loss)).collect();
+    eprintln!("the code's render: {}", figures.join(", "));
+    assert_eq!(choice.chosen.as_ref(), Some(name), "{figures:?}");
+    let (guess_c, chosen_c) = (&choice.candidates[0], &choice.candidates[2]);
+    assert!(chosen_c.mask_iou > guess_c.mask_iou + 0.02 && chosen_c.mask_iou > 0.9, "{figures:?}");
+    // A render of the guess itself: no code explains it better.
+    let target = render(&guess);
+    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
+    let figures: Vec<String> =
+        choice.candidates.iter().map(|c| format!("{} {:.3} / {:.4}", c.name, c.mask_iou, c.loss)).collect();
+    eprintln!("the guess's render: {}", figures.join(", "));
+    assert_eq!(choice.chosen, None, "{figures:?}");
+    assert!(choice.candidates[0].mask_iou > 0.9, "{figures:?}");
+}

@@ -170,6 +170,9 @@ enum Command {
     /// Train the photo encoder (the reconstruction's first guess) on the generator's own
     /// renders: `--out runs/enc`, resumable.
     TrainEncoder(train_encoder::TrainEncoderArgs),
+    /// Add the geometry codes of W+ inversions (`trainer invert` folders of people in dresses
+    /// and skirts) to an encoder file as its garment codes, weighed after its guess.
+    GarmentCodes(train_encoder::garments::GarmentCodesArgs),
     /// Reconstruct an avatar from one image (paper Sec. 5.4): W+ inversion of the latent codes
     /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned
     /// generator and codes, and metrics go to --out.
@@ -332,6 +335,7 @@ fn main() -> Result<()> {
         Command::FitMapping(args) => fit_mapping::fit_mapping(&args)?,
         Command::TrainDiscriminator(args) => train_discriminator::train_discriminator(&args)?,
         Command::TrainEncoder(args) => train_encoder::train_encoder(&args)?,
+        Command::GarmentCodes(args) => train_encoder::garments::garment_codes(&args)?,
         Command::FitPose(args) => fit_pose::fit_pose(&args)?,
         Command::MotionFromVideo(args) => motion_from_video::motion_from_video(&args)?,
         Command::BodyPhotos { out, size, dance: Some(frames) } => {

@@ -1,7 +1,8 @@
 //! `trainer train-encoder` and the encoder's use by `trainer invert` (tiny generator, a few
 //! pairs and steps): resuming is bit-identical to not stopping; `invert --preset instant`
 //! starts from the encoder and optimises nothing; an unusable encoder file is reported once
-//! and the latent-mode search starts the inversion instead.
+//! and the latent-mode search starts the inversion instead; `garment-codes` adds an
+//! inversion's geometry codes to an encoder file, which invert then weighs.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a test fails by panicking
 
 mod common;
@@ -131,6 +132,40 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
     );
     assert_eq!(err.matches("cannot be used").count(), 1, "{err}");
     assert_ne!(metrics(&inv2)["start"], "encoder");
+
+    // Garment codes: the instant inversion's geometry codes added to the encoder file; invert
+    // weighs them after the guess (none when the guess's outline already fits the person).
+    // The code is the guess's own geometry here, so it explains nothing better: the guess stays.
+    let with = root.join("with_garments.safetensors");
+    let o = ok(trainer(&["garment-codes", "--encoder", s(&enc), "--from", s(&inv), "--out", s(&with)]));
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("with 1 garment codes"),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let inv3 = root.join("inv3");
+    ok(trainer(&[&base[..], &quick[..], &["--encoder", s(&with), "--out", s(&inv3)]].concat()));
+    let m = metrics(&inv3);
+    let cands = m["garments"]["candidates"].as_array().unwrap();
+    assert_eq!(cands[0]["name"], "guess", "{m}");
+    assert!(cands.len() == 1 || (cands.len() == 2 && cands[1]["name"] == "inv"), "{m}");
+    assert!(m["garments"]["chosen"].is_null(), "{m}");
+    assert_eq!(m["at_start"], metrics(&inv)["at_start"], "the guess stays as it was");
+    // `{"garments":false}`: nothing weighed.
+    let inv4 = root.join("inv4");
+    let off = ["--options", r#"{"garments":false}"#, "--encoder", s(&with), "--out", s(&inv4)];
+    ok(trainer(&[&base[..], &quick[..], &off[..]].concat()));
+    assert!(metrics(&inv4).get("garments").is_none());
+    // Bad input: one clear error each.
+    let x = root.join("x.safetensors");
+    let o = trainer(&["garment-codes", "--encoder", s(&bad), "--from", s(&inv), "--out", s(&x)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("bad.safetensors"), "{err}");
+    let nowhere = root.join("nowhere");
+    let o = trainer(&["garment-codes", "--encoder", s(&enc), "--from", s(&nowhere), "--out", s(&x)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("nowhere"), "{err}");
+    assert!(!x.exists());
     let _ = std::fs::remove_dir_all(&root);
 }
 

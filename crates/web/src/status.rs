@@ -155,6 +155,13 @@ pub struct ReconstructStatus {
     /// The start (latent mode or w_avg) and of how many candidates.
     pub start: String,
     pub candidates: usize,
+    /// The garment code whose geometry replaced the encoder's guess's
+    /// (`reconstruction::garment_codes`; "" when the guess's own geometry stayed).
+    pub garment: String,
+    /// How many garment codes the encoder file carries, and how many were weighed (none when
+    /// the guess's outline already overlaps the person well).
+    pub garment_codes: usize,
+    pub garments_weighed: usize,
     /// Whether the perceptual term (the shipped discriminator's features) is on.
     pub perceptual: bool,
     /// Where the steps run: "worker" (the reconstruction worker, off the UI thread) or "page"

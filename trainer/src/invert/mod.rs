@@ -28,6 +28,7 @@ use getavatar_core::body::motion::Motion;
 use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::body::skinning::{pose_body, BodyParams};
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::checkpoint::parse_safetensors;
 use getavatar_core::generator::checkpoint::{self, save_inverted};
 use getavatar_core::generator::network::discriminator::Discriminator;
 use getavatar_core::generator::network::GeneratorConfig;
@@ -38,6 +39,7 @@ use getavatar_core::generator::rigging::{BakedTexture, RiggedAvatar};
 use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::io::scan::RenderableScan;
 use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
+use getavatar_core::reconstruction::garment_codes::GarmentCodes;
 use getavatar_core::reconstruction::inversion::{
     comparison_image, mask_iou, masked_psnr, render_images, InversionOptions, InversionTarget, Inverter, Phase,
 };
@@ -149,6 +151,9 @@ struct InvertMetrics {
     /// At the input camera: the start (the encoder's guess, or the chosen latent mode), on
     /// the body the steps start from (the refitted one, where the fit was refitted).
     at_start: ViewMetrics,
+    /// The encoder file's garment codes weighed against its guess (`options.garments`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    garments: Option<start::GarmentMetrics>,
     /// The body fit's refinement on the guess's outline (a photo, `refit_steps` > 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     refit: Option<RefitMetrics>,
@@ -298,7 +303,7 @@ fn load_encoder_arg(
     g: &Generator,
     shipped: Option<&GeneratorConfig>,
     dev: &Device,
-) -> Option<(Encoder, PathBuf)> {
+) -> Option<(Encoder, PathBuf, Option<GarmentCodes>)> {
     if a.no_encoder {
         return None;
     }
@@ -309,7 +314,7 @@ fn load_encoder_arg(
             Ok(e)
         });
     match loaded {
-        Ok(enc) => Some((enc, path)),
+        Ok(enc) => Some((enc, path.clone(), garment_codes_of(&path, g))),
         Err(e) => {
             eprintln!(
                 "the encoder {} cannot be used ({e:#}); starting from the latent-mode search instead",
@@ -394,6 +399,23 @@ fn photo_pck(
     Ok(p)
 }
 
+/// The garment codes in the encoder file at `path` (None without any, or, said on stderr,
+/// when they do not fit `g`: the guess then stands alone).
+fn garment_codes_of(path: &Path, g: &Generator) -> Option<GarmentCodes> {
+    let codes = std::fs::read(path)
+        .map_err(anyhow::Error::from)
+        .and_then(|b| Ok(parse_safetensors(&b)?))
+        .map(|st| GarmentCodes::from_safetensors(&st))
+        .and_then(|c| match c {
+            Some(c) => c.check(g).map(|()| Some(c)).map_err(anyhow::Error::from),
+            None => Ok(None),
+        });
+    codes.unwrap_or_else(|e| {
+        eprintln!("the garment codes in {} cannot be used ({e:#}); the encoder's guess stands alone", path.display());
+        None
+    })
+}
+
 /// The camera opposite `w2c` about the body's vertical axis (x = z = 0).
 fn opposite(w2c: Mat4) -> Mat4 {
     w2c * Mat4::from_rotation_y(std::f32::consts::PI)
@@ -435,12 +457,14 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
 
     // The start: the encoder's guess, or the latent mode (or w_avg) that explains the image best.
     let ts = std::time::Instant::now();
-    let (start, start_styles, start_losses) =
+    let (start, mut start_styles, start_losses, garment_codes) =
         first_guess(a, &g, modes.as_ref(), &ctx, &target, shipped_g.then_some(&cfg), &dev)?;
     let seconds_start = ts.elapsed().as_secs_f64();
     eprintln!("start: {start} ({seconds_start:.1} s)");
-    let StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb: rgb0, mask: mask0, refit, rigged_start } =
-        start_views(a, &g, &ctx, &start_styles, photo_fit.as_ref(), &mut target, &opts, &dev, t0)?;
+    let codes = garment_codes.as_ref();
+    let views = start_views(a, &g, &ctx, &mut start_styles, codes, photo_fit.as_ref(), &mut target, &opts, &dev, t0)?;
+    let StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb: rgb0, mask: mask0, .. } = views;
+    let (refit, rigged_start, garments) = (views.refit, views.rigged_start, views.garments);
 
     let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &start_styles, opts.clone(), &dev)?;
     let perceptual = inv.has_perceptual();
@@ -522,6 +546,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         start,
         start_losses,
         at_start,
+        garments,
         refit,
         seconds_to_first_avatar,
         first_avatar,

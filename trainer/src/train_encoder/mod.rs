@@ -63,6 +63,7 @@ use getavatar_core::util::rng::Rng;
 use crate::atomic::{write_atomic, write_atomic_keeping_previous};
 use crate::model_io::{load_body, GeneratorArgs};
 
+pub mod garments;
 mod image_term;
 mod pairs;
 use image_term::ScanPhotos;

@@ -270,7 +270,8 @@ impl GetAvatarApp {
             && (refits || options.steps + options.pti_steps > 0);
         self.recon.refine = guess_first.then(|| r.clone());
         if guess_first {
-            (options.steps, options.pti_steps, options.refit_steps) = (0, 0, 0);
+            // Shown at once: the garment codes are weighed by the stage after it.
+            (options.steps, options.pti_steps, options.refit_steps, options.garments) = (0, 0, 0, false);
         }
         let mut note = String::new();
         let discriminator = match (r.perceptual, files.discriminator) {
@@ -348,16 +349,33 @@ impl GetAvatarApp {
         let Some(task) = self.recon.task.clone() else { return };
         for event in task.drain() {
             match event {
-                ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker, device, note } => {
+                ReconstructEvent::Started {
+                    start,
+                    candidates,
+                    perceptual,
+                    millis,
+                    in_worker,
+                    device,
+                    note,
+                    garment,
+                    garment_codes,
+                } => {
                     let s = &mut self.status.reconstruct;
                     let of = if candidates > 1 { format!(" (best of {candidates})") } else { String::new() };
                     let note = if note.is_empty() { String::new() } else { format!(" — {note}") };
+                    let with = match (garment.as_str(), garment_codes) {
+                        (_, (0, _)) => String::new(),
+                        (_, (_, 0)) => " (its outline fits the person: no garment code weighed)".to_string(),
+                        ("", (_, n)) => format!(" (its outline kept against {n} garment codes)"),
+                        (code, (_, n)) => format!(" with the outline of garment code `{code}` (the best of {n})"),
+                    };
                     s.message = format!(
-                        "starting from {start}{of}; perceptual term {}; {} on {device}{note}",
+                        "starting from {start}{with}{of}; perceptual term {}; {} on {device}{note}",
                         if perceptual { "on" } else { "off" },
                         if in_worker { "in a worker" } else { "on the page" }
                     );
                     (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
+                    (s.garment, (s.garment_codes, s.garments_weighed)) = (garment, garment_codes);
                     s.start_ms = millis as f32;
                     s.runs_in = if in_worker { "worker" } else { "page" }.into();
                     s.device = device;

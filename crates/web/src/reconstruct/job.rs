@@ -18,6 +18,7 @@ use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
 use getavatar_core::generator::rigging::{RiggedArrays, RiggedAvatar};
 use getavatar_core::reconstruction::encoder::load_encoder;
+use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCodes};
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images_async, start_candidates,
     InversionOptions, InversionTarget, Inverter, StartCandidate, StepReport,
@@ -166,6 +167,11 @@ pub enum ReconstructEvent {
         device: String,
         /// Why the start is not the one asked for ("" when it is).
         note: String,
+        /// The garment code whose geometry the start took ("" when the guess's own stayed); how
+        /// many the encoder file carries and how many were weighed (none when the guess's
+        /// outline already overlaps the person well).
+        garment: String,
+        garment_codes: (usize, usize),
     },
     Step(Box<Progress>),
     Preview(Box<Preview>),
@@ -328,6 +334,13 @@ pub(crate) async fn invert<'a>(
         return Ok(None);
     }
     let (start, candidates, mut note) = choose_start(job, &g, modes.as_ref(), ctx, dev).await?;
+    let (start, (garment, garment_codes)) = match choose_garment(job, &g, ctx, start, dev).await? {
+        (start, Ok(chosen)) => (start, chosen),
+        (start, Err(why)) => {
+            note = format!("{note}{}{why}", if note.is_empty() { "" } else { "; " });
+            (start, (String::new(), (0, 0)))
+        }
+    };
     // The photo's body fit refined on the start's outline (a photo's job; the fit on the CPU).
     let mut target = job.target.clone();
     let refit = match (&job.projection, job.options.refit_steps) {
@@ -356,6 +369,8 @@ pub(crate) async fn invert<'a>(
         in_worker: crate::platform::in_worker(),
         device: device_label.to_string(),
         note,
+        garment,
+        garment_codes,
     });
     let t_steps = now_ms();
     let mut stopped_at = None;
@@ -426,6 +441,9 @@ pub(crate) async fn measure(inv: &Inverter<'_>, t: &InversionTarget) -> Result<(
     Ok((fit, Preview { rgb, mask, done: inv.progress().0 }))
 }
 
+/// The encoder's guess's name as a start.
+const ENCODER_GUESS: &str = "the encoder's guess";
+
 /// The start the job asks for: the candidate, how many were weighed, and why it is not the
 /// one asked for ("" when it is). A missing or unreadable encoder falls back to the search.
 async fn choose_start(
@@ -444,7 +462,7 @@ async fn choose_start(
             None => Err("no photo encoder ships with this build".to_string()),
         };
         match guess {
-            Ok(styles) => return Ok((StartCandidate { name: "the encoder's guess".into(), styles }, 1, note)),
+            Ok(styles) => return Ok((StartCandidate { name: ENCODER_GUESS.into(), styles }, 1, note)),
             Err(why) => note = format!("{why}: searched the model's subjects instead"),
         }
     }
@@ -457,6 +475,42 @@ async fn choose_start(
         choose_start_async(g, ctx, &job.target, &candidates, dev).await.map_err(|e| e.to_string())?.0
     };
     Ok((candidates.swap_remove(best), n, note))
+}
+
+/// The encoder file's garment codes weighed against the encoder's guess
+/// ([`getavatar_core::reconstruction::garment_codes`], `options.garments`): the start, with the
+/// chosen code's geometry, the code's name ("" when the guess's own geometry stays), how many
+/// the file carries and how many were weighed, or why the codes could not be used (the guess
+/// then stays).
+async fn choose_garment(
+    job: &InversionJob,
+    g: &Generator,
+    ctx: &BodyContext,
+    start: StartCandidate,
+    dev: &Device,
+) -> Result<(StartCandidate, Result<(String, (usize, usize)), String>), String> {
+    let none = (String::new(), (0, 0));
+    let bytes = match &job.encoder {
+        Some(bytes) if job.options.garments && job.start == StartChoice::Encoder && start.name == ENCODER_GUESS => {
+            bytes
+        }
+        _ => return Ok((start, Ok(none))),
+    };
+    let codes = match parse_safetensors_async(bytes).await {
+        Ok(st) => GarmentCodes::from_safetensors(&st),
+        Err(e) => return Ok((start, Err(format!("the garment codes cannot be read ({e})")))),
+    };
+    let Some(codes) = codes else { return Ok((start, Ok(none))) };
+    if let Err(e) = codes.check(g) {
+        return Ok((start, Err(format!("the garment codes cannot be used ({e})"))));
+    }
+    let choice =
+        choose_garment_async(g, ctx, &job.target, &start.styles, &codes, dev).await.map_err(|e| e.to_string())?;
+    let counts = (codes.len(), choice.candidates.len() - 1);
+    Ok(match choice.chosen {
+        Some(name) => (StartCandidate { styles: choice.styles, ..start }, Ok((name, counts))),
+        None => (start, Ok((String::new(), counts))),
+    })
 }
 
 /// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex

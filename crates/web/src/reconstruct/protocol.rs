@@ -124,6 +124,8 @@ pub(super) enum FromWorker {
         millis: f64,
         device: String,
         note: String,
+        garment: String,
+        garment_codes: (usize, usize),
     },
     Step {
         report: StepReport,

@@ -117,9 +117,20 @@ struct ToPage;
 impl Progressing for ToPage {
     fn push(&self, e: ReconstructEvent) {
         match e {
-            ReconstructEvent::Started { start, candidates, perceptual, millis, device, note, .. } => {
-                post(&FromWorker::Started { start, candidates, perceptual, millis, device, note }, &[])
-            }
+            ReconstructEvent::Started {
+                start,
+                candidates,
+                perceptual,
+                millis,
+                device,
+                note,
+                garment,
+                garment_codes,
+                ..
+            } => post(
+                &FromWorker::Started { start, candidates, perceptual, millis, device, note, garment, garment_codes },
+                &[],
+            ),
             ReconstructEvent::Step(p) => {
                 let Progress { report, done, total, elapsed_ms } = *p;
                 post(&FromWorker::Step { report, done, total, elapsed_ms }, &[])

@@ -542,9 +542,19 @@ fn on_message(data: JsValue) {
     let mut slot = client.running.borrow_mut();
     let Some(r) = slot.as_mut() else { return };
     match event {
-        FromWorker::Started { start, candidates, perceptual, millis, device, note } => {
+        FromWorker::Started { start, candidates, perceptual, millis, device, note, garment, garment_codes } => {
             r.fallback = None;
-            let e = ReconstructEvent::Started { start, candidates, perceptual, millis, in_worker: true, device, note };
+            let e = ReconstructEvent::Started {
+                start,
+                candidates,
+                perceptual,
+                millis,
+                in_worker: true,
+                device,
+                note,
+                garment,
+                garment_codes,
+            };
             r.task.push(e, &r.repaint);
         }
         FromWorker::Step { report, done, total, elapsed_ms } => {

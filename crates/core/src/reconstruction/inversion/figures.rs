@@ -13,6 +13,26 @@ pub fn mask_iou(a: &[f32], b: &[f32]) -> f32 {
     crate::body::body_fit::metrics::mask_iou(a, b)
 }
 
+/// The inversion's image terms on the CPU, as its start and the garment codes are weighed:
+/// masked RGB L1 + MSE (means over the person mask's pixels and channels) plus the
+/// silhouette's mean squared error, from a render's sRGB (HWC) and coverage in [0, 1].
+pub fn image_loss(t: &InversionTarget, rgb: &[f32], mask: &[f32]) -> f32 {
+    let (mut l1, mut mse, mut msum, mut sil) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for k in 0..t.res * t.res {
+        let m = t.mask[k] as f64;
+        msum += m;
+        for c in 0..3 {
+            let d = (rgb[3 * k + c] - t.rgb[3 * k + c]) as f64;
+            l1 += m * d.abs();
+            mse += m * d * d;
+        }
+        let s = (mask[k] - t.mask[k]) as f64;
+        sil += s * s;
+    }
+    let msum = msum.max(1.0);
+    (l1 / (3.0 * msum) + mse / (3.0 * msum) + sil / (t.res * t.res) as f64) as f32
+}
+
 /// PSNR (dB) of two sRGB images in [0, 1] (`res²·3`) over the pixels where `mask ≥ ½`.
 pub fn masked_psnr(a: &[f32], b: &[f32], mask: &[f32]) -> f32 {
     let (mut se, mut n) = (0.0f64, 0usize);

@@ -64,6 +64,19 @@ pub async fn refit_to_start(
 ) -> Result<(BodyFit, RiggedAvatar), InversionError> {
     target.validate()?;
     let rigged = generate_rigged_async(g, ctx, styles, device).await?;
+    refit_to_rigged(rigged, ctx, fit, target, steps, fit_device).await
+}
+
+/// [`refit_to_start`] on the start's avatar already generated and rigged.
+pub async fn refit_to_rigged(
+    rigged: RiggedAvatar,
+    ctx: &BodyContext,
+    fit: &BodyFit,
+    target: &mut InversionTarget,
+    steps: usize,
+    fit_device: &Device,
+) -> Result<(BodyFit, RiggedAvatar), InversionError> {
+    target.validate()?;
     if rigged.canonical.mesh.faces.is_empty() {
         return Err(InversionError::EmptySurface);
     }
@@ -121,22 +134,10 @@ pub async fn choose_start_async(
     Ok((best, losses))
 }
 
-/// The image terms (RGB L1 + MSE inside the person mask, silhouette squared error) of a render
-/// given as CHW RGB and mask in [−1, 1], on the CPU.
+/// [`image_loss`] of a render given as CHW RGB and mask in [−1, 1].
 fn image_loss_cpu(t: &InversionTarget, rgb_chw: &[f32], mask: &[f32]) -> f32 {
     let r2 = t.res * t.res;
-    let (mut l1, mut mse, mut msum, mut sil) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-    for k in 0..r2 {
-        let m = t.mask[k] as f64;
-        msum += m;
-        for c in 0..3 {
-            let d = ((rgb_chw[c * r2 + k] + 1.0) * 0.5 - t.rgb[3 * k + c]) as f64;
-            l1 += m * d.abs();
-            mse += m * d * d;
-        }
-        let s = ((mask[k] + 1.0) * 0.5 - t.mask[k]) as f64;
-        sil += s * s;
-    }
-    let msum = msum.max(1.0);
-    (l1 / (3.0 * msum) + mse / (3.0 * msum) + sil / r2 as f64) as f32
+    let rgb: Vec<f32> = (0..3 * r2).map(|i| (rgb_chw[(i % 3) * r2 + i / 3] + 1.0) * 0.5).collect();
+    let mask: Vec<f32> = mask.iter().map(|m| (m + 1.0) * 0.5).collect();
+    super::figures::image_loss(t, &rgb, &mask)
 }

@@ -155,6 +155,9 @@ pub struct InversionOptions {
     /// Steps of the body fit's refinement on the start's clothed outline before the codes
     /// move ([`super::start::refit_to_start`]; a photo's fit only, 0: off).
     pub refit_steps: usize,
+    /// Weigh the encoder file's garment codes against the encoder's guess before the refit
+    /// ([`crate::reconstruction::garment_codes`]; true; an encoder file without them: nothing).
+    pub garments: bool,
 }
 
 impl Default for InversionOptions {
@@ -181,6 +184,7 @@ impl Default for InversionOptions {
             cross_entropy: 0.01,
             seed: 0,
             refit_steps: REFIT_STEPS,
+            garments: true,
         }
     }
 }
