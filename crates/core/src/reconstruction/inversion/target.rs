@@ -156,7 +156,10 @@ pub struct InversionOptions {
     /// move ([`super::start::refit_to_start`]; a photo's fit only, 0: off).
     pub refit_steps: usize,
     /// Weigh the encoder file's garment codes against the encoder's guess before the refit
-    /// ([`crate::reconstruction::garment_codes`]; true; an encoder file without them: nothing).
+    /// ([`crate::reconstruction::garment_codes`]; an encoder file without them: nothing).
+    /// `instant` only: its rule was chosen on `instant`'s avatars, and from the code it chose
+    /// for the long dress `fast` exported 0.9 dB less than from the guess
+    /// (docs/benchmarks.md, "Garment codes after the guess").
     pub garments: bool,
 }
 
@@ -184,7 +187,7 @@ impl Default for InversionOptions {
             cross_entropy: 0.01,
             seed: 0,
             refit_steps: REFIT_STEPS,
-            garments: true,
+            garments: false,
         }
     }
 }
@@ -192,12 +195,13 @@ impl Default for InversionOptions {
 impl InversionOptions {
     /// `full` (200 W+ and 350 PTI steps), `fast` (60 + 60, locality every 4 steps, the
     /// silhouette at [`FAST_SILHOUETTE`]) or
-    /// `instant` (no steps: the start, the encoder's guess, is the avatar): what the app's
+    /// `instant` (no steps: the start, the encoder's guess with the garment codes weighed, is
+    /// the avatar): what the app's
     /// quality preset picks. Both presets that tune do PTI at 1e-3, warmed up and ramped down,
     /// with the texture branch at 10× ([`InversionOptions::scheduled_pti`]).
     pub fn preset(name: &str) -> Option<Self> {
         match name {
-            "instant" => Some(Self { steps: 0, pti_steps: 0, ..Self::default() }),
+            "instant" => Some(Self { steps: 0, pti_steps: 0, garments: true, ..Self::default() }),
             "full" => Some(Self::default().scheduled_pti()),
             "fast" => Some(
                 Self { steps: 60, pti_steps: 60, locality_every: 4, silhouette: FAST_SILHOUETTE, ..Self::default() }
