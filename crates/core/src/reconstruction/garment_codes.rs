@@ -16,7 +16,7 @@
 //! lowest loss. A guess whose mask IoU is [`WEIGH_BELOW_IOU`] or more keeps its geometry
 //! unweighed. The rule, the threshold and which codes ship were chosen on 32 validation
 //! people (`synth-scans --seed 3`), never on the benchmark's (docs/benchmarks.md, "Garment
-//! codes").
+//! codes after the guess").
 //!
 //! **File**: tensors `garments/<name>`, `[1, n_geo, w_dim]` each, in the encoder's
 //! safetensors file beside its weights (an encoder file without them has no garment codes).
@@ -127,8 +127,9 @@ pub fn garment_rule(candidates: &[GarmentCandidate]) -> usize {
 }
 
 /// Weigh the guess against the guess with each garment code's geometry at `target`'s camera
-/// and body ([`garment_rule`]; none when the guess's mask IoU is [`WEIGH_BELOW_IOU`] or more). Renders without gradients; the avatars are generated on
-/// `device`, rasterised on the CPU.
+/// and body ([`garment_rule`]; none when the guess's mask IoU is [`WEIGH_BELOW_IOU`] or
+/// more). Renders without gradients; the avatars are generated on `device`, rasterised on the
+/// CPU.
 pub async fn choose_garment_async(
     g: &Generator,
     ctx: &BodyContext,
