@@ -308,13 +308,16 @@ fn load_encoder_arg(
         return None;
     }
     let path = a.encoder.clone().or_else(|| shipped.and_then(shipped_encoder))?;
-    let loaded =
-        std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| Ok(load_encoder(&b, dev)?)).and_then(|e| {
-            e.check(g)?;
-            Ok(e)
-        });
+    let loaded = std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| {
+        let e = load_encoder(&b, dev)?;
+        e.check(g)?;
+        Ok((e, b))
+    });
     match loaded {
-        Ok(enc) => Some((enc, path.clone(), garment_codes_of(&path, g))),
+        Ok((enc, bytes)) => {
+            let codes = garment_codes_of(&bytes, &path, g);
+            Some((enc, path, codes))
+        }
         Err(e) => {
             eprintln!(
                 "the encoder {} cannot be used ({e:#}); starting from the latent-mode search instead",
@@ -399,12 +402,11 @@ fn photo_pck(
     Ok(p)
 }
 
-/// The garment codes in the encoder file at `path` (None without any, or, said on stderr,
-/// when they do not fit `g`: the guess then stands alone).
-fn garment_codes_of(path: &Path, g: &Generator) -> Option<GarmentCodes> {
-    let codes = std::fs::read(path)
+/// The garment codes in the encoder file `bytes` (read from `path`; None without any, or,
+/// said on stderr, when they do not fit `g`: the guess then stands alone).
+fn garment_codes_of(bytes: &[u8], path: &Path, g: &Generator) -> Option<GarmentCodes> {
+    let codes = parse_safetensors(bytes)
         .map_err(anyhow::Error::from)
-        .and_then(|b| Ok(parse_safetensors(&b)?))
         .map(|st| GarmentCodes::from_safetensors(&st))
         .and_then(|c| match c {
             Some(c) => c.check(g).map(|()| Some(c)).map_err(anyhow::Error::from),
