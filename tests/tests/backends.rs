@@ -121,8 +121,9 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
     let band_points: Vec<_> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
     let points = points_tensor(&aligned_points(&band_points), &gpu);
 
-    let fields = block_on_ready(band_fields(&g, &planes, &s, points.clone(), &grid.band, grid.canonical.len()))
-        .expect("fields read back");
+    let fields =
+        block_on_ready(band_fields(&g, &planes.geometry, &s, points.clone(), &grid.band, grid.canonical.len()))
+            .expect("fields read back");
     let reference = marching_tets(
         &fields.positions(&ctx.grid.vertices),
         &ctx.grid.tets,
@@ -134,7 +135,8 @@ fn marching_tets_on_the_gpu_gives_the_cpu_mesh() {
         &grid.canonical,
         &gpu,
     );
-    let surface = block_on_ready(extract(&topology, band_rows(&g, &planes, &s, points))).expect("counts read back");
+    let surface =
+        block_on_ready(extract(&topology, band_rows(&g, &planes.geometry, &s, points))).expect("counts read back");
     assert_eq!(surface.vertex_count, reference.vertices.len());
     let rows = read_f32_now(surface.rows).expect("rows");
     let faces = read_f32_now(surface.faces).expect("faces");

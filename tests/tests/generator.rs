@@ -250,6 +250,41 @@ fn a_new_identity_reads_back_from_the_device_twice() {
     assert!(rigged.canonical.normals.iter().all(|n| (n.length() - 1.0).abs() < 1e-4));
 }
 
+/// The geometry alone (the garment codes' outline check), with its vertices' fields added
+/// after, is the avatar a whole generation gives: the same mesh, normals and colours, and no
+/// field of the vertices is read back before they are asked for.
+#[test]
+fn the_geometry_first_and_its_fields_after_are_the_whole_generation() {
+    use getavatar_core::generator::pipeline::canonical_geometry_async;
+    use getavatar_core::util::profile;
+    let (ctx, dev, g, s) = tiny_identity((3, 4));
+    let whole = block_on_ready(generate_rigged_async(&g, &ctx, &s, &dev)).expect("generation reads back");
+    static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    profile::start(|| T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0);
+    let geometry = block_on_ready(canonical_geometry_async(&g, &ctx, &s, &dev)).expect("geometry reads back");
+    let stages = profile::finish().expect("recorded");
+    let names: Vec<&str> = stages.stages.iter().map(|s| s.stage.as_str()).collect();
+    assert_eq!(names, ["synthesis", "posed grid", "grid decode", "DMTet"], "{stages:?}");
+    assert_eq!(stages.stages.iter().map(|s| s.readbacks).sum::<u32>(), 1, "{stages:?}");
+    assert_eq!(geometry.mesh.vertices, whole.canonical.mesh.vertices);
+    assert_eq!(geometry.mesh.faces, whole.canonical.mesh.faces);
+    assert_eq!(geometry.mesh.attributes, whole.canonical.mesh.attributes);
+    let (normals, colors) = block_on_ready(geometry.vertex_fields_async(&g, &ctx, &s, &dev)).expect("fields read back");
+    assert_eq!(normals, whole.canonical.normals);
+    assert_eq!(colors, whole.canonical.colors);
+    // The geometry planes alone, with texture and geometry detail blocks, are the whole
+    // synthesis's geometry planes.
+    let cfg = GeneratorConfig { texture_res: Some(32), ..GeneratorConfig::tiny() };
+    let cfg = GeneratorConfig { geometry_res: Some(2 * cfg.plane_res), ..cfg };
+    let g = Generator::new(&cfg, 7, &dev);
+    let (zg, zt) = seed_latents(&cfg, 1, 2, &dev);
+    let s = g.styles(zg, zt, 0.7);
+    let vec = |t: Tensor<4>| t.into_data().try_to_vec::<f32>().expect("f32");
+    let alone = block_on_ready(g.geometry_planes_async(&s));
+    assert_eq!(alone.dims(), [1, 3 * cfg.plane_channels, 2 * cfg.plane_res, 2 * cfg.plane_res]);
+    assert_eq!(vec(alone), vec(g.triplanes(&s).geometry));
+}
+
 /// A rigged avatar as flat arrays (the browser worker hands its result to the page so) comes
 /// back the same, re-poses the same, and broken arrays are refused with the reason.
 #[test]

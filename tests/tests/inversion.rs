@@ -401,7 +401,7 @@ fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
     let guess = encoder_start(&enc, &g, &ctx.model, &target, &dev).unwrap();
     let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
     let figures: Vec<String> =
-        choice.candidates.iter().map(|c| format!("{} {:.3} / {:.4}", c.name, c.mask_iou, c.loss)).collect();
+        choice.candidates.iter().map(|c| format!("{} {:.3} / {:?}", c.name, c.mask_iou, c.loss)).collect();
     eprintln!("the code's render: {}", figures.join(", "));
     assert_eq!(choice.chosen.as_ref(), Some(name), "{figures:?}");
     let (guess_c, chosen_c) = (&choice.candidates[0], &choice.candidates[2]);
@@ -410,7 +410,7 @@ fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
     let target = render(&guess);
     let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
     let figures: Vec<String> =
-        choice.candidates.iter().map(|c| format!("{} {:.3} / {:.4}", c.name, c.mask_iou, c.loss)).collect();
+        choice.candidates.iter().map(|c| format!("{} {:.3} / {:?}", c.name, c.mask_iou, c.loss)).collect();
     eprintln!("the guess's render: {}", figures.join(", "));
     assert_eq!(choice.chosen, None, "{figures:?}");
     assert!(choice.candidates[0].mask_iou > 0.9, "{figures:?}");

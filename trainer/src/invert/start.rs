@@ -80,15 +80,21 @@ pub(super) fn start_views(
                 Some(name) => {
                     let c = choice.candidates.iter().find(|c| &c.name == name).unwrap_or(guess);
                     eprintln!(
-                        "garment code `{name}` chosen over the guess's geometry in {seconds:.1} s: mask IoU {:.3} → {:.3}, image loss {:.4} → {:.4}",
-                        guess.mask_iou, c.mask_iou, guess.loss, c.loss
+                        "garment code `{name}` chosen over the guess's geometry in {seconds:.1} s: mask IoU {:.3} → {:.3}, image loss {} → {}",
+                        guess.mask_iou, c.mask_iou, loss_text(guess.loss), loss_text(c.loss)
                     );
                 }
                 None if choice.candidates.len() == 1 => eprintln!(
                     "the guess's geometry kept: its outline overlaps the person (mask IoU {:.3}), no garment code weighed ({seconds:.1} s)",
                     guess.mask_iou
                 ),
-                None => eprintln!("the guess's geometry kept against {} garment codes ({seconds:.1} s)", codes.len()),
+                None => {
+                    let weighed = choice.candidates.iter().skip(1).filter(|c| c.loss.is_some()).count();
+                    eprintln!(
+                        "the guess's geometry kept against {} garment codes, {weighed} of them with an outline that qualified ({seconds:.1} s)",
+                        codes.len()
+                    )
+                }
             }
             if choice.chosen.is_some() {
                 *styles = choice.styles;
@@ -122,6 +128,11 @@ pub(super) fn start_views(
     };
     write_png(&a.out.join("input_view_start.png"), &rgba(&rgb, &mask), target.res, 4)?;
     Ok(StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb, mask, refit, rigged_start, garments })
+}
+
+/// A candidate's image loss as printed ("-" when its outline did not qualify).
+fn loss_text(loss: Option<f32>) -> String {
+    loss.map_or_else(|| "-".to_string(), |l| format!("{l:.4}"))
 }
 
 /// The start's name, codes, (a search) each candidate's loss, and the encoder file's garment codes.

@@ -8,7 +8,6 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
 use crate::generator::network::generator_network::{Generator, Styles};
-use crate::generator::network::synthesis::Triplanes;
 use crate::generator::readback::{read_f32, ReadbackError};
 use crate::geometry::template_sdf::OUTSIDE_VALUE;
 
@@ -72,10 +71,11 @@ pub fn aligned_points(points: &[Vec3]) -> Vec<Vec3> {
     out
 }
 
-/// The geometry fields of styles `s` (batch 1) at canonical points `[1, P, 3]` as rows of
+/// The geometry fields of styles `s` (batch 1) at canonical points `[1, P, 3]`, from the
+/// geometry planes `geometry` (`Triplanes::geometry`), as rows of
 /// (residual, offset x, y, z), `[P, 4]`, left on the device.
-pub fn band_rows(g: &Generator, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> Tensor<2> {
-    let (r, o) = g.geometry_fields(planes, s, points);
+pub fn band_rows(g: &Generator, geometry: &Tensor<4>, s: &Styles, points: Tensor<3>) -> Tensor<2> {
+    let (r, o) = g.geometry_fields_of(geometry, s, points);
     let p = r.dims()[1];
     Tensor::cat(vec![r.unsqueeze_dim::<3>(2), o], 2).reshape([p, 4])
 }
@@ -85,7 +85,7 @@ pub fn band_rows(g: &Generator, planes: &Triplanes, s: &Styles, points: Tensor<3
 /// elsewhere. Values only (nothing here is differentiated).
 pub async fn band_fields(
     g: &Generator,
-    planes: &Triplanes,
+    geometry: &Tensor<4>,
     s: &Styles,
     band_points: Tensor<3>,
     band: &[u32],
@@ -96,7 +96,7 @@ pub async fn band_fields(
         return Ok(f);
     }
     // One read-back for both fields.
-    let both = read_f32(band_rows(g, planes, s, band_points).detach()).await?;
+    let both = read_f32(band_rows(g, geometry, s, band_points).detach()).await?;
     for (&i, row) in band.iter().zip(both.chunks_exact(4)) {
         let i = i as usize;
         f.residual[i] = row[0];

@@ -168,19 +168,45 @@ async fn surface_on_host(
     grid: &PosedGrid,
     device: &Device,
 ) -> Result<SurfaceFields, ReadbackError> {
-    let fields = band_fields(g, planes, s, band_points, &grid.band, grid.canonical.len()).await?;
-    let sdf = fields.sdf(&grid.template, &ctx.boundary);
-    let positions = fields.positions(&ctx.grid.vertices);
-    checkpoint().await;
-    profile::stage("DMTet");
-    let (mesh, _) = marching_tets(&positions, &ctx.grid.tets, &sdf, &grid.canonical).without_cavities();
+    let mesh = mesh_on_host(g, ctx, &planes.geometry, s, band_points, grid).await?;
     if mesh.vertices.is_empty() {
         return Ok(SurfaceFields { mesh, gradients: Vec::new(), colors: Vec::new() });
     }
     checkpoint().await;
     profile::stage("normals & colours");
-    // Normal field (eq. 4) and texture field at each vertex's canonical coordinate, read back
-    // together (one GPU→CPU transfer): rows of (∇SDF x, y, z, r, g, b).
+    let (gradients, colors) = vertex_fields(g, ctx, planes, s, &mesh, device).await?;
+    Ok(SurfaceFields { mesh, gradients, colors })
+}
+
+/// The outer surface by the CPU reference, without its vertices' fields: the band's fields
+/// read back, marching tets on the host.
+async fn mesh_on_host(
+    g: &Generator,
+    ctx: &BodyContext,
+    geometry: &Tensor<4>,
+    s: &Styles,
+    band_points: Tensor<3>,
+    grid: &PosedGrid,
+) -> Result<TriMesh, ReadbackError> {
+    let fields = band_fields(g, geometry, s, band_points, &grid.band, grid.canonical.len()).await?;
+    let sdf = fields.sdf(&grid.template, &ctx.boundary);
+    let positions = fields.positions(&ctx.grid.vertices);
+    checkpoint().await;
+    profile::stage("DMTet");
+    Ok(marching_tets(&positions, &ctx.grid.tets, &sdf, &grid.canonical).without_cavities().0)
+}
+
+/// The canonical SDF gradient (normal field, eq. 4) and the texture field's colour at each
+/// vertex of `mesh` (its `attributes`, canonical coordinates), read back together (one
+/// GPU→CPU transfer): rows of (∇SDF x, y, z, r, g, b).
+async fn vertex_fields(
+    g: &Generator,
+    ctx: &BodyContext,
+    planes: &Triplanes,
+    s: &Styles,
+    mesh: &TriMesh,
+    device: &Device,
+) -> Result<(Vec<Vec3>, Vec<Vec3>), ReadbackError> {
     // Padded (`POINT_ALIGN`); the rows past the mesh's vertices are dropped below.
     let canonical = aligned_points(&mesh.attributes);
     let n = canonical.len();
@@ -190,8 +216,60 @@ async fn surface_on_host(
     let rgb = g.texture_field(planes, s, points).reshape([n, 3]);
     let both = read_f32(Tensor::cat(vec![grad, rgb], 1)).await?;
     let rows = both.chunks_exact(6).take(mesh.vertices.len());
-    let (gradients, colors) = rows.map(|r| (Vec3::from_slice(&r[..3]), Vec3::from_slice(&r[3..]))).unzip();
-    Ok(SurfaceFields { mesh, gradients, colors })
+    Ok(rows.map(|r| (Vec3::from_slice(&r[..3]), Vec3::from_slice(&r[3..]))).unzip())
+}
+
+/// A new identity's outer surface in the canonical pose (Da-pose, β = 0) from its geometry
+/// planes alone: no texture planes and no normal or texture field at its vertices (about a
+/// third of a generation of the shipped model on the CPU). For a caller that judges the outline first
+/// ([`crate::reconstruction::garment_codes`]); [`CanonicalGeometry::vertex_fields_async`] adds
+/// the rest. By the CPU reference on every device (as [`generate_avatar_async`] on NdArray).
+pub struct CanonicalGeometry {
+    /// Canonical-pose mesh; `attributes` = canonical coordinates.
+    pub mesh: TriMesh,
+}
+
+/// [`CanonicalGeometry`] of styles `s`: the geometry planes, the band's fields, marching tets.
+pub async fn canonical_geometry_async(
+    g: &Generator,
+    ctx: &BodyContext,
+    s: &Styles,
+    device: &Device,
+) -> Result<CanonicalGeometry, ReadbackError> {
+    profile::stage("synthesis");
+    let geometry = g.geometry_planes_async(s).await;
+    checkpoint().await;
+    profile::stage("posed grid");
+    let grid = ctx.canonical_grid_async(ctx.canonical_inverse()).await;
+    profile::stage("grid decode");
+    let band_points: Vec<Vec3> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
+    let band_points = points_tensor(&aligned_points(&band_points), device);
+    let mesh = mesh_on_host(g, ctx, &geometry, s, band_points, grid).await?;
+    Ok(CanonicalGeometry { mesh })
+}
+
+impl CanonicalGeometry {
+    /// The unit normals (the canonical pose needs no rotation) and colours of the surface's
+    /// vertices for styles `s` (the ones it was made with): the whole synthesis, then the
+    /// normal and texture fields at the vertices (one read-back).
+    pub async fn vertex_fields_async(
+        &self,
+        g: &Generator,
+        ctx: &BodyContext,
+        s: &Styles,
+        device: &Device,
+    ) -> Result<(Vec<Vec3>, Vec<Vec3>), ReadbackError> {
+        if self.mesh.vertices.is_empty() {
+            return Ok((Vec::new(), Vec::new()));
+        }
+        profile::stage("synthesis");
+        let planes = g.triplanes_async(s).await;
+        checkpoint().await;
+        profile::stage("normals & colours");
+        let (gradients, colors) = vertex_fields(g, ctx, &planes, s, &self.mesh, device).await?;
+        let normals = gradients.into_iter().map(|gr| normal_field::posed_normal(Mat3::IDENTITY, gr)).collect();
+        Ok((normals, colors))
+    }
 }
 
 /// `grid`'s DMTet topology uploaded to `device`.
@@ -212,7 +290,7 @@ async fn surface_on_device(
     band_points: Tensor<3>,
     topology: &dmtet_gpu::DeviceTopology,
 ) -> Result<SurfaceFields, ReadbackError> {
-    let band = crate::generator::fields::band_rows(g, planes, s, band_points);
+    let band = crate::generator::fields::band_rows(g, &planes.geometry, s, band_points);
     profile::stage("DMTet");
     let surface = dmtet_gpu::extract(topology, band).await?;
     if surface.vertex_count == 0 {

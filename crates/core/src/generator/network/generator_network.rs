@@ -173,6 +173,13 @@ impl Generator {
         self.synthesis.forward_async(s.geo.clone().narrow(1, 0, ng - 2), s.tex.clone().narrow(1, 0, nt - 3)).await
     }
 
+    /// The geometry planes of `s` alone ([`TriplaneSynthesis::forward_geometry_async`]): the
+    /// texture outputs and detail blocks are skipped.
+    pub async fn geometry_planes_async(&self, s: &Styles) -> Tensor<4> {
+        let (ng, _) = self.num_ws();
+        self.synthesis.forward_geometry_async(s.geo.clone().narrow(1, 0, ng - 2)).await
+    }
+
     fn w(ws: &Tensor<3>, i: usize) -> Tensor<2> {
         let [b, _, d] = ws.dims();
         ws.clone().narrow(1, i, 1).reshape([b, d])
@@ -180,8 +187,13 @@ impl Generator {
 
     /// SDF residual and DMTet offsets at canonical points `[B, N, 3]` → (`[B, N]`, `[B, N, 3]`).
     pub fn geometry_fields(&self, planes: &Triplanes, s: &Styles, points: Tensor<3>) -> (Tensor<2>, Tensor<3>) {
+        self.geometry_fields_of(&planes.geometry, s, points)
+    }
+
+    /// [`Generator::geometry_fields`] from the geometry planes alone.
+    pub fn geometry_fields_of(&self, geometry: &Tensor<4>, s: &Styles, points: Tensor<3>) -> (Tensor<2>, Tensor<3>) {
         let (ng, _) = self.num_ws();
-        let feat = sample_triplanes(planes.geometry.clone(), points);
+        let feat = sample_triplanes(geometry.clone(), points);
         let residual = self.decoders.sdf_residual(feat.clone(), Self::w(&s.geo, ng - 2));
         let [b, n, _] = residual.dims();
         let offset = self.decoders.vertex_offset(feat, Self::w(&s.geo, ng - 1));

@@ -274,8 +274,26 @@ impl TriplaneSynthesis {
     }
 }
 
+impl TriplaneSynthesis {
+    /// The geometry planes alone: the backbone without its texture outputs, then the geometry
+    /// detail blocks (what the SDF and the DMTet offsets read; the same values as
+    /// [`TriplaneSynthesis::forward_async`]'s). With a checkpoint after each block.
+    pub async fn forward_geometry_async(&self, ws_geo: Tensor<3>) -> Tensor<4> {
+        let mut state = SynthesisState { geometry_only: true, ..SynthesisState::default() };
+        for block in &self.blocks {
+            state.run(block, &ws_geo, &ws_geo);
+            crate::util::cooperative::checkpoint().await;
+        }
+        for block in &self.geometry_detail {
+            state.geometry_detail(block, &ws_geo);
+            crate::util::cooperative::checkpoint().await;
+        }
+        state.geo.unwrap_or_else(|| unreachable_input())
+    }
+}
+
 /// The backbone's running state between blocks: features, the two accumulated skip outputs,
-/// and how many w codes each branch has consumed.
+/// and how many w codes each branch has consumed; with `geometry_only`, no texture output.
 #[derive(Default)]
 struct SynthesisState {
     x: Option<Tensor<4>>,
@@ -283,6 +301,7 @@ struct SynthesisState {
     tex: Option<Tensor<4>>,
     gi: usize,
     ti: usize,
+    geometry_only: bool,
 }
 
 impl SynthesisState {
@@ -303,16 +322,18 @@ impl SynthesisState {
         }
         let g = block.to_geometry.forward(h.clone(), pick(ws_geo, self.gi));
         self.gi += 1;
-        let t = block.to_texture.forward(h.clone(), pick(ws_tex, self.ti));
-        self.ti += 1;
         self.geo = Some(match self.geo.take() {
             Some(prev) => upsample2_add(prev, g),
             None => g,
         });
-        self.tex = Some(match self.tex.take() {
-            Some(prev) => upsample2_add(prev, t),
-            None => t,
-        });
+        if !self.geometry_only {
+            let t = block.to_texture.forward(h.clone(), pick(ws_tex, self.ti));
+            self.tex = Some(match self.tex.take() {
+                Some(prev) => upsample2_add(prev, t),
+                None => t,
+            });
+        }
+        self.ti += 1;
         self.x = Some(h);
     }
 

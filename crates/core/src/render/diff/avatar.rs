@@ -244,7 +244,7 @@ pub async fn render_avatar_views_async(
             let planes_c =
                 Triplanes { geometry: planes.geometry.clone().detach(), texture: planes.texture.clone().detach() };
             let s_c = Styles { geo: s.geo.clone().detach(), tex: s.tex.clone().detach() };
-            band_fields(g, &planes_c, &s_c, band_pts, &grid.band, n).await?
+            band_fields(g, &planes_c.geometry, &s_c, band_pts, &grid.band, n).await?
         };
         let sdf_v = fields.sdf(&grid.template, &ctx.boundary);
         let pos_v = fields.positions(&ctx.grid.vertices);
