@@ -119,9 +119,7 @@ pub async fn generate_avatar_from_planes_async(
         (&posed_inv, &posed_grid)
     };
     profile::stage("grid decode");
-    let band_points: Vec<Vec3> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
-    // Padded (`POINT_ALIGN`): only the rows of `band` are read.
-    let band_points = points_tensor(&aligned_points(&band_points), device);
+    let band_points = band_points_tensor(grid, device);
     // Only the outer surface: closed pockets inside the avatar (a grid vertex or two whose SDF
     // stayed positive inside the body, e.g. where the thighs meet in sitting poses) are never
     // seen and would only pollute the exported mesh.
@@ -147,6 +145,13 @@ pub async fn generate_avatar_from_planes_async(
         })
         .collect();
     Ok(Avatar { mesh, normals, colors })
+}
+
+/// The canonical points of `grid`'s band as a `[1, P, 3]` tensor, padded (`POINT_ALIGN`): only
+/// the rows of `band` are read.
+fn band_points_tensor(grid: &PosedGrid, device: &Device) -> Tensor<3> {
+    let points: Vec<Vec3> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
+    points_tensor(&aligned_points(&points), device)
 }
 
 /// An extracted outer surface with the canonical SDF gradient and the colour of each vertex.
@@ -242,8 +247,7 @@ pub async fn canonical_geometry_async(
     profile::stage("posed grid");
     let grid = ctx.canonical_grid_async(ctx.canonical_inverse()).await;
     profile::stage("grid decode");
-    let band_points: Vec<Vec3> = grid.band.iter().map(|&i| grid.canonical[i as usize]).collect();
-    let band_points = points_tensor(&aligned_points(&band_points), device);
+    let band_points = band_points_tensor(grid, device);
     let mesh = mesh_on_host(g, ctx, &geometry, s, band_points, grid).await?;
     Ok(CanonicalGeometry { mesh })
 }
