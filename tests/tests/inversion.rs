@@ -399,7 +399,7 @@ fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
     let geo = Tensor::<3>::from_data(TensorData::new(v.clone(), [shape[0], shape[1], shape[2]]), &dev);
     let target = render(&Styles { geo, tex: avg.tex.clone() });
     let guess = encoder_start(&enc, &g, &ctx.model, &target, &dev).unwrap();
-    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
+    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, None, &codes, &dev)).unwrap();
     let figures: Vec<String> =
         choice.candidates.iter().map(|c| format!("{} {:.3} / {:?}", c.name, c.mask_iou, c.loss)).collect();
     eprintln!("the code's render: {}", figures.join(", "));
@@ -408,7 +408,7 @@ fn a_render_of_a_garment_code_gets_that_code_and_the_guess_keeps_its_own() {
     assert!(chosen_c.mask_iou > guess_c.mask_iou + 0.02 && chosen_c.mask_iou > 0.9, "{figures:?}");
     // A render of the guess itself: no code explains it better.
     let target = render(&guess);
-    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, &codes, &dev)).unwrap();
+    let choice = block_on_ready(choose_garment_async(&g, &ctx, &target, &guess, None, &codes, &dev)).unwrap();
     let figures: Vec<String> =
         choice.candidates.iter().map(|c| format!("{} {:.3} / {:?}", c.name, c.mask_iou, c.loss)).collect();
     eprintln!("the guess's render: {}", figures.join(", "));

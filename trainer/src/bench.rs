@@ -210,7 +210,7 @@ fn profile_identity(
 }
 
 /// Milliseconds since the first call (the stage recorder's clock).
-fn clock_ms() -> f64 {
+pub(crate) fn clock_ms() -> f64 {
     static T0: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
     T0.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1000.0
 }

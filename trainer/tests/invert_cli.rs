@@ -271,8 +271,8 @@ fn pck_compares_the_renders_detection_with_the_photos_in_photo_pixels() {
         let m: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
         assert_eq!(png_size(&out.join("pck/render.png")), (512, 512, png::ColorType::Rgb));
-        // The first avatar (the start on the body as first fitted) comes before the body's
-        // refit on its outline, which `instant` runs on a photo.
+        // The first avatar (the guess rigged, on the body as first fitted) comes before the
+        // body's refit on its outline, which `instant` runs on a photo.
         let first = m["seconds_to_first_avatar"].as_f64().unwrap();
         let refit = m["refit"]["seconds"].as_f64().unwrap_or(0.0);
         assert!(first > 0.0 && first + refit <= m["seconds_total"].as_f64().unwrap(), "{m}");

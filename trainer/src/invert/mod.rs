@@ -51,7 +51,7 @@ use serde::Serialize;
 
 mod start;
 
-use start::{first_guess, start_views, StartViews};
+use start::{encoder_guess, search_guess, start_views, StartViews};
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
@@ -157,11 +157,16 @@ struct InvertMetrics {
     /// The body fit's refinement on the guess's outline (a photo, `refit_steps` > 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     refit: Option<RefitMetrics>,
-    /// Seconds from the command's start to the first avatar: the start rendered at the input
-    /// camera on the body as first fitted (before the refit: what the app shows first).
+    /// Seconds from the command's start to the first avatar: the start generated in the
+    /// canonical pose, rigged, re-posed to the body as first fitted and rendered at the input
+    /// camera (before the garment codes and the refit: what the app shows first).
     seconds_to_first_avatar: f64,
-    /// At the input camera: that first avatar.
+    /// At the input camera: that first avatar (vertex colours, 2×2 samples per pixel).
     first_avatar: ViewMetrics,
+    /// Its generation and render by stage: milliseconds of host work and of GPU waits
+    /// (`getavatar_core::util::profile`; the first generation includes the canonical pose's
+    /// posed grid, kept for the rest of the run).
+    first_avatar_stages: Vec<getavatar_core::util::profile::StageTime>,
     perceptual: bool,
     /// At the input camera: after W+ and after PTI.
     after_w: ViewMetrics,
@@ -179,6 +184,8 @@ struct InvertMetrics {
     /// With `--pck`: the pose metric on the photo.
     #[serde(skip_serializing_if = "Option::is_none")]
     pck: Option<crate::pck::Pck>,
+    /// Reading the photo, the body, the model and its discriminator, before the start.
+    seconds_loading: f64,
     seconds_start: f64,
     seconds_per_w_step: f64,
     seconds_per_pti_step: Option<f64>,
@@ -439,6 +446,41 @@ fn render_at(
     Ok(render_images(&f)?)
 }
 
+/// The body context (the template SDF, the tet grid and the canonical pose's posed grid: what
+/// every generation needs, a second of work on 2 cores), built on threads of its own while
+/// the photo (`load_target`), the discriminator and the encoder load (`--out` made, the
+/// input written) and the encoder runs; with the seconds to the end of the loading and the
+/// encoder's guess with its seconds.
+#[allow(clippy::type_complexity)]
+fn load_with_context(
+    a: &InvertArgs,
+    model: &getavatar_core::body::body_model::BodyModel,
+    cfg: &GeneratorConfig,
+    g: &Generator,
+    shipped_g: bool,
+    dev: &Device,
+    t0: std::time::Instant,
+) -> Result<(BodyContext, Loaded, Option<Discriminator>, f64, Option<(start::FirstGuess, f64)>)> {
+    std::thread::scope(|sc| {
+        let ctx = sc.spawn(|| {
+            let ctx = BodyContext::new(model.clone(), cfg);
+            getavatar_core::util::cooperative::run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
+            ctx
+        });
+        let (target, source, scan, photo_fit) = load_target(a, model)?;
+        target.validate()?;
+        let disc = discriminator_arg(a, cfg, shipped_g, dev)?;
+        std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+        write_png(&a.out.join("input.png"), &rgba(&target.rgb, &target.mask), target.res, 4)?;
+        let seconds_loading = t0.elapsed().as_secs_f64();
+        let ts = std::time::Instant::now();
+        let guess = encoder_guess(a, g, model, &target, shipped_g.then_some(cfg), dev)?;
+        let guess = guess.map(|guess| (guess, ts.elapsed().as_secs_f64()));
+        let ctx = ctx.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        Ok((ctx, (target, source, scan, photo_fit), disc, seconds_loading, guess))
+    })
+}
+
 pub fn invert(a: &InvertArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let opts = invert_options(a)?;
@@ -446,26 +488,29 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
     }
     let model = load_body(&a.body)?;
-    let (mut target, source, scan, photo_fit) = load_target(a, &model)?;
-    target.validate()?;
     let dev = a.backend.device()?.autodiff();
     let (cfg, g, modes) = a.model.load(&dev)?;
     // The shipped discriminator goes with the shipped generator only.
     let shipped_g = a.model.checkpoint.is_none() && !a.model.random;
-    let disc = discriminator_arg(a, &cfg, shipped_g, &dev)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let ctx = BodyContext::new(model, &cfg);
-    write_png(&a.out.join("input.png"), &rgba(&target.rgb, &target.mask), target.res, 4)?;
-
+    let (ctx, loaded, disc, seconds_loading, guess) = load_with_context(a, &model, &cfg, &g, shipped_g, &dev, t0)?;
+    let (mut target, source, scan, photo_fit) = loaded;
+    eprintln!(
+        "loaded the photo, the body, the model and its discriminator in {seconds_loading:.2} s, the body context after {:.2} s",
+        t0.elapsed().as_secs_f64()
+    );
     // The start: the encoder's guess, or the latent mode (or w_avg) that explains the image best.
-    let ts = std::time::Instant::now();
-    let (start, mut start_styles, start_losses, garment_codes) =
-        first_guess(a, &g, modes.as_ref(), &ctx, &target, shipped_g.then_some(&cfg), &dev)?;
-    let seconds_start = ts.elapsed().as_secs_f64();
-    eprintln!("start: {start} ({seconds_start:.1} s)");
+    let ((start, mut start_styles, start_losses, garment_codes), seconds_start) = match guess {
+        Some(guess) => guess,
+        None => {
+            let ts = std::time::Instant::now();
+            (search_guess(&g, modes.as_ref(), &ctx, &target, &dev)?, ts.elapsed().as_secs_f64())
+        }
+    };
+    eprintln!("start: {start} ({seconds_start:.2} s)");
     let codes = garment_codes.as_ref();
     let views = start_views(a, &g, &ctx, &mut start_styles, codes, photo_fit.as_ref(), &mut target, &opts, &dev, t0)?;
     let StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb: rgb0, mask: mask0, .. } = views;
+    let first_avatar_stages = views.first_avatar_stages;
     let (refit, rigged_start, garments) = (views.refit, views.rigged_start, views.garments);
 
     let mut inv = Inverter::new(g, &ctx, disc, target.clone(), &start_styles, opts.clone(), &dev)?;
@@ -552,6 +597,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         refit,
         seconds_to_first_avatar,
         first_avatar,
+        first_avatar_stages,
         perceptual,
         after_w: if opts.steps > 0 { after_w.unwrap_or(final_m) } else { at_start },
         after_pti: (opts.pti_steps > 0).then_some(final_m),
@@ -560,6 +606,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         back_view_iou: back_truth.map(|b| b.0),
         back_view_psnr_db: back_truth.map(|b| b.1),
         pck,
+        seconds_loading,
         seconds_start,
         seconds_per_w_step: t_w.unwrap_or(0.0),
         seconds_per_pti_step: t_pti,

@@ -4,16 +4,21 @@
 
 use anyhow::{Context, Result};
 use getavatar_core::body::body_fit::fit::BodyFit;
+use getavatar_core::body::body_model::BodyModel;
+use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::generator::rigging::RiggedAvatar;
-use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCandidate, GarmentCodes};
+use getavatar_core::generator::rigging::{generate_rigged_async, RiggedAvatar};
+use getavatar_core::reconstruction::garment_codes::{
+    choose_garment_async, render_rigged, GarmentCandidate, GarmentCodes,
+};
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, refit_to_rigged, refit_to_start, start_candidates, InversionOptions,
     InversionTarget,
 };
+use getavatar_core::util::profile::{self, StageTime};
 
 use super::{load_encoder_arg, render_at, rgba, view_metrics, InvertArgs, RefitMetrics, ViewMetrics};
 use crate::atomic::write_atomic;
@@ -24,6 +29,8 @@ use crate::model_io::write_png;
 pub(super) struct StartViews {
     pub(super) first_avatar: ViewMetrics,
     pub(super) seconds_to_first_avatar: f64,
+    /// The first avatar's generation and render by stage (`util::profile`).
+    pub(super) first_avatar_stages: Vec<StageTime>,
     /// At the body the steps start from, with its render (RGB, mask).
     pub(super) at_start: ViewMetrics,
     pub(super) rgb: Vec<f32>,
@@ -44,10 +51,11 @@ pub(super) struct GarmentMetrics {
     candidates: Vec<GarmentCandidate>,
 }
 
-/// Render the start as the first avatar (`input_view_first.png`, seconds from `t0`), weigh the
-/// garment codes against it (`styles` takes the chosen geometry), refit the photo's body fit
-/// on its outline (`target` takes the refitted camera and body), render it again
-/// (`input_view_start.png`).
+/// The first avatar: the start generated, rigged and rendered at the input camera
+/// (`input_view_first.png`, seconds from `t0`). Then weigh the garment codes against it
+/// (`styles` takes the chosen geometry), refit the photo's body fit on its outline (`target`
+/// takes the refitted camera and body), and render the start through the exact per-pose path
+/// there (`input_view_start.png`).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn start_views(
     a: &InvertArgs,
@@ -61,18 +69,39 @@ pub(super) fn start_views(
     dev: &Device,
     t0: std::time::Instant,
 ) -> Result<StartViews> {
-    let (mut rgb, mut mask) = render_at(g, ctx, styles, &target.view, target.res, dev)?;
+    // The first avatar is what the app shows first and what `instant` exports: the guess
+    // generated in the canonical pose, rigged, re-posed to the photo's body.
+    // Renders without gradients: the generator and the codes on the device without autodiff
+    // (the same values, without autodiff's dispatch; `styles` gets the chosen codes back with
+    // autodiff at the end).
+    let fit_dev = dev;
+    let (dev, g) = (&dev.clone().inner(), &g.valid());
+    let styles_out = styles;
+    let styles = &mut Styles { geo: styles_out.geo.clone().inner(), tex: styles_out.tex.clone().inner() };
+    profile::start(crate::bench::clock_ms);
+    let guess = block_on_ready(generate_rigged_async(g, ctx, styles, dev));
+    profile::stage("render");
+    let (rgb, mask) = match &guess {
+        Ok(guess) => render_rigged(guess, ctx, target),
+        Err(_) => (Vec::new(), Vec::new()),
+    };
+    let stages = profile::finish().context("the stage recording was lost")?;
+    let guess = guess.context("generating the guess")?;
     let first_avatar = view_metrics(target, &rgb, &mask);
     let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
     write_png(&a.out.join("input_view_first.png"), &rgba(&rgb, &mask), target.res, 4)?;
+    let by_stage: Vec<String> =
+        stages.stages.iter().map(|s| format!("{} {:.0}", s.stage, s.host_ms + s.gpu_wait_ms)).collect();
     eprintln!(
-        "first avatar after {seconds_to_first_avatar:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
-        first_avatar.mask_iou, first_avatar.psnr_db
+        "first avatar after {seconds_to_first_avatar:.2} s: mask IoU {:.3}, masked PSNR {:.2} dB (ms: {})",
+        first_avatar.mask_iou,
+        first_avatar.psnr_db,
+        by_stage.join(", ")
     );
     let (garments, mut rigged_garment) = match garment_codes.filter(|_| opts.garments) {
         Some(codes) => {
             let t = std::time::Instant::now();
-            let choice = block_on_ready(choose_garment_async(g, ctx, target, styles, codes, dev))
+            let choice = block_on_ready(choose_garment_async(g, ctx, target, styles, Some(guess), codes, dev))
                 .context("weighing the garment codes")?;
             let seconds = t.elapsed().as_secs_f64();
             let guess = &choice.candidates[0];
@@ -102,32 +131,41 @@ pub(super) fn start_views(
             let m = GarmentMetrics { chosen: choice.chosen, seconds, candidates: choice.candidates };
             (Some(m), Some(choice.rigged))
         }
-        None => (None, None),
+        None => (None, Some(guess)),
     };
     let changed = garments.as_ref().is_some_and(|m| m.chosen.is_some());
     let (refit, rigged_refit) = match (photo_fit, opts.refit_steps) {
         (Some(fit), steps) if steps > 0 => {
-            refit_photo(a, g, ctx, styles, rigged_garment.take(), fit, target, steps, dev)?.unzip()
+            refit_photo(a, g, ctx, styles, rigged_garment.take(), fit, target, steps, (dev, fit_dev))?.unzip()
         }
         _ => (None, None),
     };
     let rigged_start = rigged_refit.or(rigged_garment);
-    let at_start = if refit.is_some() || changed {
-        (rgb, mask) = render_at(g, ctx, styles, &target.view, target.res, dev)?;
-        let m = view_metrics(target, &rgb, &mask);
-        eprintln!(
-            "the start{} after {:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
-            if refit.is_some() { " on the refitted body" } else { "" },
-            t0.elapsed().as_secs_f64(),
-            m.mask_iou,
-            m.psnr_db
-        );
-        m
-    } else {
-        first_avatar
-    };
+    // At the body and camera the steps start from, through the exact per-pose path (paper eq. 2)
+    // that the steps optimise.
+    let (rgb, mask) = render_at(g, ctx, styles, &target.view, target.res, dev)?;
+    let at_start = view_metrics(target, &rgb, &mask);
+    eprintln!(
+        "the start{}{} after {:.1} s: mask IoU {:.3}, masked PSNR {:.2} dB",
+        if changed { " with the chosen garment" } else { "" },
+        if refit.is_some() { " on the refitted body" } else { "" },
+        t0.elapsed().as_secs_f64(),
+        at_start.mask_iou,
+        at_start.psnr_db
+    );
     write_png(&a.out.join("input_view_start.png"), &rgba(&rgb, &mask), target.res, 4)?;
-    Ok(StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb, mask, refit, rigged_start, garments })
+    *styles_out = Styles { geo: styles.geo.clone().autodiff(), tex: styles.tex.clone().autodiff() };
+    Ok(StartViews {
+        first_avatar,
+        seconds_to_first_avatar,
+        first_avatar_stages: stages.stages,
+        at_start,
+        rgb,
+        mask,
+        refit,
+        rigged_start,
+        garments,
+    })
 }
 
 /// A candidate's image loss as printed ("-" when its outline did not qualify).
@@ -138,34 +176,39 @@ fn loss_text(loss: Option<f32>) -> String {
 /// The start's name, codes, (a search) each candidate's loss, and the encoder file's garment codes.
 pub(super) type FirstGuess = (String, Styles, Vec<(String, f32)>, Option<GarmentCodes>);
 
-/// Where the codes start: the encoder's guess (`--encoder`, else the shipped one), or the
-/// latent mode (or w_avg) that explains the image best; its name and the candidates' losses.
-pub(super) fn first_guess(
+/// The encoder's guess (`--encoder`, or the shipped encoder with the shipped generator); None
+/// without an encoder, or, said on stderr, when the file cannot be used.
+pub(super) fn encoder_guess(
     a: &InvertArgs,
+    g: &Generator,
+    model: &BodyModel,
+    target: &InversionTarget,
+    shipped: Option<&GeneratorConfig>,
+    dev: &Device,
+) -> Result<Option<FirstGuess>> {
+    let Some((enc, path, garments)) = load_encoder_arg(a, g, shipped, dev) else { return Ok(None) };
+    let styles =
+        encoder_start(&enc, g, model, target, dev).with_context(|| format!("the encoder {}", path.display()))?;
+    Ok(Some(("encoder".to_string(), styles, Vec::new(), garments)))
+}
+
+/// The latent mode (or w_avg) that explains the image best.
+pub(super) fn search_guess(
     g: &Generator,
     modes: Option<&LatentModes>,
     ctx: &BodyContext,
     target: &InversionTarget,
-    shipped: Option<&GeneratorConfig>,
     dev: &Device,
 ) -> Result<FirstGuess> {
-    Ok(match load_encoder_arg(a, g, shipped, dev) {
-        Some((enc, path, garments)) => {
-            let styles = encoder_start(&enc, g, &ctx.model, target, dev)
-                .with_context(|| format!("the encoder {}", path.display()))?;
-            ("encoder".to_string(), styles, Vec::new(), garments)
-        }
-        None => {
-            let cands = start_candidates(g, modes);
-            let (best, losses) = block_on_ready(choose_start_async(g, ctx, target, &cands, dev))?;
-            let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
-            (cands[best].name.clone(), cands[best].styles.clone(), all, None)
-        }
-    })
+    let cands = start_candidates(g, modes);
+    let (best, losses) = block_on_ready(choose_start_async(g, ctx, target, &cands, dev))?;
+    let all = cands.iter().zip(&losses).map(|(c, l)| (c.name.clone(), *l)).collect();
+    Ok((cands[best].name.clone(), cands[best].styles.clone(), all, None))
 }
 
 /// The photo's body fit refined on the guess's outline (`refit_to_start`; `rigged`: the guess's
-/// avatar already generated and rigged), written to
+/// avatar already generated and rigged; the guess generated on `dev`, the fit optimised on
+/// `fit_dev`, which records gradients), written to
 /// `fit_refined.json`; `target` takes its camera and body. When it cannot be refined (the
 /// guess has no surface) the fit stays as it was, and the message says why.
 #[allow(clippy::too_many_arguments)]
@@ -178,12 +221,12 @@ fn refit_photo(
     fit: &BodyFit,
     target: &mut InversionTarget,
     steps: usize,
-    dev: &Device,
+    (dev, fit_dev): (&Device, &Device),
 ) -> Result<Option<(RefitMetrics, RiggedAvatar)>> {
     let t = std::time::Instant::now();
     let refined = match rigged {
-        Some(rigged) => block_on_ready(refit_to_rigged(rigged, ctx, fit, target, steps, dev)),
-        None => block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev, dev)),
+        Some(rigged) => block_on_ready(refit_to_rigged(rigged, ctx, fit, target, steps, fit_dev)),
+        None => block_on_ready(refit_to_start(g, ctx, styles, fit, target, steps, dev, fit_dev)),
     };
     let (refined, rigged) = match refined {
         Ok(r) => r,

@@ -93,10 +93,8 @@ impl InverseSkinning {
             .map(|&x_d| {
                 let nearest = if far.is_finite() {
                     let n = self.tree.nearest_within(x_d, far, hint);
-                    if n.is_none() {
-                        return (x_d, far, false);
-                    }
-                    n
+                    hint = n.map(|n| n.0).or(hint);
+                    return self.canonical_template_near(template, x_d, n, far);
                 } else {
                     match hint {
                         Some(h) => self.tree.nearest_from(x_d, h),
@@ -110,6 +108,29 @@ impl InverseSkinning {
                 (c, g, g != t)
             })
             .collect()
+    }
+
+    /// [`InverseSkinning::canonical_templates`] of one point `x_d` whose nearest posed body
+    /// vertex within `far` (finite) is known: its index and squared distance, or none.
+    pub fn canonical_template_near(
+        &self,
+        template: &crate::geometry::TemplateSdf,
+        x_d: Vec3,
+        nearest: Option<(usize, f32)>,
+        far: f32,
+    ) -> (Vec3, f32, bool) {
+        if nearest.is_none() {
+            return (x_d, far, false);
+        }
+        let (c, _, d) = self.unwarp(x_d, nearest);
+        let t = template.sample(c);
+        let g = guarded_template(t, d);
+        (c, g, g != t)
+    }
+
+    /// The posed body's vertices, which the nearest-vertex searches run over.
+    pub fn posed_vertices(&self) -> &[Vec3] {
+        self.tree.points()
     }
 
     /// Rotation taking canonical-space directions at body vertex `i` into posed space.

@@ -7,11 +7,14 @@
 use glam::Vec3;
 
 use super::inverse_skinning::{canonical_body, InverseSkinning, UNWARP_SLACK};
+use super::spatial::{scatter_nearest, Lattice, NONE_WITHIN};
 use super::template_sdf::TemplateSdf;
 use super::tet_grid::{TetGrid, REFERENCE_BOX_CENTER, REFERENCE_BOX_SIZE};
 use crate::body::body_model::BodyModel;
 use crate::body::skinning::PosedBody;
-use crate::util::cooperative::{checkpoint, run_blocking};
+#[cfg(target_arch = "wasm32")]
+use crate::util::cooperative::checkpoint;
+use crate::util::cooperative::run_blocking;
 
 /// Bound of the generator's SDF residual on top of the template SDF, metres: loose dresses,
 /// coats and hair reach about this far from the body. The residual decoder is softly bounded
@@ -71,11 +74,26 @@ impl BodyContext {
         let canonical = canonical_body(&model);
         let min = REFERENCE_BOX_CENTER - Vec3::splat(REFERENCE_BOX_SIZE / 2.0);
         let template =
-            TemplateSdf::from_mesh_async(&canonical.vertices, &model.faces, template_res, min, REFERENCE_BOX_SIZE, 3)
-                .await;
-        checkpoint().await;
-        let grid = TetGrid::reference(tet_res);
-        let boundary = grid.boundary_flags();
+            TemplateSdf::from_mesh_async(&canonical.vertices, &model.faces, template_res, min, REFERENCE_BOX_SIZE, 3);
+        // Natively the tet grid is built on a thread of its own meanwhile.
+        #[cfg(not(target_arch = "wasm32"))]
+        let (template, (grid, boundary)) = std::thread::scope(|sc| {
+            let grid = sc.spawn(|| {
+                let grid = TetGrid::reference(tet_res);
+                let boundary = grid.boundary_flags();
+                (grid, boundary)
+            });
+            let template = run_blocking(template);
+            (template, grid.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+        });
+        #[cfg(target_arch = "wasm32")]
+        let (template, grid, boundary) = {
+            let template = template.await;
+            checkpoint().await;
+            let grid = TetGrid::reference(tet_res);
+            let boundary = grid.boundary_flags();
+            (template, grid, boundary)
+        };
         Self {
             model,
             canonical,
@@ -153,20 +171,43 @@ impl PosedGrid {
     }
 
     /// [`PosedGrid::new`] for any host: natively split over the CPU cores as a whole; in the
-    /// browser in slices with a [`checkpoint`] after each (the grid is ~0.8 s of work there).
+    /// browser in slices with a `checkpoint` after each (the grid is ~0.8 s of work there).
     pub async fn new_async(ctx: &BodyContext, inv: &InverseSkinning) -> Self {
         Self::with_far_async(ctx, inv, far_from_body(ctx)).await
     }
 
     async fn with_far_async(ctx: &BodyContext, inv: &InverseSkinning, far: f32) -> Self {
         let verts = &ctx.grid.vertices;
-        let map = |chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> { inv.canonical_templates(&ctx.template, chunk, far) };
+        let n = ctx.grid.res + 1;
+        // With a finite reach, each grid vertex's nearest posed body vertex comes from
+        // scattering the body's vertices over the lattice (`spatial::scatter_nearest`: the k-d
+        // tree's answers for an order of magnitude less work); then the un-warp.
+        let lattice = far.is_finite().then(|| Lattice::of(verts, n, ctx.grid.min, ctx.grid.cell())).flatten();
+        let nearest = match &lattice {
+            Some(lattice) => Some(nearest_body_vertices(lattice, inv, far).await),
+            None => None,
+        };
+        let map = |start: usize, chunk: &[Vec3]| -> Vec<(Vec3, f32, bool)> {
+            match &nearest {
+                Some(near) => chunk
+                    .iter()
+                    .zip(near.0[start..].iter().zip(&near.1[start..]))
+                    .map(|(x, (&i, &d))| {
+                        let nearest = (i != NONE_WITHIN).then_some((i as usize, d));
+                        inv.canonical_template_near(&ctx.template, *x, nearest, far)
+                    })
+                    .collect(),
+                None => inv.canonical_templates(&ctx.template, chunk, far),
+            }
+        };
         #[cfg(not(target_arch = "wasm32"))]
         let mapped: Vec<(Vec3, f32, bool)> = {
-            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 16);
             let chunk = verts.len().div_ceil(threads).max(1);
+            let map = &map;
             std::thread::scope(|sc| {
-                let handles: Vec<_> = verts.chunks(chunk).map(|c| sc.spawn(move || map(c))).collect();
+                let handles: Vec<_> =
+                    verts.chunks(chunk).enumerate().map(|(i, c)| sc.spawn(move || map(i * chunk, c))).collect();
                 // A worker's panic is a bug: re-raise it here rather than drop its chunk of
                 // the grid (which would misalign every later index).
                 handles
@@ -178,7 +219,10 @@ impl PosedGrid {
         #[cfg(target_arch = "wasm32")]
         let mapped = {
             let mut all = Vec::with_capacity(verts.len());
-            crate::util::cooperative::for_chunks(verts, VERTICES_PER_SLICE, |c| all.extend(map(c))).await;
+            for (i, c) in verts.chunks(VERTICES_PER_SLICE).enumerate() {
+                all.extend(map(i * VERTICES_PER_SLICE, c));
+                checkpoint().await;
+            }
             all
         };
         let guarded: Vec<bool> = mapped.iter().map(|m| m.2).collect();
@@ -186,6 +230,36 @@ impl PosedGrid {
         let band = field_band(ctx, &template, &guarded);
         Self { canonical, template, band }
     }
+}
+
+/// Body vertices scattered over the lattice between two checkpoints in the browser (~1 ms).
+#[cfg(target_arch = "wasm32")]
+const BODY_VERTICES_PER_SLICE: usize = 64;
+
+/// Per grid vertex (`lattice`), the nearest of `inv`'s posed body vertices closer than `far`,
+/// as [`scatter_nearest`]'s index and squared-distance slots: natively the grid's z-slices in
+/// slabs over the CPU cores, in the browser the body's vertices in slices.
+async fn nearest_body_vertices(lattice: &Lattice, inv: &InverseSkinning, far: f32) -> (Vec<u32>, Vec<f32>) {
+    let n = lattice.n;
+    let body = inv.posed_vertices();
+    let (mut index, mut dist2) = (vec![NONE_WITHIN; n * n * n], vec![far * far; n * n * n]);
+    #[cfg(not(target_arch = "wasm32"))]
+    {
+        let threads = std::thread::available_parallelism().map(|t| t.get()).unwrap_or(1).clamp(1, 16);
+        let slab = n.div_ceil(threads).max(1);
+        std::thread::scope(|sc| {
+            let parts = index.chunks_mut(n * n * slab).zip(dist2.chunks_mut(n * n * slab));
+            for (s, (idx, d2)) in parts.enumerate() {
+                sc.spawn(move || scatter_nearest(lattice, body, 0, far, s * slab, idx, d2));
+            }
+        });
+    }
+    #[cfg(target_arch = "wasm32")]
+    for (b, batch) in body.chunks(BODY_VERTICES_PER_SLICE).enumerate() {
+        scatter_nearest(lattice, batch, b * BODY_VERTICES_PER_SLICE, far, 0, &mut index, &mut dist2);
+        checkpoint().await;
+    }
+    (index, dist2)
 }
 
 #[cfg(test)]

@@ -148,16 +148,22 @@ pub fn garment_rule(candidates: &[GarmentCandidate]) -> usize {
 /// more). Renders without gradients; the avatars are generated on `device`, rasterised on the
 /// CPU. A code's outline is judged on its geometry alone ([`canonical_geometry_async`]); only
 /// a code whose outline qualifies gets its normal and texture fields and a loss.
+/// `guess_rigged`: the guess's avatar (`generate_rigged_async` of `guess`) where the caller has
+/// it already (it is generated here otherwise).
 pub async fn choose_garment_async(
     g: &Generator,
     ctx: &BodyContext,
     target: &InversionTarget,
     guess: &Styles,
+    guess_rigged: Option<RiggedAvatar>,
     codes: &GarmentCodes,
     device: &Device,
 ) -> Result<GarmentChoice, InversionError> {
     target.validate()?;
-    let rigged = generate_rigged_async(g, ctx, guess, device).await?;
+    let rigged = match guess_rigged {
+        Some(rigged) => rigged,
+        None => generate_rigged_async(g, ctx, guess, device).await?,
+    };
     let (rgb, mask) = render_rigged(&rigged, ctx, target);
     let mut candidates = vec![GarmentCandidate {
         name: "guess".to_string(),

@@ -505,7 +505,7 @@ async fn choose_garment(
         return Ok((start, Err(format!("the garment codes cannot be used ({e})"))));
     }
     let choice =
-        choose_garment_async(g, ctx, &job.target, &start.styles, &codes, dev).await.map_err(|e| e.to_string())?;
+        choose_garment_async(g, ctx, &job.target, &start.styles, None, &codes, dev).await.map_err(|e| e.to_string())?;
     let counts = (codes.len(), choice.candidates.len() - 1);
     Ok(match choice.chosen {
         Some(name) => (StartCandidate { styles: choice.styles, ..start }, Ok((name, counts))),

@@ -8,11 +8,12 @@
 //! neighbourhood starting at (y, x); a point selects its row (`Tensor::select`, whose backward
 //! is a row scatter-add) and weights the four texels. burn's generic `grid_sample_2d` under
 //! autodiff instead expands per-channel gather indices and masks, which cost about half of a
-//! training step on NdArray. Without autodiff the backends' native `grid_sample_2d` kernels are
-//! faster, so inference keeps them ([`sample_triplanes`] picks by device). On NdArray under
-//! autodiff the lookup is one operation with its own backward pass
-//! (`ndarray_ops::triplane_bilinear`), which touches only the texels the points read: the
-//! table costs O(R²·C) per call, about half of a training step with 256² texture planes.
+//! training step on NdArray. Without autodiff the GPU backends' native `grid_sample_2d` kernels
+//! are faster, so inference keeps them there ([`sample_triplanes`] picks by device). On NdArray
+//! the lookup is one operation (`ndarray_ops::triplane_bilinear`) with its own backward pass,
+//! which touches only the texels the points read (the row table costs O(R²·C) per call, about
+//! half of a training step with 256² texture planes), and its forward pass runs on all the CPU
+//! cores, also for inference.
 
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Int, Tensor, TensorData};
@@ -38,7 +39,19 @@ pub fn sample_triplanes(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
             }
             return sample_triplanes_rows(planes, points);
         }
-        return sample_triplanes_native(planes.inner(), points.inner()).autodiff();
+        return sample_triplanes_untracked(planes.inner(), points.inner()).autodiff();
+    }
+    sample_triplanes_untracked(planes, points)
+}
+
+/// [`sample_triplanes`] without gradients: on NdArray the lookup's own forward pass, spread
+/// over the CPU cores (burn-ndarray's `grid_sample_2d` runs on one core, and took most of a
+/// CPU generation's field queries); elsewhere the backend's `grid_sample_2d`.
+fn sample_triplanes_untracked(planes: Tensor<4>, points: Tensor<3>) -> Tensor<3> {
+    #[cfg(feature = "ndarray")]
+    if super::layers::is_ndarray(&planes.device()) {
+        let r = planes.dims()[2];
+        return super::ndarray_ops::triplane_bilinear(planes, texel_coordinates(points, r));
     }
     sample_triplanes_native(planes, points)
 }

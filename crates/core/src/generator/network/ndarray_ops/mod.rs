@@ -260,11 +260,21 @@ fn for_samples(batch: usize, out: &mut [f32], f: impl Fn(usize, &mut [f32], &mut
     if batch == 0 {
         return;
     }
-    let per = out.len() / batch;
+    for_parts(out, out.len() / batch, 8, f);
+}
+
+/// `f(n, part_n, scratch)` for each consecutive part of `out` `per` values long (the last one
+/// shorter where `per` does not divide it), natively on up to `max_threads` CPU cores, in the
+/// browser one after another.
+fn for_parts(out: &mut [f32], per: usize, max_threads: usize, f: impl Fn(usize, &mut [f32], &mut Vec<f32>) + Sync) {
+    let parts = out.len().div_ceil(per.max(1)).max(1);
     #[cfg(not(target_arch = "wasm32"))]
-    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8).min(batch);
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, max_threads).min(parts);
     #[cfg(target_arch = "wasm32")]
-    let threads = 1;
+    let threads = {
+        let _ = max_threads;
+        1
+    };
     let mut shares: Vec<Vec<(usize, &mut [f32])>> = (0..threads).map(|_| Vec::new()).collect();
     for (n, out_n) in out.chunks_mut(per.max(1)).enumerate() {
         shares[n % threads].push((n, out_n));
@@ -282,7 +292,7 @@ fn for_samples(batch: usize, out: &mut [f32], f: impl Fn(usize, &mut [f32], &mut
     std::thread::scope(|sc| {
         let work = &work;
         let handles: Vec<_> = shares.into_iter().map(|share| sc.spawn(move || work(share))).collect();
-        // A worker's panic is a bug: re-raise it here rather than leave its samples unwritten.
+        // A worker's panic is a bug: re-raise it here rather than leave its part unwritten.
         for h in handles {
             h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
         }
@@ -522,14 +532,22 @@ fn channels_first(d: &TriplaneDims, last: &[f32]) -> Vec<f32> {
     out
 }
 
-/// The lookup's values `[B, N, C]` (each avatar of the batch on its own core natively).
+/// Points per part of [`triplane_forward`]'s work (a thread's share is whole parts).
+const TRIPLANE_POINTS_PER_PART: usize = 4096;
+
+/// The lookup's values `[B, N, C]`, natively in parts of [`TRIPLANE_POINTS_PER_PART`] points
+/// over the CPU cores (a point's value does not depend on the part it is in).
 pub fn triplane_forward(d: &TriplaneDims, planes: &[f32], texels: &[f32]) -> Vec<f32> {
     let c = d.channels;
     let last = channels_last(d, planes);
     let mut y = vec![0.0f32; d.batch * d.points * c];
-    for_samples(d.batch, &mut y, |bi, y_b, _| {
-        for ni in 0..d.points {
-            let out = &mut y_b[ni * c..][..c];
+    if c == 0 || d.points == 0 {
+        return y;
+    }
+    for_parts(&mut y, TRIPLANE_POINTS_PER_PART * c, 16, |part, y_part, _| {
+        for (i, out) in y_part.chunks_exact_mut(c).enumerate() {
+            let q = part * TRIPLANE_POINTS_PER_PART + i;
+            let (bi, ni) = (q / d.points, q % d.points);
             for k in 0..3 {
                 let (stencil, _) = triplane_stencil(d, texels, bi, ni, k);
                 for (texel, w, _, _) in stencil {
