@@ -299,11 +299,33 @@ fn for_parts(out: &mut [f32], per: usize, max_threads: usize, f: impl Fn(usize, 
     });
 }
 
+/// Output pixels per part of a one-sample convolution's product in [`forward`].
+const CONV_COLUMNS_PER_PART: usize = 1024;
+
 /// The forward pass on plain buffers: `x` `[B, in, H, W]`, `weight` `[B or 1, out, in, k, k]`
 /// → `[B, out, H, W]`.
 pub fn forward(d: &ConvDims, x: &[f32], weight: &[f32]) -> Vec<f32> {
     let (hw, taps) = (d.hw(), d.taps());
     let mut y = vec![0.0; d.batch * d.c_out * hw];
+    if d.batch == 1 && hw >= 2 * CONV_COLUMNS_PER_PART {
+        // One sample (a generation): the product in column blocks over the cores (each block
+        // packs only its share of the columns), each value summed as in one product.
+        let mut cols = Vec::new();
+        im2col(d, &x[..d.c_in * hw], &mut cols);
+        let (w, m, nb) = (d.weight_of(weight, 0), d.c_out, CONV_COLUMNS_PER_PART);
+        let mut blocks = vec![0.0; m * hw];
+        for_parts(&mut blocks, m * nb, 16, |part, block, _| {
+            let width = block.len() / m;
+            gemm(m, taps, width, (w, taps as isize, 1), (&cols[part * nb..], hw as isize, 1), 0.0, block);
+        });
+        for (part, block) in blocks.chunks(m * nb).enumerate() {
+            let width = block.len() / m;
+            for (row, src) in block.chunks_exact(width).enumerate() {
+                y[row * hw + part * nb..][..width].copy_from_slice(src);
+            }
+        }
+        return y;
+    }
     for_samples(d.batch, &mut y, |n, y_n, cols| {
         im2col(d, &x[n * d.c_in * hw..(n + 1) * d.c_in * hw], cols);
         gemm(d.c_out, taps, hw, (d.weight_of(weight, n), taps as isize, 1), (cols, hw as isize, 1), 0.0, y_n);
@@ -718,6 +740,33 @@ mod tests {
             let rhs: f64 = x.iter().zip(&dx).map(|(a, b)| (*a as f64) * (*b as f64)).sum();
             assert!((lhs - rhs).abs() < 1e-3 * lhs.abs().max(1.0), "{planes}×{h}×{w}: {lhs} vs {rhs}");
         }
+    }
+
+    /// One sample's product in column blocks over the cores (a generation) gives, bit for
+    /// bit, what the same sample gives as one product inside a batch, for a width that leaves
+    /// a short last block.
+    #[test]
+    fn a_single_sample_in_column_blocks_equals_one_product() {
+        let (h, w) = (40, 61);
+        assert!(h * w >= 2 * CONV_COLUMNS_PER_PART && (h * w) % CONV_COLUMNS_PER_PART != 0);
+        let one = ConvDims { batch: 1, c_in: 5, c_out: 7, h, w, k: 3, shared: true };
+        let two = ConvDims { batch: 2, ..one };
+        let mut s = 3u32;
+        let mut rnd = |n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|_| {
+                    s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+                })
+                .collect()
+        };
+        let x = rnd(two.batch * two.c_in * h * w);
+        let wt = rnd(one.weight_len());
+        let alone = forward(&one, &x[..one.c_in * h * w], &wt);
+        let batched = forward(&two, &x, &wt);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&alone), bits(&batched[..alone.len()]));
+        assert!(alone.iter().any(|v| v.abs() > 0.1), "a product, not zeros");
     }
 
     /// The plain-buffer passes against a direct loop convolution and its finite differences.
