@@ -742,6 +742,19 @@ mod tests {
         }
     }
 
+    /// `n` values in [−0.5, 0.5) per call from a linear congruential sequence started at `seed`.
+    fn uniform_values(seed: u32) -> impl FnMut(usize) -> Vec<f32> {
+        let mut s = seed;
+        move |n| {
+            (0..n)
+                .map(|_| {
+                    s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+                })
+                .collect()
+        }
+    }
+
     /// One sample's product in column blocks over the cores (a generation) gives, bit for
     /// bit, what the same sample gives as one product inside a batch, for a width that leaves
     /// a short last block.
@@ -751,15 +764,7 @@ mod tests {
         assert!(h * w >= 2 * CONV_COLUMNS_PER_PART && (h * w) % CONV_COLUMNS_PER_PART != 0);
         let one = ConvDims { batch: 1, c_in: 5, c_out: 7, h, w, k: 3, shared: true };
         let two = ConvDims { batch: 2, ..one };
-        let mut s = 3u32;
-        let mut rnd = |n: usize| -> Vec<f32> {
-            (0..n)
-                .map(|_| {
-                    s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                    (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
-                })
-                .collect()
-        };
+        let mut rnd = uniform_values(3);
         let x = rnd(two.batch * two.c_in * h * w);
         let wt = rnd(one.weight_len());
         let alone = forward(&one, &x[..one.c_in * h * w], &wt);
@@ -774,15 +779,7 @@ mod tests {
     fn forward_and_backward_match_a_direct_convolution() {
         for (shared, k, h, w) in [(true, 3, 5, 4), (false, 3, 4, 6), (true, 1, 3, 3), (false, 5, 3, 2)] {
             let d = ConvDims { batch: 2, c_in: 3, c_out: 2, h, w, k, shared };
-            let mut s = 1u32;
-            let mut rnd = |n: usize| -> Vec<f32> {
-                (0..n)
-                    .map(|_| {
-                        s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                        (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
-                    })
-                    .collect()
-            };
+            let mut rnd = uniform_values(1);
             let x = rnd(d.batch * d.c_in * h * w);
             let wt = rnd(if shared { 1 } else { d.batch } * d.weight_len());
             let dy = rnd(d.batch * d.c_out * h * w);
