@@ -258,13 +258,18 @@ pub fn scatter_nearest(
 mod tests {
     use super::*;
 
-    #[test]
-    fn nearest_matches_brute_force() {
-        let mut s = 7u32;
-        let mut r = || {
+    /// Values in [−0.5, 0.5) from a linear congruential sequence started at `seed`.
+    fn uniform(seed: u32) -> impl FnMut() -> f32 {
+        let mut s = seed;
+        move || {
             s = s.wrapping_mul(1664525).wrapping_add(1013904223);
             (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
-        };
+        }
+    }
+
+    #[test]
+    fn nearest_matches_brute_force() {
+        let mut r = uniform(7);
         let pts: Vec<Vec3> = (0..2000).map(|_| Vec3::new(r(), r() * 3.0, r() * 0.1)).collect();
         let tree = KdTree::new(&pts);
         for _ in 0..500 {
@@ -319,11 +324,7 @@ mod tests {
     /// duplicates (ties go to the lower index).
     #[test]
     fn the_lattice_scatter_finds_what_the_tree_finds() {
-        let mut s = 11u32;
-        let mut r = || {
-            s = s.wrapping_mul(1664525).wrapping_add(1013904223);
-            (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
-        };
+        let mut r = uniform(11);
         let mut pts: Vec<Vec3> = (0..400).map(|_| Vec3::new(r() * 2.4, r() * 2.4, r() * 0.6)).collect();
         pts.extend_from_within(..20);
         let grid = crate::geometry::tet_grid::TetGrid::cube(23, Vec3::new(0.05, 0.0, 0.0), 2.0);
