@@ -295,6 +295,9 @@ impl GetAvatarApp {
             |what: &str| format!("the encoder's guess in {:.1} s{refitted}; {what}…{note}", s.first_avatar_ms / 1000.0);
         let refines = options.steps + options.pti_steps > 0;
         let message = match r.start {
+            _ if !first && refits && options.garments && !refines => {
+                after_guess("weighing the garment codes, then fitting the body to the chosen outline")
+            }
             _ if !first && refits && !refines => after_guess("fitting the body to its outline"),
             _ if !first && refits => after_guess("fitting the body to its outline, then refining it"),
             _ if !first && !refines => after_guess("projecting the photo on it at the refitted camera"),
@@ -543,10 +546,13 @@ impl GetAvatarApp {
         }
     }
 
-    /// The refit of the photo's body on the shown guess's outline, when `next` refits.
+    /// The refit of the photo's body on the shown guess's outline, when `next` refits and
+    /// keeps the guess's outline. A stage that weighs the garment codes (`instant`) refits in
+    /// the worker instead: the codes are weighed on the body as first fitted and the body is
+    /// refitted on the chosen outline, the order `trainer invert` measures.
     fn page_refit(&self, next: &Reconstruction) -> Result<Option<PhotoTask>, String> {
         let Some(options) = InversionOptions::preset(&next.preset) else { return Ok(None) };
-        if options.refit_steps == 0 || !next.projection {
+        if options.refit_steps == 0 || !next.projection || options.garments {
             return Ok(None);
         }
         let (Some(rigged), Some(target), Some(model), Some((p, fit))) =

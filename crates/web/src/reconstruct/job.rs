@@ -20,8 +20,8 @@ use getavatar_core::generator::rigging::{RiggedArrays, RiggedAvatar};
 use getavatar_core::reconstruction::encoder::load_encoder;
 use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCodes};
 use getavatar_core::reconstruction::inversion::{
-    choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_start, render_images_async, start_candidates,
-    InversionOptions, InversionTarget, Inverter, StartCandidate, StepReport,
+    choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_rigged, refit_to_start, render_images_async,
+    start_candidates, InversionOptions, InversionTarget, Inverter, StartCandidate, StepReport,
 };
 use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
@@ -238,13 +238,16 @@ pub(crate) fn run_on_page(req: ReconstructRequest, t: ReconstructTask, repaint: 
 
 async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Reconstructed>, String> {
     let (job, dev) = (&req.job, &req.device.clone().autodiff());
-    let Some(inv) = invert(job, &req.ctx, dev, "WebGPU (the page's device)", out, false).await? else {
+    let Some(mut inv) = invert(job, &req.ctx, dev, "WebGPU (the page's device)", out, false).await? else {
         return Ok(None);
     };
     let t_finish = now_ms();
     // The avatar: extracted, rigged, the photo's colours on what the photo sees.
     let ctx = req.ctx.as_ref();
-    let mut rigged = generate_rigged_async(&inv.generator, ctx, &inv.styles, dev).await.map_err(|e| e.to_string())?;
+    let mut rigged = match inv.rigged.take() {
+        Some(rigged) => rigged,
+        None => generate_rigged_async(&inv.generator, ctx, &inv.styles, dev).await.map_err(|e| e.to_string())?,
+    };
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
@@ -294,6 +297,9 @@ pub(crate) struct Inverted<'a> {
     pub stopped_at: Option<usize>,
     /// The photo's body fit refined on the start's outline (None: not refined).
     pub refit: Option<BodyFit>,
+    /// The start's avatar, rigged by the garment choice or the refit, when it is the result
+    /// (no step ran): the finish rigs it without generating it again.
+    pub rigged: Option<RiggedAvatar>,
 }
 
 impl Inverted<'_> {
@@ -334,21 +340,28 @@ pub(crate) async fn invert<'a>(
         return Ok(None);
     }
     let (start, candidates, mut note) = choose_start(job, &g, modes.as_ref(), ctx, dev).await?;
-    let (start, (garment, garment_codes)) = match choose_garment(job, &g, ctx, start, dev).await? {
-        (start, Ok(chosen)) => (start, chosen),
-        (start, Err(why)) => {
-            note = format!("{note}{}{why}", if note.is_empty() { "" } else { "; " });
-            (start, (String::new(), (0, 0)))
-        }
-    };
+    // The garment codes are weighed on the body as first fitted, then the body is refitted on
+    // the chosen outline (the order `trainer invert` follows).
+    let (start, mut rigged, garment) = choose_garment(job, &g, ctx, start, dev).await?;
+    let (garment, garment_codes) = garment.unwrap_or_else(|why| {
+        note = format!("{note}{}{why}", if note.is_empty() { "" } else { "; " });
+        (String::new(), (0, 0))
+    });
     // The photo's body fit refined on the start's outline (a photo's job; the fit on the CPU).
     let mut target = job.target.clone();
     let refit = match (&job.projection, job.options.refit_steps) {
         (Some(src), steps) if steps > 0 => {
             #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
             let cpu = Device::ndarray().autodiff();
-            match refit_to_start(&g, ctx, &start.styles, &src.fit, &mut target, steps, dev, &cpu).await {
-                Ok((fit, _)) => Some(fit),
+            let refitted = match rigged.take() {
+                Some(r) => refit_to_rigged(r, ctx, &src.fit, &mut target, steps, &cpu).await,
+                None => refit_to_start(&g, ctx, &start.styles, &src.fit, &mut target, steps, dev, &cpu).await,
+            };
+            match refitted {
+                Ok((fit, r)) => {
+                    rigged = Some(r);
+                    Some(fit)
+                }
                 Err(e) => {
                     note =
                         format!("{note}{}the body fit stays as fitted ({e})", if note.is_empty() { "" } else { "; " });
@@ -400,20 +413,33 @@ pub(crate) async fn invert<'a>(
 
     let t_finish = now_ms();
     let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
+    // A step changed the codes or the weights: the start's avatar is not the result.
+    let rigged = rigged.filter(|_| inv.progress().0 == 0);
     if !job.figures && inv.progress().0 == 0 {
+        let unmeasured = None;
         return Ok(Some(Inverted {
             generator,
             styles,
             fit: None,
-            unmeasured: None,
+            unmeasured,
             finish_ms: 0.0,
             stopped_at,
             refit,
+            rigged,
         }));
     }
     if defer && job.measure_after_result && inv.progress().0 == 0 {
         let unmeasured = Some((inv, target));
-        return Ok(Some(Inverted { generator, styles, fit: None, unmeasured, finish_ms: 0.0, stopped_at, refit }));
+        return Ok(Some(Inverted {
+            generator,
+            styles,
+            fit: None,
+            unmeasured,
+            finish_ms: 0.0,
+            stopped_at,
+            refit,
+            rigged,
+        }));
     }
     let (fit, preview) = measure(&inv, &target).await?;
     out.push(ReconstructEvent::Preview(Box::new(preview)));
@@ -422,7 +448,7 @@ pub(crate) async fn invert<'a>(
         return Ok(None);
     }
     let finish_ms = now_ms() - t_finish;
-    Ok(Some(Inverted { generator, styles, fit: Some(fit), unmeasured: None, finish_ms, stopped_at, refit }))
+    Ok(Some(Inverted { generator, styles, fit: Some(fit), unmeasured: None, finish_ms, stopped_at, refit, rigged }))
 }
 
 /// The result at the photo's camera: mask IoU and masked PSNR (dB) against `t`, and the render
@@ -477,39 +503,43 @@ async fn choose_start(
     Ok((candidates.swap_remove(best), n, note))
 }
 
+/// What the garment choice gives: the start (with the chosen code's geometry), its avatar
+/// rigged where the choice made it, and the code's name ("" when the guess's own geometry
+/// stays) with how many codes the file carries and how many were weighed, or why the codes
+/// could not be used (the guess then stays).
+type GarmentOutcome = (StartCandidate, Option<RiggedAvatar>, Result<(String, (usize, usize)), String>);
+
 /// The encoder file's garment codes weighed against the encoder's guess
-/// ([`getavatar_core::reconstruction::garment_codes`], `options.garments`): the start, with the
-/// chosen code's geometry, the code's name ("" when the guess's own geometry stays), how many
-/// the file carries and how many were weighed, or why the codes could not be used (the guess
-/// then stays).
+/// ([`getavatar_core::reconstruction::garment_codes`], `options.garments`) at the job's
+/// camera and body.
 async fn choose_garment(
     job: &InversionJob,
     g: &Generator,
     ctx: &BodyContext,
     start: StartCandidate,
     dev: &Device,
-) -> Result<(StartCandidate, Result<(String, (usize, usize)), String>), String> {
+) -> Result<GarmentOutcome, String> {
     let none = (String::new(), (0, 0));
     let bytes = match &job.encoder {
         Some(bytes) if job.options.garments && job.start == StartChoice::Encoder && start.name == ENCODER_GUESS => {
             bytes
         }
-        _ => return Ok((start, Ok(none))),
+        _ => return Ok((start, None, Ok(none))),
     };
     let codes = match parse_safetensors_async(bytes).await {
         Ok(st) => GarmentCodes::from_safetensors(&st),
-        Err(e) => return Ok((start, Err(format!("the garment codes cannot be read ({e})")))),
+        Err(e) => return Ok((start, None, Err(format!("the garment codes cannot be read ({e})")))),
     };
-    let Some(codes) = codes else { return Ok((start, Ok(none))) };
+    let Some(codes) = codes else { return Ok((start, None, Ok(none))) };
     if let Err(e) = codes.check(g) {
-        return Ok((start, Err(format!("the garment codes cannot be used ({e})"))));
+        return Ok((start, None, Err(format!("the garment codes cannot be used ({e})"))));
     }
     let choice =
         choose_garment_async(g, ctx, &job.target, &start.styles, None, &codes, dev).await.map_err(|e| e.to_string())?;
     let counts = (codes.len(), choice.candidates.len() - 1);
     Ok(match choice.chosen {
-        Some(name) => (StartCandidate { styles: choice.styles, ..start }, Ok((name, counts))),
-        None => (start, Ok((String::new(), counts))),
+        Some(name) => (StartCandidate { styles: choice.styles, ..start }, Some(choice.rigged), Ok((name, counts))),
+        None => (start, Some(choice.rigged), Ok((String::new(), counts))),
     })
 }
 

@@ -272,11 +272,16 @@ async fn job<'a>(
         measure_after_result: meta.measure_after_result,
         figures: meta.figures,
     };
-    let Some(inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else { return Ok(None) };
+    let Some(mut inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else {
+        return Ok(None);
+    };
     let t = now_ms();
-    let rigged = generate_rigged_async(&inv.generator, &state.ctx, &inv.styles, &device.0)
-        .await
-        .map_err(|e| format!("cannot extract the avatar: {e}"))?;
+    let rigged = match inv.rigged.take() {
+        Some(rigged) => rigged,
+        None => generate_rigged_async(&inv.generator, &state.ctx, &inv.styles, &device.0)
+            .await
+            .map_err(|e| format!("cannot extract the avatar: {e}"))?,
+    };
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
