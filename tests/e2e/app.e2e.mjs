@@ -467,8 +467,11 @@ try {
     `instant: the guess is on screen before the refit and the figures (${(rec.first_avatar_ms / 1000).toFixed(1)} s, figures at ${(rec.total_ms / 1000).toFixed(1)} s: ${rec.finish_detail})`);
   // The stage after the guess weighed the encoder file's garment codes against its outline.
   // (None when the guess's outline already overlaps the person well.)
-  check(rec.garment_codes >= 8 && [0, rec.garment_codes].includes(rec.garments_weighed) && typeof rec.garment === 'string',
-    `instant: the refitted stage had the encoder file's ${rec.garment_codes} garment codes and weighed ${rec.garments_weighed} against the guess (chosen: ${rec.garment || 'the guess\'s own outline'})`);
+  // The worker kept the guess's avatar from the first job: the codes are weighed against it
+  // without generating it again.
+  check(rec.garment_codes >= 8 && [0, rec.garment_codes].includes(rec.garments_weighed) && typeof rec.garment === 'string'
+    && rec.garment_guess_reused === true,
+    `instant: the refitted stage had the encoder file's ${rec.garment_codes} garment codes and weighed ${rec.garments_weighed} against the guess (chosen: ${rec.garment || 'the guess\'s own outline'}; the first job's avatar of the guess reused: ${rec.garment_guess_reused})`);
   check(rec.first_avatar_ms <= 90000, `instant: the first avatar within 90 s of the command on SwiftShader (${(rec.first_avatar_ms / 1000).toFixed(1)} s)`);
   check(rec.mask_iou >= 0.75,
     `instant: the avatar's mask overlaps the photo's person at its camera: IoU ${rec.mask_iou.toFixed(3)} (≥ 0.75), masked PSNR ${rec.psnr_db.toFixed(1)} dB`);

@@ -162,6 +162,9 @@ pub struct ReconstructStatus {
     /// the guess's outline already overlaps the person well).
     pub garment_codes: usize,
     pub garments_weighed: usize,
+    /// The codes were weighed against the guess's avatar as the job that showed it made it
+    /// (the worker keeps it), not generated again.
+    pub garment_guess_reused: bool,
     /// Whether the perceptual term (the shipped discriminator's features) is on.
     pub perceptual: bool,
     /// Where the steps run: "worker" (the reconstruction worker, off the UI thread) or "page"

@@ -366,11 +366,11 @@ impl GetAvatarApp {
                     let s = &mut self.status.reconstruct;
                     let of = if candidates > 1 { format!(" (best of {candidates})") } else { String::new() };
                     let note = if note.is_empty() { String::new() } else { format!(" — {note}") };
-                    let with = match (garment.as_str(), garment_codes) {
-                        (_, (0, _)) => String::new(),
-                        (_, (_, 0)) => " (its outline fits the person: no garment code weighed)".to_string(),
-                        ("", (_, n)) => format!(" (its outline kept against {n} garment codes)"),
-                        (code, (_, n)) => format!(" with the outline of garment code `{code}` (the best of {n})"),
+                    let with = match (garment.as_str(), garment_codes.codes, garment_codes.weighed) {
+                        (_, 0, _) => String::new(),
+                        (_, _, 0) => " (its outline fits the person: no garment code weighed)".to_string(),
+                        ("", _, n) => format!(" (its outline kept against {n} garment codes)"),
+                        (code, _, n) => format!(" with the outline of garment code `{code}` (the best of {n})"),
                     };
                     s.message = format!(
                         "starting from {start}{with}{of}; perceptual term {}; {} on {device}{note}",
@@ -378,7 +378,9 @@ impl GetAvatarApp {
                         if in_worker { "in a worker" } else { "on the page" }
                     );
                     (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
-                    (s.garment, (s.garment_codes, s.garments_weighed)) = (garment, garment_codes);
+                    (s.garment, s.garment_codes, s.garments_weighed) =
+                        (garment, garment_codes.codes, garment_codes.weighed);
+                    s.garment_guess_reused = garment_codes.guess_reused;
                     s.start_ms = millis as f32;
                     s.runs_in = if in_worker { "worker" } else { "page" }.into();
                     s.device = device;

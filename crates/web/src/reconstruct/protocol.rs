@@ -125,7 +125,7 @@ pub(super) enum FromWorker {
         device: String,
         note: String,
         garment: String,
-        garment_codes: (usize, usize),
+        garment_codes: super::job::GarmentCounts,
     },
     Step {
         report: StepReport,

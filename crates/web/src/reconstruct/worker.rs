@@ -26,7 +26,8 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
 use super::job::{
-    invert, measure, Compute, InversionJob, Inverted, Progress, Progressing, ProjectionSource, ReconstructEvent,
+    invert, measure, Compute, InversionJob, Inverted, KnownGuess, Progress, Progressing, ProjectionSource,
+    ReconstructEvent,
 };
 use super::protocol::{
     f32_array, json_of, message_of, rigged_arrays, u8_array, ColoursMeta, FromWorker, GenerateMeta, JobMeta,
@@ -48,6 +49,9 @@ thread_local! {
     /// The model files of the last job (the page sends each once).
     static FILES: RefCell<Option<ModelFiles>> = const { RefCell::new(None) };
     static CANCEL: Cell<bool> = const { Cell::new(false) };
+    /// The encoder's guess of the last job that showed it first (`figures` off), for the
+    /// garment choice of the job after it.
+    static GUESS: RefCell<Option<Rc<KnownGuess>>> = const { RefCell::new(None) };
     /// The page shows the result handed over: measure it (`ToWorker::Measure`).
     static MEASURE: Cell<bool> = const { Cell::new(false) };
     /// A warm-up (`ToWorker::Warm`) runs: other work waits for it rather than doing the same
@@ -272,7 +276,8 @@ async fn job<'a>(
         measure_after_result: meta.measure_after_result,
         figures: meta.figures,
     };
-    let Some(mut inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true).await? else {
+    let known = GUESS.with(|g| g.borrow_mut().take());
+    let Some(mut inv) = invert(&job, &state.ctx, &device.0, &device.1, &ToPage, true, known.as_deref()).await? else {
         return Ok(None);
     };
     let t = now_ms();
@@ -285,7 +290,14 @@ async fn job<'a>(
     if rigged.canonical.mesh.faces.is_empty() {
         return Err("the reconstructed generator produced an empty surface".into());
     }
-    let (rigged, rig_ms) = (rigged.to_arrays(), now_ms() - t);
+    let rig_ms = now_ms() - t;
+    // The guess shown first: the job after it weighs the garment codes against the same avatar.
+    if !job.figures && job.options.steps + job.options.pti_steps == 0 {
+        let codes = KnownGuess::codes_of(&inv.styles).await?;
+        let checkpoint = job.checkpoint.clone();
+        GUESS.with(|g| *g.borrow_mut() = Some(Rc::new(KnownGuess { checkpoint, codes, rigged: rigged.clone() })));
+    }
+    let rigged = rigged.to_arrays();
     let t = now_ms();
     let photo = match inv.projection(&job) {
         Some(source) => {

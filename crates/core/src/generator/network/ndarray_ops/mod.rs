@@ -267,9 +267,11 @@ fn for_samples(batch: usize, out: &mut [f32], f: impl Fn(usize, &mut [f32], &mut
 /// shorter where `per` does not divide it), natively on up to `max_threads` CPU cores, in the
 /// browser one after another.
 fn for_parts(out: &mut [f32], per: usize, max_threads: usize, f: impl Fn(usize, &mut [f32], &mut Vec<f32>) + Sync) {
-    let parts = out.len().div_ceil(per.max(1)).max(1);
     #[cfg(not(target_arch = "wasm32"))]
-    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, max_threads).min(parts);
+    let threads = {
+        let parts = out.len().div_ceil(per.max(1)).max(1);
+        std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, max_threads).min(parts)
+    };
     #[cfg(target_arch = "wasm32")]
     let threads = {
         let _ = max_threads;
