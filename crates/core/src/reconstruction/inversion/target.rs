@@ -230,7 +230,7 @@ pub const FAST_SILHOUETTE: f32 = 10.0;
 
 /// Steps of the body fit's refinement on the first guess's outline (every preset): end to end
 /// on three photos the first avatar's mask IoU goes from 0.86–0.89 to 0.90–0.93
-/// (docs/benchmarks.md, "The body refitted on the guess").
+/// (docs/benchmarks.md, "The body refitted on the start's outline").
 pub const REFIT_STEPS: usize = 60;
 
 /// Fewest steps of the learning-rate warm-up (with `warmup > 0`).
