@@ -452,6 +452,7 @@ try {
     fs.writeFileSync(new URL('app_instant.lt.json', dir), JSON.stringify({ pt0: from, lt }));
   }
   console.log(`instant reconstruction: first avatar ${(rec.first_avatar_ms / 1000).toFixed(1)} s after the command (start ${(rec.start_ms / 1000).toFixed(1)} s in the worker on ${rec.device}; finish ${(rec.finish_ms / 1000).toFixed(1)} s: ${rec.finish_detail}); wall ${((Date.now() - tInstant) / 1000).toFixed(1)} s; ${rec.message}`);
+  check(rec.preset === 'instant', `the panel's quality buttons show the preset that ran (${rec.preset})`);
   check(rec.state === 'done' && rec.start === "the encoder's guess" && rec.losses.length === 0,
     `instant: the avatar is the shipped encoder's guess, no step (${rec.state}, start "${rec.start}", ${rec.losses.length} steps: ${rec.message})`);
   // On a software adapter (SwiftShader here) `auto` runs a job on NdArray in the worker, the

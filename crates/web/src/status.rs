@@ -147,6 +147,8 @@ pub struct ReconstructStatus {
     /// screen), "done", "failed" or "cancelled".
     pub state: String,
     pub message: String,
+    /// The quality preset that runs (instant, fast, full): the panel's buttons show it.
+    pub preset: String,
     /// The preset's or the request's steps: done in both phases, and in all.
     pub steps_done: usize,
     pub steps_total: usize,

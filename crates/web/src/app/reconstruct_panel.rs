@@ -191,6 +191,8 @@ impl GetAvatarApp {
         }
         self.recon.t_click = crate::platform::now_ms();
         self.recon.refitted_on_page = false;
+        // The quality buttons show the preset that runs (an automation command names its own).
+        self.recon.preset = r.preset.clone();
         self.start_stage(r, true);
     }
 
@@ -311,6 +313,7 @@ impl GetAvatarApp {
             ReconstructStatus {
                 state: "starting".into(),
                 message,
+                preset: r.preset.clone(),
                 steps_total,
                 res: r.res,
                 done: s.done,
