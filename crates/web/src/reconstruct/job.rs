@@ -464,26 +464,14 @@ pub(crate) async fn invert<'a>(
     let (generator, styles) = (inv.generator().clone().no_grad(), inv.styles());
     // A step changed the codes or the weights: the start's avatar is not the result.
     let rigged = rigged.filter(|_| inv.progress().0 == 0);
-    if !job.figures && inv.progress().0 == 0 {
-        let unmeasured = None;
+    // An unstepped result skips the measurement (figures off) or leaves it for after the
+    // avatar is on screen (`measure_after_result`).
+    if inv.progress().0 == 0 && (!job.figures || defer && job.measure_after_result) {
         return Ok(Some(Inverted {
             generator,
             styles,
             fit: None,
-            unmeasured,
-            finish_ms: 0.0,
-            stopped_at,
-            refit,
-            rigged,
-        }));
-    }
-    if defer && job.measure_after_result && inv.progress().0 == 0 {
-        let unmeasured = Some((inv, target));
-        return Ok(Some(Inverted {
-            generator,
-            styles,
-            fit: None,
-            unmeasured,
+            unmeasured: job.figures.then_some((inv, target)),
             finish_ms: 0.0,
             stopped_at,
             refit,
