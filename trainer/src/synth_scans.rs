@@ -13,8 +13,9 @@
 //! across UV seams.
 //!
 //! Output per scan, exactly as a scan dataset user has it: `<id>/mesh.obj`,
-//! `<id>/material.mtl`, `<id>/texture.png`, `<id>/smpl.json` (written last; a folder with it
-//! is complete and skipped on re-runs). Deterministic for a given `--seed` and id, whatever
+//! `<id>/material.mtl`, `<id>/texture.png`, `<id>/outfit.json` (the garments drawn: upper,
+//! lower, hair; the labels a garment-aware experiment selects by), `<id>/smpl.json` (written
+//! last; a folder with it is complete and skipped on re-runs). Deterministic for a given `--seed` and id, whatever
 //! `--threads` is.
 
 use std::collections::HashMap;
@@ -126,6 +127,7 @@ fn write_scan(
     put("mesh.obj", write_obj(&scan.mesh).as_bytes())?;
     put("material.mtl", write_mtl("material0", "texture.png").as_bytes())?;
     put("texture.png", &encode_png(scan.texture_size, scan.texture_size, 3, &scan.texture)?)?;
+    put("outfit.json", serde_json::to_string_pretty(&scan.outfit)?.as_bytes())?;
     put("smpl.json", scan.smpl.to_json()?.as_bytes())?;
     Ok(())
 }
@@ -137,6 +139,15 @@ pub struct SynthScan {
     pub texture: Vec<u8>,
     pub texture_size: usize,
     pub smpl: SmplParams,
+    pub outfit: Outfit,
+}
+
+/// The garments a scan was drawn with (`outfit.json`).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Outfit {
+    upper: Upper,
+    lower: Lower,
+    hair: Hair,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -256,7 +267,8 @@ fn fabric_color(f: &Fabric, p: Vec3) -> Vec3 {
     (c * (1.0 + 0.05 * noise(p * 150.0) + 0.04 * noise(p * 9.0))).clamp(Vec3::ZERO, Vec3::ONE)
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
 enum Upper {
     TShirt,
     LongSleeve,
@@ -264,7 +276,8 @@ enum Upper {
     Jacket,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
 enum Lower {
     Trousers,
     Shorts,
@@ -272,7 +285,8 @@ enum Lower {
     Dress,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
 enum Hair {
     Short,
     Long,
@@ -674,7 +688,7 @@ pub fn make_scan(
     }
     params.transl = transl;
     let smpl = SmplParams::from_body(&params, scale);
-    Ok(SynthScan { mesh, texture: tex, texture_size, smpl })
+    Ok(SynthScan { mesh, texture: tex, texture_size, smpl, outfit: Outfit { upper, lower, hair } })
 }
 
 /// Atlas UV of a tile-local UV: 2×2 tiles with a 1 % gutter.
@@ -799,5 +813,34 @@ mod tests {
         let ys: Vec<f32> = a.mesh.positions.iter().map(|p| a.smpl.scan_to_body(*p).y).collect();
         let h = ys.iter().cloned().fold(f32::MIN, f32::max) - ys.iter().cloned().fold(f32::MAX, f32::min);
         assert!((1.0..2.3).contains(&h), "height {h}");
+    }
+
+    #[test]
+    fn outfit_json_names_the_garments_drawn() {
+        let model = BodyModel::default_body().unwrap();
+        let dir = std::env::temp_dir().join(format!("getavatar-outfit-{}", std::process::id()));
+        let mut lowers = std::collections::BTreeSet::new();
+        for i in 0..24 {
+            let id = format!("{i:04}");
+            let scan = make_scan(&model, 3, &id, 64, None).unwrap();
+            let json = serde_json::to_value(scan.outfit).unwrap();
+            lowers.insert(json["lower"].as_str().unwrap().to_string());
+            if i == 0 {
+                write_scan(&model, 3, &id, 64, None, &dir.join(&id)).unwrap();
+                let text = std::fs::read_to_string(dir.join(&id).join("outfit.json")).unwrap();
+                let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+                assert_eq!(v, json, "outfit.json is the scan's outfit");
+                for (key, kinds) in [
+                    ("upper", &["t_shirt", "long_sleeve", "tank", "jacket"][..]),
+                    ("lower", &["trousers", "shorts", "skirt", "dress"][..]),
+                    ("hair", &["short", "long", "bald"][..]),
+                ] {
+                    assert!(kinds.contains(&v[key].as_str().unwrap()), "{key}: {}", v[key]);
+                }
+            }
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        let all: Vec<&str> = lowers.iter().map(|s| s.as_str()).collect();
+        assert_eq!(all, ["dress", "shorts", "skirt", "trousers"], "24 scans draw every kind of lower garment");
     }
 }
