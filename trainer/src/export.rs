@@ -26,7 +26,7 @@ use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::generator::rigging::{generate_rigged_async, BakedTexture, RiggedAvatar};
 use getavatar_core::reconstruction::photo_projection::SourcePhoto;
 
-use crate::model_io::{load_body, load_inverted_file, seed_styles, GeneratorArgs};
+use crate::model_io::{load_body, load_inverted_file, seed_styles, snap_to_photo, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
@@ -60,7 +60,8 @@ pub struct ExportArgs {
     /// again (where the file keeps the photo).
     #[arg(long, value_name = "DIR", conflicts_with_all = ["checkpoint", "body_only", "random"])]
     pub inverted: Option<PathBuf>,
-    /// With --inverted: the generated texture alone, without the photo's colours.
+    /// With --inverted: the generated texture and outline alone, without the photo's colours
+    /// and without the outline moved onto the photo's person.
     #[arg(long, requires = "inverted")]
     pub no_projection: bool,
     /// A static mesh in the pose shown (no skin, no animations).
@@ -392,9 +393,12 @@ fn export_avatar(
         }
     };
     let ctx = BodyContext::new(model, &cfg);
-    let rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, device))?;
+    let mut rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, device))?;
     if rigged.canonical.mesh.faces.is_empty() {
         bail!("the generator produced an empty surface");
+    }
+    if let (Some(p), false) = (photo, a.no_projection) {
+        snap_to_photo(&mut rigged, &ctx, p);
     }
     let n = rigged.canonical.mesh.vertices.len();
     let texture = bake_texture(a, &rigged, &g, &styles, &ctx, photo, device)?;

@@ -225,3 +225,20 @@ pub fn render_avatar(
         block_on_ready(recolor_async(g, &planes, styles, pts, device))
     })?)
 }
+
+/// A reconstruction's outline moved onto its photo's person
+/// ([`getavatar_core::reconstruction::silhouette_snap`]), as `trainer invert` and `trainer
+/// export --inverted` do before projecting the photo; says how far.
+pub fn snap_to_photo(
+    rigged: &mut getavatar_core::generator::rigging::RiggedAvatar,
+    ctx: &getavatar_core::geometry::BodyContext,
+    photo: &getavatar_core::reconstruction::photo_projection::SourcePhoto,
+) {
+    let body = getavatar_core::body::skinning::pose_body(&ctx.model, &photo.view.body);
+    let report = rigged.snap_to_photo(ctx, &body, photo);
+    eprintln!(
+        "the outline moved onto the photo's person: {} outline vertices, at most {:.1} cm",
+        report.outline_vertices,
+        report.max_move_m * 100.0
+    );
+}

@@ -55,7 +55,7 @@ use start::{encoder_guess, search_guess, start_views, StartViews};
 
 use crate::atomic::write_atomic;
 use crate::fit_pose::{load_mask, open_image};
-use crate::model_io::{load_body, shipped_discriminator, shipped_encoder, write_png, GeneratorArgs};
+use crate::model_io::{load_body, shipped_discriminator, shipped_encoder, snap_to_photo, write_png, GeneratorArgs};
 
 #[derive(clap::Args, Debug)]
 pub struct InvertArgs {
@@ -126,9 +126,10 @@ pub struct InvertArgs {
     /// tools/mediapipe_fixtures.mjs in headless Chromium; about a minute).
     #[arg(long, requires = "keypoints", requires = "image")]
     pub pck: bool,
-    /// Leave the photo's colours off the .glb's texture (by default they are projected onto
-    /// the surface the photo sees and blended with the generated texture at grazing angles
-    /// and on the hidden side).
+    /// Leave the photo's colours off the .glb's texture and the outline as generated (by
+    /// default the outline is moved onto the photo's person, and the colours are projected
+    /// onto the surface the photo sees and blended with the generated texture at grazing
+    /// angles and on the hidden side).
     #[arg(long)]
     pub no_projection: bool,
     /// Body model .npz in the SMPL layout (default: the embedded open body).
@@ -532,12 +533,17 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     write_atomic(&a.out.join("comparison.png"), &png)?;
 
     // The animatable avatar, its baked textures, and what it looks like at the input camera.
-    let rigged = match rigged_start.filter(|_| opts.steps + opts.pti_steps == 0) {
+    let mut rigged = match rigged_start.filter(|_| opts.steps + opts.pti_steps == 0) {
         Some(r) => r,
         None => block_on_ready(generate_rigged_async(&g, &ctx, &styles, &dev))?,
     };
     if rigged.canonical.mesh.faces.is_empty() {
         bail!("the inverted generator produced an empty surface");
+    }
+    let photo = target.source_photo();
+    // The outline onto the photo's person, as every later bake of the saved file does.
+    if !a.no_projection {
+        snap_to_photo(&mut rigged, &ctx, &photo);
     }
     let planes = g.triplanes(&styles);
     let bake = |photo| {
@@ -545,7 +551,6 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
             .context("baking the texture")
     };
     let body = &target.view.body;
-    let photo = target.source_photo();
     let projection = rigged.photo_projection(&ctx, &photo);
     let plain = bake(None)?;
     let projected = bake(Some((&projection, body)))?;

@@ -22,6 +22,7 @@ use crate::generator::readback::ReadbackError;
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
 use crate::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
+use crate::reconstruction::silhouette_snap::{silhouette_offsets, SnapReport};
 use crate::util::cooperative::checkpoint;
 use burn::tensor::Device;
 
@@ -33,8 +34,8 @@ pub struct RiggedAvatar {
     /// Nearest canonical body vertex of each avatar vertex.
     pub body_vertex: Vec<u32>,
     /// The bind pose at one shape, computed ahead ([`RiggedAvatar::keep_bind_pose_async`]).
-    /// Nothing changes `canonical`'s geometry after rigging (re-texturing changes its colours
-    /// only), so it stays valid.
+    /// Only [`RiggedAvatar::snap_to_photo`] changes `canonical`'s geometry after rigging (and
+    /// drops it); re-texturing changes its colours only.
     bind: Option<BindPose>,
 }
 
@@ -352,10 +353,28 @@ impl RiggedAvatar {
     }
 
     /// The projection of `photo` (the photo a reconstruction was made from) onto this avatar
-    /// posed as the photo shows it; bakes take it with `photo.view.body`.
+    /// posed as the photo shows it; bakes take it with `photo.view.body`. Snap the outline
+    /// first ([`RiggedAvatar::snap_to_photo`]) as every reconstruction does.
     pub fn photo_projection(&self, ctx: &BodyContext, photo: &SourcePhoto) -> PhotoProjection {
         let (posed, _) = self.repose(ctx, &pose_body(&ctx.model, &photo.view.body));
         photo.projection(&posed, &self.canonical.mesh.faces)
+    }
+
+    /// Move this avatar's outline at the photo's camera onto the photo's person
+    /// ([`crate::reconstruction::silhouette_snap`]): the moves found in the pose the photo shows
+    /// (`body`, posed from `photo.view.body`), carried back to the canonical mesh. Drops a kept
+    /// bind pose.
+    pub fn snap_to_photo(&mut self, ctx: &BodyContext, body: &PosedBody, photo: &SourcePhoto) -> SnapReport {
+        let (posed, _) = self.repose(ctx, body);
+        let (moves, report) = silhouette_offsets(&posed, &self.canonical.mesh.faces, photo);
+        // Posed → canonical through each vertex's re-pose transform, inverted.
+        let mut cache: crate::geometry::id_map::IdMap<u32, Mat4> = Default::default();
+        for ((v, d), &b) in self.canonical.mesh.vertices.iter_mut().zip(moves).zip(&self.body_vertex) {
+            let back = *cache.entry(b).or_insert_with(|| repose_transform(ctx, body, b as usize).0.inverse());
+            *v += back.transform_vector3(d);
+        }
+        self.bind = None;
+        report
     }
 
     /// Bake the texture field (styles `s`, triplanes `planes`) into a `res²` atlas image: each

@@ -6,6 +6,7 @@
 //!   geometry at the photo's camera (feature `autodiff`)
 //! - [`inversion`]: W+ optimisation and pivotal tuning (feature `autodiff`)
 //! - [`photo_projection`]: the photo's colours projected onto the reconstruction
+//! - [`silhouette_snap`]: the avatar's outline moved onto the photo's person, before the projection
 
 #[cfg(any(feature = "generator", feature = "wgpu"))]
 pub mod encoder;
@@ -14,3 +15,4 @@ pub mod garment_codes;
 #[cfg(all(feature = "autodiff", any(feature = "generator", feature = "wgpu")))]
 pub mod inversion;
 pub mod photo_projection;
+pub mod silhouette_snap;

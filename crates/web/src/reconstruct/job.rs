@@ -587,14 +587,17 @@ async fn choose_garment(
     })
 }
 
-/// The photo projected onto `rigged` (posed as the photo shows it); the viewport's vertex
-/// colours show what the download's texture will. In slices of the UI thread: the body
-/// posed once, as the photo shows it; the avatar re-posed; its depth at the photo's camera;
+/// The photo projected onto `rigged` (posed as the photo shows it), its outline first moved
+/// onto the photo's person (`RiggedAvatar::snap_to_photo`); the viewport's vertex colours show
+/// what the download's texture will. In slices of the UI thread: the body posed once, as the
+/// photo shows it; the outline snapped; the avatar re-posed; its depth at the photo's camera;
 /// the photo's mask and linear colours; the blend (itself sliced: the samples, then each of
 /// the colour shift's grids); the bind pose at the photo's shape.
 async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhoto) -> Rc<Projected> {
     yield_to_browser().await;
     let body = pose_body(&ctx.model, &photo.view.body);
+    yield_to_browser().await;
+    rigged.snap_to_photo(ctx, &body, &photo);
     yield_to_browser().await;
     let (posed, normals) = rigged.repose(ctx, &body);
     yield_to_browser().await;

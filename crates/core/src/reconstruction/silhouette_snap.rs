@@ -1,0 +1,266 @@
+//! The avatar's outline moved onto the photo's person (beyond the paper, with the photo's
+//! projection): a generated avatar's silhouette at the photo's camera lies a pixel or two off
+//! the person's (thinner arms, a narrower hem), and every such pixel shows background where
+//! the photo shows the person. Each vertex on the avatar's outer silhouette (its normal across
+//! the line of sight, nothing of the avatar just outside it in the image) is moved across the
+//! line of sight to the person mask's border when that lies within [`reach`] pixels; the moves
+//! are spread over the mesh by screened smoothing, so the surface near the outline follows and
+//! the parts facing the camera stay where they are. No optimisation: one rasterisation and a
+//! walk along each outline vertex's image normal.
+//!
+//! Where the photo's projection is applied (`trainer invert`, `trainer export --inverted`, the
+//! app's result and a reopened file) the outline is snapped first, from the same photo
+//! ([`SourcePhoto`]), so every later bake of a saved reconstruction gives the same mesh.
+
+use glam::{Vec2, Vec3};
+
+use crate::body::skinning::vertex_normals;
+use crate::reconstruction::photo_projection::SourcePhoto;
+use crate::render::camera::OrbitCamera;
+use crate::render::rasterize::rasterize;
+
+/// How far (pixels) an outline vertex may move: 3 at the 128² crop the reconstruction uses, in
+/// proportion at other sizes (2.3 % of the crop; about 4 cm on a person filling it).
+pub fn reach(res: usize) -> f32 {
+    3.0 * res as f32 / 128.0
+}
+
+/// `|cos θ|` (the normal against the direction to the camera) up to which a vertex moves fully,
+/// and from which it does not move at all.
+const EDGE_FULL: f32 = 0.2;
+const EDGE_NONE: f32 = 0.4;
+/// Screened smoothing: the pull between neighbours, the pull of every vertex towards staying,
+/// and the passes.
+const SMOOTH: f32 = 0.5;
+const STAY: f32 = 0.05;
+const PASSES: usize = 10;
+/// The walk along an outline vertex's image normal, pixels per sample.
+const WALK_STEP: f32 = 0.25;
+
+/// What [`silhouette_offsets`] did: vertices on the outer silhouette that found the person's
+/// border within reach, and the largest move (metres).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SnapReport {
+    pub outline_vertices: usize,
+    pub max_move_m: f32,
+}
+
+/// The moves (metres, world frame) that bring the outer silhouette of the surface (`posed`,
+/// `faces`, posed as the photo shows it) onto the photo's person mask at its camera.
+pub fn silhouette_offsets(posed: &[Vec3], faces: &[[u32; 3]], photo: &SourcePhoto) -> (Vec<Vec3>, SnapReport) {
+    let n = posed.len();
+    let res = photo.res;
+    if n == 0 || res == 0 || photo.mask.len() != res * res {
+        return (vec![Vec3::ZERO; n], SnapReport::default());
+    }
+    let view = photo.view.world_to_camera;
+    let view_proj = OrbitCamera::default().projection_gl(1.0) * view;
+    let clip: Vec<_> = posed.iter().map(|v| view_proj * v.extend(1.0)).collect();
+    let raster = rasterize(&clip, faces, res, res);
+    let rf = res as f32;
+    let inside = |p: Vec2| p.x >= 0.0 && p.y >= 0.0 && p.x < rf && p.y < rf;
+    let covered = |p: Vec2| inside(p) && raster.triangle[p.y as usize * res + p.x as usize] >= 0;
+    let person = |p: Vec2| person_at(&photo.mask, res, p) >= 0.5;
+    let to_px = |p: Vec3| {
+        let c = view_proj * p.extend(1.0);
+        (c.w > 1e-6).then(|| Vec2::new((c.x / c.w + 1.0) * 0.5 * rf, (1.0 - c.y / c.w) * 0.5 * rf))
+    };
+    let camera_to_world = view.inverse();
+    let normals = vertex_normals(posed, faces);
+    let reach = reach(res);
+    let mut target = vec![Vec3::ZERO; n];
+    let mut weight = vec![0.0f32; n];
+    let mut report = SnapReport::default();
+    for i in 0..n {
+        let pv = view.transform_point3(posed[i]);
+        let to_cam = (-pv).normalize_or_zero();
+        let nv = view.transform_vector3(normals[i]).normalize_or_zero();
+        let cos = nv.dot(to_cam);
+        if cos.abs() >= EDGE_NONE {
+            continue;
+        }
+        // The normal's part across the line of sight, and its direction in the image.
+        let across = camera_to_world.transform_vector3((nv - to_cam * cos).normalize_or_zero());
+        let (Some(a), Some(b)) = (to_px(posed[i]), to_px(posed[i] + across * 0.01)) else { continue };
+        let px_per_m = (b - a).length() / 0.01;
+        if !px_per_m.is_finite() || px_per_m <= 1e-3 || !inside(a) {
+            continue;
+        }
+        let u = (b - a).normalize();
+        // The outer silhouette only: an edge with the avatar just outside it (an arm in front
+        // of the torso) is not the outline the person mask shows.
+        if covered(a + u * 1.5) {
+            continue;
+        }
+        let Some(t) = border_along(a, u, reach, &person) else { continue };
+        let w = 1.0 - ((cos.abs() - EDGE_FULL) / (EDGE_NONE - EDGE_FULL)).clamp(0.0, 1.0);
+        target[i] = across * (t / px_per_m);
+        weight[i] = w;
+        report.outline_vertices += 1;
+    }
+    let moves = smooth_moves(n, faces, &target, &weight);
+    report.max_move_m = moves.iter().map(|d| d.length()).fold(0.0, f32::max);
+    (moves, report)
+}
+
+/// The signed distance (pixels) from `a` along `u` to the person mask's border: positive
+/// outwards when `a` lies on the person, negative when it lies off it; None beyond `reach`.
+fn border_along(a: Vec2, u: Vec2, reach: f32, person: &impl Fn(Vec2) -> bool) -> Option<f32> {
+    let on = person(a);
+    let dir = if on { u } else { -u };
+    let mut s = WALK_STEP;
+    while s <= reach + 1e-4 {
+        if person(a + dir * s) != on {
+            let t = s - 0.5 * WALK_STEP;
+            return Some(if on { t } else { -t });
+        }
+        s += WALK_STEP;
+    }
+    None
+}
+
+/// The person mask at pixel position `p` (bilinear, 0 outside the crop).
+fn person_at(mask: &[f32], res: usize, p: Vec2) -> f32 {
+    let (fx, fy) = (p.x - 0.5, p.y - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - x0, fy - y0);
+    let at = |x: f32, y: f32| {
+        if x < 0.0 || y < 0.0 || x >= res as f32 || y >= res as f32 {
+            0.0
+        } else {
+            mask[y as usize * res + x as usize]
+        }
+    };
+    let top = at(x0, y0) * (1.0 - tx) + at(x0 + 1.0, y0) * tx;
+    let bottom = at(x0, y0 + 1.0) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0) * tx;
+    top * (1.0 - ty) + bottom * ty
+}
+
+/// Screened smoothing of the outline's moves over the mesh's edges: each vertex pulled
+/// towards its own target by its weight, towards its neighbours and, weakly, towards staying.
+fn smooth_moves(n: usize, faces: &[[u32; 3]], target: &[Vec3], weight: &[f32]) -> Vec<Vec3> {
+    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for f in faces {
+        for k in 0..3 {
+            let (a, b) = (f[k] as usize, f[(k + 1) % 3] as usize);
+            if a < n && b < n && !neighbours[a].contains(&(b as u32)) {
+                neighbours[a].push(b as u32);
+                neighbours[b].push(a as u32);
+            }
+        }
+    }
+    let mut d: Vec<Vec3> = target.iter().zip(weight).map(|(t, w)| *t * *w).collect();
+    for _ in 0..PASSES {
+        d = (0..n)
+            .map(|i| {
+                let sum: Vec3 = neighbours[i].iter().map(|&j| d[j as usize]).sum();
+                (target[i] * weight[i] + sum * SMOOTH) / (weight[i] + STAY + SMOOTH * neighbours[i].len() as f32)
+            })
+            .collect();
+    }
+    d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body::skinning::BodyParams;
+    use crate::render::camera::View;
+    use glam::Mat4;
+
+    /// A UV sphere of radius `r` around the origin.
+    fn sphere(r: f32, rings: usize, segments: usize) -> (Vec<Vec3>, Vec<[u32; 3]>) {
+        let mut v = vec![Vec3::new(0.0, r, 0.0)];
+        for i in 1..rings {
+            let th = std::f32::consts::PI * i as f32 / rings as f32;
+            for j in 0..segments {
+                let ph = std::f32::consts::TAU * j as f32 / segments as f32;
+                v.push(Vec3::new(r * th.sin() * ph.cos(), r * th.cos(), r * th.sin() * ph.sin()));
+            }
+        }
+        v.push(Vec3::new(0.0, -r, 0.0));
+        let last = v.len() as u32 - 1;
+        let at = |i: usize, j: usize| (1 + (i - 1) * segments + j % segments) as u32;
+        let mut f = Vec::new();
+        for j in 0..segments {
+            f.push([0, at(1, j + 1), at(1, j)]);
+            f.push([last, at(rings - 1, j), at(rings - 1, j + 1)]);
+        }
+        for i in 1..rings - 1 {
+            for j in 0..segments {
+                f.push([at(i, j), at(i, j + 1), at(i + 1, j)]);
+                f.push([at(i, j + 1), at(i + 1, j + 1), at(i + 1, j)]);
+            }
+        }
+        (v, f)
+    }
+
+    /// A photo of a disc of `radius_px` pixels at the crop's centre, seen by a camera 2.5 m
+    /// in front of the origin.
+    fn disc_photo(res: usize, radius_px: f32) -> SourcePhoto {
+        let c = res as f32 / 2.0;
+        let mask = (0..res * res)
+            .map(|k| {
+                let (x, y) = ((k % res) as f32 + 0.5 - c, (k / res) as f32 + 0.5 - c);
+                if (x * x + y * y).sqrt() <= radius_px {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let world_to_camera = Mat4::look_at_rh(Vec3::new(0.0, 0.0, 2.5), Vec3::ZERO, Vec3::Y);
+        SourcePhoto {
+            view: View { world_to_camera, body: BodyParams::default() },
+            res,
+            rgb: vec![0.5; res * res * 3],
+            mask,
+        }
+    }
+
+    /// The radius (pixels) of the surface's silhouette at the photo's camera: from its area.
+    fn silhouette_radius(v: &[Vec3], f: &[[u32; 3]], photo: &SourcePhoto) -> f32 {
+        let vp = OrbitCamera::default().projection_gl(1.0) * photo.view.world_to_camera;
+        let clip: Vec<_> = v.iter().map(|p| vp * p.extend(1.0)).collect();
+        let r = rasterize(&clip, f, photo.res, photo.res);
+        let area = r.triangle.iter().filter(|&&t| t >= 0).count() as f32;
+        (area / std::f32::consts::PI).sqrt()
+    }
+
+    #[test]
+    fn a_sphere_thinner_than_the_person_grows_to_the_outline_and_keeps_its_front() {
+        let (v, f) = sphere(0.3, 48, 96);
+        let res = 128;
+        let probe = disc_photo(res, 10.0);
+        let r0 = silhouette_radius(&v, &f, &probe);
+        // The person is 2 pixels wider all round than the sphere's outline.
+        let photo = disc_photo(res, r0 + 2.0);
+        let (moves, report) = silhouette_offsets(&v, &f, &photo);
+        assert!(report.outline_vertices > 50, "{report:?}");
+        let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
+        let r1 = silhouette_radius(&moved, &f, &photo);
+        assert!((r1 - (r0 + 2.0)).abs() < 0.6, "outline radius {r0:.2} → {r1:.2}, the person's {:.2}", r0 + 2.0);
+        // The point facing the camera stays; the outline moves outwards, across the line of sight.
+        let front = v.iter().enumerate().max_by(|a, b| a.1.z.total_cmp(&b.1.z)).unwrap().0;
+        assert!(moves[front].length() < 1e-3, "front moved {:?}", moves[front]);
+        let side = v.iter().enumerate().max_by(|a, b| a.1.x.total_cmp(&b.1.x)).unwrap().0;
+        assert!(moves[side].x > 0.005 && moves[side].z.abs() < 0.3 * moves[side].x, "side move {:?}", moves[side]);
+        assert!(report.max_move_m < reach(res) / 128.0 * 2.5, "{report:?}");
+    }
+
+    #[test]
+    fn a_sphere_wider_than_the_person_shrinks_and_a_far_outline_is_left_alone() {
+        let (v, f) = sphere(0.3, 48, 96);
+        let res = 128;
+        let r0 = silhouette_radius(&v, &f, &disc_photo(res, 10.0));
+        let photo = disc_photo(res, r0 - 2.0);
+        let (moves, _) = silhouette_offsets(&v, &f, &photo);
+        let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
+        let r1 = silhouette_radius(&moved, &f, &photo);
+        assert!((r1 - (r0 - 2.0)).abs() < 0.6, "outline radius {r0:.2} → {r1:.2}, the person's {:.2}", r0 - 2.0);
+        // A person far narrower than the reach: nothing found within it, nothing moves.
+        let (moves, report) = silhouette_offsets(&v, &f, &disc_photo(res, r0 - 8.0));
+        assert_eq!(report.outline_vertices, 0);
+        assert!(moves.iter().all(|d| d.length() < 1e-6));
+    }
+}
