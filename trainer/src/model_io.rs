@@ -234,11 +234,13 @@ pub fn snap_to_photo(
     ctx: &getavatar_core::geometry::BodyContext,
     photo: &getavatar_core::reconstruction::photo_projection::SourcePhoto,
 ) {
+    let t = std::time::Instant::now();
     let body = getavatar_core::body::skinning::pose_body(&ctx.model, &photo.view.body);
     let report = rigged.snap_to_photo(ctx, &body, photo);
     eprintln!(
-        "the outline moved onto the photo's person: {} outline vertices, at most {:.1} cm",
+        "the outline moved onto the photo's person: {} outline vertices, at most {:.1} cm ({:.0} ms)",
         report.outline_vertices,
-        report.max_move_m * 100.0
+        report.max_move_m * 100.0,
+        t.elapsed().as_secs_f64() * 1e3
     );
 }

@@ -22,7 +22,7 @@ use crate::generator::readback::ReadbackError;
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
 use crate::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
-use crate::reconstruction::silhouette_snap::{silhouette_offsets, SnapReport};
+use crate::reconstruction::silhouette_snap::{silhouette_offsets_async, SnapReport};
 use crate::util::cooperative::checkpoint;
 use burn::tensor::Device;
 
@@ -365,8 +365,21 @@ impl RiggedAvatar {
     /// (`body`, posed from `photo.view.body`), carried back to the canonical mesh. Drops a kept
     /// bind pose.
     pub fn snap_to_photo(&mut self, ctx: &BodyContext, body: &PosedBody, photo: &SourcePhoto) -> SnapReport {
+        crate::util::cooperative::run_blocking(self.snap_to_photo_async(ctx, body, photo))
+    }
+
+    /// [`RiggedAvatar::snap_to_photo`] in slices ([`crate::util::cooperative`]), for the
+    /// browser's UI thread.
+    pub async fn snap_to_photo_async(
+        &mut self,
+        ctx: &BodyContext,
+        body: &PosedBody,
+        photo: &SourcePhoto,
+    ) -> SnapReport {
         let (posed, _) = self.repose(ctx, body);
-        let (moves, report) = silhouette_offsets(&posed, &self.canonical.mesh.faces, photo);
+        checkpoint().await;
+        let (moves, report) = silhouette_offsets_async(&posed, &self.canonical.mesh.faces, photo).await;
+        checkpoint().await;
         // Posed → canonical through each vertex's re-pose transform, inverted.
         let mut cache: crate::geometry::id_map::IdMap<u32, Mat4> = Default::default();
         for ((v, d), &b) in self.canonical.mesh.vertices.iter_mut().zip(moves).zip(&self.body_vertex) {

@@ -597,7 +597,7 @@ async fn project(rigged: &mut RiggedAvatar, ctx: &BodyContext, photo: SourcePhot
     yield_to_browser().await;
     let body = pose_body(&ctx.model, &photo.view.body);
     yield_to_browser().await;
-    rigged.snap_to_photo(ctx, &body, &photo);
+    rigged.snap_to_photo_async(ctx, &body, &photo).await;
     yield_to_browser().await;
     let (posed, normals) = rigged.repose(ctx, &body);
     yield_to_browser().await;
