@@ -112,13 +112,19 @@ fn train_encoder_resumes_bit_identically_and_invert_starts_from_it() {
     assert!((0.2..=1.0).contains(&iou), "{m}");
     let t = m["seconds_to_first_avatar"].as_f64().unwrap();
     assert!(t > 0.0 && t <= m["seconds_total"].as_f64().unwrap(), "{m}");
-    // The first avatar is the guess rigged and re-posed, the avatar `instant` exports (the
-    // same outline at the input camera), drawn before the start's exact per-pose render.
-    let (first, baked) = (&m["first_avatar"]["mask_iou"], &m["baked"]["mask_iou"]);
-    assert!((first.as_f64().unwrap() - baked.as_f64().unwrap()).abs() < 1e-6, "{m}");
+    // The first avatar is the guess rigged and re-posed, drawn before the start's exact
+    // per-pose render; `instant` exports it with its outline moved onto the photo's person
+    // (`silhouette_snap`), which overlaps the person at least as well.
+    let iou = |m: &serde_json::Value, k: &str| m[k]["mask_iou"].as_f64().unwrap();
+    assert!(iou(&m, "baked") >= iou(&m, "first_avatar") - 1e-3, "{m}");
     let stages: Vec<&str> =
         m["first_avatar_stages"].as_array().unwrap().iter().map(|s| s["stage"].as_str().unwrap()).collect();
     assert!(stages.contains(&"synthesis") && stages.last() == Some(&"render"), "{stages:?}");
+    // Without the projection the outline is left as generated: the export is the first avatar.
+    let plain = root.join("inv_plain");
+    ok(trainer(&[&base[..], &quick[..], &["--encoder", s(&enc), "--no-projection", "--out", s(&plain)]].concat()));
+    let p = metrics(&plain);
+    assert!((iou(&p, "first_avatar") - iou(&p, "baked")).abs() < 1e-6, "{p}");
     let steps = std::fs::read_to_string(inv.join("steps.jsonl")).unwrap();
     assert_eq!(steps.lines().count(), 0, "instant optimises nothing");
     for f in ["input_view_first.png", "input_view_start.png", "input_view.png", "avatar.glb", "inverted.safetensors"] {
