@@ -238,8 +238,9 @@ pub fn snap_to_photo(
     let body = getavatar_core::body::skinning::pose_body(&ctx.model, &photo.view.body);
     let report = rigged.snap_to_photo(ctx, &body, photo);
     eprintln!(
-        "the outline moved onto the photo's person: {} outline vertices, at most {:.1} cm ({:.0} ms)",
+        "the outline moved onto the photo's person: {} outline vertices ({} held by another part in the way), at most {:.1} cm ({:.0} ms)",
         report.outline_vertices,
+        report.held_vertices,
         report.max_move_m * 100.0,
         t.elapsed().as_secs_f64() * 1e3
     );

@@ -22,7 +22,9 @@ use crate::generator::readback::ReadbackError;
 use crate::geometry::inverse_skinning::nearest_rotation;
 use crate::geometry::BodyContext;
 use crate::reconstruction::photo_projection::{PhotoProjection, SourcePhoto};
-use crate::reconstruction::silhouette_snap::{silhouette_offsets_async, SnapReport};
+use crate::reconstruction::silhouette_snap::{
+    body_vertex_parts, silhouette_offsets_async, OutlineParts, SnapReport, NO_PART,
+};
 use crate::util::cooperative::checkpoint;
 use burn::tensor::Device;
 
@@ -361,7 +363,8 @@ impl RiggedAvatar {
     }
 
     /// Move this avatar's outline at the photo's camera onto the photo's person
-    /// ([`crate::reconstruction::silhouette_snap`]): the moves found in the pose the photo shows
+    /// ([`crate::reconstruction::silhouette_snap`], its longer reach kept within each vertex's
+    /// part of `body`): the moves found in the pose the photo shows
     /// (`body`, posed from `photo.view.body`), carried back to the canonical mesh. Drops a kept
     /// bind pose.
     pub fn snap_to_photo(&mut self, ctx: &BodyContext, body: &PosedBody, photo: &SourcePhoto) -> SnapReport {
@@ -378,7 +381,12 @@ impl RiggedAvatar {
     ) -> SnapReport {
         let (posed, _) = self.repose(ctx, body);
         checkpoint().await;
-        let (moves, report) = silhouette_offsets_async(&posed, &self.canonical.mesh.faces, photo).await;
+        let body_parts = body_vertex_parts(&ctx.model.weights);
+        let vertex_parts =
+            self.body_vertex.iter().map(|&b| body_parts.get(b as usize).copied().unwrap_or(NO_PART)).collect();
+        let parts = OutlineParts::new(vertex_parts, &body.vertices, &ctx.model.faces, &body_parts, photo);
+        checkpoint().await;
+        let (moves, report) = silhouette_offsets_async(&posed, &self.canonical.mesh.faces, photo, Some(&parts)).await;
         checkpoint().await;
         // Posed → canonical through each vertex's re-pose transform, inverted.
         let mut cache: crate::geometry::id_map::IdMap<u32, Mat4> = Default::default();

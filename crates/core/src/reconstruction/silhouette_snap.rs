@@ -8,24 +8,106 @@
 //! the parts facing the camera stay where they are. No optimisation: one rasterisation and a
 //! walk along each outline vertex's image normal.
 //!
+//! Beyond [`reach`] a walk may go on to [`reach_within_part`] when the fitted body, rasterised
+//! at the photo's camera with its coarse parts ([`OutlineParts`]), shows no other part along
+//! it: a hem wider than the guess's trouser legs is claimed, an arm beside the back is not (a
+//! vertex whose walk meets another part is held where it is).
+//!
 //! Where the photo's projection is applied (`trainer invert`, `trainer export --inverted`, the
 //! app's result and a reopened file) the outline is snapped first, from the same photo
 //! ([`SourcePhoto`]), so every later bake of a saved reconstruction gives the same mesh.
 
 use glam::{Vec2, Vec3};
 
+use crate::body::body_model::NUM_JOINTS;
 use crate::body::skinning::vertex_normals;
 use crate::reconstruction::photo_projection::SourcePhoto;
 use crate::render::camera::OrbitCamera;
 use crate::render::rasterize::rasterize;
 use crate::util::cooperative::checkpoint;
 
-/// How far (pixels) an outline vertex may move: 3 at the 128² crop the reconstruction uses, in
-/// proportion at other sizes (2.3 % of the crop; about 4 cm on a person filling it). Larger
-/// reaches score higher on the validation people but raise humps where the photo's person has
-/// a limb the avatar lacks there (docs/benchmarks.md, "The outline moved onto the person").
+/// How far (pixels) an outline vertex may move whatever lies in the way: 3 at the 128² crop the
+/// reconstruction uses, in proportion at other sizes (2.3 % of the crop; about 4 cm on a person
+/// filling it). Longer walks, unchecked, raise humps where the photo's person has a limb the
+/// avatar has elsewhere; [`reach_within_part`] goes further where the body shows none.
 pub fn reach(res: usize) -> f32 {
     3.0 * res as f32 / 128.0
+}
+
+/// How far (pixels) an outline vertex may move when the walk crosses none of the fitted body's
+/// other parts ([`OutlineParts`]): 6 at the 128² crop (about 8 cm), in proportion at other
+/// sizes. Longer walks score a little higher still but tear a long skirt's hem in other poses
+/// (docs/benchmarks.md, "The outline moved onto the person").
+pub fn reach_within_part(res: usize) -> f32 {
+    6.0 * res as f32 / 128.0
+}
+
+/// The coarse parts the reach beyond [`reach`] respects: the torso with the head, then each arm
+/// and each leg. [`NO_PART`] where the body is absent.
+pub const TORSO: u8 = 0;
+pub const NO_PART: u8 = u8::MAX;
+
+/// The coarse part of SMPL joint `j` (SMPL order): the torso and head 0, the left and right
+/// arm (shoulder to hand) 1 and 2, the left and right leg (hip to foot) 3 and 4.
+pub fn joint_part(j: usize) -> u8 {
+    match j {
+        16 | 18 | 20 | 22 => 1,
+        17 | 19 | 21 | 23 => 2,
+        1 | 4 | 7 | 10 => 3,
+        2 | 5 | 8 | 11 => 4,
+        _ => TORSO,
+    }
+}
+
+/// Each body vertex's coarse part: that of its heaviest skinning joint.
+pub fn body_vertex_parts(weights: &[[f32; NUM_JOINTS]]) -> Vec<u8> {
+    weights
+        .iter()
+        .map(|w| joint_part(w.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(j, _)| j)))
+        .collect()
+}
+
+/// The fitted body's parts for [`silhouette_offsets`]: each surface vertex's part, and the part
+/// the posed body shows at each pixel of the photo's crop.
+#[derive(Clone, Debug)]
+pub struct OutlineParts {
+    pub vertex: Vec<u8>,
+    pub pixel: Vec<u8>,
+}
+
+impl OutlineParts {
+    /// The body (`body` posed as the photo shows it, `body_faces`, `body_parts` per body vertex)
+    /// rasterised at the photo's camera; `vertex` is each surface vertex's part.
+    pub fn new(
+        vertex: Vec<u8>,
+        body: &[Vec3],
+        body_faces: &[[u32; 3]],
+        body_parts: &[u8],
+        photo: &SourcePhoto,
+    ) -> Self {
+        let res = photo.res;
+        let view_proj = OrbitCamera::default().projection_gl(1.0) * photo.view.world_to_camera;
+        let clip: Vec<_> = body.iter().map(|v| view_proj * v.extend(1.0)).collect();
+        let raster = rasterize(&clip, body_faces, res, res);
+        let pixel = raster
+            .triangle
+            .iter()
+            .zip(&raster.bary)
+            .map(|(&t, b)| {
+                let Some(f) = usize::try_from(t).ok().and_then(|t| body_faces.get(t)) else { return NO_PART };
+                // The part of the triangle's vertex nearest the pixel.
+                let k = if 1.0 - b[0] - b[1] >= b[0].max(b[1]) {
+                    0
+                } else if b[0] >= b[1] {
+                    1
+                } else {
+                    2
+                };
+                body_parts.get(f[k] as usize).copied().unwrap_or(NO_PART)
+            })
+            .collect();
+        Self { vertex, pixel }
+    }
 }
 
 /// `|cos θ|` (the normal against the direction to the camera) up to which a vertex moves fully,
@@ -41,17 +123,25 @@ const PASSES: usize = 30;
 const WALK_STEP: f32 = 0.25;
 
 /// What [`silhouette_offsets`] did: vertices on the outer silhouette that found the person's
-/// border within reach, and the largest move (metres).
+/// border within reach, those held in place because another part lay in the way, and the
+/// largest move (metres).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SnapReport {
     pub outline_vertices: usize,
+    pub held_vertices: usize,
     pub max_move_m: f32,
 }
 
 /// The moves (metres, world frame) that bring the outer silhouette of the surface (`posed`,
-/// `faces`, posed as the photo shows it) onto the photo's person mask at its camera.
-pub fn silhouette_offsets(posed: &[Vec3], faces: &[[u32; 3]], photo: &SourcePhoto) -> (Vec<Vec3>, SnapReport) {
-    crate::util::cooperative::run_blocking(silhouette_offsets_async(posed, faces, photo))
+/// `faces`, posed as the photo shows it) onto the photo's person mask at its camera; with the
+/// fitted body's `parts`, up to [`reach_within_part`] where the walk crosses no other part.
+pub fn silhouette_offsets(
+    posed: &[Vec3],
+    faces: &[[u32; 3]],
+    photo: &SourcePhoto,
+    parts: Option<&OutlineParts>,
+) -> (Vec<Vec3>, SnapReport) {
+    crate::util::cooperative::run_blocking(silhouette_offsets_async(posed, faces, photo, parts))
 }
 
 /// [`silhouette_offsets`] in slices ([`crate::util::cooperative`]), for the browser's UI
@@ -60,12 +150,14 @@ pub async fn silhouette_offsets_async(
     posed: &[Vec3],
     faces: &[[u32; 3]],
     photo: &SourcePhoto,
+    parts: Option<&OutlineParts>,
 ) -> (Vec<Vec3>, SnapReport) {
     let n = posed.len();
     let res = photo.res;
     if n == 0 || res == 0 || photo.mask.len() != res * res {
         return (vec![Vec3::ZERO; n], SnapReport::default());
     }
+    let parts = parts.filter(|p| p.vertex.len() == n && p.pixel.len() == res * res);
     let view = photo.view.world_to_camera;
     let view_proj = OrbitCamera::default().projection_gl(1.0) * view;
     let clip: Vec<_> = posed.iter().map(|v| view_proj * v.extend(1.0)).collect();
@@ -81,7 +173,15 @@ pub async fn silhouette_offsets_async(
     };
     let camera_to_world = view.inverse();
     let normals = vertex_normals(posed, faces);
-    let reach = reach(res);
+    let near = reach(res);
+    let far = if parts.is_some() { reach_within_part(res).max(near) } else { near };
+    let part_at = |p: Vec2| {
+        if inside(p) {
+            parts.map_or(NO_PART, |q| q.pixel[p.y as usize * res + p.x as usize])
+        } else {
+            NO_PART
+        }
+    };
     let mut target = vec![Vec3::ZERO; n];
     let mut weight = vec![0.0f32; n];
     let mut report = SnapReport::default();
@@ -106,11 +206,25 @@ pub async fn silhouette_offsets_async(
         if covered(a + u * 1.5) {
             continue;
         }
-        let Some(t) = border_along(a, u, reach, &person) else { continue };
+        let own = parts.map_or(NO_PART, |q| q.vertex[i]);
+        let foreign = |p: Vec2| {
+            let q = part_at(p);
+            q != NO_PART && q != own
+        };
         let w = 1.0 - ((cos.abs() - EDGE_FULL) / (EDGE_NONE - EDGE_FULL)).clamp(0.0, 1.0);
-        target[i] = across * (t / px_per_m);
-        weight[i] = w;
-        report.outline_vertices += 1;
+        match border_along(a, u, near, far, &person, &foreign) {
+            Walk::Border(t) => {
+                target[i] = across * (t / px_per_m);
+                weight[i] = w;
+                report.outline_vertices += 1;
+            }
+            // Held in place, so its neighbours' moves do not carry it onto the other part.
+            Walk::Blocked => {
+                weight[i] = w;
+                report.held_vertices += 1;
+            }
+            Walk::Nothing => {}
+        }
     }
     checkpoint().await;
     let moves = smooth_moves(n, faces, &target, &weight).await;
@@ -118,20 +232,45 @@ pub async fn silhouette_offsets_async(
     (moves, report)
 }
 
-/// The signed distance (pixels) from `a` along `u` to the person mask's border: positive
-/// outwards when `a` lies on the person, negative when it lies off it; None beyond `reach`.
-fn border_along(a: Vec2, u: Vec2, reach: f32, person: &impl Fn(Vec2) -> bool) -> Option<f32> {
+/// What a walk along an outline vertex's image normal found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Walk {
+    /// The person mask's border at this signed distance (pixels): positive outwards when the
+    /// vertex lies on the person, negative when it lies off it.
+    Border(f32),
+    /// Another part of the body lies in the way beyond the plain reach: the vertex stays.
+    Blocked,
+    /// No border within reach.
+    Nothing,
+}
+
+/// The walk from `a` along `u` to the person mask's border: found within `near`, or within
+/// `far` when no sample before it is `foreign` (another part's).
+fn border_along(
+    a: Vec2,
+    u: Vec2,
+    near: f32,
+    far: f32,
+    person: &impl Fn(Vec2) -> bool,
+    foreign: &impl Fn(Vec2) -> bool,
+) -> Walk {
     let on = person(a);
     let dir = if on { u } else { -u };
+    let mut crossed = false;
     let mut s = WALK_STEP;
-    while s <= reach + 1e-4 {
-        if person(a + dir * s) != on {
+    while s <= far + 1e-4 {
+        let p = a + dir * s;
+        if person(p) != on {
             let t = s - 0.5 * WALK_STEP;
-            return Some(if on { t } else { -t });
+            return if t <= near + 1e-4 || !crossed { Walk::Border(if on { t } else { -t }) } else { Walk::Blocked };
+        }
+        crossed |= foreign(p);
+        if crossed && s > near {
+            return Walk::Blocked;
         }
         s += WALK_STEP;
     }
-    None
+    Walk::Nothing
 }
 
 /// The person mask at pixel position `p` (bilinear, 0 outside the crop).
@@ -253,7 +392,7 @@ mod tests {
         let r0 = silhouette_radius(&v, &f, &probe);
         // The person is 2 pixels wider all round than the sphere's outline.
         let photo = disc_photo(res, r0 + 2.0);
-        let (moves, report) = silhouette_offsets(&v, &f, &photo);
+        let (moves, report) = silhouette_offsets(&v, &f, &photo, None);
         assert!(report.outline_vertices > 50, "{report:?}");
         let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
         let r1 = silhouette_radius(&moved, &f, &photo);
@@ -273,13 +412,69 @@ mod tests {
         let res = 128;
         let r0 = silhouette_radius(&v, &f, &disc_photo(res, 10.0));
         let photo = disc_photo(res, r0 - 2.0);
-        let (moves, _) = silhouette_offsets(&v, &f, &photo);
+        let (moves, _) = silhouette_offsets(&v, &f, &photo, None);
         let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
         let r1 = silhouette_radius(&moved, &f, &photo);
         assert!((r1 - (r0 - 2.0)).abs() < 0.6, "outline radius {r0:.2} → {r1:.2}, the person's {:.2}", r0 - 2.0);
         // A person narrower than the reach allows: nothing found within it, nothing moves.
-        let (moves, report) = silhouette_offsets(&v, &f, &disc_photo(res, r0 - reach(res) - 3.0));
+        let (moves, report) = silhouette_offsets(&v, &f, &disc_photo(res, r0 - reach(res) - 3.0), None);
         assert_eq!(report.outline_vertices, 0);
         assert!(moves.iter().all(|d| d.length() < 1e-6));
+    }
+
+    /// The leftmost and rightmost covered pixel centres of the crop's middle row.
+    fn middle_row_extent(v: &[Vec3], f: &[[u32; 3]], photo: &SourcePhoto) -> (f32, f32) {
+        let vp = OrbitCamera::default().projection_gl(1.0) * photo.view.world_to_camera;
+        let clip: Vec<_> = v.iter().map(|p| vp * p.extend(1.0)).collect();
+        let r = rasterize(&clip, f, photo.res, photo.res);
+        let row = photo.res / 2;
+        let xs: Vec<f32> =
+            (0..photo.res).filter(|&x| r.triangle[row * photo.res + x] >= 0).map(|x| x as f32 + 0.5).collect();
+        (xs[0], xs[xs.len() - 1])
+    }
+
+    #[test]
+    fn the_longer_reach_claims_the_person_only_where_the_body_shows_no_other_part() {
+        let (v, f) = sphere(0.3, 48, 96);
+        let res = 128;
+        let c = res as f32 / 2.0;
+        let r0 = silhouette_radius(&v, &f, &disc_photo(res, 10.0));
+        // The person is 4.5 px wider all round: beyond the plain reach, within the part's.
+        let gap = 4.5;
+        assert!(gap > reach(res) + 1.0 && gap < reach_within_part(res) - 1.0);
+        let photo = disc_photo(res, r0 + gap);
+        let (plain, report) = silhouette_offsets(&v, &f, &photo, None);
+        assert_eq!(report.outline_vertices, 0, "{report:?}");
+        assert!(plain.iter().all(|d| d.length() < 1e-6));
+        // The body shows another part (an arm, say) right of the sphere, nothing on its left.
+        let pixel = (0..res * res).map(|k| if (k % res) as f32 + 0.5 - c > r0 + 1.0 { 1 } else { NO_PART }).collect();
+        let parts = OutlineParts { vertex: vec![TORSO; v.len()], pixel };
+        let (moves, report) = silhouette_offsets(&v, &f, &photo, Some(&parts));
+        assert!(report.outline_vertices > 20, "{report:?}");
+        let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
+        let (left0, right0) = middle_row_extent(&v, &f, &photo);
+        let (left1, right1) = middle_row_extent(&moved, &f, &photo);
+        let disc_left = c - r0 - gap;
+        assert!((left1 - disc_left).abs() <= 1.5, "left edge {left0} → {left1}, the person's {disc_left}");
+        assert!((right1 - right0).abs() <= 1.0, "right edge {right0} → {right1}: claimed the other part");
+        // The same walk with the sphere's own part there claims both sides.
+        let same = OutlineParts { vertex: vec![1; v.len()], pixel: parts.pixel.clone() };
+        let (moves, _) = silhouette_offsets(&v, &f, &photo, Some(&same));
+        let moved: Vec<Vec3> = v.iter().zip(&moves).map(|(p, d)| *p + *d).collect();
+        let (_, right2) = middle_row_extent(&moved, &f, &photo);
+        assert!((right2 - (c + r0 + gap)).abs() <= 1.5, "right edge {right0} → {right2}");
+    }
+
+    #[test]
+    fn a_body_vertex_takes_its_heaviest_joints_part() {
+        let mut w = [[0.0f32; NUM_JOINTS]; 3];
+        w[0][18] = 0.7; // left elbow
+        w[0][16] = 0.3;
+        w[1][5] = 0.6; // right knee
+        w[1][2] = 0.4;
+        w[2][3] = 0.5; // spine1
+        w[2][1] = 0.4;
+        w[2][2] = 0.1;
+        assert_eq!(body_vertex_parts(&w), vec![1, 4, TORSO]);
     }
 }
