@@ -5,8 +5,8 @@
 //! the line of sight, nothing of the avatar just outside it in the image) is moved across the
 //! line of sight to the person mask's border when that lies within [`reach`] pixels; the moves
 //! are spread over the mesh by screened smoothing, so the surface near the outline follows and
-//! the parts facing the camera stay where they are. No optimisation: one rasterisation and a
-//! walk along each outline vertex's image normal.
+//! the parts facing the camera stay where they are. No optimisation: two rasterisations (the
+//! avatar's, and the fitted body's parts) and a walk along each outline vertex's image normal.
 //!
 //! Beyond [`reach`] a walk may go on to [`reach_within_part`] when the fitted body, rasterised
 //! at the photo's camera with its coarse parts ([`OutlineParts`]), shows no other part along
@@ -42,9 +42,9 @@ pub fn reach_within_part(res: usize) -> f32 {
     6.0 * res as f32 / 128.0
 }
 
-/// The coarse parts the reach beyond [`reach`] respects: the torso with the head, then each arm
-/// and each leg. [`NO_PART`] where the body is absent.
+/// The coarse part of the torso with the head ([`joint_part`]; each arm and each leg is its own).
 pub const TORSO: u8 = 0;
+/// No part: where the body is absent.
 pub const NO_PART: u8 = u8::MAX;
 
 /// The coarse part of SMPL joint `j` (SMPL order): the torso and head 0, the left and right
