@@ -23,6 +23,7 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body::body_fit::fit::BodyFit;
 use getavatar_core::body::body_fit::landmarks::PoseResult;
 use getavatar_core::body::body_fit::turn;
+use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::body::humanoid::SkeletonNames;
 use getavatar_core::body::motion::Motion;
 use getavatar_core::body::pose_library::PoseLibrary;
@@ -32,7 +33,7 @@ use getavatar_core::generator::checkpoint::parse_safetensors;
 use getavatar_core::generator::checkpoint::{self, save_inverted};
 use getavatar_core::generator::network::discriminator::Discriminator;
 use getavatar_core::generator::network::GeneratorConfig;
-use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
+use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::generator::rigging::{BakedTexture, RiggedAvatar};
@@ -211,7 +212,7 @@ struct ViewMetrics {
 /// With a photo, its body fit.
 type Loaded = (InversionTarget, String, Option<(getavatar_core::io::scan::Scan, RenderableScan)>, Option<BodyFit>);
 
-fn load_target(a: &InvertArgs, model: &getavatar_core::body::body_model::BodyModel) -> Result<Loaded> {
+fn load_target(a: &InvertArgs, model: &BodyModel) -> Result<Loaded> {
     if let (Some(data), Some(entry)) = (&a.data, &a.entry) {
         let ds = Dataset::open(data)?;
         let i = ds.entries.iter().position(|(p, _)| p == entry).with_context(|| {
@@ -448,20 +449,20 @@ fn render_at(
 }
 
 /// The body context (the template SDF, the tet grid and the canonical pose's posed grid: what
-/// every generation needs, a second of work on 2 cores), built on threads of its own while
+/// every generation needs, half a second of work on 2 cores), built on threads of its own while
 /// the photo (`load_target`), the discriminator and the encoder load (`--out` made, the
-/// input written) and the encoder runs; with the seconds to the end of the loading and the
-/// encoder's guess with its seconds.
+/// input written), the encoder runs and its guess's triplanes are made; with the seconds to
+/// the end of the loading and the encoder's guess with its seconds and triplanes.
 #[allow(clippy::type_complexity)]
 fn load_with_context(
     a: &InvertArgs,
-    model: &getavatar_core::body::body_model::BodyModel,
+    model: &BodyModel,
     cfg: &GeneratorConfig,
     g: &Generator,
     shipped_g: bool,
     dev: &Device,
     t0: std::time::Instant,
-) -> Result<(BodyContext, Loaded, Option<Discriminator>, f64, Option<(start::FirstGuess, f64)>)> {
+) -> Result<(BodyContext, Loaded, Option<Discriminator>, f64, Option<(start::FirstGuess, f64, start::EarlyPlanes)>)> {
     std::thread::scope(|sc| {
         let ctx = sc.spawn(|| {
             let ctx = BodyContext::new(model.clone(), cfg);
@@ -476,10 +477,32 @@ fn load_with_context(
         let seconds_loading = t0.elapsed().as_secs_f64();
         let ts = std::time::Instant::now();
         let guess = encoder_guess(a, g, model, &target, shipped_g.then_some(cfg), dev)?;
-        let guess = guess.map(|guess| (guess, ts.elapsed().as_secs_f64()));
+        let guess = guess.map(|guess| {
+            let seconds = ts.elapsed().as_secs_f64();
+            let early = start::early_planes(g, &guess.1);
+            (guess, seconds, early)
+        });
         let ctx = ctx.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
         Ok((ctx, (target, source, scan, photo_fit), disc, seconds_loading, guess))
     })
+}
+
+/// The body model and the generator (on the device with autodiff), loaded side by side: the
+/// body context waits on both.
+#[allow(clippy::type_complexity)]
+fn load_body_and_generator(
+    a: &InvertArgs,
+) -> Result<(BodyModel, Device, (GeneratorConfig, Generator, Option<LatentModes>))> {
+    let (model, loaded) = std::thread::scope(|sc| {
+        let body = sc.spawn(|| load_body(&a.body));
+        let loaded = a.backend.device().and_then(|dev| {
+            let dev = dev.autodiff();
+            a.model.load(&dev).map(|m| (dev, m))
+        });
+        (body.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)), loaded)
+    });
+    let (model, (dev, generator)) = (model?, loaded?);
+    Ok((model, dev, generator))
 }
 
 pub fn invert(a: &InvertArgs) -> Result<()> {
@@ -488,9 +511,7 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
     if !(64..=4096).contains(&a.texture_res) {
         bail!("--texture-res must be between 64 and 4096 (got {})", a.texture_res);
     }
-    let model = load_body(&a.body)?;
-    let dev = a.backend.device()?.autodiff();
-    let (cfg, g, modes) = a.model.load(&dev)?;
+    let (model, dev, (cfg, g, modes)) = load_body_and_generator(a)?;
     // The shipped discriminator goes with the shipped generator only.
     let shipped_g = a.model.checkpoint.is_none() && !a.model.random;
     let (ctx, loaded, disc, seconds_loading, guess) = load_with_context(a, &model, &cfg, &g, shipped_g, &dev, t0)?;
@@ -500,16 +521,17 @@ pub fn invert(a: &InvertArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     // The start: the encoder's guess, or the latent mode (or w_avg) that explains the image best.
-    let ((start, mut start_styles, start_losses, garment_codes), seconds_start) = match guess {
-        Some(guess) => guess,
+    let ((start, mut start_styles, start_losses, garment_codes), seconds_start, early) = match guess {
+        Some((guess, seconds, early)) => (guess, seconds, Some(early)),
         None => {
             let ts = std::time::Instant::now();
-            (search_guess(&g, modes.as_ref(), &ctx, &target, &dev)?, ts.elapsed().as_secs_f64())
+            (search_guess(&g, modes.as_ref(), &ctx, &target, &dev)?, ts.elapsed().as_secs_f64(), None)
         }
     };
     eprintln!("start: {start} ({seconds_start:.2} s)");
     let codes = garment_codes.as_ref();
-    let views = start_views(a, &g, &ctx, &mut start_styles, codes, photo_fit.as_ref(), &mut target, &opts, &dev, t0)?;
+    let views =
+        start_views(a, &g, &ctx, &mut start_styles, codes, photo_fit.as_ref(), &mut target, &opts, &dev, early, t0)?;
     let StartViews { first_avatar, seconds_to_first_avatar, at_start, rgb: rgb0, mask: mask0, .. } = views;
     let first_avatar_stages = views.first_avatar_stages;
     let (refit, rigged_start, garments) = (views.refit, views.rigged_start, views.garments);

@@ -7,10 +7,11 @@ use getavatar_core::body::body_fit::fit::BodyFit;
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::module::Module;
 use getavatar_core::burn::tensor::Device;
+use getavatar_core::generator::network::synthesis::Triplanes;
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::generator::rigging::{generate_rigged_async, RiggedAvatar};
+use getavatar_core::generator::rigging::{generate_rigged_async, generate_rigged_from_planes_async, RiggedAvatar};
 use getavatar_core::reconstruction::garment_codes::{
     choose_garment_async, render_rigged, GarmentCandidate, GarmentCodes,
 };
@@ -51,8 +52,24 @@ pub(super) struct GarmentMetrics {
     candidates: Vec<GarmentCandidate>,
 }
 
-/// The first avatar: the start generated, rigged and rendered at the input camera
-/// (`input_view_first.png`, seconds from `t0`). Then weigh the garment codes against it
+/// The start's triplanes made beside the body context ([`early_planes`]), with their
+/// milliseconds.
+pub(super) struct EarlyPlanes {
+    pub(super) planes: Triplanes,
+    pub(super) ms: f64,
+}
+
+/// The triplanes of `styles` on the device without autodiff, as the first avatar needs them:
+/// the synthesis needs no body, so it runs while the body context is still being built.
+pub(super) fn early_planes(g: &Generator, styles: &Styles) -> EarlyPlanes {
+    let t = std::time::Instant::now();
+    let s = Styles { geo: styles.geo.clone().inner(), tex: styles.tex.clone().inner() };
+    let planes = g.valid().triplanes(&s);
+    EarlyPlanes { planes, ms: t.elapsed().as_secs_f64() * 1e3 }
+}
+
+/// The first avatar: the start generated (from `early` where its triplanes were made already),
+/// rigged and rendered at the input camera (`input_view_first.png`, seconds from `t0`). Then weigh the garment codes against it
 /// (`styles` takes the chosen geometry), refit the photo's body fit on its outline (`target`
 /// takes the refitted camera and body), and render the start through the exact per-pose path
 /// there (`input_view_start.png`).
@@ -67,6 +84,7 @@ pub(super) fn start_views(
     target: &mut InversionTarget,
     opts: &InversionOptions,
     dev: &Device,
+    early: Option<EarlyPlanes>,
     t0: std::time::Instant,
 ) -> Result<StartViews> {
     // The first avatar is what the app shows first and what `instant` exports: the guess
@@ -79,19 +97,35 @@ pub(super) fn start_views(
     let styles_out = styles;
     let styles = &mut Styles { geo: styles_out.geo.clone().inner(), tex: styles_out.tex.clone().inner() };
     profile::start(crate::bench::clock_ms);
-    let guess = block_on_ready(generate_rigged_async(g, ctx, styles, dev));
+    let guess = match &early {
+        Some(early) => block_on_ready(generate_rigged_from_planes_async(g, ctx, styles, &early.planes, dev)),
+        None => block_on_ready(generate_rigged_async(g, ctx, styles, dev)),
+    };
     profile::stage("render");
     let (rgb, mask) = match &guess {
         Ok(guess) => render_rigged(guess, ctx, target),
         Err(_) => (Vec::new(), Vec::new()),
     };
-    let stages = profile::finish().context("the stage recording was lost")?;
+    let mut stages = profile::finish().context("the stage recording was lost")?;
+    if let Some(early) = &early {
+        // Made beside the body context: not on the way to the first avatar unless the context
+        // came first.
+        let synthesis = StageTime { stage: "synthesis".into(), host_ms: early.ms, ..Default::default() };
+        stages.stages.insert(0, synthesis);
+    }
     let guess = guess.context("generating the guess")?;
     let first_avatar = view_metrics(target, &rgb, &mask);
     let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
     write_png(&a.out.join("input_view_first.png"), &rgba(&rgb, &mask), target.res, 4)?;
-    let by_stage: Vec<String> =
-        stages.stages.iter().map(|s| format!("{} {:.0}", s.stage, s.host_ms + s.gpu_wait_ms)).collect();
+    let beside = if early.is_some() { " beside the body context" } else { "" };
+    let by_stage: Vec<String> = stages
+        .stages
+        .iter()
+        .map(|s| {
+            let note = if s.stage == "synthesis" { beside } else { "" };
+            format!("{} {:.0}{note}", s.stage, s.host_ms + s.gpu_wait_ms)
+        })
+        .collect();
     eprintln!(
         "first avatar after {seconds_to_first_avatar:.2} s: mask IoU {:.3}, masked PSNR {:.2} dB (ms: {})",
         first_avatar.mask_iou,

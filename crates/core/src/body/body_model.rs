@@ -205,11 +205,10 @@ impl BodyModel {
         let posedirs = match a.get("posedirs") {
             Some(p) => {
                 shape_is("posedirs", p, &[Some(nv), Some(3), Some(NUM_POSE_FEATURES)])?;
-                let v = p.to_f32();
-                if v.iter().all(|x| *x == 0.0) {
+                if p.is_all_zero() {
                     Vec::new()
                 } else {
-                    v
+                    p.to_f32()
                 }
             }
             None => return Err(NpzError::Missing("posedirs".into()).into()),

@@ -127,6 +127,13 @@ impl NpyArray {
                 .collect(),
         }
     }
+    /// Whether every value is zero (without copying them).
+    pub fn is_all_zero(&self) -> bool {
+        match &self.data {
+            NpyData::Float(v, _) => v.iter().all(|x| *x == 0.0),
+            NpyData::Int(v, _) => v.iter().all(|x| *x == 0),
+        }
+    }
     pub fn dtype(&self) -> DType {
         match &self.data {
             NpyData::Float(_, d) | NpyData::Int(_, d) => *d,
@@ -179,30 +186,27 @@ pub fn read_npy(key: &str, bytes: &[u8]) -> Result<NpyArray, NpzError> {
         ));
     };
     let n = need / size;
-    let chunk = |i: usize| &body[i * size..(i + 1) * size];
+    let body = &body[..need];
+    // An all-zero array (a body model's absent pose correctives: 33 MB of zeros) is allocated
+    // zeroed, which the system maps lazily, instead of converted value by value.
+    if body.iter().all(|&b| b == 0) {
+        let data = match dtype {
+            DType::F32 | DType::F64 => NpyData::Float(vec![0.0; n], dtype),
+            _ => NpyData::Int(vec![0; n], dtype),
+        };
+        return Ok(NpyArray { shape, data });
+    }
+    // Little-endian values of `size` bytes each (`body` holds exactly `n` of them).
+    fn values<const N: usize, T>(body: &[u8], f: impl Fn([u8; N]) -> T) -> Vec<T> {
+        body.chunks_exact(N).map(|c| f(c.try_into().unwrap_or([0; N]))).collect()
+    }
     let mut data = match dtype {
-        DType::F32 => NpyData::Float(
-            (0..n).map(|i| f32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as f64).collect(),
-            dtype,
-        ),
-        DType::F64 => {
-            NpyData::Float((0..n).map(|i| f64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8]))).collect(), dtype)
-        }
-        DType::I32 => NpyData::Int(
-            (0..n).map(|i| i32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64).collect(),
-            dtype,
-        ),
-        DType::I64 => {
-            NpyData::Int((0..n).map(|i| i64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8]))).collect(), dtype)
-        }
-        DType::U32 => NpyData::Int(
-            (0..n).map(|i| u32::from_le_bytes(chunk(i).try_into().unwrap_or([0; 4])) as i64).collect(),
-            dtype,
-        ),
-        DType::U64 => NpyData::Int(
-            (0..n).map(|i| u64::from_le_bytes(chunk(i).try_into().unwrap_or([0; 8])) as i64).collect(),
-            dtype,
-        ),
+        DType::F32 => NpyData::Float(values(body, |b| f32::from_le_bytes(b) as f64), dtype),
+        DType::F64 => NpyData::Float(values(body, f64::from_le_bytes), dtype),
+        DType::I32 => NpyData::Int(values(body, |b| i32::from_le_bytes(b) as i64), dtype),
+        DType::I64 => NpyData::Int(values(body, i64::from_le_bytes), dtype),
+        DType::U32 => NpyData::Int(values(body, |b| u32::from_le_bytes(b) as i64), dtype),
+        DType::U64 => NpyData::Int(values(body, |b| u64::from_le_bytes(b) as i64), dtype),
         DType::U8 | DType::Bool => NpyData::Int(body[..n].iter().map(|&b| b as i64).collect(), dtype),
     };
     if fortran && shape.len() > 1 {
@@ -342,10 +346,22 @@ mod tests {
             NpyArray::f64(vec![3], vec![1.0, 2.0, std::f64::consts::PI]),
             NpyArray::i64(vec![2, 2], vec![-1, 4294967295, 3, 0]),
             NpyArray::u32(vec![1, 3], vec![0, 1, 4000000000]),
+            // All zeros (read without converting each value), and a negative zero (not all
+            // zero bytes).
+            NpyArray::f32(vec![2, 2], vec![0.0; 4]),
+            NpyArray::f64(vec![3], vec![0.0; 3]),
+            NpyArray::i64(vec![2], vec![0, 0]),
+            NpyArray::f32(vec![2], vec![0.0, -0.0]),
         ];
         for a in arrays {
             let b = read_npy("x", &write_npy(&a)).expect("round trip");
             assert_eq!(a, b);
+            assert_eq!(a.dtype(), b.dtype());
+            assert_eq!(a.is_all_zero(), a.to_f64().iter().all(|x| *x == 0.0));
+            assert_eq!(
+                b.to_f64().iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                a.to_f64().iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+            );
         }
     }
 
