@@ -87,6 +87,15 @@ impl TemplateSdf {
         let limit = band.max(1) as f32 * cell;
         let mut dist = vec![limit; n * n * n];
         let at = BandGrid { n, min, cell, band };
+        // The three axes' inside votes need no distances: natively they start first, a thread
+        // each, and run beside the distances and the chamfer sweeps.
+        #[cfg(not(target_arch = "wasm32"))]
+        let voting: Vec<std::thread::JoinHandle<Vec<bool>>> = (0..3)
+            .map(|axis| {
+                let (vertices, faces) = (vertices.to_vec(), faces.to_vec());
+                std::thread::spawn(move || run_blocking(parity_inside(&vertices, &faces, n, min, cell, axis)))
+            })
+            .collect();
         // Natively, threads take slabs of z-slices, each over every face; in the browser, slices
         // of the faces with a checkpoint after each. A slot keeps the least distance over the
         // faces in either order, so both give the same values.
@@ -107,14 +116,9 @@ impl TemplateSdf {
             checkpoint().await;
         }
         chamfer_fill(&mut dist, n, cell, limit).await;
-        // The three axes' votes: a thread each natively.
         #[cfg(not(target_arch = "wasm32"))]
-        let votes: Vec<Vec<bool>> = std::thread::scope(|sc| {
-            let handles: Vec<_> = (0..3)
-                .map(|axis| sc.spawn(move || run_blocking(parity_inside(vertices, faces, n, min, cell, axis))))
-                .collect();
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
-        });
+        let votes: Vec<Vec<bool>> =
+            voting.into_iter().map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect();
         #[cfg(target_arch = "wasm32")]
         let mut votes = Vec::with_capacity(3);
         #[cfg(target_arch = "wasm32")]
