@@ -9,8 +9,8 @@ use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{is_texture_param, seed_latents, BodyContext, Generator, Styles};
 use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::reconstruction::inversion::{
-    choose_start_async, render_images, start_candidates, InversionError, InversionOptions, InversionTarget, Inverter,
-    Phase,
+    choose_start_async, lr_schedule, render_images, start_candidates, InversionError, InversionOptions,
+    InversionTarget, Inverter, Phase, COLLAPSED_IOU, MIN_WARMUP_STEPS,
 };
 use getavatar_core::render::camera::{OrbitCamera, View};
 use getavatar_core::render::diff::avatar::{render_avatars, PosedGridCache};
@@ -159,7 +159,7 @@ fn a_diverged_w_plus_run_ends_on_its_best_codes() {
     assert!(seen.iter().all(|(_, codes)| *codes != end), "a settled run keeps its last update");
 }
 
-/// PTI that diverges (a rate far too large for these weights) ends on the weights of its lowest
+/// PTI that diverges (a rate far too large for these colours) ends on the weights of its lowest
 /// image loss, not where it was thrown; a settled run keeps its last update.
 #[test]
 fn a_diverged_pti_run_ends_on_its_best_weights() {
@@ -168,11 +168,12 @@ fn a_diverged_pti_run_ends_on_its_best_weights() {
     let g = Generator::new(&cfg, 0, &dev);
     let start = start_candidates(&g, None)[0].styles.clone();
     let weights = |g: &Generator| -> Vec<f32> { collect_params(g).unwrap().into_iter().flat_map(|t| t.2).collect() };
-    let run = |lr: f32, steps: usize| {
+    let run = |lr: f32, texture: f32, steps: usize| {
         let opts = InversionOptions {
             steps: 0,
             pti_steps: steps,
             pti_lr: lr,
+            pti_texture_lr_mul: texture,
             locality_every: 0,
             ..InversionOptions::default()
         };
@@ -185,15 +186,61 @@ fn a_diverged_pti_run_ends_on_its_best_weights() {
         }
         (seen, weights(inv.generator()))
     };
-    // At 0.01 the tiny generator's losses go 0.19, 0.41, 0.16, 0.26 (at 0.03 its surface
-    // vanishes, an error of its own).
-    let (seen, end) = run(0.01, 4);
+    // The texture branch at 3e-2 throws the colours off while the outline holds (a collapse of
+    // the outline restarts instead, `COLLAPSED_IOU`): the tiny generator's losses go 0.188,
+    // 0.345, 0.176, 0.193 at mask IoUs 0.968–0.989.
+    let (seen, end) = run(1e-4, 300.0, 4);
     let (best, best_weights) = seen.iter().min_by(|a, b| a.0.total_cmp(&b.0)).unwrap();
     let last = seen.last().unwrap().0;
     assert!(last > 1.05 * best, "the run did not diverge: losses {:?}", seen.iter().map(|s| s.0).collect::<Vec<_>>());
     assert!(end == *best_weights, "a diverged PTI run ends on the weights of its lowest loss {best}");
-    let (seen, end) = run(1e-5, 3);
+    let (seen, end) = run(1e-5, 1.0, 3);
     assert!(seen.iter().all(|(_, w)| *w != end), "a settled run keeps its last update");
+}
+
+/// PTI whose mask IoU collapses (a rate far too large for these weights) goes back to the
+/// weights of its lowest image loss at the step that shows it (making no update there), and
+/// goes on at half the rate, warmed up again; a settled run never restarts.
+#[test]
+fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
+    let (cfg, ctx, target, _truth) = setup();
+    let dev = cpu().autodiff();
+    let g = Generator::new(&cfg, 0, &dev);
+    let start = start_candidates(&g, None)[0].styles.clone();
+    let weights = |g: &Generator| -> Vec<f32> { collect_params(g).unwrap().into_iter().flat_map(|t| t.2).collect() };
+    let steps = 12;
+    let run = |lr: f32| {
+        let opts = InversionOptions {
+            steps: 0,
+            pti_steps: steps,
+            pti_lr: lr,
+            locality_every: 0,
+            ..InversionOptions::default()
+        };
+        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
+        let mut seen = Vec::new();
+        loop {
+            let before = weights(inv.generator());
+            let Some(r) = inv.step().unwrap() else { break };
+            seen.push((r.terms.mask_iou, r.terms.total, r.lr, before));
+        }
+        seen
+    };
+    let seen = run(0.01);
+    let ious: Vec<f32> = seen.iter().map(|s| s.0).collect();
+    let collapsed = |k: usize| ious[k] < ious[..k].iter().copied().fold(0.0, f32::max) - COLLAPSED_IOU;
+    let k = (1..steps - 1).find(|k| collapsed(*k)).unwrap_or_else(|| panic!("no collapse: mask IoUs {ious:?}"));
+    assert_eq!(seen[k].2, 0.0, "the collapsed step {k} made an update");
+    let best = (0..k).min_by(|a, b| seen[*a].1.total_cmp(&seen[*b].1)).unwrap();
+    assert!(
+        seen[k + 1].3 == seen[best].3,
+        "step {k}'s restart is not from the weights of the lowest loss (step {best})"
+    );
+    assert_eq!(seen[k + 1].0, seen[best].0, "the restored weights render as they did");
+    let rate = lr_schedule(0.01, k + 1, steps, 0.0, 0.0) * 0.5 / MIN_WARMUP_STEPS;
+    assert!((seen[k + 1].2 - rate).abs() < 1e-9, "after the restart the rate is {} not {rate}", seen[k + 1].2);
+    let settled = run(1e-5);
+    assert!(settled.iter().all(|s| s.2 > 0.0), "a settled run restarted");
 }
 
 /// PTI's texture factor scales the texture branch's rate alone: Adam's first step moves every
