@@ -222,25 +222,65 @@ fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
         loop {
             let before = weights(inv.generator());
             let Some(r) = inv.step().unwrap() else { break };
-            seen.push((r.terms.mask_iou, r.terms.total, r.lr, before));
+            seen.push(Seen { iou: r.terms.mask_iou, loss: r.terms.total, lr: r.lr, state: before });
         }
         seen
     };
-    let seen = run(0.01);
-    let ious: Vec<f32> = seen.iter().map(|s| s.0).collect();
+    // At 0.01 the tiny generator's first update takes the mask IoU from 0.968 to 0.342.
+    assert_restarted_once(&run(0.01), 0.01, steps);
+    assert!(run(1e-5).iter().all(|s| s.lr > 0.0), "a settled run restarted");
+}
+
+/// A W+ run whose mask IoU collapses goes back to the codes of its lowest loss the same way
+/// (`COLLAPSED_IOU`), at half the rate, warmed up again; a settled run never restarts.
+#[test]
+fn a_collapsing_w_plus_run_restarts_from_its_best_codes_at_half_the_rate() {
+    let (cfg, ctx, target, _truth) = setup();
+    let dev = cpu().autodiff();
+    let g = Generator::new(&cfg, 0, &dev);
+    let start = start_candidates(&g, None)[0].styles.clone();
+    let steps = 12;
+    let run = |lr: f32| {
+        let opts =
+            InversionOptions { steps, pti_steps: 0, lr, warmup: 0.0, rampdown: 0.0, ..InversionOptions::default() };
+        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
+        let mut seen = Vec::new();
+        loop {
+            let before = values(inv.styles().geo.reshape([-1]));
+            let Some(r) = inv.step().unwrap() else { break };
+            seen.push(Seen { iou: r.terms.mask_iou, loss: r.terms.total, lr: r.lr, state: before });
+        }
+        seen
+    };
+    // At a rate of 2 the tiny generator's first update takes the mask IoU from 0.968 to 0.716.
+    assert_restarted_once(&run(2.0), 2.0, steps);
+    assert!(run(0.01).iter().all(|s| s.lr > 0.0), "a settled run restarted");
+}
+
+/// One step of a run: its render's mask IoU, its loss, its rate and the state it started from.
+struct Seen {
+    iou: f32,
+    loss: f32,
+    lr: f32,
+    state: Vec<f32>,
+}
+
+/// The first step of `seen` whose mask IoU lies `COLLAPSED_IOU` below the highest before it
+/// made no update, the next starts from the state of the lowest loss before it (and renders
+/// as it did), at half the constant rate `lr` warmed up again.
+fn assert_restarted_once(seen: &[Seen], lr: f32, steps: usize) {
+    let ious: Vec<f32> = seen.iter().map(|s| s.iou).collect();
     let collapsed = |k: usize| ious[k] < ious[..k].iter().copied().fold(0.0, f32::max) - COLLAPSED_IOU;
     let k = (1..steps - 1).find(|k| collapsed(*k)).unwrap_or_else(|| panic!("no collapse: mask IoUs {ious:?}"));
-    assert_eq!(seen[k].2, 0.0, "the collapsed step {k} made an update");
-    let best = (0..k).min_by(|a, b| seen[*a].1.total_cmp(&seen[*b].1)).unwrap();
+    assert_eq!(seen[k].lr, 0.0, "the collapsed step {k} made an update");
+    let best = (0..k).min_by(|a, b| seen[*a].loss.total_cmp(&seen[*b].loss)).unwrap();
     assert!(
-        seen[k + 1].3 == seen[best].3,
-        "step {k}'s restart is not from the weights of the lowest loss (step {best})"
+        seen[k + 1].state == seen[best].state,
+        "step {k}'s restart is not from the state of the lowest loss (step {best})"
     );
-    assert_eq!(seen[k + 1].0, seen[best].0, "the restored weights render as they did");
-    let rate = lr_schedule(0.01, k + 1, steps, 0.0, 0.0) * 0.5 / MIN_WARMUP_STEPS;
-    assert!((seen[k + 1].2 - rate).abs() < 1e-9, "after the restart the rate is {} not {rate}", seen[k + 1].2);
-    let settled = run(1e-5);
-    assert!(settled.iter().all(|s| s.2 > 0.0), "a settled run restarted");
+    assert_eq!(seen[k + 1].iou, seen[best].iou, "the restored state renders as it did");
+    let rate = lr_schedule(lr, k + 1, steps, 0.0, 0.0) * 0.5 / MIN_WARMUP_STEPS;
+    assert!((seen[k + 1].lr - rate).abs() < 1e-9, "after the restart the rate is {} not {rate}", seen[k + 1].lr);
 }
 
 /// PTI's texture factor scales the texture branch's rate alone: Adam's first step moves every

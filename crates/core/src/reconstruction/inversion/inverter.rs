@@ -112,23 +112,51 @@ pub struct Inverter<'a> {
     rng: Rng,
     /// The last step's render at the target's camera (RGB, mask; detached): the previews.
     last: Option<(Tensor<4>, Tensor<4>)>,
-    /// The W+ codes with the lowest loss so far and that loss ([`DIVERGED`]).
-    best: Option<(f32, Styles)>,
+    /// The W+ codes with the lowest loss so far, that loss ([`DIVERGED`]) and their mask IoU
+    /// ([`COLLAPSED_IOU`]).
+    best: Option<(f32, Styles, f32)>,
     /// PTI's weights with the lowest image loss so far (the locality term left out: it is
     /// not every step's), that loss ([`DIVERGED`]) and their mask IoU ([`COLLAPSED_IOU`]).
     best_g: Option<(f32, Generator, f32)>,
-    /// PTI's guard against a collapse ([`COLLAPSED_IOU`]): the highest mask IoU since the
-    /// start or the last restart, the factor on PTI's rate (halved at each restart) and the
-    /// step of the last restart (its warm-up starts again there).
-    pti_guard: PtiGuard,
+    /// Each phase's guard against a collapse ([`COLLAPSED_IOU`]).
+    w_guard: CollapseGuard,
+    pti_guard: CollapseGuard,
 }
 
-/// [`Inverter`]'s state for [`COLLAPSED_IOU`].
+/// A phase's state for [`COLLAPSED_IOU`]: the highest mask IoU since the phase's start or its
+/// last restart, the factor on its rate (halved at each restart) and the step of the last
+/// restart (the warm-up starts again there).
 #[derive(Clone, Copy, Debug)]
-struct PtiGuard {
+struct CollapseGuard {
     best_iou: f32,
     rate: f32,
     restarted_at: Option<usize>,
+}
+
+impl CollapseGuard {
+    fn new() -> Self {
+        Self { best_iou: 0.0, rate: 1.0, restarted_at: None }
+    }
+
+    /// Whether a step's mask IoU `iou` shows a collapse; otherwise it counts towards the best.
+    fn collapsed(&mut self, iou: f32) -> bool {
+        if iou >= self.best_iou - COLLAPSED_IOU {
+            self.best_iou = self.best_iou.max(iou);
+            return false;
+        }
+        true
+    }
+
+    /// A restart at `step` from a state whose mask IoU was `iou`: half the rate from here.
+    fn restart(&mut self, step: usize, iou: f32) {
+        *self = Self { best_iou: iou, rate: self.rate * 0.5, restarted_at: Some(step) };
+    }
+
+    /// The factor on the phase's scheduled rate at `step`.
+    fn rate_at(&self, step: usize) -> f32 {
+        let rewarm = self.restarted_at.map_or(1.0, |at| ((step - at) as f32 / MIN_WARMUP_STEPS).min(1.0));
+        self.rate * rewarm
+    }
 }
 
 /// A W+ run whose last step's loss is more than this factor above the lowest it reached has
@@ -139,14 +167,15 @@ struct PtiGuard {
 /// one end-to-end run fell from 15.5 to 14.2 dB in its last ten steps).
 pub const DIVERGED: f32 = 1.05;
 
-/// A PTI step whose render's mask IoU lies more than this below the highest it reached has
-/// collapsed: the weights go back to those of the lowest image loss so far, Adam starts
-/// afresh, and the rest of the run goes at half the rate (warmed up again over
-/// [`MIN_WARMUP_STEPS`]); the step itself makes no update. On one held-out image `fast`'s PTI
-/// at 1e-3 (the texture branch at 10×) took the mask IoU from 0.966 to 0.735 in 18 steps and
-/// ended at 0.957, below where it started; at half the rate it ended at 0.975. Settled runs
-/// dip by at most 0.015 (`fast`, six images) and 0.028 (`full`'s 350 steps at 3e-4, five of
-/// six; docs/benchmarks.md, "PTI's guard").
+/// A step whose render's mask IoU lies more than this below the highest its phase reached has
+/// collapsed: the codes (W+) or the weights (PTI) go back to those of the phase's lowest loss so
+/// far, Adam starts afresh, and the rest of the phase goes at half the rate (warmed up again
+/// over [`MIN_WARMUP_STEPS`]); the step itself makes no update. On one held-out image `fast`'s
+/// PTI at 1e-3 (the texture branch at 10×) took the mask IoU from 0.966 to 0.735 in 18 steps
+/// and ended at 0.957, below where it started; with the restart it ended at 0.975. 200 W+ steps
+/// at 0.1 dip by up to 0.28 and end up to 0.07 below their best. Settled runs dip by at most
+/// 0.017 (`fast`'s W+ and PTI, six images) and 0.028 (350 PTI steps at 3e-4, four of six;
+/// docs/benchmarks.md, "The guard against a collapse").
 pub const COLLAPSED_IOU: f32 = 0.04;
 
 impl<'a> Inverter<'a> {
@@ -198,7 +227,8 @@ impl<'a> Inverter<'a> {
             last: None,
             best: None,
             best_g: None,
-            pti_guard: PtiGuard { best_iou: 0.0, rate: 1.0, restarted_at: None },
+            w_guard: CollapseGuard::new(),
+            pti_guard: CollapseGuard::new(),
             opts,
             device: device.clone(),
         })
@@ -336,18 +366,29 @@ impl<'a> Inverter<'a> {
         total = total + reg.clone() * o.latent_reg;
         parts.latent_reg = Some(reg);
         let terms = self.read_terms(parts, &f, &total).await?;
-        let lr = lr_schedule(o.lr, self.step, o.steps, o.warmup, o.rampdown);
+        if self.w_guard.collapsed(terms.mask_iou) {
+            if let Some((_, styles, iou)) = &self.best {
+                // This step's gradients belong to the collapsed codes: no update.
+                self.codes = LatentCodes::new(styles);
+                self.adam_w = Adam::new(0.9, 0.999, 1e-8);
+                self.w_guard.restart(self.step, *iou);
+                let report = StepReport { phase: Phase::Latent, step: self.step, lr: 0.0, terms };
+                self.advance();
+                return Ok(report);
+            }
+        }
+        let lr = lr_schedule(o.lr, self.step, o.steps, o.warmup, o.rampdown) * self.w_guard.rate_at(self.step);
         // Checkpoints (`cooperative`) around the backward pass: in the browser a step's parts
         // are separate slices of the UI thread.
         checkpoint().await;
         let grads = total.backward();
         checkpoint().await;
-        if self.best.as_ref().is_none_or(|(b, _)| terms.total < *b) {
-            self.best = Some((terms.total, self.styles()));
+        if self.best.as_ref().is_none_or(|(b, _, _)| terms.total < *b) {
+            self.best = Some((terms.total, self.styles(), terms.mask_iou));
         }
         self.codes = self.adam_w.step(lr, self.codes.clone(), &grads);
         if self.step + 1 == o.steps {
-            if let Some((b, styles)) = self.best.take() {
+            if let Some((b, styles, _)) = self.best.take() {
                 if terms.total > b * DIVERGED {
                     self.codes = LatentCodes::new(&styles);
                 }
@@ -386,16 +427,19 @@ impl<'a> Inverter<'a> {
         }
         let terms = self.read_terms(parts, &f, &total).await?;
         let image_loss = terms.total - terms.locality.unwrap_or(0.0) * o.locality_weight;
-        if self.restart_if_collapsed(terms.mask_iou) {
-            // This step's gradients belong to the collapsed weights: no update.
-            let report = StepReport { phase: Phase::Pivotal, step: self.step, lr: 0.0, terms };
-            self.advance();
-            return Ok(report);
+        if self.pti_guard.collapsed(terms.mask_iou) {
+            if let Some((_, g, iou)) = &self.best_g {
+                // This step's gradients belong to the collapsed weights: no update.
+                self.g = g.clone();
+                self.adam_g = Adam::new(0.9, 0.999, 1e-8);
+                self.pti_guard.restart(self.step, *iou);
+                let report = StepReport { phase: Phase::Pivotal, step: self.step, lr: 0.0, terms };
+                self.advance();
+                return Ok(report);
+            }
         }
-        let rewarm =
-            self.pti_guard.restarted_at.map_or(1.0, |at| ((self.step - at) as f32 / MIN_WARMUP_STEPS).min(1.0));
-        let lr =
-            lr_schedule(o.pti_lr, self.step, o.pti_steps, o.pti_warmup, o.pti_rampdown) * self.pti_guard.rate * rewarm;
+        let lr = lr_schedule(o.pti_lr, self.step, o.pti_steps, o.pti_warmup, o.pti_rampdown)
+            * self.pti_guard.rate_at(self.step);
         checkpoint().await;
         let grads = total.backward();
         checkpoint().await;
@@ -422,21 +466,6 @@ impl<'a> Inverter<'a> {
         let report = StepReport { phase: Phase::Pivotal, step: self.step, lr, terms };
         self.advance();
         Ok(report)
-    }
-
-    /// [`COLLAPSED_IOU`]: whether this PTI step's mask IoU `iou` shows a collapse, and if so
-    /// the weights of the lowest image loss so far back, a fresh Adam and half the rate.
-    fn restart_if_collapsed(&mut self, iou: f32) -> bool {
-        let guard = &mut self.pti_guard;
-        if iou >= guard.best_iou - COLLAPSED_IOU {
-            guard.best_iou = guard.best_iou.max(iou);
-            return false;
-        }
-        let Some((_, g, best_iou)) = &self.best_g else { return false };
-        self.g = g.clone();
-        self.adam_g = Adam::new(0.9, 0.999, 1e-8);
-        *guard = PtiGuard { best_iou: *best_iou, rate: guard.rate * 0.5, restarted_at: Some(self.step) };
-        true
     }
 
     /// PTI's locality codes: per branch, a random code pulled to within α of the pivot.
