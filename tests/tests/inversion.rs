@@ -222,13 +222,19 @@ fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
         loop {
             let before = weights(inv.generator());
             let Some(r) = inv.step().unwrap() else { break };
-            seen.push(Seen { iou: r.terms.mask_iou, loss: r.terms.total, lr: r.lr, state: before });
+            seen.push(Seen {
+                iou: r.terms.mask_iou,
+                loss: r.terms.total,
+                lr: r.lr,
+                restarted: r.restarted,
+                state: before,
+            });
         }
         seen
     };
     // At 0.01 the tiny generator's first update takes the mask IoU from 0.968 to 0.342.
     assert_restarted_once(&run(0.01), 0.01, steps);
-    assert!(run(1e-5).iter().all(|s| s.lr > 0.0), "a settled run restarted");
+    assert!(run(1e-5).iter().all(|s| s.lr > 0.0 && !s.restarted), "a settled run restarted");
 }
 
 /// A W+ run whose mask IoU collapses goes back to the codes of its lowest loss the same way
@@ -248,13 +254,19 @@ fn a_collapsing_w_plus_run_restarts_from_its_best_codes_at_half_the_rate() {
         loop {
             let before = values(inv.styles().geo.reshape([-1]));
             let Some(r) = inv.step().unwrap() else { break };
-            seen.push(Seen { iou: r.terms.mask_iou, loss: r.terms.total, lr: r.lr, state: before });
+            seen.push(Seen {
+                iou: r.terms.mask_iou,
+                loss: r.terms.total,
+                lr: r.lr,
+                restarted: r.restarted,
+                state: before,
+            });
         }
         seen
     };
     // At a rate of 2 the tiny generator's first update takes the mask IoU from 0.968 to 0.716.
     assert_restarted_once(&run(2.0), 2.0, steps);
-    assert!(run(0.01).iter().all(|s| s.lr > 0.0), "a settled run restarted");
+    assert!(run(0.01).iter().all(|s| s.lr > 0.0 && !s.restarted), "a settled run restarted");
 }
 
 /// One step of a run: its render's mask IoU, its loss, its rate and the state it started from.
@@ -262,6 +274,7 @@ struct Seen {
     iou: f32,
     loss: f32,
     lr: f32,
+    restarted: bool,
     state: Vec<f32>,
 }
 
@@ -273,6 +286,7 @@ fn assert_restarted_once(seen: &[Seen], lr: f32, steps: usize) {
     let collapsed = |k: usize| ious[k] < ious[..k].iter().copied().fold(0.0, f32::max) - COLLAPSED_IOU;
     let k = (1..steps - 1).find(|k| collapsed(*k)).unwrap_or_else(|| panic!("no collapse: mask IoUs {ious:?}"));
     assert_eq!(seen[k].lr, 0.0, "the collapsed step {k} made an update");
+    assert!(seen[k].restarted && seen.iter().take(k).all(|s| !s.restarted), "only step {k} reports a restart");
     let best = (0..k).min_by(|a, b| seen[*a].loss.total_cmp(&seen[*b].loss)).unwrap();
     assert!(
         seen[k + 1].state == seen[best].state,

@@ -196,6 +196,9 @@ pub struct ReconstructStatus {
     pub losses: Vec<f32>,
     /// The last step's mask IoU with the person mask.
     pub step_mask_iou: f32,
+    /// Steps whose render's outline collapsed, after which the phase went on from its best
+    /// state at half the rate (`inversion::COLLAPSED_IOU`).
+    pub restarts: usize,
     /// Milliseconds per step so far (all, W+ steps, PTI steps), and the estimated seconds left.
     pub ms_per_step: f32,
     pub ms_per_latent_step: f32,

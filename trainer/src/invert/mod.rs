@@ -728,16 +728,15 @@ fn run_steps(
             tp = Some(std::time::Instant::now());
         }
         let Some(r) = inv.step()? else { break };
+        let (phase, iou) = (if r.phase == Phase::Latent { "W+" } else { "PTI" }, r.terms.mask_iou);
+        if r.restarted {
+            bar.println(format!("{phase} step {}: mask IoU {iou:.3}, on from the best state at half the rate", r.step));
+        }
         writeln!(log, "{}", serde_json::to_string(&r)?)?;
         log.flush()?; // every step on disk: a killed run leaves its log
         let (done, _) = inv.progress();
         bar.set_position(done as u64);
-        bar.set_message(format!(
-            "{} loss {:.4} IoU {:.3}",
-            if r.phase == Phase::Latent { "W+" } else { "PTI" },
-            r.terms.total,
-            r.terms.mask_iou
-        ));
+        bar.set_message(format!("{phase} loss {:.4} IoU {iou:.3}", r.terms.total));
     }
     log.flush()?;
     bar.finish_and_clear();

@@ -393,6 +393,7 @@ impl GetAvatarApp {
                     let s = &mut self.status.reconstruct;
                     s.losses.push(p.report.terms.total);
                     s.step_mask_iou = p.report.terms.mask_iou;
+                    s.restarts += usize::from(p.report.restarted);
                     (s.steps_done, s.steps_total) = (p.done, p.total);
                     s.ms_per_step = (p.elapsed_ms / p.done.max(1) as f64) as f32;
                     if p.report.phase == Phase::Latent {
@@ -727,7 +728,16 @@ impl GetAvatarApp {
             let text = if s.steps_done == 0 {
                 "choosing the start…".to_string()
             } else {
-                format!("{phase} · step {}/{} · loss {loss:.3} · ETA {}", s.steps_done, s.steps_total, eta(s.eta_s))
+                let restarts = match s.restarts {
+                    0 => String::new(),
+                    n => format!(" · restarted {n}× at half the rate"),
+                };
+                format!(
+                    "{phase} · step {}/{} · loss {loss:.3}{restarts} · ETA {}",
+                    s.steps_done,
+                    s.steps_total,
+                    eta(s.eta_s)
+                )
             };
             ui.add(egui::ProgressBar::new(s.steps_done as f32 / s.steps_total as f32).text(text));
         }

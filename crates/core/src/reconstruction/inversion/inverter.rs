@@ -70,6 +70,10 @@ pub struct StepReport {
     pub step: usize,
     pub lr: f32,
     pub terms: Terms,
+    /// This step's render showed a collapse ([`COLLAPSED_IOU`]): it made no update, and the
+    /// phase goes on from its best state at half the rate.
+    #[serde(default)]
+    pub restarted: bool,
 }
 
 /// A step's terms as tensors (`[1]` each), before their one read-back.
@@ -372,7 +376,7 @@ impl<'a> Inverter<'a> {
                 self.codes = LatentCodes::new(styles);
                 self.adam_w = Adam::new(0.9, 0.999, 1e-8);
                 self.w_guard.restart(self.step, *iou);
-                let report = StepReport { phase: Phase::Latent, step: self.step, lr: 0.0, terms };
+                let report = StepReport { phase: Phase::Latent, step: self.step, lr: 0.0, terms, restarted: true };
                 self.advance();
                 return Ok(report);
             }
@@ -394,7 +398,7 @@ impl<'a> Inverter<'a> {
                 }
             }
         }
-        let report = StepReport { phase: Phase::Latent, step: self.step, lr, terms };
+        let report = StepReport { phase: Phase::Latent, step: self.step, lr, terms, restarted: false };
         self.advance();
         Ok(report)
     }
@@ -433,7 +437,7 @@ impl<'a> Inverter<'a> {
                 self.g = g.clone();
                 self.adam_g = Adam::new(0.9, 0.999, 1e-8);
                 self.pti_guard.restart(self.step, *iou);
-                let report = StepReport { phase: Phase::Pivotal, step: self.step, lr: 0.0, terms };
+                let report = StepReport { phase: Phase::Pivotal, step: self.step, lr: 0.0, terms, restarted: true };
                 self.advance();
                 return Ok(report);
             }
@@ -463,7 +467,7 @@ impl<'a> Inverter<'a> {
                 }
             }
         }
-        let report = StepReport { phase: Phase::Pivotal, step: self.step, lr, terms };
+        let report = StepReport { phase: Phase::Pivotal, step: self.step, lr, terms, restarted: false };
         self.advance();
         Ok(report)
     }
