@@ -178,8 +178,8 @@ pub const DIVERGED: f32 = 1.05;
 /// PTI at 1e-3 (the texture branch at 10×) took the mask IoU from 0.966 to 0.735 in 18 steps
 /// and ended at 0.957, below where it started; with the restart it ended at 0.975. 200 W+ steps
 /// at 0.1 dip by up to 0.28 and end up to 0.07 below their best. Settled runs dip by at most
-/// 0.017 (`fast`'s W+ and PTI, six images) and 0.028 (350 PTI steps at 3e-4, four of six;
-/// docs/benchmarks.md, "The guard against a collapse").
+/// 0.030 (`fast`'s W+ and PTI; 11 of 12 held-out images) and 0.028 (350 PTI steps at 3e-4, four
+/// of six; docs/benchmarks.md, "The guard against a collapse").
 pub const COLLAPSED_IOU: f32 = 0.04;
 
 impl<'a> Inverter<'a> {
