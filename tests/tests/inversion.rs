@@ -133,30 +133,19 @@ fn inverting_a_known_render_recovers_it_and_pti_refines_it() {
 #[test]
 fn a_diverged_w_plus_run_ends_on_its_best_codes() {
     let (cfg, ctx, target, _truth) = setup();
-    let dev = cpu().autodiff();
-    let g = Generator::new(&cfg, 0, &dev);
+    let g = Generator::new(&cfg, 0, &cpu().autodiff());
     let start = start_candidates(&g, None)[0].styles.clone();
     let run = |lr: f32, steps: usize| {
         let opts =
             InversionOptions { steps, pti_steps: 0, lr, warmup: 0.0, rampdown: 0.0, ..InversionOptions::default() };
-        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
-        let mut seen = Vec::new();
-        loop {
-            let before = values(inv.styles().geo.reshape([-1]));
-            let Some(r) = inv.step().unwrap() else { break };
-            seen.push((r.terms.total, before));
-        }
-        (seen, values(inv.styles().geo.reshape([-1])))
+        run_inversion(&g, &ctx, &target, &start, opts, &codes)
     };
     let (seen, end) = run(4.0, 4);
-    let (best, best_codes) = seen.iter().min_by(|a, b| a.0.total_cmp(&b.0)).unwrap();
-    let last = seen.last().unwrap().0;
-    assert!(last > 1.05 * best, "the run did not diverge: losses {:?}", seen.iter().map(|s| s.0).collect::<Vec<_>>());
-    assert_eq!(&end, best_codes, "a diverged run ends on the codes of its lowest loss {best}");
+    assert_diverged_and_ended_on_its_best(&seen, &end);
     // A settled run (small steps): its last codes are the update after the last step, not a
     // code it rendered.
     let (seen, end) = run(0.01, 3);
-    assert!(seen.iter().all(|(_, codes)| *codes != end), "a settled run keeps its last update");
+    assert!(seen.iter().all(|s| s.state != end), "a settled run keeps its last update");
 }
 
 /// PTI that diverges (a rate far too large for these colours) ends on the weights of its lowest
@@ -164,10 +153,8 @@ fn a_diverged_w_plus_run_ends_on_its_best_codes() {
 #[test]
 fn a_diverged_pti_run_ends_on_its_best_weights() {
     let (cfg, ctx, target, _truth) = setup();
-    let dev = cpu().autodiff();
-    let g = Generator::new(&cfg, 0, &dev);
+    let g = Generator::new(&cfg, 0, &cpu().autodiff());
     let start = start_candidates(&g, None)[0].styles.clone();
-    let weights = |g: &Generator| -> Vec<f32> { collect_params(g).unwrap().into_iter().flat_map(|t| t.2).collect() };
     let run = |lr: f32, texture: f32, steps: usize| {
         let opts = InversionOptions {
             steps: 0,
@@ -177,25 +164,15 @@ fn a_diverged_pti_run_ends_on_its_best_weights() {
             locality_every: 0,
             ..InversionOptions::default()
         };
-        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
-        let mut seen = Vec::new();
-        loop {
-            let before = weights(inv.generator());
-            let Some(r) = inv.step().unwrap() else { break };
-            seen.push((r.terms.total, before));
-        }
-        (seen, weights(inv.generator()))
+        run_inversion(&g, &ctx, &target, &start, opts, &weights)
     };
     // The texture branch at 3e-2 throws the colours off while the outline holds (a collapse of
     // the outline restarts instead, `COLLAPSED_IOU`): the tiny generator's losses go 0.188,
     // 0.345, 0.176, 0.193 at mask IoUs 0.968–0.989.
     let (seen, end) = run(1e-4, 300.0, 4);
-    let (best, best_weights) = seen.iter().min_by(|a, b| a.0.total_cmp(&b.0)).unwrap();
-    let last = seen.last().unwrap().0;
-    assert!(last > 1.05 * best, "the run did not diverge: losses {:?}", seen.iter().map(|s| s.0).collect::<Vec<_>>());
-    assert!(end == *best_weights, "a diverged PTI run ends on the weights of its lowest loss {best}");
+    assert_diverged_and_ended_on_its_best(&seen, &end);
     let (seen, end) = run(1e-5, 1.0, 3);
-    assert!(seen.iter().all(|(_, w)| *w != end), "a settled run keeps its last update");
+    assert!(seen.iter().all(|s| s.state != end), "a settled run keeps its last update");
 }
 
 /// PTI whose mask IoU collapses (a rate far too large for these weights) goes back to the
@@ -204,10 +181,8 @@ fn a_diverged_pti_run_ends_on_its_best_weights() {
 #[test]
 fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
     let (cfg, ctx, target, _truth) = setup();
-    let dev = cpu().autodiff();
-    let g = Generator::new(&cfg, 0, &dev);
+    let g = Generator::new(&cfg, 0, &cpu().autodiff());
     let start = start_candidates(&g, None)[0].styles.clone();
-    let weights = |g: &Generator| -> Vec<f32> { collect_params(g).unwrap().into_iter().flat_map(|t| t.2).collect() };
     let steps = 12;
     let run = |lr: f32| {
         let opts = InversionOptions {
@@ -217,20 +192,7 @@ fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
             locality_every: 0,
             ..InversionOptions::default()
         };
-        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
-        let mut seen = Vec::new();
-        loop {
-            let before = weights(inv.generator());
-            let Some(r) = inv.step().unwrap() else { break };
-            seen.push(Seen {
-                iou: r.terms.mask_iou,
-                loss: r.terms.total,
-                lr: r.lr,
-                restarted: r.restarted,
-                state: before,
-            });
-        }
-        seen
+        run_inversion(&g, &ctx, &target, &start, opts, &weights).0
     };
     // At 0.01 the tiny generator's first update takes the mask IoU from 0.968 to 0.342.
     assert_restarted_once(&run(0.01), 0.01, steps);
@@ -242,27 +204,13 @@ fn a_collapsing_pti_run_restarts_from_its_best_weights_at_half_the_rate() {
 #[test]
 fn a_collapsing_w_plus_run_restarts_from_its_best_codes_at_half_the_rate() {
     let (cfg, ctx, target, _truth) = setup();
-    let dev = cpu().autodiff();
-    let g = Generator::new(&cfg, 0, &dev);
+    let g = Generator::new(&cfg, 0, &cpu().autodiff());
     let start = start_candidates(&g, None)[0].styles.clone();
     let steps = 12;
     let run = |lr: f32| {
         let opts =
             InversionOptions { steps, pti_steps: 0, lr, warmup: 0.0, rampdown: 0.0, ..InversionOptions::default() };
-        let mut inv = Inverter::new(g.clone(), &ctx, None, target.clone(), &start, opts, &dev).unwrap();
-        let mut seen = Vec::new();
-        loop {
-            let before = values(inv.styles().geo.reshape([-1]));
-            let Some(r) = inv.step().unwrap() else { break };
-            seen.push(Seen {
-                iou: r.terms.mask_iou,
-                loss: r.terms.total,
-                lr: r.lr,
-                restarted: r.restarted,
-                state: before,
-            });
-        }
-        seen
+        run_inversion(&g, &ctx, &target, &start, opts, &codes).0
     };
     // At a rate of 2 the tiny generator's first update takes the mask IoU from 0.968 to 0.716.
     assert_restarted_once(&run(2.0), 2.0, steps);
@@ -276,6 +224,45 @@ struct Seen {
     lr: f32,
     restarted: bool,
     state: Vec<f32>,
+}
+
+/// Every step of an inversion of `target` from `start` with `opts` (a `Seen` each, its state
+/// read by `state` before the step), and the state after the last.
+fn run_inversion(
+    g: &Generator,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    start: &Styles,
+    opts: InversionOptions,
+    state: &dyn Fn(&Inverter) -> Vec<f32>,
+) -> (Vec<Seen>, Vec<f32>) {
+    let mut inv = Inverter::new(g.clone(), ctx, None, target.clone(), start, opts, &cpu().autodiff()).unwrap();
+    let mut seen = Vec::new();
+    loop {
+        let before = state(&inv);
+        let Some(r) = inv.step().unwrap() else { break };
+        seen.push(Seen { iou: r.terms.mask_iou, loss: r.terms.total, lr: r.lr, restarted: r.restarted, state: before });
+    }
+    let end = state(&inv);
+    (seen, end)
+}
+
+/// The W+ codes of the geometry branch, and the generator's weights.
+fn codes(inv: &Inverter) -> Vec<f32> {
+    values(inv.styles().geo.reshape([-1]))
+}
+fn weights(inv: &Inverter) -> Vec<f32> {
+    collect_params(inv.generator()).unwrap().into_iter().flat_map(|t| t.2).collect()
+}
+
+/// The last loss of `seen` lies more than 5 % above its lowest (the run diverged), and the
+/// run ended (`end`) on the state of that lowest loss.
+fn assert_diverged_and_ended_on_its_best(seen: &[Seen], end: &[f32]) {
+    let best = seen.iter().min_by(|a, b| a.loss.total_cmp(&b.loss)).unwrap();
+    let last = seen.last().unwrap().loss;
+    let losses: Vec<f32> = seen.iter().map(|s| s.loss).collect();
+    assert!(last > 1.05 * best.loss, "the run did not diverge: losses {losses:?}");
+    assert!(end == best.state, "a diverged run ends on the state of its lowest loss {}", best.loss);
 }
 
 /// The first step of `seen` whose mask IoU lies `COLLAPSED_IOU` below the highest before it
