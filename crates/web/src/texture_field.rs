@@ -46,7 +46,7 @@ thread_local! {
 /// Where a texture field's generator and codes are.
 pub enum FieldModel {
     /// On the page's device.
-    Built(Rc<Generator>, Styles),
+    Built(Rc<Generator>, Box<Styles>),
     /// In the reconstruction worker's result file, parsed: built on the page's device on first
     /// use (every weight onto the device in one task, 15–115 ms on SwiftShader), so a
     /// reconstruction shows its avatar without that task; the file itself is what "Save
@@ -79,7 +79,7 @@ impl TextureField {
     /// generation computed them.
     pub fn generated(g: Rc<Generator>, styles: Styles, planes: Option<Triplanes>, seeds: (u64, u64), psi: f32) -> Self {
         Self {
-            model: RefCell::new(FieldModel::Built(g, styles)),
+            model: RefCell::new(FieldModel::Built(g, Box::new(styles))),
             planes: RefCell::new(planes),
             projection: None,
             reconstructed: false,
@@ -95,13 +95,13 @@ impl TextureField {
     /// The generator and codes, built from the file on first use.
     fn model(&self) -> Result<(Rc<Generator>, Styles), String> {
         let built = match &*self.model.borrow() {
-            FieldModel::Built(g, s) => return Ok((g.clone(), s.clone())),
+            FieldModel::Built(g, s) => return Ok((g.clone(), (**s).clone())),
             FieldModel::File { st, cfg, device, .. } => {
                 inverted_codes(st, cfg, device).map_err(|e| format!("the reconstruction's file: {e}"))?
             }
         };
         let (g, s) = (Rc::new(built.0), built.1);
-        *self.model.borrow_mut() = FieldModel::Built(g.clone(), s.clone());
+        *self.model.borrow_mut() = FieldModel::Built(g.clone(), Box::new(s.clone()));
         Ok((g, s))
     }
 

@@ -308,7 +308,7 @@ async fn run(req: ReconstructRequest, out: &dyn Progressing) -> Result<Option<Re
         None => None,
     };
     Ok(Some(Reconstructed {
-        model: FieldModel::Built(Rc::new(inv.generator), inv.styles),
+        model: FieldModel::Built(Rc::new(inv.generator), Box::new(inv.styles)),
         file: None,
         rigged,
         projection,
@@ -682,7 +682,7 @@ pub(crate) async fn rig_saved(
             yield_to_browser().await;
             let rigged =
                 generate_rigged_async(&inv.generator, ctx, &inv.styles, device).await.map_err(|e| e.to_string())?;
-            (rigged, FieldModel::Built(Rc::new(inv.generator), inv.styles), inv.photo)
+            (rigged, FieldModel::Built(Rc::new(inv.generator), Box::new(inv.styles)), inv.photo)
         }
     };
     let detail = match &model {

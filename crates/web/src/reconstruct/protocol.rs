@@ -152,7 +152,7 @@ pub(super) enum FromWorker {
         /// The figures follow (`Figures`): IoU and PSNR are None here.
         measuring: bool,
         /// The photo's body fit refined on the start's outline.
-        refit: Option<getavatar_core::body::body_fit::fit::BodyFit>,
+        refit: Option<Box<getavatar_core::body::body_fit::fit::BodyFit>>,
     },
     /// A result's figures after the result (`Finished { measuring: true }`), with the arrays
     /// `rgb` and `mask` (the render they come from) unless `error` says why there are none.

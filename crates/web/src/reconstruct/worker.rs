@@ -42,10 +42,14 @@ struct WorkerState {
     cfg: GeneratorConfig,
 }
 
+/// The worker's WebGPU device, its adapter in words and whether the adapter is a software one,
+/// or why there is none.
+type WebGpu = Result<(Device, String, bool), String>;
+
 thread_local! {
     static STATE: RefCell<Option<Rc<WorkerState>>> = const { RefCell::new(None) };
     /// The worker's WebGPU device and its adapter in words, or why there is none (asked once).
-    static WEBGPU: RefCell<Option<Result<(Device, String, bool), String>>> = const { RefCell::new(None) };
+    static WEBGPU: RefCell<Option<WebGpu>> = const { RefCell::new(None) };
     /// The model files of the last job (the page sends each once).
     static FILES: RefCell<Option<ModelFiles>> = const { RefCell::new(None) };
     static CANCEL: Cell<bool> = const { Cell::new(false) };
@@ -177,7 +181,7 @@ async fn run_job(meta: JobMeta, data: JsValue) {
                 rig_ms,
                 stopped_at: inv.stopped_at,
                 measuring: inv.unmeasured.is_some(),
-                refit: inv.refit.clone(),
+                refit: inv.refit.clone().map(Box::new),
             };
             let mut arrays = rigged_arrays(&rigged);
             drop(rigged);
@@ -374,10 +378,13 @@ async fn colours_job(meta: ColoursMeta, data: JsValue) {
 /// The page's model on NdArray here: its generator and latent modes.
 type Model = Rc<(Generator, Option<LatentModes>)>;
 
+/// A loaded model with the config and file it came from.
+type LoadedModel = (GeneratorConfig, Rc<Vec<u8>>, Model);
+
 thread_local! {
     /// The page's model as last loaded, with the file and config it came from (loading it
     /// took a few hundred ms of every Generate and texture call).
-    static MODEL: RefCell<Option<(GeneratorConfig, Rc<Vec<u8>>, Model)>> = const { RefCell::new(None) };
+    static MODEL: RefCell<Option<LoadedModel>> = const { RefCell::new(None) };
 }
 
 /// The generator of the page's model on NdArray here, and its latent modes (loaded once per
@@ -418,7 +425,7 @@ struct CachedField {
 /// A texture field's generator: the page's model's, or a reconstruction's tuned one.
 enum Field {
     Model(Model),
-    Tuned(Generator),
+    Tuned(Box<Generator>),
 }
 
 impl Field {
@@ -469,7 +476,7 @@ async fn field(meta: &ColoursMeta, data: &JsValue) -> Result<Rc<CachedField>, St
             let st = parse_safetensors_async(&bytes).await.map_err(|e| format!("the reconstruction's file: {e}"))?;
             let inv = inverted_of(st, &meta.cfg, &Device::ndarray())
                 .map_err(|e| format!("the reconstruction's file: {e}"))?;
-            (Field::Tuned(inv.generator), inv.styles)
+            (Field::Tuned(Box::new(inv.generator)), inv.styles)
         }
     };
     crate::task::yield_to_browser().await;

@@ -575,7 +575,8 @@ fn on_message(data: JsValue) {
                 MEASURING.with(|s| *s.borrow_mut() = Some(m));
             }
             // The arrays are copied out of the message in `finish`, in slices.
-            let result = WorkerResult { data, fit, stopped_at, refit, ms: (figures_ms, file_ms, rig_ms) };
+            let result =
+                WorkerResult { data, fit, stopped_at, refit: refit.map(|f| *f), ms: (figures_ms, file_ms, rig_ms) };
             wasm_bindgen_futures::spawn_local(finish(r, result));
             release_when_idle();
         }
