@@ -30,8 +30,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::body::skinning::{pose_body, vertex_normals};
+use getavatar_core::generator::pipeline::seed_latents;
 use getavatar_core::generator::pipeline::LatentModes;
-use getavatar_core::generator::pipeline::{seed_latents, BodyContext};
 use getavatar_core::generator::readback::read_f32_now;
 use getavatar_core::io::dataset::{encode_png, Dataset, Label, Sample};
 use getavatar_core::render::camera::OrbitCamera;
@@ -266,7 +266,7 @@ pub fn evaluate(a: &EvalArgs) -> Result<EvalReport> {
     let subjects = eval_subjects(a, &ds, modes.as_ref())?;
     let modes = crate::model_io::truncation_modes(&modes, a.mean_truncation);
     let model = BodyModel::default_body()?;
-    let ctx = BodyContext::new(model.clone(), &cfg);
+    let ctx = crate::model_io::body_context(model.clone(), &cfg);
     let grids = PosedGridCache::default();
     let res = a.res.unwrap_or(ds.resolution);
     if !(16..=1024).contains(&res) {

@@ -392,7 +392,7 @@ fn export_avatar(
             (cfg, g, styles)
         }
     };
-    let ctx = BodyContext::new(model, &cfg);
+    let ctx = crate::model_io::body_context(model, &cfg);
     let mut rigged = block_on_ready(generate_rigged_async(&g, &ctx, &styles, device))?;
     if rigged.canonical.mesh.faces.is_empty() {
         bail!("the generator produced an empty surface");

@@ -30,9 +30,7 @@ use getavatar_core::generator::checkpoint::{
     collect_params, load_params, parse_safetensors, save_generator_with_modes, write_safetensors, NamedTensor,
 };
 use getavatar_core::generator::optim::{trainable_where, Adam};
-use getavatar_core::generator::pipeline::{
-    is_face_param, is_texture_param, BodyContext, Generator, LatentModes, Styles,
-};
+use getavatar_core::generator::pipeline::{is_face_param, is_texture_param, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::read_f32_now;
 use getavatar_core::io::dataset::Dataset;
 use getavatar_core::render::colour::decode_srgb;
@@ -169,7 +167,7 @@ pub fn fit_codes(a: &FitCodesArgs) -> Result<()> {
     }
     let faces = match (&a.scans, a.lambda_face > 0.0) {
         (Some(dir), true) => {
-            let ctx = BodyContext::new(crate::model_io::load_body(&None)?, &cfg);
+            let ctx = crate::model_io::body_context(crate::model_io::load_body(&None)?, &cfg);
             crate::train::canonical_scan_samples(dir, &ds, &ctx, a.seed, (false, true))?.face
         }
         _ => Vec::new(),
@@ -486,7 +484,7 @@ fn surface_pools(
         println!("the subjects' surface points from {}", path.display());
         return Ok(pools);
     }
-    let ctx = BodyContext::new(crate::model_io::load_body(&None)?, cfg);
+    let ctx = crate::model_io::body_context(crate::model_io::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
     let res = ds.resolution;
     let bar = crate::progress::bar(n as u64, "subjects' views rendered");
@@ -634,7 +632,7 @@ fn compare_png(
     let bytes = std::fs::read(out.join("generator.safetensors"))?;
     let (g_after, after) = getavatar_core::generator::checkpoint::load_generator_and_modes(&bytes, cfg, plain)?;
     let after = after.context("the fitted file has latent modes")?;
-    let ctx = BodyContext::new(crate::model_io::load_body(&None)?, cfg);
+    let ctx = crate::model_io::body_context(crate::model_io::load_body(&None)?, cfg);
     let grids = PosedGridCache::default();
     let r = ds.resolution;
     let shown: Vec<usize> = (0..4.min(n)).map(|k| k * n / 4.min(n)).collect();

@@ -1,6 +1,7 @@
 //! What the trainer's commands share: the shipped model files, the generator arguments and
 //! loading (a checkpoint, the shipped model or a random one), the body model, seed styles,
-//! an avatar's rendered views, PNG writing and reconstruction files.
+//! the body context (kept on disk between commands), an avatar's rendered views, PNG writing
+//! and reconstruction files.
 
 use std::path::{Path, PathBuf};
 
@@ -12,8 +13,10 @@ use getavatar_core::generator::checkpoint::{
 };
 use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::recolor_async;
+use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::generator::pipeline::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
+use getavatar_core::geometry::context_cache::{load_or_build, CacheUse};
 use getavatar_core::io::dataset::encode_png;
 use getavatar_core::render::camera::OrbitCamera;
 use getavatar_core::render::rasterize::{render_views_textured, RenderedViews};
@@ -180,6 +183,46 @@ pub fn load_body(path: &Option<PathBuf>) -> Result<BodyModel> {
             .with_context(|| format!("loading the body model {}", p.display()))?,
         None => BodyModel::default_body()?,
     })
+}
+
+/// The folder of the body-context files: `$GETAVATAR_CACHE/body_context` (set empty: none),
+/// else `$XDG_CACHE_HOME/getavatar/body_context`, else `~/.cache/getavatar/body_context`.
+fn body_context_dir() -> Option<PathBuf> {
+    let base = match std::env::var_os("GETAVATAR_CACHE") {
+        Some(dir) if dir.is_empty() => return None,
+        Some(dir) => PathBuf::from(dir),
+        None => match std::env::var_os("XDG_CACHE_HOME").filter(|d| !d.is_empty()) {
+            Some(dir) => PathBuf::from(dir).join("getavatar"),
+            None => PathBuf::from(std::env::var_os("HOME").filter(|d| !d.is_empty())?).join(".cache/getavatar"),
+        },
+    };
+    Some(base.join("body_context"))
+}
+
+/// The body context of `model` at `cfg`'s resolutions with its canonical grid made: read from
+/// the cache folder ([`body_context_dir`]) when an earlier command kept it there (0.1 s
+/// against 0.7 s of building on 2 cores), otherwise built and kept. A file that cannot be used
+/// or kept costs only the build, with a line saying why.
+pub fn body_context(model: BodyModel, cfg: &GeneratorConfig) -> BodyContext {
+    let Some(dir) = body_context_dir() else {
+        let ctx = BodyContext::new(model, cfg);
+        getavatar_core::util::cooperative::run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
+        return ctx;
+    };
+    let (ctx, used) = load_or_build(model, cfg.template_res, cfg.tet_res, &dir);
+    match used {
+        CacheUse::Loaded(_) => {}
+        CacheUse::Built { why, kept } => {
+            if let Some(why) = why {
+                eprintln!("the kept body context was not used ({why}): built it again");
+            }
+            match kept {
+                Ok(path) => eprintln!("kept the body context for the next commands in {}", path.display()),
+                Err(e) => eprintln!("could not keep the body context for the next commands: {e}"),
+            }
+        }
+    }
+    ctx
 }
 
 /// The styles of the seeds' latents, truncated by ψ (`None`: the model's default) towards

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use getavatar_core::body::pose_library::PoseLibrary;
 use getavatar_core::export::gltf_export::{write_glb, ExportMesh};
-use getavatar_core::generator::pipeline::{generate_avatar, BodyContext};
+use getavatar_core::generator::pipeline::generate_avatar;
 
 use crate::model_io::{load_body, load_inverted_file, render_avatar, seed_styles, write_png, GeneratorArgs};
 
@@ -89,7 +89,7 @@ pub fn sample(a: &SampleArgs) -> Result<()> {
         }
     };
     let t0 = std::time::Instant::now();
-    let ctx = BodyContext::new(model, &cfg);
+    let ctx = crate::model_io::body_context(model, &cfg);
     let styles = match (&a.subject, inverted) {
         (_, Some(s)) => s,
         (Some(spec), None) => {

@@ -20,7 +20,6 @@ use getavatar_core::generator::checkpoint::{collect_params, load_params, parse_s
 use getavatar_core::generator::losses::{discriminator_loss, r1_penalty};
 use getavatar_core::generator::network::discriminator::{Discriminator, DiscriminatorConfig};
 use getavatar_core::generator::optim::Adam;
-use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::generator::readback::read_f32_now;
 use getavatar_core::io::dataset::{Dataset, Label};
 use getavatar_core::render::camera::View;
@@ -73,7 +72,7 @@ pub fn train_discriminator(a: &TrainDiscriminatorArgs) -> Result<()> {
     let plain = Device::ndarray();
     let ad = plain.clone().autodiff();
     let (cfg, g, _) = a.model.load(&plain)?;
-    let ctx = BodyContext::new(load_body(&a.body)?, &cfg);
+    let ctx = crate::model_io::body_context(load_body(&a.body)?, &cfg);
     let dcfg: DiscriminatorConfig = crate::train::discriminator_config(ds.resolution, &cfg);
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let path = a.out.join(FILE);

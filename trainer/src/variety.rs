@@ -13,7 +13,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use getavatar_core::body::pose_library::PoseLibrary;
-use getavatar_core::generator::pipeline::{generate_avatar, BodyContext, Styles};
+use getavatar_core::generator::pipeline::{generate_avatar, Styles};
 use getavatar_core::io::dataset::encode_png;
 use serde::Serialize;
 
@@ -146,7 +146,7 @@ pub fn variety(a: &VarietyArgs) -> Result<VarietyReport> {
     }
     let device = a.backend.device()?;
     let (cfg, g, modes) = a.model.load(&device)?;
-    let ctx = BodyContext::new(load_body(&a.body)?, &cfg);
+    let ctx = crate::model_io::body_context(load_body(&a.body)?, &cfg);
     let params = PoseLibrary::builtin().params("Da", &[]).context("the built-in Da-pose")?;
     let render = |styles: &Styles| -> Result<Render> {
         let avatar = generate_avatar(&g, &ctx, styles, &params, &device)?;

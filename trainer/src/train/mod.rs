@@ -40,7 +40,6 @@ use anyhow::{bail, Context, Result};
 use getavatar_core::body::body_model::BodyModel;
 use getavatar_core::burn::tensor::Device;
 use getavatar_core::generator::checkpoint::{load_generator_growing, save_generator_with_modes};
-use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::io::dataset::Dataset;
 use getavatar_core::render::diff::avatar::PosedGridCache;
 
@@ -219,7 +218,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         report_train_only(&st, prefix)?;
     }
     let model = BodyModel::default_body()?;
-    let ctx = BodyContext::new(model, &rc.generator);
+    let ctx = crate::model_io::body_context(model, &rc.generator);
     let grids = PosedGridCache::default();
     let scans = match &rc.scans {
         Some(dir) if rc.lambda_scan > 0.0 || rc.lambda_face > 0.0 => {

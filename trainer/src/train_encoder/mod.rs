@@ -146,7 +146,7 @@ pub fn train_encoder(a: &TrainEncoderArgs) -> Result<()> {
     let ad = device.clone().autodiff();
     let (cfg, g, modes) = a.model.load(&device)?;
     let model = load_body(&a.body)?;
-    let ctx = BodyContext::new(model.clone(), &cfg);
+    let ctx = crate::model_io::body_context(model.clone(), &cfg);
     // One dictionary code per training subject (where the checkpoint has latent modes).
     let atoms = modes.as_ref().map_or(0, |m| m.count());
     let ecfg = EncoderConfig { atoms, ..EncoderConfig::for_generator(g.num_ws(), cfg.w_dim) };

@@ -94,6 +94,18 @@ impl BodyContext {
             let boundary = grid.boundary_flags();
             (template, grid, boundary)
         };
+        Self::assemble(model, canonical, template, grid, boundary)
+    }
+
+    /// The context of its parts (`canonical` from [`canonical_body`] of `model`, `grid` and
+    /// `boundary` from [`TetGrid::reference`]), the canonical grid still to be made.
+    pub(crate) fn assemble(
+        model: BodyModel,
+        canonical: PosedBody,
+        template: TemplateSdf,
+        grid: TetGrid,
+        boundary: Vec<bool>,
+    ) -> Self {
         Self {
             model,
             canonical,
@@ -105,6 +117,20 @@ impl BodyContext {
             #[cfg(any(feature = "generator", feature = "wgpu"))]
             canonical_dmtet: Default::default(),
         }
+    }
+
+    /// This context with its canonical grid already made (`context_cache`: what
+    /// [`BodyContext::canonical_grid_async`] made for the same body and grid before).
+    #[cfg(not(target_arch = "wasm32"))]
+    pub(crate) fn with_canonical_grid(self, grid: PosedGrid) -> Self {
+        // A fresh context's lock is empty: the set cannot fail.
+        let _ = self.canonical_grid.set(grid);
+        self
+    }
+
+    /// The canonical grid when it has been made.
+    pub fn canonical_grid_made(&self) -> Option<&PosedGrid> {
+        self.canonical_grid.get()
     }
 
     /// Longest tet edge of the grid.

@@ -1,0 +1,338 @@
+//! The body context kept on disk between native processes: the template SDF and the canonical
+//! pose's posed grid ([`BodyContext`]), which every command that generates needs and which
+//! cost about 0.7 s of a 2-core machine's time before each first avatar. The file holds them
+//! bit for bit as computed; the tet grid (regular, 0.2 s) is rebuilt beside the read.
+//!
+//! One file per body and resolution (`body-<body>-<template_res>-<tet_res>.bin`), stamped with
+//! a key over the body, the resolutions and the source of the code that computes them
+//! ([`SOURCES`]), and checksummed: a file of another build, body or resolution, or a damaged
+//! one, is rebuilt and replaced, never used. Written atomically (a temporary file renamed), so
+//! a crash or two processes at once leave either the old file or a whole new one.
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+use super::inverse_skinning::canonical_body;
+use super::posed_grid::{BodyContext, PosedGrid};
+use super::template_sdf::TemplateSdf;
+use super::tet_grid::TetGrid;
+use crate::body::body_model::BodyModel;
+use crate::body::skinning::PosedBody;
+use crate::util::cooperative::run_blocking;
+
+/// The first bytes of a cache file (the format's version in the last two).
+const MAGIC: &[u8; 8] = b"GAVCTX01";
+
+/// The code the cached values come from: any change to it makes every file stale.
+const SOURCES: [&str; 6] = [
+    include_str!("context_cache.rs"),
+    include_str!("inverse_skinning.rs"),
+    include_str!("posed_grid.rs"),
+    include_str!("spatial.rs"),
+    include_str!("template_sdf.rs"),
+    include_str!("tet_grid.rs"),
+];
+
+/// What [`load_or_build`] did.
+#[derive(Debug)]
+pub enum CacheUse {
+    /// Read from this file.
+    Loaded(PathBuf),
+    /// Built, there being no file or `why` it could not be used; then written to the file, or
+    /// the error that kept it from being written.
+    Built { why: Option<String>, kept: Result<PathBuf, String> },
+}
+
+/// The body context of `model` at `template_res` / `tet_res` with its canonical grid made:
+/// from `dir`'s file when it holds this body, resolution and code; otherwise built and written
+/// there for the next process. Reading or writing the file never fails the call: what went
+/// wrong is in the [`CacheUse`].
+pub fn load_or_build(model: BodyModel, template_res: usize, tet_res: usize, dir: &Path) -> (BodyContext, CacheUse) {
+    let canonical = canonical_body(&model);
+    let body = body_hash(&model, &canonical);
+    let key = key(body, template_res, tet_res);
+    let path = dir.join(format!("body-{body:016x}-{template_res}-{tet_res}.bin"));
+    let why = match std::fs::read(&path) {
+        Ok(bytes) => {
+            // The tet grid is regular: built beside the parsing.
+            let (parsed, (grid, boundary)) = std::thread::scope(|sc| {
+                let grid = sc.spawn(|| {
+                    let grid = TetGrid::reference(tet_res);
+                    let boundary = grid.boundary_flags();
+                    (grid, boundary)
+                });
+                let parsed = parse(&bytes, key, template_res, tet_res);
+                (parsed, grid.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+            });
+            match parsed {
+                Ok((template, posed)) => {
+                    let ctx = BodyContext::assemble(model, canonical, template, grid, boundary);
+                    return (ctx.with_canonical_grid(posed), CacheUse::Loaded(path));
+                }
+                Err(why) => Some(format!("{}: {why}", path.display())),
+            }
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => Some(format!("reading {}: {e}", path.display())),
+    };
+    let ctx = BodyContext::with_resolution(model, template_res, tet_res);
+    let posed = run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
+    let kept = write(&path, &serialize(key, &ctx.template, posed)).map(|()| path);
+    (ctx, CacheUse::Built { why, kept })
+}
+
+/// A 64-bit hash of words (splitmix64's finaliser over each word folded in): a cache key and a
+/// checksum, not a defence against a forger.
+struct Hasher(u64);
+
+impl Hasher {
+    fn new() -> Self {
+        Self(0x9e37_79b9_7f4a_7c15)
+    }
+
+    fn word(&mut self, w: u64) {
+        let mut z = (self.0 ^ w).wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        self.0 = z ^ (z >> 31);
+    }
+
+    fn bytes(&mut self, b: &[u8]) {
+        self.word(b.len() as u64);
+        let mut chunks = b.chunks_exact(8);
+        for c in &mut chunks {
+            self.word(u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]));
+        }
+        let mut last = [0u8; 8];
+        last[..chunks.remainder().len()].copy_from_slice(chunks.remainder());
+        self.word(u64::from_le_bytes(last));
+    }
+
+    fn floats(&mut self, v: impl IntoIterator<Item = f32>) {
+        for x in v {
+            self.word(x.to_bits() as u64);
+        }
+    }
+}
+
+/// The body as the cached values see it: the canonical body's shape, pose and transforms and
+/// the template's triangles.
+fn body_hash(model: &BodyModel, canonical: &PosedBody) -> u64 {
+    let mut h = Hasher::new();
+    let v3 = |v: &[Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
+    h.floats(v3(&model.v_template));
+    h.floats(v3(&canonical.shaped));
+    h.floats(v3(&canonical.vertices));
+    h.floats(canonical.vertex_transforms.iter().flat_map(|m| m.to_cols_array()));
+    for f in &model.faces {
+        h.word(((f[0] as u64) << 32) | f[1] as u64);
+        h.word(f[2] as u64);
+    }
+    h.0
+}
+
+/// The key a file must carry: the body, the resolutions and the code.
+fn key(body: u64, template_res: usize, tet_res: usize) -> u64 {
+    let mut h = Hasher::new();
+    h.bytes(MAGIC);
+    h.word(body);
+    h.word(template_res as u64);
+    h.word(tet_res as u64);
+    for s in SOURCES {
+        h.bytes(s.as_bytes());
+    }
+    h.0
+}
+
+/// The file: magic, key, the template SDF (res, min, cell, values), the canonical grid
+/// (vertex count, canonical points, template values, band), then the checksum of all before it.
+fn serialize(key: u64, template: &TemplateSdf, posed: &PosedGrid) -> Vec<u8> {
+    let n = posed.canonical.len();
+    let mut out = Vec::with_capacity(64 + 4 * (template.values.len() + 4 * n + posed.band.len()));
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&key.to_le_bytes());
+    out.extend_from_slice(&(template.res as u64).to_le_bytes());
+    for x in template.min.to_array().into_iter().chain([template.cell]).chain(template.values.iter().copied()) {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out.extend_from_slice(&(n as u64).to_le_bytes());
+    for x in posed.canonical.iter().flat_map(|p| p.to_array()).chain(posed.template.iter().copied()) {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out.extend_from_slice(&(posed.band.len() as u64).to_le_bytes());
+    for i in &posed.band {
+        out.extend_from_slice(&i.to_le_bytes());
+    }
+    let mut h = Hasher::new();
+    h.bytes(&out);
+    out.extend_from_slice(&h.0.to_le_bytes());
+    out
+}
+
+/// Reads what [`serialize`] wrote, checking each part against what the caller needs.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+        let end = self.at.checked_add(n).filter(|&e| e <= self.bytes.len()).ok_or("the file ends early")?;
+        let b = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(b)
+    }
+
+    fn u64(&mut self) -> Result<u64, String> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().map_err(|_| "the file ends early")?))
+    }
+
+    fn count(&mut self, expected: usize, what: &str) -> Result<usize, String> {
+        let n = self.u64()?;
+        if n != expected as u64 {
+            return Err(format!("{what}: {n} where this build needs {expected}"));
+        }
+        Ok(expected)
+    }
+
+    fn words(&mut self, n: usize) -> Result<impl Iterator<Item = [u8; 4]> + 'a, String> {
+        let b = self.take(n.checked_mul(4).ok_or("a count overflows")?)?;
+        Ok(b.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]))
+    }
+
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>, String> {
+        Ok(self.words(n)?.map(f32::from_le_bytes).collect())
+    }
+}
+
+fn parse(bytes: &[u8], key: u64, template_res: usize, tet_res: usize) -> Result<(TemplateSdf, PosedGrid), String> {
+    let (body, sum) = bytes.split_at_checked(bytes.len().saturating_sub(8)).ok_or("the file is empty")?;
+    if body.len() < MAGIC.len() + 8 || &body[..MAGIC.len()] != MAGIC {
+        return Err("not a body-context cache file of this format".into());
+    }
+    let mut r = Reader { bytes: body, at: MAGIC.len() };
+    if r.u64()? != key {
+        return Err("made for another body, resolution or build".into());
+    }
+    let mut h = Hasher::new();
+    h.bytes(body);
+    if sum != h.0.to_le_bytes() {
+        return Err("its checksum does not match (a damaged file)".into());
+    }
+    let res = r.count(template_res, "template samples per side")?;
+    let head = r.f32s(4)?;
+    let values = r.f32s(res.pow(3))?;
+    let template = TemplateSdf { res, min: Vec3::new(head[0], head[1], head[2]), cell: head[3], values };
+    let n = r.count((tet_res.max(1) + 1).pow(3), "grid vertices")?;
+    let canonical = r.f32s(3 * n)?.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect();
+    let values = r.f32s(n)?;
+    let band_len = r.u64()? as usize;
+    if band_len > n {
+        return Err(format!("a band of {band_len} vertices in a grid of {n}"));
+    }
+    let band: Vec<u32> = r.words(band_len)?.map(u32::from_le_bytes).collect();
+    if band.iter().any(|&i| i as usize >= n) {
+        return Err("a band vertex outside the grid".into());
+    }
+    if r.at != body.len() {
+        return Err(format!("{} bytes after the band", body.len() - r.at));
+    }
+    Ok((template, PosedGrid { canonical, template: values, band }))
+}
+
+/// `bytes` to `path` through a temporary file beside it, renamed over it.
+fn write(path: &Path, bytes: &[u8]) -> Result<(), String> {
+    let dir = path.parent().ok_or_else(|| format!("{} has no folder", path.display()))?;
+    std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        format!("renaming {} to {}: {e}", tmp.display(), path.display())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn same(a: &BodyContext, b: &BodyContext) {
+        assert_eq!(a.template.res, b.template.res);
+        assert_eq!(a.template.min, b.template.min);
+        assert_eq!(a.template.cell.to_bits(), b.template.cell.to_bits());
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.template.values), bits(&b.template.values));
+        assert_eq!(a.grid.vertices, b.grid.vertices);
+        assert_eq!(a.grid.tets, b.grid.tets);
+        assert_eq!(a.boundary, b.boundary);
+        let (pa, pb) = (a.canonical_grid_made().expect("made"), b.canonical_grid_made().expect("made"));
+        let points =
+            |p: &PosedGrid| p.canonical.iter().flat_map(|v| v.to_array()).map(f32::to_bits).collect::<Vec<_>>();
+        assert_eq!(points(pa), points(pb));
+        assert_eq!(bits(&pa.template), bits(&pb.template));
+        assert_eq!(pa.band, pb.band);
+        assert!(!pa.band.is_empty());
+    }
+
+    #[test]
+    fn a_kept_context_is_the_built_one_bit_for_bit_and_a_damaged_file_is_rebuilt() {
+        let dir = std::env::temp_dir().join(format!("getavatar-context-cache-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let body = BodyModel::default_body().expect("the embedded body");
+        let (built, used) = load_or_build(body.clone(), 24, 12, &dir);
+        let path = match used {
+            CacheUse::Built { why: None, kept: Ok(p) } => p,
+            other => panic!("expected a first build, got {other:?}"),
+        };
+        let (loaded, used) = load_or_build(body.clone(), 24, 12, &dir);
+        assert!(matches!(used, CacheUse::Loaded(ref p) if *p == path), "{used:?}");
+        same(&built, &loaded);
+        // What a plain build gives.
+        let plain = BodyContext::with_resolution(body.clone(), 24, 12);
+        run_blocking(plain.canonical_grid_async(plain.canonical_inverse()));
+        same(&plain, &loaded);
+
+        // Another resolution is another file; the first stays.
+        let (_, used) = load_or_build(body.clone(), 24, 10, &dir);
+        assert!(matches!(used, CacheUse::Built { why: None, kept: Ok(ref p) } if *p != path), "{used:?}");
+
+        // One flipped bit in the values: rebuilt, said why, and replaced.
+        let mut bytes = std::fs::read(&path).expect("the file");
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x10;
+        std::fs::write(&path, &bytes).expect("write");
+        let (rebuilt, used) = load_or_build(body.clone(), 24, 12, &dir);
+        match used {
+            CacheUse::Built { why: Some(why), kept: Ok(_) } => assert!(why.contains("checksum"), "{why}"),
+            other => panic!("expected a rebuild, got {other:?}"),
+        }
+        same(&plain, &rebuilt);
+        // A cut-short file and a file of another key.
+        std::fs::write(&path, &bytes[..bytes.len() / 3]).expect("write");
+        let (_, used) = load_or_build(body.clone(), 24, 12, &dir);
+        assert!(matches!(used, CacheUse::Built { why: Some(_), kept: Ok(_) }), "{used:?}");
+        let mut other = std::fs::read(&path).expect("the file");
+        other[8] ^= 1;
+        std::fs::write(&path, &other).expect("write");
+        let (_, used) = load_or_build(body.clone(), 24, 12, &dir);
+        match used {
+            CacheUse::Built { why: Some(why), .. } => assert!(why.contains("another body"), "{why}"),
+            other => panic!("expected a rebuild, got {other:?}"),
+        }
+        let (_, used) = load_or_build(body, 24, 12, &dir);
+        assert!(matches!(used, CacheUse::Loaded(_)), "{used:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_unwritable_folder_still_gives_the_context() {
+        let file = std::env::temp_dir().join(format!("getavatar-context-cache-file-{}", std::process::id()));
+        std::fs::write(&file, b"not a folder").expect("write");
+        let body = BodyModel::default_body().expect("the embedded body");
+        let (ctx, used) = load_or_build(body, 16, 8, &file.join("sub"));
+        assert!(matches!(used, CacheUse::Built { kept: Err(_), .. }), "{used:?}");
+        assert!(ctx.canonical_grid_made().is_some());
+        let _ = std::fs::remove_file(&file);
+    }
+}
