@@ -7,7 +7,7 @@
 //! a key over the body, the resolutions and the source of the code that computes them
 //! ([`SOURCES`]), and checksummed: a file of another build, body or resolution, or a damaged
 //! one, is rebuilt and replaced, never used. Written atomically (a temporary file renamed), so
-//! a crash or two processes at once leave either the old file or a whole new one.
+//! a crash or two writers at once leave either the old file or a whole new one.
 
 use std::path::{Path, PathBuf};
 
@@ -245,7 +245,10 @@ fn parse(bytes: &[u8], key: u64, template_res: usize, tet_res: usize) -> Result<
 fn write(path: &Path, bytes: &[u8]) -> Result<(), String> {
     let dir = path.parent().ok_or_else(|| format!("{} has no folder", path.display()))?;
     std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    // Unique per process and per call: threads of one process may keep the same file at once.
+    static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = path.with_extension(format!("tmp{}-{call}", std::process::id()));
     std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
@@ -322,6 +325,26 @@ mod tests {
         }
         let (_, used) = load_or_build(body, 24, 12, &dir);
         assert!(matches!(used, CacheUse::Loaded(_)), "{used:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn threads_keeping_the_same_context_at_once_leave_one_whole_file() {
+        let dir = std::env::temp_dir().join(format!("getavatar-context-cache-threads-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let body = BodyModel::default_body().expect("the embedded body");
+        let built: Vec<BodyContext> = std::thread::scope(|sc| {
+            let handles: Vec<_> = (0..4).map(|_| sc.spawn(|| load_or_build(body.clone(), 16, 8, &dir).0)).collect();
+            handles.into_iter().map(|h| h.join().expect("no panic")).collect()
+        });
+        let (loaded, used) = load_or_build(body, 16, 8, &dir);
+        assert!(matches!(used, CacheUse::Loaded(_)), "{used:?}");
+        for ctx in &built {
+            same(ctx, &loaded);
+        }
+        let left: Vec<_> =
+            std::fs::read_dir(&dir).expect("the folder").map(|e| e.expect("an entry").file_name()).collect();
+        assert_eq!(left.len(), 1, "no temporary file left: {left:?}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 
