@@ -58,6 +58,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
         "ratio"
     );
     let mut stage_tables = Vec::new();
+    let mut kept_contexts = Vec::new();
     for name in configs {
         let cfg = GeneratorConfig::preset(name).with_context(|| format!("unknown config `{name}`"))?;
         let ((ctx, g), setup) = secs(|| (BodyContext::new(model.clone(), &cfg), Generator::new(&cfg, 0, &device)));
@@ -136,6 +137,7 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
             }
         });
         let fast = fast_total / (repeats * params.len()) as f64;
+        kept_contexts.push((name.clone(), kept_context(&model, &cfg)?));
         println!(
             "{:<6} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>7.1}× {:>10.3} {:>10.3} {:>12.3} {:>12.4} {:>7.0}×",
             name,
@@ -156,6 +158,10 @@ pub fn bench(configs: &[String], repeats: usize, backend: &str) -> Result<()> {
     println!("gen/extract/exact run the networks on the backend above (grid inverse skinning and DMTet topology on the CPU); on wgpu after one untimed generation (kernels compiled);");
     println!("grid = posed grid per pose (inverse skinning of the tet grid, part of extract) skipping vertices far from the body; grid-all = un-warping every vertex; skip = grid-all / grid;");
     println!("r512/r1024 = CPU reference rasteriser (RGB+normal+mask); ratio = exact per-frame path / fast re-pose path (LBS of the rigged canonical avatar).");
+    println!("\nbody context: built = template SDF, tet grid and the canonical pose's posed grid made in the process; read = the same from the file an earlier command kept (`geometry::context_cache`, tet grid rebuilt beside the read), checked bit for bit");
+    for (name, (built, read)) in kept_contexts {
+        println!("{name:<6} built {built:.3} s, read {read:.3} s: {:.1}× faster", built / read.max(1e-9));
+    }
     for (name, [stages, synced, another], num_params, mut kernels) in stage_tables {
         println!("\n`{name}`: the generator has {num_params} parameters ({:.1} MB as f32)", num_params as f64 * 4e-6);
         println!("new identity (canonical generation + rigging, seeds 3/4), `{name}`, {backend}: host ms, waits on read-backs, read-backs");
@@ -419,4 +425,38 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
         r1_step_s: r1.seconds,
         dispatches_per_step: dispatches as f64 / plain_s.len() as f64,
     })
+}
+
+/// Seconds to build `cfg`'s body context with its canonical grid, and to read it back from the
+/// file `context_cache` keeps (in a folder of its own, written first), which must give the
+/// same template SDF and canonical grid to the bit.
+fn kept_context(model: &BodyModel, cfg: &GeneratorConfig) -> Result<(f64, f64)> {
+    use getavatar_core::geometry::context_cache::{load_or_build, CacheUse};
+    let dir = std::env::temp_dir().join(format!("getavatar-bench-context-{}", std::process::id()));
+    let (built, t_built) = secs(|| {
+        let c = BodyContext::new(model.clone(), cfg);
+        getavatar_core::util::cooperative::run_blocking(c.canonical_grid_async(c.canonical_inverse()));
+        c
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    if let (_, CacheUse::Built { kept: Err(e), .. }) = load_or_build(model.clone(), cfg.template_res, cfg.tet_res, &dir)
+    {
+        bail!("keeping the body context in {}: {e}", dir.display());
+    }
+    let ((read, used), t_read) = secs(|| load_or_build(model.clone(), cfg.template_res, cfg.tet_res, &dir));
+    let _ = std::fs::remove_dir_all(&dir);
+    if !matches!(used, CacheUse::Loaded(_)) {
+        bail!("the kept body context was not read back: {used:?}");
+    }
+    let bits = |c: &BodyContext| {
+        let grid = c.canonical_grid_made().map(|g| {
+            let points = g.canonical.iter().flat_map(|p| p.to_array()).chain(g.template.iter().copied());
+            points.map(f32::to_bits).chain(g.band.iter().copied()).collect::<Vec<u32>>()
+        });
+        (grid, c.template.values.iter().map(|v| v.to_bits()).collect::<Vec<u32>>())
+    };
+    if bits(&read) != bits(&built) || bits(&read).0.is_none() {
+        bail!("the body context read back differs from the one built");
+    }
+    Ok((t_built, t_read))
 }
