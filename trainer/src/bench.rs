@@ -431,13 +431,9 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
 /// file `context_cache` keeps (in a folder of its own, written first), which must give the
 /// same template SDF and canonical grid to the bit.
 fn kept_context(model: &BodyModel, cfg: &GeneratorConfig) -> Result<(f64, f64)> {
-    use getavatar_core::geometry::context_cache::{load_or_build, CacheUse};
+    use getavatar_core::geometry::context_cache::{build, load_or_build, CacheUse};
     let dir = std::env::temp_dir().join(format!("getavatar-bench-context-{}", std::process::id()));
-    let (built, t_built) = secs(|| {
-        let c = BodyContext::new(model.clone(), cfg);
-        getavatar_core::util::cooperative::run_blocking(c.canonical_grid_async(c.canonical_inverse()));
-        c
-    });
+    let (built, t_built) = secs(|| build(model.clone(), cfg.template_res, cfg.tet_res));
     let _ = std::fs::remove_dir_all(&dir);
     if let (_, CacheUse::Built { kept: Err(e), .. }) = load_or_build(model.clone(), cfg.template_res, cfg.tet_res, &dir)
     {

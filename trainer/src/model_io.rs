@@ -16,7 +16,7 @@ use getavatar_core::generator::pipeline::recolor_async;
 use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::generator::pipeline::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::geometry::context_cache::{load_or_build, CacheUse};
+use getavatar_core::geometry::context_cache::{build, load_or_build, CacheUse};
 use getavatar_core::io::dataset::encode_png;
 use getavatar_core::render::camera::OrbitCamera;
 use getavatar_core::render::rasterize::{render_views_textured, RenderedViews};
@@ -205,9 +205,7 @@ fn body_context_dir() -> Option<PathBuf> {
 /// or kept costs only the build, with a line saying why.
 pub fn body_context(model: BodyModel, cfg: &GeneratorConfig) -> BodyContext {
     let Some(dir) = body_context_dir() else {
-        let ctx = BodyContext::new(model, cfg);
-        getavatar_core::util::cooperative::run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
-        return ctx;
+        return build(model, cfg.template_res, cfg.tet_res);
     };
     let (ctx, used) = load_or_build(model, cfg.template_res, cfg.tet_res, &dir);
     match used {

@@ -76,10 +76,20 @@ pub fn load_or_build(model: BodyModel, template_res: usize, tet_res: usize, dir:
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
         Err(e) => Some(format!("reading {}: {e}", path.display())),
     };
-    let ctx = BodyContext::with_resolution(model, template_res, tet_res);
-    let posed = run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
-    let kept = write(&path, &serialize(key, &ctx.template, posed)).map(|()| path);
+    let ctx = build(model, template_res, tet_res);
+    let kept = match ctx.canonical_grid_made() {
+        Some(posed) => write(&path, &serialize(key, &ctx.template, posed)).map(|()| path),
+        None => Err("the build made no canonical grid".into()),
+    };
     (ctx, CacheUse::Built { why, kept })
+}
+
+/// The body context built in this process, its canonical grid made: what [`load_or_build`]
+/// reads back from a file.
+pub fn build(model: BodyModel, template_res: usize, tet_res: usize) -> BodyContext {
+    let ctx = BodyContext::with_resolution(model, template_res, tet_res);
+    run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
+    ctx
 }
 
 /// A 64-bit hash of words (splitmix64's finaliser over each word folded in): a cache key and a
@@ -292,8 +302,7 @@ mod tests {
         assert!(matches!(used, CacheUse::Loaded(ref p) if *p == path), "{used:?}");
         same(&built, &loaded);
         // What a plain build gives.
-        let plain = BodyContext::with_resolution(body.clone(), 24, 12);
-        run_blocking(plain.canonical_grid_async(plain.canonical_inverse()));
+        let plain = build(body.clone(), 24, 12);
         same(&plain, &loaded);
 
         // Another resolution is another file; the first stays.
