@@ -428,22 +428,19 @@ pub fn time_steps(data: &Path, config: &str, backend: &str, batch: usize, steps:
 }
 
 /// Seconds to build `cfg`'s body context with its canonical grid, and to read it back from the
-/// file `context_cache` keeps (in a folder of its own, written first), which must give the
-/// same template SDF and canonical grid to the bit.
+/// file a command keeps (`context_cache`'s bytes, written to a folder of its own first), which
+/// must give the same template SDF and canonical grid to the bit.
 fn kept_context(model: &BodyModel, cfg: &GeneratorConfig) -> Result<(f64, f64)> {
-    use getavatar_core::geometry::context_cache::{build, load_or_build, CacheUse};
-    let dir = std::env::temp_dir().join(format!("getavatar-bench-context-{}", std::process::id()));
+    use getavatar_core::geometry::context_cache::{build, file_name, from_bytes, to_bytes};
     let (built, t_built) = secs(|| build(model.clone(), cfg.template_res, cfg.tet_res));
-    let _ = std::fs::remove_dir_all(&dir);
-    if let (_, CacheUse::Built { kept: Err(e), .. }) = load_or_build(model.clone(), cfg.template_res, cfg.tet_res, &dir)
-    {
-        bail!("keeping the body context in {}: {e}", dir.display());
-    }
-    let ((read, used), t_read) = secs(|| load_or_build(model.clone(), cfg.template_res, cfg.tet_res, &dir));
-    let _ = std::fs::remove_dir_all(&dir);
-    if !matches!(used, CacheUse::Loaded(_)) {
-        bail!("the kept body context was not read back: {used:?}");
-    }
+    let dir = tempfile::tempdir().context("a folder for the body context's file")?;
+    let path = dir.path().join(file_name(model, cfg.template_res, cfg.tet_res));
+    crate::atomic::write_atomic(&path, &to_bytes(&built).map_err(anyhow::Error::msg)?)?;
+    let (read, t_read) = secs(|| -> Result<BodyContext> {
+        let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+        from_bytes(model.clone(), &bytes, cfg.template_res, cfg.tet_res).map_err(anyhow::Error::msg)
+    });
+    let read = read?;
     let bits = |c: &BodyContext| {
         let grid = c.canonical_grid_made().map(|g| {
             let points = g.canonical.iter().flat_map(|p| p.to_array()).chain(g.template.iter().copied());

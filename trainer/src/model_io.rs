@@ -16,7 +16,7 @@ use getavatar_core::generator::pipeline::recolor_async;
 use getavatar_core::generator::pipeline::BodyContext;
 use getavatar_core::generator::pipeline::{default_psi, seed_latents, Avatar, Generator, LatentModes, Styles};
 use getavatar_core::generator::readback::block_on_ready;
-use getavatar_core::geometry::context_cache::{build, load_or_build, CacheUse};
+use getavatar_core::geometry::context_cache::{build, file_name, from_bytes, to_bytes};
 use getavatar_core::io::dataset::encode_png;
 use getavatar_core::render::camera::OrbitCamera;
 use getavatar_core::render::rasterize::{render_views_textured, RenderedViews};
@@ -201,26 +201,52 @@ fn body_context_dir() -> Option<PathBuf> {
 
 /// The body context of `model` at `cfg`'s resolutions with its canonical grid made: read from
 /// the cache folder ([`body_context_dir`]) when an earlier command kept it there (0.03 s
-/// against 0.45 s of building on 2 cores, `trainer bench generator`), otherwise built and kept. A file that cannot be used
-/// or kept costs only the build, with a line saying why.
+/// against 0.45 s of building on 2 cores, `trainer bench generator`), otherwise built and kept.
+/// A file that cannot be used or kept costs only the build, with a line saying why.
 pub fn body_context(model: BodyModel, cfg: &GeneratorConfig) -> BodyContext {
     let Some(dir) = body_context_dir() else {
         return build(model, cfg.template_res, cfg.tet_res);
     };
-    let (ctx, used) = load_or_build(model, cfg.template_res, cfg.tet_res, &dir);
-    match used {
-        CacheUse::Loaded(_) => {}
-        CacheUse::Built { why, kept } => {
-            if let Some(why) = why {
-                eprintln!("the kept body context was not used ({why}): built it again");
-            }
-            match kept {
-                Ok(path) => eprintln!("kept the body context for the next commands in {}", path.display()),
-                Err(e) => eprintln!("could not keep the body context for the next commands: {e}"),
-            }
+    let (ctx, used) = body_context_in(model, cfg.template_res, cfg.tet_res, &dir);
+    if let KeptContext::Built { why, kept } = used {
+        if let Some(why) = why {
+            eprintln!("the kept body context was not used ({why}): built it again");
+        }
+        match kept {
+            Ok(path) => eprintln!("kept the body context for the next commands in {}", path.display()),
+            Err(e) => eprintln!("could not keep the body context for the next commands: {e:#}"),
         }
     }
     ctx
+}
+
+/// What [`body_context_in`] did with the folder's file.
+#[derive(Debug)]
+enum KeptContext {
+    Read,
+    /// Built, there being no file or `why` it could not be used; then written to the file, or
+    /// the error that kept it from being written.
+    Built {
+        why: Option<String>,
+        kept: Result<PathBuf>,
+    },
+}
+
+/// [`body_context`] with the file in `dir` (`context_cache::file_name`), written atomically.
+fn body_context_in(model: BodyModel, template_res: usize, tet_res: usize, dir: &Path) -> (BodyContext, KeptContext) {
+    let path = dir.join(file_name(&model, template_res, tet_res));
+    let why = match std::fs::read(&path) {
+        Ok(bytes) => match from_bytes(model.clone(), &bytes, template_res, tet_res) {
+            Ok(ctx) => return (ctx, KeptContext::Read),
+            Err(why) => Some(format!("{}: {why}", path.display())),
+        },
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => Some(format!("reading {}: {e}", path.display())),
+    };
+    let ctx = build(model, template_res, tet_res);
+    let kept =
+        to_bytes(&ctx).map_err(anyhow::Error::msg).and_then(|b| crate::atomic::write_atomic(&path, &b)).map(|()| path);
+    (ctx, KeptContext::Built { why, kept })
 }
 
 /// The styles of the seeds' latents, truncated by ψ (`None`: the model's default) towards
@@ -285,4 +311,73 @@ pub fn snap_to_photo(
         report.max_move_m * 100.0,
         t.elapsed().as_secs_f64() * 1e3
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The canonical grids' bits, equal or not.
+    fn grid_bits(c: &BodyContext) -> Option<Vec<u32>> {
+        c.canonical_grid_made().map(|g| {
+            let points = g.canonical.iter().flat_map(|p| p.to_array()).chain(g.template.iter().copied());
+            points.map(f32::to_bits).chain(g.band.iter().copied()).collect()
+        })
+    }
+
+    #[test]
+    fn a_kept_context_is_read_back_and_a_damaged_file_is_rebuilt_and_replaced() {
+        let dir = tempfile::tempdir().expect("a folder");
+        let body = BodyModel::default_body().expect("the embedded body");
+        let (built, used) = body_context_in(body.clone(), 24, 12, dir.path());
+        let path = match used {
+            KeptContext::Built { why: None, kept: Ok(p) } => p,
+            other => panic!("expected a first build, got {other:?}"),
+        };
+        let (read, used) = body_context_in(body.clone(), 24, 12, dir.path());
+        assert!(matches!(used, KeptContext::Read), "{used:?}");
+        assert!(grid_bits(&read).is_some() && grid_bits(&read) == grid_bits(&built));
+        let mut bytes = std::fs::read(&path).expect("the file");
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x10;
+        std::fs::write(&path, &bytes).expect("write");
+        let (rebuilt, used) = body_context_in(body.clone(), 24, 12, dir.path());
+        match used {
+            KeptContext::Built { why: Some(why), kept: Ok(_) } => assert!(why.contains("checksum"), "{why}"),
+            other => panic!("expected a rebuild, got {other:?}"),
+        }
+        assert!(grid_bits(&rebuilt) == grid_bits(&built));
+        let (_, used) = body_context_in(body, 24, 12, dir.path());
+        assert!(matches!(used, KeptContext::Read), "replaced: {used:?}");
+    }
+
+    #[test]
+    fn threads_keeping_the_same_context_at_once_leave_one_whole_file() {
+        let dir = tempfile::tempdir().expect("a folder");
+        let body = BodyModel::default_body().expect("the embedded body");
+        let built: Vec<BodyContext> = std::thread::scope(|sc| {
+            let handles: Vec<_> =
+                (0..4).map(|_| sc.spawn(|| body_context_in(body.clone(), 16, 8, dir.path()).0)).collect();
+            handles.into_iter().map(|h| h.join().expect("no panic")).collect()
+        });
+        let (read, used) = body_context_in(body, 16, 8, dir.path());
+        assert!(matches!(used, KeptContext::Read), "{used:?}");
+        for ctx in &built {
+            assert!(grid_bits(ctx) == grid_bits(&read));
+        }
+        let left: Vec<_> =
+            std::fs::read_dir(dir.path()).expect("the folder").map(|e| e.expect("an entry").file_name()).collect();
+        assert_eq!(left.len(), 1, "no temporary file left: {left:?}");
+    }
+
+    #[test]
+    fn an_unwritable_folder_still_gives_the_context() {
+        let dir = tempfile::tempdir().expect("a folder");
+        let file = dir.path().join("a file");
+        std::fs::write(&file, b"not a folder").expect("write");
+        let body = BodyModel::default_body().expect("the embedded body");
+        let (ctx, used) = body_context_in(body, 16, 8, &file.join("sub"));
+        assert!(matches!(used, KeptContext::Built { kept: Err(_), .. }), "{used:?}");
+        assert!(ctx.canonical_grid_made().is_some());
+    }
 }

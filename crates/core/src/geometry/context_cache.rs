@@ -1,15 +1,14 @@
-//! The body context kept on disk between native processes: the template SDF and the canonical
-//! pose's posed grid ([`BodyContext`]), which every command that generates needs and which
-//! cost about 0.7 s of a 2-core machine's time before each first avatar. The file holds them
-//! bit for bit as computed; the tet grid (regular, 0.2 s) is rebuilt beside the read.
+//! The body context as one file's bytes, for keeping it between native processes: the
+//! template SDF and the canonical pose's posed grid ([`BodyContext`]), which every command that
+//! generates needs and which cost about 0.7 s of a 2-core machine's time before each first
+//! avatar. The bytes hold them bit for bit as computed; the tet grid (regular, 0.2 s) is
+//! rebuilt beside the parsing. Where the file lives and how it is written (atomically) is the
+//! caller's (`trainer`'s `model_io::body_context`).
 //!
-//! One file per body and resolution (`body-<body>-<template_res>-<tet_res>.bin`), stamped with
-//! a key over the body, the resolutions and the source of the code that computes them
-//! ([`SOURCES`]), and checksummed: a file of another build, body or resolution, or a damaged
-//! one, is rebuilt and replaced, never used. Written atomically (a temporary file renamed), so
-//! a crash or two writers at once leave either the old file or a whole new one.
-
-use std::path::{Path, PathBuf};
+//! Each body and resolution has its own file name ([`file_name`]); the bytes carry a key over
+//! the body, the resolutions and the source of the code that computes them ([`SOURCES`]), and
+//! a checksum: bytes of another build, body or resolution, or damaged ones, are refused with
+//! the reason ([`from_bytes`]), never used.
 
 use glam::Vec3;
 
@@ -34,58 +33,39 @@ const SOURCES: [&str; 6] = [
     include_str!("tet_grid.rs"),
 ];
 
-/// What [`load_or_build`] did.
-#[derive(Debug)]
-pub enum CacheUse {
-    /// Read from this file.
-    Loaded(PathBuf),
-    /// Built, there being no file or `why` it could not be used; then written to the file, or
-    /// the error that kept it from being written.
-    Built { why: Option<String>, kept: Result<PathBuf, String> },
+/// The file name of `model`'s context at `template_res` / `tet_res`.
+pub fn file_name(model: &BodyModel, template_res: usize, tet_res: usize) -> String {
+    format!("body-{:016x}-{template_res}-{tet_res}.bin", body_hash(model, &canonical_body(model)))
 }
 
-/// The body context of `model` at `template_res` / `tet_res` with its canonical grid made:
-/// from `dir`'s file when it holds this body, resolution and code; otherwise built and written
-/// there for the next process. Reading or writing the file never fails the call: what went
-/// wrong is in the [`CacheUse`].
-pub fn load_or_build(model: BodyModel, template_res: usize, tet_res: usize, dir: &Path) -> (BodyContext, CacheUse) {
+/// The context of `model` at `template_res` / `tet_res` from the bytes [`to_bytes`] made, its
+/// canonical grid made; `Err`: why these bytes are not that context's.
+pub fn from_bytes(model: BodyModel, bytes: &[u8], template_res: usize, tet_res: usize) -> Result<BodyContext, String> {
     let canonical = canonical_body(&model);
-    let body = body_hash(&model, &canonical);
-    let key = key(body, template_res, tet_res);
-    let path = dir.join(format!("body-{body:016x}-{template_res}-{tet_res}.bin"));
-    let why = match std::fs::read(&path) {
-        Ok(bytes) => {
-            // The tet grid is regular: built beside the parsing.
-            let (parsed, (grid, boundary)) = std::thread::scope(|sc| {
-                let grid = sc.spawn(|| {
-                    let grid = TetGrid::reference(tet_res);
-                    let boundary = grid.boundary_flags();
-                    (grid, boundary)
-                });
-                let parsed = parse(&bytes, key, template_res, tet_res);
-                (parsed, grid.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
-            });
-            match parsed {
-                Ok((template, posed)) => {
-                    let ctx = BodyContext::assemble(model, canonical, template, grid, boundary);
-                    return (ctx.with_canonical_grid(posed), CacheUse::Loaded(path));
-                }
-                Err(why) => Some(format!("{}: {why}", path.display())),
-            }
-        }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-        Err(e) => Some(format!("reading {}: {e}", path.display())),
-    };
-    let ctx = build(model, template_res, tet_res);
-    let kept = match ctx.canonical_grid_made() {
-        Some(posed) => write(&path, &serialize(key, &ctx.template, posed)).map(|()| path),
-        None => Err("the build made no canonical grid".into()),
-    };
-    (ctx, CacheUse::Built { why, kept })
+    let key = key(body_hash(&model, &canonical), template_res, tet_res);
+    // The tet grid is regular: built beside the parsing.
+    let (parsed, (grid, boundary)) = std::thread::scope(|sc| {
+        let grid = sc.spawn(|| {
+            let grid = TetGrid::reference(tet_res);
+            let boundary = grid.boundary_flags();
+            (grid, boundary)
+        });
+        let parsed = parse(bytes, key, template_res, tet_res);
+        (parsed, grid.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+    });
+    let (template, posed) = parsed?;
+    Ok(BodyContext::assemble(model, canonical, template, grid, boundary).with_canonical_grid(posed))
 }
 
-/// The body context built in this process, its canonical grid made: what [`load_or_build`]
-/// reads back from a file.
+/// `ctx` as bytes for [`from_bytes`]; `Err` when its canonical grid has not been made.
+pub fn to_bytes(ctx: &BodyContext) -> Result<Vec<u8>, String> {
+    let posed = ctx.canonical_grid_made().ok_or("the body context has no canonical grid yet")?;
+    let key = key(body_hash(&ctx.model, &ctx.canonical), ctx.template.res, ctx.grid.res);
+    Ok(serialize(key, &ctx.template, posed))
+}
+
+/// The body context built in this process, its canonical grid made: what [`from_bytes`]
+/// gives from the bytes of one built before.
 pub fn build(model: BodyModel, template_res: usize, tet_res: usize) -> BodyContext {
     let ctx = BodyContext::with_resolution(model, template_res, tet_res);
     run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
@@ -251,21 +231,6 @@ fn parse(bytes: &[u8], key: u64, template_res: usize, tet_res: usize) -> Result<
     Ok((template, PosedGrid { canonical, template: values, band }))
 }
 
-/// `bytes` to `path` through a temporary file beside it, renamed over it.
-fn write(path: &Path, bytes: &[u8]) -> Result<(), String> {
-    let dir = path.parent().ok_or_else(|| format!("{} has no folder", path.display()))?;
-    std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-    // Unique per process and per call: threads of one process may keep the same file at once.
-    static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = path.with_extension(format!("tmp{}-{call}", std::process::id()));
-    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        format!("renaming {} to {}: {e}", tmp.display(), path.display())
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -289,82 +254,29 @@ mod tests {
     }
 
     #[test]
-    fn a_kept_context_is_the_built_one_bit_for_bit_and_a_damaged_file_is_rebuilt() {
-        let dir = std::env::temp_dir().join(format!("getavatar-context-cache-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+    fn a_context_read_back_is_the_built_one_bit_for_bit_and_damaged_bytes_are_refused() {
         let body = BodyModel::default_body().expect("the embedded body");
-        let (built, used) = load_or_build(body.clone(), 24, 12, &dir);
-        let path = match used {
-            CacheUse::Built { why: None, kept: Ok(p) } => p,
-            other => panic!("expected a first build, got {other:?}"),
-        };
-        let (loaded, used) = load_or_build(body.clone(), 24, 12, &dir);
-        assert!(matches!(used, CacheUse::Loaded(ref p) if *p == path), "{used:?}");
+        let built = build(body.clone(), 24, 12);
+        let bytes = to_bytes(&built).expect("the bytes");
+        let loaded = from_bytes(body.clone(), &bytes, 24, 12).expect("read back");
         same(&built, &loaded);
-        // What a plain build gives.
-        let plain = build(body.clone(), 24, 12);
-        same(&plain, &loaded);
-
-        // Another resolution is another file; the first stays.
-        let (_, used) = load_or_build(body.clone(), 24, 10, &dir);
-        assert!(matches!(used, CacheUse::Built { why: None, kept: Ok(ref p) } if *p != path), "{used:?}");
-
-        // One flipped bit in the values: rebuilt, said why, and replaced.
-        let mut bytes = std::fs::read(&path).expect("the file");
-        let mid = bytes.len() / 2;
-        bytes[mid] ^= 0x10;
-        std::fs::write(&path, &bytes).expect("write");
-        let (rebuilt, used) = load_or_build(body.clone(), 24, 12, &dir);
-        match used {
-            CacheUse::Built { why: Some(why), kept: Ok(_) } => assert!(why.contains("checksum"), "{why}"),
-            other => panic!("expected a rebuild, got {other:?}"),
-        }
-        same(&plain, &rebuilt);
-        // A cut-short file and a file of another key.
-        std::fs::write(&path, &bytes[..bytes.len() / 3]).expect("write");
-        let (_, used) = load_or_build(body.clone(), 24, 12, &dir);
-        assert!(matches!(used, CacheUse::Built { why: Some(_), kept: Ok(_) }), "{used:?}");
-        let mut other = std::fs::read(&path).expect("the file");
+        // Another resolution is another file, and these bytes are not its.
+        assert_ne!(file_name(&body, 24, 12), file_name(&body, 24, 10));
+        assert!(from_bytes(body.clone(), &bytes, 24, 10).is_err());
+        // One flipped bit in the values.
+        let mut damaged = bytes.clone();
+        let mid = damaged.len() / 2;
+        damaged[mid] ^= 0x10;
+        let why = from_bytes(body.clone(), &damaged, 24, 12).err().expect("refused");
+        assert!(why.contains("checksum"), "{why}");
+        // Cut short, and of another key.
+        assert!(from_bytes(body.clone(), &bytes[..bytes.len() / 3], 24, 12).is_err());
+        let mut other = bytes.clone();
         other[8] ^= 1;
-        std::fs::write(&path, &other).expect("write");
-        let (_, used) = load_or_build(body.clone(), 24, 12, &dir);
-        match used {
-            CacheUse::Built { why: Some(why), .. } => assert!(why.contains("another body"), "{why}"),
-            other => panic!("expected a rebuild, got {other:?}"),
-        }
-        let (_, used) = load_or_build(body, 24, 12, &dir);
-        assert!(matches!(used, CacheUse::Loaded(_)), "{used:?}");
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-
-    #[test]
-    fn threads_keeping_the_same_context_at_once_leave_one_whole_file() {
-        let dir = std::env::temp_dir().join(format!("getavatar-context-cache-threads-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let body = BodyModel::default_body().expect("the embedded body");
-        let built: Vec<BodyContext> = std::thread::scope(|sc| {
-            let handles: Vec<_> = (0..4).map(|_| sc.spawn(|| load_or_build(body.clone(), 16, 8, &dir).0)).collect();
-            handles.into_iter().map(|h| h.join().expect("no panic")).collect()
-        });
-        let (loaded, used) = load_or_build(body, 16, 8, &dir);
-        assert!(matches!(used, CacheUse::Loaded(_)), "{used:?}");
-        for ctx in &built {
-            same(ctx, &loaded);
-        }
-        let left: Vec<_> =
-            std::fs::read_dir(&dir).expect("the folder").map(|e| e.expect("an entry").file_name()).collect();
-        assert_eq!(left.len(), 1, "no temporary file left: {left:?}");
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-
-    #[test]
-    fn an_unwritable_folder_still_gives_the_context() {
-        let file = std::env::temp_dir().join(format!("getavatar-context-cache-file-{}", std::process::id()));
-        std::fs::write(&file, b"not a folder").expect("write");
-        let body = BodyModel::default_body().expect("the embedded body");
-        let (ctx, used) = load_or_build(body, 16, 8, &file.join("sub"));
-        assert!(matches!(used, CacheUse::Built { kept: Err(_), .. }), "{used:?}");
-        assert!(ctx.canonical_grid_made().is_some());
-        let _ = std::fs::remove_file(&file);
+        let why = from_bytes(body.clone(), &other, 24, 12).err().expect("refused");
+        assert!(why.contains("another body"), "{why}");
+        assert!(from_bytes(body, &[], 24, 12).is_err());
+        // A context whose canonical grid is still to be made has no bytes yet.
+        assert!(to_bytes(&BodyContext::with_resolution(BodyModel::default_body().expect("body"), 16, 8)).is_err());
     }
 }
