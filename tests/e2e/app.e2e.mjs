@@ -276,6 +276,17 @@ try {
   const softwareGen = /Cpu/.test(s.adapter);
   check(softwareGen ? /^the worker's CPU/.test(s.last_generation_on) : /^the page's WebGPU/.test(s.last_generation_on),
     `a new identity is generated on ${softwareGen ? "the worker's CPU, the adapter being a software one" : "the page's WebGPU device"} (${s.last_generation_on})`);
+  // On a software adapter the worker warms up when the model is ready; in this fresh profile
+  // it builds the body's context and keeps it in the browser's Cache API (read back after the
+  // reload at the end).
+  let builtContext = '';
+  if (softwareGen) {
+    s = await waitFor((s) => typeof s.worker_body_context === 'string' && s.worker_body_context !== '', "the worker's warm-up", 120000);
+    builtContext = s.worker_body_context;
+    const entries = await page.evaluate(async () => (await (await caches.open('getavatar-body-context')).keys()).map((r) => r.url));
+    check(/^built in \d+ ms, kept in the browser's cache \(\d+\.\d MB in \d+ ms\)$/.test(builtContext) && entries.length === 1 && /\/body_context\/body-[0-9a-f]{16}-\d+-\d+\.bin$/.test(entries[0]),
+      `a fresh profile's worker builds the body's context and keeps it in the Cache API ("${builtContext}"; ${JSON.stringify(entries)})`);
+  }
   // The stage breakdown: host ms, waits on GPU read-backs, read-backs, per stage.
   const stageRows = s.last_generation_stages?.stages ?? [];
   console.log('generation by stage (ms):\n' + stageRows.map((x) => `  ${x.stage.padEnd(12)} host ${x.host_ms.toFixed(1).padStart(7)}  GPU wait ${x.gpu_wait_ms.toFixed(1).padStart(7)}  yields ${x.yield_ms.toFixed(1).padStart(7)}  read-backs ${x.readbacks}  dispatches ${x.dispatches}`).join('\n'));
@@ -769,6 +780,15 @@ try {
   check(devices === 1 && /GPU device was lost/.test(said) && /Reload/.test(said) && covers,
     `a destroyed GPU device (${devices}) gets a message over the whole canvas with a Reload button ("${said.split('\n')[0]}")`);
   await page.screenshot({ path: path.join(out, 'device_lost.png') });
+
+  // Reload, as the message offers: the new page's worker reads the body's context its
+  // predecessor kept in the Cache API instead of building it again.
+  if (builtContext) {
+    await page.reload();
+    s = await waitFor((s) => typeof s.worker_body_context === 'string' && s.worker_body_context !== '', "the reloaded page's worker warm-up", 180000);
+    check(/^read from the browser's cache in \d+ ms \(\d+\.\d MB\)$/.test(s.worker_body_context),
+      `after a reload the worker reads the body's context from the Cache API ("${s.worker_body_context}"; the first page's: "${builtContext}")`);
+  }
 } catch (e) {
   console.log(`FAIL ${e.stack ?? e}`);
   failures++;

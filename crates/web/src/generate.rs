@@ -217,6 +217,11 @@ pub struct GenEngine {
     /// worker on a software adapter (automation `{"texture_device":…}`).
     pub texture_device: Compute,
     pub busy: bool,
+    /// How the worker's warm-up had its body context ("read from the browser's cache …",
+    /// "built … kept …"), or why it did not get ready ahead; empty before its answer.
+    worker_body_context: Rc<RefCell<String>>,
+    /// Repaints the page when something arrives that the status shows.
+    repaint: eframe::egui::Context,
 }
 
 /// Compute passes cubecl records before it submits them to the queue (its default is 32). A
@@ -320,7 +325,7 @@ impl GenEngine {
         let generator = Rc::new(Generator::new(&cfg, 0, &device));
         let weights_slot = Rc::new(RefCell::new(None));
         {
-            let (slot, cfg, device) = (weights_slot.clone(), cfg.clone(), device.clone());
+            let (slot, cfg, device, repaint) = (weights_slot.clone(), cfg.clone(), device.clone(), repaint.clone());
             wasm_bindgen_futures::spawn_local(async move {
                 let now = crate::platform::now_ms;
                 let t = [now(), 0.0, 0.0, 0.0];
@@ -369,6 +374,8 @@ impl GenEngine {
             busy: false,
             software,
             texture_device: Compute::Auto,
+            worker_body_context: Rc::default(),
+            repaint,
         })
     }
 
@@ -509,12 +516,26 @@ impl GenEngine {
     /// the worker behind it; a failure only costs the first Generate its head start.
     fn warm_worker(&self) {
         let (Some(checkpoint), cfg) = (self.checkpoint.clone(), self.cfg.clone()) else { return };
+        let (said, repaint) = (self.worker_body_context.clone(), self.repaint.clone());
         wasm_bindgen_futures::spawn_local(async move {
-            match warm_worker(&cfg, &checkpoint).await {
-                Ok(ms) => web_sys::console::info_1(&format!("the worker is ready for Generate ({ms:.0} ms)").into()),
-                Err(e) => web_sys::console::warn_1(&format!("the worker did not get ready ahead: {e}").into()),
-            }
+            *said.borrow_mut() = match warm_worker(&cfg, &checkpoint).await {
+                Ok((ms, how)) => {
+                    web_sys::console::info_1(&format!("the worker is ready for Generate ({ms:.0} ms)").into());
+                    how
+                }
+                Err(e) => {
+                    web_sys::console::warn_1(&format!("the worker did not get ready ahead: {e}").into());
+                    format!("the worker did not get ready ahead: {e}")
+                }
+            };
+            repaint.request_repaint();
         });
+    }
+
+    /// How the worker's warm-up had its body context, or why it did not get ready ahead
+    /// (empty before its answer, or where no warm-up runs: a hardware adapter).
+    pub fn worker_body_context(&self) -> String {
+        self.worker_body_context.borrow().clone()
     }
 
     /// The model's config and file where the worker computes texture-field colours (by

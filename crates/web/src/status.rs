@@ -53,6 +53,11 @@ pub struct Status {
     /// Where the last generation ran: "the worker's CPU (burn NdArray)" on a software WebGPU
     /// adapter, else "the page's WebGPU device".
     pub last_generation_on: String,
+    /// How the reconstruction worker's warm-up (on a software adapter) had the body's context:
+    /// "read from the browser's cache in … ms (… MB)", "built in … ms, kept in the browser's
+    /// cache (… MB in … ms)", "built in … ms; not kept: why", or why it did not get ready
+    /// ahead; empty before it answers.
+    pub worker_body_context: String,
     pub seed_geo: u64,
     pub seed_tex: u64,
     pub psi: f32,

@@ -1,9 +1,10 @@
-//! The body context as one file's bytes, for keeping it between native processes: the
-//! template SDF and the canonical pose's posed grid ([`BodyContext`]), which every command that
-//! generates needs and which cost about 0.7 s of a 2-core machine's time before each first
-//! avatar. The bytes hold them bit for bit as computed; the tet grid (regular, 0.2 s) is
-//! rebuilt beside the parsing. Where the file lives and how it is written (atomically) is the
-//! caller's (`trainer`'s `model_io::body_context`).
+//! The body context as one file's bytes, for keeping it between processes: the template SDF
+//! and the canonical pose's posed grid ([`BodyContext`]), which every command that generates
+//! needs and which cost about 0.7 s of a 2-core machine's time before each first avatar
+//! natively, 3–4 s in the browser's reconstruction worker. The bytes hold them bit for bit as
+//! computed; the tet grid (regular, 0.2 s) is rebuilt beside the parsing. Where the bytes live
+//! is the caller's: a file written atomically (`trainer`'s `model_io::body_context`), the
+//! browser's Cache API (the web crate's `reconstruct::kept_context`).
 //!
 //! Each body and resolution has its own file name ([`file_name`]); the bytes carry a key over
 //! the body, the resolutions and the source of the code that computes them ([`SOURCES`]), and
@@ -18,20 +19,31 @@ use super::template_sdf::TemplateSdf;
 use super::tet_grid::TetGrid;
 use crate::body::body_model::BodyModel;
 use crate::body::skinning::PosedBody;
+#[cfg(not(target_arch = "wasm32"))]
 use crate::util::cooperative::run_blocking;
 
 /// The first bytes of a cache file (the format's version in the last two).
 const MAGIC: &[u8; 8] = b"GAVCTX01";
 
-/// The code the cached values come from: any change to it makes every file stale.
-const SOURCES: [&str; 6] = [
-    include_str!("context_cache.rs"),
-    include_str!("inverse_skinning.rs"),
-    include_str!("posed_grid.rs"),
-    include_str!("spatial.rs"),
-    include_str!("template_sdf.rs"),
-    include_str!("tet_grid.rs"),
-];
+/// A hash of the code the cached values come from: any change to it makes every file stale.
+/// Computed at compile time, so the source text stays out of the binary (the wasm module).
+const SOURCES: u64 = {
+    let sources = [
+        include_str!("context_cache.rs"),
+        include_str!("inverse_skinning.rs"),
+        include_str!("posed_grid.rs"),
+        include_str!("spatial.rs"),
+        include_str!("template_sdf.rs"),
+        include_str!("tet_grid.rs"),
+    ];
+    let mut h = Hasher::new();
+    let mut k = 0;
+    while k < sources.len() {
+        h.bytes(sources[k].as_bytes());
+        k += 1;
+    }
+    h.0
+};
 
 /// The file name of `model`'s context at `template_res` / `tet_res`.
 pub fn file_name(model: &BodyModel, template_res: usize, tet_res: usize) -> String {
@@ -43,16 +55,23 @@ pub fn file_name(model: &BodyModel, template_res: usize, tet_res: usize) -> Stri
 pub fn from_bytes(model: BodyModel, bytes: &[u8], template_res: usize, tet_res: usize) -> Result<BodyContext, String> {
     let canonical = canonical_body(&model);
     let key = key(body_hash(&model, &canonical), template_res, tet_res);
-    // The tet grid is regular: built beside the parsing.
+    let tet_grid = || {
+        let grid = TetGrid::reference(tet_res);
+        let boundary = grid.boundary_flags();
+        (grid, boundary)
+    };
+    // The tet grid is regular: natively built beside the parsing.
+    #[cfg(not(target_arch = "wasm32"))]
     let (parsed, (grid, boundary)) = std::thread::scope(|sc| {
-        let grid = sc.spawn(|| {
-            let grid = TetGrid::reference(tet_res);
-            let boundary = grid.boundary_flags();
-            (grid, boundary)
-        });
+        let grid = sc.spawn(tet_grid);
         let parsed = parse(bytes, key, template_res, tet_res);
         (parsed, grid.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
     });
+    #[cfg(target_arch = "wasm32")]
+    let (parsed, (grid, boundary)) = {
+        let parsed = parse(bytes, key, template_res, tet_res);
+        (parsed, tet_grid())
+    };
     let (template, posed) = parsed?;
     Ok(BodyContext::assemble(model, canonical, template, grid, boundary).with_canonical_grid(posed))
 }
@@ -66,6 +85,7 @@ pub fn to_bytes(ctx: &BodyContext) -> Result<Vec<u8>, String> {
 
 /// The body context built in this process, its canonical grid made: what [`from_bytes`]
 /// gives from the bytes of one built before.
+#[cfg(not(target_arch = "wasm32"))]
 pub fn build(model: BodyModel, template_res: usize, tet_res: usize) -> BodyContext {
     let ctx = BodyContext::with_resolution(model, template_res, tet_res);
     run_blocking(ctx.canonical_grid_async(ctx.canonical_inverse()));
@@ -77,25 +97,33 @@ pub fn build(model: BodyModel, template_res: usize, tet_res: usize) -> BodyConte
 struct Hasher(u64);
 
 impl Hasher {
-    fn new() -> Self {
+    const fn new() -> Self {
         Self(0x9e37_79b9_7f4a_7c15)
     }
 
-    fn word(&mut self, w: u64) {
+    const fn word(&mut self, w: u64) {
         let mut z = (self.0 ^ w).wrapping_add(0x9e37_79b9_7f4a_7c15);
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         self.0 = z ^ (z >> 31);
     }
 
-    fn bytes(&mut self, b: &[u8]) {
+    /// The bytes' length, then their 8-byte little-endian words, the last one zero-padded (a
+    /// zero word when the length is a multiple of 8). A `const fn` for [`SOURCES`].
+    const fn bytes(&mut self, b: &[u8]) {
         self.word(b.len() as u64);
-        let mut chunks = b.chunks_exact(8);
-        for c in &mut chunks {
-            self.word(u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]));
+        let mut at = 0;
+        while at + 8 <= b.len() {
+            let w = [b[at], b[at + 1], b[at + 2], b[at + 3], b[at + 4], b[at + 5], b[at + 6], b[at + 7]];
+            self.word(u64::from_le_bytes(w));
+            at += 8;
         }
         let mut last = [0u8; 8];
-        last[..chunks.remainder().len()].copy_from_slice(chunks.remainder());
+        let mut k = 0;
+        while at + k < b.len() {
+            last[k] = b[at + k];
+            k += 1;
+        }
         self.word(u64::from_le_bytes(last));
     }
 
@@ -129,9 +157,7 @@ fn key(body: u64, template_res: usize, tet_res: usize) -> u64 {
     h.word(body);
     h.word(template_res as u64);
     h.word(tet_res as u64);
-    for s in SOURCES {
-        h.bytes(s.as_bytes());
-    }
+    h.word(SOURCES);
     h.0
 }
 
@@ -251,6 +277,25 @@ mod tests {
         assert_eq!(bits(&pa.template), bits(&pb.template));
         assert_eq!(pa.band, pb.band);
         assert!(!pa.band.is_empty());
+    }
+
+    #[test]
+    fn the_hash_of_bytes_is_their_length_then_their_padded_words() {
+        let words = |ws: &[u64]| {
+            let mut h = Hasher::new();
+            ws.iter().for_each(|&w| h.word(w));
+            h.0
+        };
+        let hashed = |b: &[u8]| {
+            let mut h = Hasher::new();
+            h.bytes(b);
+            h.0
+        };
+        let le = |b: &[u8; 8]| u64::from_le_bytes(*b);
+        assert_eq!(hashed(b"abcdefghijklm"), words(&[13, le(b"abcdefgh"), le(b"ijklm\0\0\0")]));
+        assert_eq!(hashed(b"abcdefgh"), words(&[8, le(b"abcdefgh"), 0]));
+        assert_eq!(hashed(b""), words(&[0, 0]));
+        assert_ne!(SOURCES, hashed(b""));
     }
 
     #[test]

@@ -5,7 +5,6 @@
 //! These are the CPU reference implementations ("slow, obviously correct"); tensor versions
 //! used in training are checked against them.
 
-#[cfg(not(target_arch = "wasm32"))]
 pub mod context_cache;
 pub mod dmtet;
 pub mod id_map;

@@ -121,7 +121,6 @@ impl BodyContext {
 
     /// This context with its canonical grid already made (`context_cache`: what
     /// [`BodyContext::canonical_grid_async`] made for the same body and grid before).
-    #[cfg(not(target_arch = "wasm32"))]
     pub(crate) fn with_canonical_grid(self, grid: PosedGrid) -> Self {
         // A fresh context's lock is empty: the set cannot fail.
         let _ = self.canonical_grid.set(grid);

@@ -336,6 +336,7 @@ impl GetAvatarApp {
         let polled = engine.poll();
         self.status.generating = engine.busy;
         self.status.model = engine.weights.describe();
+        self.status.worker_body_context = engine.worker_body_context();
         match polled {
             Some(Ok(done)) => {
                 self.status.generations += 1;

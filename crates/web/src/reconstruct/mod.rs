@@ -16,10 +16,12 @@
 //!   the page's new identities and its texture-field queries on a software WebGPU adapter)
 //! - [`worker`]: the worker's side
 //! - [`protocol`]: the messages between them
+//! - [`kept_context`]: the worker's body context kept in the browser's Cache API
 
 use eframe::egui;
 
 mod job;
+mod kept_context;
 mod protocol;
 pub mod worker;
 mod worker_client;

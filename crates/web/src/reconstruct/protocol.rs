@@ -182,10 +182,12 @@ pub(super) enum FromWorker {
         id: u64,
         millis: f64,
     },
-    /// `Warm` `id` is done, in `millis`.
+    /// `Warm` `id` is done, in `millis`; how the worker had its body context, in words
+    /// (`super::kept_context`).
     Warmed {
         id: u64,
         millis: f64,
+        body_context: String,
     },
     /// `Generate`, `Colours` or `Warm` `id` failed.
     CallFailed {

@@ -36,10 +36,11 @@ use super::protocol::{
 use crate::platform::{js_message, now_ms};
 
 /// What the worker keeps between reconstructions: the body's context (its devices are
-/// kept in [`WEBGPU`]).
+/// kept in [`WEBGPU`]) and how it was had (read from the browser's cache or built).
 struct WorkerState {
     ctx: Rc<BodyContext>,
     cfg: GeneratorConfig,
+    how: String,
 }
 
 /// The worker's WebGPU device, its adapter in words and whether the adapter is a software one,
@@ -348,14 +349,12 @@ async fn warm_job(meta: WarmMeta, data: JsValue) {
     let warmed = async {
         let state = state(&meta.cfg).await?;
         model(&meta.cfg, meta.checkpoint_kept, &data)?;
-        crate::task::yield_to_browser().await;
-        state.ctx.canonical_grid_async(state.ctx.canonical_inverse()).await;
-        Ok::<_, String>(())
+        Ok::<_, String>(state.how.clone())
     };
     let warmed = warmed.await;
     WARMING.with(|w| w.set(false));
     match warmed {
-        Ok(()) => post(&FromWorker::Warmed { id, millis: now_ms() - t0 }, &[]),
+        Ok(body_context) => post(&FromWorker::Warmed { id, millis: now_ms() - t0, body_context }, &[]),
         Err(message) => post(&FromWorker::CallFailed { id, message }, &[]),
     }
 }
@@ -535,14 +534,16 @@ async fn generate(
     Ok((rigged.to_arrays(), now_ms() - t0, stages))
 }
 
-/// The worker's body context, made on its first job (and again for another config).
+/// The worker's body context with its canonical grid, had on its first job (and again for
+/// another config): read from the browser's cache, or built and kept there.
 async fn state(cfg: &GeneratorConfig) -> Result<Rc<WorkerState>, String> {
     if let Some(s) = STATE.with(|s| s.borrow().clone()).filter(|s| &s.cfg == cfg) {
         return Ok(s);
     }
     let body = BodyModel::default_body().map_err(|e| format!("the embedded body model: {e}"))?;
-    let ctx = Rc::new(BodyContext::new_async(body, cfg).await);
-    let s = Rc::new(WorkerState { ctx, cfg: cfg.clone() });
+    let (ctx, how) = super::kept_context::body_context(body, cfg).await;
+    web_sys::console::info_1(&JsValue::from_str(&format!("the worker's body context: {how}")));
+    let s = Rc::new(WorkerState { ctx: Rc::new(ctx), cfg: cfg.clone(), how });
     STATE.with(|slot| *slot.borrow_mut() = Some(s.clone()));
     Ok(s)
 }

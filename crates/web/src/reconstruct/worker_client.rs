@@ -168,11 +168,12 @@ pub async fn colours_in_worker(
 }
 
 /// Start the worker and have it get ready for Generate (the body's context, the model, the
-/// canonical posed grid) while the page is idle: its milliseconds, or why not.
-pub async fn warm_worker(cfg: &GeneratorConfig, checkpoint: &Rc<Vec<u8>>) -> Result<f64, String> {
+/// canonical posed grid) while the page is idle: its milliseconds and how it had the body's
+/// context (read from the browser's cache or built), or why not.
+pub async fn warm_worker(cfg: &GeneratorConfig, checkpoint: &Rc<Vec<u8>>) -> Result<(f64, String), String> {
     let ask = |id, checkpoint_kept| ToWorker::Warm(CallMeta { id, cfg: cfg.clone(), checkpoint_kept, ask: () });
     match call(ask, checkpoint, Vec::new()).await? {
-        (FromWorker::Warmed { millis, .. }, _) => Ok(millis),
+        (FromWorker::Warmed { millis, body_context, .. }, _) => Ok((millis, body_context)),
         _ => Err("the worker answered Warm with another message".into()),
     }
 }
