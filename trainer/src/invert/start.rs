@@ -13,7 +13,7 @@ use getavatar_core::generator::pipeline::{BodyContext, Generator, LatentModes, S
 use getavatar_core::generator::readback::block_on_ready;
 use getavatar_core::generator::rigging::{generate_rigged_async, generate_rigged_from_planes_async, RiggedAvatar};
 use getavatar_core::reconstruction::garment_codes::{
-    choose_garment_async, render_rigged, GarmentCandidate, GarmentCodes,
+    choose_garment_async, render_rigged, GarmentCandidate, GarmentCodes, WEIGH_SS,
 };
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, refit_to_rigged, refit_to_start, start_candidates, InversionOptions,
@@ -101,9 +101,11 @@ pub(super) fn start_views(
         Some(early) => block_on_ready(generate_rigged_from_planes_async(g, ctx, styles, &early.planes, dev)),
         None => block_on_ready(generate_rigged_async(g, ctx, styles, dev)),
     };
+    // Drawn with 2×2 samples (as the garment codes are weighed); its figures come from a
+    // render with `MEASURE_SS` samples after the clock, as the exported avatar's do.
     profile::stage("render");
     let (rgb, mask) = match &guess {
-        Ok(guess) => render_rigged(guess, ctx, target),
+        Ok(guess) => render_rigged(guess, ctx, target, WEIGH_SS),
         Err(_) => (Vec::new(), Vec::new()),
     };
     let mut stages = profile::finish().context("the stage recording was lost")?;
@@ -114,9 +116,10 @@ pub(super) fn start_views(
         stages.stages.insert(0, synthesis);
     }
     let guess = guess.context("generating the guess")?;
-    let first_avatar = view_metrics(target, &rgb, &mask);
     let seconds_to_first_avatar = t0.elapsed().as_secs_f64();
     write_png(&a.out.join("input_view_first.png"), &rgba(&rgb, &mask), target.res, 4)?;
+    let (rgb, mask) = render_rigged(&guess, ctx, target, super::MEASURE_SS);
+    let first_avatar = view_metrics(target, &rgb, &mask);
     let beside = if early.is_some() { " beside the body context" } else { "" };
     let by_stage: Vec<String> = stages
         .stages

@@ -164,7 +164,7 @@ pub async fn choose_garment_async(
         Some(rigged) => rigged,
         None => generate_rigged_async(g, ctx, guess, device).await?,
     };
-    let (rgb, mask) = render_rigged(&rigged, ctx, target);
+    let (rgb, mask) = render_rigged(&rigged, ctx, target, WEIGH_SS);
     let mut candidates = vec![GarmentCandidate {
         name: "guess".to_string(),
         mask_iou: mask_iou(&mask, &target.mask),
@@ -185,7 +185,7 @@ pub async fn choose_garment_async(
         let n = geometry.mesh.vertices.len();
         let outline = Avatar { mesh: geometry.mesh.clone(), normals: vec![Vec3::Z; n], colors: vec![Vec3::ZERO; n] };
         let mut rigged = RiggedAvatar::new(outline, ctx);
-        let mask = render_rigged(&rigged, ctx, target).1;
+        let mask = render_rigged(&rigged, ctx, target, WEIGH_SS).1;
         let mut c = GarmentCandidate {
             name: name.clone(),
             mask_iou: mask_iou(&mask, &target.mask),
@@ -195,7 +195,7 @@ pub async fn choose_garment_async(
         if outline_qualifies(&candidates[0], &c) {
             (rigged.canonical.normals, rigged.canonical.colors) =
                 geometry.vertex_fields_async(g, ctx, &styles, device).await?;
-            let (rgb, mask) = render_rigged(&rigged, ctx, target);
+            let (rgb, mask) = render_rigged(&rigged, ctx, target, WEIGH_SS);
             c.loss = Some(image_loss(target, &rgb, &mask));
         }
         candidates.push(c);
@@ -223,12 +223,23 @@ pub fn coverage(mask: &[f32], person: &[f32]) -> f32 {
     }
 }
 
-/// A rigged avatar re-posed to `target`'s body and rasterised at its camera (2×2 samples per
-/// pixel, vertex colours): sRGB HWC in [0, 1] and the coverage in [0, 1].
-pub fn render_rigged(rigged: &RiggedAvatar, ctx: &BodyContext, target: &InversionTarget) -> (Vec<f32>, Vec<f32>) {
+/// Samples per pixel and axis of the renders the garment codes are weighed on: the rule and its
+/// thresholds ([`WEIGH_BELOW_IOU`], [`outline_qualifies`]) were chosen on these. With 2×2 a
+/// pixel that two samples cover reads as covered, so an outline reads a quarter pixel wider
+/// than with the 8×8 that `trainer invert`'s figures use.
+pub const WEIGH_SS: usize = 2;
+
+/// A rigged avatar re-posed to `target`'s body and rasterised at its camera (`ss`×`ss` samples
+/// per pixel, vertex colours): sRGB HWC in [0, 1] and the coverage in [0, 1].
+pub fn render_rigged(
+    rigged: &RiggedAvatar,
+    ctx: &BodyContext,
+    target: &InversionTarget,
+    ss: usize,
+) -> (Vec<f32>, Vec<f32>) {
     let (pos, nrm) = rigged.repose(ctx, &pose_body(&ctx.model, &target.view.body));
     let vp = OrbitCamera::default().projection_gl(1.0) * target.view.world_to_camera;
-    let v = render_views(&pos, &rigged.canonical.mesh.faces, &nrm, &rigged.canonical.colors, vp, target.res, 2);
+    let v = render_views(&pos, &rigged.canonical.mesh.faces, &nrm, &rigged.canonical.colors, vp, target.res, ss);
     (v.rgb.iter().map(|c| *c as f32 / 255.0).collect(), v.mask.iter().map(|m| *m as f32 / 255.0).collect())
 }
 
