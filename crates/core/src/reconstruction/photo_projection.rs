@@ -337,14 +337,9 @@ impl PhotoProjection {
             located.extend(p.iter().zip(n).map(|(p, n)| self.locate(*p, *n)));
             checkpoint().await;
         }
-        let on = |t: &Texture| -> Vec<(Vec3, f32)> {
-            located.iter().map(|l| l.map_or((Vec3::ZERO, 0.0), |(uv, w)| (t.sample(uv), w))).collect()
-        };
-        let samples = on(&self.photo);
-        checkpoint().await;
+        let samples = lookups(&located, &self.photo).await;
         let shift = if canonical.len() == colors.len() {
-            let inside = on(&self.photo_inside);
-            checkpoint().await;
+            let inside = lookups(&located, &self.photo_inside).await;
             colour_shift_async(canonical, &inside, colors).await
         } else {
             vec![Vec3::ZERO; colors.len()]
@@ -357,6 +352,17 @@ impl PhotoProjection {
 
 /// Points per slice of [`PhotoProjection::blend_async`]'s loops.
 const SLICE: usize = 4096;
+
+/// The colours of `t` at the photo positions `located` (zero weight where `None`), a
+/// checkpoint every [`SLICE`] points.
+async fn lookups(located: &[Option<(Vec2, f32)>], t: &Texture) -> Vec<(Vec3, f32)> {
+    let mut out = Vec::with_capacity(located.len());
+    for chunk in located.chunks(SLICE) {
+        out.extend(chunk.iter().map(|l| l.map_or((Vec3::ZERO, 0.0), |(uv, w)| (t.sample(uv), w))));
+        checkpoint().await;
+    }
+    out
+}
 
 /// Widths (Gaussian σ, metres) of the colour shift's two levels: the fine one keeps garment
 /// borders (a waist, a hem) where the photo saw them; the coarse one reaches what only the
