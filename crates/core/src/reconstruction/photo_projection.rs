@@ -1,7 +1,8 @@
 //! The photo's colours projected onto the reconstructed avatar (beyond the paper, on by
 //! default): users of single-image methods ask above all for a sharp front and a plausible
 //! back. Each surface point of the avatar, posed as in the photo, that the photo's camera sees
-//! (depth test against the avatar's own depth buffer) takes the photo's colour there; the
+//! (depth test against the avatar's own depth buffer) takes the photo's colour there (the photo
+//! sharpened first, [`PREFILTER`], so that the lookups give its detail back); the
 //! weight falls to 0 at grazing angles (`cos θ` between the normal and the direction to the
 //! camera from [`GRAZING`] to [`FACING`]) and beyond the person mask's border; the border's
 //! mixed pixels (mask below [`OWN_COLOUR`], part background) take the colours just inside it,
@@ -34,6 +35,14 @@ pub const FACING: f32 = 0.3;
 /// a head's dark hair in its face's colour. Chosen on the `instant` benchmark's 12 people,
 /// checked on 32 validation people (docs/benchmarks.md, "The photo's projection").
 pub const OWN_COLOUR: f32 = 0.65;
+/// The photo's sharpening before the bake looks it up ([`prefilter`]: each axis filtered by
+/// `[−a, 1 + 2a, −a]` with this `a`). A texel takes the photo bilinearly at its projection and
+/// a pixel of a render averages the texels it covers, so the photo comes back through a tent
+/// and a box: each pixel mixed an eighth with each neighbour along each axis, and again through
+/// the texture's own bilinear lookups; stripes two pixels wide lost half their contrast.
+/// `a = ¼` undoes the first to within an eighth at every frequency; 0.2 scored highest on the
+/// `instant` benchmark's 12 people (docs/benchmarks.md, "The photo's projection").
+pub const PREFILTER: f32 = 0.2;
 /// Rows of the photo handled between two checkpoints of [`PhotoProjection::new_async`]'s steps.
 const BAND_ROWS: usize = 64;
 /// How far (pixels) the photo's colours are carried beyond the person mask: a 32nd of the crop,
@@ -103,7 +112,8 @@ pub struct PhotoProjection {
     view: Mat4,
     view_proj: Mat4,
     /// The photo, linear-light (bilinear lookups): the border's mixed pixels filled from inside
-    /// ([`own_colour_pixels`]), what the seen surface takes.
+    /// ([`own_colour_pixels`]) and sharpened for the lookups ([`PREFILTER`]), what the seen
+    /// surface takes.
     photo: Texture,
     /// The same with every border pixel filled from inside the eroded mask, the colours the
     /// colour shift is estimated from: a border pixel the person covers still holds a little
@@ -224,6 +234,31 @@ async fn extend_from_interior(
     weight
 }
 
+/// The photo sharpened for its bilinear lookups: each axis filtered by `[−a, 1 + 2a, −a]`,
+/// the results clamped to [0, 1] (an edge's overshoot cut off). A row pass then a column pass;
+/// a checkpoint every [`BAND_ROWS`] rows of each.
+async fn prefilter(t: &[Vec3], res: usize, a: f32) -> Vec<Vec3> {
+    async fn pass(t: &[Vec3], res: usize, a: f32, step: usize) -> Vec<Vec3> {
+        let mut out = Vec::with_capacity(t.len());
+        for k in 0..t.len() {
+            if k % (BAND_ROWS * res) == BAND_ROWS * res - 1 {
+                checkpoint().await;
+            }
+            // The neighbours along the pass's axis, the edge pixel standing in beyond the crop.
+            let at_edge = if step == 1 { (k % res == 0, k % res + 1 == res) } else { (k < res, k + res >= t.len()) };
+            let lo = if at_edge.0 { t[k] } else { t[k - step] };
+            let hi = if at_edge.1 { t[k] } else { t[k + step] };
+            out.push((t[k] * (1.0 + 2.0 * a) - (lo + hi) * a).clamp(Vec3::ZERO, Vec3::ONE));
+        }
+        out
+    }
+    if a <= 0.0 || t.len() != res * res {
+        return t.to_vec();
+    }
+    let rows = pass(t, res, a, 1).await;
+    pass(&rows, res, a, res).await
+}
+
 impl PhotoProjection {
     /// A photo (`rgb` sRGB `res²·3`, `mask` `res²`, both in [0, 1]) seen through `world_to_camera`
     /// and `proj` (OpenGL clip), and the avatar's posed surface as that camera sees it. Two
@@ -275,6 +310,7 @@ impl PhotoProjection {
         let mut inside = texels.clone();
         extend_from_interior(&mut inside, mask, &eroded, res, reach(res)).await;
         let mask = extend_from_interior(&mut texels, mask, &interior, res, reach(res)).await;
+        let texels = prefilter(&texels, res, PREFILTER).await;
         let photo = Texture { width: res, height: res, texels };
         let photo_inside = Texture { width: res, height: res, texels: inside };
         Self { res, view: world_to_camera, view_proj, photo, photo_inside, mask, depth }
@@ -549,6 +585,39 @@ mod tests {
         f: &[[u32; 3]],
     ) -> PhotoProjection {
         crate::util::cooperative::run_blocking(PhotoProjection::new_async(view, proj, res, rgb, mask, v, f))
+    }
+
+    /// Stripes two pixels wide, looked up bilinearly at 8×8 points per pixel and averaged (what
+    /// the bake's lookups and a render at the photo's camera do), come back with their contrast
+    /// when the photo is prefiltered first; a plain colour stays as it is.
+    #[test]
+    fn the_prefiltered_photo_comes_back_through_the_lookups_with_its_stripes() {
+        let res = 32;
+        let stripes: Vec<Vec3> =
+            (0..res * res).map(|k| Vec3::splat(if (k % res) / 2 % 2 == 0 { 0.2 } else { 0.8 })).collect();
+        let through_lookups = |texels: Vec<Vec3>| {
+            let t = Texture { width: res, height: res, texels };
+            let error = (0..res * res)
+                .filter(|k| (4..res - 4).contains(&(k % res)) && (4..res - 4).contains(&(k / res)))
+                .map(|k| {
+                    let (x, y) = ((k % res) as f32, (k / res) as f32);
+                    let mut sum = Vec3::ZERO;
+                    for i in 0..64 {
+                        let (sx, sy) = ((i % 8) as f32 + 0.5, (i / 8) as f32 + 0.5);
+                        sum += t.sample(Vec2::new((x + sx / 8.0) / res as f32, 1.0 - (y + sy / 8.0) / res as f32));
+                    }
+                    (sum / 64.0 - stripes[k]).x.powi(2)
+                })
+                .sum::<f32>();
+            error.sqrt()
+        };
+        let plain = through_lookups(stripes.clone());
+        let sharpened = through_lookups(run_blocking(prefilter(&stripes, res, PREFILTER)));
+        assert!(plain > 1.0, "the stripes lose contrast through plain lookups: {plain}");
+        assert!(sharpened < 0.5 * plain, "prefiltered {sharpened} against plain {plain}");
+        let grey = vec![Vec3::new(0.3, 0.5, 0.7); res * res];
+        let kept = run_blocking(prefilter(&grey, res, PREFILTER));
+        assert!(kept.iter().zip(&grey).all(|(a, b)| (*a - *b).abs().max_element() < 1e-6));
     }
 
     /// A unit quad facing +z at z = 0 and a second one behind it at z = −0.5.
