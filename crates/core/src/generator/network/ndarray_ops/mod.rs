@@ -29,7 +29,8 @@
 //! scatters only the texels the points touch.
 
 // burn marks NdArray deprecated in favour of burn-flex; it is still this project's CPU backend
-// (docs/benchmarks.md, "burn's flex CPU backend").
+// (measured against it: docs/benchmarks.md, "Training", the step time the same, its values
+// not checked against NdArray's).
 #![allow(deprecated)]
 
 use std::borrow::Cow;
