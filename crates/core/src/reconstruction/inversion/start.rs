@@ -3,6 +3,7 @@
 
 use std::sync::Arc;
 
+use burn::module::Module;
 use burn::tensor::Device;
 
 use super::target::*;
@@ -110,7 +111,10 @@ pub fn start_candidates(g: &Generator, modes: Option<&LatentModes>) -> Vec<Start
 }
 
 /// The start whose render at the target's camera has the lowest image loss (RGB L1 + MSE +
-/// silhouette), with each candidate's loss. Renders without gradients.
+/// silhouette), with each candidate's loss. Renders without gradients: the generator's
+/// parameters untracked, so that on an autodiff device no candidate's forward pass leaves a
+/// graph behind (one is kept until a backward pass: 85 MB per candidate on the demo model,
+/// 5.9 GB over its 65, which ended the browser worker's 4 GB).
 /// The read-backs are awaited (every platform; `block_on_ready` natively).
 pub async fn choose_start_async(
     g: &Generator,
@@ -120,6 +124,7 @@ pub async fn choose_start_async(
     device: &Device,
 ) -> Result<(usize, Vec<f32>), InversionError> {
     target.validate()?;
+    let g = &g.clone().no_grad();
     let grids = PosedGridCache::new(2);
     let mut losses = Vec::new();
     for c in candidates {
