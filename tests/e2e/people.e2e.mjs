@@ -15,6 +15,10 @@
 //    person): read again on the mirrored photo, whose reading is fitted;
 //  - no person: one clear message, the app as it was;
 //  - one person as taken: the person mask the fit uses is the composited silhouette (IoU);
+//  - the photo encoder's file broken (this page gets bytes that are no encoder; the app e2e
+//    runs the shipped one): Reconstruct `instant` starts from the search of the model's
+//    subjects in one stage, the status names the file and the fallback, and the avatar is
+//    that start, measured at the photo's camera;
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the
 // fit explains the person's mask (IoU), and no console error. Prints, per case, the
 // detection and fit times and which candidate won (docs/benchmarks.md).
@@ -48,6 +52,9 @@ await page.route('**/people/*.png', (route) => {
   const c = photos.get(decodeURIComponent(route.request().url().split('/').pop()));
   return c ? route.fulfill({ status: 200, contentType: 'image/png', body: c.png }) : route.fulfill({ status: 404 });
 });
+// No usable photo encoder on this page.
+await page.route('**/models/encoder.safetensors', (route) =>
+  route.fulfill({ status: 200, contentType: 'application/octet-stream', body: Buffer.from('not an encoder file') }));
 await page.goto(url);
 const { status, waitFor } = appStatus(page);
 await waitFor((s) => s.ready, 'the app', 300000);
@@ -143,6 +150,27 @@ for (const { name, expect, truth } of photos.values()) {
     check(!bad && after.errors.at(-1)?.includes('no person 9') && after.photo.person === 3,
       `a person the photo does not have is refused with a message ("${after.errors.at(-1)}")`);
   }
+}
+// Reconstruct without a usable encoder file: the search's start in one stage, and why.
+{
+  const before = (await status()).photo;
+  const e = await page.evaluate((c) => window.getavatar.command(c), { photo: { url: 'people/backlit.png', iterations: ITERATIONS } });
+  if (e) throw new Error(`backlit.png: ${e}`);
+  const p = await fitDone(before, 'backlit.png, for the reconstruction');
+  check(p.state === 'fitted', `backlit.png fitted again for the reconstruction ("${p.message}")`);
+  const t0 = Date.now();
+  const err = await page.evaluate(() => window.getavatar.command({ reconstruct: { preset: 'instant' } }));
+  check(!err, `the instant reconstruct command is accepted (${err})`);
+  const rec = (await waitFor((s) => ['done', 'failed', 'cancelled'].includes(s.reconstruct.state),
+    'the reconstruction without a usable encoder', 900000, (s) => JSON.stringify(s?.reconstruct?.message))).reconstruct;
+  console.log(`without a usable encoder: ${rec.state} in ${((Date.now() - t0) / 1000).toFixed(0)} s, start ${rec.start} of ${rec.candidates}; "${rec.start_note}"; "${rec.message}"`);
+  check(rec.state === 'done' && /^(mode \d+|w_avg)$/.test(rec.start) && rec.candidates > 1,
+    `a broken encoder file: the start is the search's (${rec.state}, "${rec.start}" of ${rec.candidates})`);
+  check(/models\/encoder\.safetensors cannot be used \(.+\): searched the model's subjects instead/.test(rec.start_note)
+    && rec.message.endsWith(rec.start_note),
+    `the status and the panel's last line say which file cannot be used and what ran instead ("${rec.start_note}")`);
+  check(rec.refit_on === 'worker' && !/encoder's guess/.test(rec.message) && rec.mask_iou >= 0.6,
+    `one stage (the body refitted inside it, not after a guess), measured: IoU ${rec.mask_iou?.toFixed(3)} ≥ 0.6 ("${rec.message}")`);
 }
 await page.screenshot({ path: `${process.env.GETAVATAR_OUT ?? 'out'}/people_last.png` }).catch(() => {});
 console.log('\ncase | detection s | fit s | tries | fitted person / people | turn | mirrored');

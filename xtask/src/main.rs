@@ -309,7 +309,8 @@ fn test_suites(native: bool, browser: bool, clock: &mut Clock) -> Result<()> {
             run(&mut c)
         };
         clock.time("app e2e", || node(&["app.e2e.mjs"]))?;
-        // Person finding on hard photos (several people, upside down, lying, backlit, none).
+        // Person finding on hard photos (several people, upside down, lying, backlit, none), then
+        // Reconstruct with a broken photo encoder file (the search's start, and why).
         clock.time("people e2e", || node(&["people.e2e.mjs"]))?;
         // Motion from a video: bad files, the dance clip read, fitted, played, exported, cut.
         clock.time("video e2e", || node(&["video.e2e.mjs"]))?;

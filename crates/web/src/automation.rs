@@ -233,6 +233,29 @@ pub enum StartChoice {
     Average,
 }
 
+impl StartChoice {
+    /// The start a stage runs from, and why it is not this one ("" when it is): the encoder's
+    /// start without a usable encoder file (`encoder`: why not) is the search.
+    pub fn or_search(self, encoder: Result<(), &str>) -> (StartChoice, String) {
+        match (self, encoder) {
+            (StartChoice::Encoder, Err(why)) => {
+                (StartChoice::Search, format!("{why}: searched the model's subjects instead"))
+            }
+            (start, _) => (start, String::new()),
+        }
+    }
+
+    /// A first stage's start in words (`why`: why the search runs instead of the encoder, or "").
+    pub fn opening(self, why: &str) -> String {
+        match self {
+            StartChoice::Encoder => "the photo encoder's guess".into(),
+            StartChoice::Search if why.is_empty() => "choosing the start among the model's subjects".into(),
+            StartChoice::Search => format!("choosing the start among the model's subjects ({why})"),
+            StartChoice::Average => "starting from the average".into(),
+        }
+    }
+}
+
 /// Which device the reconstruction worker computes on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -716,6 +739,18 @@ fn percent_decode(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_encoder_start_without_a_usable_file_is_the_search_and_says_why() {
+        assert_eq!(StartChoice::Encoder.or_search(Ok(())), (StartChoice::Encoder, String::new()));
+        let why = "models/encoder.safetensors cannot be used (bad)";
+        let (start, note) = StartChoice::Encoder.or_search(Err(why));
+        assert_eq!(start, StartChoice::Search);
+        assert_eq!(note, format!("{why}: searched the model's subjects instead"));
+        assert_eq!(StartChoice::Average.or_search(Err(why)), (StartChoice::Average, String::new()));
+        assert_eq!(start.opening(why), format!("choosing the start among the model's subjects ({why})"));
+        assert_eq!(StartChoice::Search.opening(""), "choosing the start among the model's subjects");
+    }
 
     #[test]
     fn query_parameters_become_actions() {

@@ -24,6 +24,7 @@ use getavatar_core::generator::pipeline::{
 use getavatar_core::generator::readback::ReadbackError;
 use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::generator::rigging::{warm_bake_kernels, BakedTexture, RiggedAvatar};
+use getavatar_core::reconstruction::encoder::load_encoder_for;
 use getavatar_core::util::profile;
 
 use crate::automation::Compute;
@@ -87,10 +88,25 @@ async fn load_shipped(cfg: &GeneratorConfig, device: &Device) -> Result<Shipped,
         None => Err("no discriminator ships with this build".into()),
     };
     let encoder = match manifest.get("encoder") {
-        Some(_) => fetch_bytes(ENCODER_URL).await.map(Rc::new),
+        Some(_) => fetch_bytes(ENCODER_URL).await.and_then(|bytes| usable_encoder(bytes, &g)),
         None => Err("no photo encoder ships with this build".into()),
     };
     Ok(Shipped { generator: g, cfg, modes, bytes: Rc::new(bytes), discriminator: disc, encoder })
+}
+
+/// The encoder file's bytes if they load as an encoder for `g` (on the CPU, the weights then
+/// dropped: a few MB), else why not, so a broken file is known when the model loads and a
+/// reconstruction starts from the search of the model's subjects, saying why, in one stage.
+fn usable_encoder(bytes: Vec<u8>, g: &Generator) -> Result<Rc<Vec<u8>>, String> {
+    #[allow(deprecated)] // burn 0.22 marks NdArray deprecated in favour of flex; the project's CPU backend.
+    let cpu = Device::ndarray();
+    match load_encoder_for(&bytes, g, &cpu) {
+        Ok(_) => Ok(Rc::new(bytes)),
+        Err(e) => {
+            web_sys::console::warn_1(&format!("{ENCODER_URL} cannot be used: {e}").into());
+            Err(format!("{ENCODER_URL} cannot be used ({e})"))
+        }
+    }
 }
 
 /// Generate one avatar and drop it, while the model loads: the first use of each GPU kernel

@@ -162,6 +162,9 @@ pub struct ReconstructStatus {
     /// The start (latent mode or w_avg) and of how many candidates.
     pub start: String,
     pub candidates: usize,
+    /// Why the start, the garment codes or the body's refit are not what was asked for ("":
+    /// they are), e.g. an encoder file that cannot be used: the search started instead.
+    pub start_note: String,
     /// The garment code whose geometry replaced the encoder's guess's
     /// (`reconstruction::garment_codes`; "" when the guess's own geometry stayed).
     pub garment: String,
@@ -236,6 +239,60 @@ pub struct ReconstructStatus {
     pub has_photo: bool,
 }
 
+/// What a reconstruction stage does, for its opening line ([`ReconstructStatus::stage_message`]).
+pub struct StageStart<'a> {
+    /// The stage the user started (else the one after the encoder's guess).
+    pub first: bool,
+    /// It refits the body on the start's outline, weighs the garment codes, runs steps.
+    pub refits: bool,
+    pub garments: bool,
+    pub refines: bool,
+    /// A first stage's start in words ("the photo encoder's guess", …).
+    pub opening: &'a str,
+    /// Appended (e.g. " (perceptual term off: …)").
+    pub note: &'a str,
+}
+
+impl ReconstructStatus {
+    /// A stage's opening line: a first stage's start, or after the guess how long it took (and
+    /// the page's refit) and what this stage does.
+    pub fn stage_message(&self, st: &StageStart) -> String {
+        let refitted = match self.refit_on.as_str() {
+            "page" => format!(", refitted to its outline in {:.1} s", self.refit_ms / 1000.0),
+            _ => String::new(),
+        };
+        let first = self.first_avatar_ms / 1000.0;
+        let after_guess = |what: &str| format!("the encoder's guess in {first:.1} s{refitted}; {what}…{}", st.note);
+        match st {
+            StageStart { first: true, .. } => format!("{}…{}", st.opening, st.note),
+            StageStart { refits: true, garments: true, refines: false, .. } => {
+                after_guess("weighing the garment codes, then fitting the body to the chosen outline")
+            }
+            StageStart { refits: true, refines: false, .. } => after_guess("fitting the body to its outline"),
+            StageStart { refits: true, .. } => after_guess("fitting the body to its outline, then refining it"),
+            StageStart { refines: false, .. } => after_guess("projecting the photo on it at the refitted camera"),
+            _ => after_guess("refining it"),
+        }
+    }
+
+    /// A finished job's last line, with why its start is not the one asked for where it is not.
+    pub fn with_start_note(&self, message: String) -> String {
+        match self.start_note.as_str() {
+            "" => message,
+            note => format!("{message} — {note}"),
+        }
+    }
+
+    /// The first avatar in words: the encoder's guess, or the start the search chose (where no
+    /// encoder file could be used, [`ReconstructStatus::start_note`] says why).
+    pub fn first_avatar_name(&self) -> String {
+        match self.candidates {
+            0 | 1 => self.start.clone(),
+            n => format!("the start from {} (the best of {n})", self.start),
+        }
+    }
+}
+
 /// Motion playback, for the tests.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct MotionStatus {
@@ -307,4 +364,55 @@ pub struct VideoStatus {
     pub clips_made: u64,
     pub failures: u64,
     pub message: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stage_says_where_it_starts_and_what_it_does() {
+        let s = ReconstructStatus {
+            first_avatar_ms: 2140.0,
+            refit_on: "page".into(),
+            refit_ms: 900.0,
+            ..Default::default()
+        };
+        let st = |first, refits, garments, refines| StageStart {
+            first,
+            refits,
+            garments,
+            refines,
+            opening: "choosing the start among the model's subjects (x.safetensors cannot be used (bad))",
+            note: " (perceptual term off: none)",
+        };
+        assert_eq!(
+            s.stage_message(&st(true, true, true, true)),
+            "choosing the start among the model's subjects (x.safetensors cannot be used (bad))… (perceptual term off: none)"
+        );
+        assert_eq!(
+            s.stage_message(&st(false, true, true, false)),
+            "the encoder's guess in 2.1 s, refitted to its outline in 0.9 s; weighing the garment codes, then \
+             fitting the body to the chosen outline… (perceptual term off: none)"
+        );
+        let worker = ReconstructStatus { refit_on: "worker".into(), ..s };
+        assert_eq!(
+            worker.stage_message(&st(false, true, false, true)),
+            "the encoder's guess in 2.1 s; fitting the body to its outline, then refining it… (perceptual term off: none)"
+        );
+        assert!(worker.stage_message(&st(false, false, false, false)).contains("; projecting the photo on it"));
+        assert!(worker.stage_message(&st(false, false, false, true)).contains("; refining it…"));
+    }
+
+    #[test]
+    fn the_first_avatar_is_named_by_its_start() {
+        let guess = ReconstructStatus { start: "the encoder's guess".into(), candidates: 1, ..Default::default() };
+        assert_eq!(guess.first_avatar_name(), "the encoder's guess");
+        let searched = ReconstructStatus { start: "mode 8".into(), candidates: 65, ..Default::default() };
+        assert_eq!(searched.first_avatar_name(), "the start from mode 8 (the best of 65)");
+        assert_eq!(searched.with_start_note("done".into()), "done");
+        let noted =
+            ReconstructStatus { start_note: "e.safetensors cannot be used (bad): searched …".into(), ..searched };
+        assert_eq!(noted.with_start_note("done".into()), "done — e.safetensors cannot be used (bad): searched …");
+    }
 }

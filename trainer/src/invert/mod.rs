@@ -39,7 +39,7 @@ use getavatar_core::generator::rigging::generate_rigged_async;
 use getavatar_core::generator::rigging::{BakedTexture, RiggedAvatar};
 use getavatar_core::io::dataset::{find_scans, load_body_fit, load_scan, Dataset};
 use getavatar_core::io::scan::RenderableScan;
-use getavatar_core::reconstruction::encoder::{load_encoder, Encoder};
+use getavatar_core::reconstruction::encoder::{load_encoder_for, Encoder};
 use getavatar_core::reconstruction::garment_codes::GarmentCodes;
 use getavatar_core::reconstruction::inversion::{
     comparison_image, mask_iou, masked_psnr, render_images, InversionOptions, InversionTarget, Inverter, Phase,
@@ -318,8 +318,7 @@ fn load_encoder_arg(
     }
     let path = a.encoder.clone().or_else(|| shipped.and_then(shipped_encoder))?;
     let loaded = std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| {
-        let e = load_encoder(&b, dev)?;
-        e.check(g)?;
+        let e = load_encoder_for(&b, g, dev)?;
         Ok((e, b))
     });
     match loaded {

@@ -313,6 +313,14 @@ pub fn load_encoder(bytes: &[u8], device: &Device) -> Result<Encoder, EncoderErr
     Ok(crate::generator::checkpoint::load_params(Encoder::new(&cfg, 0, device), &st.tensors, prefix, device)?)
 }
 
+/// [`load_encoder`] for generator `g`: refused unless its output fits `g`'s W+ layout
+/// ([`Encoder::check`]), so a file that cannot serve `g` is known before any photo.
+pub fn load_encoder_for(bytes: &[u8], g: &Generator, device: &Device) -> Result<Encoder, EncoderError> {
+    let e = load_encoder(bytes, device)?;
+    e.check(g)?;
+    Ok(e)
+}
+
 /// One image's encoder input: `INPUT_CHANNELS·PATCH²` channels at `(res/PATCH)²`, CHW.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EncoderInput {
@@ -598,9 +606,18 @@ mod tests {
         let big = EncoderConfig { hidden: 60, ..cfg.clone() };
         let lying = save_encoder(&params, &big, &BTreeMap::new()).unwrap();
         assert!(matches!(load_encoder(&lying, &dev), Err(EncoderError::Format(_))));
-        // Another generator's layout is refused before any forward pass.
-        let wrong = Encoder::new(&EncoderConfig { num_ws_geo: ng + 1, ..cfg }, 2, &dev);
+        // Another generator's layout is refused before any forward pass, and by the load for it.
+        let wrong_cfg = EncoderConfig { num_ws_geo: ng + 1, ..cfg.clone() };
+        let wrong = Encoder::new(&wrong_cfg, 2, &dev);
         let err = wrong.check(&g).unwrap_err();
         assert!(matches!(err, EncoderError::Generator(..)), "{err}");
+        let wrong_bytes =
+            save_encoder(&crate::generator::checkpoint::collect_params(&wrong).unwrap(), &wrong_cfg, &BTreeMap::new())
+                .unwrap();
+        assert!(load_encoder(&wrong_bytes, &dev).is_ok());
+        let err = load_encoder_for(&wrong_bytes, &g, &dev).unwrap_err();
+        assert!(matches!(err, EncoderError::Generator(..)), "{err}");
+        assert!(matches!(load_encoder_for(b"not an encoder", &g, &dev), Err(EncoderError::Checkpoint(_))));
+        assert_eq!(load_encoder_for(&bytes, &g, &dev).unwrap().config(), cfg);
     }
 }

@@ -23,6 +23,7 @@ use crate::reconstruct::{
     open, reconstruct, save, InversionJob, Measured, Preview, ProjectionSource, ReconstructEvent, ReconstructRequest,
     ReconstructTask, Reconstructed,
 };
+use crate::status::StageStart;
 use crate::texture_field::TextureField;
 
 /// Side of the photo crop that the colour projection samples, pixels.
@@ -288,26 +289,13 @@ impl GetAvatarApp {
             options.perceptual = 0.0;
         }
         let s = &mut self.status.reconstruct;
-        // After the guess: how long it took (and the page's refit), and what this stage does.
-        let refitted = match s.refit_on.as_str() {
-            "page" => format!(", refitted to its outline in {:.1} s", s.refit_ms / 1000.0),
-            _ => String::new(),
-        };
-        let after_guess =
-            |what: &str| format!("the encoder's guess in {:.1} s{refitted}; {what}…{note}", s.first_avatar_ms / 1000.0);
+        // The encoder's start without a usable encoder file is the search, and says why.
+        let why = files.encoder.as_ref().err().map_or("", String::as_str);
+        let (start, start_note) = r.start.or_search(files.encoder.as_ref().map(|_| ()).map_err(String::as_str));
+        let opening = start.opening(if start_note.is_empty() { "" } else { why });
         let refines = options.steps + options.pti_steps > 0;
-        let message = match r.start {
-            _ if !first && refits && options.garments && !refines => {
-                after_guess("weighing the garment codes, then fitting the body to the chosen outline")
-            }
-            _ if !first && refits && !refines => after_guess("fitting the body to its outline"),
-            _ if !first && refits => after_guess("fitting the body to its outline, then refining it"),
-            _ if !first && !refines => after_guess("projecting the photo on it at the refitted camera"),
-            _ if !first => after_guess("refining it"),
-            StartChoice::Encoder => format!("the photo encoder's guess…{note}"),
-            StartChoice::Search => format!("choosing the start among the model's subjects…{note}"),
-            StartChoice::Average => format!("starting from the average…{note}"),
-        };
+        let (garments, note) = (options.garments, &note);
+        let message = s.stage_message(&StageStart { first, refits, garments, refines, opening: &opening, note });
         let steps_total = options.steps + options.pti_steps;
         *s = if first {
             ReconstructStatus {
@@ -335,7 +323,8 @@ impl GetAvatarApp {
             projection,
             options,
             preview_every: r.preview_every,
-            start: r.start,
+            start,
+            start_note,
             encoder: files.encoder.ok(),
             compute: r.compute,
             // The guess alone (`instant`): on screen before its figures.
@@ -368,6 +357,7 @@ impl GetAvatarApp {
                 } => {
                     let s = &mut self.status.reconstruct;
                     let of = if candidates > 1 { format!(" (best of {candidates})") } else { String::new() };
+                    let raw_note = note.clone();
                     let note = if note.is_empty() { String::new() } else { format!(" — {note}") };
                     let with = match (garment.as_str(), garment_codes.codes, garment_codes.weighed) {
                         (_, 0, _) => String::new(),
@@ -381,6 +371,7 @@ impl GetAvatarApp {
                         if in_worker { "in a worker" } else { "on the page" }
                     );
                     (s.start, s.candidates, s.perceptual) = (start, candidates, perceptual);
+                    s.start_note = raw_note;
                     (s.garment, s.garment_codes, s.garments_weighed) =
                         (garment, garment_codes.codes, garment_codes.weighed);
                     s.garment_guess_reused = garment_codes.guess_reused;
@@ -482,11 +473,9 @@ impl GetAvatarApp {
                 }
                 s.state = "measuring".into();
                 (s.finish_ms, s.finish_detail) = (r.finish_ms as f32, r.finish_detail.clone());
-                s.message = format!(
-                    "{} in {:.1} s; measuring it at the photo's camera…",
-                    if self.recon.measuring_first { "the encoder's guess" } else { "on the refitted body" },
-                    since_click / 1000.0
-                );
+                let what =
+                    if self.recon.measuring_first { s.first_avatar_name() } else { "on the refitted body".into() };
+                s.message = format!("{what} in {:.1} s; measuring it at the photo's camera…", since_click / 1000.0);
             }
             (None, fit) => {
                 let (iou, psnr) = fit.unwrap_or((f32::NAN, f32::NAN));
@@ -517,7 +506,8 @@ impl GetAvatarApp {
                     }
                     (None, None) => {
                         s.done += 1;
-                        s.message = format!("reconstructed in {:.0} s: {figures} (last step)", since_click / 1000.0);
+                        let done = format!("reconstructed in {:.0} s: {figures} (last step)", since_click / 1000.0);
+                        s.message = s.with_start_note(done);
                     }
                 }
             }
@@ -673,9 +663,10 @@ impl GetAvatarApp {
         s.finish_detail = format!("{}; worker, after it: figures {:.1} s", s.finish_detail, m.millis / 1000.0);
         let first = s.first_avatar_ms / 1000.0;
         // The guess shown first, or (after it) the guess on the body refitted to its outline.
+        let name = s.first_avatar_name();
         let what = match self.recon.measuring_first {
-            true => format!("the encoder's guess in {first:.1} s"),
-            false => format!("the encoder's guess in {first:.1} s, then on the body refitted to its outline"),
+            true => format!("{name} in {first:.1} s"),
+            false => format!("{name} in {first:.1} s, then on the body refitted to its outline"),
         };
         match m.figures {
             Ok(((iou, psnr), preview)) => {
@@ -683,10 +674,12 @@ impl GetAvatarApp {
                 if self.recon.measuring_first {
                     (s.first_mask_iou, s.first_psnr_db) = (iou, psnr);
                 }
-                s.message = format!("{what}: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera");
+                s.message = s.with_start_note(format!(
+                    "{what}: mask IoU {iou:.2}, masked PSNR {psnr:.1} dB at the photo's camera"
+                ));
                 self.show_preview(ctx, &preview);
             }
-            Err(why) => s.message = format!("{what} ({why})"),
+            Err(why) => s.message = s.with_start_note(format!("{what} ({why})")),
         }
     }
 

@@ -18,7 +18,7 @@ use getavatar_core::generator::network::GeneratorConfig;
 use getavatar_core::generator::pipeline::{BodyContext, Generator, Styles};
 use getavatar_core::generator::readback::read_f32;
 use getavatar_core::generator::rigging::{RiggedArrays, RiggedAvatar};
-use getavatar_core::reconstruction::encoder::load_encoder;
+use getavatar_core::reconstruction::encoder::load_encoder_for;
 use getavatar_core::reconstruction::garment_codes::{choose_garment_async, GarmentCodes};
 use getavatar_core::reconstruction::inversion::{
     choose_start_async, encoder_start, mask_iou, masked_psnr, refit_to_rigged, refit_to_start, render_images_async,
@@ -49,6 +49,9 @@ pub struct InversionJob {
     pub preview_every: usize,
     /// Where the codes start.
     pub start: StartChoice,
+    /// Why the start is not the one the user asked for ("" when it is): the page knows when
+    /// the encoder file cannot be used and asks for the search instead.
+    pub start_note: String,
     /// The shipped photo encoder's bytes (None: none ships; `StartChoice::Encoder` then
     /// searches the model's subjects and says so).
     pub encoder: Option<Rc<Vec<u8>>>,
@@ -516,10 +519,10 @@ async fn choose_start(
     ctx: &BodyContext,
     dev: &Device,
 ) -> Result<(StartCandidate, usize, String), String> {
-    let mut note = String::new();
+    let mut note = job.start_note.clone();
     if job.start == StartChoice::Encoder {
         let guess = match &job.encoder {
-            Some(bytes) => load_encoder(bytes, dev)
+            Some(bytes) => load_encoder_for(bytes, g, dev)
                 .and_then(|enc| encoder_start(&enc, g, &ctx.model, &job.target, dev))
                 .map_err(|e| format!("the photo encoder cannot be used ({e})")),
             None => Err("no photo encoder ships with this build".to_string()),

@@ -92,6 +92,7 @@ pub(super) struct JobMeta {
     pub(super) options: InversionOptions,
     pub(super) preview_every: usize,
     pub(super) start: StartChoice,
+    pub(super) start_note: String,
     pub(super) compute: Compute,
     pub(super) world_to_camera: [f32; 16],
     pub(super) body: BodyParams,

@@ -276,6 +276,7 @@ async fn job<'a>(
         options: meta.options,
         preview_every: meta.preview_every,
         start: meta.start,
+        start_note: meta.start_note,
         encoder,
         compute: meta.compute,
         measure_after_result: meta.measure_after_result,

@@ -464,6 +464,7 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
         options: job.options.clone(),
         preview_every: job.preview_every,
         start: job.start,
+        start_note: job.start_note.clone(),
         compute: job.compute,
         world_to_camera: t.view.world_to_camera.to_cols_array(),
         body: t.view.body.clone(),
