@@ -19,6 +19,9 @@
 //    runs the shipped one): Reconstruct `instant` starts from the search of the model's
 //    subjects in one stage, the status names the file and the fallback, and the avatar is
 //    that start, measured at the photo's camera;
+//  - the reconstruction worker crashing in a job (an uncaught error thrown in it, as a wasm
+//    trap would): the job fails saying so, the page does not take it over, and the next job
+//    runs in a fresh worker;
 // each fitted body lies in its person's box (the fitted body's mask from photoMasks()), the
 // fit explains the person's mask (IoU), and no console error. Prints, per case, the
 // detection and fit times and which candidate won (docs/benchmarks.md).
@@ -45,7 +48,9 @@ const photos = new Map(cases().map((c) => [c.name, c]));
 const browser = await launchChromium();
 const page = await (await browser.newContext({ viewport: { width: 1280, height: 800 }, deviceScaleFactor: 1 })).newPage();
 const consoleErrors = [];
-page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+// The crash this test injects into the reconstruction worker is the one expected error.
+const CRASH = 'e2e: the reconstruction worker crashes';
+page.on('console', (m) => { if (m.type() === 'error' && !m.text().includes(CRASH)) consoleErrors.push(m.text()); });
 page.on('pageerror', (e) => consoleErrors.push(`pageerror: ${e.message}`));
 // The photos come from this script, as if they were files next to the page.
 await page.route('**/people/*.png', (route) => {
@@ -171,6 +176,24 @@ for (const { name, expect, truth } of photos.values()) {
     `the status and the panel's last line say which file cannot be used and what ran instead ("${rec.start_note}")`);
   check(rec.refit_on === 'worker' && !/encoder's guess/.test(rec.message) && rec.mask_iou >= 0.6,
     `one stage (the body refitted inside it, not after a guess), measured: IoU ${rec.mask_iou?.toFixed(3)} ≥ 0.6 ("${rec.message}")`);
+}
+// The worker crashing in a job: the job fails saying so; the next runs in a fresh worker.
+{
+  const ask = (steps) => page.evaluate((steps) => window.getavatar.command({ reconstruct: { steps, pti_steps: 0, res: 64, preview_every: 1, start: 'average' } }), steps);
+  const ended = (steps, what) => waitFor((s) => s.reconstruct.steps_total === steps && ['done', 'failed', 'cancelled'].includes(s.reconstruct.state),
+    what, 600000, (s) => JSON.stringify(s?.reconstruct?.message));
+  check(!(await ask(30)), 'a 30-step reconstruction is accepted');
+  await waitFor((s) => s.reconstruct.steps_total === 30 && (s.reconstruct.steps_done >= 1 || ['done', 'failed'].includes(s.reconstruct.state)),
+    'the first step of the job the worker crashes in', 600000);
+  const worker = page.workers().find((w) => /reconstruct_worker/.test(w.url()));
+  await worker.evaluate((msg) => { setTimeout(() => { throw new Error(msg); }, 0); }, CRASH);
+  let rec = (await ended(30, 'the job the worker crashed in')).reconstruct;
+  check(rec.state === 'failed' && rec.message.includes(`the reconstruction worker stopped (`) && rec.message.includes(CRASH) && rec.steps_done < 30,
+    `the worker's crash fails its job, saying so (${rec.state} after ${rec.steps_done} steps: "${rec.message}")`);
+  check(!(await ask(1)), 'a reconstruction after the crash is accepted');
+  rec = (await ended(1, 'the job after the crash')).reconstruct;
+  check(rec.state === 'done' && rec.runs_in === 'worker',
+    `the next job runs in a fresh worker (${rec.state}, ${rec.runs_in}: ${rec.device}; "${rec.message}")`);
 }
 await page.screenshot({ path: `${process.env.GETAVATAR_OUT ?? 'out'}/people_last.png` }).catch(() => {});
 console.log('\ncase | detection s | fit s | tries | fitted person / people | turn | mirrored');

@@ -63,6 +63,8 @@ struct Client {
     running: RefCell<Option<Running>>,
     /// The model files the worker holds (sent with an earlier job).
     sent: RefCell<ModelFiles>,
+    /// The worker has answered: its script runs, so an error from it now is a crash.
+    heard: Cell<bool>,
     _onmessage: Closure<dyn FnMut(JsValue)>,
     _onerror: Closure<dyn FnMut(JsValue)>,
 }
@@ -403,10 +405,10 @@ fn client() -> Result<Rc<Client>, String> {
         let data = js_sys::Reflect::get(&e, &"data".into()).unwrap_or(JsValue::UNDEFINED);
         on_message(data);
     });
-    // The worker's script failed to load or threw outside a job: no worker from now on.
+    // The worker's script failed to load, or the worker crashed.
     let onerror = Closure::<dyn FnMut(JsValue)>::new(|e: JsValue| {
         let msg = js_sys::Reflect::get(&e, &"message".into()).ok().and_then(|m| m.as_string());
-        unavailable(msg.unwrap_or_else(|| "the worker's script did not load".into()));
+        worker_error(msg.unwrap_or_else(|| "the worker's script did not load".into()));
     });
     worker.set_onmessage(onmessage.as_ref().unchecked_ref());
     worker.set_onerror(onerror.as_ref().unchecked_ref());
@@ -414,6 +416,7 @@ fn client() -> Result<Rc<Client>, String> {
         worker,
         running: RefCell::new(None),
         sent: RefCell::new(ModelFiles::default()),
+        heard: Cell::new(false),
         _onmessage: onmessage,
         _onerror: onerror,
     });
@@ -506,6 +509,7 @@ fn start_message(job: &InversionJob, client: &Client) -> Result<Message, String>
 /// A message from the worker.
 fn on_message(data: JsValue) {
     let Some(client) = CLIENT.with(|c| c.borrow().clone()) else { return };
+    client.heard.set(true);
     let event = match json_of(&data).and_then(|j| serde_json::from_str::<FromWorker>(&j).map_err(|e| e.to_string())) {
         Ok(e) => e,
         Err(e) => FromWorker::Failed { message: format!("the reconstruction worker's message is unreadable: {e}") },
@@ -607,6 +611,25 @@ fn on_message(data: JsValue) {
             drop(slot);
             drop_client();
         }
+    }
+}
+
+/// An error from the worker outside a job's own handling. Before it ever answered, its script
+/// did not load: no worker from now on ([`unavailable`]). After, it crashed (a wasm trap, e.g.
+/// out of its 4 GB): the running job fails saying so, not taken over by the page (on a
+/// software adapter 16× slower there), and the next job or call starts a fresh worker.
+fn worker_error(why: String) {
+    let Some(client) = CLIENT.with(|c| c.borrow().clone()) else { return };
+    if !client.heard.get() {
+        return unavailable(why);
+    }
+    let running = client.running.borrow_mut().take();
+    drop(client);
+    let why = format!("the reconstruction worker stopped ({why})");
+    web_sys::console::warn_1(&JsValue::from_str(&format!("{why}; the next job starts a new one")));
+    drop_client();
+    if let Some(r) = running {
+        r.task.push(ReconstructEvent::Failed(format!("{why}; Reconstruct again starts a new one")), &r.repaint);
     }
 }
 
